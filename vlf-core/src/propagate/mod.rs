@@ -1,0 +1,501 @@
+//! Propagation: Jacobi-style shooting of light along every ray of every
+//! direction, iteration after iteration.
+//!
+//! ## Energy normalisation (the paper's section 4.4, made exact)
+//!
+//! Diffuse texels hold **power** (Current / Next / Total maps, RGB, f64). A
+//! texel must send its unshot power `Φ_t` out over the hemisphere in
+//! proportion to its projected area and the directions' solid angles. In the
+//! discretised field, the projected area of texel `t` in direction `ω` is the
+//! number of rays `n_t(ω)` that cross it times the ray cell area, so the
+//! texel's *total projected area* is
+//!
+//! ```text
+//!     T_t = Σ_ω Δω · n_t(ω)          (in units of the cell area)
+//! ```
+//!
+//! and every ray of direction `ω` leaving `t` carries the power
+//! `Φ_t · Δω / T_t`. Summed over all rays and directions this is exactly
+//! `Φ_t`: **each texel sends out exactly its power**, to rounding, whatever the
+//! sampling pattern of the texel by the rays (the paper's precomputed *total
+//! projected unit area* only holds on average). Since `Σ_ω Δω·cos θ_ω ≈ π`,
+//! `T_t ≈ π·A_t/cell`, so `A_t = T_t/π` (cells) is the texel's *discrete
+//! area*, and a ray's `Φ_t/T_t` is the radiance `B_t/π` in matching units:
+//! radiance look-ups at render time are simply `Total_t / T_t`. A furnace
+//! (closed enclosure, uniform emission and reflectance) is then uniform to
+//! rounding, texel by texel (tested).
+//!
+//! ## An iteration
+//! 1. every texel with unshot power is a sender: `radiance_t = Φ_t / T_t`;
+//! 2. for every direction (in parallel), walk each ray's sorted hits: two
+//!    consecutive surfaces facing each other exchange `radiance·Δω`; a back
+//!    face blocks; nothing beyond the first/last surface means escape;
+//! 3. the received power is reduced over directions **in direction order**
+//!    (fixed batches, so the bits do not depend on the thread count), times
+//!    `ρd` it becomes Next and is added to Total.
+//!
+//! Options: deferred propagation (surfaces with negligible unshot power wait),
+//! perturbation (the paper's remedy for holes: shoot the first iterations
+//! through randomly rotated copies of the direction set) and power-preserving
+//! Gaussian filtering of the Next maps.
+
+mod filter;
+mod perturb;
+pub(crate) mod shoot;
+
+pub use shoot::Flow;
+
+use crate::directions::DirectionSet;
+use crate::maps::TexelAtlas;
+use crate::psf::{GridSize, Subfield};
+use crate::scene::{Rgb, Scene};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+
+/// When to stop iterating.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Stop {
+    /// Exactly this many iterations.
+    Iterations(u32),
+    /// Until the unshot power is below `epsilon` × the emitted power, or
+    /// `max_iterations` have run.
+    Converge { epsilon: f64, max_iterations: u32 },
+}
+
+/// The paper's perturbation: the first `iterations` iterations are each shot
+/// through `count` randomly rotated copies of the direction set, each carrying
+/// `1/count` of the unshot power.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Perturbation {
+    pub iterations: u32,
+    pub count: u32,
+}
+
+/// Everything that determines a propagation (and so its bits).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Options {
+    /// Number of line directions `l` (one of [`DirectionSet::SUPPORTED`]).
+    pub directions: usize,
+    pub grid: GridSize,
+    pub stop: Stop,
+    /// Texel edge as a multiple of the ray spacing `2/N`.
+    pub texel_cells: f64,
+    /// Deferred propagation: a surface whose unshot power is below this
+    /// fraction of the total unshot power waits (keeps accumulating).
+    pub deferral: Option<f64>,
+    pub perturbation: Perturbation,
+    /// σ (in texels) of the Gaussian filter applied to Next maps.
+    pub filter_sigma: Option<f64>,
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Options {
+            directions: 513,
+            grid: GridSize {
+                resolution: 64,
+                tile: 8,
+            },
+            stop: Stop::Converge {
+                epsilon: 1e-3,
+                max_iterations: 1000,
+            },
+            texel_cells: 1.0,
+            deferral: None,
+            perturbation: Perturbation::default(),
+            filter_sigma: None,
+        }
+    }
+}
+
+impl Options {
+    /// Refuses absurd values with a message naming the parameter.
+    pub fn validate(&self) -> crate::Result<()> {
+        let bad = |m: String| Err(crate::Error::Parameter(m));
+        GridSize::new(self.grid.resolution, self.grid.tile)?;
+        if !DirectionSet::SUPPORTED.contains(&self.directions) {
+            return bad(format!(
+                "directions = {} is not one of {:?} (l = 2·4^k + 1)",
+                self.directions,
+                DirectionSet::SUPPORTED
+            ));
+        }
+        match self.stop {
+            Stop::Iterations(0) => return bad("iterations must be at least 1".into()),
+            Stop::Iterations(k) if k > 100_000 => return bad(format!("iterations = {k} is absurd (max 100000)")),
+            Stop::Converge { epsilon, max_iterations } => {
+                if !(epsilon > 0.0 && epsilon < 1.0) {
+                    return bad(format!("convergence threshold must be in (0, 1), got {epsilon}"));
+                }
+                if max_iterations == 0 {
+                    return bad("max iterations must be at least 1".into());
+                }
+            }
+            _ => {}
+        }
+        if !(self.texel_cells.is_finite() && (0.05..=1024.0).contains(&self.texel_cells)) {
+            return bad(format!("texel size must be 0.05..1024 ray spacings, got {}", self.texel_cells));
+        }
+        if let Some(d) = self.deferral
+            && !(0.0..1.0).contains(&d)
+        {
+            return bad(format!("deferral threshold must be in [0, 1), got {d}"));
+        }
+        if self.perturbation.iterations > 0 && !(1..=64).contains(&self.perturbation.count) {
+            return bad(format!("perturbation count must be 1..=64, got {}", self.perturbation.count));
+        }
+        if let Some(s) = self.filter_sigma
+            && !(s.is_finite() && s > 0.0 && s <= 16.0)
+        {
+            return bad(format!("filter sigma must be in (0, 16] texels, got {s}"));
+        }
+        Ok(())
+    }
+
+    /// Texel edge length in the VLF frame.
+    pub fn texel_size(&self) -> f64 {
+        self.texel_cells * self.grid.ray_spacing()
+    }
+}
+
+/// What happened in one iteration (powers per channel, VLF-frame units).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct IterationStats {
+    pub index: u32,
+    pub flow: FlowRecord,
+    /// Unshot power left after the iteration (Next + deferred).
+    pub unshot: Rgb,
+    pub deferred_surfaces: usize,
+    pub seconds: f64,
+}
+
+/// Serializable copy of [`Flow`].
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct FlowRecord {
+    pub shot: Rgb,
+    pub received: Rgb,
+    pub escaped: Rgb,
+    pub blocked: Rgb,
+}
+
+impl From<Flow> for FlowRecord {
+    fn from(f: Flow) -> Self {
+        FlowRecord {
+            shot: f.shot,
+            received: f.received,
+            escaped: f.escaped,
+            blocked: f.blocked,
+        }
+    }
+}
+
+/// Progress of the running iteration, for progress bars.
+#[derive(Clone, Copy, Debug)]
+pub struct Progress {
+    pub iteration: u32,
+    pub directions_done: usize,
+    pub directions_total: usize,
+}
+
+/// Directions processed per reduction batch. Fixed (not derived from the
+/// thread count) so the summation order, and therefore the bits, never
+/// depend on how many threads run.
+const BATCH: usize = 16;
+
+/// A propagation in progress: the field's geometry plus the radiosity maps.
+pub struct Propagation {
+    pub scene: Scene,
+    pub options: Options,
+    pub directions: DirectionSet,
+    pub atlas: TexelAtlas,
+    pub subfields: Vec<Subfield>,
+    /// Discrete projected area `T_t` of every texel (see module docs).
+    pub projected_area: Vec<f64>,
+    /// Unshot power per texel (the paper's Current map).
+    pub current: Vec<Rgb>,
+    /// Power leaving each texel over all iterations so far (emitted + reflected).
+    pub total: Vec<Rgb>,
+    pub emitted: Rgb,
+    pub stats: Vec<IterationStats>,
+    owners: Vec<u32>,
+}
+
+fn sum_rgb(v: &[Rgb]) -> Rgb {
+    v.iter().fold([0.0; 3], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2]])
+}
+
+fn luminance(c: &Rgb) -> f64 {
+    (c[0] + c[1] + c[2]) / 3.0
+}
+
+/// Runs `kernel` for every direction in fixed batches and reduces the
+/// per-direction texel buffers into one, in direction order.
+pub(crate) fn map_reduce_directions<K>(
+    count: usize,
+    texels: usize,
+    mut progress: impl FnMut(usize),
+    kernel: K,
+) -> (Vec<Rgb>, Flow)
+where
+    K: Fn(usize, &mut [Rgb], &mut shoot::Scratch) -> Flow + Sync,
+{
+    let mut sum = vec![[0.0; 3]; texels];
+    let mut flow = Flow::default();
+    let mut buffers: Vec<Vec<Rgb>> = (0..BATCH.min(count)).map(|_| vec![[0.0; 3]; texels]).collect();
+    let mut start = 0;
+    while start < count {
+        let end = (start + BATCH).min(count);
+        let flows: Vec<Flow> = buffers[..end - start]
+            .par_iter_mut()
+            .enumerate()
+            .map_init(shoot::Scratch::default, |scratch, (b, buf)| {
+                buf.iter_mut().for_each(|x| *x = [0.0; 3]);
+                kernel(start + b, buf, scratch)
+            })
+            .collect();
+        let used = &buffers[..end - start];
+        sum.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {
+            let base = c * 4096;
+            for (i, acc) in chunk.iter_mut().enumerate() {
+                for buf in used {
+                    let v = buf[base + i];
+                    acc[0] += v[0];
+                    acc[1] += v[1];
+                    acc[2] += v[2];
+                }
+            }
+        });
+        for f in &flows {
+            flow.add(f);
+        }
+        start = end;
+        progress(end);
+    }
+    (sum, flow)
+}
+
+impl Propagation {
+    /// Builds the field's geometry (directions, subfields, texel grids,
+    /// discrete areas) and loads the emitters' power as unshot.
+    pub fn new(scene: Scene, options: Options) -> crate::Result<Self> {
+        options.validate()?;
+        let directions = DirectionSet::new(options.directions)?;
+        let atlas = TexelAtlas::new(&scene, options.texel_size())?;
+        let grid = options.grid;
+        let subfields: Vec<Subfield> = directions
+            .directions()
+            .par_iter()
+            .map(|d| Subfield::build(&scene, d.vector, grid))
+            .collect();
+        let projected_area = discrete_areas(&scene, &atlas, &directions, |d| std::borrow::Cow::Borrowed(&subfields[d]));
+        let owners = atlas.owners();
+        // Emission: Φ_t = π·Le·A_t = Le·T_t (in cell-area units).
+        let current: Vec<Rgb> = projected_area
+            .iter()
+            .zip(&owners)
+            .map(|(&t, &s)| {
+                let le = scene.material(s as usize).emission;
+                [le[0] * t, le[1] * t, le[2] * t]
+            })
+            .collect();
+        let emitted = sum_rgb(&current);
+        if luminance(&emitted) <= 0.0 {
+            return Err(crate::Error::Parameter(
+                "no emitter is hit by any ray: the emitters are too small for this resolution (raise N)".into(),
+            ));
+        }
+        Ok(Propagation {
+            total: current.clone(),
+            scene,
+            options,
+            directions,
+            atlas,
+            subfields,
+            projected_area,
+            current,
+            emitted,
+            stats: Vec::new(),
+            owners,
+        })
+    }
+
+    /// Unshot power as a fraction of the emitted power.
+    pub fn unshot_fraction(&self) -> f64 {
+        luminance(&sum_rgb(&self.current)) / luminance(&self.emitted)
+    }
+
+    pub fn iterations_done(&self) -> u32 {
+        self.stats.len() as u32
+    }
+
+    /// Whether the stop rule says to stop now.
+    pub fn finished(&self) -> bool {
+        let k = self.iterations_done();
+        match self.options.stop {
+            Stop::Iterations(n) => k >= n,
+            Stop::Converge { epsilon, max_iterations } => k >= max_iterations || self.unshot_fraction() < epsilon,
+        }
+    }
+
+    /// Runs iterations until the stop rule holds.
+    pub fn run(&mut self, mut progress: impl FnMut(Progress)) -> &[IterationStats] {
+        while !self.finished() {
+            self.step(&mut progress);
+        }
+        &self.stats
+    }
+
+    /// Performs one iteration.
+    pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
+        let started = Instant::now();
+        let index = self.iterations_done();
+        let scene = &self.scene;
+        let atlas = &self.atlas;
+
+        // Deferred propagation: quiet surfaces keep their unshot power.
+        let mut per_surface = vec![0.0f64; scene.surfaces.len()];
+        for (t, c) in self.current.iter().enumerate() {
+            per_surface[self.owners[t] as usize] += luminance(c);
+        }
+        let unshot_total: f64 = per_surface.iter().sum();
+        let deferred: Vec<bool> = match self.options.deferral {
+            Some(threshold) if threshold > 0.0 => {
+                let d: Vec<bool> = per_surface.iter().map(|&p| p > 0.0 && p < threshold * unshot_total).collect();
+                // Never defer everything: that would stall the iteration.
+                if per_surface.iter().zip(&d).any(|(&p, &x)| p > 0.0 && !x) { d } else { vec![false; d.len()] }
+            }
+            _ => vec![false; per_surface.len()],
+        };
+        let mut carried = vec![[0.0; 3]; self.current.len()];
+        let mut shooting = self.current.clone();
+        for (t, c) in shooting.iter_mut().enumerate() {
+            if deferred[self.owners[t] as usize] {
+                carried[t] = *c;
+                *c = [0.0; 3];
+            }
+        }
+
+        let p = self.options.perturbation;
+        let (received, flow) = if index < p.iterations && p.count > 0 {
+            let (received, flow, unsent) = perturb::shoot_perturbed(
+                scene,
+                atlas,
+                &self.directions,
+                self.options.grid,
+                index,
+                p.count,
+                &shooting,
+                &mut |done, total| {
+                    progress(Progress {
+                        iteration: index,
+                        directions_done: done,
+                        directions_total: total,
+                    })
+                },
+            );
+            for (c, u) in carried.iter_mut().zip(&unsent) {
+                for k in 0..3 {
+                    c[k] += u[k];
+                }
+            }
+            (received, flow)
+        } else {
+            let radiance = radiance_of(&shooting, &self.projected_area);
+            let facing = facing_table(scene, &self.subfields);
+            let total = self.directions.len();
+            map_reduce_directions(
+                total,
+                atlas.texels,
+                |done| {
+                    progress(Progress {
+                        iteration: index,
+                        directions_done: done,
+                        directions_total: total,
+                    })
+                },
+                |d, buf, scratch| {
+                    let w = self.directions.get(d).weight;
+                    shoot::shoot(scene, atlas, &self.subfields[d], w, &facing[d], &radiance, buf, scratch)
+                },
+            )
+        };
+
+        // Reflect: Next = ρd · received; Total += Next.
+        let mut next: Vec<Rgb> = received
+            .iter()
+            .zip(&self.owners)
+            .map(|(r, &s)| {
+                let rho = scene.material(s as usize).diffuse;
+                [r[0] * rho[0], r[1] * rho[1], r[2] * rho[2]]
+            })
+            .collect();
+        if let Some(sigma) = self.options.filter_sigma {
+            filter::gaussian(atlas, &self.projected_area, &mut next, sigma);
+        }
+        for (t, n) in next.iter_mut().enumerate() {
+            for c in 0..3 {
+                self.total[t][c] += n[c];
+                n[c] += carried[t][c];
+            }
+        }
+        self.current = next;
+        let stats = IterationStats {
+            index,
+            flow: flow.into(),
+            unshot: sum_rgb(&self.current),
+            deferred_surfaces: deferred.iter().filter(|&&d| d).count(),
+            seconds: started.elapsed().as_secs_f64(),
+        };
+        self.stats.push(stats.clone());
+        stats
+    }
+
+    /// Bytes held by the field: subfield tables and the Total maps.
+    pub fn field_bytes(&self) -> usize {
+        self.subfields.iter().map(Subfield::memory_bytes).sum::<usize>()
+            + self.atlas.texels * (std::mem::size_of::<[f32; 3]>() + std::mem::size_of::<f32>())
+    }
+
+    /// The finished light field (radiance per texel), ready to render or save.
+    pub fn into_field(self) -> crate::field::LightField {
+        crate::field::LightField::from_propagation(self)
+    }
+}
+
+/// `Φ_t / T_t` per texel (zero where no ray crosses the texel).
+pub(crate) fn radiance_of(power: &[Rgb], area: &[f64]) -> Vec<Rgb> {
+    power
+        .iter()
+        .zip(area)
+        .map(|(p, &a)| if a > 0.0 { [p[0] / a, p[1] / a, p[2] / a] } else { [0.0; 3] })
+        .collect()
+}
+
+/// `n_s · w` for every surface and subfield.
+fn facing_table(scene: &Scene, subfields: &[Subfield]) -> Vec<Vec<f64>> {
+    subfields
+        .iter()
+        .map(|sub| scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect())
+        .collect()
+}
+
+/// Computes `T_t = Σ_ω Δω · n_t(ω)` for a direction set whose subfields are
+/// given by `subfield(d)` (stored or built on the fly).
+pub(crate) fn discrete_areas<'a, F>(scene: &Scene, atlas: &TexelAtlas, directions: &DirectionSet, subfield: F) -> Vec<f64>
+where
+    F: Fn(usize) -> std::borrow::Cow<'a, Subfield> + Sync,
+{
+    let (area, _) = map_reduce_directions(
+        directions.len(),
+        atlas.texels,
+        |_| {},
+        |d, buf, scratch| {
+            shoot::count(scene, atlas, &subfield(d), directions.get(d).weight, buf, scratch);
+            Flow::default()
+        },
+    );
+    area.into_iter().map(|a| a[0]).collect()
+}
+
+

@@ -1,0 +1,106 @@
+//! Perturbation: the paper's remedy for *holes*.
+//!
+//! Beams of a discrete direction are cylinders, not cones, so a small sender
+//! seen from far away lights a pattern of spots instead of a smooth patch.
+//! The paper jitters the whole direction set: an iteration is shot through
+//! `count` copies of the set, each rotated by a small random rotation (of the
+//! order of one direction cell, `√(2π/l)` radians), each carrying `1/count` of
+//! the unshot power. Perturbed shots only feed the diffuse maps; they never
+//! create directional totals. Each rotated set gets its own discrete areas
+//! `T_t`, so every sub-shot is exactly power-conserving too.
+//!
+//! Rotations come from a fixed-seed splitmix64 sequence keyed by iteration
+//! and copy index, so results are reproducible across runs, machines and
+//! library versions (a general-purpose RNG crate makes no such promise).
+
+use super::shoot::{self, Flow};
+use super::{discrete_areas, radiance_of, map_reduce_directions};
+use crate::directions::DirectionSet;
+use crate::maps::TexelAtlas;
+use crate::psf::{GridSize, Subfield};
+use crate::scene::{Rgb, Scene};
+use glam::{DMat3, DVec3};
+use std::borrow::Cow;
+
+/// splitmix64: a tiny, well-known generator with a fixed definition.
+pub(crate) struct SplitMix(pub u64);
+
+impl SplitMix {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in [0, 1).
+    pub fn next_f64(&mut self) -> f64 {
+        (self.next_u64() >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+/// The rotation of copy `copy` of `count` in iteration `iteration`: about a
+/// random axis, by an angle stratified over `[0, α)` with `α = √(2π/l)`.
+pub(crate) fn rotation(directions: &DirectionSet, iteration: u32, copy: u32, count: u32) -> DMat3 {
+    let mut rng = SplitMix(0x564C_465F_5045_5254 ^ ((iteration as u64) << 32 | copy as u64));
+    let z = 2.0 * rng.next_f64() - 1.0;
+    let phi = std::f64::consts::TAU * rng.next_f64();
+    let r = (1.0 - z * z).max(0.0).sqrt();
+    let axis = DVec3::new(r * phi.cos(), r * phi.sin(), z);
+    let alpha = directions.mean_solid_angle().sqrt();
+    let angle = alpha * (copy as f64 + rng.next_f64()) / count as f64;
+    DMat3::from_axis_angle(axis, angle)
+}
+
+/// Shoots `shooting` through `count` rotated copies of the direction set.
+/// Returns the received power, the flow, and the power that could not be
+/// shot (texels no ray of a rotated copy crosses), to be carried over.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn shoot_perturbed(
+    scene: &Scene,
+    atlas: &TexelAtlas,
+    directions: &DirectionSet,
+    grid: GridSize,
+    iteration: u32,
+    count: u32,
+    shooting: &[Rgb],
+    progress: &mut dyn FnMut(usize, usize),
+) -> (Vec<Rgb>, Flow, Vec<Rgb>) {
+    let share = 1.0 / count as f64;
+    let part: Vec<Rgb> = shooting.iter().map(|p| [p[0] * share, p[1] * share, p[2] * share]).collect();
+    let mut received = vec![[0.0; 3]; atlas.texels];
+    let mut unsent = vec![[0.0; 3]; atlas.texels];
+    let mut flow = Flow::default();
+    let total = directions.len() * count as usize;
+    for copy in 0..count {
+        let rotated = directions.rotated(rotation(directions, iteration, copy, count));
+        let build = |d: usize| Cow::Owned(Subfield::build(scene, rotated.get(d).vector, grid));
+        let area = discrete_areas(scene, atlas, &rotated, build);
+        for (t, a) in area.iter().enumerate() {
+            if *a <= 0.0 {
+                for c in 0..3 {
+                    unsent[t][c] += part[t][c];
+                }
+            }
+        }
+        let radiance = radiance_of(&part, &area);
+        let base = copy as usize * directions.len();
+        let (r, f) = map_reduce_directions(
+            rotated.len(),
+            atlas.texels,
+            |done| progress(base + done, total),
+            |d, buf, scratch| {
+                let sub = Subfield::build(scene, rotated.get(d).vector, grid);
+                let facing: Vec<f64> = scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect();
+                shoot::shoot(scene, atlas, &sub, rotated.get(d).weight, &facing, &radiance, buf, scratch)
+            },
+        );
+        for (acc, v) in received.iter_mut().zip(&r) {
+            for c in 0..3 {
+                acc[c] += v[c];
+            }
+        }
+        flow.add(&f);
+    }
+    (received, flow, unsent)
+}

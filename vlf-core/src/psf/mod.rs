@@ -1,0 +1,259 @@
+//! Parallel subfields (PSF): for one direction, an `N × N` grid of parallel
+//! rays over the scene, cut into `m × m` tiles.
+//!
+//! Ray `(i, j)` of the subfield of direction `w` starts on the plane through
+//! the origin perpendicular to `w`, at `x·u + y·v` with
+//! `x = (2i + 1)/N − 1`, `y = (2j + 1)/N − 1` (the paper's equation 1), and
+//! travels along `+w` (light also travels along `−w` on the same line). As the
+//! scene lies in the unit sphere, the grid covers it for every direction.
+//!
+//! Each tile lists the surfaces its rays cross, and for each surface a
+//! *visibility map* stored as an **edge table**: one span of covered rays per
+//! tile row (surfaces are convex, so one span is enough). The depth of a
+//! surface along a ray and the texel it crosses are not stored: they are
+//! affine in the ray's grid coordinates and recomputed on the fly
+//! ([`SurfaceProjection`]), as in the paper.
+
+pub mod raster;
+
+use crate::scene::Scene;
+use glam::{DVec2, DVec3};
+use serde::{Deserialize, Serialize};
+
+/// The orthonormal frame of a subfield: rays travel along `w`; `u`, `v` span
+/// the grid plane. Built deterministically from `w` alone.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PsfFrame {
+    pub u: DVec3,
+    pub v: DVec3,
+    pub w: DVec3,
+}
+
+impl PsfFrame {
+    pub fn new(w: DVec3) -> Self {
+        let w = w.normalize();
+        // The world axis least aligned with w gives a well-conditioned cross product.
+        let a = if w.x.abs() <= w.y.abs() && w.x.abs() <= w.z.abs() {
+            DVec3::X
+        } else if w.y.abs() <= w.z.abs() {
+            DVec3::Y
+        } else {
+            DVec3::Z
+        };
+        let u = a.cross(w).normalize();
+        let v = w.cross(u);
+        PsfFrame { u, v, w }
+    }
+
+    /// Projects a VLF-frame point into grid units of an `n × n` grid.
+    pub fn to_grid(&self, p: DVec3, n: u32) -> DVec2 {
+        let half = n as f64 * 0.5;
+        DVec2::new((p.dot(self.u) + 1.0) * half, (p.dot(self.v) + 1.0) * half)
+    }
+}
+
+/// Size of the ray grids: `N` rays per side, tiles of `m × m` rays.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct GridSize {
+    pub resolution: u32,
+    pub tile: u32,
+}
+
+impl GridSize {
+    /// Largest accepted resolution: beyond it one subfield alone holds more
+    /// rays than any scene of this method needs, and memory explodes.
+    pub const MAX_RESOLUTION: u32 = 4096;
+
+    pub fn new(resolution: u32, tile: u32) -> crate::Result<Self> {
+        if !(2..=Self::MAX_RESOLUTION).contains(&resolution) {
+            return Err(crate::Error::Parameter(format!(
+                "resolution N = {resolution} is out of range 2..={}",
+                Self::MAX_RESOLUTION
+            )));
+        }
+        if tile == 0 || tile > resolution || resolution % tile != 0 {
+            return Err(crate::Error::Parameter(format!(
+                "tile size m = {tile} must divide the resolution N = {resolution}"
+            )));
+        }
+        Ok(GridSize { resolution, tile })
+    }
+
+    /// Tiles per side, `n = N / m`.
+    pub fn tiles_per_side(&self) -> u32 {
+        self.resolution / self.tile
+    }
+
+    /// Distance between neighbouring rays in the VLF frame: `2 / N`.
+    pub fn ray_spacing(&self) -> f64 {
+        2.0 / self.resolution as f64
+    }
+
+    /// Cross-section of one ray's beam in the VLF frame.
+    pub fn cell_area(&self) -> f64 {
+        self.ray_spacing() * self.ray_spacing()
+    }
+}
+
+/// A run of covered rays in one row of a tile, in tile-local coordinates.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Span {
+    pub row: u16,
+    pub start: u16,
+    pub end: u16,
+}
+
+/// One surface in a tile: its id and its edge table (spans `first..first+count`
+/// of [`Subfield::spans`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TileSurface {
+    pub surface: u32,
+    pub first_span: u32,
+    pub span_count: u32,
+    /// Number of rays of the tile that cross the surface.
+    pub rays: u32,
+}
+
+/// The subfield of one direction, its tiles in compressed-row form: tile `k`
+/// (row-major, `k = t·n + s`) owns `entries[tile_start[k]..tile_start[k+1]]`,
+/// sorted by surface id.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Subfield {
+    pub frame: PsfFrame,
+    pub grid: GridSize,
+    pub tile_start: Vec<u32>,
+    pub entries: Vec<TileSurface>,
+    pub spans: Vec<Span>,
+}
+
+impl Subfield {
+    /// Rasterises every surface of the scene into the subfield of direction `w`.
+    pub fn build(scene: &Scene, w: DVec3, grid: GridSize) -> Self {
+        let frame = PsfFrame::new(w);
+        let n = grid.resolution;
+        let m = grid.tile;
+        let per_side = grid.tiles_per_side() as usize;
+        // Per tile: (surface, row span in tile-local coordinates), in surface order.
+        let mut buckets: Vec<Vec<(u32, Span)>> = vec![Vec::new(); per_side * per_side];
+        let mut projected = Vec::new();
+        for (id, surface) in scene.surfaces.iter().enumerate() {
+            if surface.normal.dot(frame.w).abs() < 1e-12 {
+                continue; // edge-on: no ray crosses it
+            }
+            projected.clear();
+            projected.extend(surface.vertices.iter().map(|&p| frame.to_grid(p, n)));
+            raster::rasterize_convex(&projected, n, |s| {
+                let tile_row = (s.row / m) as usize;
+                let local_row = (s.row % m) as u16;
+                let mut x = s.start;
+                while x < s.end {
+                    let tile_col = x / m;
+                    let tile_end = ((tile_col + 1) * m).min(s.end);
+                    buckets[tile_row * per_side + tile_col as usize].push((
+                        id as u32,
+                        Span {
+                            row: local_row,
+                            start: (x - tile_col * m) as u16,
+                            end: (tile_end - tile_col * m) as u16,
+                        },
+                    ));
+                    x = tile_end;
+                }
+            });
+        }
+        let mut tile_start = Vec::with_capacity(buckets.len() + 1);
+        let mut entries = Vec::new();
+        let mut spans = Vec::new();
+        for bucket in buckets {
+            tile_start.push(entries.len() as u32);
+            let mut k = 0;
+            while k < bucket.len() {
+                let surface = bucket[k].0;
+                let first_span = spans.len() as u32;
+                let mut rays = 0u32;
+                while k < bucket.len() && bucket[k].0 == surface {
+                    let s = bucket[k].1;
+                    rays += (s.end - s.start) as u32;
+                    spans.push(s);
+                    k += 1;
+                }
+                entries.push(TileSurface {
+                    surface,
+                    first_span,
+                    span_count: spans.len() as u32 - first_span,
+                    rays,
+                });
+            }
+        }
+        tile_start.push(entries.len() as u32);
+        Subfield {
+            frame,
+            grid,
+            tile_start,
+            entries,
+            spans,
+        }
+    }
+
+    /// The surfaces of tile `k` with their edge tables.
+    pub fn tile(&self, k: usize) -> &[TileSurface] {
+        &self.entries[self.tile_start[k] as usize..self.tile_start[k + 1] as usize]
+    }
+
+    pub fn tile_count(&self) -> usize {
+        self.tile_start.len() - 1
+    }
+
+    pub fn spans_of(&self, entry: &TileSurface) -> &[Span] {
+        &self.spans[entry.first_span as usize..(entry.first_span + entry.span_count) as usize]
+    }
+
+    /// Bytes held by this subfield's tables.
+    pub fn memory_bytes(&self) -> usize {
+        self.tile_start.len() * 4
+            + self.entries.len() * std::mem::size_of::<TileSurface>()
+            + self.spans.len() * std::mem::size_of::<Span>()
+    }
+}
+
+/// Where the rays of a subfield meet one surface, as affine functions of the
+/// ray's grid coordinates `(x, y)` (cell centres at `i + ½`):
+/// `depth = d0 + dx·x + dy·y` along `w`, and the hit point
+/// `p = p0 + px·x + py·y`. Derivation: the ray origin is
+/// `r = −u − v + x·(2/N)u + y·(2/N)v`; the plane `n·p = c` gives
+/// `depth = (c − n·r)/(n·w)`, affine in `(x, y)`.
+#[derive(Clone, Copy, Debug)]
+pub struct SurfaceProjection {
+    pub depth: [f64; 3],
+    pub p0: DVec3,
+    pub px: DVec3,
+    pub py: DVec3,
+}
+
+impl SurfaceProjection {
+    pub fn new(frame: &PsfFrame, n: u32, normal: DVec3, offset: f64) -> Self {
+        let step = 2.0 / n as f64;
+        let r0 = -frame.u - frame.v;
+        let (ru, rv) = (frame.u * step, frame.v * step);
+        let nw = normal.dot(frame.w);
+        let d0 = (offset - normal.dot(r0)) / nw;
+        let dx = -normal.dot(ru) / nw;
+        let dy = -normal.dot(rv) / nw;
+        SurfaceProjection {
+            depth: [d0, dx, dy],
+            p0: r0 + frame.w * d0,
+            px: ru + frame.w * dx,
+            py: rv + frame.w * dy,
+        }
+    }
+
+    #[inline]
+    pub fn depth_at(&self, x: f64, y: f64) -> f64 {
+        self.depth[0] + self.depth[1] * x + self.depth[2] * y
+    }
+
+    #[inline]
+    pub fn point_at(&self, x: f64, y: f64) -> DVec3 {
+        self.p0 + self.px * x + self.py * y
+    }
+}

@@ -1,0 +1,124 @@
+//! The scene: planar, one-sided polygons with ideal diffuse / ideal mirror
+//! materials and isotropic emission, normalised into the VLF frame.
+//!
+//! Everything in [`Scene`] lives in the **VLF frame**: the scene's bounding
+//! sphere is mapped onto the unit sphere, so that every parallel subfield
+//! (an `N × N` ray grid over the square `[-1, 1]²` perpendicular to its
+//! direction) covers the whole scene whatever the direction. Cameras and
+//! images stay in the scene's own units; [`Normalisation`] converts between
+//! the two. Radiance and radiosity are invariant under this similarity (only
+//! powers scale, by `scale²`), so no photometric quantity is rescaled.
+
+mod obj;
+mod polygon;
+
+pub use obj::{ImportOptions, load_obj};
+pub use polygon::{PolygonError, convex_pieces, newell_normal};
+
+use glam::DVec3;
+use serde::{Deserialize, Serialize};
+
+/// RGB triple used for reflectances and radiances (linear, per channel).
+pub type Rgb = [f64; 3];
+
+/// A material, following the conventions of the README:
+/// `Kd` = ρd, `Ke` = emitted radiance, `illum 3` = ideal mirror with ρs = `Ks`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Material {
+    pub name: String,
+    /// Ideal diffuse reflectance ρd per channel, in `[0, 1]`.
+    pub diffuse: Rgb,
+    /// Ideal mirror reflectance ρs per channel (zero unless `illum 3`).
+    pub specular: Rgb,
+    /// Emitted radiance `Le` (W·sr⁻¹·m⁻²) from the front side, isotropic.
+    pub emission: Rgb,
+}
+
+impl Material {
+    pub fn is_emitter(&self) -> bool {
+        self.emission.iter().any(|&e| e > 0.0)
+    }
+    pub fn is_mirror(&self) -> bool {
+        self.specular.iter().any(|&s| s > 0.0)
+    }
+    pub fn is_diffuse(&self) -> bool {
+        self.diffuse.iter().any(|&d| d > 0.0)
+    }
+}
+
+/// Where a surface came from in the input, for error messages and tooling.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FaceOrigin {
+    /// 1-based line of the `f` statement in the OBJ file (0 if generated).
+    pub line: usize,
+    /// 0-based index of the face among all faces of the file.
+    pub face: usize,
+}
+
+/// One planar **convex** polygon, counter-clockwise about its front normal.
+///
+/// Non-convex input polygons are split into convex pieces by the importer, so
+/// that every surface crosses each ray row of a subfield in at most one span.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Surface {
+    /// Vertices in the VLF frame, counter-clockwise seen from the front.
+    pub vertices: Vec<DVec3>,
+    /// Unit front normal (right-hand rule over `vertices`).
+    pub normal: DVec3,
+    /// Plane offset: `normal · x = offset` for every point `x` of the polygon.
+    pub offset: f64,
+    /// Area in the VLF frame.
+    pub area: f64,
+    /// Index into [`Scene::materials`].
+    pub material: usize,
+    pub origin: FaceOrigin,
+}
+
+/// The similarity that maps scene units into the VLF frame:
+/// `x_vlf = (x_scene - center) * scale`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Normalisation {
+    pub center: DVec3,
+    pub scale: f64,
+}
+
+impl Normalisation {
+    pub fn to_vlf(&self, p: DVec3) -> DVec3 {
+        (p - self.center) * self.scale
+    }
+    pub fn to_scene(&self, p: DVec3) -> DVec3 {
+        p / self.scale + self.center
+    }
+}
+
+/// A validated scene in the VLF frame.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Scene {
+    pub surfaces: Vec<Surface>,
+    pub materials: Vec<Material>,
+    pub normalisation: Normalisation,
+}
+
+impl Scene {
+    pub fn material(&self, surface: usize) -> &Material {
+        &self.materials[self.surfaces[surface].material]
+    }
+
+    /// Radius of the bounding sphere in the VLF frame: every vertex lies
+    /// within it. The importer makes it slightly below 1 so that rays at the
+    /// border of a subfield still cover the scene.
+    pub const FRAME_RADIUS: f64 = 0.999;
+
+    /// Builds a scene from polygons given in scene units (each a list of
+    /// vertices, counter-clockwise about the front normal), normalising it
+    /// into the VLF frame. This is the mechanism behind the OBJ importer and
+    /// the programmatic test scenes alike: it validates, splits non-convex
+    /// polygons and skips degenerate ones (returned as warnings).
+    pub fn from_polygons(
+        polygons: &[(Vec<DVec3>, usize, FaceOrigin)],
+        materials: Vec<Material>,
+        options: &ImportOptions,
+    ) -> Result<(Scene, Vec<String>), crate::Error> {
+        obj::build_scene(polygons, materials, options, "<generated>")
+    }
+}

@@ -1,0 +1,76 @@
+//! Scenes the physics tests build themselves, directly in the VLF frame.
+#![allow(dead_code)]
+
+use glam::DVec3;
+use vlf_core::scene::{FaceOrigin, Material, Normalisation, Scene, Surface};
+
+pub fn material(name: &str, diffuse: f64, emission: f64) -> Material {
+    Material {
+        name: name.into(),
+        diffuse: [diffuse; 3],
+        specular: [0.0; 3],
+        emission: [emission; 3],
+    }
+}
+
+/// A convex polygon from CCW vertices (VLF frame).
+pub fn surface(vertices: Vec<DVec3>, material: usize) -> Surface {
+    let mut n = DVec3::ZERO;
+    for k in 0..vertices.len() {
+        let (a, b) = (vertices[k], vertices[(k + 1) % vertices.len()]);
+        n += DVec3::new((a.y - b.y) * (a.z + b.z), (a.z - b.z) * (a.x + b.x), (a.x - b.x) * (a.y + b.y));
+    }
+    let area = n.length() * 0.5;
+    let normal = n.normalize();
+    Surface {
+        offset: normal.dot(vertices[0]),
+        vertices,
+        normal,
+        area,
+        material,
+        origin: FaceOrigin { line: 0, face: 0 },
+    }
+}
+
+/// Axis-aligned rectangle with centre `c`, half extents along two axes, facing `normal`.
+pub fn rect(c: DVec3, a: DVec3, b: DVec3, normal: DVec3, material: usize) -> Surface {
+    let mut v = vec![c - a - b, c + a - b, c + a + b, c - a + b];
+    let s = surface(v.clone(), material);
+    if s.normal.dot(normal) < 0.0 {
+        v.reverse();
+    }
+    surface(v, material)
+}
+
+pub fn scene(surfaces: Vec<Surface>, materials: Vec<Material>) -> Scene {
+    Scene {
+        surfaces,
+        materials,
+        normalisation: Normalisation {
+            center: DVec3::ZERO,
+            scale: 1.0,
+        },
+    }
+}
+
+/// A closed cube of half-size `h` facing inwards, each face split into
+/// `split × split` quads (shared edges everywhere). Faces listed in
+/// `emitting` (0..6: -x,+x,-y,+y,-z,+z) use material 1, others material 0.
+pub fn closed_box(h: f64, split: usize, emitting: &[usize], materials: Vec<Material>) -> Scene {
+    let mut surfaces = Vec::new();
+    let axes = [DVec3::X, DVec3::Y, DVec3::Z];
+    for face in 0..6 {
+        let axis = axes[face / 2];
+        let sign = if face % 2 == 0 { -1.0 } else { 1.0 };
+        let (ta, tb) = (axes[(face / 2 + 1) % 3], axes[(face / 2 + 2) % 3]);
+        let mat = if emitting.contains(&face) { 1 } else { 0 };
+        let step = 2.0 * h / split as f64;
+        for i in 0..split {
+            for j in 0..split {
+                let c = axis * sign * h + ta * (-h + (i as f64 + 0.5) * step) + tb * (-h + (j as f64 + 0.5) * step);
+                surfaces.push(rect(c, ta * step * 0.5, tb * step * 0.5, -axis * sign, mat));
+            }
+        }
+    }
+    scene(surfaces, materials)
+}

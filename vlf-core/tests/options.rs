@@ -1,0 +1,193 @@
+//! Deferred propagation, perturbation, filtering, stop rules and the field file.
+
+mod common;
+
+use common::*;
+use vlf_core::field::LightField;
+use vlf_core::propagate::{Options, Perturbation, Propagation, Stop};
+use vlf_core::psf::GridSize;
+
+fn lum(c: &[f64; 3]) -> f64 {
+    c.iter().sum::<f64>() / 3.0
+}
+
+fn base(iterations: u32) -> Options {
+    Options {
+        directions: 33,
+        grid: GridSize::new(32, 8).unwrap(),
+        stop: Stop::Iterations(iterations),
+        ..Options::default()
+    }
+}
+
+fn lit_box() -> vlf_core::scene::Scene {
+    closed_box(0.55, 3, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)])
+}
+
+/// Power bookkeeping that must hold whatever the options: everything emitted
+/// is either still unshot, or was received and absorbed (1 − ρ), or escaped.
+fn assert_closed_balance(p: &Propagation) {
+    for s in &p.stats {
+        let f = &s.flow;
+        let rel = (lum(&f.shot) - lum(&f.received)).abs() / lum(&f.shot);
+        assert!(rel < 1e-9, "iteration {}: shot {:?} received {:?}", s.index, f.shot, f.received);
+    }
+}
+
+#[test]
+fn deferral_skips_quiet_surfaces_but_loses_no_power() {
+    // 150 patches: the average patch holds 0.7 % of the unshot power.
+    let fine = || closed_box(0.55, 5, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)]);
+    let mut plain = Propagation::new(fine(), base(6)).unwrap();
+    plain.run(|_| {});
+    let mut deferred = Propagation::new(
+        fine(),
+        Options {
+            deferral: Some(0.004),
+            ..base(6)
+        },
+    )
+    .unwrap();
+    deferred.run(|_| {});
+    assert_closed_balance(&deferred);
+    assert!(deferred.stats.iter().any(|s| s.deferred_surfaces > 0), "nothing was deferred");
+    // Total power out of walls + what is still unshot is the same physics:
+    // deferral only changes *when* power is shot. After enough iterations
+    // the two fields agree closely.
+    let total = |p: &Propagation| p.total.iter().map(lum).sum::<f64>() + p.current.iter().map(lum).sum::<f64>() * 0.6 / 0.4;
+    let (a, b) = (total(&plain), total(&deferred));
+    assert!((a - b).abs() / a < 0.02, "deferred field drifted: {a} vs {b}");
+}
+
+#[test]
+fn perturbation_conserves_power_and_changes_the_field() {
+    let opts = Options {
+        perturbation: Perturbation { iterations: 2, count: 3 },
+        ..base(3)
+    };
+    let mut p = Propagation::new(lit_box(), opts.clone()).unwrap();
+    p.run(|_| {});
+    assert_closed_balance(&p);
+    // Power shot in perturbed iteration 0 is the emitted power (minus any
+    // texel a rotated copy misses, which is carried, not lost).
+    let carried_in = lum(&p.emitted) - lum(&p.stats[0].flow.shot);
+    assert!(carried_in >= -1e-9 * lum(&p.emitted));
+    let mut plain = Propagation::new(lit_box(), base(3)).unwrap();
+    plain.run(|_| {});
+    assert!(p.total != plain.total, "perturbation had no effect");
+    // Deterministic: the same rotations every run.
+    let mut again = Propagation::new(lit_box(), opts).unwrap();
+    again.run(|_| {});
+    assert!(p.total == again.total);
+}
+
+#[test]
+fn filtering_preserves_power() {
+    let uniform = closed_box(0.55, 3, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.6, 2.0)]);
+    let mut p = Propagation::new(
+        uniform,
+        Options {
+            filter_sigma: Some(1.0),
+            ..base(3)
+        },
+    )
+    .unwrap();
+    p.run(|_| {});
+    let rho = 0.6;
+    // Unshot after iteration k = ρ·received(k) exactly when filtering moves power without creating or losing it.
+    for s in &p.stats {
+        let want = rho * lum(&s.flow.received);
+        assert!((lum(&s.unshot) - want).abs() / want < 1e-9, "iteration {}", s.index);
+    }
+}
+
+#[test]
+fn convergence_stops_when_unshot_is_small() {
+    let mut p = Propagation::new(
+        lit_box(),
+        Options {
+            stop: Stop::Converge {
+                epsilon: 1e-2,
+                max_iterations: 100,
+            },
+            ..base(1)
+        },
+    )
+    .unwrap();
+    p.run(|_| {});
+    // ρ = 0.6 walls: unshot falls as 0.6^k, so 0.6^k < 0.01 first at k = 10
+    // (the lamp reflects 0.5, a little faster).
+    let k = p.iterations_done();
+    assert!(p.unshot_fraction() < 1e-2);
+    assert!((8..=10).contains(&k), "stopped after {k} iterations");
+    let before = p.stats[k as usize - 2].unshot;
+    assert!(lum(&before) / lum(&p.emitted) >= 1e-2, "did not stop at the first iteration below epsilon");
+}
+
+#[test]
+fn absurd_parameters_are_refused() {
+    let bad = [
+        Options { directions: 100, ..base(1) },
+        Options { stop: Stop::Iterations(0), ..base(1) },
+        Options {
+            stop: Stop::Converge { epsilon: 0.0, max_iterations: 10 },
+            ..base(1)
+        },
+        Options {
+            stop: Stop::Converge { epsilon: f64::NAN, max_iterations: 10 },
+            ..base(1)
+        },
+        Options { texel_cells: 0.0, ..base(1) },
+        Options { texel_cells: f64::INFINITY, ..base(1) },
+        Options { deferral: Some(1.5), ..base(1) },
+        Options { filter_sigma: Some(-1.0), ..base(1) },
+        Options {
+            perturbation: Perturbation { iterations: 1, count: 0 },
+            ..base(1)
+        },
+    ];
+    for o in bad {
+        let err = Propagation::new(lit_box(), o.clone()).err().unwrap_or_else(|| panic!("accepted {o:?}"));
+        assert!(matches!(err, vlf_core::Error::Parameter(_)), "{err}");
+    }
+    assert!(GridSize::new(64, 7).is_err());
+    assert!(GridSize::new(0, 1).is_err());
+    assert!(GridSize::new(1 << 20, 8).is_err());
+}
+
+#[test]
+fn field_round_trips_and_refuses_damaged_files() {
+    let mut p = Propagation::new(lit_box(), base(2)).unwrap();
+    p.run(|_| {});
+    let field = p.into_field();
+    let dir = std::env::temp_dir().join(format!("vlf-field-test-{}", std::process::id()));
+    field.save(&dir).unwrap();
+    let back = LightField::load(&dir).unwrap();
+    assert!(back == field);
+    let path = dir.join("field.vlf");
+    let bytes = std::fs::read(&path).unwrap();
+    // Truncated.
+    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
+    let e = LightField::load(&dir).unwrap_err().to_string();
+    assert!(e.contains("corrupted or truncated"), "{e}");
+    // Wrong magic.
+    let mut other = bytes.clone();
+    other[0] = b'X';
+    std::fs::write(&path, &other).unwrap();
+    assert!(LightField::load(&dir).unwrap_err().to_string().contains("bad magic"));
+    // Future version.
+    let mut other = bytes.clone();
+    other[8] = 99;
+    std::fs::write(&path, &other).unwrap();
+    assert!(LightField::load(&dir).unwrap_err().to_string().contains("version 99"));
+    // Flipped payload byte.
+    let mut other = bytes.clone();
+    let k = other.len() - 10;
+    other[k] ^= 0x5a;
+    std::fs::write(&path, &other).unwrap();
+    assert!(LightField::load(&dir).is_err());
+    // Missing.
+    std::fs::remove_file(&path).unwrap();
+    assert!(LightField::load(&dir).unwrap_err().to_string().contains("field.vlf"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
