@@ -17,7 +17,11 @@ use vlf_core::render::camera::{parse_size, parse_vec3};
 use vlf_core::scene::{ImportOptions, load_obj};
 
 #[derive(Parser)]
-#[command(name = "vlf", version, about = "Virtual light field: propagate globally illuminated scenes, render any view")]
+#[command(
+    name = "vlf",
+    version,
+    about = "Virtual light field: propagate globally illuminated scenes, render any view"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -114,7 +118,8 @@ fn parse_size_arg(s: &str) -> Result<(u32, u32), String> {
 fn main() {
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .with_writer(std::io::stderr)
         .init();
@@ -159,12 +164,16 @@ fn propagate(args: PropagateArgs) -> Result<()> {
         .build()
         .context("cannot start the worker threads")?;
     let started = Instant::now();
-    let (scene, warnings) =
-        load_obj(&args.scene, &ImportOptions::default()).with_context(|| format!("cannot import {}", args.scene.display()))?;
+    let (scene, warnings) = load_obj(&args.scene, &ImportOptions::default())
+        .with_context(|| format!("cannot import {}", args.scene.display()))?;
     for w in &warnings {
         tracing::warn!("{w}");
     }
-    tracing::info!(surfaces = scene.surfaces.len(), materials = scene.materials.len(), "scene imported");
+    tracing::info!(
+        surfaces = scene.surfaces.len(),
+        materials = scene.materials.len(),
+        "scene imported"
+    );
     let (field, iterations, field_bytes) = pool.install(|| -> Result<_> {
         let mut prop = Propagation::new(scene, options).context("cannot set up the light field")?;
         tracing::info!(
@@ -203,7 +212,11 @@ fn propagate(args: PropagateArgs) -> Result<()> {
             let f = &s.flow;
             let shot: f64 = f.shot.iter().sum();
             let accounted: f64 = (0..3).map(|c| f.received[c] + f.escaped[c] + f.blocked[c]).sum();
-            if shot > 0.0 { ((shot - accounted) / shot).abs() } else { 0.0 }
+            if shot > 0.0 {
+                ((shot - accounted) / shot).abs()
+            } else {
+                0.0
+            }
         })
         .fold(0.0, f64::max);
     println!("propagated {} in {elapsed:.2} s", args.scene.display());
@@ -222,11 +235,14 @@ fn render(args: RenderArgs) -> Result<()> {
     if !(1..=16).contains(&args.samples) {
         bail!("--samples must be 1..=16, got {}", args.samples);
     }
-    let field = LightField::load(&args.field).with_context(|| format!("cannot read the light field in {}", args.field.display()))?;
+    let field = LightField::load(&args.field)
+        .with_context(|| format!("cannot read the light field in {}", args.field.display()))?;
     let camera = Camera::new(args.eye, args.target, args.up, args.fovy, args.size.0, args.size.1)?;
     let started = Instant::now();
     let image = field.render(&camera, args.samples);
-    image.save(&args.out, args.exposure).with_context(|| format!("cannot write {}", args.out.display()))?;
+    image
+        .save(&args.out, args.exposure)
+        .with_context(|| format!("cannot write {}", args.out.display()))?;
     println!(
         "rendered {}x{} in {:.2} s → {}",
         args.size.0,

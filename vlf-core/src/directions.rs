@@ -161,10 +161,7 @@ pub struct Oriented {
 impl Oriented {
     /// The oriented direction `+ω` of line direction `index`.
     pub fn forward(index: u32) -> Self {
-        Oriented {
-            index,
-            reversed: false,
-        }
+        Oriented { index, reversed: false }
     }
 
     /// The same line direction, pointing the other way.
@@ -304,8 +301,7 @@ impl DirectionSet {
         for r in 0..=n {
             for [i, j] in ring(r) {
                 if is_kept(i, j, n) {
-                    lattice[Self::slot_in(n, i, j)] =
-                        Oriented::forward(lattice_points.len() as u32);
+                    lattice[Self::slot_in(n, i, j)] = Oriented::forward(lattice_points.len() as u32);
                     lattice_points.push([i, j]);
                     lattice_vectors.push(lattice_direction(i, j, n));
                 }
@@ -337,8 +333,7 @@ impl DirectionSet {
                         if upper && fa + fb > n - 2 {
                             continue;
                         }
-                        let vertices =
-                            sub_triangle(fa, fb, upper, sx, sy).map(|[i, j]| set.at(i, j));
+                        let vertices = sub_triangle(fa, fb, upper, sx, sy).map(|[i, j]| set.at(i, j));
                         let [a, b, c] = vertices.map(|o| set.lattice_vector(o));
                         let third = spherical_triangle_solid_angle(a, b, c) / 3.0;
                         for o in vertices {
@@ -479,8 +474,7 @@ impl DirectionSet {
     /// with the transpose first, so they stay correct.
     pub fn rotated(&self, rotation: DMat3) -> Self {
         debug_assert!(
-            (rotation.transpose() * rotation).abs_diff_eq(DMat3::IDENTITY, 1e-9)
-                && rotation.determinant() > 0.0,
+            (rotation.transpose() * rotation).abs_diff_eq(DMat3::IDENTITY, 1e-9) && rotation.determinant() > 0.0,
             "rotated: not a rotation matrix"
         );
         let total = rotation * self.rotation;
@@ -515,11 +509,7 @@ impl DirectionSet {
     /// whether it was turned (results must then be reversed).
     fn to_upper_lattice_frame(&self, d: DVec3) -> (DVec3, bool) {
         let local = self.rotation.transpose() * d;
-        if local.z < 0.0 {
-            (-local, true)
-        } else {
-            (local, false)
-        }
+        if local.z < 0.0 { (-local, true) } else { (local, false) }
     }
 
     /// The signed lattice vertices of the unit triangle containing `d`
@@ -613,14 +603,7 @@ mod tests {
     /// a small fraction of a cell, where nearest and triangle are decided
     /// by the smallest margins.
     fn special_queries(set: &DirectionSet, rng: &mut SplitMix) -> Vec<DVec3> {
-        let mut out = vec![
-            DVec3::Z,
-            -DVec3::Z,
-            DVec3::X,
-            -DVec3::X,
-            DVec3::Y,
-            -DVec3::Y,
-        ];
+        let mut out = vec![DVec3::Z, -DVec3::Z, DVec3::X, -DVec3::X, DVec3::Y, -DVec3::Y];
         for d in set.directions() {
             out.push(d.vector);
             out.push(-d.vector);
@@ -633,8 +616,7 @@ mod tests {
                     if !inside(i, j) || !inside(i + di, j + dj) {
                         continue;
                     }
-                    let m = (lattice_direction(i, j, n) + lattice_direction(i + di, j + dj, n))
-                        .normalize();
+                    let m = (lattice_direction(i, j, n) + lattice_direction(i + di, j + dj, n)).normalize();
                     out.push(m);
                     out.push(-m);
                     for _ in 0..2 {
@@ -669,17 +651,10 @@ mod tests {
             let expected = 2 * 4usize.pow(k) + 1;
             assert_eq!(set.len(), expected, "level {k}");
             assert_eq!(DirectionSet::SUPPORTED[k as usize - 1], expected);
-            assert_eq!(
-                DirectionSet::new(expected).expect("supported count").len(),
-                expected
-            );
+            assert_eq!(DirectionSet::new(expected).expect("supported count").len(), expected);
             assert!(!set.is_empty());
             for d in set.directions() {
-                assert!(
-                    (d.vector.length() - 1.0).abs() < 1e-15,
-                    "not unit: {}",
-                    d.vector
-                );
+                assert!((d.vector.length() - 1.0).abs() < 1e-15, "not unit: {}", d.vector);
                 assert!(d.vector.z >= 0.0, "below the equator: {}", d.vector);
             }
             // No two directions are the same line (d vs ±d).
@@ -690,10 +665,7 @@ mod tests {
                     max_abs_dot = max_abs_dot.max(v[a].dot(v[b]).abs());
                 }
             }
-            assert!(
-                max_abs_dot < 1.0 - 1e-6,
-                "level {k}: two directions coincide as lines"
-            );
+            assert!(max_abs_dot < 1.0 - 1e-6, "level {k}: two directions coincide as lines");
         }
     }
 
@@ -709,8 +681,7 @@ mod tests {
                         continue;
                     }
                     let o = set.at(i, j);
-                    let q =
-                        DVec3::new(i as f64, j as f64, (n - i.abs() - j.abs()) as f64).normalize();
+                    let q = DVec3::new(i as f64, j as f64, (n - i.abs() - j.abs()) as f64).normalize();
                     assert!((set.vector(o) - q).length() < 1e-15, "({i}, {j}) -> {o:?}");
                     if o.reversed {
                         aliases += 1;
@@ -734,17 +705,10 @@ mod tests {
             let w: Vec<f64> = set.directions().iter().map(|d| d.weight).collect();
             assert!(w.iter().all(|&x| x > 0.0), "level {k}: non-positive weight");
             let sum: f64 = w.iter().sum();
-            assert!(
-                (sum - TAU).abs() < 1e-9,
-                "level {k}: weights sum to {sum}, not 2π"
-            );
+            assert!((sum - TAU).abs() < 1e-9, "level {k}: weights sum to {sum}, not 2π");
             let max = w.iter().copied().fold(0.0, f64::max);
             let min = w.iter().copied().fold(f64::INFINITY, f64::min);
-            println!(
-                "level {k}: l = {}, max/min weight = {:.4}",
-                set.len(),
-                max / min
-            );
+            println!("level {k}: l = {}, max/min weight = {:.4}", set.len(), max / min);
             // Asymptotically (3/2)·3√3 ≈ 7.79, see the module documentation.
             assert!(max / min < 8.0, "level {k}: max/min weight {}", max / min);
             assert!((set.mean_solid_angle() - TAU / set.len() as f64).abs() < 1e-15);
@@ -754,12 +718,7 @@ mod tests {
             // and 0.66), which it would not if weights sat on the wrong
             // directions. Quadratics are exact (∫ z² dω = ∫ x² dω = 2π/3)
             // because the set is symmetric under the octahedral group.
-            let quad = |f: Integrand| -> f64 {
-                set.directions()
-                    .iter()
-                    .map(|d| d.weight * f(d.vector))
-                    .sum()
-            };
+            let quad = |f: Integrand| -> f64 { set.directions().iter().map(|d| d.weight * f(d.vector)).sum() };
             let n2 = (set.subdivisions() as f64).powi(2);
             let cases: [(Integrand, f64, f64); 4] = [
                 (|v| v.z, PI, 1.0 / n2),
@@ -769,10 +728,7 @@ mod tests {
             ];
             for (f, exact, tolerance) in cases {
                 let error = (quad(f) - exact).abs() / exact;
-                assert!(
-                    error < tolerance,
-                    "level {k}: relative quadrature error {error}"
-                );
+                assert!(error < tolerance, "level {k}: relative quadrature error {error}");
             }
         }
     }
@@ -803,10 +759,7 @@ mod tests {
                     ties += 1;
                 }
             }
-            println!(
-                "nearest, l = {count}: {} queries, {ties} exact ties",
-                all.len()
-            );
+            println!("nearest, l = {count}: {} queries, {ties} exact ties", all.len());
         }
     }
 
@@ -825,8 +778,7 @@ mod tests {
     /// subdivision: one closed quadrant, and |.| equal to a lower or upper
     /// triangle.
     fn is_unit_triangle(points: [[i32; 2]; 3]) -> bool {
-        let same_sign =
-            |c: usize| points.iter().all(|p| p[c] >= 0) || points.iter().all(|p| p[c] <= 0);
+        let same_sign = |c: usize| points.iter().all(|p| p[c] >= 0) || points.iter().all(|p| p[c] <= 0);
         if !same_sign(0) || !same_sign(1) {
             return false;
         }
@@ -853,16 +805,10 @@ mod tests {
                 let t = set.triangle(d);
                 let u = d.normalize();
                 assert!(t.weights.iter().all(|&w| w >= 0.0), "d = {d}: {t:?}");
-                assert!(
-                    (t.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12,
-                    "d = {d}: {t:?}"
-                );
+                assert!((t.weights.iter().sum::<f64>() - 1.0).abs() < 1e-12, "d = {d}: {t:?}");
                 let v = t.vertices.map(|o| set.vector(o));
                 let mix = v[0] * t.weights[0] + v[1] * t.weights[1] + v[2] * t.weights[2];
-                assert!(
-                    mix.cross(u).length() < 1e-12 * mix.length(),
-                    "d = {d}: Σwv = {mix}"
-                );
+                assert!(mix.cross(u).length() < 1e-12 * mix.length(), "d = {d}: Σwv = {mix}");
                 assert!(mix.dot(u) > 0.0, "d = {d}: Σwv = {mix} points away");
 
                 // The vertices are a real unit triangle of the subdivision...
@@ -871,10 +817,7 @@ mod tests {
                     assert!(side * w.z >= 0.0, "d = {d}: vertex {w} on the wrong side");
                     lattice_of(side * w, n)
                 });
-                assert!(
-                    is_unit_triangle(points),
-                    "d = {d}: {points:?} is not a unit triangle"
-                );
+                assert!(is_unit_triangle(points), "d = {d}: {points:?} is not a unit triangle");
                 // ...and d lies inside it (triple products agree in sign).
                 let det = v[0].dot(v[1].cross(v[2]));
                 for (a, b) in [(0, 1), (1, 2), (2, 0)] {
@@ -920,19 +863,13 @@ mod tests {
         for count in [0, 1, 8, 10, 32, 8192, 8194, 32769] {
             match DirectionSet::new(count) {
                 Err(crate::Error::Parameter(message)) => {
-                    assert!(
-                        message.contains("8193") && message.contains("129"),
-                        "{message}"
-                    )
+                    assert!(message.contains("8193") && message.contains("129"), "{message}")
                 }
                 other => panic!("new({count}) gave {other:?}"),
             }
         }
         for k in [0, 7, 100] {
-            assert!(matches!(
-                DirectionSet::from_level(k),
-                Err(crate::Error::Parameter(_))
-            ));
+            assert!(matches!(DirectionSet::from_level(k), Err(crate::Error::Parameter(_))));
         }
     }
 
@@ -940,8 +877,7 @@ mod tests {
     fn rotated_set_lookups_follow_the_rotation() {
         let set = DirectionSet::new(513).expect("supported count");
         let mut rng = SplitMix(0xA0A0);
-        let rotation =
-            DMat3::from_axis_angle(rng.unit(), 0.3) * DMat3::from_axis_angle(rng.unit(), 1.1);
+        let rotation = DMat3::from_axis_angle(rng.unit(), 0.3) * DMat3::from_axis_angle(rng.unit(), 1.1);
         let rotated = set.rotated(rotation);
         assert_eq!(rotated.len(), set.len());
         for (a, b) in set.directions().iter().zip(rotated.directions()) {

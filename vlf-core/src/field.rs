@@ -100,7 +100,11 @@ impl LightField {
     pub fn render(&self, camera: &Camera, samples: u32) -> Image {
         let bvh = Bvh::build(&self.scene);
         render(&self.scene, &bvh, camera, samples, |hit: &Hit, _dir| {
-            if hit.front { self.radiance_at(hit.surface, hit.point) } else { [0.0; 3] }
+            if hit.front {
+                self.radiance_at(hit.surface, hit.point)
+            } else {
+                [0.0; 3]
+            }
         })
     }
 
@@ -134,7 +138,9 @@ impl LightField {
         }
         let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
         if version != VERSION {
-            return Err(bad(format!("field format version {version}, this build reads {VERSION}")));
+            return Err(bad(format!(
+                "field format version {version}, this build reads {VERSION}"
+            )));
         }
         let payload = zstd::decode_all(&bytes[12..]).map_err(|e| bad(format!("corrupted or truncated: {e}")))?;
         let field: LightField =
@@ -161,7 +167,12 @@ impl LightField {
         if self.radiance.iter().flatten().any(|v| !v.is_finite()) {
             return Err("non-finite radiance".into());
         }
-        if self.scene.surfaces.iter().any(|s| s.material >= self.scene.materials.len()) {
+        if self
+            .scene
+            .surfaces
+            .iter()
+            .any(|s| s.material >= self.scene.materials.len())
+        {
             return Err("a surface refers to a missing material".into());
         }
         Ok(())

@@ -23,7 +23,12 @@ fn lum(c: &[f64; 3]) -> f64 {
 /// iteration's shot power equals its received power.
 #[test]
 fn closed_box_conserves_energy_every_iteration() {
-    let scene = closed_box(0.55, 3, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)]);
+    let scene = closed_box(
+        0.55,
+        3,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)],
+    );
     let mut p = Propagation::new(scene, options(129, 48, 8, 5)).unwrap();
     p.run(|_| {});
     for s in &p.stats {
@@ -31,7 +36,13 @@ fn closed_box_conserves_energy_every_iteration() {
         for c in 0..3 {
             assert!(f.shot[c] > 0.0);
             let rel = (f.shot[c] - f.received[c]).abs() / f.shot[c];
-            assert!(rel < 1e-9, "iteration {}: shot {} received {} (rel {rel})", s.index, f.shot[c], f.received[c]);
+            assert!(
+                rel < 1e-9,
+                "iteration {}: shot {} received {} (rel {rel})",
+                s.index,
+                f.shot[c],
+                f.received[c]
+            );
             assert_eq!(f.escaped[c], 0.0, "light escaped a closed box");
             assert_eq!(f.blocked[c], 0.0, "a back face was hit inside a closed box");
         }
@@ -46,14 +57,22 @@ fn closed_box_conserves_energy_every_iteration() {
 #[test]
 fn enclosure_follows_the_geometric_series() {
     let rho = 0.7;
-    let scene = closed_box(0.55, 2, &[0], vec![material("wall", rho, 0.0), material("lamp", rho, 1.0)]);
+    let scene = closed_box(
+        0.55,
+        2,
+        &[0],
+        vec![material("wall", rho, 0.0), material("lamp", rho, 1.0)],
+    );
     let k = 8;
     let mut p = Propagation::new(scene, options(33, 32, 8, k)).unwrap();
     p.run(|_| {});
     let phi = lum(&p.emitted);
     let received: f64 = p.stats.iter().map(|s| lum(&s.flow.received)).sum();
     let expected = phi * (1.0 - rho.powi(k as i32)) / (1.0 - rho);
-    assert!(((received - expected) / expected).abs() < 1e-9, "received {received}, expected {expected}");
+    assert!(
+        ((received - expected) / expected).abs() < 1e-9,
+        "received {received}, expected {expected}"
+    );
     for (i, s) in p.stats.iter().enumerate() {
         let want = phi * rho.powi(i as i32);
         assert!((lum(&s.flow.received) - want).abs() / want < 1e-9, "iteration {i}");
@@ -68,7 +87,12 @@ fn enclosure_follows_the_geometric_series() {
 #[test]
 fn furnace_is_uniform_texel_by_texel() {
     let (rho, le) = (0.5, 1.0);
-    let scene = closed_box(0.55, 2, &[0, 1, 2, 3, 4, 5], vec![material("unused", rho, 0.0), material("glow", rho, le)]);
+    let scene = closed_box(
+        0.55,
+        2,
+        &[0, 1, 2, 3, 4, 5],
+        vec![material("unused", rho, 0.0), material("glow", rho, le)],
+    );
     let k = 12;
     let mut p = Propagation::new(scene, options(33, 32, 8, k)).unwrap();
     p.run(|_| {});
@@ -93,7 +117,12 @@ fn same_bits_with_one_and_several_threads() {
     let run = |threads: usize| {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         pool.install(|| {
-            let scene = closed_box(0.55, 2, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 3.0)]);
+            let scene = closed_box(
+                0.55,
+                2,
+                &[3],
+                vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 3.0)],
+            );
             let mut p = Propagation::new(scene, options(129, 32, 8, 3)).unwrap();
             p.run(|_| {});
             (p.total.clone(), p.current.clone())

@@ -21,9 +21,24 @@ fn corner_form_factor(a: f64, b: f64, c: f64) -> f64 {
 fn centre_error(l: usize, n: u32, m: u32) -> (f64, f64) {
     let (side, gap, le, rho) = (0.9, 0.5, 1.0, 0.5);
     let h = side / 2.0;
-    let emitter = rect(DVec3::new(0.0, gap / 2.0, 0.0), DVec3::X * h, DVec3::Z * h, -DVec3::Y, 1);
-    let receiver = rect(DVec3::new(0.0, -gap / 2.0, 0.0), DVec3::X * h, DVec3::Z * h, DVec3::Y, 0);
-    let scene = scene(vec![emitter, receiver], vec![material("floor", rho, 0.0), material("lamp", 0.0, le)]);
+    let emitter = rect(
+        DVec3::new(0.0, gap / 2.0, 0.0),
+        DVec3::X * h,
+        DVec3::Z * h,
+        -DVec3::Y,
+        1,
+    );
+    let receiver = rect(
+        DVec3::new(0.0, -gap / 2.0, 0.0),
+        DVec3::X * h,
+        DVec3::Z * h,
+        DVec3::Y,
+        0,
+    );
+    let scene = scene(
+        vec![emitter, receiver],
+        vec![material("floor", rho, 0.0), material("lamp", 0.0, le)],
+    );
     let options = Options {
         directions: l,
         grid: GridSize::new(n, m).unwrap(),
@@ -72,5 +87,8 @@ fn irradiance_under_a_square_matches_the_form_factor() {
     }
     assert!(errors[2].0 < 0.005, "fine mean error {}", errors[2].0);
     assert!(errors[2].1 < 0.02, "fine pointwise error {}", errors[2].1);
-    assert!(errors[2].1 < errors[0].1, "pointwise error did not fall as l and N grew: {errors:?}");
+    assert!(
+        errors[2].1 < errors[0].1,
+        "pointwise error did not fall as l and N grew: {errors:?}"
+    );
 }

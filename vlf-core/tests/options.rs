@@ -21,7 +21,12 @@ fn base(iterations: u32) -> Options {
 }
 
 fn lit_box() -> vlf_core::scene::Scene {
-    closed_box(0.55, 3, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)])
+    closed_box(
+        0.55,
+        3,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)],
+    )
 }
 
 /// Power bookkeeping that must hold whatever the options: everything emitted
@@ -30,14 +35,27 @@ fn assert_closed_balance(p: &Propagation) {
     for s in &p.stats {
         let f = &s.flow;
         let rel = (lum(&f.shot) - lum(&f.received)).abs() / lum(&f.shot);
-        assert!(rel < 1e-9, "iteration {}: shot {:?} received {:?}", s.index, f.shot, f.received);
+        assert!(
+            rel < 1e-9,
+            "iteration {}: shot {:?} received {:?}",
+            s.index,
+            f.shot,
+            f.received
+        );
     }
 }
 
 #[test]
 fn deferral_skips_quiet_surfaces_but_loses_no_power() {
     // 150 patches: the average patch holds 0.7 % of the unshot power.
-    let fine = || closed_box(0.55, 5, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)]);
+    let fine = || {
+        closed_box(
+            0.55,
+            5,
+            &[3],
+            vec![material("wall", 0.6, 0.0), material("lamp", 0.5, 2.0)],
+        )
+    };
     let mut plain = Propagation::new(fine(), base(6)).unwrap();
     plain.run(|_| {});
     let mut deferred = Propagation::new(
@@ -50,11 +68,15 @@ fn deferral_skips_quiet_surfaces_but_loses_no_power() {
     .unwrap();
     deferred.run(|_| {});
     assert_closed_balance(&deferred);
-    assert!(deferred.stats.iter().any(|s| s.deferred_surfaces > 0), "nothing was deferred");
+    assert!(
+        deferred.stats.iter().any(|s| s.deferred_surfaces > 0),
+        "nothing was deferred"
+    );
     // Total power out of walls + what is still unshot is the same physics:
     // deferral only changes *when* power is shot. After enough iterations
     // the two fields agree closely.
-    let total = |p: &Propagation| p.total.iter().map(lum).sum::<f64>() + p.current.iter().map(lum).sum::<f64>() * 0.6 / 0.4;
+    let total =
+        |p: &Propagation| p.total.iter().map(lum).sum::<f64>() + p.current.iter().map(lum).sum::<f64>() * 0.6 / 0.4;
     let (a, b) = (total(&plain), total(&deferred));
     assert!((a - b).abs() / a < 0.02, "deferred field drifted: {a} vs {b}");
 }
@@ -62,7 +84,10 @@ fn deferral_skips_quiet_surfaces_but_loses_no_power() {
 #[test]
 fn perturbation_conserves_power_and_changes_the_field() {
     let opts = Options {
-        perturbation: Perturbation { iterations: 2, count: 3 },
+        perturbation: Perturbation {
+            iterations: 2,
+            count: 3,
+        },
         ..base(3)
     };
     let mut p = Propagation::new(lit_box(), opts.clone()).unwrap();
@@ -83,7 +108,12 @@ fn perturbation_conserves_power_and_changes_the_field() {
 
 #[test]
 fn filtering_preserves_power() {
-    let uniform = closed_box(0.55, 3, &[3], vec![material("wall", 0.6, 0.0), material("lamp", 0.6, 2.0)]);
+    let uniform = closed_box(
+        0.55,
+        3,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.6, 2.0)],
+    );
     let mut p = Propagation::new(
         uniform,
         Options {
@@ -121,33 +151,65 @@ fn convergence_stops_when_unshot_is_small() {
     assert!(p.unshot_fraction() < 1e-2);
     assert!((8..=10).contains(&k), "stopped after {k} iterations");
     let before = p.stats[k as usize - 2].unshot;
-    assert!(lum(&before) / lum(&p.emitted) >= 1e-2, "did not stop at the first iteration below epsilon");
+    assert!(
+        lum(&before) / lum(&p.emitted) >= 1e-2,
+        "did not stop at the first iteration below epsilon"
+    );
 }
 
 #[test]
 fn absurd_parameters_are_refused() {
     let bad = [
-        Options { directions: 100, ..base(1) },
-        Options { stop: Stop::Iterations(0), ..base(1) },
         Options {
-            stop: Stop::Converge { epsilon: 0.0, max_iterations: 10 },
+            directions: 100,
             ..base(1)
         },
         Options {
-            stop: Stop::Converge { epsilon: f64::NAN, max_iterations: 10 },
+            stop: Stop::Iterations(0),
             ..base(1)
         },
-        Options { texel_cells: 0.0, ..base(1) },
-        Options { texel_cells: f64::INFINITY, ..base(1) },
-        Options { deferral: Some(1.5), ..base(1) },
-        Options { filter_sigma: Some(-1.0), ..base(1) },
         Options {
-            perturbation: Perturbation { iterations: 1, count: 0 },
+            stop: Stop::Converge {
+                epsilon: 0.0,
+                max_iterations: 10,
+            },
+            ..base(1)
+        },
+        Options {
+            stop: Stop::Converge {
+                epsilon: f64::NAN,
+                max_iterations: 10,
+            },
+            ..base(1)
+        },
+        Options {
+            texel_cells: 0.0,
+            ..base(1)
+        },
+        Options {
+            texel_cells: f64::INFINITY,
+            ..base(1)
+        },
+        Options {
+            deferral: Some(1.5),
+            ..base(1)
+        },
+        Options {
+            filter_sigma: Some(-1.0),
+            ..base(1)
+        },
+        Options {
+            perturbation: Perturbation {
+                iterations: 1,
+                count: 0,
+            },
             ..base(1)
         },
     ];
     for o in bad {
-        let err = Propagation::new(lit_box(), o.clone()).err().unwrap_or_else(|| panic!("accepted {o:?}"));
+        let err = Propagation::new(lit_box(), o.clone())
+            .err()
+            .unwrap_or_else(|| panic!("accepted {o:?}"));
         assert!(matches!(err, vlf_core::Error::Parameter(_)), "{err}");
     }
     assert!(GridSize::new(64, 7).is_err());

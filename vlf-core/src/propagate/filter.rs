@@ -12,7 +12,9 @@ use rayon::prelude::*;
 
 pub(crate) fn gaussian(atlas: &TexelAtlas, area: &[f64], power: &mut [Rgb], sigma: f64) {
     let radius = (2.5 * sigma).ceil() as i64;
-    let kernel: Vec<f64> = (-radius..=radius).map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp()).collect();
+    let kernel: Vec<f64> = (-radius..=radius)
+        .map(|d| (-(d * d) as f64 / (2.0 * sigma * sigma)).exp())
+        .collect();
     let filtered: Vec<Vec<Rgb>> = atlas
         .grids
         .par_iter()
@@ -29,15 +31,14 @@ pub(crate) fn gaussian(atlas: &TexelAtlas, area: &[f64], power: &mut [Rgb], sigm
                         continue;
                     }
                     let taps = || {
-                        (-radius..=radius).flat_map(move |dy| (-radius..=radius).map(move |dx| (dx, dy))).filter_map(
-                            |(dx, dy)| {
+                        (-radius..=radius)
+                            .flat_map(move |dy| (-radius..=radius).map(move |dx| (dx, dy)))
+                            .filter_map(|(dx, dy)| {
                                 let (xx, yy) = (x + dx, y + dy);
                                 let j = (yy * w + xx) as usize;
-                                (xx >= 0 && yy >= 0 && xx < w && yy < h && valid[j] > 0.0).then(|| {
-                                    (j, kernel[(dx + radius) as usize] * kernel[(dy + radius) as usize])
-                                })
-                            },
-                        )
+                                (xx >= 0 && yy >= 0 && xx < w && yy < h && valid[j] > 0.0)
+                                    .then(|| (j, kernel[(dx + radius) as usize] * kernel[(dy + radius) as usize]))
+                            })
                     };
                     let norm: f64 = taps().map(|(_, g)| g).sum();
                     if norm <= 0.0 {

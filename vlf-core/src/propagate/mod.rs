@@ -124,7 +124,10 @@ impl Options {
         match self.stop {
             Stop::Iterations(0) => return bad("iterations must be at least 1".into()),
             Stop::Iterations(k) if k > 100_000 => return bad(format!("iterations = {k} is absurd (max 100000)")),
-            Stop::Converge { epsilon, max_iterations } => {
+            Stop::Converge {
+                epsilon,
+                max_iterations,
+            } => {
                 if !(epsilon > 0.0 && epsilon < 1.0) {
                     return bad(format!("convergence threshold must be in (0, 1), got {epsilon}"));
                 }
@@ -135,7 +138,10 @@ impl Options {
             _ => {}
         }
         if !(self.texel_cells.is_finite() && (0.05..=1024.0).contains(&self.texel_cells)) {
-            return bad(format!("texel size must be 0.05..1024 ray spacings, got {}", self.texel_cells));
+            return bad(format!(
+                "texel size must be 0.05..1024 ray spacings, got {}",
+                self.texel_cells
+            ));
         }
         if let Some(d) = self.deferral
             && !(0.0..1.0).contains(&d)
@@ -143,7 +149,10 @@ impl Options {
             return bad(format!("deferral threshold must be in [0, 1), got {d}"));
         }
         if self.perturbation.iterations > 0 && !(1..=64).contains(&self.perturbation.count) {
-            return bad(format!("perturbation count must be 1..=64, got {}", self.perturbation.count));
+            return bad(format!(
+                "perturbation count must be 1..=64, got {}",
+                self.perturbation.count
+            ));
         }
         if let Some(s) = self.filter_sigma
             && !(s.is_finite() && s > 0.0 && s <= 16.0)
@@ -288,7 +297,9 @@ impl Propagation {
             .par_iter()
             .map(|d| Subfield::build(&scene, d.vector, grid))
             .collect();
-        let projected_area = discrete_areas(&scene, &atlas, &directions, |d| std::borrow::Cow::Borrowed(&subfields[d]));
+        let projected_area = discrete_areas(&scene, &atlas, &directions, |d| {
+            std::borrow::Cow::Borrowed(&subfields[d])
+        });
         let owners = atlas.owners();
         // Emission: Φ_t = π·Le·A_t = Le·T_t (in cell-area units).
         let current: Vec<Rgb> = projected_area
@@ -334,7 +345,10 @@ impl Propagation {
         let k = self.iterations_done();
         match self.options.stop {
             Stop::Iterations(n) => k >= n,
-            Stop::Converge { epsilon, max_iterations } => k >= max_iterations || self.unshot_fraction() < epsilon,
+            Stop::Converge {
+                epsilon,
+                max_iterations,
+            } => k >= max_iterations || self.unshot_fraction() < epsilon,
         }
     }
 
@@ -361,9 +375,16 @@ impl Propagation {
         let unshot_total: f64 = per_surface.iter().sum();
         let deferred: Vec<bool> = match self.options.deferral {
             Some(threshold) if threshold > 0.0 => {
-                let d: Vec<bool> = per_surface.iter().map(|&p| p > 0.0 && p < threshold * unshot_total).collect();
+                let d: Vec<bool> = per_surface
+                    .iter()
+                    .map(|&p| p > 0.0 && p < threshold * unshot_total)
+                    .collect();
                 // Never defer everything: that would stall the iteration.
-                if per_surface.iter().zip(&d).any(|(&p, &x)| p > 0.0 && !x) { d } else { vec![false; d.len()] }
+                if per_surface.iter().zip(&d).any(|(&p, &x)| p > 0.0 && !x) {
+                    d
+                } else {
+                    vec![false; d.len()]
+                }
             }
             _ => vec![false; per_surface.len()],
         };
@@ -468,7 +489,13 @@ pub(crate) fn radiance_of(power: &[Rgb], area: &[f64]) -> Vec<Rgb> {
     power
         .iter()
         .zip(area)
-        .map(|(p, &a)| if a > 0.0 { [p[0] / a, p[1] / a, p[2] / a] } else { [0.0; 3] })
+        .map(|(p, &a)| {
+            if a > 0.0 {
+                [p[0] / a, p[1] / a, p[2] / a]
+            } else {
+                [0.0; 3]
+            }
+        })
         .collect()
 }
 
@@ -482,7 +509,12 @@ fn facing_table(scene: &Scene, subfields: &[Subfield]) -> Vec<Vec<f64>> {
 
 /// Computes `T_t = Σ_ω Δω · n_t(ω)` for a direction set whose subfields are
 /// given by `subfield(d)` (stored or built on the fly).
-pub(crate) fn discrete_areas<'a, F>(scene: &Scene, atlas: &TexelAtlas, directions: &DirectionSet, subfield: F) -> Vec<f64>
+pub(crate) fn discrete_areas<'a, F>(
+    scene: &Scene,
+    atlas: &TexelAtlas,
+    directions: &DirectionSet,
+    subfield: F,
+) -> Vec<f64>
 where
     F: Fn(usize) -> std::borrow::Cow<'a, Subfield> + Sync,
 {
@@ -497,5 +529,3 @@ where
     );
     area.into_iter().map(|a| a[0]).collect()
 }
-
-

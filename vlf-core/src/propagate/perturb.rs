@@ -14,7 +14,7 @@
 //! library versions (a general-purpose RNG crate makes no such promise).
 
 use super::shoot::{self, Flow};
-use super::{discrete_areas, radiance_of, map_reduce_directions};
+use super::{discrete_areas, map_reduce_directions, radiance_of};
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
 use crate::psf::{GridSize, Subfield};
@@ -67,7 +67,10 @@ pub(crate) fn shoot_perturbed(
     progress: &mut dyn FnMut(usize, usize),
 ) -> (Vec<Rgb>, Flow, Vec<Rgb>) {
     let share = 1.0 / count as f64;
-    let part: Vec<Rgb> = shooting.iter().map(|p| [p[0] * share, p[1] * share, p[2] * share]).collect();
+    let part: Vec<Rgb> = shooting
+        .iter()
+        .map(|p| [p[0] * share, p[1] * share, p[2] * share])
+        .collect();
     let mut received = vec![[0.0; 3]; atlas.texels];
     let mut unsent = vec![[0.0; 3]; atlas.texels];
     let mut flow = Flow::default();
@@ -92,7 +95,16 @@ pub(crate) fn shoot_perturbed(
             |d, buf, scratch| {
                 let sub = Subfield::build(scene, rotated.get(d).vector, grid);
                 let facing: Vec<f64> = scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect();
-                shoot::shoot(scene, atlas, &sub, rotated.get(d).weight, &facing, &radiance, buf, scratch)
+                shoot::shoot(
+                    scene,
+                    atlas,
+                    &sub,
+                    rotated.get(d).weight,
+                    &facing,
+                    &radiance,
+                    buf,
+                    scratch,
+                )
             },
         );
         for (acc, v) in received.iter_mut().zip(&r) {

@@ -257,3 +257,106 @@ impl SurfaceProjection {
         self.p0 + self.px * x + self.py * y
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::{FaceOrigin, Material, Normalisation, Surface};
+
+    fn tri(a: DVec3, b: DVec3, c: DVec3) -> Surface {
+        let n = (b - a).cross(c - a);
+        Surface {
+            vertices: vec![a, b, c],
+            normal: n.normalize(),
+            offset: n.normalize().dot(a),
+            area: n.length() / 2.0,
+            material: 0,
+            origin: FaceOrigin { line: 0, face: 0 },
+        }
+    }
+
+    fn scene() -> Scene {
+        let mut surfaces = Vec::new();
+        // A fan of triangles around a point (shared edges), tilted.
+        let centre = DVec3::new(0.1, -0.05, 0.2);
+        for k in 0..7 {
+            let a0 = k as f64 / 7.0 * std::f64::consts::TAU;
+            let a1 = (k + 1) as f64 / 7.0 * std::f64::consts::TAU;
+            let p = |a: f64| DVec3::new(0.7 * a.cos(), 0.6 * a.sin(), 0.3 * a.cos() * a.sin());
+            surfaces.push(tri(centre, p(a0), p(a1)));
+        }
+        Scene {
+            surfaces,
+            materials: vec![Material {
+                name: "m".into(),
+                diffuse: [0.5; 3],
+                specular: [0.0; 3],
+                emission: [1.0; 3],
+            }],
+            normalisation: Normalisation {
+                center: DVec3::ZERO,
+                scale: 1.0,
+            },
+        }
+    }
+
+    #[test]
+    fn frame_is_orthonormal_and_right_handed() {
+        for w in [DVec3::X, DVec3::Y, DVec3::Z, DVec3::new(0.3, -0.5, 0.8), DVec3::new(-1.0, 1e-9, 0.0)] {
+            let f = PsfFrame::new(w);
+            assert!((f.u.length() - 1.0).abs() < 1e-12 && (f.v.length() - 1.0).abs() < 1e-12);
+            assert!(f.u.dot(f.v).abs() < 1e-12 && f.u.dot(f.w).abs() < 1e-12);
+            assert!((f.u.cross(f.v) - f.w).length() < 1e-12);
+        }
+    }
+
+    /// The tiles hold exactly the rays the whole-grid rasterisation covers,
+    /// each span inside its tile, surfaces sorted within a tile.
+    #[test]
+    fn tiles_partition_the_rasterisation() {
+        let scene = scene();
+        for (n, m) in [(32, 8), (64, 8), (48, 16), (16, 16), (30, 5)] {
+            let grid = GridSize::new(n, m).unwrap();
+            let w = DVec3::new(0.2, 0.3, 0.9).normalize();
+            let sub = Subfield::build(&scene, w, grid);
+            assert_eq!(sub.tile_count(), ((n / m) * (n / m)) as usize);
+            let mut per_surface = vec![0u64; scene.surfaces.len()];
+            for k in 0..sub.tile_count() {
+                let entries = sub.tile(k);
+                assert!(entries.windows(2).all(|e| e[0].surface < e[1].surface));
+                for e in entries {
+                    let mut rays = 0;
+                    for s in sub.spans_of(e) {
+                        assert!(s.start < s.end && (s.end as u32) <= m && (s.row as u32) < m);
+                        rays += (s.end - s.start) as u32;
+                    }
+                    assert_eq!(rays, e.rays);
+                    per_surface[e.surface as usize] += rays as u64;
+                }
+            }
+            for (id, s) in scene.surfaces.iter().enumerate() {
+                let pts: Vec<DVec2> = s.vertices.iter().map(|&p| sub.frame.to_grid(p, n)).collect();
+                assert_eq!(per_surface[id], raster::rasterize_convex(&pts, n, |_| {}), "surface {id}, N={n}");
+            }
+            assert!(per_surface.iter().all(|&r| r > 0), "a triangle of the fan was missed");
+        }
+    }
+
+    /// Depth and hit point from the affine projection lie on the surface plane
+    /// and on the ray.
+    #[test]
+    fn projection_hits_the_plane_on_the_ray() {
+        let scene = scene();
+        let n = 64;
+        let frame = PsfFrame::new(DVec3::new(-0.4, 0.1, 0.7));
+        for s in &scene.surfaces {
+            let p = SurfaceProjection::new(&frame, n, s.normal, s.offset);
+            for (x, y) in [(0.5, 0.5), (10.5, 40.5), (63.5, 2.5)] {
+                let hit = p.point_at(x, y);
+                assert!((s.normal.dot(hit) - s.offset).abs() < 1e-9);
+                let origin = -frame.u - frame.v + frame.u * (x * 2.0 / n as f64) + frame.v * (y * 2.0 / n as f64);
+                assert!((origin + frame.w * p.depth_at(x, y) - hit).length() < 1e-9);
+            }
+        }
+    }
+}

@@ -155,19 +155,11 @@ mod tests {
 
     #[test]
     fn winding_does_not_matter_and_edge_on_covers_nothing() {
-        let tri = vec![
-            DVec2::new(0.3, 0.2),
-            DVec2::new(7.1, 1.9),
-            DVec2::new(3.3, 6.8),
-        ];
+        let tri = vec![DVec2::new(0.3, 0.2), DVec2::new(7.1, 1.9), DVec2::new(3.3, 6.8)];
         let mut rev = tri.clone();
         rev.reverse();
         assert_eq!(coverage(&[tri], 8), coverage(&[rev], 8));
-        let flat = vec![
-            DVec2::new(0.5, 0.5),
-            DVec2::new(3.5, 3.5),
-            DVec2::new(7.5, 7.5),
-        ];
+        let flat = vec![DVec2::new(0.5, 0.5), DVec2::new(3.5, 3.5), DVec2::new(7.5, 7.5)];
         assert_eq!(coverage(&[flat], 8).iter().sum::<u32>(), 0);
     }
 

@@ -18,7 +18,11 @@ pub fn surface(vertices: Vec<DVec3>, material: usize) -> Surface {
     let mut n = DVec3::ZERO;
     for k in 0..vertices.len() {
         let (a, b) = (vertices[k], vertices[(k + 1) % vertices.len()]);
-        n += DVec3::new((a.y - b.y) * (a.z + b.z), (a.z - b.z) * (a.x + b.x), (a.x - b.x) * (a.y + b.y));
+        n += DVec3::new(
+            (a.y - b.y) * (a.z + b.z),
+            (a.z - b.z) * (a.x + b.x),
+            (a.x - b.x) * (a.y + b.y),
+        );
     }
     let area = n.length() * 0.5;
     let normal = n.normalize();

@@ -1,0 +1,126 @@
+//! The `vlf` command line end to end: propagate a bundled scene, render it,
+//! and refuse bad input with a clear message and a non-zero exit code.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn vlf(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_vlf")).args(args).output().expect("run vlf")
+}
+
+fn scene(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes")
+        .join(name)
+        .to_string_lossy()
+        .into_owned()
+}
+
+fn temp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vlf-cli-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+fn stderr(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stderr).into_owned()
+}
+
+fn propagate(out: &Path, threads: &str) -> Output {
+    vlf(&[
+        "propagate",
+        &scene("cornell.obj"),
+        "--out",
+        out.to_str().unwrap(),
+        "--directions",
+        "33",
+        "--resolution",
+        "32",
+        "--tile",
+        "8",
+        "--iterations",
+        "3",
+        "--threads",
+        threads,
+    ])
+}
+
+#[test]
+fn propagate_then_render_every_format() {
+    let out = temp("cornell");
+    let o = propagate(&out, "2");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let summary = String::from_utf8_lossy(&o.stdout);
+    for key in ["iterations      3", "unshot fraction", "field memory", "energy balance"] {
+        assert!(summary.contains(key), "summary lacks {key:?}: {summary}");
+    }
+    for ext in ["pfm", "exr", "png"] {
+        let image = out.join(format!("view.{ext}"));
+        let o = vlf(&[
+            "render",
+            out.to_str().unwrap(),
+            "--eye",
+            "278,273,-800",
+            "--target",
+            "278,273,0",
+            "--fovy",
+            "39",
+            "--size",
+            "64x48",
+            "--out",
+            image.to_str().unwrap(),
+            "--exposure",
+            "-1",
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        assert!(std::fs::metadata(&image).map(|m| m.len() > 100).unwrap_or(false));
+    }
+    let img = vlf_core::render::Image::load_pfm(&out.join("view.pfm")).unwrap();
+    assert_eq!((img.width, img.height), (64, 48));
+    let mean = img.mean();
+    assert!(mean.iter().all(|&c| c > 0.01 && c.is_finite()), "dark or broken image: {mean:?}");
+    // The red wall is on the left (x = 0) as seen from the camera.
+    let left = img.pixels[24 * 64 + 3];
+    let right = img.pixels[24 * 64 + 60];
+    assert!(left[0] > left[1] && right[1] > right[0], "walls swapped: left {left:?} right {right:?}");
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn thread_count_does_not_change_the_field() {
+    let (a, b) = (temp("t1"), temp("t2"));
+    assert!(propagate(&a, "1").status.success());
+    assert!(propagate(&b, "2").status.success());
+    let fa = std::fs::read(a.join("field.vlf")).unwrap();
+    let fb = std::fs::read(b.join("field.vlf")).unwrap();
+    assert!(fa == fb, "field files differ between 1 and 2 threads");
+    let _ = std::fs::remove_dir_all(&a);
+    let _ = std::fs::remove_dir_all(&b);
+}
+
+#[test]
+fn bad_input_gets_a_clear_error() {
+    let out = temp("bad");
+    let o_str = out.to_str().unwrap().to_string();
+    let cornell = scene("cornell.obj");
+    let cases: Vec<(Vec<&str>, &str)> = vec![
+        (vec!["propagate", "/nonexistent/scene.obj", "--out", &o_str], "scene.obj"),
+        (vec!["propagate", &cornell, "--out", &o_str, "--directions", "100"], "directions"),
+        (vec!["propagate", &cornell, "--out", &o_str, "--tile", "7"], "divide"),
+        (vec!["propagate", &cornell, "--out", &o_str, "--iterations", "0"], "iterations"),
+        (vec!["propagate", &cornell, "--out", &o_str, "--converge", "2"], "threshold"),
+        (vec!["propagate", &cornell, "--out", &o_str, "--threads", "0"], "threads"),
+        (vec!["propagate", &cornell, "--out", &o_str, "--resolution", "100000"], "resolution"),
+        (vec!["propagate", &cornell, "--out", &o_str, "--iterations", "2", "--converge", "0.1"], "cannot be used"),
+        (vec!["render", "/nonexistent", "--eye", "0,0,0", "--target", "0,0,1", "--out", "x.png"], "field.vlf"),
+        (vec!["render", &o_str, "--eye", "0,0", "--target", "0,0,1", "--out", "x.png"], "X,Y,Z"),
+        (vec!["render", &o_str, "--eye", "0,0,0", "--target", "0,0,1", "--size", "0x10", "--out", "x.png"], "size"),
+    ];
+    for (args, needle) in cases {
+        let o = vlf(&args);
+        assert!(!o.status.success(), "accepted {args:?}");
+        let e = stderr(&o);
+        assert!(e.to_lowercase().contains(&needle.to_lowercase()), "{args:?}: message lacks {needle:?}: {e}");
+        assert!(!e.contains("panicked"), "{args:?} panicked: {e}");
+    }
+}
