@@ -77,8 +77,8 @@ def cornell():
     by = {tuple(n): (p, n) for p, n in walls}
     groups = [
         ("white", [by[(0, 1, 0)], by[(0, -1, 0)], by[(0, 0, -1)]]),  # floor, ceiling, back wall
-        ("red", [by[(1, 0, 0)]]),   # left wall (x = 0) faces +x
-        ("green", [by[(-1, 0, 0)]]),
+        ("red", [by[(-1, 0, 0)]]),  # x = 555 faces -x: on the left, seen from the camera at z = -800
+        ("green", [by[(1, 0, 0)]]),
         ("light", [quad((213, 548.0, 227), (343, 548.0, 227), (343, 548.0, 332), (213, 548.0, 332), (0, -1, 0))]),
         ("white", box(130, 295, 0, 165, 65, 230, skip=('-y',), rot_y=math.radians(-17))),
         ("white", box(265, 430, 0, 330, 295, 460, skip=('-y',), rot_y=math.radians(18))),

@@ -66,15 +66,15 @@ struct PropagateArgs {
     /// Deferred propagation: surfaces with less than this fraction of the unshot power wait.
     #[arg(long)]
     defer: Option<f64>,
-    /// Perturb the direction set in the first ITERS iterations (remedy for holes).
-    #[arg(long, default_value_t = 0)]
+    /// Perturb the direction set in the first ITERS iterations (remedy for holes; 0 = off).
+    #[arg(long, default_value_t = 2)]
     perturb: u32,
     /// Rotated copies of the direction set per perturbed iteration.
     #[arg(long, default_value_t = 4)]
     perturb_count: u32,
-    /// Gaussian filter of the Next maps, σ in texels.
-    #[arg(long)]
-    filter: Option<f64>,
+    /// Gaussian filter of the Next maps, σ in texels (0 = off).
+    #[arg(long, default_value_t = 1.0)]
+    filter: f64,
 }
 
 #[derive(Args)]
@@ -152,7 +152,7 @@ fn propagate(args: PropagateArgs) -> Result<()> {
             iterations: args.perturb,
             count: args.perturb_count,
         },
-        filter_sigma: args.filter,
+        filter_sigma: (args.filter != 0.0).then_some(args.filter),
     };
     options.validate()?;
     let threads = args.threads.unwrap_or(0);

@@ -13,7 +13,9 @@ use vlf_core::scene::{ImportOptions, load_obj};
 
 fn office() -> vlf_core::scene::Scene {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/office.obj");
-    load_obj(&path, &ImportOptions::default()).expect("bundled office scene").0
+    load_obj(&path, &ImportOptions::default())
+        .expect("bundled office scene")
+        .0
 }
 
 fn options(l: usize) -> Options {

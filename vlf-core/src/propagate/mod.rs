@@ -366,6 +366,7 @@ impl Propagation {
         let index = self.iterations_done();
         let scene = &self.scene;
         let atlas = &self.atlas;
+        let geometry = shoot::Geometry { scene, atlas };
 
         // Deferred propagation: quiet surfaces keep their unshot power.
         let mut per_surface = vec![0.0f64; scene.surfaces.len()];
@@ -437,7 +438,7 @@ impl Propagation {
                 },
                 |d, buf, scratch| {
                     let w = self.directions.get(d).weight;
-                    shoot::shoot(scene, atlas, &self.subfields[d], w, &facing[d], &radiance, buf, scratch)
+                    shoot::shoot(geometry, &self.subfields[d], w, &facing[d], &radiance, buf, scratch)
                 },
             )
         };
@@ -523,7 +524,13 @@ where
         atlas.texels,
         |_| {},
         |d, buf, scratch| {
-            shoot::count(scene, atlas, &subfield(d), directions.get(d).weight, buf, scratch);
+            shoot::count(
+                shoot::Geometry { scene, atlas },
+                &subfield(d),
+                directions.get(d).weight,
+                buf,
+                scratch,
+            );
             Flow::default()
         },
     );

@@ -96,8 +96,7 @@ pub(crate) fn shoot_perturbed(
                 let sub = Subfield::build(scene, rotated.get(d).vector, grid);
                 let facing: Vec<f64> = scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect();
                 shoot::shoot(
-                    scene,
-                    atlas,
+                    shoot::Geometry { scene, atlas },
                     &sub,
                     rotated.get(d).weight,
                     &facing,

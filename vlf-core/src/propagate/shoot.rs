@@ -19,6 +19,13 @@ pub(crate) struct RayHit {
     pub texel: u32,
 }
 
+/// The static inputs of a walk: the scene and where its texels are.
+#[derive(Clone, Copy)]
+pub(crate) struct Geometry<'a> {
+    pub scene: &'a Scene,
+    pub atlas: &'a TexelAtlas,
+}
+
 /// Reusable buffers of one worker thread.
 #[derive(Default)]
 pub(crate) struct Scratch {
@@ -40,8 +47,7 @@ struct TexelProjection {
 /// with its hits sorted by increasing depth along `+w` (ties broken by
 /// surface id, so the order is deterministic even for coplanar surfaces).
 pub(crate) fn for_each_ray(
-    scene: &Scene,
-    atlas: &TexelAtlas,
+    Geometry { scene, atlas }: Geometry,
     sub: &Subfield,
     scratch: &mut Scratch,
     mut visit: impl FnMut(&[RayHit]),
@@ -166,8 +172,7 @@ fn add_scaled(dst: &mut Rgb, src: &Rgb, k: f64) {
 /// leaving texel `t` carries `radiance[t] · weight`. `facing[s] = n_s · w`.
 /// Power arriving at a texel is added to `received[t]`.
 pub(crate) fn shoot(
-    scene: &Scene,
-    atlas: &TexelAtlas,
+    geometry: Geometry,
     sub: &Subfield,
     weight: f64,
     facing: &[f64],
@@ -176,7 +181,7 @@ pub(crate) fn shoot(
     scratch: &mut Scratch,
 ) -> Flow {
     let mut flow = Flow::default();
-    for_each_ray(scene, atlas, sub, scratch, |hits| {
+    for_each_ray(geometry, sub, scratch, |hits| {
         // Along −w, the first surface sends into the void if it faces −w.
         let first = hits[0];
         if facing[first.surface as usize] < 0.0 {
@@ -219,15 +224,8 @@ pub(crate) fn shoot(
 
 /// Adds `weight` to `area[t]` for every ray crossing texel `t`: one direction's
 /// share of the texels' discrete areas `T_t`.
-pub(crate) fn count(
-    scene: &Scene,
-    atlas: &TexelAtlas,
-    sub: &Subfield,
-    weight: f64,
-    area: &mut [Rgb],
-    scratch: &mut Scratch,
-) {
-    for_each_ray(scene, atlas, sub, scratch, |hits| {
+pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut [Rgb], scratch: &mut Scratch) {
+    for_each_ray(geometry, sub, scratch, |hits| {
         for h in hits {
             area[h.texel as usize][0] += weight;
         }

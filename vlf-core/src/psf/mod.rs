@@ -71,7 +71,7 @@ impl GridSize {
                 Self::MAX_RESOLUTION
             )));
         }
-        if tile == 0 || tile > resolution || resolution % tile != 0 {
+        if tile == 0 || tile > resolution || !resolution.is_multiple_of(tile) {
             return Err(crate::Error::Parameter(format!(
                 "tile size m = {tile} must divide the resolution N = {resolution}"
             )));
@@ -112,6 +112,10 @@ pub struct TileSurface {
     pub span_count: u32,
     /// Number of rays of the tile that cross the surface.
     pub rays: u32,
+    /// Index of this entry's first ray among all (surface, ray) crossings of
+    /// the subfield, in tile / entry / span / column order: per-ray maps of a
+    /// subfield (radiance maps) are flat arrays indexed by these *slots*.
+    pub first_ray: u32,
 }
 
 /// The subfield of one direction, its tiles in compressed-row form: tile `k`
@@ -164,6 +168,7 @@ impl Subfield {
         let mut tile_start = Vec::with_capacity(buckets.len() + 1);
         let mut entries = Vec::new();
         let mut spans = Vec::new();
+        let mut slots = 0u32;
         for bucket in buckets {
             tile_start.push(entries.len() as u32);
             let mut k = 0;
@@ -182,7 +187,9 @@ impl Subfield {
                     first_span,
                     span_count: spans.len() as u32 - first_span,
                     rays,
+                    first_ray: slots,
                 });
+                slots += rays;
             }
         }
         tile_start.push(entries.len() as u32);
@@ -206,6 +213,47 @@ impl Subfield {
 
     pub fn spans_of(&self, entry: &TileSurface) -> &[Span] {
         &self.spans[entry.first_span as usize..(entry.first_span + entry.span_count) as usize]
+    }
+
+    /// Total number of (surface, ray) crossings: the length of a per-ray map.
+    pub fn slot_count(&self) -> usize {
+        self.entries.last().map_or(0, |e| (e.first_ray + e.rays) as usize)
+    }
+
+    /// The slot of the ray through grid cell `(x, y)` on `surface`, if that
+    /// ray crosses it. Constant time but for finding the surface in the
+    /// tile's short sorted list (a binary search) — the paper's only search.
+    pub fn locate(&self, surface: u32, x: u32, y: u32) -> Option<u32> {
+        let (m, n) = (self.grid.tile, self.grid.resolution);
+        if x >= n || y >= n {
+            return None;
+        }
+        let k = ((y / m) * self.grid.tiles_per_side() + x / m) as usize;
+        let entries = self.tile(k);
+        let e = &entries[entries.binary_search_by_key(&surface, |e| e.surface).ok()?];
+        let (row, col) = ((y % m) as u16, (x % m) as u16);
+        let mut slot = e.first_ray;
+        for s in self.spans_of(e) {
+            if s.row == row {
+                return (s.start <= col && col < s.end).then(|| slot + (col - s.start) as u32);
+            }
+            slot += (s.end - s.start) as u32;
+        }
+        None
+    }
+
+    /// Visits every ray of `surface` in slot order with its grid cell `(x, y)`.
+    pub fn rays_of(&self, k: usize, entry: &TileSurface, mut visit: impl FnMut(u32, u32, u32)) {
+        let m = self.grid.tile;
+        let per_side = self.grid.tiles_per_side() as usize;
+        let (tx, ty) = ((k % per_side) as u32 * m, (k / per_side) as u32 * m);
+        let mut slot = entry.first_ray;
+        for s in self.spans_of(entry) {
+            for c in s.start..s.end {
+                visit(slot, tx + c as u32, ty + s.row as u32);
+                slot += 1;
+            }
+        }
     }
 
     /// Bytes held by this subfield's tables.
@@ -302,7 +350,13 @@ mod tests {
 
     #[test]
     fn frame_is_orthonormal_and_right_handed() {
-        for w in [DVec3::X, DVec3::Y, DVec3::Z, DVec3::new(0.3, -0.5, 0.8), DVec3::new(-1.0, 1e-9, 0.0)] {
+        for w in [
+            DVec3::X,
+            DVec3::Y,
+            DVec3::Z,
+            DVec3::new(0.3, -0.5, 0.8),
+            DVec3::new(-1.0, 1e-9, 0.0),
+        ] {
             let f = PsfFrame::new(w);
             assert!((f.u.length() - 1.0).abs() < 1e-12 && (f.v.length() - 1.0).abs() < 1e-12);
             assert!(f.u.dot(f.v).abs() < 1e-12 && f.u.dot(f.w).abs() < 1e-12);
@@ -336,9 +390,26 @@ mod tests {
             }
             for (id, s) in scene.surfaces.iter().enumerate() {
                 let pts: Vec<DVec2> = s.vertices.iter().map(|&p| sub.frame.to_grid(p, n)).collect();
-                assert_eq!(per_surface[id], raster::rasterize_convex(&pts, n, |_| {}), "surface {id}, N={n}");
+                assert_eq!(
+                    per_surface[id],
+                    raster::rasterize_convex(&pts, n, |_| {}),
+                    "surface {id}, N={n}"
+                );
             }
             assert!(per_surface.iter().all(|&r| r > 0), "a triangle of the fan was missed");
+            // Slots: rays_of and locate agree, and slots are 0..slot_count.
+            let mut seen = vec![false; sub.slot_count()];
+            for k in 0..sub.tile_count() {
+                for e in sub.tile(k) {
+                    sub.rays_of(k, e, |slot, x, y| {
+                        assert_eq!(sub.locate(e.surface, x, y), Some(slot));
+                        assert!(!seen[slot as usize]);
+                        seen[slot as usize] = true;
+                    });
+                }
+            }
+            assert!(seen.iter().all(|&s| s));
+            assert_eq!(sub.locate(0, n, 0), None);
         }
     }
 
