@@ -42,8 +42,10 @@
 mod filter;
 mod perturb;
 pub(crate) mod shoot;
+pub mod specular;
 
 pub use shoot::Flow;
+pub use specular::{Exchange, Specular};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
@@ -176,6 +178,10 @@ pub struct IterationStats {
     /// Unshot power left after the iteration (Next + deferred).
     pub unshot: Rgb,
     pub deferred_surfaces: usize,
+    /// Mirror exchange after the iteration (zero without mirrors).
+    pub exchange: Exchange,
+    /// Of `unshot`, the part in mirror maps.
+    pub specular_unshot: Rgb,
     pub seconds: f64,
 }
 
@@ -227,6 +233,9 @@ pub struct Propagation {
     pub total: Vec<Rgb>,
     pub emitted: Rgb,
     pub stats: Vec<IterationStats>,
+    /// Mirror maps and reflection routes; `None` when the scene has no
+    /// mirror light can reach (no specular machinery at all).
+    pub specular: Option<Specular>,
     owners: Vec<u32>,
 }
 
@@ -243,12 +252,31 @@ fn luminance(c: &Rgb) -> f64 {
 pub(crate) fn map_reduce_directions<K>(
     count: usize,
     texels: usize,
-    mut progress: impl FnMut(usize),
+    progress: impl FnMut(usize),
     kernel: K,
 ) -> (Vec<Rgb>, Flow)
 where
     K: Fn(usize, &mut [Rgb], &mut shoot::Scratch) -> Flow + Sync,
 {
+    let mut none = vec![(); count];
+    map_reduce_with_state(&mut none, texels, progress, |d, _, buf, scratch| {
+        kernel(d, buf, scratch)
+    })
+}
+
+/// [`map_reduce_directions`] where each direction also owns a mutable state
+/// (its mirror maps), handed to the kernel as `&mut states[d]`.
+pub(crate) fn map_reduce_with_state<S, K>(
+    states: &mut [S],
+    texels: usize,
+    mut progress: impl FnMut(usize),
+    kernel: K,
+) -> (Vec<Rgb>, Flow)
+where
+    S: Send,
+    K: Fn(usize, &mut S, &mut [Rgb], &mut shoot::Scratch) -> Flow + Sync,
+{
+    let count = states.len();
     let mut sum = vec![[0.0; 3]; texels];
     let mut flow = Flow::default();
     let mut buffers: Vec<Vec<Rgb>> = (0..BATCH.min(count)).map(|_| vec![[0.0; 3]; texels]).collect();
@@ -257,10 +285,11 @@ where
         let end = (start + BATCH).min(count);
         let flows: Vec<Flow> = buffers[..end - start]
             .par_iter_mut()
+            .zip(states[start..end].par_iter_mut())
             .enumerate()
-            .map_init(shoot::Scratch::default, |scratch, (b, buf)| {
+            .map_init(shoot::Scratch::default, |scratch, (b, (buf, state))| {
                 buf.iter_mut().for_each(|x| *x = [0.0; 3]);
-                kernel(start + b, buf, scratch)
+                kernel(start + b, state, buf, scratch)
             })
             .collect();
         let used = &buffers[..end - start];
@@ -316,7 +345,12 @@ impl Propagation {
                 "no emitter is hit by any ray: the emitters are too small for this resolution (raise N)".into(),
             ));
         }
+        let mirrors: Vec<u32> = (0..scene.surfaces.len() as u32)
+            .filter(|&s| scene.material(s as usize).is_mirror())
+            .collect();
+        let specular = (!mirrors.is_empty()).then(|| Specular::new(&scene, &directions, &subfields, mirrors));
         Ok(Propagation {
+            specular,
             total: current.clone(),
             scene,
             options,
@@ -333,7 +367,19 @@ impl Propagation {
 
     /// Unshot power as a fraction of the emitted power.
     pub fn unshot_fraction(&self) -> f64 {
-        luminance(&sum_rgb(&self.current)) / luminance(&self.emitted)
+        luminance(&self.unshot_power()) / luminance(&self.emitted)
+    }
+
+    /// Unshot power: diffuse (Current maps) plus specular (mirror maps).
+    pub fn unshot_power(&self) -> Rgb {
+        let mut p = sum_rgb(&self.current);
+        if let Some(s) = &self.specular {
+            let q = s.unshot_power(&self.directions);
+            for c in 0..3 {
+                p[c] += q[c];
+            }
+        }
+        p
     }
 
     pub fn iterations_done(&self) -> u32 {
@@ -398,8 +444,12 @@ impl Propagation {
             }
         }
 
+        // Perturbed copies only carry diffuse transport; with mirrors in the
+        // scene every iteration goes through the true directions (their maps
+        // exist only there).
         let p = self.options.perturbation;
-        let (received, flow) = if index < p.iterations && p.count > 0 {
+        let perturbed = index < p.iterations && p.count > 0 && self.specular.is_none();
+        let (received, flow) = if perturbed {
             let (received, flow, unsent) = perturb::shoot_perturbed(
                 scene,
                 atlas,
@@ -426,21 +476,41 @@ impl Propagation {
             let radiance = radiance_of(&shooting, &self.projected_area);
             let facing = facing_table(scene, &self.subfields);
             let total = self.directions.len();
-            map_reduce_directions(
-                total,
-                atlas.texels,
-                |done| {
-                    progress(Progress {
-                        iteration: index,
-                        directions_done: done,
-                        directions_total: total,
+            let report = |done| {
+                progress(Progress {
+                    iteration: index,
+                    directions_done: done,
+                    directions_total: total,
+                })
+            };
+            let (directions, subfields) = (&self.directions, &self.subfields);
+            let beam = |d: usize| shoot::Beam {
+                sub: &subfields[d],
+                weight: directions.get(d).weight,
+                facing: &facing[d],
+            };
+            match self.specular.as_mut() {
+                None => map_reduce_directions(total, atlas.texels, report, |d, buf, scratch| {
+                    shoot::shoot(geometry, beam(d), &radiance, buf, None, scratch)
+                }),
+                Some(spec) => {
+                    let layouts = &spec.layouts;
+                    map_reduce_with_state(&mut spec.maps, atlas.texels, report, |d, maps, buf, scratch| {
+                        let io = shoot::SpecularIo {
+                            mirror_base: &layouts[d].entry_base,
+                            unshot: &maps.unshot,
+                            incident: &mut maps.incident,
+                            total: &mut maps.total,
+                        };
+                        shoot::shoot(geometry, beam(d), &radiance, buf, Some(io), scratch)
                     })
-                },
-                |d, buf, scratch| {
-                    let w = self.directions.get(d).weight;
-                    shoot::shoot(geometry, &self.subfields[d], w, &facing[d], &radiance, buf, scratch)
-                },
-            )
+                }
+            }
+        };
+        // Mirrors reflect what arrived on them into new unshot maps.
+        let exchange = match self.specular.as_mut() {
+            Some(spec) => spec.exchange(scene, &self.directions, &self.subfields),
+            None => Exchange::default(),
         };
 
         // Reflect: Next = ρd · received; Total += Next.
@@ -462,11 +532,17 @@ impl Propagation {
             }
         }
         self.current = next;
+        let specular_unshot = self
+            .specular
+            .as_ref()
+            .map_or([0.0; 3], |s| s.unshot_power(&self.directions));
         let stats = IterationStats {
             index,
             flow: flow.into(),
-            unshot: sum_rgb(&self.current),
+            unshot: self.unshot_power(),
             deferred_surfaces: deferred.iter().filter(|&&d| d).count(),
+            exchange,
+            specular_unshot,
             seconds: started.elapsed().as_secs_f64(),
         };
         self.stats.push(stats.clone());

@@ -95,15 +95,12 @@ pub(crate) fn shoot_perturbed(
             |d, buf, scratch| {
                 let sub = Subfield::build(scene, rotated.get(d).vector, grid);
                 let facing: Vec<f64> = scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect();
-                shoot::shoot(
-                    shoot::Geometry { scene, atlas },
-                    &sub,
-                    rotated.get(d).weight,
-                    &facing,
-                    &radiance,
-                    buf,
-                    scratch,
-                )
+                let beam = shoot::Beam {
+                    sub: &sub,
+                    weight: rotated.get(d).weight,
+                    facing: &facing,
+                };
+                shoot::shoot(shoot::Geometry { scene, atlas }, beam, &radiance, buf, None, scratch)
             },
         );
         for (acc, v) in received.iter_mut().zip(&r) {

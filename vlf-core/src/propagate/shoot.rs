@@ -17,7 +17,12 @@ pub(crate) struct RayHit {
     pub depth: f64,
     pub surface: u32,
     pub texel: u32,
+    /// The hit's slot in the subfield's mirror maps, or [`NO_SLOT`].
+    pub mirror: u32,
 }
+
+/// Marks a hit on a surface without directional (mirror) maps.
+pub(crate) const NO_SLOT: u32 = u32::MAX;
 
 /// The static inputs of a walk: the scene and where its texels are.
 #[derive(Clone, Copy)]
@@ -30,6 +35,7 @@ pub(crate) struct Geometry<'a> {
 #[derive(Default)]
 pub(crate) struct Scratch {
     offsets: Vec<u32>,
+    fill: Vec<u32>,
     hits: Vec<RayHit>,
 }
 
@@ -46,9 +52,12 @@ struct TexelProjection {
 /// Calls `visit` for every ray of `sub` that crosses at least one surface,
 /// with its hits sorted by increasing depth along `+w` (ties broken by
 /// surface id, so the order is deterministic even for coplanar surfaces).
+/// `mirror_base[e]` is the first mirror slot of tile entry `e` (or
+/// [`NO_SLOT`]); without it no hit has a mirror slot.
 pub(crate) fn for_each_ray(
     Geometry { scene, atlas }: Geometry,
     sub: &Subfield,
+    mirror_base: Option<&[u32]>,
     scratch: &mut Scratch,
     mut visit: impl FnMut(&[RayHit]),
 ) {
@@ -82,10 +91,15 @@ pub(crate) fn for_each_ray(
                 depth: 0.0,
                 surface: 0,
                 texel: 0,
+                mirror: NO_SLOT,
             },
         );
-        let mut fill: Vec<u32> = scratch.offsets[..m * m].to_vec();
-        for e in entries {
+        scratch.fill.clear();
+        scratch.fill.extend_from_slice(&scratch.offsets[..m * m]);
+        let fill = &mut scratch.fill;
+        let first_entry = sub.tile_start[k] as usize;
+        for (local, e) in entries.iter().enumerate() {
+            let mut mirror = mirror_base.map_or(NO_SLOT, |b| b[first_entry + local]);
             let surface = &scene.surfaces[e.surface as usize];
             let grid = &atlas.grids[e.surface as usize];
             let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
@@ -106,7 +120,11 @@ pub(crate) fn for_each_ray(
                         depth: tp.depth[0] + tp.depth[1] * gx + tp.depth[2] * y,
                         surface: e.surface,
                         texel: grid.index(tp.c0 + tp.cx * gx + tp.cy * y) as u32,
+                        mirror,
                     };
+                    if mirror != NO_SLOT {
+                        mirror += 1;
+                    }
                 }
             }
         }
@@ -165,58 +183,106 @@ fn add_scaled(dst: &mut Rgb, src: &Rgb, k: f64) {
     }
 }
 
+/// One direction's subfield, its solid-angle weight and `n_s · w` per surface.
+#[derive(Clone, Copy)]
+pub(crate) struct Beam<'a> {
+    pub sub: &'a Subfield,
+    pub weight: f64,
+    pub facing: &'a [f64],
+}
+
+/// What a hit sends along its ray: its diffuse radiance, plus its unshot
+/// mirror radiance (recorded in the mirror's total as it leaves).
+fn leaving(h: &RayHit, radiance: &[Rgb], spec: &mut Option<SpecularIo>) -> Rgb {
+    let mut l = radiance[h.texel as usize];
+    if h.mirror != NO_SLOT
+        && let Some(s) = spec.as_mut()
+    {
+        let u = s.unshot[h.mirror as usize];
+        add_scaled(&mut s.total[h.mirror as usize], &u, 1.0);
+        add_scaled(&mut l, &u, 1.0);
+    }
+    l
+}
+
+/// The directional (mirror) side of one direction's shot, all indexed by the
+/// subfield's mirror slots.
+pub(crate) struct SpecularIo<'a> {
+    pub mirror_base: &'a [u32],
+    /// Unshot radiance leaving each mirror slot along this direction.
+    pub unshot: &'a [Rgb],
+    /// Radiance arriving on each mirror slot (either orientation), added to.
+    pub incident: &'a mut [Rgb],
+    /// Total radiance leaving each mirror slot, added to.
+    pub total: &'a mut [Rgb],
+}
+
 /// Shoots along one direction of solid-angle weight `weight`.
 ///
 /// `radiance[t]` is the power a texel sends per unit of `Δω · (ray count)`,
 /// i.e. `Φ_t / T_t` (see the module docs of [`crate::propagate`]); each ray
-/// leaving texel `t` carries `radiance[t] · weight`. `facing[s] = n_s · w`.
-/// Power arriving at a texel is added to `received[t]`.
+/// leaving texel `t` carries `radiance[t] · weight`, plus, for a mirror, its
+/// unshot radiance along this direction. `beam.facing[s] = n_s · w`. Power
+/// arriving at a texel is added to `received[t]`; radiance arriving at a
+/// mirror slot to `specular.incident`.
 pub(crate) fn shoot(
     geometry: Geometry,
-    sub: &Subfield,
-    weight: f64,
-    facing: &[f64],
+    beam: Beam,
     radiance: &[Rgb],
     received: &mut [Rgb],
+    mut specular: Option<SpecularIo>,
     scratch: &mut Scratch,
 ) -> Flow {
+    let Beam { sub, weight, facing } = beam;
     let mut flow = Flow::default();
-    for_each_ray(geometry, sub, scratch, |hits| {
+    let base = specular.as_ref().map(|s| s.mirror_base);
+    let spec = &mut specular;
+    for_each_ray(geometry, sub, base, scratch, |hits| {
+        let leaving = |h: &RayHit, spec: &mut Option<SpecularIo>| leaving(h, radiance, spec);
+        let arrive = |h: &RayHit, l: &Rgb, flow: &mut Flow, received: &mut [Rgb], spec: &mut Option<SpecularIo>| {
+            add_scaled(&mut flow.received, l, weight);
+            add_scaled(&mut received[h.texel as usize], l, weight);
+            if h.mirror != NO_SLOT
+                && let Some(s) = spec.as_mut()
+            {
+                add_scaled(&mut s.incident[h.mirror as usize], l, 1.0);
+            }
+        };
         // Along −w, the first surface sends into the void if it faces −w.
         let first = hits[0];
         if facing[first.surface as usize] < 0.0 {
-            add_scaled(&mut flow.shot, &radiance[first.texel as usize], weight);
-            add_scaled(&mut flow.escaped, &radiance[first.texel as usize], weight);
+            let l = leaving(&first, spec);
+            add_scaled(&mut flow.shot, &l, weight);
+            add_scaled(&mut flow.escaped, &l, weight);
         }
         for pair in hits.windows(2) {
             let (a, b) = (pair[0], pair[1]);
             let a_forward = facing[a.surface as usize] > 0.0; // a's front looks along +w
             let b_backward = facing[b.surface as usize] < 0.0; // b's front looks along −w
             if a_forward {
-                let l = &radiance[a.texel as usize];
-                add_scaled(&mut flow.shot, l, weight);
+                let l = leaving(&a, spec);
+                add_scaled(&mut flow.shot, &l, weight);
                 if b_backward {
-                    add_scaled(&mut flow.received, l, weight);
-                    add_scaled(&mut received[b.texel as usize], l, weight);
+                    arrive(&b, &l, &mut flow, received, spec);
                 } else {
-                    add_scaled(&mut flow.blocked, l, weight);
+                    add_scaled(&mut flow.blocked, &l, weight);
                 }
             }
             if b_backward {
-                let l = &radiance[b.texel as usize];
-                add_scaled(&mut flow.shot, l, weight);
+                let l = leaving(&b, spec);
+                add_scaled(&mut flow.shot, &l, weight);
                 if a_forward {
-                    add_scaled(&mut flow.received, l, weight);
-                    add_scaled(&mut received[a.texel as usize], l, weight);
+                    arrive(&a, &l, &mut flow, received, spec);
                 } else {
-                    add_scaled(&mut flow.blocked, l, weight);
+                    add_scaled(&mut flow.blocked, &l, weight);
                 }
             }
         }
         let last = hits[hits.len() - 1];
         if facing[last.surface as usize] > 0.0 {
-            add_scaled(&mut flow.shot, &radiance[last.texel as usize], weight);
-            add_scaled(&mut flow.escaped, &radiance[last.texel as usize], weight);
+            let l = leaving(&last, spec);
+            add_scaled(&mut flow.shot, &l, weight);
+            add_scaled(&mut flow.escaped, &l, weight);
         }
     });
     flow
@@ -225,7 +291,7 @@ pub(crate) fn shoot(
 /// Adds `weight` to `area[t]` for every ray crossing texel `t`: one direction's
 /// share of the texels' discrete areas `T_t`.
 pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut [Rgb], scratch: &mut Scratch) {
-    for_each_ray(geometry, sub, scratch, |hits| {
+    for_each_ray(geometry, sub, None, scratch, |hits| {
         for h in hits {
             area[h.texel as usize][0] += weight;
         }

@@ -224,20 +224,29 @@ impl Subfield {
     /// ray crosses it. Constant time but for finding the surface in the
     /// tile's short sorted list (a binary search) — the paper's only search.
     pub fn locate(&self, surface: u32, x: u32, y: u32) -> Option<u32> {
+        self.locate_entry(surface, x, y)
+            .map(|(e, offset)| self.entries[e].first_ray + offset)
+    }
+
+    /// Like [`Subfield::locate`], but returns the tile entry's index in
+    /// [`Subfield::entries`] and the ray's offset within the entry.
+    pub fn locate_entry(&self, surface: u32, x: u32, y: u32) -> Option<(usize, u32)> {
         let (m, n) = (self.grid.tile, self.grid.resolution);
         if x >= n || y >= n {
             return None;
         }
         let k = ((y / m) * self.grid.tiles_per_side() + x / m) as usize;
         let entries = self.tile(k);
-        let e = &entries[entries.binary_search_by_key(&surface, |e| e.surface).ok()?];
+        let local = entries.binary_search_by_key(&surface, |e| e.surface).ok()?;
+        let e = &entries[local];
         let (row, col) = ((y % m) as u16, (x % m) as u16);
-        let mut slot = e.first_ray;
+        let mut offset = 0u32;
         for s in self.spans_of(e) {
             if s.row == row {
-                return (s.start <= col && col < s.end).then(|| slot + (col - s.start) as u32);
+                return (s.start <= col && col < s.end)
+                    .then(|| (self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
             }
-            slot += (s.end - s.start) as u32;
+            offset += (s.end - s.start) as u32;
         }
         None
     }

@@ -78,3 +78,12 @@ pub fn closed_box(h: f64, split: usize, emitting: &[usize], materials: Vec<Mater
     }
     scene(surfaces, materials)
 }
+
+pub fn mirror(name: &str, diffuse: f64, specular: f64) -> Material {
+    Material {
+        name: name.into(),
+        diffuse: [diffuse; 3],
+        specular: [specular; 3],
+        emission: [0.0; 3],
+    }
+}

@@ -1,0 +1,392 @@
+//! Specular transport: ideal mirrors in the light field.
+//!
+//! A diffuse surface's outgoing radiance is the same in every direction and
+//! lives in its texel maps; a mirror's is directional, so it lives **per
+//! direction**, on the rays of each subfield that cross the mirror: one
+//! value per *mirror slot* (a (mirror, ray) crossing, see [`MirrorLayout`]).
+//! Each direction owns three maps over its mirror slots ([`DirectionMaps`]):
+//!
+//! * `unshot` — radiance still to be sent from the mirror along this
+//!   direction (leaving its front side). Shot like a diffuse sender's, but
+//!   only along this one direction: this is how caustics (L S D) and mirrors
+//!   in mirrors (L S S D) arise.
+//! * `total` — every radiance that ever left the mirror along the ray: after
+//!   the last iteration, the tile radiance maps the walkthrough reads.
+//! * `incident` — radiance that arrived on the mirror along this direction
+//!   during the current iteration.
+//!
+//! ## Reflection between iterations (the exchange)
+//!
+//! Light arriving on mirror `P` along oriented direction `ω` leaves along the
+//! mirror image `r = ω − 2(ω·n)n`. `r` falls in a spherical triangle of three
+//! directions `i₁, i₂, i₃` with barycentric weights `b_k`; the reflected
+//! power `ρs·Φ_in(P, ω)` is split over them by `b_k`. That is a fixed table,
+//! the [`Route`]s: for each target direction `i`, the (mirror, source
+//! direction, weight) triples that feed it. Each target gathers its new
+//! unshot map **backwards**, as the paper does: every ray of `i` that crosses
+//! `P` finds the point where it leaves `P`, projects it into the source
+//! subfield `ω` and reads the incident radiance of the ray there, so no slot
+//! of `i` is left empty however the two grids are sampled. The gathered
+//! radiance is then scaled so that the power of route `(P, ω → i)` is
+//! exactly `b·ρs·Φ_in(P, ω)`: power is conserved to rounding despite the
+//! nearest-direction approximation and the resampling between grids.
+//!
+//! Targets are computed independently (in parallel) from read-only incident
+//! maps, in a fixed route order, so the result does not depend on threads —
+//! and a distributed service can route the maps the same way.
+
+use super::shoot::NO_SLOT;
+use crate::directions::DirectionSet;
+use crate::psf::{Subfield, SurfaceProjection};
+use crate::scene::{Rgb, Scene};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+/// Where one subfield's rays cross mirrors: a compact numbering of its
+/// (mirror, ray) crossings, in tile / entry / span / column order.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct MirrorLayout {
+    /// For each entry of [`Subfield::entries`]: its first mirror slot, or
+    /// `u32::MAX` for a surface without directional maps.
+    pub entry_base: Vec<u32>,
+    /// Number of mirror slots.
+    pub len: u32,
+    /// The mirror entries as (surface, tile, entry index), sorted by surface.
+    pub entries: Vec<(u32, u32, u32)>,
+}
+
+impl MirrorLayout {
+    pub fn new(sub: &Subfield, has_maps: &[bool]) -> Self {
+        let mut entry_base = vec![NO_SLOT; sub.entries.len()];
+        let mut entries = Vec::new();
+        let mut len = 0u32;
+        for k in 0..sub.tile_count() {
+            let first = sub.tile_start[k] as usize;
+            for (local, e) in sub.tile(k).iter().enumerate() {
+                if has_maps[e.surface as usize] {
+                    entry_base[first + local] = len;
+                    entries.push((e.surface, k as u32, (first + local) as u32));
+                    len += e.rays;
+                }
+            }
+        }
+        entries.sort_by_key(|&(s, k, _)| (s, k));
+        MirrorLayout {
+            entry_base,
+            len,
+            entries,
+        }
+    }
+
+    /// The mirror entries of `surface`.
+    pub fn entries_of(&self, surface: u32) -> &[(u32, u32, u32)] {
+        let a = self.entries.partition_point(|e| e.0 < surface);
+        let b = self.entries.partition_point(|e| e.0 <= surface);
+        &self.entries[a..b]
+    }
+
+    /// The mirror slot of grid cell `(x, y)` on `surface`, if its ray crosses it.
+    pub fn locate(&self, sub: &Subfield, surface: u32, x: u32, y: u32) -> Option<u32> {
+        let (entry, offset) = sub.locate_entry(surface, x, y)?;
+        let base = self.entry_base[entry];
+        (base != NO_SLOT).then_some(base + offset)
+    }
+}
+
+/// The mirror maps owned by one direction (see the module docs).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct DirectionMaps {
+    pub unshot: Vec<Rgb>,
+    pub total: Vec<Rgb>,
+    pub incident: Vec<Rgb>,
+}
+
+/// One feed of a target direction: light arriving on `mirror` along source
+/// line direction `source` reflects into the target with share `weight`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Route {
+    pub mirror: u32,
+    pub source: u32,
+    pub weight: f64,
+}
+
+/// Power bookkeeping of one exchange (per channel).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Exchange {
+    /// Power that arrived on mirrors (front side).
+    pub incident: Rgb,
+    /// Power reflected into the unshot maps: ρs × incident, exactly.
+    pub reflected: Rgb,
+}
+
+/// The specular state of a propagation.
+#[derive(Clone, Debug)]
+pub struct Specular {
+    /// Surfaces with directional maps (mirrors that light can reach).
+    pub mirrors: Vec<u32>,
+    pub layouts: Vec<MirrorLayout>,
+    pub maps: Vec<DirectionMaps>,
+    /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
+    pub routes: Vec<Vec<Route>>,
+    ordinal: Vec<u32>,
+}
+
+impl Specular {
+    /// Lays out the mirror maps of `mirrors` over every subfield and builds the
+    /// reflection routes.
+    pub fn new(scene: &Scene, directions: &DirectionSet, subfields: &[Subfield], mirrors: Vec<u32>) -> Self {
+        let mut has_maps = vec![false; scene.surfaces.len()];
+        let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
+        for (k, &m) in mirrors.iter().enumerate() {
+            has_maps[m as usize] = true;
+            ordinal[m as usize] = k as u32;
+        }
+        let layouts: Vec<MirrorLayout> = subfields.par_iter().map(|s| MirrorLayout::new(s, &has_maps)).collect();
+        let maps = layouts
+            .iter()
+            .map(|l| DirectionMaps {
+                unshot: vec![[0.0; 3]; l.len as usize],
+                total: vec![[0.0; 3]; l.len as usize],
+                incident: vec![[0.0; 3]; l.len as usize],
+            })
+            .collect();
+        // crossed[d][k]: does mirror k have rays in direction d?
+        let crossed: Vec<Vec<bool>> = layouts
+            .iter()
+            .map(|l| {
+                let mut c = vec![false; mirrors.len()];
+                for &(s, _, _) in &l.entries {
+                    c[ordinal[s as usize] as usize] = true;
+                }
+                c
+            })
+            .collect();
+        let per_mirror: Vec<Vec<(u32, Route)>> = mirrors
+            .par_iter()
+            .enumerate()
+            .map(|(k, &m)| mirror_routes(scene, directions, &crossed, k, m))
+            .collect();
+        let mut routes = vec![Vec::new(); directions.len()];
+        for list in per_mirror {
+            for (target, route) in list {
+                routes[target as usize].push(route);
+            }
+        }
+        for r in &mut routes {
+            r.sort_by_key(|r| (r.mirror, r.source));
+        }
+        Specular {
+            mirrors,
+            layouts,
+            maps,
+            routes,
+            ordinal,
+        }
+    }
+
+    /// Power still unshot in the mirror maps: `Σ_i Σ_slots U · Δω_i`.
+    pub fn unshot_power(&self, directions: &DirectionSet) -> Rgb {
+        let mut p = [0.0; 3];
+        for (d, maps) in self.maps.iter().enumerate() {
+            let w = directions.get(d).weight;
+            for u in &maps.unshot {
+                for c in 0..3 {
+                    p[c] += u[c] * w;
+                }
+            }
+        }
+        p
+    }
+
+    /// Whether any mirror slot holds unshot radiance.
+    pub fn has_unshot(&self) -> bool {
+        self.maps
+            .iter()
+            .any(|m| m.unshot.iter().any(|u| u.iter().any(|&c| c > 0.0)))
+    }
+
+    /// Reflects this iteration's incident radiance into new unshot maps
+    /// (replacing the old ones, which were shot) and clears the incident maps.
+    pub fn exchange(&mut self, scene: &Scene, directions: &DirectionSet, subfields: &[Subfield]) -> Exchange {
+        let incident: Vec<Vec<Rgb>> = self
+            .maps
+            .iter_mut()
+            .map(|m| {
+                let fresh = vec![[0.0; 3]; m.incident.len()];
+                std::mem::replace(&mut m.incident, fresh)
+            })
+            .collect();
+        // Φ_in(P, ω) for every direction and mirror.
+        let power_in: Vec<Vec<Rgb>> = (0..directions.len())
+            .into_par_iter()
+            .map(|d| {
+                let mut p = vec![[0.0; 3]; self.mirrors.len()];
+                let w = directions.get(d).weight;
+                let sub = &subfields[d];
+                for &(s, _, e) in &self.layouts[d].entries {
+                    let base = self.layouts[d].entry_base[e as usize] as usize;
+                    let acc = &mut p[self.ordinal[s as usize] as usize];
+                    for v in &incident[d][base..base + sub.entries[e as usize].rays as usize] {
+                        for c in 0..3 {
+                            acc[c] += v[c] * w;
+                        }
+                    }
+                }
+                p
+            })
+            .collect();
+        let mut exchange = Exchange::default();
+        for p in &power_in {
+            for v in p {
+                for c in 0..3 {
+                    exchange.incident[c] += v[c];
+                }
+            }
+        }
+        let gathered: Vec<(Vec<Rgb>, Rgb)> = (0..directions.len())
+            .into_par_iter()
+            .map(|i| self.gather(scene, directions, subfields, &incident, &power_in, i))
+            .collect();
+        for (maps, (unshot, reflected)) in self.maps.iter_mut().zip(gathered) {
+            maps.unshot = unshot;
+            for c in 0..3 {
+                exchange.reflected[c] += reflected[c];
+            }
+        }
+        exchange
+    }
+
+    /// The new unshot map of target direction `i`, and the power it holds.
+    fn gather(
+        &self,
+        scene: &Scene,
+        directions: &DirectionSet,
+        subfields: &[Subfield],
+        incident: &[Vec<Rgb>],
+        power_in: &[Vec<Rgb>],
+        i: usize,
+    ) -> (Vec<Rgb>, Rgb) {
+        let layout = &self.layouts[i];
+        let sub = &subfields[i];
+        let n = sub.grid.resolution;
+        let weight_i = directions.get(i).weight;
+        let mut out = vec![[0.0; 3]; layout.len as usize];
+        let mut reflected = [0.0; 3];
+        let mut samples: Vec<(u32, Rgb)> = Vec::new();
+        for route in &self.routes[i] {
+            let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+            if pin.iter().all(|&p| p <= 0.0) {
+                continue;
+            }
+            let surface = &scene.surfaces[route.mirror as usize];
+            let rho = scene.materials[surface.material].specular;
+            let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
+            let source = &subfields[route.source as usize];
+            let source_layout = &self.layouts[route.source as usize];
+            let source_incident = &incident[route.source as usize];
+            // Backward mapping: every slot of P in i reads the incident
+            // radiance of the source ray through the same point of P.
+            samples.clear();
+            for &(_, k, e) in layout.entries_of(route.mirror) {
+                let base = layout.entry_base[e as usize];
+                sub.rays_of(k as usize, &sub.entries[e as usize], |slot, x, y| {
+                    let p = proj.point_at(x as f64 + 0.5, y as f64 + 0.5);
+                    let g = source.frame.to_grid(p, n);
+                    let v = if g.x >= 0.0 && g.y >= 0.0 {
+                        source_layout
+                            .locate(source, route.mirror, g.x as u32, g.y as u32)
+                            .map_or([0.0; 3], |s| source_incident[s as usize])
+                    } else {
+                        [0.0; 3]
+                    };
+                    samples.push((base + slot - sub.entries[e as usize].first_ray, v));
+                });
+            }
+            if samples.is_empty() {
+                continue;
+            }
+            // Scale so the route carries exactly b·ρs·Φ_in (per channel);
+            // where backward mapping found nothing lit (a lit area far smaller
+            // than a ray cell), spread the power evenly instead.
+            for c in 0..3 {
+                let target = route.weight * rho[c] * pin[c];
+                if target <= 0.0 {
+                    continue;
+                }
+                let sum: f64 = samples.iter().map(|(_, v)| v[c]).sum();
+                if sum > 0.0 {
+                    let k = target / (sum * weight_i);
+                    for (slot, v) in &samples {
+                        out[*slot as usize][c] += v[c] * k;
+                    }
+                } else {
+                    let each = target / (samples.len() as f64 * weight_i);
+                    for (slot, _) in &samples {
+                        out[*slot as usize][c] += each;
+                    }
+                }
+                reflected[c] += target;
+            }
+        }
+        (out, reflected)
+    }
+}
+
+/// The routes of mirror `m` (ordinal `k`): for every source line direction
+/// whose rays cross it, where its reflection goes, as (target, route).
+fn mirror_routes(
+    scene: &Scene,
+    directions: &DirectionSet,
+    crossed: &[Vec<bool>],
+    k: usize,
+    m: u32,
+) -> Vec<(u32, Route)> {
+    let n = scene.surfaces[m as usize].normal;
+    let mut out = Vec::new();
+    for source in 0..directions.len() {
+        if !crossed[source][k] {
+            continue;
+        }
+        let w = directions.get(source).vector;
+        let c = w.dot(n);
+        // The orientation of the line that travels towards the front side.
+        let incoming = if c < 0.0 { w } else { -w };
+        let r = incoming - 2.0 * incoming.dot(n) * n;
+        let tri = directions.triangle(r);
+        // Keep vertices that leave the front side and whose rays cross the mirror.
+        let mut kept: Vec<(u32, f64)> = tri
+            .vertices
+            .iter()
+            .zip(tri.weights)
+            .filter(|(o, b)| *b > 0.0 && directions.vector(**o).dot(n) > 1e-9 && crossed[o.index as usize][k])
+            .map(|(o, b)| (o.index, b))
+            .collect();
+        if kept.is_empty() {
+            // Grazing reflection whose triangle lies behind the mirror or misses
+            // it: the closest line direction that does leave the front.
+            let best = (0..directions.len())
+                .filter(|&t| crossed[t][k] && directions.get(t).vector.dot(n).abs() > 1e-9)
+                .max_by(|&a, &b| {
+                    let fa = directions.get(a).vector.dot(r).abs();
+                    let fb = directions.get(b).vector.dot(r).abs();
+                    fa.total_cmp(&fb).then(b.cmp(&a))
+                });
+            match best {
+                Some(t) => kept.push((t as u32, 1.0)),
+                None => continue,
+            }
+        }
+        let total: f64 = kept.iter().map(|(_, b)| b).sum();
+        for (target, b) in kept {
+            out.push((
+                target,
+                Route {
+                    mirror: m,
+                    source: source as u32,
+                    weight: b / total,
+                },
+            ));
+        }
+    }
+    out
+}

@@ -1,0 +1,176 @@
+//! Mirrors: energy balance of the exchange, and the analytic image of an
+//! emitter in a single mirror.
+
+mod common;
+
+use common::*;
+use glam::DVec3;
+use std::f64::consts::PI;
+use vlf_core::propagate::{Options, Propagation, Stop};
+use vlf_core::psf::GridSize;
+
+fn lum(c: &[f64; 3]) -> f64 {
+    c.iter().sum::<f64>() / 3.0
+}
+
+fn options(l: usize, n: u32, m: u32, iterations: u32) -> Options {
+    Options {
+        directions: l,
+        grid: GridSize::new(n, m).unwrap(),
+        stop: Stop::Iterations(iterations),
+        ..Options::default()
+    }
+}
+
+/// A closed box with two mirror walls (one part diffuse): what is shot is
+/// received, what mirrors receive is reflected times ρs, and the unshot power
+/// after each iteration is exactly what the surfaces re-emit.
+#[test]
+fn mirror_box_balances_energy_every_iteration() {
+    let mut scene = closed_box(
+        0.55,
+        2,
+        &[3],
+        vec![
+            material("wall", 0.5, 0.0),
+            material("lamp", 0.3, 2.0),
+            mirror("glass", 0.0, 0.8),
+            mirror("satin", 0.2, 0.7),
+        ],
+    );
+    // Face 0 (−x) pure mirror, face 5 (+z) part diffuse, part mirror.
+    for (k, s) in scene.surfaces.iter_mut().enumerate() {
+        match k / 4 {
+            0 => s.material = 2,
+            5 => s.material = 3,
+            _ => {}
+        }
+    }
+    let mut p = Propagation::new(scene, options(129, 32, 8, 6)).unwrap();
+    assert!(p.specular.is_some());
+    p.run(|_| {});
+    for s in &p.stats {
+        let (f, x) = (&s.flow, &s.exchange);
+        assert!(
+            (lum(&f.shot) - lum(&f.received)).abs() <= 1e-9 * lum(&f.shot),
+            "iteration {}",
+            s.index
+        );
+        assert_eq!(lum(&f.escaped) + lum(&f.blocked), 0.0);
+        assert!(
+            lum(&x.incident) > 0.0,
+            "no light reached the mirrors in iteration {}",
+            s.index
+        );
+        // ρs differs per mirror, so compare with the per-mirror bound: 0.7 ≤ ρs ≤ 0.8.
+        assert!(lum(&x.reflected) <= 0.8 * lum(&x.incident) * (1.0 + 1e-9));
+        assert!(lum(&x.reflected) >= 0.7 * lum(&x.incident) * (1.0 - 1e-9));
+        assert!((lum(&s.specular_unshot) - lum(&x.reflected)).abs() <= 1e-9 * lum(&x.reflected));
+    }
+    // Light keeps bouncing: later iterations shoot mirror light too, and the
+    // unshot power falls geometrically.
+    for w in p.stats.windows(2) {
+        assert!(lum(&w[1].unshot) < lum(&w[0].unshot));
+    }
+}
+
+/// Pure mirror box walls with ρs = 0.8 everywhere but a diffuse lamp: every
+/// bounce keeps exactly 0.8 of the power on the walls.
+#[test]
+fn all_mirror_box_loses_exactly_one_minus_rho_per_bounce() {
+    let mut scene = closed_box(
+        0.55,
+        1,
+        &[3],
+        vec![mirror("silver", 0.0, 0.8), material("lamp", 0.0, 1.0)],
+    );
+    scene.surfaces[3].material = 1;
+    let mut p = Propagation::new(scene, options(129, 32, 8, 5)).unwrap();
+    p.run(|_| {});
+    // Iteration 0: the lamp shoots Φ; the mirrors (5 of 6 faces) get the
+    // part not sent back to the lamp itself (none: it is flat) = Φ.
+    let phi = lum(&p.emitted);
+    let x0 = &p.stats[0].exchange;
+    assert!((lum(&x0.incident) - phi).abs() < 1e-9 * phi);
+    for s in &p.stats {
+        let x = &s.exchange;
+        assert!(
+            (lum(&x.reflected) - 0.8 * lum(&x.incident)).abs() < 1e-9 * phi,
+            "iteration {}",
+            s.index
+        );
+        // Mirror light reaching the (black) lamp is absorbed; the rest stays.
+        assert!(lum(&s.unshot).is_finite() && lum(&s.unshot) <= lum(&s.flow.shot));
+    }
+}
+
+fn corner_form_factor(a: f64, b: f64, c: f64) -> f64 {
+    let (x, y) = (a / c, b / c);
+    let (sx, sy) = ((1.0 + x * x).sqrt(), (1.0 + y * y).sqrt());
+    (x / sx * (y / sx).atan() + y / sy * (x / sy).atan()) / (2.0 * PI)
+}
+
+/// Form factor from a point to an axis-aligned rectangle `[x0,x1]×[z0,z1]`
+/// (coordinates relative to the point) in a parallel plane at distance `c`.
+fn rect_form_factor(x0: f64, x1: f64, z0: f64, z1: f64, c: f64) -> f64 {
+    corner_form_factor(x1, z1, c) - corner_form_factor(x0, z1, c) - corner_form_factor(x1, z0, c)
+        + corner_form_factor(x0, z0, c)
+}
+
+/// A lamp and a receiver side by side, both facing down, over a large floor
+/// mirror: the receiver sees only the lamp's mirror image (the L S D path),
+/// whose irradiance is ρs times that of a lamp at twice the height.
+fn mirror_image_error(l: usize, n: u32, m: u32) -> f64 {
+    let (h, rho_s, rho_d, le) = (0.3, 0.9, 0.5, 1.0);
+    let lamp = rect(DVec3::new(-0.3, h, 0.0), DVec3::X * 0.2, DVec3::Z * 0.2, -DVec3::Y, 1);
+    let receiver = rect(DVec3::new(0.25, h, 0.0), DVec3::X * 0.2, DVec3::Z * 0.2, -DVec3::Y, 0);
+    let floor = rect(DVec3::new(0.0, 0.0, 0.0), DVec3::X * 0.75, DVec3::Z * 0.55, DVec3::Y, 2);
+    let scene = scene(
+        vec![lamp, receiver, floor],
+        vec![
+            material("card", rho_d, 0.0),
+            material("lamp", 0.0, le),
+            mirror("mirror", 0.0, rho_s),
+        ],
+    );
+    let mut p = Propagation::new(scene, options(l, n, m, 2)).unwrap();
+    p.run(|_| {});
+    let field = p.into_field();
+    let (mut measured, mut expected) = (0.0, 0.0);
+    let count = 256;
+    for k in 0..count {
+        let a = k as f64 * 2.399963;
+        let r = 0.1 * ((k as f64 + 0.5) / count as f64).sqrt();
+        let (x, z) = (0.25 + r * a.cos(), r * a.sin());
+        measured += field.radiance_at(1, DVec3::new(x, h, z))[0] / count as f64;
+        // The image lamp: [-0.5, -0.1] × [-0.2, 0.2] at distance 2h.
+        let f = rect_form_factor(-0.5 - x, -0.1 - x, -0.2 - z, 0.2 - z, 2.0 * h);
+        expected += rho_d * rho_s * le * f / count as f64;
+    }
+    println!("l={l} N={n}: measured {measured:.5}, expected {expected:.5}");
+    (measured - expected).abs() / expected
+}
+
+#[test]
+fn a_mirror_shows_the_image_of_an_emitter() {
+    let coarse = mirror_image_error(513, 64, 8);
+    let fine = mirror_image_error(2049, 128, 16);
+    println!("relative error of the mirror image: l=513 N=64 {coarse:.4}, l=2049 N=128 {fine:.4}");
+    assert!(coarse < 0.08, "{coarse}");
+    assert!(fine < 0.03, "{fine}");
+}
+
+/// No mirror in the scene: no specular machinery at all.
+#[test]
+fn diffuse_scene_has_no_specular_state() {
+    let scene = closed_box(
+        0.55,
+        1,
+        &[3],
+        vec![material("wall", 0.5, 0.0), material("lamp", 0.3, 2.0)],
+    );
+    let mut p = Propagation::new(scene, options(33, 16, 8, 2)).unwrap();
+    assert!(p.specular.is_none());
+    p.run(|_| {});
+    assert!(p.stats.iter().all(|s| s.exchange.incident == [0.0; 3]));
+}
