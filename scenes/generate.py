@@ -156,6 +156,39 @@ def office():
     return write("office", g, mats)
 
 
+def mirrors():
+    """A Cornell box with a mirror on the right wall and a tilted mirror on
+    the floor that throws a caustic (L S D) onto the red wall."""
+    L = 555.0
+    walls = box(0, L, 0, L, 0, L, inward=True, skip=('-z',))
+    by = {tuple(n): (p, n) for p, n in walls}
+    r2 = math.sqrt(0.5)
+    tilt_n = (r2, r2, 0.0)  # faces up and towards +x (the red wall)
+    c = (230.0, 70.0, 300.0)
+    # Quad spanning the z axis and the in-plane direction (-r2, r2, 0).
+    a = (-r2 * 70, r2 * 70, 0.0)
+    b = (0.0, 0.0, 90.0)
+    corners = [tuple(c[i] + sa * a[i] + sb * b[i] for i in range(3)) for sa, sb in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    groups = [
+        ("white", [by[(0, 1, 0)], by[(0, -1, 0)], by[(0, 0, -1)]]),
+        ("red", [by[(-1, 0, 0)]]),
+        ("green", [by[(1, 0, 0)]]),
+        ("light", [(quad((213, 548.0, 227), (343, 548.0, 227), (343, 548.0, 332), (213, 548.0, 332), (0, -1, 0)), (0, -1, 0))]),
+        ("mirror", [(quad((1.0, 80, 120), (1.0, 80, 470), (1.0, 460, 470), (1.0, 460, 120), (1, 0, 0)), (1, 0, 0)),
+                    (quad(*corners, tilt_n), tilt_n)]),
+        ("white", box(330, 450, 0, 200, 330, 450, skip=('-y',), rot_y=math.radians(20))),
+    ]
+    mats = {
+        "white": {"Kd": "0.73 0.73 0.73"},
+        "red": {"Kd": "0.63 0.065 0.05"},
+        "green": {"Kd": "0.14 0.45 0.091"},
+        "light": {"Kd": "0.78 0.78 0.78", "Ke": "17 12 4"},
+        "mirror": {"Kd": "0 0 0", "Ks": "0.9 0.9 0.9", "illum": "3"},
+    }
+    return write("mirrors", groups, mats)
+
+
 if __name__ == "__main__":
+    print("mirrors:", mirrors(), "faces")
     print("cornell:", cornell(), "faces")
     print("office:", office(), "faces")

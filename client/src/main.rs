@@ -10,6 +10,7 @@ use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 use vlf_core::field::LightField;
+use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::{Options, Perturbation, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::render::Camera;
@@ -105,6 +106,20 @@ struct RenderArgs {
     /// Samples per pixel axis (box filter over samples²).
     #[arg(long, default_value_t = 2)]
     samples: u32,
+    /// How mirrors are shaded: from the field's rays, or ray traced.
+    #[arg(long, value_enum, default_value_t = SpecularArg::Rays)]
+    specular: SpecularArg,
+    /// Maximum number of mirror bounces when ray tracing.
+    #[arg(long, default_value_t = 8)]
+    depth: u32,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum SpecularArg {
+    /// Look up the mirrors' directional radiance maps (the light field).
+    Rays,
+    /// Reflect eye rays until they reach a diffuse surface.
+    Trace,
 }
 
 fn parse_vec3_arg(s: &str) -> Result<glam::DVec3, String> {
@@ -239,7 +254,14 @@ fn render(args: RenderArgs) -> Result<()> {
         .with_context(|| format!("cannot read the light field in {}", args.field.display()))?;
     let camera = Camera::new(args.eye, args.target, args.up, args.fovy, args.size.0, args.size.1)?;
     let started = Instant::now();
-    let image = field.render(&camera, args.samples);
+    if args.depth > 64 {
+        bail!("--depth must be at most 64, got {}", args.depth);
+    }
+    let mode = match args.specular {
+        SpecularArg::Rays => SpecularMode::Rays,
+        SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
+    };
+    let image = field.render(&camera, args.samples, mode);
     image
         .save(&args.out, args.exposure)
         .with_context(|| format!("cannot write {}", args.out.display()))?;

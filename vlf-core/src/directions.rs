@@ -190,7 +190,7 @@ pub struct SphericalTriangle {
 /// `l = 2·4^k + 1` line directions over the upper hemisphere, from the
 /// octahedron subdivided `n = 2^k` times along each edge (see the module
 /// documentation).
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DirectionSet {
     /// Subdivision level `k`.
     level: u32,

@@ -11,9 +11,11 @@
 //! then a zstd-compressed bincode encoding of [`LightField`]. Writes go to a
 //! temporary file renamed into place, so a reader never sees half a field.
 
+use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
+use crate::propagate::specular::MirrorLayout;
 use crate::propagate::{IterationStats, Options, Propagation};
-use crate::render::{Bvh, Camera, Hit, Image, render};
+use crate::psf::Subfield;
 use crate::scene::{Rgb, Scene};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -37,6 +39,20 @@ pub struct LightField {
     pub stats: Vec<IterationStats>,
     /// Unshot power left, as a fraction of the emitted power.
     pub unshot_fraction: f64,
+    /// Directional radiance of mirrors; `None` for a scene without mirrors.
+    pub specular: Option<SpecularField>,
+}
+
+/// The directional part of the field: for every direction, the radiance
+/// leaving each mirror along each ray of its subfield that crosses it (the
+/// paper's tile radiance maps), with what is needed to find a ray again.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SpecularField {
+    pub directions: DirectionSet,
+    pub subfields: Vec<Subfield>,
+    pub layouts: Vec<MirrorLayout>,
+    /// `totals[d][slot]`: radiance leaving the mirror along direction `d`.
+    pub totals: Vec<Vec<[f32; 3]>>,
 }
 
 impl LightField {
@@ -56,7 +72,23 @@ impl LightField {
             })
             .collect();
         fill_holes(&p.atlas, &covered, &mut radiance);
+        let specular = p.specular.map(|s| SpecularField {
+            totals: s
+                .maps
+                .iter()
+                .map(|m| {
+                    m.total
+                        .iter()
+                        .map(|t| [t[0] as f32, t[1] as f32, t[2] as f32])
+                        .collect()
+                })
+                .collect(),
+            layouts: s.layouts,
+            directions: p.directions,
+            subfields: p.subfields,
+        });
         LightField {
+            specular,
             scene: p.scene,
             options: p.options,
             atlas: p.atlas,
@@ -92,20 +124,6 @@ impl LightField {
             }
         }
         out
-    }
-
-    /// Renders the field for a pinhole camera: primary visibility by ray
-    /// casting, diffuse surfaces from their radiance maps (emitters included),
-    /// back faces black. `samples` per pixel axis (box filter).
-    pub fn render(&self, camera: &Camera, samples: u32) -> Image {
-        let bvh = Bvh::build(&self.scene);
-        render(&self.scene, &bvh, camera, samples, |hit: &Hit, _dir| {
-            if hit.front {
-                self.radiance_at(hit.surface, hit.point)
-            } else {
-                [0.0; 3]
-            }
-        })
     }
 
     /// Writes `DIR/field.vlf` atomically (creating `DIR`).

@@ -16,6 +16,7 @@
 pub mod directions;
 pub mod error;
 pub mod field;
+pub mod lookup;
 pub mod maps;
 pub mod propagate;
 pub mod psf;

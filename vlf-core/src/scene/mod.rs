@@ -12,7 +12,7 @@
 mod obj;
 mod polygon;
 
-pub use obj::{ImportOptions, load_obj};
+pub use obj::{ImportOptions, MAX_MIRROR_REFLECTANCE, load_obj};
 pub use polygon::{PolygonError, convex_pieces, newell_normal};
 
 use glam::DVec3;

@@ -159,13 +159,19 @@ pub fn load_obj(path: &Path, options: &ImportOptions) -> Result<(Scene, Vec<Stri
 /// errors and warnings; a [`FaceOrigin::line`] of 0 means "no line".
 pub(crate) fn build_scene(
     polygons: &[(Vec<DVec3>, usize, FaceOrigin)],
-    materials: Vec<Material>,
+    mut materials: Vec<Material>,
     options: &ImportOptions,
     file: &str,
 ) -> Result<(Scene, Vec<String>), Error> {
     check_options(options)?;
-    for (i, m) in materials.iter().enumerate() {
+    let mut warnings = Vec::new();
+    for (i, m) in materials.iter_mut().enumerate() {
         check_material(m).map_err(|msg| Error::scene(file, None, format!("material '{}' (#{i}): {msg}", m.name)))?;
+        if let Some(msg) = cap_mirror(m) {
+            let msg = format!("{file}: material '{}': {msg}", m.name);
+            tracing::warn!("{msg}");
+            warnings.push(msg);
+        }
     }
     if polygons.is_empty() {
         return Err(Error::scene(file, None, "the scene has no faces"));
@@ -178,7 +184,6 @@ pub(crate) fn build_scene(
         origin: FaceOrigin,
     }
     let mut pieces: Vec<Piece> = Vec::new();
-    let mut warnings = Vec::new();
     let mut skip_degenerate = |origin: &FaceOrigin| {
         let msg = format!(
             "{file}{}: face #{} is degenerate (zero area) and was skipped",
@@ -378,6 +383,26 @@ fn check_material(m: &Material) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// Largest accepted mirror reflectance. Light between two parallel perfect
+/// mirrors never dies out, so propagation could not converge; a mirror of
+/// `Ks 1` is treated as 0.999 (a warning says so), which keeps the number of
+/// bounces to reach a 1e-3 unshot fraction near 7000 in the worst case.
+pub const MAX_MIRROR_REFLECTANCE: f64 = 0.999;
+
+/// Caps ρs at [`MAX_MIRROR_REFLECTANCE`]; returns the warning if it did.
+fn cap_mirror(m: &mut Material) -> Option<String> {
+    if m.specular.iter().all(|&s| s <= MAX_MIRROR_REFLECTANCE) {
+        return None;
+    }
+    let before = fmt_rgb(m.specular);
+    for s in &mut m.specular {
+        *s = s.min(MAX_MIRROR_REFLECTANCE);
+    }
+    Some(format!(
+        "mirror reflectance Ks {before} capped at {MAX_MIRROR_REFLECTANCE}: a perfect mirror never lets the propagation converge"
+    ))
 }
 
 fn fmt_rgb(c: Rgb) -> String {
