@@ -73,6 +73,10 @@ struct PropagateArgs {
     /// Rotated copies of the direction set per perturbed iteration.
     #[arg(long, default_value_t = 4)]
     perturb_count: u32,
+    /// After the last iteration, re-sample the mirrors' directional maps by
+    /// backward ray tracing (sharper reflections when rendering from the rays).
+    #[arg(long)]
+    resample: bool,
     /// Gaussian filter of the Next maps, σ in texels (0 = off).
     #[arg(long, default_value_t = 1.0)]
     filter: f64,
@@ -174,6 +178,7 @@ fn propagate(args: PropagateArgs) -> Result<()> {
     if args.threads == Some(0) || threads > 1024 {
         bail!("--threads must be between 1 and 1024");
     }
+    let resample = args.resample;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()
@@ -191,6 +196,7 @@ fn propagate(args: PropagateArgs) -> Result<()> {
     );
     let (field, iterations, field_bytes) = pool.install(|| -> Result<_> {
         let mut prop = Propagation::new(scene, options).context("cannot set up the light field")?;
+        print!("{}", prop.plan);
         tracing::info!(
             directions = prop.directions.len(),
             texels = prop.atlas.texels,
@@ -216,7 +222,11 @@ fn propagate(args: PropagateArgs) -> Result<()> {
         bar.finish_and_clear();
         let bytes = prop.field_bytes();
         let k = prop.iterations_done();
-        Ok((prop.into_field(), k, bytes))
+        let mut field = prop.into_field();
+        if resample {
+            field.resample_mirrors(8);
+        }
+        Ok((field, k, bytes))
     })?;
     field.save(&args.out)?;
     let elapsed = started.elapsed().as_secs_f64();

@@ -174,3 +174,69 @@ fn diffuse_scene_has_no_specular_state() {
     p.run(|_| {});
     assert!(p.stats.iter().all(|s| s.exchange.incident == [0.0; 3]));
 }
+
+/// A mirror that can only see the back of a closed box gets no maps at all,
+/// and the result is that of the same scene without it.
+#[test]
+fn unreachable_mirror_gets_no_maps() {
+    let mut scene = closed_box(
+        0.4,
+        1,
+        &[3],
+        vec![material("wall", 0.5, 0.0), material("lamp", 0.3, 2.0)],
+    );
+    scene.materials.push(mirror("silver", 0.0, 0.9));
+    let outside = rect(DVec3::new(0.0, 0.0, 0.6), DVec3::X * 0.2, DVec3::Y * 0.2, DVec3::Z, 2);
+    let plain = Propagation::new(scene.clone(), options(33, 32, 8, 3)).unwrap();
+    scene.surfaces.push(outside);
+    let mut p = Propagation::new(scene, options(33, 32, 8, 3)).unwrap();
+    assert_eq!(p.plan.mirrors, 1);
+    assert!(p.plan.lit_mirrors.is_empty());
+    assert!(p.specular.is_none());
+    p.run(|_| {});
+    let mut q = plain;
+    q.run(|_| {});
+    let texels = q.total.len();
+    assert!(
+        p.total[..texels] == q.total[..],
+        "an unreachable mirror changed the field"
+    );
+}
+
+/// A mirror beside the lamp, facing the same way, sees only what the lamp
+/// lights: it is first lit in iteration 1 and iteration 0 does no mirror work.
+#[test]
+fn mirror_work_starts_when_light_can_reach_a_mirror() {
+    let lamp = rect(
+        DVec3::new(-0.5, 0.0, -0.2),
+        DVec3::Y * 0.15,
+        DVec3::Z * 0.15,
+        DVec3::X,
+        1,
+    );
+    let glass = rect(
+        DVec3::new(-0.5, 0.0, 0.2),
+        DVec3::Y * 0.15,
+        DVec3::Z * 0.15,
+        DVec3::X,
+        2,
+    );
+    let wall = rect(DVec3::new(0.4, 0.0, 0.0), DVec3::Y * 0.5, DVec3::Z * 0.5, -DVec3::X, 0);
+    let scene = scene(
+        vec![lamp, glass, wall],
+        vec![
+            material("wall", 0.5, 0.0),
+            material("lamp", 0.0, 1.0),
+            mirror("glass", 0.0, 0.9),
+        ],
+    );
+    let mut p = Propagation::new(scene, options(129, 32, 8, 3)).unwrap();
+    assert_eq!(p.plan.lit_mirrors, vec![(1, 1)]);
+    p.run(|_| {});
+    assert_eq!(p.stats[0].exchange, Default::default());
+    assert!(lum(&p.stats[1].exchange.incident) > 0.0);
+    assert!(lum(&p.stats[1].exchange.reflected) > 0.0);
+    // The plan says so in words.
+    let text = p.plan.to_string();
+    assert!(text.contains("first lit in iteration 2"), "{text}");
+}

@@ -41,9 +41,11 @@
 
 mod filter;
 mod perturb;
+pub mod plan;
 pub(crate) mod shoot;
 pub mod specular;
 
+pub use plan::Plan;
 pub use shoot::Flow;
 pub use specular::{Exchange, Specular};
 
@@ -236,6 +238,8 @@ pub struct Propagation {
     /// Mirror maps and reflection routes; `None` when the scene has no
     /// mirror light can reach (no specular machinery at all).
     pub specular: Option<Specular>,
+    /// What this propagation simulates (see [`Plan`]).
+    pub plan: Plan,
     owners: Vec<u32>,
 }
 
@@ -345,12 +349,23 @@ impl Propagation {
                 "no emitter is hit by any ray: the emitters are too small for this resolution (raise N)".into(),
             ));
         }
-        let mirrors: Vec<u32> = (0..scene.surfaces.len() as u32)
-            .filter(|&s| scene.material(s as usize).is_mirror())
-            .collect();
+        let mut plan = Plan::new(
+            &scene,
+            shoot::Geometry {
+                scene: &scene,
+                atlas: &atlas,
+            },
+            &subfields,
+        );
+        let mirrors = plan.mapped_mirrors();
         let specular = (!mirrors.is_empty()).then(|| Specular::new(&scene, &directions, &subfields, mirrors));
+        plan.mirror_slots = specular
+            .as_ref()
+            .map_or(0, |s| s.layouts.iter().map(|l| l.len as usize).sum());
+        plan.perturbation = options.perturbation.iterations > 0 && options.perturbation.count > 0 && specular.is_none();
         Ok(Propagation {
             specular,
+            plan,
             total: current.clone(),
             scene,
             options,
@@ -489,7 +504,10 @@ impl Propagation {
                 weight: directions.get(d).weight,
                 facing: &facing[d],
             };
-            match self.specular.as_mut() {
+            // Mirror work only once light can have reached a mirror.
+            let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
+            let specular = self.specular.as_mut().filter(|s| index >= first_lit || s.has_unshot());
+            match specular {
                 None => map_reduce_directions(total, atlas.texels, report, |d, buf, scratch| {
                     shoot::shoot(geometry, beam(d), &radiance, buf, None, scratch)
                 }),
@@ -508,9 +526,10 @@ impl Propagation {
             }
         };
         // Mirrors reflect what arrived on them into new unshot maps.
+        let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
         let exchange = match self.specular.as_mut() {
-            Some(spec) => spec.exchange(scene, &self.directions, &self.subfields),
-            None => Exchange::default(),
+            Some(spec) if index >= first_lit => spec.exchange(scene, &self.directions, &self.subfields),
+            _ => Exchange::default(),
         };
 
         // Reflect: Next = ρd · received; Total += Next.
@@ -549,10 +568,18 @@ impl Propagation {
         stats
     }
 
-    /// Bytes held by the field: subfield tables and the Total maps.
+    /// Bytes held by the field: subfield tables, the radiance maps of the
+    /// texels and, with mirrors, their layouts and directional totals (f32).
     pub fn field_bytes(&self) -> usize {
+        let specular = self.specular.as_ref().map_or(0, |s| {
+            s.layouts
+                .iter()
+                .map(|l| l.entry_base.len() * 4 + l.entries.len() * 12 + l.len as usize * 12)
+                .sum()
+        });
         self.subfields.iter().map(Subfield::memory_bytes).sum::<usize>()
             + self.atlas.texels * (std::mem::size_of::<[f32; 3]>() + std::mem::size_of::<f32>())
+            + specular
     }
 
     /// The finished light field (radiance per texel), ready to render or save.

@@ -236,12 +236,8 @@ impl Specular {
             })
             .collect();
         let mut exchange = Exchange::default();
-        for p in &power_in {
-            for v in p {
-                for c in 0..3 {
-                    exchange.incident[c] += v[c];
-                }
-            }
+        for v in power_in.iter().flatten() {
+            add(&mut exchange.incident, v);
         }
         let gathered: Vec<(Vec<Rgb>, Rgb)> = (0..directions.len())
             .into_par_iter()
@@ -249,9 +245,7 @@ impl Specular {
             .collect();
         for (maps, (unshot, reflected)) in self.maps.iter_mut().zip(gathered) {
             maps.unshot = unshot;
-            for c in 0..3 {
-                exchange.reflected[c] += reflected[c];
-            }
+            add(&mut exchange.reflected, &reflected);
         }
         exchange
     }
@@ -329,6 +323,12 @@ impl Specular {
             }
         }
         (out, reflected)
+    }
+}
+
+fn add(acc: &mut Rgb, v: &Rgb) {
+    for (a, b) in acc.iter_mut().zip(v) {
+        *a += b;
     }
 }
 

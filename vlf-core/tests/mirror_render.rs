@@ -1,0 +1,130 @@
+//! Rendering mirrors: ray traced against a direct computation, and from the
+//! rays (with and without backward re-sampling) against ray traced.
+
+mod common;
+
+use common::*;
+use glam::DVec3;
+use vlf_core::lookup::SpecularMode;
+use vlf_core::propagate::{Options, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::render::{Bvh, Camera};
+
+/// A lamp lights a diffuse wall with a gradient; a mirror faces the wall.
+fn scene_and_field(l: usize, n: u32) -> vlf_core::field::LightField {
+    let lamp = rect(
+        DVec3::new(0.0, 0.5, -0.3),
+        DVec3::X * 0.15,
+        DVec3::Z * 0.15,
+        -DVec3::Y,
+        1,
+    );
+    let wall = rect(DVec3::new(0.0, 0.0, -0.6), DVec3::X * 0.6, DVec3::Y * 0.5, DVec3::Z, 0);
+    let glass = rect(DVec3::new(0.0, 0.0, 0.5), DVec3::X * 0.4, DVec3::Y * 0.3, -DVec3::Z, 2);
+    let floor = rect(DVec3::new(0.0, -0.5, 0.0), DVec3::X * 0.6, DVec3::Z * 0.6, DVec3::Y, 0);
+    let scene = scene(
+        vec![lamp, wall, glass, floor],
+        vec![
+            material("wall", 0.7, 0.0),
+            material("lamp", 0.0, 1.0),
+            mirror("glass", 0.0, 0.85),
+        ],
+    );
+    let options = Options {
+        directions: l,
+        grid: GridSize::new(n, 8).unwrap(),
+        // Converged: the mirror maps lag the diffuse maps by one bounce (light
+        // reaches a mirror one iteration after it leaves a wall), which only
+        // vanishes at convergence.
+        stop: Stop::Converge {
+            epsilon: 1e-4,
+            max_iterations: 100,
+        },
+        texel_cells: 2.0,
+        ..Options::default()
+    };
+    let mut p = Propagation::new(scene, options).unwrap();
+    p.run(|_| {});
+    p.into_field()
+}
+
+/// Looking at the mirror from in front of the wall (the scene is in the VLF frame).
+fn camera() -> Camera {
+    Camera::new(
+        DVec3::new(0.1, 0.05, -0.2),
+        DVec3::new(0.0, 0.0, 0.5),
+        DVec3::Y,
+        30.0,
+        48,
+        36,
+    )
+    .unwrap()
+}
+
+#[test]
+fn traced_mirror_pixels_are_rho_times_what_the_reflection_sees() {
+    let field = scene_and_field(129, 32);
+    let bvh = Bvh::build(&field.scene);
+    let cam = camera();
+    let image = field.render(&cam, 1, SpecularMode::Trace { depth: 4 });
+    let mut checked = 0;
+    for y in 0..cam.height {
+        for x in 0..cam.width {
+            let (o, d) = cam.ray(x as f64 + 0.5, y as f64 + 0.5);
+            let Some(hit) = bvh.intersect(&field.scene, o, d, 0.0, f64::INFINITY) else {
+                continue;
+            };
+            if hit.surface != 2 {
+                continue;
+            }
+            // Independent reflection: mirror the ray about the mirror's plane.
+            let n = field.scene.surfaces[2].normal;
+            let r = d - 2.0 * d.dot(n) * n;
+            let seen = bvh.intersect(&field.scene, hit.point + n * 1e-6, r, 0.0, f64::INFINITY);
+            let want = match seen {
+                Some(h) if h.front && h.surface != 2 => field.radiance_at(h.surface, h.point)[0] * 0.85,
+                _ => 0.0,
+            };
+            let got = image.pixels[(y * cam.width + x) as usize][0] as f64;
+            assert!(
+                (got - want).abs() <= 1e-3 * want.max(1e-3),
+                "pixel {x},{y}: {got} vs {want}"
+            );
+            checked += 1;
+        }
+    }
+    assert!(checked > 500, "the camera did not see the mirror: {checked}");
+}
+
+fn mirror_mean(field: &vlf_core::field::LightField, mode: SpecularMode) -> f64 {
+    let bvh = Bvh::build(&field.scene);
+    let cam = camera();
+    let image = field.render(&cam, 1, mode);
+    let (mut sum, mut count) = (0.0, 0);
+    for y in 0..cam.height {
+        for x in 0..cam.width {
+            let (o, d) = cam.ray(x as f64 + 0.5, y as f64 + 0.5);
+            if let Some(hit) = bvh.intersect(&field.scene, o, d, 0.0, f64::INFINITY)
+                && hit.surface == 2
+            {
+                sum += image.pixels[(y * cam.width + x) as usize][0] as f64;
+                count += 1;
+            }
+        }
+    }
+    sum / count as f64
+}
+
+#[test]
+fn mirrors_from_the_rays_agree_with_ray_tracing() {
+    let mut field = scene_and_field(513, 64);
+    let traced = mirror_mean(&field, SpecularMode::Trace { depth: 4 });
+    let rays = mirror_mean(&field, SpecularMode::Rays);
+    field.resample_mirrors(4);
+    let resampled = mirror_mean(&field, SpecularMode::Rays);
+    let (e_rays, e_res) = ((rays - traced).abs() / traced, (resampled - traced).abs() / traced);
+    println!("mirror mean: traced {traced:.5}, rays {rays:.5} ({e_rays:.4}), resampled {resampled:.5} ({e_res:.4})");
+    assert!(traced > 0.0);
+    assert!(e_rays < 0.1, "from the rays: {e_rays}");
+    assert!(e_res < 0.05, "re-sampled: {e_res}");
+}
