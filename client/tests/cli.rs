@@ -190,3 +190,78 @@ fn bad_input_gets_a_clear_error() {
         assert!(!e.contains("panicked"), "{args:?} panicked: {e}");
     }
 }
+
+#[test]
+fn mirrors_scene_plans_propagates_and_renders_both_ways() {
+    let out = temp("mirrors");
+    let o = vlf(&[
+        "propagate",
+        &scene("mirrors.obj"),
+        "--out",
+        out.to_str().unwrap(),
+        "--directions",
+        "129",
+        "--resolution",
+        "32",
+        "--iterations",
+        "4",
+        "--resample",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(text.contains("2 of 2 mirrors reachable"), "{text}");
+    assert!(text.contains("perturbation: off"), "{text}");
+    let cornell = vlf(&[
+        "propagate",
+        &scene("cornell.obj"),
+        "--out",
+        out.join("c").to_str().unwrap(),
+        "--directions",
+        "9",
+        "--resolution",
+        "16",
+        "--iterations",
+        "1",
+    ]);
+    assert!(String::from_utf8_lossy(&cornell.stdout).contains("specular: none"));
+    let mut means = Vec::new();
+    for mode in ["rays", "trace"] {
+        let image = out.join(format!("{mode}.pfm"));
+        let o = vlf(&[
+            "render",
+            out.to_str().unwrap(),
+            "--eye",
+            "278,273,-800",
+            "--target",
+            "278,273,0",
+            "--fovy",
+            "39",
+            "--size",
+            "48x48",
+            "--specular",
+            mode,
+            "--out",
+            image.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let img = vlf_core::render::Image::load_pfm(&image).unwrap();
+        assert!(img.pixels.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+        means.push(img.mean()[0]);
+    }
+    // The two mirror modes differ only on the mirrors' pixels.
+    assert!((means[0] - means[1]).abs() < 0.25 * means[1], "{means:?}");
+    let o = vlf(&[
+        "render",
+        out.to_str().unwrap(),
+        "--eye",
+        "1,1,1",
+        "--target",
+        "0,0,0",
+        "--specular",
+        "mirror",
+        "--out",
+        "x.png",
+    ]);
+    assert!(!o.status.success() && stderr(&o).contains("rays"));
+    let _ = std::fs::remove_dir_all(&out);
+}

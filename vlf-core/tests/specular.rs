@@ -240,3 +240,35 @@ fn mirror_work_starts_when_light_can_reach_a_mirror() {
     let text = p.plan.to_string();
     assert!(text.contains("first lit in iteration 2"), "{text}");
 }
+
+/// Mirror maps and diffuse maps are the same bits for any thread count.
+#[test]
+fn mirror_propagation_is_deterministic_across_threads() {
+    let run = |threads: usize| {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        pool.install(|| {
+            let mut scene = closed_box(
+                0.5,
+                2,
+                &[3],
+                vec![
+                    material("wall", 0.5, 0.0),
+                    material("lamp", 0.3, 2.0),
+                    mirror("glass", 0.1, 0.8),
+                ],
+            );
+            for s in scene.surfaces.iter_mut().take(8) {
+                s.material = 2;
+            }
+            let mut p = Propagation::new(scene, options(129, 32, 8, 4)).unwrap();
+            p.run(|_| {});
+            let maps = p.specular.as_ref().unwrap().maps.clone();
+            (p.total.clone(), maps)
+        })
+    };
+    let one = run(1);
+    assert!(
+        one == run(2) && one == run(3),
+        "mirror propagation differs between thread counts"
+    );
+}
