@@ -240,6 +240,7 @@ pub struct Propagation {
     pub specular: Option<Specular>,
     /// What this propagation simulates (see [`Plan`]).
     pub plan: Plan,
+    stacking: Vec<u32>,
     owners: Vec<u32>,
 }
 
@@ -330,9 +331,13 @@ impl Propagation {
             .par_iter()
             .map(|d| Subfield::build(&scene, d.vector, grid))
             .collect();
-        let projected_area = discrete_areas(&scene, &atlas, &directions, |d| {
-            std::borrow::Cow::Borrowed(&subfields[d])
-        });
+        let stacking = shoot::stacking(&scene);
+        let geometry = shoot::Geometry {
+            scene: &scene,
+            atlas: &atlas,
+            stacking: &stacking,
+        };
+        let projected_area = discrete_areas(geometry, &directions, |d| std::borrow::Cow::Borrowed(&subfields[d]));
         let owners = atlas.owners();
         // Emission: Φ_t = π·Le·A_t = Le·T_t (in cell-area units).
         let current: Vec<Rgb> = projected_area
@@ -349,14 +354,7 @@ impl Propagation {
                 "no emitter is hit by any ray: the emitters are too small for this resolution (raise N)".into(),
             ));
         }
-        let mut plan = Plan::new(
-            &scene,
-            shoot::Geometry {
-                scene: &scene,
-                atlas: &atlas,
-            },
-            &subfields,
-        );
+        let mut plan = Plan::new(&scene, geometry, &subfields);
         let mirrors = plan.mapped_mirrors();
         let specular = (!mirrors.is_empty()).then(|| Specular::new(&scene, &directions, &subfields, mirrors));
         plan.mirror_slots = specular
@@ -366,6 +364,7 @@ impl Propagation {
         Ok(Propagation {
             specular,
             plan,
+            stacking,
             total: current.clone(),
             scene,
             options,
@@ -427,7 +426,11 @@ impl Propagation {
         let index = self.iterations_done();
         let scene = &self.scene;
         let atlas = &self.atlas;
-        let geometry = shoot::Geometry { scene, atlas };
+        let geometry = shoot::Geometry {
+            scene,
+            atlas,
+            stacking: &self.stacking,
+        };
 
         // Deferred propagation: quiet surfaces keep their unshot power.
         let mut per_surface = vec![0.0f64; scene.surfaces.len()];
@@ -466,8 +469,7 @@ impl Propagation {
         let perturbed = index < p.iterations && p.count > 0 && self.specular.is_none();
         let (received, flow) = if perturbed {
             let (received, flow, unsent) = perturb::shoot_perturbed(
-                scene,
-                atlas,
+                geometry,
                 &self.directions,
                 self.options.grid,
                 index,
@@ -613,27 +615,16 @@ fn facing_table(scene: &Scene, subfields: &[Subfield]) -> Vec<Vec<f64>> {
 
 /// Computes `T_t = Σ_ω Δω · n_t(ω)` for a direction set whose subfields are
 /// given by `subfield(d)` (stored or built on the fly).
-pub(crate) fn discrete_areas<'a, F>(
-    scene: &Scene,
-    atlas: &TexelAtlas,
-    directions: &DirectionSet,
-    subfield: F,
-) -> Vec<f64>
+pub(crate) fn discrete_areas<'a, F>(geometry: shoot::Geometry, directions: &DirectionSet, subfield: F) -> Vec<f64>
 where
     F: Fn(usize) -> std::borrow::Cow<'a, Subfield> + Sync,
 {
     let (area, _) = map_reduce_directions(
         directions.len(),
-        atlas.texels,
+        geometry.atlas.texels,
         |_| {},
         |d, buf, scratch| {
-            shoot::count(
-                shoot::Geometry { scene, atlas },
-                &subfield(d),
-                directions.get(d).weight,
-                buf,
-                scratch,
-            );
+            shoot::count(geometry, &subfield(d), directions.get(d).weight, buf, scratch);
             Flow::default()
         },
     );

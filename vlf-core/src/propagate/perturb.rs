@@ -16,9 +16,8 @@
 use super::shoot::{self, Flow};
 use super::{discrete_areas, map_reduce_directions, radiance_of};
 use crate::directions::DirectionSet;
-use crate::maps::TexelAtlas;
 use crate::psf::{GridSize, Subfield};
-use crate::scene::{Rgb, Scene};
+use crate::scene::Rgb;
 use glam::{DMat3, DVec3};
 use std::borrow::Cow;
 
@@ -57,8 +56,7 @@ pub(crate) fn rotation(directions: &DirectionSet, iteration: u32, copy: u32, cou
 /// shot (texels no ray of a rotated copy crosses), to be carried over.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn shoot_perturbed(
-    scene: &Scene,
-    atlas: &TexelAtlas,
+    geometry: shoot::Geometry,
     directions: &DirectionSet,
     grid: GridSize,
     iteration: u32,
@@ -66,6 +64,7 @@ pub(crate) fn shoot_perturbed(
     shooting: &[Rgb],
     progress: &mut dyn FnMut(usize, usize),
 ) -> (Vec<Rgb>, Flow, Vec<Rgb>) {
+    let (scene, atlas) = (geometry.scene, geometry.atlas);
     let share = 1.0 / count as f64;
     let part: Vec<Rgb> = shooting
         .iter()
@@ -78,7 +77,7 @@ pub(crate) fn shoot_perturbed(
     for copy in 0..count {
         let rotated = directions.rotated(rotation(directions, iteration, copy, count));
         let build = |d: usize| Cow::Owned(Subfield::build(scene, rotated.get(d).vector, grid));
-        let area = discrete_areas(scene, atlas, &rotated, build);
+        let area = discrete_areas(geometry, &rotated, build);
         for (t, a) in area.iter().enumerate() {
             if *a <= 0.0 {
                 for c in 0..3 {
@@ -100,7 +99,7 @@ pub(crate) fn shoot_perturbed(
                     weight: rotated.get(d).weight,
                     facing: &facing,
                 };
-                shoot::shoot(shoot::Geometry { scene, atlas }, beam, &radiance, buf, None, scratch)
+                shoot::shoot(geometry, beam, &radiance, buf, None, scratch)
             },
         );
         for (acc, v) in received.iter_mut().zip(&r) {

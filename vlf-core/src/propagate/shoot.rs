@@ -19,16 +19,45 @@ pub(crate) struct RayHit {
     pub texel: u32,
     /// The hit's slot in the subfield's mirror maps, or [`NO_SLOT`].
     pub mirror: u32,
+    /// Order among hits at the same depth (see [`before`]).
+    pub tie: u32,
 }
 
 /// Marks a hit on a surface without directional (mirror) maps.
 pub(crate) const NO_SLOT: u32 = u32::MAX;
 
-/// The static inputs of a walk: the scene and where its texels are.
+/// The static inputs of a walk: the scene, where its texels are, and which
+/// of two coplanar surfaces lies on top ([`stacking`]).
 #[derive(Clone, Copy)]
 pub(crate) struct Geometry<'a> {
     pub scene: &'a Scene,
     pub atlas: &'a TexelAtlas,
+    pub stacking: &'a [u32],
+}
+
+/// Depths closer than this (VLF frame, where the scene spans 2) are a tie:
+/// surfaces that coincide up to rounding, such as a lamp modelled flush with
+/// its ceiling.
+const DEPTH_TIE: f64 = 1e-9;
+
+/// The stacking order of coplanar surfaces: a higher rank lies on top
+/// (is seen first from the front). Emitters lie on top of what they are
+/// flush with, then smaller polygons on top of larger ones (a decal on a
+/// wall), then later ones.
+pub(crate) fn stacking(scene: &Scene) -> Vec<u32> {
+    let mut order: Vec<usize> = (0..scene.surfaces.len()).collect();
+    order.sort_by(|&a, &b| {
+        let ea = scene.material(a).is_emitter();
+        let eb = scene.material(b).is_emitter();
+        ea.cmp(&eb)
+            .then(scene.surfaces[b].area.total_cmp(&scene.surfaces[a].area))
+            .then(a.cmp(&b))
+    });
+    let mut rank = vec![0u32; order.len()];
+    for (r, s) in order.into_iter().enumerate() {
+        rank[s] = r as u32;
+    }
+    rank
 }
 
 /// Reusable buffers of one worker thread.
@@ -55,7 +84,7 @@ struct TexelProjection {
 /// `mirror_base[e]` is the first mirror slot of tile entry `e` (or
 /// [`NO_SLOT`]); without it no hit has a mirror slot.
 pub(crate) fn for_each_ray(
-    Geometry { scene, atlas }: Geometry,
+    Geometry { scene, atlas, stacking }: Geometry,
     sub: &Subfield,
     mirror_base: Option<&[u32]>,
     scratch: &mut Scratch,
@@ -92,6 +121,7 @@ pub(crate) fn for_each_ray(
                 surface: 0,
                 texel: 0,
                 mirror: NO_SLOT,
+                tie: 0,
             },
         );
         scratch.fill.clear();
@@ -100,6 +130,15 @@ pub(crate) fn for_each_ray(
         let first_entry = sub.tile_start[k] as usize;
         for (local, e) in entries.iter().enumerate() {
             let mut mirror = mirror_base.map_or(NO_SLOT, |b| b[first_entry + local]);
+            // At equal depth, surfaces facing −w (met from their front when
+            // travelling along +w) come first; among same-facing ones the top
+            // of the stack is met first from its front side.
+            let rank = stacking[e.surface as usize];
+            let tie = if scene.surfaces[e.surface as usize].normal.dot(sub.frame.w) < 0.0 {
+                u32::MAX / 2 - rank
+            } else {
+                u32::MAX / 2 + 1 + rank
+            };
             let surface = &scene.surfaces[e.surface as usize];
             let grid = &atlas.grids[e.surface as usize];
             let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
@@ -121,6 +160,7 @@ pub(crate) fn for_each_ray(
                         surface: e.surface,
                         texel: grid.index(tp.c0 + tp.cx * gx + tp.cy * y) as u32,
                         mirror,
+                        tie,
                     };
                     if mirror != NO_SLOT {
                         mirror += 1;
@@ -147,9 +187,16 @@ pub(crate) fn for_each_ray(
     }
 }
 
+/// Hit order along `+w`: by depth, and for (near-)coincident surfaces by
+/// their tie key, so that a flush lamp is met before its ceiling from below
+/// and two back-to-back polygons never exchange light through each other.
 #[inline]
 fn before(a: &RayHit, b: &RayHit) -> bool {
-    a.depth < b.depth || (a.depth == b.depth && a.surface < b.surface)
+    if (a.depth - b.depth).abs() <= DEPTH_TIE {
+        a.tie < b.tie
+    } else {
+        a.depth < b.depth
+    }
 }
 
 /// Where the power shot along one direction went (per channel).
