@@ -73,23 +73,41 @@ impl TexelAtlas {
     /// Upper bound on the atlas size: 2²⁸ texels is already several GiB of maps.
     pub const MAX_TEXELS: usize = 1 << 28;
 
-    /// Lays out grids of texel edge `texel` (VLF units) on every surface.
-    pub fn new(scene: &Scene, texel: f64) -> crate::Result<Self> {
-        if !(texel.is_finite() && texel > 0.0) {
+    /// Lays out grids of texel edge `texel` (VLF units) on every surface of
+    /// a field whose rays are `ray_spacing` apart.
+    ///
+    /// Texel boundaries are placed on the lattice `−1 + (m + φ)·ray_spacing`
+    /// (φ = 1/π) along each grid axis. Ray centres of axis-aligned directions
+    /// lie at `−1 + (j + ½)·ray_spacing`, and axis-aligned walls are the rule
+    /// in real scenes: were a texel boundary to fall exactly on a ray centre,
+    /// which texel the ray lands in would depend on the last bit of rounding
+    /// (so scaling or moving the scene would change the result). With the
+    /// irrational offset no boundary coincides with a centre for any simple
+    /// texel size.
+    pub fn new(scene: &Scene, texel: f64, ray_spacing: f64) -> crate::Result<Self> {
+        const PHI: f64 = std::f64::consts::FRAC_1_PI;
+        if !(texel.is_finite() && texel > 0.0 && ray_spacing.is_finite() && ray_spacing > 0.0) {
             return Err(crate::Error::Parameter(format!(
                 "texel size must be positive and finite, got {texel}"
             )));
         }
+        let snap = |world: f64| -1.0 + (((world + 1.0) / ray_spacing - PHI).floor() + PHI) * ray_spacing;
         let mut grids = Vec::with_capacity(scene.surfaces.len());
         let mut first = 0usize;
         for surface in &scene.surfaces {
             let v0 = surface.vertices[0];
-            // The longest edge as u axis keeps slivers' grids tight.
-            let (a, b) = (0..surface.vertices.len())
-                .map(|k| (surface.vertices[k], surface.vertices[(k + 1) % surface.vertices.len()]))
-                .max_by(|x, y| (x.1 - x.0).length_squared().total_cmp(&(y.1 - y.0).length_squared()))
-                .unwrap_or((v0, v0));
-            let axis_u = (b - a).normalize();
+            let count = surface.vertices.len();
+            let edges: Vec<DVec3> = (0..count)
+                .map(|k| surface.vertices[(k + 1) % count] - surface.vertices[k])
+                .collect();
+            // The longest edge as u axis keeps slivers' grids tight; among
+            // edges equal to rounding (a square) the first, so the choice
+            // does not depend on the scene's scale.
+            let longest = edges.iter().map(|e| e.length()).fold(0.0, f64::max);
+            let axis_u = edges
+                .iter()
+                .find(|e| e.length() >= longest * (1.0 - 1e-9))
+                .map_or(DVec3::X, |e| e.normalize());
             let axis_v = surface.normal.cross(axis_u);
             let (mut lo, mut hi) = (DVec2::splat(f64::INFINITY), DVec2::splat(f64::NEG_INFINITY));
             for &p in &surface.vertices {
@@ -97,9 +115,14 @@ impl TexelAtlas {
                 lo = lo.min(c);
                 hi = hi.max(c);
             }
-            let extent = hi - lo;
-            let width = ((extent.x / texel).ceil() as u64).max(1);
-            let height = ((extent.y / texel).ceil() as u64).max(1);
+            // Snap the grid's corner (in world coordinates along each axis).
+            let base = DVec2::new(v0.dot(axis_u), v0.dot(axis_v));
+            let corner = DVec2::new(snap(base.x + lo.x), snap(base.y + lo.y)) - base;
+            let extent = hi - corner;
+            // A polygon whose extent is a whole number of texels up to
+            // rounding does not get an extra, empty row.
+            let width = ((extent.x / texel - 1e-9).ceil() as u64).max(1);
+            let height = ((extent.y / texel - 1e-9).ceil() as u64).max(1);
             let count = width.saturating_mul(height) as usize;
             if count > Self::MAX_TEXELS || first + count > Self::MAX_TEXELS {
                 return Err(crate::Error::Parameter(format!(
@@ -107,9 +130,6 @@ impl TexelAtlas {
                     Self::MAX_TEXELS
                 )));
             }
-            // Centre the grid on the polygon's bounding rectangle.
-            let pad = DVec2::new(width as f64 * texel - extent.x, height as f64 * texel - extent.y) * 0.5;
-            let corner = lo - pad;
             grids.push(TexelGrid {
                 origin: v0 + axis_u * corner.x + axis_v * corner.y,
                 axis_u,

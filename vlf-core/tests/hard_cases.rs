@@ -11,7 +11,7 @@
 mod common;
 
 use common::*;
-use glam::DVec3;
+use glam::{DVec3, Vec3Swizzles};
 use vlf_core::field::LightField;
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
@@ -110,7 +110,7 @@ fn assert_balance(p: &Propagation, tol: f64, case: &str) -> f64 {
     let mut before = p.emitted;
     for s in &p.stats {
         let f = &s.flow;
-        for c in 0..3 {
+        for (c, &was) in before.iter().enumerate() {
             let out = f.received[c] + f.escaped[c] + f.blocked[c];
             if f.shot[c] == 0.0 {
                 assert_eq!(
@@ -131,14 +131,14 @@ fn assert_balance(p: &Propagation, tol: f64, case: &str) -> f64 {
                     f.blocked[c]
                 );
             }
-            let rel = (f.shot[c] - before[c]).abs() / before[c].max(f64::MIN_POSITIVE);
+            let rel = (f.shot[c] - was).abs() / was.max(f64::MIN_POSITIVE);
             worst = worst.max(rel);
             assert!(
                 rel <= tol,
                 "{case}: iteration {}, channel {c}: shot {} but {} was unshot (rel {rel:.2e})",
                 s.index,
                 f.shot[c],
-                before[c]
+                was
             );
         }
         before = s.unshot;
@@ -239,8 +239,9 @@ fn parallel_mirrors(mirror: Material) -> Scene {
 /// unshot after an iteration is at most ρs times what was shot in it — the
 /// unshot power falls at least by the factor 0.9 per iteration from the
 /// first mirror bounce on; `Stop::Converge` (1e-3) stops long before its cap.
-/// l = 129, N = 64: enough rays that the lamp (0.1 wide, 1.6 ray spacings)
-/// shoots along every direction and light keeps bouncing for many iterations.
+/// l = 129, N = 64: the lamp (0.1 wide, 3.2 ray spacings) is crossed by rays
+/// of nearly every direction, and the directions near the mirrors' normal
+/// keep the light bouncing for ~15 iterations.
 #[test]
 fn parallel_mirrors_converge_geometrically() {
     let rho_s = 0.9;
@@ -281,8 +282,8 @@ fn parallel_mirrors_converge_geometrically() {
 /// with unshot < 1e-2, each iteration keeping at most ρs = 0.999 of the
 /// unshot power, and reflected = 0.999 × incident exactly.
 /// l = 129, N = 64 as above (the scene is given in its own units, ×10 and
-/// off-centre, so the importer normalises it): with ρs = 0.999 the
-/// near-normal directions bounce for tens of iterations before walking out.
+/// off-centre, so the importer normalises it); the mirrors stay lit for
+/// several iterations before the light walks out or dies on the lamp.
 #[test]
 fn perfect_mirror_is_capped_and_converges() {
     let base = parallel_mirrors(mirror("perfect", 0.0, 1.0));
@@ -307,7 +308,7 @@ fn perfect_mirror_is_capped_and_converges() {
         "no warning that the perfect mirror was capped: {warnings:?}"
     );
     assert_eq!(scene.materials[0].specular, [MAX_MIRROR_REFLECTANCE; 3]);
-    assert!(MAX_MIRROR_REFLECTANCE < 1.0);
+    const { assert!(MAX_MIRROR_REFLECTANCE < 1.0) };
     // The lamp is not a mirror: no cap, no warning about it.
     assert!(!warnings.iter().any(|w| w.contains("'lamp'")), "{warnings:?}");
     let p = propagate(
@@ -352,9 +353,10 @@ const GRAZING_PLANE: f64 = 0.013625;
 /// sideways, tilted by `tilt` (radians) so that its normal leans towards the
 /// lamp; a lamp strip far along `toward` (at 0.9), 0.0005 to 0.0035 above the
 /// plane, facing the mirror; a diffuse card (ρd = 0.5) standing beyond the
-/// mirror's far end, facing back, catches the grazing reflection. With tilt 0.3° every line from the lamp to the mirror lies
-/// within 0.8° of the mirror's plane: light arrives more than 89° from the
-/// normal (the ray along `toward`, a line direction of the set, at 89.7°).
+/// mirror's far end, facing back, catches the grazing reflection. With tilt
+/// 0.3° every line from the lamp to the mirror lies within 0.8° of the
+/// mirror's plane: light arrives more than 89° from the normal (along
+/// `toward`, a line direction of the set, at 89.7°).
 fn grazing_scene(normal: DVec3, toward: DVec3, tilt: f64) -> Scene {
     let side = normal.cross(toward);
     let n = normal * tilt.cos() + toward * tilt.sin();
@@ -379,6 +381,23 @@ fn grazing_scene(normal: DVec3, toward: DVec3, tilt: f64) -> Scene {
     )
 }
 
+/// Grazing incidence: a mirror lit more than 89° from its normal, with the
+/// mirror's normal near z (the directions' pole), y and x. Also the mirror
+/// untilted (exactly edge-on to the line direction along `toward`), tilted by
+/// 1e-9 rad (n·ω ≈ 1e-9: nearly edge-on, rasterised to nothing) and by
+/// 1e-13 rad (below the edge-on cut-off): those get no direct light.
+/// Asserts: no NaN/∞/negative anywhere, balance to 1e-9, reflected = ρs ×
+/// incident, the tilted mirrors are actually lit (> 1e-3 of the emitted
+/// power arrives), and nothing blows up: no card texel's radiance exceeds ρd
+/// × the brightest radiance in the scene (exact for the discrete areas: a
+/// texel's irradiance is at most π × the brightest radiance arriving), and
+/// no mirror slot exceeds 2·ρs·Le — a blow-up guard rather than the physical
+/// ρs·Le, since the exchange rescales backward-mapped radiance to conserve
+/// power, which can lift single slots above ρs·Le (by up to 45 % in a probe
+/// at 4° incidence, l = 129, N = 64; 10 % at N = 128). Measured here: 0.217.
+/// l = 129, N = 64: the one row of rays along `toward` through the 3 mm lamp
+/// strip is placed by [`GRAZING_PLANE`]; more directions would add none
+/// within 1° of the mirror's plane.
 #[test]
 fn grazing_incidence_stays_finite_and_balanced() {
     let grazing = 0.3f64.to_radians();
@@ -425,18 +444,15 @@ fn grazing_incidence_stays_finite_and_balanced() {
                 "{case}: the grazing light missed the mirror"
             );
         }
+        assert!(max_mirror <= 2.0 * rho_s * le, "{case}: mirror radiance {max_mirror}");
+        let brightest = le.max(max_mirror);
         assert!(
-            max_mirror <= rho_s * le * (1.0 + 1e-9),
-            "{case}: mirror radiance {max_mirror}"
-        );
-        assert!(
-            max_card <= rho_d * le * (1.0 + 1e-9),
+            max_card <= rho_d * brightest * (1.0 + 1e-9),
             "{case}: card radiance {max_card}"
         );
         assert_field_sane(&p.into_field(), case);
     }
 }
-
 
 // ---------------------------------------------------------------------------
 // 3. Slivers, sub-ray polygons, a huge floor
@@ -474,7 +490,7 @@ fn sliver_floor(h: f64, slivers: usize, material: usize) -> Vec<vlf_core::scene:
 }
 
 /// Sliver triangles (aspect 1:10⁴) in a furnace: a closed box whose floor is
-/// a fan of 44 triangles, 40 of them slivers, every wall emitting Le = 1 and
+/// a fan of 46 triangles, 40 of them slivers, every wall emitting Le = 1 and
 /// reflecting ρ = 0.5. The rasteriser must stay watertight however thin the
 /// triangles (escaped and blocked power exactly zero, shot = received to
 /// 1e-9), and exact normalisation makes every covered texel — sliver texels
@@ -509,8 +525,18 @@ fn sliver_triangles_keep_the_furnace_exact() {
     assert_sane(&p, "sliver furnace");
     let balance = assert_balance(&p, 1e-9, "sliver furnace");
     for s in &p.stats {
-        assert_eq!(lum(&s.flow.escaped), 0.0, "iteration {}: light leaked between slivers", s.index);
-        assert_eq!(lum(&s.flow.blocked), 0.0, "iteration {}: a sliver was hit from behind", s.index);
+        assert_eq!(
+            lum(&s.flow.escaped),
+            0.0,
+            "iteration {}: light leaked between slivers",
+            s.index
+        );
+        assert_eq!(
+            lum(&s.flow.blocked),
+            0.0,
+            "iteration {}: a sliver was hit from behind",
+            s.index
+        );
     }
     let owners = p.atlas.owners();
     let field = p.into_field();
@@ -534,7 +560,10 @@ fn sliver_triangles_keep_the_furnace_exact() {
     println!(
         "sliver furnace: {checked} covered texels ({sliver_texels} on slivers), worst error {worst:.1e}, balance {balance:.1e}"
     );
-    assert!(sliver_texels >= 5, "only {sliver_texels} sliver texels were crossed by rays");
+    assert!(
+        sliver_texels >= 5,
+        "only {sliver_texels} sliver texels were crossed by rays"
+    );
 }
 
 /// A closed box (ρ = 0.5, lamp ceiling Le = 1) with a tiny card and a tiny
@@ -556,8 +585,20 @@ fn polygons_far_below_the_ray_spacing_are_harmless() {
     ];
     let room = closed_box(0.55, 1, &[3], mats.clone());
     let mut cluttered = room.clone();
-    let card = rect(DVec3::new(0.1, -0.2, 0.05), DVec3::X * tiny / 2.0, DVec3::Z * tiny / 2.0, DVec3::Y, 0);
-    let speck = rect(DVec3::new(-0.13, 0.21, 0.07), DVec3::X * tiny / 2.0, DVec3::Z * tiny / 2.0, -DVec3::Y, 2);
+    let card = rect(
+        DVec3::new(0.1, -0.2, 0.05),
+        DVec3::X * tiny / 2.0,
+        DVec3::Z * tiny / 2.0,
+        DVec3::Y,
+        0,
+    );
+    let speck = rect(
+        DVec3::new(-0.13, 0.21, 0.07),
+        DVec3::X * tiny / 2.0,
+        DVec3::Z * tiny / 2.0,
+        -DVec3::Y,
+        2,
+    );
     cluttered.surfaces.extend([card, speck]);
     let stop = Stop::Iterations(6);
     let reference = propagate(room, options(129, n, stop));
@@ -605,17 +646,28 @@ fn polygons_far_below_the_ray_spacing_are_harmless() {
 /// third of a ray spacing, Le = 1, 0.3 above): no NaN, balance to 1e-9, no
 /// floor texel brighter than ρd·Le (exact for the discrete areas), and the
 /// power the floor receives is the emitter's power times the analytic form
-/// factor from the emitter to the floor, within 3 %.
-/// l = 513, N = 128: the emitter is crossed by a handful of rays per
-/// direction only, so the form factor needs many directions; two surfaces
-/// keep it cheap.
+/// factor from the emitter to the floor, within 10 %: the emitter is crossed
+/// by only ~100 rays in all (0.1 per direction), so that fraction is sampled
+/// by ~100 rays (one standard deviation ≈ 3.4 %; measured −2.7 % here,
+/// −2.6 % / −3.2 % at l = 2049, N = 64 / 128).
+/// l = 513, N = 128: the fewest directions and rays that cross the emitter
+/// ~100 times; two surfaces keep it at ~0.1 s.
 #[test]
 fn huge_floor_under_a_tiny_emitter() {
     let (h, half, rho, le) = (0.3, 0.005, 0.5, 1.0);
     let floor = rect(DVec3::ZERO, DVec3::X * 0.7, DVec3::Z * 0.7, DVec3::Y, 0);
-    let lamp = rect(DVec3::new(0.05, h, -0.03), DVec3::X * half, DVec3::Z * half, -DVec3::Y, 1);
+    let lamp = rect(
+        DVec3::new(0.05, h, -0.03),
+        DVec3::X * half,
+        DVec3::Z * half,
+        -DVec3::Y,
+        1,
+    );
     let p = propagate(
-        scene(vec![floor, lamp], vec![material("floor", rho, 0.0), material("lamp", 0.0, le)]),
+        scene(
+            vec![floor, lamp],
+            vec![material("floor", rho, 0.0), material("lamp", 0.0, le)],
+        ),
         options(513, 128, Stop::Iterations(2)),
     );
     assert_sane(&p, "huge floor");
@@ -634,25 +686,557 @@ fn huge_floor_under_a_tiny_emitter() {
         (measured - expected).abs() / expected,
         rho * le
     );
-    assert!((measured - expected).abs() < 0.03 * expected);
+    assert!((measured - expected).abs() < 0.1 * expected);
     assert!(max_floor > 0.0 && max_floor <= rho * le * (1.0 + 1e-9));
     assert_field_sane(&p.into_field(), "huge floor");
 }
 
-#[test]
-fn zz_probe_floor() {
-    for (l, n) in [(129, 64), (129, 128), (513, 64), (513, 128), (2049, 64), (2049, 128)] {
-        let (h, half, rho, le) = (0.3, 0.005, 0.5, 1.0);
-        let floor = rect(DVec3::ZERO, DVec3::X * 0.7, DVec3::Z * 0.7, DVec3::Y, 0);
-        let lamp = rect(DVec3::new(0.05, h, -0.03), DVec3::X * half, DVec3::Z * half, -DVec3::Y, 1);
-        let t = std::time::Instant::now();
-        let p = propagate(
-            scene(vec![floor, lamp], vec![material("floor", rho, 0.0), material("lamp", 0.0, le)]),
-            options(l, n, Stop::Iterations(1)),
-        );
-        let f = &p.stats[0].flow;
-        let measured = lum(&f.received) / lum(&f.shot);
-        let expected = rect_form_factor(-0.75, 0.65, -0.67, 0.73, h);
-        println!("l {l} N {n}: {measured:.5} vs {expected:.5}: {:.2e}  ({:?})", measured / expected - 1.0, t.elapsed());
+// ---------------------------------------------------------------------------
+// 4. An emitter coplanar with its ceiling
+// ---------------------------------------------------------------------------
+
+/// A closed box (ρ = 0.5) whose ceiling, the face ⟂ `up` at +0.55, carries a
+/// 0.3 × 0.3 lamp (Le = 1, ρd = 0) `gap` below it, listed before or after the
+/// ceiling. Returns the scene and the floor's surface index.
+fn lamp_under_ceiling(up: usize, gap: f64, lamp_first: bool) -> (Scene, usize) {
+    let mut s = closed_box(
+        0.55,
+        1,
+        &[],
+        vec![material("wall", 0.5, 0.0), material("lamp", 0.0, 1.0)],
+    );
+    let axes = [DVec3::X, DVec3::Y, DVec3::Z];
+    let (a, b) = (axes[(up + 1) % 3], axes[(up + 2) % 3]);
+    let lamp = rect(axes[up] * (0.55 - gap), a * 0.15, b * 0.15, -axes[up], 1);
+    let floor = 2 * up;
+    if lamp_first {
+        s.surfaces.insert(0, lamp);
+        (s, floor + 1)
+    } else {
+        s.surfaces.push(lamp);
+        (s, floor)
     }
+}
+
+/// An emitter exactly coplanar with the ceiling it sits on (and 1e-6 in
+/// front of it) must still light the room: rays from below must see the
+/// lamp, not the ceiling behind it, whichever order the two are listed in
+/// and whether the ceiling is ⟂ y (directions on both sides of it) or ⟂ z
+/// (the directions' pole: every direction crosses it the same way). The
+/// floor's mean radiance must be within 10 % of the same room with the lamp
+/// 1e-3 below the ceiling; no NaN, balance to 1e-9, nothing escapes.
+/// l = 129, N = 32: the floor's mean over ~300 texels is a smooth quantity;
+/// the lamp spans ~5 ray spacings.
+#[test]
+fn emitter_coplanar_with_the_ceiling_lights_the_room() {
+    let mut failures = Vec::new();
+    for up in [1, 2] {
+        for lamp_first in [true, false] {
+            let (reference, floor) = lamp_under_ceiling(up, 1e-3, lamp_first);
+            let r = propagate(reference, options(129, 32, Stop::Iterations(4)));
+            let want = mean_radiance(&r, &[floor]);
+            for gap in [0.0, 1e-6] {
+                let case = format!(
+                    "ceiling ⟂ {}, lamp listed {}, gap {gap:e}",
+                    ["x", "y", "z"][up],
+                    if lamp_first { "first" } else { "last" }
+                );
+                let (scene, floor) = lamp_under_ceiling(up, gap, lamp_first);
+                let p = propagate(scene, options(129, 32, Stop::Iterations(4)));
+                assert_sane(&p, &case);
+                let balance = assert_balance(&p, 1e-9, &case);
+                assert!(
+                    p.stats.iter().all(|s| lum(&s.flow.escaped) == 0.0),
+                    "{case}: light escaped"
+                );
+                let got = mean_radiance(&p, &[floor]);
+                let rel = (got - want).abs() / want;
+                println!(
+                    "{case}: floor radiance {got:.5e} vs {want:.5e} with a 1e-3 gap (rel {rel:.2e}), balance {balance:.1e}"
+                );
+                if !(got > 0.0 && rel < 0.1) {
+                    failures.push(format!("{case}: floor {got:.4e} vs {want:.4e} (rel {rel:.2e})"));
+                }
+                assert_field_sane(&p.into_field(), &case);
+            }
+        }
+    }
+    assert!(
+        failures.is_empty(),
+        "the coplanar lamp does not light the room:\n{}",
+        failures.join("\n")
+    );
+}
+
+// ---------------------------------------------------------------------------
+// 5. Scene scale and offset
+// ---------------------------------------------------------------------------
+
+/// A closed box [0, size] (walls ρd = 0.6, a tinted back wall), its ceiling
+/// split 3 × 3 with a lamp (Le = 2) in the middle tile, and a block (0.3 ×
+/// 0.5 × 0.2, outward faces) standing on the floor — in scene units
+/// `x·scale + offset`, as polygons for the importer.
+fn room(size: DVec3, scale: f64, offset: DVec3) -> Vec<(Vec<DVec3>, usize, FaceOrigin)> {
+    let mut faces: Vec<(Vec<DVec3>, usize)> = Vec::new();
+    let c = size * 0.5;
+    // Walls: -x, +x, -y (floor), -z, +z facing in; the +y ceiling is tiled.
+    for (axis, sign, mat) in [
+        (DVec3::X, -1.0, 0),
+        (DVec3::X, 1.0, 0),
+        (DVec3::Y, -1.0, 0),
+        (DVec3::Z, -1.0, 2),
+        (DVec3::Z, 1.0, 0),
+    ] {
+        let (a, b) = (axis.yzx() * c, axis.zxy() * c);
+        faces.push((rect(c + axis * sign * c, a, b, -axis * sign, mat).vertices, mat));
+    }
+    let (tx, tz) = (size.x / 3.0, size.z / 3.0);
+    for i in 0..3 {
+        for j in 0..3 {
+            let centre = DVec3::new((i as f64 + 0.5) * tx, size.y, (j as f64 + 0.5) * tz);
+            let mat = if i == 1 && j == 1 { 1 } else { 0 };
+            faces.push((
+                rect(centre, DVec3::X * tx / 2.0, DVec3::Z * tz / 2.0, -DVec3::Y, mat).vertices,
+                mat,
+            ));
+        }
+    }
+    // The block: 5 outward faces (its bottom rests on the floor).
+    let (bc, bh) = (DVec3::new(0.35, 0.25, 0.6), DVec3::new(0.15, 0.25, 0.1));
+    for (axis, sign) in [(0, -1.0), (0, 1.0), (1, 1.0), (2, -1.0), (2, 1.0)] {
+        let n = [DVec3::X, DVec3::Y, DVec3::Z][axis] * sign;
+        let (a, b) = (
+            [DVec3::Y, DVec3::Z, DVec3::X][axis],
+            [DVec3::Z, DVec3::X, DVec3::Y][axis],
+        );
+        let (ha, hb) = (a * a.dot(bh), b * b.dot(bh));
+        faces.push((rect(bc + n * n.abs().dot(bh), ha, hb, n, 0).vertices, 0));
+    }
+    faces
+        .into_iter()
+        .enumerate()
+        .map(|(k, (v, m))| {
+            (
+                v.into_iter().map(|p| p * scale + offset).collect(),
+                m,
+                FaceOrigin { line: 0, face: k },
+            )
+        })
+        .collect()
+}
+
+/// Builds `room(size)` at scale 1 and at scales 1e-3 and 1e5 and offsets of
+/// 1e4 units, propagates each, and compares with scale 1: normalised
+/// vertices, texel grids, radiance maps. Returns the failures (all cases are
+/// run and printed first).
+fn scale_invariance(size: DVec3, label: &str) -> Vec<String> {
+    let materials = vec![
+        material("wall", 0.6, 0.0),
+        material("lamp", 0.3, 2.0),
+        Material {
+            name: "tinted".into(),
+            diffuse: [0.7, 0.4, 0.2],
+            specular: [0.0; 3],
+            emission: [0.0; 3],
+        },
+    ];
+    let build = |scale: f64, offset: DVec3| {
+        let (scene, warnings) =
+            Scene::from_polygons(&room(size, scale, offset), materials.clone(), &ImportOptions::default())
+                .expect("room imports");
+        assert!(warnings.is_empty(), "{warnings:?}");
+        scene
+    };
+    let stop = Stop::Iterations(5);
+    let reference_scene = build(1.0, DVec3::ZERO);
+    let reference = propagate(reference_scene.clone(), options(129, 32, stop));
+    assert_sane(&reference, label);
+    assert_balance(&reference, 1e-9, label);
+    let reference = reference.into_field();
+    assert_field_sane(&reference, label);
+    let peak = reference.radiance.iter().flatten().fold(0.0f32, |a, &b| a.max(b)) as f64;
+    let mut failures = Vec::new();
+    for (case, scale, offset) in [
+        ("scale 1e-3", 1e-3, DVec3::ZERO),
+        ("scale 1e5", 1e5, DVec3::ZERO),
+        ("offset 1e4", 1.0, DVec3::new(1e4, -1e4, 1e4)),
+        ("scale 1e5, offset 1e4", 1e5, DVec3::splat(1e4)),
+    ] {
+        let case = format!("{label}, {case}");
+        let scene = build(scale, offset);
+        let moved = scene
+            .surfaces
+            .iter()
+            .zip(&reference_scene.surfaces)
+            .flat_map(|(a, b)| a.vertices.iter().zip(&b.vertices).map(|(p, q)| (*p - *q).length()))
+            .fold(0.0, f64::max);
+        let p = propagate(scene, options(129, 32, stop));
+        assert_sane(&p, &case);
+        let balance = assert_balance(&p, 1e-9, &case);
+        let field = p.into_field();
+        assert_field_sane(&field, &case);
+        let regridded: Vec<usize> = (0..field.atlas.grids.len())
+            .filter(|&s| {
+                let (a, b) = (&field.atlas.grids[s], &reference.atlas.grids[s]);
+                a.width != b.width
+                    || a.height != b.height
+                    || (a.axis_u - b.axis_u).length() > 1e-9
+                    || (a.origin - b.origin).length() > 1e-9
+            })
+            .collect();
+        let worst = field
+            .radiance
+            .iter()
+            .flatten()
+            .zip(reference.radiance.iter().flatten())
+            .map(|(a, b)| (*a as f64 - *b as f64).abs() / peak)
+            .fold(0.0, f64::max);
+        println!(
+            "{case}: vertices moved by {moved:.1e} in the VLF frame, texel grids laid out differently on surfaces \
+             {regridded:?}, radiance differs by {worst:.1e} of the peak {peak:.3}, balance {balance:.1e}"
+        );
+        if moved >= 1e-9 {
+            failures.push(format!("{case}: normalised vertices differ by {moved:.1e}"));
+        }
+        if !regridded.is_empty() {
+            failures.push(format!("{case}: texel grids differ on surfaces {regridded:?}"));
+        }
+        if worst.is_nan() || worst >= 1e-6 {
+            failures.push(format!("{case}: radiance differs by {worst:.1e} of the peak"));
+        }
+    }
+    failures
+}
+
+/// Radiance is invariant under a similarity: the same room built at scales
+/// 1e-3, 1 and 1e5, and 1e4 units away from the origin, is normalised into
+/// the same VLF frame (vertices within 1e-9), gets the same texel grids, and
+/// gives the same radiance maps texel by texel to 1e-6 of the brightest
+/// texel (the maps are f32). No NaN, balance to 1e-9. This room has no two
+/// edges of a polygon equally long (a 1 × 0.8 × 0.9 box).
+/// l = 129, N = 32, 5 iterations: invariance is exact or not at any
+/// resolution, so the cheapest non-trivial one will do.
+#[test]
+fn scene_scale_and_offset_do_not_change_the_radiance() {
+    let failures = scale_invariance(DVec3::new(1.0, 0.8, 0.9), "1 × 0.8 × 0.9 room");
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+/// The same for a cube, whose faces and ceiling tiles are squares: the texel
+/// grid of a square may not depend on which of its equally long edges
+/// rounding makes a few ulps longer at one scale than at another.
+#[test]
+fn scene_scale_and_offset_do_not_change_the_radiance_of_a_cube() {
+    let failures = scale_invariance(DVec3::ONE, "unit cube room");
+    assert!(failures.is_empty(), "{}", failures.join("\n"));
+}
+
+// ---------------------------------------------------------------------------
+// 6. Emitters 10⁶ apart
+// ---------------------------------------------------------------------------
+
+/// An open scene: a floor split in two halves (x < 0 and x > 0, ρd = 0.5), a
+/// back wall (ρd = 0.5, split the same way) along both, a dim lamp (Le = `dim`, ρd = 0.5, 0.4 ×
+/// 0.4) 0.3 above the left half and a small bright lamp (Le = `bright`, 0.1 ×
+/// 0.1) 0.3 above the far right. With `partition`, a black one-sided wall at
+/// x = 0 (0.6 high, as deep as the floor, facing the left half) shades the
+/// left half from everything on the right: no straight path leads from a
+/// point right of it (at most 0.5 high) to the left floor. Floor halves are
+/// surfaces 0 and 1. (The back wall must be split where the partition meets
+/// it: a texel straddling the contact line would take light on the right and
+/// re-emit it on the left — radiosity's classic light leak, ~1e-5 of the
+/// bright lamp's power here, which at 10⁶ swamps the dim half.)
+fn two_lamps(dim: f64, bright: f64, partition: bool) -> Scene {
+    let mut surfaces = vec![
+        rect(
+            DVec3::new(-0.35, 0.0, 0.0),
+            DVec3::X * 0.35,
+            DVec3::Z * 0.5,
+            DVec3::Y,
+            0,
+        ),
+        rect(DVec3::new(0.35, 0.0, 0.0), DVec3::X * 0.35, DVec3::Z * 0.5, DVec3::Y, 0),
+        rect(
+            DVec3::new(-0.35, 0.25, -0.5),
+            DVec3::X * 0.35,
+            DVec3::Y * 0.25,
+            DVec3::Z,
+            0,
+        ),
+        rect(
+            DVec3::new(0.35, 0.25, -0.5),
+            DVec3::X * 0.35,
+            DVec3::Y * 0.25,
+            DVec3::Z,
+            0,
+        ),
+        rect(
+            DVec3::new(-0.35, 0.3, 0.0),
+            DVec3::X * 0.2,
+            DVec3::Z * 0.2,
+            -DVec3::Y,
+            1,
+        ),
+        rect(
+            DVec3::new(0.6, 0.3, 0.2),
+            DVec3::X * 0.05,
+            DVec3::Z * 0.05,
+            -DVec3::Y,
+            2,
+        ),
+    ];
+    if partition {
+        surfaces.push(rect(
+            DVec3::new(0.0, 0.3, 0.0),
+            DVec3::Y * 0.3,
+            DVec3::Z * 0.5,
+            -DVec3::X,
+            3,
+        ));
+    }
+    scene(
+        surfaces,
+        vec![
+            material("matte", 0.5, 0.0),
+            material("dim", 0.5, dim),
+            material("bright", 0.0, bright),
+            material("black", 0.0, 0.0),
+        ],
+    )
+}
+
+/// Emitters 10⁶ apart in radiance (dim Le = 1, bright Le = 10⁶).
+///
+/// Open scene: transport is linear, so the run with both lamps equals the
+/// sum of the runs with each lamp alone, texel by texel, to 1e-12 of the
+/// texel's value (f64 Total maps); and the dim lamp's share, recovered as
+/// (both − bright alone), matches the dim lamp alone to 1e-6 even where the
+/// bright lamp's light is 10³–10⁷ times stronger (f64 rounding allows ~1e-9
+/// there): the dim light is neither lost nor swamped by rounding.
+///
+/// With the partition, the left half is the dim lamp's alone: the bright
+/// lamp, 10⁶ brighter, must leak exactly nothing onto it (any seam or
+/// back-face leak would show at once), and the field (f32) with both lamps
+/// equals the dim lamp alone there to 1e-6 relative.
+/// No NaN, balance to 1e-9 relative in every run.
+/// l = 129, N = 64, 4 iterations: the floor halves get ~500 texels each and
+/// the light is interreflected between floor, wall and the dim lamp.
+#[test]
+fn emitters_a_million_apart_are_both_visible() {
+    let stop = Stop::Iterations(4);
+    let run = |dim: f64, bright: f64, partition: bool| {
+        let case = format!("dim {dim:e}, bright {bright:e}, partition {partition}");
+        let p = propagate(two_lamps(dim, bright, partition), options(129, 64, stop));
+        assert_sane(&p, &case);
+        let balance = assert_balance(&p, 1e-9, &case);
+        println!("{case}: emitted {:.4e}, balance {balance:.1e}", lum(&p.emitted));
+        p
+    };
+    let (both, dim, bright) = (run(1.0, 1e6, false), run(1.0, 0.0, false), run(0.0, 1e6, false));
+    // Linearity, texel by texel, in f64.
+    let mut worst = 0.0f64;
+    for t in 0..both.total.len() {
+        for c in 0..3 {
+            let (a, b) = (both.total[t][c], dim.total[t][c] + bright.total[t][c]);
+            if a > 0.0 {
+                worst = worst.max((a - b).abs() / a);
+            } else {
+                assert_eq!(b, 0.0);
+            }
+        }
+    }
+    // The dim lamp's share, as both − bright, where it is 10³–10⁷ times
+    // smaller (f64 leaves it ~1e-16 × 10⁷ = 1e-9 relative error there).
+    let (mut share_err, mut swamped, mut ratio) = (0.0f64, 0, 0.0f64);
+    for t in 0..both.total.len() {
+        let (a, d, b) = (lum(&both.total[t]), lum(&dim.total[t]), lum(&bright.total[t]));
+        if d > 0.0 && b > 1e3 * d && b < 1e7 * d {
+            swamped += 1;
+            ratio = ratio.max(b / d);
+            share_err = share_err.max(((a - b) - d).abs() / d);
+        }
+    }
+    println!(
+        "open: linearity {worst:.1e}; dim share recovered in {swamped} texels under up to {ratio:.1e}× more bright \
+         light, worst {share_err:.1e}"
+    );
+    assert!(worst < 1e-12, "both lamps ≠ dim + bright: {worst}");
+    assert!(
+        swamped > 100,
+        "the bright lamp swamps the dim one in only {swamped} texels"
+    );
+    assert!(
+        share_err < 1e-6,
+        "the dim lamp's share is lost under the bright one: {share_err}"
+    );
+
+    // Behind the partition: the dim lamp's half.
+    let (both, dim, bright) = (run(1.0, 1e6, true), run(1.0, 0.0, true), run(0.0, 1e6, true));
+    let g = both.atlas.grids[0].clone();
+    let leaked = (g.first..g.first + g.len())
+        .map(|t| lum(&bright.total[t]))
+        .fold(0.0, f64::max);
+    let lit = (g.first..g.first + g.len())
+        .filter(|&t| lum(&dim.total[t]) > 0.0)
+        .count();
+    let (fb, fd) = (both.into_field(), dim.into_field());
+    assert_field_sane(&fb, "both lamps, partition");
+    assert_field_sane(&fd, "dim lamp, partition");
+    let region_err = (g.first..g.first + g.len())
+        .filter(|&t| fd.covered[t])
+        .flat_map(|t| (0..3).map(move |c| (t, c)))
+        .map(|(t, c)| (fb.radiance[t][c] as f64 - fd.radiance[t][c] as f64).abs() / fd.radiance[t][c] as f64)
+        .fold(0.0, f64::max);
+    println!(
+        "partition: bright light on the left floor {leaked:e} (of {:.3e} emitted); {lit} texels lit by the dim lamp, \
+         both lamps vs dim alone differ by {region_err:.1e} there",
+        lum(&bright.emitted)
+    );
+    assert_eq!(leaked, 0.0, "the bright lamp leaks behind the partition");
+    assert!(lit > 300, "{lit}");
+    assert!(
+        region_err < 1e-6,
+        "both lamps vs dim alone behind the partition: {region_err}"
+    );
+}
+
+// ---------------------------------------------------------------------------
+// 7. An enclosure with ρ = 0.99
+// ---------------------------------------------------------------------------
+
+/// A closed box with ρ = 0.99 everywhere: in iteration k the unshot power is
+/// exactly ρ^k of the emitted, so `Stop::Converge { 1e-3 }` must stop after
+/// exactly ⌈ln 1e-3 / ln 0.99⌉ = 688 iterations (0.99^687 = 1.0010e-3,
+/// 0.99^688 = 0.9910e-3: no rounding ambiguity), with each iteration's unshot
+/// 0.99 × the previous to 1e-9, shot = received to 1e-9 and nothing escaping.
+/// As a furnace (every wall emitting Le = 1), every covered texel holds
+/// Le·(1 − ρ^(K+1))/(1 − ρ) = 99.9 to 1e-4 relative after those 688
+/// iterations (f32 maps: 1e-4 leaves room for 688 f64 additions and the
+/// final f32 rounding).
+/// l = 33, N = 16: the answer is exact for any discretisation, and 2 × 688
+/// iterations must stay cheap.
+#[test]
+fn enclosure_with_reflectance_099_converges_at_the_predicted_iteration() {
+    let rho: f64 = 0.99;
+    let predicted = (1e-3f64.ln() / rho.ln()).ceil() as u32;
+    assert_eq!(predicted, 688);
+    let stop = Stop::Converge {
+        epsilon: 1e-3,
+        max_iterations: 5000,
+    };
+    for (case, emitting) in [("one lamp", vec![3]), ("furnace", vec![0, 1, 2, 3, 4, 5])] {
+        let scene = closed_box(
+            0.55,
+            1,
+            &emitting,
+            vec![material("wall", rho, 0.0), material("glow", rho, 1.0)],
+        );
+        let started = std::time::Instant::now();
+        let p = propagate(scene, options(33, 16, stop));
+        let seconds = started.elapsed().as_secs_f64();
+        assert_sane(&p, case);
+        let balance = assert_balance(&p, 1e-9, case);
+        assert!(
+            p.stats
+                .iter()
+                .all(|s| lum(&s.flow.escaped) + lum(&s.flow.blocked) == 0.0)
+        );
+        let ratio = assert_geometric(&p, rho * (1.0 + 1e-9), 1, case);
+        let mut worst_ratio = 0.0f64;
+        for w in p.stats.windows(2) {
+            worst_ratio = worst_ratio.max((lum(&w[1].unshot) / lum(&w[0].unshot) - rho).abs() / rho);
+        }
+        let k = p.iterations_done();
+        println!(
+            "{case}: stopped after {k} iterations (predicted {predicted}) in {seconds:.2} s, unshot {:.4e}, \
+             ratio {ratio:.6} (deviation from ρ {worst_ratio:.1e}), balance {balance:.1e}",
+            p.unshot_fraction()
+        );
+        assert!(
+            worst_ratio < 1e-9,
+            "{case}: unshot does not fall by exactly ρ: {worst_ratio}"
+        );
+        assert_eq!(k, predicted, "{case}: stopped after {k} iterations");
+        if case == "furnace" {
+            let field = p.into_field();
+            assert_field_sane(&field, case);
+            let want = (1.0 - rho.powi(k as i32 + 1)) / (1.0 - rho);
+            let (mut worst, mut checked) = (0.0f64, 0);
+            for (t, l) in field.radiance.iter().enumerate() {
+                if field.covered[t] {
+                    for c in l {
+                        worst = worst.max((*c as f64 - want).abs() / want);
+                    }
+                    checked += 1;
+                }
+            }
+            println!("furnace: {checked} texels at {want:.4} to {worst:.1e}");
+            assert!(checked > 300, "{checked}");
+            assert!(worst < 1e-4, "furnace radiance off by {worst}");
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// 8. A box of mirrors
+// ---------------------------------------------------------------------------
+
+/// A closed box whose walls are all mirrors (ρs = 0.9, ρd = 0) but for one
+/// diffuse, black lamp tile in the ceiling (1/54 of the walls): every
+/// iteration balances to 1e-9 with nothing escaping or blocked, mirrors
+/// reflect exactly 0.9 of what arrives, all unshot power is specular, and
+/// the unshot power falls at least by 0.9 per iteration (the lamp absorbs the
+/// rest); `Stop::Converge { 1e-3 }` stops before its cap of 300 iterations.
+/// l = 129, N = 32: a box of 54 tiles with axis-aligned mirrors, whose
+/// reflections map line directions onto line directions; enough for light to
+/// keep bouncing for tens of iterations.
+#[test]
+fn closed_box_of_mirrors_converges() {
+    let rho_s = 0.9;
+    let mut scene = closed_box(
+        0.55,
+        3,
+        &[],
+        vec![mirror("silver", 0.0, rho_s), material("lamp", 0.0, 1.0)],
+    );
+    // Face 3 (+y) is tiles 27..36; its centre tile is 31.
+    scene.surfaces[31].material = 1;
+    let p = propagate(
+        scene,
+        options(
+            129,
+            32,
+            Stop::Converge {
+                epsilon: 1e-3,
+                max_iterations: 300,
+            },
+        ),
+    );
+    let case = "mirror box";
+    assert_sane(&p, case);
+    let balance = assert_balance(&p, 1e-9, case);
+    let lit = assert_mirror_exchange(&p, rho_s, 1e-9, case);
+    for s in &p.stats {
+        assert_eq!(lum(&s.flow.escaped), 0.0, "iteration {}: light escaped", s.index);
+        assert_eq!(lum(&s.flow.blocked), 0.0, "iteration {}: a back face was hit", s.index);
+        let rel = (lum(&s.unshot) - lum(&s.specular_unshot)).abs() / lum(&s.unshot);
+        assert!(
+            rel < 1e-12,
+            "iteration {}: unshot power outside the mirror maps",
+            s.index
+        );
+    }
+    let ratio = assert_geometric(&p, rho_s * (1.0 + 1e-9), 1, case);
+    let k = p.iterations_done();
+    println!(
+        "mirror box: {k} iterations ({lit} lit), unshot {:.3e}, worst unshot ratio {ratio:.4}, balance {balance:.1e}",
+        p.unshot_fraction()
+    );
+    assert_eq!(lit as u32, k, "every iteration must reach the mirrors");
+    assert!(
+        k < 300 && p.unshot_fraction() < 1e-3,
+        "{k} iterations, unshot {}",
+        p.unshot_fraction()
+    );
+    assert_field_sane(&p.into_field(), case);
 }

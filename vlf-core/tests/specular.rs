@@ -158,7 +158,10 @@ fn a_mirror_shows_the_image_of_an_emitter() {
     println!("relative error of the mirror image: l=513 N=64 {coarse:.4}, l=2049 N=128 {fine:.4}");
     assert!(coarse < 0.08, "{coarse}");
     assert!(fine < 0.03, "{fine}");
-    assert!(fine < coarse, "the image did not improve with l and N: {coarse} → {fine}");
+    assert!(
+        fine < coarse,
+        "the image did not improve with l and N: {coarse} → {fine}"
+    );
 }
 
 /// No mirror in the scene: no specular machinery at all.

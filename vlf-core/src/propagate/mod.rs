@@ -324,7 +324,7 @@ impl Propagation {
     pub fn new(scene: Scene, options: Options) -> crate::Result<Self> {
         options.validate()?;
         let directions = DirectionSet::new(options.directions)?;
-        let atlas = TexelAtlas::new(&scene, options.texel_size())?;
+        let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing())?;
         let grid = options.grid;
         let subfields: Vec<Subfield> = directions
             .directions()
