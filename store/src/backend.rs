@@ -1,0 +1,92 @@
+//! Which `object_store` backend a store URL names.
+//!
+//! | URL | backend |
+//! |---|---|
+//! | `PATH` (no `scheme://`) or `file://PATH` | [`LocalFileSystem`] rooted at `PATH`, created if missing: the embedded default, no set-up |
+//! | `s3://BUCKET` or `s3://BUCKET/PREFIX` | [`AmazonS3`](object_store::aws::AmazonS3) configured from the environment (below), keys under `PREFIX/` |
+//! | `memory://` | [`InMemory`], for tests: lives as long as the `Store` and its clones |
+//!
+//! # S3 environment
+//!
+//! Read by [`AmazonS3Builder::from_env`], so any S3-compatible server works (AWS, MinIO, Ceph,
+//! s3s-fs, moto…):
+//!
+//! | variable | meaning |
+//! |---|---|
+//! | `AWS_ENDPOINT_URL` (or `AWS_ENDPOINT`) | server URL, e.g. `http://127.0.0.1:9000`; unset = AWS |
+//! | `AWS_ALLOW_HTTP` | `true` to allow a plain-HTTP endpoint (a loopback test server) |
+//! | `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY` | credentials (`AWS_SESSION_TOKEN` for temporary ones) |
+//! | `AWS_REGION` (or `AWS_DEFAULT_REGION`) | region; default `us-east-1` |
+//! | `AWS_VIRTUAL_HOSTED_STYLE_REQUEST` | `true` for `BUCKET.host` URLs; default path style, which self-hosted servers expect |
+//!
+//! The bucket must exist. Create-only writes use `If-None-Match: *` (S3 since 2024, MinIO, R2).
+//!
+//! # Local durability
+//!
+//! [`LocalFileSystem`] writes each object to a staging file in the same directory and renames (or,
+//! for create-only writes, hard-links) it into place, so a reader never sees half an object. Here
+//! it also fsyncs the file and its directory before returning, so the commit order of
+//! [`crate::job`] (blobs first, manifest last) survives a power loss, not just a crash.
+
+use crate::error::StoreError;
+use object_store::ObjectStore;
+use object_store::aws::AmazonS3Builder;
+use object_store::local::LocalFileSystem;
+use object_store::memory::InMemory;
+use object_store::prefix::PrefixStore;
+use std::sync::Arc;
+
+/// Opens the backend that `url` names.
+pub(crate) fn open(url: &str) -> Result<Arc<dyn ObjectStore>, StoreError> {
+    let fail = |reason: String| StoreError::Url {
+        url: url.to_string(),
+        reason,
+    };
+    let trimmed = url.trim();
+    if trimmed.is_empty() {
+        return Err(fail("empty URL".into()));
+    }
+    match trimmed.split_once("://") {
+        None => local(trimmed).map_err(fail),
+        Some(("file", path)) => local(path).map_err(fail),
+        Some(("memory", "")) => Ok(Arc::new(InMemory::new())),
+        Some(("memory", _)) => Err(fail("memory:// takes no path".into())),
+        Some(("s3", rest)) => s3(rest).map_err(fail),
+        Some((scheme, _)) if scheme.chars().all(|c| c.is_ascii_alphanumeric() || "+-.".contains(c)) => {
+            Err(fail(format!("unsupported scheme `{scheme}://`")))
+        }
+        // Something like `./odd://name`: a path with `://` in it.
+        Some(_) => local(trimmed).map_err(fail),
+    }
+}
+
+/// A local directory, created if missing.
+fn local(path: &str) -> Result<Arc<dyn ObjectStore>, String> {
+    if path.is_empty() {
+        return Err("file:// needs a path, e.g. file:///var/vlf".into());
+    }
+    std::fs::create_dir_all(path).map_err(|e| format!("cannot create directory `{path}`: {e}"))?;
+    let fs = LocalFileSystem::new_with_prefix(path)
+        .map_err(|e| e.to_string())?
+        .with_fsync(true)
+        .with_automatic_cleanup(true);
+    Ok(Arc::new(fs))
+}
+
+/// An S3 bucket, optionally under a prefix, configured from the environment.
+fn s3(rest: &str) -> Result<Arc<dyn ObjectStore>, String> {
+    let (bucket, prefix) = rest.split_once('/').unwrap_or((rest, ""));
+    if bucket.is_empty() {
+        return Err("s3:// needs a bucket, e.g. s3://my-bucket/vlf".into());
+    }
+    let prefix = prefix.trim_end_matches('/');
+    let s3 = AmazonS3Builder::from_env()
+        .with_bucket_name(bucket)
+        .build()
+        .map_err(|e| e.to_string())?;
+    if prefix.is_empty() {
+        return Ok(Arc::new(s3));
+    }
+    let prefix = object_store::path::Path::parse(prefix).map_err(|e| format!("bad prefix `{prefix}`: {e}"))?;
+    Ok(Arc::new(PrefixStore::new(s3, prefix)))
+}

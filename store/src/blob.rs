@@ -1,0 +1,551 @@
+//! The blob format: a fixed 48-byte header, then one zstd frame.
+//!
+//! Every object VLF stores is a blob, so that any byte string read back is either exactly what
+//! was written, of the kind the reader expects, or a [`BlobError`] saying what is wrong — never a
+//! panic and never garbage radiance.
+//!
+//! # Header (all integers little-endian)
+//!
+//! | offset | size | field | meaning |
+//! |---:|---:|---|---|
+//! | 0 | 4 | magic | `b"VLFB"` |
+//! | 4 | 2 | version | format version, [`FORMAT_VERSION`]; stays at offset 4 in every version |
+//! | 6 | 2 | kind | [`BlobKind`] as `u16` |
+//! | 8 | 1 | encoding | [`Encoding`] as `u8` |
+//! | 9 | 1 | rank | number of dimensions used, 0 ..= 3 |
+//! | 10 | 2 | reserved | zero |
+//! | 12 | 12 | dims | 3 × `u32`; the first `rank` are the shape, the rest zero |
+//! | 24 | 8 | raw length | `u64`, payload bytes before compression |
+//! | 32 | 8 | stored length | `u64`, payload bytes after compression (= blob length − 48) |
+//! | 40 | 4 | payload crc | CRC-32C of the stored (compressed) payload |
+//! | 44 | 4 | header crc | CRC-32C of header bytes 0 .. 44 |
+//! | 48 | … | payload | one zstd frame |
+//!
+//! The payload checksum is of the compressed bytes, so corruption is caught before zstd ever
+//! sees them; the header checksum catches a flipped shape or encoding that would otherwise still
+//! decode into plausible but wrong numbers.
+//!
+//! # Payload
+//!
+//! * [`Encoding::Bytes`]: the caller's bytes (JSON, bincode, …), rank 0.
+//! * [`Encoding::F32`], [`Encoding::F16`], [`Encoding::Rgb9e5`]: `f32` values in row-major
+//!   order, rank 1 ..= 3, the product of the dims being the number of `f32` values; converted to
+//!   the encoding (see the `codec` module), then byte-shuffled into planes. RGB9E5 needs a last
+//!   dimension of 3. Decoding checks that every value is finite.
+
+use crate::codec::{self, Unrepresentable};
+use serde::{Deserialize, Serialize};
+use std::io::Read;
+
+/// The four bytes every blob starts with.
+pub const MAGIC: [u8; 4] = *b"VLFB";
+/// The version of the layout above that this crate writes and reads.
+pub const FORMAT_VERSION: u16 = 1;
+/// Length of the fixed header.
+pub const HEADER_LEN: usize = 48;
+/// Highest number of dimensions of a shape.
+pub const MAX_RANK: usize = 3;
+/// zstd level: fast, and within a few percent of the higher levels on radiance.
+const ZSTD_LEVEL: i32 = 3;
+
+/// What a blob holds. Stored as a `u16`; new kinds get new numbers, never reused ones, and a
+/// reader meeting a number it does not know reports [`BlobError::UnknownKind`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[non_exhaustive]
+pub enum BlobKind {
+    /// A job's manifest (JSON).
+    Manifest = 1,
+    /// The normalised scene of a job (caller's serialisation).
+    Scene = 2,
+    /// The resume state of one iteration (caller's serialisation).
+    Snapshot = 3,
+    /// Total radiance maps of one diffuse surface.
+    DiffuseMaps = 4,
+    /// Radiance of one tile of one direction's parallel subfield.
+    TileRadiance = 5,
+    /// Directional maps of one mirror.
+    MirrorMaps = 6,
+    /// Anything else.
+    Raw = 7,
+}
+
+impl BlobKind {
+    /// Every kind, in numeric order.
+    pub const ALL: [BlobKind; 7] = [
+        BlobKind::Manifest,
+        BlobKind::Scene,
+        BlobKind::Snapshot,
+        BlobKind::DiffuseMaps,
+        BlobKind::TileRadiance,
+        BlobKind::MirrorMaps,
+        BlobKind::Raw,
+    ];
+
+    /// The number stored in the header.
+    pub fn code(self) -> u16 {
+        self as u16
+    }
+
+    /// The kind stored as `code`, if known.
+    pub fn from_code(code: u16) -> Option<BlobKind> {
+        BlobKind::ALL.into_iter().find(|k| k.code() == code)
+    }
+}
+
+/// How a blob's payload is represented. Stored as a `u8`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+#[non_exhaustive]
+pub enum Encoding {
+    /// Opaque bytes from the caller.
+    Bytes = 0,
+    /// Lossless `f32`.
+    F32 = 1,
+    /// IEEE half precision: compact, relative error ≤ 2⁻¹¹ for normal values.
+    F16 = 2,
+    /// Shared-exponent RGB in 32 bits per triple: most compact, non-negative values only.
+    Rgb9e5 = 3,
+}
+
+impl Encoding {
+    /// Every encoding, in numeric order.
+    pub const ALL: [Encoding; 4] = [Encoding::Bytes, Encoding::F32, Encoding::F16, Encoding::Rgb9e5];
+    /// The encodings of `f32` values (all but [`Encoding::Bytes`]).
+    pub const VALUES: [Encoding; 3] = [Encoding::F32, Encoding::F16, Encoding::Rgb9e5];
+
+    /// The number stored in the header.
+    pub fn code(self) -> u8 {
+        self as u8
+    }
+
+    /// The encoding stored as `code`, if known.
+    pub fn from_code(code: u8) -> Option<Encoding> {
+        Encoding::ALL.into_iter().find(|e| e.code() == code)
+    }
+
+    /// Raw payload bytes for `count` values, or `None` if `count` does not fit the encoding.
+    fn raw_len(self, count: u64) -> Option<u64> {
+        match self {
+            Encoding::Bytes => Some(count),
+            Encoding::F32 => count.checked_mul(4),
+            Encoding::F16 => count.checked_mul(2),
+            Encoding::Rgb9e5 => count.is_multiple_of(3).then_some(count / 3 * 4),
+        }
+    }
+
+    /// Size of one stored element, the unit of the byte shuffle.
+    fn element_size(self) -> usize {
+        match self {
+            Encoding::Bytes => 1,
+            Encoding::F32 | Encoding::Rgb9e5 => 4,
+            Encoding::F16 => 2,
+        }
+    }
+}
+
+/// Everything that can be wrong when encoding or decoding a blob.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[non_exhaustive]
+pub enum BlobError {
+    /// Fewer bytes than the header or the header's stored length says.
+    #[error("truncated blob: {actual} bytes, expected {expected}")]
+    Truncated { expected: u64, actual: u64 },
+    /// More bytes than the header's stored length says.
+    #[error("blob has {extra} bytes after its payload")]
+    TrailingBytes { extra: u64 },
+    /// Not a VLF blob at all.
+    #[error("not a VLF blob: starts with {found:02x?}, expected \"VLFB\"")]
+    BadMagic { found: Vec<u8> },
+    /// Written by another version of the format.
+    #[error("blob format version {found} is not supported (this build reads version {supported})")]
+    UnsupportedVersion { found: u16, supported: u16 },
+    /// The header does not match its own checksum.
+    #[error("blob header checksum mismatch: stored {stored:08x}, computed {computed:08x}")]
+    HeaderChecksum { stored: u32, computed: u32 },
+    /// A kind number this build does not know.
+    #[error("unknown blob kind {0}")]
+    UnknownKind(u16),
+    /// A valid blob, but not of the kind the reader asked for.
+    #[error("wrong blob kind: expected {expected:?}, found {found:?}")]
+    WrongKind { expected: BlobKind, found: BlobKind },
+    /// An encoding number this build does not know.
+    #[error("unknown blob encoding {0}")]
+    UnknownEncoding(u8),
+    /// A shape that is inconsistent with itself, the encoding or the data.
+    #[error("bad shape {shape:?} for encoding {encoding:?}: {reason}")]
+    BadShape {
+        shape: Vec<u32>,
+        encoding: Encoding,
+        reason: String,
+    },
+    /// The header's reserved bytes are not zero.
+    #[error("blob header has non-zero reserved bytes")]
+    Reserved,
+    /// The payload does not match its checksum.
+    #[error("blob payload checksum mismatch: stored {stored:08x}, computed {computed:08x}")]
+    ChecksumMismatch { stored: u32, computed: u32 },
+    /// zstd could not decompress the payload, or it had another length than the header says.
+    #[error("blob payload does not decompress: {0}")]
+    Decompress(String),
+    /// A decoded radiance value is NaN or infinite.
+    #[error("decoded value {index} is not finite ({value})")]
+    NonFinite { index: usize, value: f32 },
+    /// A value cannot be represented in the requested encoding.
+    #[error("value {index} ({value}) cannot be stored as {encoding:?}: {reason}")]
+    Unrepresentable {
+        index: usize,
+        value: f32,
+        encoding: Encoding,
+        reason: &'static str,
+    },
+    /// zstd failed to compress (only on allocation failure).
+    #[error("cannot compress blob payload: {0}")]
+    Compress(String),
+    /// The operation needs another encoding (e.g. values requested from a `Bytes` blob).
+    #[error("encoding {found:?} cannot be used here: {reason}")]
+    WrongEncoding { found: Encoding, reason: &'static str },
+}
+
+/// The decoded content of a blob.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Data {
+    /// The payload of an [`Encoding::Bytes`] blob.
+    Bytes(Vec<u8>),
+    /// The values of an F32, F16 or RGB9E5 blob, as `f32`.
+    Values(Vec<f32>),
+}
+
+/// A decoded blob.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Decoded {
+    /// The kind (equal to the one the reader expected).
+    pub kind: BlobKind,
+    /// How the payload was stored.
+    pub encoding: Encoding,
+    /// The shape (empty for bytes).
+    pub shape: Vec<u32>,
+    /// The content.
+    pub data: Data,
+}
+
+/// The parsed, validated header.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Header {
+    /// What the blob holds.
+    pub kind: BlobKind,
+    /// How its payload is stored.
+    pub encoding: Encoding,
+    /// Its shape (empty for bytes).
+    pub shape: Vec<u32>,
+    /// Payload bytes before compression.
+    pub raw_len: u64,
+    /// Payload bytes after compression.
+    pub stored_len: u64,
+    /// CRC-32C of the stored payload.
+    pub payload_crc: u32,
+}
+
+/// Encodes opaque bytes (JSON, bincode, …) as a blob of `kind`.
+///
+/// Fails only if zstd cannot allocate its context ([`BlobError::Compress`]).
+pub fn encode_bytes(kind: BlobKind, data: &[u8]) -> Result<Vec<u8>, BlobError> {
+    assemble(kind, Encoding::Bytes, &[], data)
+}
+
+/// Encodes `values` (row-major, `shape.iter().product()` of them) as a blob of `kind`.
+///
+/// Fails if `encoding` is [`Encoding::Bytes`], if the shape does not match the values, or if a
+/// value cannot be represented (NaN/∞ in any encoding, beyond ±65504 in F16, negative or beyond
+/// 65408 in RGB9E5) — a compact encoding never silently turns radiance into something else.
+pub fn encode_values(kind: BlobKind, encoding: Encoding, shape: &[u32], values: &[f32]) -> Result<Vec<u8>, BlobError> {
+    let bad_shape = |reason: String| BlobError::BadShape {
+        shape: shape.to_vec(),
+        encoding,
+        reason,
+    };
+    if encoding == Encoding::Bytes {
+        return Err(BlobError::WrongEncoding {
+            found: encoding,
+            reason: "use encode_bytes for opaque bytes",
+        });
+    }
+    check_value_shape(shape, encoding).map_err(bad_shape)?;
+    let count = shape_product(shape);
+    if count != Some(values.len() as u64) {
+        return Err(bad_shape(format!(
+            "shape has {count:?} elements but {} values were given",
+            values.len()
+        )));
+    }
+    let unrepresentable = |(index, why): (usize, Unrepresentable)| BlobError::Unrepresentable {
+        index,
+        value: values[index],
+        encoding,
+        reason: match (why, encoding) {
+            (Unrepresentable::NonFinite, _) => "radiance must be finite",
+            (Unrepresentable::OutOfRange, Encoding::F16) => "beyond ±65504, the range of f16; use F32",
+            (Unrepresentable::OutOfRange, _) => "outside [0, 65408], the range of RGB9E5; use F32 or F16",
+        },
+    };
+    let raw = match encoding {
+        Encoding::F32 => {
+            codec::check_finite(values).map_err(unrepresentable)?;
+            codec::f32_to_bytes(values)
+        }
+        Encoding::F16 => codec::f32_to_f16_bytes(values).map_err(unrepresentable)?,
+        _ => codec::f32_to_rgb9e5_bytes(values).map_err(unrepresentable)?,
+    };
+    assemble(kind, encoding, shape, &codec::shuffle(&raw, encoding.element_size()))
+}
+
+/// Encodes RGB triples as a blob of shape `[n, 3]`.
+pub fn encode_rgb(kind: BlobKind, encoding: Encoding, rgb: &[[f32; 3]]) -> Result<Vec<u8>, BlobError> {
+    let n = u32::try_from(rgb.len()).map_err(|_| BlobError::BadShape {
+        shape: vec![],
+        encoding,
+        reason: format!("{} triples do not fit a u32 dimension", rgb.len()),
+    })?;
+    encode_values(kind, encoding, &[n, 3], rgb.as_flattened())
+}
+
+/// Decodes a blob, checking that it is of the `expected` kind.
+pub fn decode(bytes: &[u8], expected: BlobKind) -> Result<Decoded, BlobError> {
+    let header = read_header(bytes)?;
+    if header.kind != expected {
+        return Err(BlobError::WrongKind {
+            expected,
+            found: header.kind,
+        });
+    }
+    let stored = &bytes[HEADER_LEN..];
+    let computed = crc32c::crc32c(stored);
+    if computed != header.payload_crc {
+        return Err(BlobError::ChecksumMismatch {
+            stored: header.payload_crc,
+            computed,
+        });
+    }
+    let raw = decompress(stored, header.raw_len)?;
+    let data = match header.encoding {
+        Encoding::Bytes => Data::Bytes(raw),
+        encoding => {
+            let raw = codec::unshuffle(&raw, encoding.element_size());
+            let values = match encoding {
+                Encoding::F32 => codec::bytes_to_f32(&raw),
+                Encoding::F16 => codec::f16_bytes_to_f32(&raw),
+                _ => codec::rgb9e5_bytes_to_f32(&raw),
+            };
+            if let Some(index) = values.iter().position(|v| !v.is_finite()) {
+                return Err(BlobError::NonFinite {
+                    index,
+                    value: values[index],
+                });
+            }
+            Data::Values(values)
+        }
+    };
+    Ok(Decoded {
+        kind: header.kind,
+        encoding: header.encoding,
+        shape: header.shape,
+        data,
+    })
+}
+
+/// Decodes an [`Encoding::Bytes`] blob of the `expected` kind.
+pub fn decode_bytes(bytes: &[u8], expected: BlobKind) -> Result<Vec<u8>, BlobError> {
+    let decoded = decode(bytes, expected)?;
+    match decoded.data {
+        Data::Bytes(b) => Ok(b),
+        Data::Values(_) => Err(BlobError::WrongEncoding {
+            found: decoded.encoding,
+            reason: "expected opaque bytes",
+        }),
+    }
+}
+
+/// Decodes a blob of values of the `expected` kind: its shape and values as `f32`.
+pub fn decode_values(bytes: &[u8], expected: BlobKind) -> Result<(Vec<u32>, Vec<f32>), BlobError> {
+    let decoded = decode(bytes, expected)?;
+    match decoded.data {
+        Data::Values(v) => Ok((decoded.shape, v)),
+        Data::Bytes(_) => Err(BlobError::WrongEncoding {
+            found: decoded.encoding,
+            reason: "expected radiance values",
+        }),
+    }
+}
+
+/// Decodes a blob of RGB values (any shape whose last dimension is 3) of the `expected` kind.
+pub fn decode_rgb(bytes: &[u8], expected: BlobKind) -> Result<Vec<[f32; 3]>, BlobError> {
+    let (shape, values) = decode_values(bytes, expected)?;
+    if shape.last() != Some(&3) {
+        let encoding = read_header(bytes)?.encoding;
+        return Err(BlobError::BadShape {
+            shape,
+            encoding,
+            reason: "RGB data needs a last dimension of 3".into(),
+        });
+    }
+    Ok(values.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+}
+
+/// Parses and validates the header of `bytes`, including that the blob's length matches it. The
+/// payload is not checked (see [`decode`]).
+pub fn read_header(bytes: &[u8]) -> Result<Header, BlobError> {
+    let prefix = &bytes[..bytes.len().min(MAGIC.len())];
+    if prefix != &MAGIC[..prefix.len()] {
+        return Err(BlobError::BadMagic { found: prefix.to_vec() });
+    }
+    let truncated = |expected: u64| BlobError::Truncated {
+        expected,
+        actual: bytes.len() as u64,
+    };
+    let h: &[u8; HEADER_LEN] = bytes
+        .get(..HEADER_LEN)
+        .and_then(|h| h.try_into().ok())
+        .ok_or_else(|| truncated(HEADER_LEN as u64))?;
+    let u16_at = |i: usize| u16::from_le_bytes([h[i], h[i + 1]]);
+    let u32_at = |i: usize| u32::from_le_bytes([h[i], h[i + 1], h[i + 2], h[i + 3]]);
+    let u64_at = |i: usize| u64::from(u32_at(i)) | (u64::from(u32_at(i + 4)) << 32);
+
+    let version = u16_at(4);
+    if version != FORMAT_VERSION {
+        return Err(BlobError::UnsupportedVersion {
+            found: version,
+            supported: FORMAT_VERSION,
+        });
+    }
+    let computed = crc32c::crc32c(&h[..44]);
+    if computed != u32_at(44) {
+        return Err(BlobError::HeaderChecksum {
+            stored: u32_at(44),
+            computed,
+        });
+    }
+    let kind = BlobKind::from_code(u16_at(6)).ok_or(BlobError::UnknownKind(u16_at(6)))?;
+    let encoding = Encoding::from_code(h[8]).ok_or(BlobError::UnknownEncoding(h[8]))?;
+    if u16_at(10) != 0 {
+        return Err(BlobError::Reserved);
+    }
+    let rank = usize::from(h[9]);
+    let dims = [u32_at(12), u32_at(16), u32_at(20)];
+    let bad_shape = |reason: String| BlobError::BadShape {
+        shape: dims.to_vec(),
+        encoding,
+        reason,
+    };
+    if rank > MAX_RANK {
+        return Err(bad_shape(format!("rank {rank} exceeds {MAX_RANK}")));
+    }
+    if dims[rank..].iter().any(|&d| d != 0) {
+        return Err(bad_shape(format!("dimensions beyond rank {rank} must be zero")));
+    }
+    let shape = dims[..rank].to_vec();
+    let raw_len = u64_at(24);
+    let stored_len = u64_at(32);
+    let expected_raw = if encoding == Encoding::Bytes {
+        if rank != 0 {
+            return Err(bad_shape("opaque bytes have rank 0".into()));
+        }
+        raw_len
+    } else {
+        check_value_shape(&shape, encoding).map_err(bad_shape)?;
+        shape_product(&shape)
+            .and_then(|n| encoding.raw_len(n))
+            .ok_or_else(|| bad_shape("element count overflows".into()))?
+    };
+    if raw_len != expected_raw {
+        return Err(bad_shape(format!(
+            "shape needs {expected_raw} payload bytes, header says {raw_len}"
+        )));
+    }
+    let total = stored_len
+        .checked_add(HEADER_LEN as u64)
+        .ok_or_else(|| truncated(u64::MAX))?;
+    let actual = bytes.len() as u64;
+    if actual < total {
+        return Err(truncated(total));
+    }
+    if actual > total {
+        return Err(BlobError::TrailingBytes { extra: actual - total });
+    }
+    Ok(Header {
+        kind,
+        encoding,
+        shape,
+        raw_len,
+        stored_len,
+        payload_crc: u32_at(40),
+    })
+}
+
+/// Checks the rank and, for RGB9E5, the last dimension of a shape of values.
+fn check_value_shape(shape: &[u32], encoding: Encoding) -> Result<(), String> {
+    if shape.is_empty() || shape.len() > MAX_RANK {
+        return Err(format!("values need 1 ..= {MAX_RANK} dimensions"));
+    }
+    if encoding == Encoding::Rgb9e5 && shape.last() != Some(&3) {
+        return Err("RGB9E5 needs a last dimension of 3".into());
+    }
+    Ok(())
+}
+
+/// Number of elements of a shape, `None` on overflow.
+fn shape_product(shape: &[u32]) -> Option<u64> {
+    shape.iter().try_fold(1u64, |acc, &d| acc.checked_mul(u64::from(d)))
+}
+
+/// Compresses `raw` and prepends the header.
+fn assemble(kind: BlobKind, encoding: Encoding, shape: &[u32], raw: &[u8]) -> Result<Vec<u8>, BlobError> {
+    // Only an allocation failure inside zstd can make this fail.
+    let stored = zstd::bulk::compress(raw, ZSTD_LEVEL).map_err(|e| BlobError::Compress(e.to_string()))?;
+    let mut out = Vec::with_capacity(HEADER_LEN + stored.len());
+    out.extend_from_slice(&MAGIC);
+    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    out.extend_from_slice(&kind.code().to_le_bytes());
+    out.push(encoding.code());
+    out.push(shape.len() as u8);
+    out.extend_from_slice(&0u16.to_le_bytes());
+    for i in 0..MAX_RANK {
+        out.extend_from_slice(&shape.get(i).copied().unwrap_or(0).to_le_bytes());
+    }
+    out.extend_from_slice(&(raw.len() as u64).to_le_bytes());
+    out.extend_from_slice(&(stored.len() as u64).to_le_bytes());
+    out.extend_from_slice(&crc32c::crc32c(&stored).to_le_bytes());
+    let header_crc = crc32c::crc32c(&out[..44]);
+    out.extend_from_slice(&header_crc.to_le_bytes());
+    out.extend_from_slice(&stored);
+    Ok(out)
+}
+
+/// Decompresses one zstd frame that must expand to exactly `raw_len` bytes.
+///
+/// Streams into a buffer that grows with the data actually produced, so a header claiming a huge
+/// length cannot make us allocate it up front.
+fn decompress(stored: &[u8], raw_len: u64) -> Result<Vec<u8>, BlobError> {
+    const INITIAL_CAPACITY_LIMIT: u64 = 64 << 20;
+    let fail = |e: std::io::Error| BlobError::Decompress(e.to_string());
+    let capacity = usize::try_from(raw_len.min(INITIAL_CAPACITY_LIMIT)).unwrap_or(0);
+    let mut raw = Vec::with_capacity(capacity);
+    let mut decoder = zstd::stream::read::Decoder::with_buffer(stored)
+        .map_err(fail)?
+        .single_frame();
+    (&mut decoder)
+        .take(raw_len.saturating_add(1))
+        .read_to_end(&mut raw)
+        .map_err(fail)?;
+    if raw.len() as u64 != raw_len {
+        return Err(BlobError::Decompress(format!(
+            "payload expands to {}{} bytes, header says {raw_len}",
+            raw.len(),
+            if raw.len() as u64 > raw_len { "+" } else { "" }
+        )));
+    }
+    // The frame must also end here: trailing data inside the stored payload is corruption.
+    let mut rest = [0u8; 1];
+    if decoder.read(&mut rest).map_err(fail)? != 0 {
+        return Err(BlobError::Decompress("payload has data after its zstd frame".into()));
+    }
+    Ok(raw)
+}

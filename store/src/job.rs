@@ -1,0 +1,318 @@
+//! A job in a store, and its commit protocol.
+//!
+//! **Blobs first, manifest last.** The blobs of an iteration's snapshot (resume state, diffuse
+//! and mirror maps, tiles) are written first; then [`Job::commit_iteration`] rewrites the manifest
+//! with the iteration added to `finished_iterations`. Every write is atomic on its own, and
+//! readers trust only what the manifest lists, so a crash anywhere leaves a consistent job: the
+//! blobs of an unlisted iteration are invisible (reads refuse them) and are simply written again
+//! when propagation resumes from the last listed iteration.
+//!
+//! **Finished snapshots are immutable.** A write to a listed iteration (or to the final field
+//! once the job is finished) is create-only: the same content again is a no-op, different content
+//! is [`StoreError::AlreadyExists`]. A write to an unlisted stage replaces what a crashed run may
+//! have left there.
+//!
+//! One process writes a job at a time (the one that created or resumed it); any number may read.
+
+use crate::blob::{self, BlobKind, Encoding};
+use crate::error::StoreError;
+use crate::id::JobId;
+use crate::layout::{self, Stage};
+use crate::manifest::{JobState, Manifest};
+use crate::store::Store;
+
+/// A job: its store and the manifest as last read or written.
+#[derive(Debug, Clone)]
+pub struct Job {
+    store: Store,
+    manifest: Manifest,
+}
+
+impl Job {
+    /// Creates a job with a new id: writes the scene, then the manifest (queued, nothing
+    /// finished). `scene` is the caller's serialisation of the normalised scene, `scene_hash`
+    /// its hash in hex, `parameters` the propagation options, `encoding` that of all radiance.
+    pub fn create(
+        store: &Store,
+        scene: &[u8],
+        scene_hash: &str,
+        parameters: serde_json::Value,
+        encoding: Encoding,
+    ) -> Result<Job, StoreError> {
+        Job::create_with_id(store, JobId::generate(), scene, scene_hash, parameters, encoding)
+    }
+
+    /// As [`Job::create`] with a given id; fails with [`StoreError::AlreadyExists`] if a job (or
+    /// another scene) already has it.
+    pub fn create_with_id(
+        store: &Store,
+        id: JobId,
+        scene: &[u8],
+        scene_hash: &str,
+        parameters: serde_json::Value,
+        encoding: Encoding,
+    ) -> Result<Job, StoreError> {
+        let manifest = Manifest::new(id, scene_hash, parameters, encoding);
+        let job = Job {
+            store: store.clone(),
+            manifest,
+        };
+        job.manifest.validate().map_err(|reason| job.error(reason))?;
+        let id = job.id();
+        let scene = blob::encode_bytes(BlobKind::Scene, scene).map_err(|e| job.error(e.to_string()))?;
+        store.put_new(&layout::scene(id), scene)?;
+        let manifest = job.manifest.to_blob().map_err(|reason| job.error(reason))?;
+        store.put_new(&layout::manifest(id), manifest)?;
+        Ok(job)
+    }
+
+    /// Opens an existing job by reading its manifest.
+    pub fn open(store: &Store, id: &JobId) -> Result<Job, StoreError> {
+        let manifest = read_manifest(store, id)?;
+        Ok(Job {
+            store: store.clone(),
+            manifest,
+        })
+    }
+
+    /// The ids of the jobs in `store` that have a manifest, sorted (by creation time for
+    /// generated ids). One delimiter listing, then one existence check per job.
+    pub fn list(store: &Store) -> Result<Vec<JobId>, StoreError> {
+        let mut ids = Vec::new();
+        for name in store.list_children(layout::JOBS_PREFIX)? {
+            if let Ok(id) = JobId::parse(&name)
+                && store.exists(&layout::manifest(&id))?
+            {
+                ids.push(id);
+            }
+        }
+        Ok(ids)
+    }
+
+    /// Reads the manifest again (to see another process's progress).
+    pub fn reload(&mut self) -> Result<(), StoreError> {
+        self.manifest = read_manifest(&self.store, self.id())?;
+        Ok(())
+    }
+
+    /// The job's id.
+    pub fn id(&self) -> &JobId {
+        &self.manifest.job_id
+    }
+
+    /// The manifest as last read or written.
+    pub fn manifest(&self) -> &Manifest {
+        &self.manifest
+    }
+
+    /// The store the job is in.
+    pub fn store(&self) -> &Store {
+        &self.store
+    }
+
+    /// The last finished iteration, if any: where to resume.
+    pub fn last_finished(&self) -> Option<u32> {
+        self.manifest.last_finished()
+    }
+
+    /// Whether `stage` is committed: a listed iteration, or the field of a finished job.
+    pub fn is_committed(&self, stage: Stage) -> bool {
+        match stage {
+            Stage::Iteration(k) => self.manifest.is_finished(k),
+            Stage::Field => self.manifest.state == JobState::Finished,
+        }
+    }
+
+    /// Writes the resume state of iteration `k` (caller's serialisation).
+    pub fn put_state(&self, k: u32, state: &[u8]) -> Result<(), StoreError> {
+        let key = layout::state(self.id(), k)?;
+        let bytes = blob::encode_bytes(BlobKind::Snapshot, state).map_err(|e| self.blob_error(&key, e))?;
+        self.write(Stage::Iteration(k), &key, bytes)
+    }
+
+    /// Writes the Total maps of diffuse surface `surface` (`values` in row-major `shape`, e.g.
+    /// `[rows, cols, 3]`), in the job's encoding.
+    pub fn put_diffuse(&self, stage: Stage, surface: u32, shape: &[u32], values: &[f32]) -> Result<(), StoreError> {
+        let key = layout::diffuse(self.id(), stage, surface)?;
+        self.put_values(stage, &key, BlobKind::DiffuseMaps, shape, values)
+    }
+
+    /// Writes the directional maps of mirror `surface`, in the job's encoding.
+    pub fn put_mirror(&self, stage: Stage, surface: u32, shape: &[u32], values: &[f32]) -> Result<(), StoreError> {
+        let key = layout::mirror(self.id(), stage, surface)?;
+        self.put_values(stage, &key, BlobKind::MirrorMaps, shape, values)
+    }
+
+    /// Writes tile (`s`, `t`) of direction `dir`, in the job's encoding.
+    pub fn put_tile(
+        &self,
+        stage: Stage,
+        dir: u32,
+        s: u32,
+        t: u32,
+        shape: &[u32],
+        values: &[f32],
+    ) -> Result<(), StoreError> {
+        let key = layout::tile(self.id(), stage, dir, s, t)?;
+        self.put_values(stage, &key, BlobKind::TileRadiance, shape, values)
+    }
+
+    /// Marks iteration `k` finished: its snapshot blobs (at least the resume state) must be
+    /// written. Iterations are committed in increasing order; committing a listed one again is a
+    /// no-op. Sets the state to propagating iteration `k + 1`.
+    pub fn commit_iteration(&mut self, k: u32) -> Result<(), StoreError> {
+        if self.manifest.is_finished(k) {
+            return Ok(());
+        }
+        if !matches!(self.manifest.state, JobState::Queued | JobState::Propagating { .. }) {
+            return Err(self.error(format!("cannot commit iteration {k}: job is {:?}", self.manifest.state)));
+        }
+        if let Some(last) = self.last_finished()
+            && k < last
+        {
+            return Err(self.error(format!(
+                "cannot commit iteration {k}: iteration {last} is already finished"
+            )));
+        }
+        if !self.store.exists(&layout::state(self.id(), k)?)? {
+            return Err(self.error(format!("cannot commit iteration {k}: its resume state is not written")));
+        }
+        let mut manifest = self.manifest.clone();
+        manifest.finished_iterations.push(k);
+        manifest.state = JobState::Propagating {
+            iteration: k.saturating_add(1),
+        };
+        self.write_manifest(manifest)
+    }
+
+    /// Sets the job's state (e.g. failed, cancelled, or propagating again to resume).
+    /// [`JobState::Finished`] commits the final field: write it first.
+    pub fn set_state(&mut self, state: JobState) -> Result<(), StoreError> {
+        let mut manifest = self.manifest.clone();
+        manifest.state = state;
+        self.write_manifest(manifest)
+    }
+
+    /// Marks the job finished, committing the final field.
+    pub fn finish(&mut self) -> Result<(), StoreError> {
+        self.set_state(JobState::Finished)
+    }
+
+    /// The scene (caller's serialisation).
+    pub fn scene(&self) -> Result<Vec<u8>, StoreError> {
+        self.store.get_bytes_blob(&layout::scene(self.id()), BlobKind::Scene)
+    }
+
+    /// The resume state of finished iteration `k`.
+    pub fn get_state(&self, k: u32) -> Result<Vec<u8>, StoreError> {
+        self.check_committed(Stage::Iteration(k))?;
+        self.store
+            .get_bytes_blob(&layout::state(self.id(), k)?, BlobKind::Snapshot)
+    }
+
+    /// The Total maps of diffuse surface `surface` of a committed stage: shape and values.
+    pub fn get_diffuse(&self, stage: Stage, surface: u32) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
+        self.check_committed(stage)?;
+        self.store
+            .get_values(&layout::diffuse(self.id(), stage, surface)?, BlobKind::DiffuseMaps)
+    }
+
+    /// The directional maps of mirror `surface` of a committed stage: shape and values.
+    pub fn get_mirror(&self, stage: Stage, surface: u32) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
+        self.check_committed(stage)?;
+        self.store
+            .get_values(&layout::mirror(self.id(), stage, surface)?, BlobKind::MirrorMaps)
+    }
+
+    /// Tile (`s`, `t`) of direction `dir` of a committed stage: shape and values.
+    pub fn get_tile(&self, stage: Stage, dir: u32, s: u32, t: u32) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
+        self.check_committed(stage)?;
+        self.store
+            .get_values(&layout::tile(self.id(), stage, dir, s, t)?, BlobKind::TileRadiance)
+    }
+
+    /// The tiles `(s, t)` stored for direction `dir` of a committed stage: one prefix listing.
+    pub fn list_tiles(&self, stage: Stage, dir: u32) -> Result<Vec<(u32, u32)>, StoreError> {
+        self.check_committed(stage)?;
+        let keys = self.store.list(&layout::direction_prefix(self.id(), stage, dir)?)?;
+        Ok(keys.iter().filter_map(|k| layout::parse_tile(k)).collect())
+    }
+
+    fn put_values(
+        &self,
+        stage: Stage,
+        key: &str,
+        kind: BlobKind,
+        shape: &[u32],
+        values: &[f32],
+    ) -> Result<(), StoreError> {
+        let bytes =
+            blob::encode_values(kind, self.manifest.encoding, shape, values).map_err(|e| self.blob_error(key, e))?;
+        self.write(stage, key, bytes)
+    }
+
+    /// Create-only into a committed stage, replacing into an uncommitted one.
+    fn write(&self, stage: Stage, key: &str, bytes: Vec<u8>) -> Result<(), StoreError> {
+        if self.is_committed(stage) {
+            self.store.put_new(key, bytes).map(|_| ())
+        } else {
+            self.store.put(key, bytes)
+        }
+    }
+
+    fn write_manifest(&mut self, mut manifest: Manifest) -> Result<(), StoreError> {
+        manifest.touch();
+        manifest.validate().map_err(|reason| self.error(reason))?;
+        let bytes = manifest.to_blob().map_err(|reason| self.error(reason))?;
+        self.store.put(&layout::manifest(self.id()), bytes)?;
+        self.manifest = manifest;
+        Ok(())
+    }
+
+    fn check_committed(&self, stage: Stage) -> Result<(), StoreError> {
+        if self.is_committed(stage) {
+            return Ok(());
+        }
+        Err(self.error(match stage {
+            Stage::Iteration(k) => {
+                format!(
+                    "iteration {k} is not finished (finished: {:?})",
+                    self.manifest.finished_iterations
+                )
+            }
+            Stage::Field => format!("the final field is not committed (job is {:?})", self.manifest.state),
+        }))
+    }
+
+    fn error(&self, reason: String) -> StoreError {
+        StoreError::Job {
+            url: self.store.url().to_string(),
+            job: self.id().to_string(),
+            reason,
+        }
+    }
+
+    fn blob_error(&self, key: &str, source: blob::BlobError) -> StoreError {
+        StoreError::Blob {
+            url: self.store.url().to_string(),
+            key: key.to_string(),
+            source,
+        }
+    }
+}
+
+/// Reads and validates the manifest of job `id`.
+fn read_manifest(store: &Store, id: &JobId) -> Result<Manifest, StoreError> {
+    let key = layout::manifest(id);
+    let json = store.get_bytes_blob(&key, BlobKind::Manifest)?;
+    let invalid = |reason: String| StoreError::Manifest {
+        url: store.url().to_string(),
+        key: key.clone(),
+        reason,
+    };
+    let manifest = Manifest::from_json(&json).map_err(invalid)?;
+    if &manifest.job_id != id {
+        return Err(invalid(format!("it belongs to job `{}`", manifest.job_id)));
+    }
+    Ok(manifest)
+}

@@ -1,0 +1,139 @@
+//! The keys of a job. Every key of job `J` starts with `jobs/J/`, so listing a job, an iteration
+//! or a direction is one prefix listing; numbers are zero-padded so that lexical order (the order
+//! of every listing) is numeric order.
+//!
+//! | key | blob kind | content |
+//! |---|---|---|
+//! | `jobs/J/manifest.blob` | Manifest | JSON [`crate::Manifest`]; written last, the commit point |
+//! | `jobs/J/scene.blob` | Scene | the normalised scene (caller's bytes) |
+//! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | what resuming propagation after iteration K needs |
+//! | `S/diffuse/SSSSSSS.blob` | DiffuseMaps | Total maps of diffuse surface S |
+//! | `S/mirrors/SSSSSSS.blob` | MirrorMaps | directional maps of mirror S |
+//! | `S/dirs/DDDDD/tile-TTTT-TTTT.blob` | TileRadiance | tile (s, t) of direction D's parallel subfield |
+//!
+//! where the stage prefix `S` is `jobs/J/iters/KKKKK` for the snapshot of iteration K (enough to
+//! render it) or `jobs/J/field` for the final field. Prefixes: a job `jobs/J/`, an iteration
+//! `jobs/J/iters/KKKKK/`, a direction `S/dirs/DDDDD/`.
+//!
+//! Ranges (the padding): iterations and directions < 100 000, tile indices < 10 000, surfaces
+//! < 10 000 000; beyond them a key function returns [`StoreError::Layout`] rather than a key
+//! that would sort out of order.
+
+use crate::error::StoreError;
+use crate::id::JobId;
+
+/// The prefix of all jobs.
+pub const JOBS_PREFIX: &str = "jobs/";
+
+const MAX_ITERATION: u32 = 99_999;
+const MAX_DIRECTION: u32 = 99_999;
+const MAX_TILE: u32 = 9_999;
+const MAX_SURFACE: u32 = 9_999_999;
+
+/// Which radiance a key refers to: the snapshot of an iteration, or the final field.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Stage {
+    /// The snapshot after iteration `k` (0-based).
+    Iteration(u32),
+    /// The final field.
+    Field,
+}
+
+/// `jobs/J/`: everything of a job.
+pub fn job_prefix(job: &JobId) -> String {
+    format!("{JOBS_PREFIX}{job}/")
+}
+
+/// `jobs/J/manifest.blob`.
+pub fn manifest(job: &JobId) -> String {
+    format!("{JOBS_PREFIX}{job}/manifest.blob")
+}
+
+/// `jobs/J/scene.blob`.
+pub fn scene(job: &JobId) -> String {
+    format!("{JOBS_PREFIX}{job}/scene.blob")
+}
+
+/// `jobs/J/iters/KKKKK/` or `jobs/J/field/`: everything of a stage.
+pub fn stage_prefix(job: &JobId, stage: Stage) -> Result<String, StoreError> {
+    match stage {
+        Stage::Iteration(k) => Ok(format!(
+            "{JOBS_PREFIX}{job}/iters/{:05}/",
+            check("iteration", k, MAX_ITERATION)?
+        )),
+        Stage::Field => Ok(format!("{JOBS_PREFIX}{job}/field/")),
+    }
+}
+
+/// `jobs/J/iters/KKKKK/state.blob`: the resume state after iteration `k`.
+pub fn state(job: &JobId, k: u32) -> Result<String, StoreError> {
+    Ok(format!("{}state.blob", stage_prefix(job, Stage::Iteration(k))?))
+}
+
+/// `S/diffuse/SSSSSSS.blob`: the Total maps of diffuse surface `surface`.
+pub fn diffuse(job: &JobId, stage: Stage, surface: u32) -> Result<String, StoreError> {
+    let surface = check("surface", surface, MAX_SURFACE)?;
+    Ok(format!("{}diffuse/{surface:07}.blob", stage_prefix(job, stage)?))
+}
+
+/// `S/mirrors/SSSSSSS.blob`: the directional maps of mirror `surface`.
+pub fn mirror(job: &JobId, stage: Stage, surface: u32) -> Result<String, StoreError> {
+    let surface = check("surface", surface, MAX_SURFACE)?;
+    Ok(format!("{}mirrors/{surface:07}.blob", stage_prefix(job, stage)?))
+}
+
+/// `S/dirs/DDDDD/`: every tile of direction `dir`.
+pub fn direction_prefix(job: &JobId, stage: Stage, dir: u32) -> Result<String, StoreError> {
+    let dir = check("direction", dir, MAX_DIRECTION)?;
+    Ok(format!("{}dirs/{dir:05}/", stage_prefix(job, stage)?))
+}
+
+/// `S/dirs/DDDDD/tile-SSSS-TTTT.blob`: tile (`s`, `t`) of direction `dir`.
+pub fn tile(job: &JobId, stage: Stage, dir: u32, s: u32, t: u32) -> Result<String, StoreError> {
+    let (s, t) = (check("tile index", s, MAX_TILE)?, check("tile index", t, MAX_TILE)?);
+    Ok(format!("{}tile-{s:04}-{t:04}.blob", direction_prefix(job, stage, dir)?))
+}
+
+/// The tile indices `(s, t)` of a tile key (as listed under a direction prefix).
+pub fn parse_tile(key: &str) -> Option<(u32, u32)> {
+    let name = key.rsplit('/').next()?.strip_prefix("tile-")?.strip_suffix(".blob")?;
+    let (s, t) = name.split_once('-')?;
+    Some((s.parse().ok()?, t.parse().ok()?))
+}
+
+fn check(what: &str, value: u32, max: u32) -> Result<u32, StoreError> {
+    if value <= max {
+        Ok(value)
+    } else {
+        Err(StoreError::Layout(format!(
+            "{what} {value} exceeds {max}, the largest the key layout holds"
+        )))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_and_order() {
+        let job = JobId::parse("j1").unwrap();
+        assert_eq!(manifest(&job), "jobs/j1/manifest.blob");
+        assert_eq!(state(&job, 7).unwrap(), "jobs/j1/iters/00007/state.blob");
+        assert_eq!(
+            diffuse(&job, Stage::Field, 12).unwrap(),
+            "jobs/j1/field/diffuse/0000012.blob"
+        );
+        let t = tile(&job, Stage::Iteration(3), 512, 2, 10).unwrap();
+        assert_eq!(t, "jobs/j1/iters/00003/dirs/00512/tile-0002-0010.blob");
+        assert!(t.starts_with(&direction_prefix(&job, Stage::Iteration(3), 512).unwrap()));
+        assert_eq!(parse_tile(&t), Some((2, 10)));
+        assert!(state(&job, 9).unwrap() < state(&job, 10).unwrap());
+        assert!(tile(&job, Stage::Field, 0, 0, 9).unwrap() < tile(&job, Stage::Field, 0, 0, 10).unwrap());
+        assert!(matches!(state(&job, 100_000), Err(StoreError::Layout(_))));
+        assert!(matches!(
+            tile(&job, Stage::Field, 0, 10_000, 0),
+            Err(StoreError::Layout(_))
+        ));
+    }
+}

@@ -1,0 +1,159 @@
+//! The manifest of a job: what it is (scene hash, parameters, encoding), where it stands (state)
+//! and which iterations are finished.
+//!
+//! It is stored as JSON inside a blob of kind [`BlobKind::Manifest`], so it is readable after
+//! `zstd -d` yet checksummed like every other blob: a corrupted manifest is an error naming its
+//! key, never a job with silently wrong iterations. It is the commit point of a job (see
+//! [`crate::job`]): readers trust only what it lists.
+
+use crate::blob::{self, BlobKind, Encoding};
+use crate::id::JobId;
+use serde::{Deserialize, Serialize};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+/// The version of the manifest's JSON schema.
+pub const MANIFEST_FORMAT: u32 = 1;
+
+/// Where a job stands.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum JobState {
+    /// Created, not started.
+    Queued,
+    /// Computing iteration `iteration`.
+    Propagating { iteration: u32 },
+    /// The final field is written and complete.
+    Finished,
+    /// Stopped by an error.
+    Failed { message: String },
+    /// Stopped on request.
+    Cancelled,
+}
+
+/// A job's manifest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// [`MANIFEST_FORMAT`].
+    pub format: u32,
+    /// The job's id (equal to the one in its key).
+    pub job_id: JobId,
+    /// Hash of the normalised scene, lower-case hex.
+    pub scene_hash: String,
+    /// The caller's propagation options, as JSON.
+    pub parameters: serde_json::Value,
+    /// Where the job stands.
+    pub state: JobState,
+    /// Iterations whose snapshots are complete, strictly increasing.
+    pub finished_iterations: Vec<u32>,
+    /// Encoding of the job's radiance blobs.
+    pub encoding: Encoding,
+    /// Creation time, Unix seconds.
+    pub created: u64,
+    /// Time of the last update, Unix seconds.
+    pub updated: u64,
+}
+
+impl Manifest {
+    /// A new manifest of a queued job.
+    pub fn new(job_id: JobId, scene_hash: &str, parameters: serde_json::Value, encoding: Encoding) -> Manifest {
+        let now = now();
+        Manifest {
+            format: MANIFEST_FORMAT,
+            job_id,
+            scene_hash: scene_hash.to_ascii_lowercase(),
+            parameters,
+            state: JobState::Queued,
+            finished_iterations: Vec::new(),
+            encoding,
+            created: now,
+            updated: now,
+        }
+    }
+
+    /// The last finished iteration, if any.
+    pub fn last_finished(&self) -> Option<u32> {
+        self.finished_iterations.last().copied()
+    }
+
+    /// Whether iteration `k`'s snapshot is complete.
+    pub fn is_finished(&self, k: u32) -> bool {
+        self.finished_iterations.binary_search(&k).is_ok()
+    }
+
+    /// Checks the invariants a stored manifest must satisfy.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.format != MANIFEST_FORMAT {
+            return Err(format!(
+                "manifest format {} is not supported (expected {MANIFEST_FORMAT})",
+                self.format
+            ));
+        }
+        if self.scene_hash.is_empty() || !self.scene_hash.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return Err(format!("scene hash `{}` is not hexadecimal", self.scene_hash));
+        }
+        if self.finished_iterations.windows(2).any(|w| w[0] >= w[1]) {
+            return Err(format!(
+                "finished iterations {:?} are not strictly increasing",
+                self.finished_iterations
+            ));
+        }
+        if self.encoding == Encoding::Bytes {
+            return Err("radiance encoding cannot be `bytes`".into());
+        }
+        if self.updated < self.created {
+            return Err("updated before created".into());
+        }
+        Ok(())
+    }
+
+    /// The manifest as a blob.
+    pub fn to_blob(&self) -> Result<Vec<u8>, String> {
+        let json = serde_json::to_vec_pretty(self).map_err(|e| format!("cannot serialise: {e}"))?;
+        blob::encode_bytes(BlobKind::Manifest, &json).map_err(|e| e.to_string())
+    }
+
+    /// Parses and validates a manifest blob's content (its decoded bytes).
+    pub fn from_json(json: &[u8]) -> Result<Manifest, String> {
+        let manifest: Manifest = serde_json::from_slice(json).map_err(|e| format!("bad JSON: {e}"))?;
+        manifest.validate()?;
+        Ok(manifest)
+    }
+
+    /// Sets `updated` to now (never before `created`).
+    pub fn touch(&mut self) {
+        self.updated = now().max(self.created);
+    }
+}
+
+/// Unix seconds now (0 if the clock is before 1970).
+fn now() -> u64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn json_round_trip_and_validation() {
+        let mut m = Manifest::new(
+            JobId::generate(),
+            "ABCDEF01",
+            serde_json::json!({"directions": 513}),
+            Encoding::F16,
+        );
+        m.state = JobState::Propagating { iteration: 3 };
+        m.finished_iterations = vec![0, 1, 2];
+        let json = serde_json::to_vec(&m).unwrap();
+        assert_eq!(Manifest::from_json(&json).unwrap(), m);
+        assert!(String::from_utf8_lossy(&json).contains(r#""state":{"kind":"propagating","iteration":3}"#));
+        m.finished_iterations = vec![0, 2, 2];
+        assert!(Manifest::from_json(&serde_json::to_vec(&m).unwrap()).is_err());
+        assert!(Manifest::from_json(b"{}").is_err());
+        assert!(Manifest::from_json(b"\xff").is_err());
+    }
+}

@@ -1,0 +1,373 @@
+//! The store: named byte strings in a backend chosen by URL (see [`crate::backend`]), with a
+//! blocking facade for the rest of VLF (rayon workers, the CLI) and an async core for servers.
+//!
+//! Every method is one backend request (or, for [`AsyncStore::put_new`] on a conflict, two), and
+//! every error names the key and the store URL.
+
+use crate::blob::{self, BlobError, BlobKind, Decoded};
+use crate::error::StoreError;
+use bytes::Bytes;
+use futures::TryStreamExt;
+use object_store::path::Path;
+use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
+use std::future::Future;
+use std::sync::Arc;
+
+/// What a create-only write did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PutOutcome {
+    /// The key did not exist; it now holds the new content.
+    Created,
+    /// The key already held exactly this content; nothing was written.
+    Unchanged,
+}
+
+/// The async core of a store. Cheap to clone. Use it from inside a tokio runtime; elsewhere use
+/// [`Store`].
+#[derive(Debug, Clone)]
+pub struct AsyncStore {
+    backend: Arc<dyn ObjectStore>,
+    url: Arc<str>,
+}
+
+impl AsyncStore {
+    /// Opens the store that `url` names (see [`crate::backend`] for the URL forms).
+    pub fn open(url: &str) -> Result<AsyncStore, StoreError> {
+        Ok(AsyncStore {
+            backend: crate::backend::open(url)?,
+            url: url.trim().into(),
+        })
+    }
+
+    /// The URL the store was opened with.
+    pub fn url(&self) -> &str {
+        &self.url
+    }
+
+    /// Writes `bytes` at `key`, replacing what was there. Atomic: readers see the old or the new
+    /// object, never a mix (a staging file and a rename locally, a single PUT on S3).
+    pub async fn put(&self, key: &str, bytes: impl Into<Bytes>) -> Result<(), StoreError> {
+        let path = self.path(key)?;
+        let payload = PutPayload::from_bytes(bytes.into());
+        self.backend
+            .put(&path, payload)
+            .await
+            .map_err(|e| self.backend_error("put", key, e))?;
+        Ok(())
+    }
+
+    /// Writes `bytes` at `key` only if `key` does not exist yet (atomically, by the backend's
+    /// create-only put). If it exists with the same content this is a success
+    /// ([`PutOutcome::Unchanged`]) so that repeating an interrupted step is harmless; with
+    /// different content it is [`StoreError::AlreadyExists`] and the object is left as it was.
+    pub async fn put_new(&self, key: &str, bytes: impl Into<Bytes>) -> Result<PutOutcome, StoreError> {
+        let path = self.path(key)?;
+        let bytes = bytes.into();
+        let opts = PutOptions {
+            mode: PutMode::Create,
+            ..Default::default()
+        };
+        match self
+            .backend
+            .put_opts(&path, PutPayload::from_bytes(bytes.clone()), opts)
+            .await
+        {
+            Ok(_) => Ok(PutOutcome::Created),
+            Err(object_store::Error::AlreadyExists { .. } | object_store::Error::Precondition { .. }) => {
+                if self.get(key).await? == bytes {
+                    Ok(PutOutcome::Unchanged)
+                } else {
+                    Err(StoreError::AlreadyExists {
+                        url: self.url.to_string(),
+                        key: key.to_string(),
+                    })
+                }
+            }
+            Err(e) => Err(self.backend_error("create-only put", key, e)),
+        }
+    }
+
+    /// Reads the object at `key`; [`StoreError::NotFound`] if there is none.
+    pub async fn get(&self, key: &str) -> Result<Bytes, StoreError> {
+        let path = self.path(key)?;
+        let read = async { self.backend.get(&path).await?.bytes().await };
+        read.await.map_err(|e| self.backend_error("get", key, e))
+    }
+
+    /// Whether an object exists at `key` (one HEAD request).
+    pub async fn exists(&self, key: &str) -> Result<bool, StoreError> {
+        let path = self.path(key)?;
+        match self.backend.head(&path).await {
+            Ok(_) => Ok(true),
+            Err(object_store::Error::NotFound { .. }) => Ok(false),
+            Err(e) => Err(self.backend_error("head", key, e)),
+        }
+    }
+
+    /// Every key under `prefix`, at any depth, sorted. `prefix` is `""` (the whole store) or ends
+    /// with `/` (e.g. `jobs/abc/`): listing is by whole path segments, one prefix listing.
+    pub async fn list(&self, prefix: &str) -> Result<Vec<String>, StoreError> {
+        let path = self.prefix_path(prefix)?;
+        let metas: Vec<_> = self
+            .backend
+            .list(path.as_ref())
+            .try_collect()
+            .await
+            .map_err(|e| self.backend_error("list", prefix, e))?;
+        let mut keys: Vec<String> = metas.into_iter().map(|m| m.location.to_string()).collect();
+        keys.sort_unstable();
+        Ok(keys)
+    }
+
+    /// The names of the immediate "sub-directories" of `prefix` (the next path segment of every
+    /// key below it), sorted: one delimiter listing. `prefix` is `""` or ends with `/`.
+    pub async fn list_children(&self, prefix: &str) -> Result<Vec<String>, StoreError> {
+        let path = self.prefix_path(prefix)?;
+        let listing = self
+            .backend
+            .list_with_delimiter(path.as_ref())
+            .await
+            .map_err(|e| self.backend_error("list", prefix, e))?;
+        let mut names: Vec<String> = listing
+            .common_prefixes
+            .iter()
+            .filter_map(|p| p.filename().map(str::to_string))
+            .collect();
+        names.sort_unstable();
+        Ok(names)
+    }
+
+    /// Deletes the object at `key`; deleting a missing key succeeds (on every backend alike).
+    pub async fn delete(&self, key: &str) -> Result<(), StoreError> {
+        let path = self.path(key)?;
+        match self.backend.delete(&path).await {
+            Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
+            Err(e) => Err(self.backend_error("delete", key, e)),
+        }
+    }
+
+    /// Reads and decodes the blob at `key`, which must be of `kind`.
+    pub async fn get_blob(&self, key: &str, kind: BlobKind) -> Result<Decoded, StoreError> {
+        let bytes = self.get(key).await?;
+        self.decode_with(key, &bytes, |b| blob::decode(b, kind))
+    }
+
+    /// Decodes `bytes` read from `key` with `decode`, naming the key and store on failure.
+    pub fn decode_with<T>(
+        &self,
+        key: &str,
+        bytes: &[u8],
+        decode: impl FnOnce(&[u8]) -> Result<T, BlobError>,
+    ) -> Result<T, StoreError> {
+        decode(bytes).map_err(|source| StoreError::Blob {
+            url: self.url.to_string(),
+            key: key.to_string(),
+            source,
+        })
+    }
+
+    /// Checks `key` and turns it into a backend path. Keys are `/`-separated segments of ASCII
+    /// letters, digits, `.`, `-` and `_`; no segment is empty, `.` or `..`.
+    fn path(&self, key: &str) -> Result<Path, StoreError> {
+        check_key(key).map_err(|reason| self.invalid_key(key, reason))?;
+        Path::parse(key).map_err(|e| self.invalid_key(key, e.to_string()))
+    }
+
+    /// Checks a listing prefix: `""` or a valid key followed by `/`.
+    fn prefix_path(&self, prefix: &str) -> Result<Option<Path>, StoreError> {
+        if prefix.is_empty() {
+            return Ok(None);
+        }
+        match prefix.strip_suffix('/') {
+            Some(dir) => self
+                .path(dir)
+                .map(Some)
+                .map_err(|_| self.invalid_key(prefix, "not a valid prefix".into())),
+            None => Err(self.invalid_key(prefix, "a listing prefix must be empty or end with `/`".into())),
+        }
+    }
+
+    fn invalid_key(&self, key: &str, reason: String) -> StoreError {
+        StoreError::InvalidKey {
+            url: self.url.to_string(),
+            key: key.to_string(),
+            reason,
+        }
+    }
+
+    fn backend_error(&self, op: &'static str, key: &str, e: object_store::Error) -> StoreError {
+        let (url, key) = (self.url.to_string(), key.to_string());
+        match e {
+            object_store::Error::NotFound { .. } => StoreError::NotFound { url, key },
+            source => StoreError::Backend {
+                op,
+                url,
+                key,
+                source: Box::new(source),
+            },
+        }
+    }
+}
+
+/// The rules of [`AsyncStore::path`].
+fn check_key(key: &str) -> Result<(), String> {
+    if key.is_empty() {
+        return Err("empty key".into());
+    }
+    for segment in key.split('/') {
+        if segment.is_empty() || segment == "." || segment == ".." {
+            return Err(format!("bad path segment `{segment}`"));
+        }
+        if let Some(c) = segment
+            .chars()
+            .find(|c| !(c.is_ascii_alphanumeric() || "._-".contains(*c)))
+        {
+            return Err(format!(
+                "character {c:?} is not allowed (use ASCII letters, digits, `.`, `-`, `_`)"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// A store with blocking methods, for code that is not async. Cheap to clone; clones share one
+/// internal two-thread tokio runtime that drives the backend's I/O.
+///
+/// The blocking methods must not be called from inside an async runtime (they would stall its
+/// worker): there they return [`StoreError::InsideRuntime`]; use [`Store::as_async`] instead.
+#[derive(Debug, Clone)]
+pub struct Store {
+    inner: AsyncStore,
+    runtime: Arc<Runtime>,
+}
+
+impl Store {
+    /// Opens the store that `url` names: a directory path or `file:///PATH`, `s3://BUCKET[/PREFIX]`
+    /// (configured from the environment, see [`crate::backend`]), or `memory://`.
+    pub fn open(url: &str) -> Result<Store, StoreError> {
+        let inner = AsyncStore::open(url)?;
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .thread_name("vlf-store-io")
+            .enable_all()
+            .build()
+            .map_err(|e| StoreError::Runtime {
+                url: url.to_string(),
+                reason: e.to_string(),
+            })?;
+        Ok(Store {
+            inner,
+            runtime: Arc::new(Runtime(Some(runtime))),
+        })
+    }
+
+    /// The async core, for use inside an async runtime.
+    pub fn as_async(&self) -> &AsyncStore {
+        &self.inner
+    }
+
+    /// The URL the store was opened with.
+    pub fn url(&self) -> &str {
+        self.inner.url()
+    }
+
+    /// Blocking [`AsyncStore::put`].
+    pub fn put(&self, key: &str, bytes: impl Into<Bytes>) -> Result<(), StoreError> {
+        self.block_on(self.inner.put(key, bytes))?
+    }
+
+    /// Blocking [`AsyncStore::put_new`].
+    pub fn put_new(&self, key: &str, bytes: impl Into<Bytes>) -> Result<PutOutcome, StoreError> {
+        self.block_on(self.inner.put_new(key, bytes))?
+    }
+
+    /// Blocking [`AsyncStore::get`].
+    pub fn get(&self, key: &str) -> Result<Bytes, StoreError> {
+        self.block_on(self.inner.get(key))?
+    }
+
+    /// Blocking [`AsyncStore::exists`].
+    pub fn exists(&self, key: &str) -> Result<bool, StoreError> {
+        self.block_on(self.inner.exists(key))?
+    }
+
+    /// Blocking [`AsyncStore::list`].
+    pub fn list(&self, prefix: &str) -> Result<Vec<String>, StoreError> {
+        self.block_on(self.inner.list(prefix))?
+    }
+
+    /// Blocking [`AsyncStore::list_children`].
+    pub fn list_children(&self, prefix: &str) -> Result<Vec<String>, StoreError> {
+        self.block_on(self.inner.list_children(prefix))?
+    }
+
+    /// Blocking [`AsyncStore::delete`].
+    pub fn delete(&self, key: &str) -> Result<(), StoreError> {
+        self.block_on(self.inner.delete(key))?
+    }
+
+    /// Blocking [`AsyncStore::get_blob`].
+    pub fn get_blob(&self, key: &str, kind: BlobKind) -> Result<Decoded, StoreError> {
+        self.block_on(self.inner.get_blob(key, kind))?
+    }
+
+    /// Reads the [`Encoding::Bytes`](crate::Encoding::Bytes) blob of `kind` at `key`.
+    pub fn get_bytes_blob(&self, key: &str, kind: BlobKind) -> Result<Vec<u8>, StoreError> {
+        let bytes = self.get(key)?;
+        self.inner.decode_with(key, &bytes, |b| blob::decode_bytes(b, kind))
+    }
+
+    /// Reads the blob of values of `kind` at `key`: its shape and values.
+    pub fn get_values(&self, key: &str, kind: BlobKind) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
+        let bytes = self.get(key)?;
+        self.inner.decode_with(key, &bytes, |b| blob::decode_values(b, kind))
+    }
+
+    /// Reads the RGB blob of `kind` at `key`.
+    pub fn get_rgb(&self, key: &str, kind: BlobKind) -> Result<Vec<[f32; 3]>, StoreError> {
+        let bytes = self.get(key)?;
+        self.inner.decode_with(key, &bytes, |b| blob::decode_rgb(b, kind))
+    }
+
+    /// Runs `future` to completion on the internal runtime.
+    fn block_on<F: Future>(&self, future: F) -> Result<F::Output, StoreError> {
+        if tokio::runtime::Handle::try_current().is_ok() {
+            return Err(StoreError::InsideRuntime {
+                url: self.url().to_string(),
+            });
+        }
+        match &self.runtime.0 {
+            Some(runtime) => Ok(runtime.block_on(future)),
+            None => Err(StoreError::Runtime {
+                url: self.url().to_string(),
+                reason: "runtime shut down".into(),
+            }),
+        }
+    }
+}
+
+/// The internal runtime, shut down without blocking when the last clone of the store goes, so
+/// that dropping a [`Store`] is fine anywhere, even inside another runtime.
+#[derive(Debug)]
+struct Runtime(Option<tokio::runtime::Runtime>);
+
+impl Drop for Runtime {
+    fn drop(&mut self) {
+        if let Some(runtime) = self.0.take() {
+            runtime.shutdown_background();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_key;
+
+    #[test]
+    fn keys() {
+        assert!(check_key("jobs/abc/manifest.blob").is_ok());
+        for bad in ["", "/a", "a/", "a//b", "a/../b", "./a", "a b", "a#1", "é", "a\\b"] {
+            assert!(check_key(bad).is_err(), "{bad:?} accepted");
+        }
+    }
+}

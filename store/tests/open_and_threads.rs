@@ -1,0 +1,78 @@
+//! Opening stores by URL, local-directory details, and the async core.
+
+use vlf_store::{AsyncStore, Store, StoreError};
+
+fn url_error(url: &str) -> String {
+    match Store::open(url) {
+        Err(e @ StoreError::Url { .. }) => e.to_string(),
+        Err(other) => panic!("{url:?}: expected a URL error, got {other:?}"),
+        Ok(_) => panic!("{url:?}: opened"),
+    }
+}
+
+#[test]
+fn bad_urls_give_clear_errors() {
+    let supported = "supported: a directory path or file:///PATH, s3://BUCKET[/PREFIX], memory://";
+    for (url, says) in [
+        ("", "empty URL"),
+        ("   ", "empty URL"),
+        ("ftp://host/dir", "unsupported scheme `ftp://`"),
+        ("gs://bucket/x", "unsupported scheme `gs://`"),
+        ("memory://name", "memory:// takes no path"),
+        ("s3://", "s3:// needs a bucket"),
+        ("s3:///prefix", "s3:// needs a bucket"),
+        ("file://", "file:// needs a path"),
+    ] {
+        let msg = url_error(url);
+        assert!(msg.contains(says) && msg.contains(supported), "{url:?}: {msg}");
+        assert!(msg.contains(&format!("`{url}`")), "{url:?}: {msg}");
+    }
+    // A path that cannot be a directory.
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("plain-file");
+    std::fs::write(&file, b"x").unwrap();
+    let below = file.join("store");
+    let msg = url_error(below.to_str().unwrap());
+    assert!(msg.contains("cannot create directory"), "{msg}");
+}
+
+#[test]
+fn s3_urls_open_without_contacting_the_server() {
+    // Building the client makes no request, so this runs anywhere.
+    let store = Store::open("s3://some-bucket/some/prefix/").unwrap();
+    assert_eq!(store.url(), "s3://some-bucket/some/prefix/");
+    assert!(Store::open("s3://some-bucket").is_ok());
+}
+
+#[test]
+fn local_store_persists_and_hides_staging_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let url = format!("file://{}", dir.path().join("a/b").display());
+    Store::open(&url).unwrap().put("k/v.bin", b"value".to_vec()).unwrap();
+    // Leftovers of an interrupted write (LocalFileSystem's staging names) are not objects.
+    std::fs::write(dir.path().join("a/b/k/w.bin#1"), b"half").unwrap();
+    let store = Store::open(&url).unwrap();
+    assert_eq!(&store.get("k/v.bin").unwrap()[..], b"value");
+    assert_eq!(store.list("k/").unwrap(), ["k/v.bin"]);
+    assert!(dir.path().join("a/b/k/v.bin").is_file());
+}
+
+#[test]
+fn async_core_and_blocking_calls_inside_a_runtime() {
+    let store = Store::open("memory://").unwrap();
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap();
+    runtime.block_on(async {
+        let core: &AsyncStore = store.as_async();
+        core.put("x/y.bin", b"async".to_vec()).await.unwrap();
+        assert_eq!(&core.get("x/y.bin").await.unwrap()[..], b"async");
+        assert_eq!(core.list("x/").await.unwrap(), ["x/y.bin"]);
+        // The blocking facade refuses instead of stalling the runtime.
+        assert!(matches!(store.get("x/y.bin"), Err(StoreError::InsideRuntime { .. })));
+        // Dropping a store (and its runtime) inside a runtime is fine.
+        drop(Store::open("memory://").unwrap());
+    });
+    assert_eq!(&store.get("x/y.bin").unwrap()[..], b"async");
+}
