@@ -3,6 +3,10 @@
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
+use vlf_core::field::LightField;
+use vlf_core::propagate::Propagation;
+use vlf_store::blob::Encoding;
+use vlf_store::{FieldJob, Job, JobId, Stage, Store};
 
 fn vlf(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vlf"))
@@ -95,26 +99,112 @@ fn propagate_then_render_every_format() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// The newest job of a store directory.
+fn only_job(dir: &Path) -> FieldJob {
+    let store = Store::open_existing(dir.to_str().unwrap()).unwrap();
+    let id = Job::list(&store).unwrap().pop().expect("a job");
+    FieldJob::open(&store, &id).unwrap()
+}
+
+/// Fields equal up to the wall-clock times in their statistics.
+fn same_field(a: &LightField, b: &LightField) -> bool {
+    let mut b = b.clone();
+    for (sa, sb) in a.stats.iter().zip(b.stats.iter_mut()) {
+        sb.seconds = sa.seconds;
+    }
+    *a == b
+}
+
 #[test]
 fn thread_count_does_not_change_the_field() {
     let (a, b) = (temp("t1"), temp("t2"));
     assert!(propagate(&a, "1").status.success());
     assert!(propagate(&b, "2").status.success());
-    // Everything but the wall-clock times in the statistics must be equal.
-    let fa = vlf_core::field::LightField::load(&a).unwrap();
-    let mut fb = vlf_core::field::LightField::load(&b).unwrap();
-    for (sa, sb) in fa.stats.iter().zip(fb.stats.iter_mut()) {
-        sb.seconds = sa.seconds;
-    }
-    assert!(fa == fb, "fields differ between 1 and 2 threads");
+    let fa = only_job(&a).load(Stage::Field).unwrap();
+    let fb = only_job(&b).load(Stage::Field).unwrap();
+    assert!(same_field(&fa, &fb), "fields differ between 1 and 2 threads");
     let _ = std::fs::remove_dir_all(&a);
     let _ = std::fs::remove_dir_all(&b);
+}
+
+/// `vlf propagate --resume` finishes a job that stopped after its first
+/// snapshot with the same bits as a run that never stopped; snapshots of
+/// the job render; a finished job cannot be resumed.
+#[test]
+fn resume_finishes_an_interrupted_job_with_the_same_bits() {
+    let dir = temp("resume");
+    let url = dir.to_str().unwrap();
+    let o = vlf(&[
+        "propagate",
+        &scene("mirrors.obj"),
+        "--store",
+        url,
+        "--directions",
+        "33",
+        "--resolution",
+        "16",
+        "--tile",
+        "4",
+        "--iterations",
+        "3",
+        "--encoding",
+        "f32",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let straight = only_job(&dir);
+    // The same job, stopped (as by a crash) after one committed snapshot.
+    let store = Store::open(url).unwrap();
+    let mut p = Propagation::new(straight.scene().clone(), straight.options().clone()).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    p.step(|_| {});
+    job.write_snapshot(&p).unwrap();
+    let id = job.id().to_string();
+    drop((job, p));
+    let o = vlf(&["propagate", "--store", url, "--resume", &id, "--threads", "1"]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("after 1 iterations"));
+    let resumed = FieldJob::open(&store, &JobId::parse(&id).unwrap()).unwrap();
+    assert_eq!(resumed.job().manifest().finished_iterations, vec![0, 1, 2, 3]);
+    let (a, b) = (
+        resumed.load(Stage::Field).unwrap(),
+        straight.load(Stage::Field).unwrap(),
+    );
+    assert!(
+        same_field(&a, &b),
+        "the resumed field differs from the uninterrupted one"
+    );
+    for snapshot in ["0", "2"] {
+        let image = dir.join(format!("s{snapshot}.pfm"));
+        let o = vlf(&[
+            "render",
+            url,
+            &id,
+            "--snapshot",
+            snapshot,
+            "--eye",
+            "278,273,-800",
+            "--target",
+            "278,273,0",
+            "--size",
+            "16x16",
+            "--out",
+            image.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+    }
+    let o = vlf(&["propagate", "--store", url, "--resume", &id]);
+    assert!(!o.status.success() && stderr(&o).contains("finished"), "{}", stderr(&o));
+    let o = vlf(&["jobs", url]);
+    assert!(String::from_utf8_lossy(&o.stdout).contains(&id));
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn bad_input_gets_a_clear_error() {
     let out = temp("bad");
     let o_str = out.to_str().unwrap().to_string();
+    // An empty store: no job there.
+    std::fs::create_dir_all(&out).unwrap();
     let cornell = scene("cornell.obj");
     let cases: Vec<(Vec<&str>, &str)> = vec![
         (
@@ -166,7 +256,29 @@ fn bad_input_gets_a_clear_error() {
                 "--out",
                 "x.png",
             ],
-            "field.vlf",
+            "no store directory",
+        ),
+        (
+            vec![
+                "render",
+                &o_str,
+                "no-such-job",
+                "--eye",
+                "0,0,0",
+                "--target",
+                "0,0,1",
+                "--out",
+                "x.png",
+            ],
+            "not found",
+        ),
+        (
+            vec!["propagate", "--store", &o_str, "--resume", "Bad Id"],
+            "invalid job id",
+        ),
+        (
+            vec!["propagate", &cornell, "--store", "ftp://host/x"],
+            "unsupported scheme",
         ),
         (
             vec!["render", &o_str, "--eye", "0,0", "--target", "0,0,1", "--out", "x.png"],

@@ -67,11 +67,13 @@ pub enum BlobKind {
     MirrorMaps = 6,
     /// Anything else.
     Raw = 7,
+    /// A stage's summary (JSON): iterations, unshot power, statistics.
+    Summary = 8,
 }
 
 impl BlobKind {
     /// Every kind, in numeric order.
-    pub const ALL: [BlobKind; 7] = [
+    pub const ALL: [BlobKind; 8] = [
         BlobKind::Manifest,
         BlobKind::Scene,
         BlobKind::Snapshot,
@@ -79,6 +81,7 @@ impl BlobKind {
         BlobKind::TileRadiance,
         BlobKind::MirrorMaps,
         BlobKind::Raw,
+        BlobKind::Summary,
     ];
 
     /// The number stored in the header.

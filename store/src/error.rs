@@ -45,6 +45,14 @@ pub enum StoreError {
     /// A job operation that its state does not allow.
     #[error("job `{job}` in store `{url}`: {reason}")]
     Job { url: String, job: String, reason: String },
+    /// Stored light-field data that decodes as blobs but does not fit the job's scene and options.
+    #[error("job `{job}` in store `{url}`: {source}")]
+    Field {
+        url: String,
+        job: String,
+        #[source]
+        source: vlf_core::Error,
+    },
     /// A value out of the range the key layout can represent.
     #[error("key layout: {0}")]
     Layout(String),

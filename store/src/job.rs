@@ -62,7 +62,9 @@ impl Job {
         let scene = blob::encode_bytes(BlobKind::Scene, scene).map_err(|e| job.error(e.to_string()))?;
         store.put_new(&layout::scene(id), scene)?;
         let manifest = job.manifest.to_blob().map_err(|reason| job.error(reason))?;
+        store.flush()?;
         store.put_new(&layout::manifest(id), manifest)?;
+        store.flush()?;
         Ok(job)
     }
 
@@ -128,6 +130,13 @@ impl Job {
         let key = layout::state(self.id(), k)?;
         let bytes = blob::encode_bytes(BlobKind::Snapshot, state).map_err(|e| self.blob_error(&key, e))?;
         self.write(Stage::Iteration(k), &key, bytes)
+    }
+
+    /// Writes the summary of `stage` (caller's JSON).
+    pub fn put_summary(&self, stage: Stage, json: &[u8]) -> Result<(), StoreError> {
+        let key = layout::summary(self.id(), stage)?;
+        let bytes = blob::encode_bytes(BlobKind::Summary, json).map_err(|e| self.blob_error(&key, e))?;
+        self.write(stage, &key, bytes)
     }
 
     /// Writes the Total maps of diffuse surface `surface` (`values` in row-major `shape`, e.g.
@@ -210,6 +219,13 @@ impl Job {
             .get_bytes_blob(&layout::state(self.id(), k)?, BlobKind::Snapshot)
     }
 
+    /// The summary of a committed stage.
+    pub fn get_summary(&self, stage: Stage) -> Result<Vec<u8>, StoreError> {
+        self.check_committed(stage)?;
+        self.store
+            .get_bytes_blob(&layout::summary(self.id(), stage)?, BlobKind::Summary)
+    }
+
     /// The Total maps of diffuse surface `surface` of a committed stage: shape and values.
     pub fn get_diffuse(&self, stage: Stage, surface: u32) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
         self.check_committed(stage)?;
@@ -264,7 +280,10 @@ impl Job {
         manifest.touch();
         manifest.validate().map_err(|reason| self.error(reason))?;
         let bytes = manifest.to_blob().map_err(|reason| self.error(reason))?;
+        // The blobs the manifest lists must be durable before it is; then the commit itself.
+        self.store.flush()?;
         self.store.put(&layout::manifest(self.id()), bytes)?;
+        self.store.flush()?;
         self.manifest = manifest;
         Ok(())
     }

@@ -6,12 +6,13 @@
 //! |---|---|---|
 //! | `jobs/J/manifest.blob` | Manifest | JSON [`crate::Manifest`]; written last, the commit point |
 //! | `jobs/J/scene.blob` | Scene | the normalised scene (caller's bytes) |
-//! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | what resuming propagation after iteration K needs |
+//! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | what resuming propagation after K iterations needs |
+//! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
 //! | `S/diffuse/SSSSSSS.blob` | DiffuseMaps | Total maps of diffuse surface S |
 //! | `S/mirrors/SSSSSSS.blob` | MirrorMaps | directional maps of mirror S |
 //! | `S/dirs/DDDDD/tile-TTTT-TTTT.blob` | TileRadiance | tile (s, t) of direction D's parallel subfield |
 //!
-//! where the stage prefix `S` is `jobs/J/iters/KKKKK` for the snapshot of iteration K (enough to
+//! where the stage prefix `S` is `jobs/J/iters/KKKKK` for the snapshot after K iterations (enough to
 //! render it) or `jobs/J/field` for the final field. Prefixes: a job `jobs/J/`, an iteration
 //! `jobs/J/iters/KKKKK/`, a direction `S/dirs/DDDDD/`.
 //!
@@ -33,7 +34,7 @@ const MAX_SURFACE: u32 = 9_999_999;
 /// Which radiance a key refers to: the snapshot of an iteration, or the final field.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub enum Stage {
-    /// The snapshot after iteration `k` (0-based).
+    /// The snapshot after `k` iterations (`0`: before the first, emission only).
     Iteration(u32),
     /// The final field.
     Field,
@@ -65,9 +66,14 @@ pub fn stage_prefix(job: &JobId, stage: Stage) -> Result<String, StoreError> {
     }
 }
 
-/// `jobs/J/iters/KKKKK/state.blob`: the resume state after iteration `k`.
+/// `jobs/J/iters/KKKKK/state.blob`: the resume state after `k` iterations.
 pub fn state(job: &JobId, k: u32) -> Result<String, StoreError> {
     Ok(format!("{}state.blob", stage_prefix(job, Stage::Iteration(k))?))
+}
+
+/// `S/summary.blob`: what a stage is (iterations, unshot power, statistics).
+pub fn summary(job: &JobId, stage: Stage) -> Result<String, StoreError> {
+    Ok(format!("{}summary.blob", stage_prefix(job, stage)?))
 }
 
 /// `S/diffuse/SSSSSSS.blob`: the Total maps of diffuse surface `surface`.

@@ -6,13 +6,16 @@
 //! (keys → bytes, blocking and async) → [`layout`] (the keys of a job) → [`manifest`] and [`job`]
 //! (what a job is, and the commit protocol that keeps it consistent through crashes).
 //!
-//! This crate knows nothing of light fields: it stores what it is given. The field's types and
-//! their serialisation live in `vlf-core`.
+//! Everything but [`field`] stores what it is given; [`field`] is the one module that maps
+//! `vlf-core`'s propagations and fields onto a job's keys (what is stored, in which encoding, and
+//! how a reader rebuilds a field from it). The field's own serialisations (scene, checkpoint) live
+//! in `vlf-core`; this crate adds the I/O, which `vlf-core` keeps out of itself.
 
 pub mod backend;
 pub mod blob;
 mod codec;
 pub mod error;
+pub mod field;
 pub mod id;
 pub mod job;
 pub mod layout;
@@ -21,6 +24,7 @@ pub mod store;
 
 pub use blob::{BlobError, BlobKind, Data, Decoded, Encoding};
 pub use error::StoreError;
+pub use field::{FieldJob, Summary};
 pub use id::JobId;
 pub use job::Job;
 pub use layout::Stage;

@@ -28,15 +28,62 @@ pub enum PutOutcome {
 pub struct AsyncStore {
     backend: Arc<dyn ObjectStore>,
     url: Arc<str>,
+    /// The directory of a local store whose writes [`AsyncStore::flush`] must sync.
+    local_root: Option<Arc<std::path::Path>>,
 }
 
 impl AsyncStore {
     /// Opens the store that `url` names (see [`crate::backend`] for the URL forms).
     pub fn open(url: &str) -> Result<AsyncStore, StoreError> {
+        AsyncStore::open_with(url, true)
+    }
+
+    /// As [`AsyncStore::open`], but a local directory must already exist (for readers: a
+    /// mistyped path is an error, not a new empty store).
+    pub fn open_existing(url: &str) -> Result<AsyncStore, StoreError> {
+        AsyncStore::open_with(url, false)
+    }
+
+    fn open_with(url: &str, create: bool) -> Result<AsyncStore, StoreError> {
+        let backend = crate::backend::open(url, create)?;
         Ok(AsyncStore {
-            backend: crate::backend::open(url)?,
+            backend: backend.store,
             url: url.trim().into(),
+            local_root: backend.local_root.map(Arc::from),
         })
+    }
+
+    /// Makes every write made so far durable (survives a power loss). A local store on Linux
+    /// syncs its file system once (see [`crate::backend`]); object stores are durable when a put
+    /// returns, and memory never is, so for them this does nothing.
+    pub async fn flush(&self) -> Result<(), StoreError> {
+        let Some(root) = self.local_root.clone() else {
+            return Ok(());
+        };
+        let synced = tokio::task::spawn_blocking(move || -> std::io::Result<()> {
+            let dir = std::fs::File::open(&*root)?;
+            #[cfg(target_os = "linux")]
+            rustix::fs::syncfs(&dir)?;
+            #[cfg(not(target_os = "linux"))]
+            dir.sync_all()?;
+            Ok(())
+        })
+        .await;
+        match synced {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => Err(self.backend_error(
+                "flush",
+                "",
+                object_store::Error::Generic {
+                    store: "LocalFileSystem",
+                    source: Box::new(e),
+                },
+            )),
+            Err(e) => Err(StoreError::Runtime {
+                url: self.url.to_string(),
+                reason: format!("flush task failed: {e}"),
+            }),
+        }
     }
 
     /// The URL the store was opened with.
@@ -107,6 +154,11 @@ impl AsyncStore {
     /// Every key under `prefix`, at any depth, sorted. `prefix` is `""` (the whole store) or ends
     /// with `/` (e.g. `jobs/abc/`): listing is by whole path segments, one prefix listing.
     pub async fn list(&self, prefix: &str) -> Result<Vec<String>, StoreError> {
+        Ok(self.list_sizes(prefix).await?.into_iter().map(|(key, _)| key).collect())
+    }
+
+    /// [`AsyncStore::list`] with each object's size in bytes (what the store holds).
+    pub async fn list_sizes(&self, prefix: &str) -> Result<Vec<(String, u64)>, StoreError> {
         let path = self.prefix_path(prefix)?;
         let metas: Vec<_> = self
             .backend
@@ -114,7 +166,7 @@ impl AsyncStore {
             .try_collect()
             .await
             .map_err(|e| self.backend_error("list", prefix, e))?;
-        let mut keys: Vec<String> = metas.into_iter().map(|m| m.location.to_string()).collect();
+        let mut keys: Vec<(String, u64)> = metas.into_iter().map(|m| (m.location.to_string(), m.size)).collect();
         keys.sort_unstable();
         Ok(keys)
     }
@@ -245,7 +297,16 @@ impl Store {
     /// Opens the store that `url` names: a directory path or `file:///PATH`, `s3://BUCKET[/PREFIX]`
     /// (configured from the environment, see [`crate::backend`]), or `memory://`.
     pub fn open(url: &str) -> Result<Store, StoreError> {
-        let inner = AsyncStore::open(url)?;
+        Store::with_runtime(AsyncStore::open(url)?)
+    }
+
+    /// Blocking [`AsyncStore::open_existing`].
+    pub fn open_existing(url: &str) -> Result<Store, StoreError> {
+        Store::with_runtime(AsyncStore::open_existing(url)?)
+    }
+
+    fn with_runtime(inner: AsyncStore) -> Result<Store, StoreError> {
+        let url = inner.url().to_string();
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .thread_name("vlf-store-io")
@@ -294,6 +355,16 @@ impl Store {
     /// Blocking [`AsyncStore::list`].
     pub fn list(&self, prefix: &str) -> Result<Vec<String>, StoreError> {
         self.block_on(self.inner.list(prefix))?
+    }
+
+    /// Blocking [`AsyncStore::flush`].
+    pub fn flush(&self) -> Result<(), StoreError> {
+        self.block_on(self.inner.flush())?
+    }
+
+    /// Blocking [`AsyncStore::list_sizes`].
+    pub fn list_sizes(&self, prefix: &str) -> Result<Vec<(String, u64)>, StoreError> {
+        self.block_on(self.inner.list_sizes(prefix))?
     }
 
     /// Blocking [`AsyncStore::list_children`].

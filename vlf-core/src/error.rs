@@ -26,6 +26,10 @@ pub enum Error {
     /// A stored field or image is truncated, corrupted or of another version.
     #[error("{}: {message}", path.display())]
     Format { path: PathBuf, message: String },
+    /// Stored bytes (a scene, a checkpoint, radiance maps) that do not decode
+    /// or do not fit what they belong to; the caller adds where they came from.
+    #[error("{0}")]
+    Decode(String),
 }
 
 impl Error {

@@ -7,9 +7,10 @@
 //! their own; they are filled from their neighbours so bilinear look-ups near
 //! edges stay smooth.
 //!
-//! On disk (`DIR/field.vlf`): the magic `VLFFIELD`, a format version (u32 LE),
-//! then a zstd-compressed bincode encoding of [`LightField`]. Writes go to a
-//! temporary file renamed into place, so a reader never sees half a field.
+//! A field is stored (by the `vlf-store` crate) as its radiance only —
+//! [`Propagation::diffuse_radiance`] and [`Propagation::mirror_totals`] —
+//! and rebuilt with [`LightField::from_radiance`]: everything else is a
+//! deterministic function of the scene and the options.
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
@@ -19,11 +20,6 @@ use crate::psf::Subfield;
 use crate::scene::{Rgb, Scene};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
-use std::path::Path;
-
-const MAGIC: &[u8; 8] = b"VLFFIELD";
-const VERSION: u32 = 1;
-const FILE: &str = "field.vlf";
 
 /// A propagated virtual light field.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -57,32 +53,81 @@ pub struct SpecularField {
 
 impl LightField {
     pub(crate) fn from_propagation(p: Propagation) -> Self {
+        let radiance = p.diffuse_radiance();
+        let totals = p.mirror_totals();
         let unshot_fraction = p.unshot_fraction();
-        let covered: Vec<bool> = p.projected_area.iter().map(|&a| a > 0.0).collect();
-        let mut radiance: Vec<[f32; 3]> = p
-            .total
-            .iter()
-            .zip(&p.projected_area)
-            .map(|(t, &a)| {
-                if a > 0.0 {
-                    [(t[0] / a) as f32, (t[1] / a) as f32, (t[2] / a) as f32]
-                } else {
-                    [0.0; 3]
+        let stats = p.stats.clone();
+        LightField::assemble(p, radiance, totals, stats, unshot_fraction)
+    }
+
+    /// Rebuilds a field from its stored radiance: diffuse radiance per texel
+    /// (holes filled, see [`Propagation::diffuse_radiance`]) and, with
+    /// mirrors, the totals per direction and mirror slot. The geometry
+    /// (directions, subfields, texel grids, mirror layouts) is a
+    /// deterministic function of the scene and options, so it is recomputed,
+    /// not stored. Sizes that do not fit it, and non-finite or negative
+    /// radiance, are an [`Error::Decode`](crate::Error::Decode).
+    ///
+    /// `p` is a fresh [`Propagation::new`] of the field's scene and options:
+    /// its texel atlas, subfields and mirror layouts say where each stored
+    /// value goes, and become the field's geometry.
+    pub fn from_radiance(
+        p: Propagation,
+        stats: Vec<IterationStats>,
+        radiance: Vec<[f32; 3]>,
+        totals: Option<Vec<Vec<[f32; 3]>>>,
+    ) -> crate::Result<Self> {
+        let bad = |m: String| {
+            Err(crate::Error::Decode(format!(
+                "stored radiance does not fit the field: {m}"
+            )))
+        };
+        let valid = |v: &[[f32; 3]]| v.iter().flatten().all(|&c| c.is_finite() && c >= 0.0);
+        if radiance.len() != p.atlas.texels {
+            return bad(format!("{} texel values for {} texels", radiance.len(), p.atlas.texels));
+        }
+        if !valid(&radiance) {
+            return bad("negative or non-finite diffuse radiance".into());
+        }
+        match (&p.specular, &totals) {
+            (None, None) => {}
+            (Some(spec), Some(totals)) => {
+                if totals.len() != spec.layouts.len() {
+                    return bad(format!(
+                        "mirror maps of {} directions, expected {}",
+                        totals.len(),
+                        spec.layouts.len()
+                    ));
                 }
-            })
-            .collect();
-        fill_holes(&p.atlas, &covered, &mut radiance);
-        let specular = p.specular.map(|s| SpecularField {
-            totals: s
-                .maps
-                .iter()
-                .map(|m| {
-                    m.total
-                        .iter()
-                        .map(|t| [t[0] as f32, t[1] as f32, t[2] as f32])
-                        .collect()
-                })
-                .collect(),
+                for (d, (t, l)) in totals.iter().zip(&spec.layouts).enumerate() {
+                    if t.len() != l.len as usize {
+                        return bad(format!("direction {d}: {} mirror values for {} slots", t.len(), l.len));
+                    }
+                    if !valid(t) {
+                        return bad(format!("direction {d}: negative or non-finite mirror radiance"));
+                    }
+                }
+            }
+            (Some(_), None) => return bad("the scene has mirrors, the stored field no mirror maps".into()),
+            (None, Some(_)) => return bad("the stored field has mirror maps, the scene no mirror".into()),
+        }
+        let emitted = (p.emitted[0] + p.emitted[1] + p.emitted[2]) / 3.0;
+        let unshot_fraction = stats
+            .last()
+            .map_or(1.0, |s| (s.unshot[0] + s.unshot[1] + s.unshot[2]) / 3.0 / emitted);
+        Ok(LightField::assemble(p, radiance, totals, stats, unshot_fraction))
+    }
+
+    fn assemble(
+        p: Propagation,
+        radiance: Vec<[f32; 3]>,
+        totals: Option<Vec<Vec<[f32; 3]>>>,
+        stats: Vec<IterationStats>,
+        unshot_fraction: f64,
+    ) -> Self {
+        let covered: Vec<bool> = p.projected_area.iter().map(|&a| a > 0.0).collect();
+        let specular = p.specular.zip(totals).map(|(s, totals)| SpecularField {
+            totals,
             layouts: s.layouts,
             directions: p.directions,
             subfields: p.subfields,
@@ -95,7 +140,7 @@ impl LightField {
             radiance,
             covered,
             emitted: p.emitted,
-            stats: p.stats,
+            stats,
             unshot_fraction,
         }
     }
@@ -125,75 +170,44 @@ impl LightField {
         }
         out
     }
+}
 
-    /// Writes `DIR/field.vlf` atomically (creating `DIR`).
-    pub fn save(&self, dir: &Path) -> crate::Result<()> {
-        std::fs::create_dir_all(dir).map_err(|e| crate::Error::io(dir, e))?;
-        let payload = bincode::serialize(self).map_err(|e| crate::Error::Format {
-            path: dir.join(FILE),
-            message: format!("cannot encode the field: {e}"),
-        })?;
-        let compressed = zstd::encode_all(&payload[..], 3).map_err(|e| crate::Error::io(dir.join(FILE), e))?;
-        let mut bytes = Vec::with_capacity(compressed.len() + 12);
-        bytes.extend_from_slice(MAGIC);
-        bytes.extend_from_slice(&VERSION.to_le_bytes());
-        bytes.extend_from_slice(&compressed);
-        let tmp = dir.join(format!("{FILE}.tmp"));
-        std::fs::write(&tmp, &bytes).map_err(|e| crate::Error::io(&tmp, e))?;
-        std::fs::rename(&tmp, dir.join(FILE)).map_err(|e| crate::Error::io(dir.join(FILE), e))
-    }
-
-    /// Reads `DIR/field.vlf`, refusing truncated, corrupted or foreign files.
-    pub fn load(dir: &Path) -> crate::Result<Self> {
-        let path = dir.join(FILE);
-        let bytes = std::fs::read(&path).map_err(|e| crate::Error::io(&path, e))?;
-        let bad = |message: String| crate::Error::Format {
-            path: path.clone(),
-            message,
-        };
-        if bytes.len() < 12 || &bytes[..8] != MAGIC {
-            return Err(bad("not a VLF field file (bad magic)".into()));
-        }
-        let version = u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]);
-        if version != VERSION {
-            return Err(bad(format!(
-                "field format version {version}, this build reads {VERSION}"
-            )));
-        }
-        let payload = zstd::decode_all(&bytes[12..]).map_err(|e| bad(format!("corrupted or truncated: {e}")))?;
-        let field: LightField =
-            bincode::deserialize(&payload).map_err(|e| bad(format!("corrupted or truncated: {e}")))?;
-        field.check().map_err(bad)?;
-        Ok(field)
-    }
-
-    /// Internal consistency of a decoded field (sizes agree, values finite).
-    fn check(&self) -> Result<(), String> {
-        if self.atlas.grids.len() != self.scene.surfaces.len() {
-            return Err("texel grids do not match the surfaces".into());
-        }
-        let mut first = 0usize;
-        for g in &self.atlas.grids {
-            if g.first != first || g.width == 0 || g.height == 0 {
-                return Err("texel atlas layout is inconsistent".into());
-            }
-            first += g.len();
-        }
-        if first != self.atlas.texels || self.radiance.len() != first || self.covered.len() != first {
-            return Err("radiance maps do not match the texel atlas".into());
-        }
-        if self.radiance.iter().flatten().any(|v| !v.is_finite()) {
-            return Err("non-finite radiance".into());
-        }
-        if self
-            .scene
-            .surfaces
+impl Propagation {
+    /// Outgoing diffuse radiance of every texel as it stands, `Total_t / T_t`
+    /// (emitted plus reflected so far), with texels no ray crosses filled
+    /// from their neighbours: what rendering reads.
+    pub fn diffuse_radiance(&self) -> Vec<[f32; 3]> {
+        let covered: Vec<bool> = self.projected_area.iter().map(|&a| a > 0.0).collect();
+        let mut radiance: Vec<[f32; 3]> = self
+            .total
             .iter()
-            .any(|s| s.material >= self.scene.materials.len())
-        {
-            return Err("a surface refers to a missing material".into());
-        }
-        Ok(())
+            .zip(&self.projected_area)
+            .map(|(t, &a)| {
+                if a > 0.0 {
+                    [(t[0] / a) as f32, (t[1] / a) as f32, (t[2] / a) as f32]
+                } else {
+                    [0.0; 3]
+                }
+            })
+            .collect();
+        fill_holes(&self.atlas, &covered, &mut radiance);
+        radiance
+    }
+
+    /// Radiance that left every mirror along every ray so far, per direction
+    /// and mirror slot (`None` without specular machinery).
+    pub fn mirror_totals(&self) -> Option<Vec<Vec<[f32; 3]>>> {
+        self.specular.as_ref().map(|s| {
+            s.maps
+                .iter()
+                .map(|m| {
+                    m.total
+                        .iter()
+                        .map(|t| [t[0] as f32, t[1] as f32, t[2] as f32])
+                        .collect()
+                })
+                .collect()
+        })
     }
 }
 

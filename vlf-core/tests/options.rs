@@ -217,39 +217,27 @@ fn absurd_parameters_are_refused() {
     assert!(GridSize::new(1 << 20, 8).is_err());
 }
 
+/// A field rebuilt from its radiance alone (what the store keeps) equals the
+/// propagated one; radiance that does not fit the geometry is refused.
 #[test]
-fn field_round_trips_and_refuses_damaged_files() {
+fn field_rebuilds_from_its_radiance_and_refuses_misfits() {
     let mut p = Propagation::new(lit_box(), base(2)).unwrap();
     p.run(|_| {});
+    let (radiance, stats) = (p.diffuse_radiance(), p.stats.clone());
     let field = p.into_field();
-    let dir = std::env::temp_dir().join(format!("vlf-field-test-{}", std::process::id()));
-    field.save(&dir).unwrap();
-    let back = LightField::load(&dir).unwrap();
+    let fresh = || Propagation::new(lit_box(), base(2)).unwrap();
+    let back = LightField::from_radiance(fresh(), stats.clone(), radiance.clone(), None).unwrap();
     assert!(back == field);
-    let path = dir.join("field.vlf");
-    let bytes = std::fs::read(&path).unwrap();
-    // Truncated.
-    std::fs::write(&path, &bytes[..bytes.len() / 2]).unwrap();
-    let e = LightField::load(&dir).unwrap_err().to_string();
-    assert!(e.contains("corrupted or truncated"), "{e}");
-    // Wrong magic.
-    let mut other = bytes.clone();
-    other[0] = b'X';
-    std::fs::write(&path, &other).unwrap();
-    assert!(LightField::load(&dir).unwrap_err().to_string().contains("bad magic"));
-    // Future version.
-    let mut other = bytes.clone();
-    other[8] = 99;
-    std::fs::write(&path, &other).unwrap();
-    assert!(LightField::load(&dir).unwrap_err().to_string().contains("version 99"));
-    // Flipped payload byte.
-    let mut other = bytes.clone();
-    let k = other.len() - 10;
-    other[k] ^= 0x5a;
-    std::fs::write(&path, &other).unwrap();
-    assert!(LightField::load(&dir).is_err());
-    // Missing.
-    std::fs::remove_file(&path).unwrap();
-    assert!(LightField::load(&dir).unwrap_err().to_string().contains("field.vlf"));
-    let _ = std::fs::remove_dir_all(&dir);
+    let mut short = radiance.clone();
+    short.pop();
+    let mut nan = radiance.clone();
+    nan[3][2] = f32::NAN;
+    for (bad, needle) in [(short, "texel"), (nan, "non-finite")] {
+        match LightField::from_radiance(fresh(), stats.clone(), bad, None) {
+            Err(vlf_core::Error::Decode(m)) => assert!(m.contains(needle), "{m}"),
+            other => panic!("accepted misfit radiance: {:?}", other.map(|_| ())),
+        }
+    }
+    let mirrors = Some(vec![vec![[0.0f32; 3]; 4]; 9]);
+    assert!(LightField::from_radiance(fresh(), stats, radiance, mirrors).is_err());
 }

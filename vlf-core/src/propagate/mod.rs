@@ -39,12 +39,14 @@
 //! through randomly rotated copies of the direction set) and power-preserving
 //! Gaussian filtering of the Next maps.
 
+pub mod checkpoint;
 mod filter;
 mod perturb;
 pub mod plan;
 pub(crate) mod shoot;
 pub mod specular;
 
+pub use checkpoint::Checkpoint;
 pub use plan::Plan;
 pub use shoot::Flow;
 pub use specular::{Exchange, Specular};

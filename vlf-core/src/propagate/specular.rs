@@ -78,6 +78,28 @@ impl MirrorLayout {
         }
     }
 
+    /// The tiles of `sub` that hold mirror slots, each with its range of
+    /// slots: slots are numbered tile by tile, so a tile's are contiguous.
+    /// This is how directional radiance is cut into per-tile blobs.
+    pub fn tile_slots(&self, sub: &Subfield) -> Vec<(u32, std::ops::Range<usize>)> {
+        let mut out = Vec::new();
+        for k in 0..sub.tile_count() {
+            let first = sub.tile_start[k] as usize;
+            let mut range: Option<std::ops::Range<usize>> = None;
+            for (local, e) in sub.tile(k).iter().enumerate() {
+                let base = self.entry_base[first + local];
+                if base != NO_SLOT {
+                    let (start, end) = (base as usize, (base + e.rays) as usize);
+                    range = Some(range.map_or(start..end, |r| r.start..end));
+                }
+            }
+            if let Some(r) = range.filter(|r| !r.is_empty()) {
+                out.push((k as u32, r));
+            }
+        }
+        out
+    }
+
     /// The mirror entries of `surface`.
     pub fn entries_of(&self, surface: u32) -> &[(u32, u32, u32)] {
         let a = self.entries.partition_point(|e| e.0 < surface);

@@ -121,4 +121,52 @@ impl Scene {
     ) -> Result<(Scene, Vec<String>), crate::Error> {
         obj::build_scene(polygons, materials, options, "<generated>")
     }
+
+    /// The scene as bytes (bincode), for storage: the exact normalised
+    /// scene, so a propagation resumed or rebuilt from it has the same bits.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        bincode::serialize(self).expect("bincode into memory cannot fail for plain data")
+    }
+
+    /// Decodes [`Scene::to_bytes`], checking what propagation relies on:
+    /// materials exist and are physical, coordinates are finite, normals are
+    /// unit, at least one surface.
+    pub fn from_bytes(bytes: &[u8]) -> crate::Result<Scene> {
+        let bad = |m: String| crate::Error::Decode(format!("stored scene: {m}"));
+        let scene: Scene = bincode::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
+        if scene.surfaces.is_empty() {
+            return Err(bad("no surface".into()));
+        }
+        let unit = |c: f64| c.is_finite() && (0.0..=1.0).contains(&c);
+        for (i, m) in scene.materials.iter().enumerate() {
+            if !m.diffuse.iter().chain(&m.specular).all(|&c| unit(c))
+                || !m.emission.iter().all(|&c| c.is_finite() && c >= 0.0)
+            {
+                return Err(bad(format!("material {i} (`{}`) is not physical", m.name)));
+            }
+        }
+        for (i, s) in scene.surfaces.iter().enumerate() {
+            let finite = s.vertices.iter().all(|v| v.is_finite()) && s.offset.is_finite() && s.area.is_finite();
+            if s.material >= scene.materials.len()
+                || s.vertices.len() < 3
+                || !finite
+                || (s.normal.length() - 1.0).abs() > 1e-6
+            {
+                return Err(bad(format!("surface {i} is malformed")));
+            }
+        }
+        let n = &scene.normalisation;
+        if !(n.scale.is_finite() && n.scale > 0.0 && n.center.is_finite()) {
+            return Err(bad("bad normalisation".into()));
+        }
+        Ok(scene)
+    }
+
+    /// SHA-256 of [`Scene::to_bytes`], lower-case hex: identifies a scene in
+    /// a store (two jobs of the same scene have the same hash).
+    pub fn content_hash(&self) -> String {
+        use sha2::Digest;
+        let digest = sha2::Sha256::digest(self.to_bytes());
+        digest.iter().map(|b| format!("{b:02x}")).collect()
+    }
 }

@@ -1,0 +1,188 @@
+//! `vlf propagate`: import a scene (or resume a job), propagate its light
+//! field iteration by iteration, and write every iteration's snapshot and the
+//! final field into a job of a store.
+
+use crate::{EncodingArg, PropagateArgs};
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::time::Instant;
+use vlf_core::propagate::{Options, Perturbation, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::scene::{ImportOptions, load_obj};
+use vlf_store::{Encoding, FieldJob, JobId, Stage, Store};
+
+pub fn run(args: PropagateArgs) -> Result<()> {
+    let threads = args.threads.unwrap_or(0);
+    if args.threads == Some(0) || threads > 1024 {
+        bail!("--threads must be between 1 and 1024");
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("cannot start the worker threads")?;
+    let started = Instant::now();
+    let (mut job, mut prop) = match &args.resume {
+        Some(id) => {
+            let id = JobId::parse(id).map_err(anyhow::Error::msg)?;
+            let store = Store::open_existing(&args.store)?;
+            let mut job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
+            let prop = pool
+                .install(|| job.resume())
+                .with_context(|| format!("cannot resume job {id}"))?;
+            println!(
+                "resuming job {id} in {} after {} iterations",
+                args.store,
+                prop.iterations_done()
+            );
+            (job, prop)
+        }
+        None => {
+            let options = options(&args)?;
+            let path = args
+                .scene
+                .as_ref()
+                .context("a scene is needed unless --resume is given")?;
+            let (scene, warnings) = load_obj(path, &ImportOptions::default())
+                .with_context(|| format!("cannot import {}", path.display()))?;
+            for w in &warnings {
+                tracing::warn!("{w}");
+            }
+            tracing::info!(
+                surfaces = scene.surfaces.len(),
+                materials = scene.materials.len(),
+                "scene imported"
+            );
+            let prop = pool
+                .install(|| Propagation::new(scene, options))
+                .context("cannot set up the light field")?;
+            let store = Store::open(&args.store)?;
+            let encoding = match args.encoding {
+                EncodingArg::F32 => Encoding::F32,
+                EncodingArg::F16 => Encoding::F16,
+                EncodingArg::Rgb9e5 => Encoding::Rgb9e5,
+            };
+            let job = pool.install(|| FieldJob::create(&store, &prop, encoding))?;
+            println!("job {} in {}", job.id(), args.store);
+            (job, prop)
+        }
+    };
+    print!("{}", prop.plan);
+    tracing::info!(
+        directions = prop.directions.len(),
+        texels = prop.atlas.texels,
+        setup_s = format!("{:.2}", started.elapsed().as_secs_f64()),
+        "subfields rasterised"
+    );
+
+    let bar = ProgressBar::new(prop.directions.len() as u64);
+    bar.set_style(
+        ProgressStyle::with_template("{prefix:>14} [{bar:40}] {pos}/{len} directions {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let mut store_seconds = 0.0;
+    let outcome = pool.install(|| -> Result<()> {
+        while !prop.finished() {
+            let k = prop.iterations_done();
+            bar.set_prefix(format!("iteration {}", k + 1));
+            bar.set_message(format!("unshot {:.2e}", prop.unshot_fraction()));
+            bar.set_position(0);
+            prop.step(|p| {
+                bar.set_length(p.directions_total as u64);
+                bar.set_position(p.directions_done as u64);
+            });
+            let t = Instant::now();
+            job.write_snapshot(&prop)
+                .with_context(|| format!("cannot write snapshot {}", k + 1))?;
+            store_seconds += t.elapsed().as_secs_f64();
+        }
+        Ok(())
+    });
+    bar.finish_and_clear();
+    outcome?;
+
+    let field_bytes = prop.field_bytes();
+    let iterations = prop.iterations_done();
+    let mut field = pool.install(|| prop.into_field());
+    if args.resample {
+        pool.install(|| field.resample_mirrors(8));
+    }
+    let t = Instant::now();
+    pool.install(|| job.finish(&field, args.resample))
+        .context("cannot write the final field")?;
+    store_seconds += t.elapsed().as_secs_f64();
+    let (stored_field, stored_job) = job.stored_bytes(Stage::Field)?;
+
+    let elapsed = started.elapsed().as_secs_f64();
+    let balance = field
+        .stats
+        .iter()
+        .map(|s| {
+            let f = &s.flow;
+            let shot: f64 = f.shot.iter().sum();
+            let accounted: f64 = (0..3).map(|c| f.received[c] + f.escaped[c] + f.blocked[c]).sum();
+            if shot > 0.0 {
+                ((shot - accounted) / shot).abs()
+            } else {
+                0.0
+            }
+        })
+        .fold(0.0, f64::max);
+    let what = match (&args.scene, &args.resume) {
+        (Some(path), _) => path.display().to_string(),
+        (None, _) => format!("job {}", job.id()),
+    };
+    println!("propagated {what} in {elapsed:.2} s ({store_seconds:.2} s writing the store)");
+    println!("  iterations      {iterations}");
+    println!("  unshot fraction {:.3e}", field.unshot_fraction);
+    println!("  energy balance  {balance:.1e} (worst relative mismatch of an iteration)");
+    println!("  field memory    {:.1} MB", field_bytes as f64 / 1e6);
+    println!(
+        "  stored field    {:.2} MB compressed ({:?}); whole job with snapshots {:.2} MB",
+        stored_field as f64 / 1e6,
+        job.job().manifest().encoding,
+        stored_job as f64 / 1e6
+    );
+    if let Some(peak) = peak_memory_kb() {
+        println!("  peak memory     {:.1} MB", peak as f64 / 1024.0);
+    }
+    println!("  job             {} in {}", job.id(), args.store);
+    Ok(())
+}
+
+/// The propagation options the flags ask for.
+fn options(args: &PropagateArgs) -> Result<Options> {
+    let stop = match (args.iterations, args.converge) {
+        (Some(k), _) => Stop::Iterations(k),
+        (None, eps) => Stop::Converge {
+            epsilon: eps.unwrap_or(1e-3),
+            max_iterations: 1000,
+        },
+    };
+    let options = Options {
+        directions: args.directions,
+        grid: GridSize::new(args.resolution, args.tile)?,
+        stop,
+        texel_cells: args.texel,
+        deferral: args.defer,
+        perturbation: Perturbation {
+            iterations: args.perturb,
+            count: args.perturb_count,
+        },
+        filter_sigma: (args.filter != 0.0).then_some(args.filter),
+    };
+    options.validate()?;
+    Ok(options)
+}
+
+/// Peak resident memory of this process (Linux), in KiB.
+fn peak_memory_kb() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    status
+        .lines()
+        .find(|l| l.starts_with("VmHWM:"))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()
+}

@@ -1,0 +1,413 @@
+//! Light fields in a job: how `vlf-core`'s propagations and fields map onto the keys of
+//! [`crate::layout`]. The one module of this crate that knows what a light field is; the rest
+//! stores whatever it is given.
+//!
+//! | what | where | representation |
+//! |---|---|---|
+//! | the normalised scene | `jobs/J/scene.blob` | `Scene::to_bytes`, exact |
+//! | the propagation options | the manifest's `parameters` | JSON of `Options` (floats round-trip exactly) |
+//! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` | `Checkpoint::to_bytes`: f64, exact |
+//! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
+//! | outgoing radiance of surface s | `S/diffuse/s.blob` | `[height, width, 3]` texels, job encoding |
+//! | radiance leaving mirrors along direction d in tile (s, t) | `field/dirs/d/tile-s-t.blob` | `[slots, 3]` in slot order, job encoding |
+//!
+//! where `S` is a snapshot or the final field.
+//!
+//! **Snapshots.** Snapshot `K` is the field after `K` iterations; snapshot 0 (emission only) is
+//! written when the job is created, so every job can be rendered and resumed from the start. A
+//! snapshot holds an exact checkpoint (to resume with the same bits as an uninterrupted run), its
+//! summary, and the diffuse radiance in the job's encoding (what a viewer needs, including for
+//! ray-traced mirrors). Mirror radiance of a snapshot is read from its checkpoint: cutting it into
+//! tiles after every iteration would write thousands of blobs per iteration (6 000 for the bundled
+//! mirror scene at l = 513, N = 64, m = 8) for a state that is superseded by the next one. The
+//! final field (stage `field`) holds radiance only, mirrors per direction and tile, possibly
+//! re-sampled (see `LightField::resample_mirrors`).
+//!
+//! **Only what is stored is radiance.** Directions, subfields, texel grids and mirror layouts are
+//! a deterministic function of the scene and the options, so a reader rebuilds them
+//! (`Propagation::new`) and uses them to put each stored value back in place; a blob whose shape
+//! does not match is an error naming its key. A diffuse-only scene has no tile blobs at all.
+//!
+//! Blobs of a stage are written in parallel; the manifest commit comes last (see [`crate::job`]).
+
+use crate::blob::Encoding;
+use crate::error::StoreError;
+use crate::id::JobId;
+use crate::job::Job;
+use crate::layout::{self, Stage};
+use crate::manifest::JobState;
+use crate::store::Store;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use vlf_core::field::LightField;
+use vlf_core::maps::TexelAtlas;
+use vlf_core::propagate::specular::MirrorLayout;
+use vlf_core::propagate::{Checkpoint, IterationStats, Options, Propagation};
+use vlf_core::psf::Subfield;
+use vlf_core::scene::{Rgb, Scene};
+
+/// What a stored stage is: read by renderers and progress reports without the radiance.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    /// Iterations the stage's radiance includes.
+    pub iterations: u32,
+    /// Unshot power left, as a fraction of the emitted power.
+    pub unshot_fraction: f64,
+    /// Emitted power (VLF-frame units).
+    pub emitted: Rgb,
+    /// Whether mirror radiance was re-sampled by backward ray tracing.
+    pub resampled: bool,
+    /// The unit of the stored radiance: a blob value `v` is the radiance `v × radiance_unit`.
+    /// The power of two at or above the scene's brightest emitted radiance, so that the compact
+    /// encodings (whose range ends at 65 504) hold any scene's radiance and scaling is exact.
+    pub radiance_unit: f64,
+    /// Statistics of every iteration so far.
+    pub stats: Vec<IterationStats>,
+}
+
+/// Mirror radiance to store: the subfields and layouts that place it, and its values.
+struct Mirrors<'a> {
+    subfields: &'a [Subfield],
+    layouts: &'a [MirrorLayout],
+    totals: &'a [Vec<[f32; 3]>],
+}
+
+/// A light-field job in a store: its [`Job`] plus the scene and options it propagates.
+#[derive(Debug, Clone)]
+pub struct FieldJob {
+    job: Job,
+    scene: Scene,
+    options: Options,
+}
+
+impl FieldJob {
+    /// Creates a job for the fresh propagation `p` (no iteration done yet) and writes its
+    /// snapshot 0. Radiance blobs use `encoding`.
+    pub fn create(store: &Store, p: &Propagation, encoding: Encoding) -> Result<FieldJob, StoreError> {
+        let parameters = serde_json::to_value(&p.options).map_err(|e| StoreError::Layout(e.to_string()))?;
+        let job = Job::create(
+            store,
+            &p.scene.to_bytes(),
+            &p.scene.content_hash(),
+            parameters,
+            encoding,
+        )?;
+        let mut field_job = FieldJob {
+            job,
+            scene: p.scene.clone(),
+            options: p.options.clone(),
+        };
+        field_job.write_snapshot(p)?;
+        Ok(field_job)
+    }
+
+    /// Opens job `id`, reading its manifest, scene and options.
+    pub fn open(store: &Store, id: &JobId) -> Result<FieldJob, StoreError> {
+        let job = Job::open(store, id)?;
+        let field_error = |source| StoreError::Field {
+            url: store.url().to_string(),
+            job: id.to_string(),
+            source,
+        };
+        let scene = Scene::from_bytes(&job.scene()?).map_err(field_error)?;
+        let options: Options = serde_json::from_value(job.manifest().parameters.clone()).map_err(|e| {
+            field_error(vlf_core::Error::Decode(format!(
+                "the job's parameters are not propagation options: {e}"
+            )))
+        })?;
+        options.validate().map_err(field_error)?;
+        if scene.content_hash() != job.manifest().scene_hash {
+            return Err(field_error(vlf_core::Error::Decode(
+                "the stored scene does not match the manifest's scene hash".into(),
+            )));
+        }
+        Ok(FieldJob { job, scene, options })
+    }
+
+    pub fn id(&self) -> &JobId {
+        self.job.id()
+    }
+
+    pub fn job(&self) -> &Job {
+        &self.job
+    }
+
+    pub fn scene(&self) -> &Scene {
+        &self.scene
+    }
+
+    pub fn options(&self) -> &Options {
+        &self.options
+    }
+
+    /// Reads the manifest again (another process may have moved on).
+    pub fn reload(&mut self) -> Result<(), StoreError> {
+        self.job.reload()
+    }
+
+    /// The stage a renderer should show by default: the final field of a finished job, else the
+    /// last finished snapshot.
+    pub fn latest_stage(&self) -> Stage {
+        match (&self.job.manifest().state, self.job.last_finished()) {
+            (JobState::Finished, _) | (_, None) => Stage::Field,
+            (_, Some(k)) => Stage::Iteration(k),
+        }
+    }
+
+    /// Writes the snapshot after `p.iterations_done()` iterations and commits it: radiance blobs
+    /// and the summary first, then the exact checkpoint, then the manifest.
+    pub fn write_snapshot(&mut self, p: &Propagation) -> Result<(), StoreError> {
+        let k = p.iterations_done();
+        if self.job.manifest().is_finished(k) {
+            return Err(self.job_error(format!("snapshot {k} is already finished")));
+        }
+        let stage = Stage::Iteration(k);
+        let unit = radiance_unit(&self.scene);
+        // Mirror radiance of a snapshot lives in its checkpoint (see the module docs).
+        self.write_radiance(stage, &p.atlas, &p.diffuse_radiance(), None, unit)?;
+        self.write_summary(
+            stage,
+            &Summary {
+                iterations: k,
+                unshot_fraction: p.unshot_fraction(),
+                emitted: p.emitted,
+                resampled: false,
+                radiance_unit: unit,
+                stats: p.stats.clone(),
+            },
+        )?;
+        self.job.put_state(k, &p.checkpoint().to_bytes())?;
+        self.job.commit_iteration(k)
+    }
+
+    /// Writes `field` as the job's final field and marks the job finished.
+    pub fn finish(&mut self, field: &LightField, resampled: bool) -> Result<(), StoreError> {
+        let mirrors = field.specular.as_ref().map(|s| Mirrors {
+            subfields: &s.subfields,
+            layouts: &s.layouts,
+            totals: &s.totals,
+        });
+        let unit = radiance_unit(&self.scene);
+        self.write_radiance(Stage::Field, &field.atlas, &field.radiance, mirrors, unit)?;
+        self.write_summary(
+            Stage::Field,
+            &Summary {
+                iterations: field.stats.len() as u32,
+                unshot_fraction: field.unshot_fraction,
+                emitted: field.emitted,
+                resampled,
+                radiance_unit: unit,
+                stats: field.stats.clone(),
+            },
+        )?;
+        self.job.finish()
+    }
+
+    /// Marks the job failed with `message` (the blobs written so far stay readable).
+    pub fn fail(&mut self, message: String) -> Result<(), StoreError> {
+        self.job.set_state(JobState::Failed { message })
+    }
+
+    /// The propagation as it stood after the last finished snapshot, ready to step on with the
+    /// same bits as a run that never stopped. A finished job cannot be resumed.
+    pub fn resume(&mut self) -> Result<Propagation, StoreError> {
+        if self.job.manifest().state == JobState::Finished {
+            return Err(self.job_error("the job is finished; nothing to resume".into()));
+        }
+        let k = self
+            .job
+            .last_finished()
+            .ok_or_else(|| self.job_error("no finished snapshot to resume from".into()))?;
+        let checkpoint = self.checkpoint(k)?;
+        let p = Propagation::resume(self.scene.clone(), self.options.clone(), checkpoint)
+            .map_err(|e| self.field_error(e))?;
+        self.job.set_state(JobState::Propagating { iteration: k + 1 })?;
+        Ok(p)
+    }
+
+    /// The exact checkpoint of finished snapshot `k`.
+    pub fn checkpoint(&self, k: u32) -> Result<Checkpoint, StoreError> {
+        Checkpoint::from_bytes(&self.job.get_state(k)?)
+            .and_then(|c| {
+                if c.iterations() == k {
+                    Ok(c)
+                } else {
+                    Err(vlf_core::Error::Decode(format!(
+                        "checkpoint of snapshot {k} holds {} iterations",
+                        c.iterations()
+                    )))
+                }
+            })
+            .map_err(|e| self.field_error(e))
+    }
+
+    /// The summary of a committed stage.
+    pub fn summary(&self, stage: Stage) -> Result<Summary, StoreError> {
+        let json = self.job.get_summary(stage)?;
+        serde_json::from_slice(&json)
+            .map_err(|e| self.field_error(vlf_core::Error::Decode(format!("summary of {stage:?}: {e}"))))
+    }
+
+    /// Reads a committed stage back into a field that renders like the one written (up to the
+    /// job's encoding).
+    pub fn load(&self, stage: Stage) -> Result<LightField, StoreError> {
+        let summary = self.summary(stage)?;
+        let unit = summary.radiance_unit;
+        if !(unit.is_finite() && unit > 0.0 && unit.log2().fract() == 0.0) {
+            return Err(self.field_error(vlf_core::Error::Decode(format!(
+                "summary of {stage:?}: radiance unit {unit} is not a power of two"
+            ))));
+        }
+        let unit = unit as f32;
+        let p = Propagation::new(self.scene.clone(), self.options.clone()).map_err(|e| self.field_error(e))?;
+        let atlas = &p.atlas;
+        let surfaces: Vec<(usize, Vec<f32>)> = (0..atlas.grids.len())
+            .into_par_iter()
+            .map(|s| {
+                let g = &atlas.grids[s];
+                let (shape, values) = self.job.get_diffuse(stage, s as u32)?;
+                self.check_shape(&shape, &[g.height, g.width, 3], || {
+                    layout::diffuse(self.id(), stage, s as u32)
+                })?;
+                Ok((s, values))
+            })
+            .collect::<Result<_, StoreError>>()?;
+        let mut radiance = vec![[0.0f32; 3]; atlas.texels];
+        for (s, values) in surfaces {
+            let first = atlas.grids[s].first;
+            for (i, v) in values.chunks_exact(3).enumerate() {
+                radiance[first + i] = [v[0] * unit, v[1] * unit, v[2] * unit];
+            }
+        }
+        let totals = match (&p.specular, stage) {
+            (None, _) => None,
+            (Some(_), Stage::Iteration(k)) => self.checkpoint(k)?.mirrors.map(|maps| {
+                maps.iter()
+                    .map(|m| m.total.iter().map(|t| t.map(|c| c as f32)).collect())
+                    .collect()
+            }),
+            (Some(spec), Stage::Field) => {
+                let per_side = self.options.grid.tiles_per_side();
+                let tiles = mirror_tiles(&spec.layouts, &p.subfields);
+                let values: Vec<Vec<f32>> = tiles
+                    .par_iter()
+                    .map(|(d, k, range)| {
+                        let (s, t) = (k % per_side, k / per_side);
+                        let (shape, values) = self.job.get_tile(stage, *d as u32, s, t)?;
+                        self.check_shape(&shape, &[range.len() as u32, 3], || {
+                            layout::tile(self.id(), stage, *d as u32, s, t)
+                        })?;
+                        Ok(values)
+                    })
+                    .collect::<Result<_, StoreError>>()?;
+                let mut totals: Vec<Vec<[f32; 3]>> =
+                    spec.layouts.iter().map(|l| vec![[0.0; 3]; l.len as usize]).collect();
+                for ((d, _, range), values) in tiles.iter().zip(values) {
+                    for (slot, v) in totals[*d][range.clone()].iter_mut().zip(values.chunks_exact(3)) {
+                        *slot = [v[0] * unit, v[1] * unit, v[2] * unit];
+                    }
+                }
+                Some(totals)
+            }
+        };
+        LightField::from_radiance(p, summary.stats, radiance, totals).map_err(|e| self.field_error(e))
+    }
+
+    /// Bytes the store holds for `stage` (its blobs as stored, compressed) and for the whole job.
+    pub fn stored_bytes(&self, stage: Stage) -> Result<(u64, u64), StoreError> {
+        let store = self.job.store();
+        let sum = |prefix: &str| -> Result<u64, StoreError> {
+            Ok(store.list_sizes(prefix)?.iter().map(|(_, size)| size).sum())
+        };
+        Ok((
+            sum(&layout::stage_prefix(self.id(), stage)?)?,
+            sum(&layout::job_prefix(self.id()))?,
+        ))
+    }
+
+    fn write_summary(&self, stage: Stage, summary: &Summary) -> Result<(), StoreError> {
+        let json = serde_json::to_vec_pretty(summary).map_err(|e| self.job_error(format!("summary: {e}")))?;
+        self.job.put_summary(stage, &json)
+    }
+
+    /// Writes every diffuse map and every mirror tile of `stage`, in parallel.
+    fn write_radiance(
+        &self,
+        stage: Stage,
+        atlas: &TexelAtlas,
+        radiance: &[[f32; 3]],
+        mirrors: Option<Mirrors>,
+        unit: f64,
+    ) -> Result<(), StoreError> {
+        let scale = (1.0 / unit) as f32;
+        let scaled = |v: &[[f32; 3]]| -> Vec<f32> { v.as_flattened().iter().map(|&x| x * scale).collect() };
+        atlas.grids.par_iter().enumerate().try_for_each(|(s, g)| {
+            let values = scaled(&radiance[g.first..g.first + g.len()]);
+            self.job.put_diffuse(stage, s as u32, &[g.height, g.width, 3], &values)
+        })?;
+        let Some(m) = mirrors else {
+            return Ok(());
+        };
+        let per_side = self.options.grid.tiles_per_side();
+        let tiles = mirror_tiles(m.layouts, m.subfields);
+        tiles.par_iter().try_for_each(|(d, k, range)| {
+            let values = scaled(&m.totals[*d][range.clone()]);
+            let (s, t) = (k % per_side, k / per_side);
+            self.job
+                .put_tile(stage, *d as u32, s, t, &[range.len() as u32, 3], &values)
+        })
+    }
+
+    /// A blob whose shape does not fit the rebuilt geometry: an error naming its key.
+    fn check_shape(
+        &self,
+        shape: &[u32],
+        expected: &[u32],
+        key: impl FnOnce() -> Result<String, StoreError>,
+    ) -> Result<(), StoreError> {
+        if shape == expected {
+            return Ok(());
+        }
+        Err(self.field_error(vlf_core::Error::Decode(format!(
+            "`{}` has shape {shape:?}, the field needs {expected:?}",
+            key()?
+        ))))
+    }
+
+    fn job_error(&self, reason: String) -> StoreError {
+        StoreError::Job {
+            url: self.job.store().url().to_string(),
+            job: self.id().to_string(),
+            reason,
+        }
+    }
+
+    fn field_error(&self, source: vlf_core::Error) -> StoreError {
+        StoreError::Field {
+            url: self.job.store().url().to_string(),
+            job: self.id().to_string(),
+            source,
+        }
+    }
+}
+
+/// The power of two at or above the scene's brightest emitted radiance (see
+/// [`Summary::radiance_unit`]); 1 for a scene without emission.
+pub fn radiance_unit(scene: &Scene) -> f64 {
+    let brightest = scene.materials.iter().flat_map(|m| m.emission).fold(0.0f64, f64::max);
+    if brightest > 0.0 && brightest.is_finite() {
+        2f64.powi(brightest.log2().ceil().clamp(-120.0, 120.0) as i32)
+    } else {
+        1.0
+    }
+}
+
+/// Every (direction, tile index, slot range) that holds mirror radiance: the tile blobs of a stage.
+fn mirror_tiles(layouts: &[MirrorLayout], subfields: &[Subfield]) -> Vec<(usize, u32, std::ops::Range<usize>)> {
+    layouts
+        .iter()
+        .zip(subfields)
+        .enumerate()
+        .flat_map(|(d, (l, sub))| l.tile_slots(sub).into_iter().map(move |(k, r)| (d, k, r)))
+        .collect()
+}

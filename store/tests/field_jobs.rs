@@ -1,0 +1,265 @@
+//! Light-field jobs through the store, on every backend: a crash between
+//! writing a snapshot's blobs and committing it, then a resume, gives the
+//! same bits as a run that never stopped; every stage reads back within its
+//! encoding's error; damaged or mismatched blobs are errors naming their key.
+
+#[allow(dead_code)]
+mod suite;
+
+use suite::Opener;
+use vlf_core::field::LightField;
+use vlf_core::propagate::{Checkpoint, Options, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_store::blob::{self, BlobKind, Encoding};
+use vlf_store::{FieldJob, JobId, Stage, Store, StoreError, layout};
+
+fn bundled(name: &str) -> Scene {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes")
+        .join(name);
+    load_obj(&path, &ImportOptions::default()).expect("bundled scene").0
+}
+
+fn options(iterations: u32) -> Options {
+    Options {
+        directions: 33,
+        grid: GridSize::new(16, 4).unwrap(),
+        stop: Stop::Iterations(iterations),
+        ..Options::default()
+    }
+}
+
+/// Propagates `scene` to the end in a new job, writing every snapshot and the field.
+fn run(store: &Store, scene: &Scene, encoding: Encoding) -> (FieldJob, LightField) {
+    let mut p = Propagation::new(scene.clone(), options(4)).unwrap();
+    let mut job = FieldJob::create(store, &p, encoding).unwrap();
+    while !p.finished() {
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+    }
+    let field = p.into_field();
+    job.finish(&field, false).unwrap();
+    (job, field)
+}
+
+fn without_times(mut c: Checkpoint) -> Checkpoint {
+    for s in &mut c.stats {
+        s.seconds = 0.0;
+    }
+    c
+}
+
+fn crash_and_resume(o: &Opener) {
+    let scene = bundled("mirrors.obj");
+    let (straight, _) = run(&o.open(), &scene, Encoding::F32);
+
+    // A run that dies after committing snapshot 2, half-way through writing snapshot 3.
+    let store = o.open();
+    let mut p = Propagation::new(scene.clone(), options(4)).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    for _ in 0..2 {
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+    }
+    p.step(|_| {});
+    let id = job.id().clone();
+    job.job()
+        .put_diffuse(Stage::Iteration(3), 0, &[1, 1, 3], &[9.0; 3])
+        .unwrap();
+    job.job().put_state(3, b"half-written state").unwrap();
+    drop((job, p, store));
+
+    // A new process opens the job: snapshot 2 is the last; resuming reaches the same bits.
+    let store = o.open();
+    let mut job = FieldJob::open(&store, &id).unwrap();
+    assert_eq!(job.job().last_finished(), Some(2));
+    assert!(
+        job.load(Stage::Iteration(3)).is_err(),
+        "an uncommitted snapshot was readable"
+    );
+    let mut p = job.resume().unwrap();
+    assert_eq!(p.iterations_done(), 2);
+    while !p.finished() {
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+    }
+    job.finish(&p.into_field(), false).unwrap();
+
+    assert_eq!(job.job().manifest().finished_iterations, vec![0, 1, 2, 3, 4]);
+    assert!(
+        without_times(job.checkpoint(4).unwrap()) == without_times(straight.checkpoint(4).unwrap()),
+        "resumed state differs"
+    );
+    // The stored radiance of the final field is the same, byte for byte.
+    let keys = |j: &FieldJob| -> Vec<(String, Vec<u8>)> {
+        let prefix = layout::stage_prefix(j.id(), Stage::Field).unwrap();
+        let store = j.job().store();
+        store
+            .list(&prefix)
+            .unwrap()
+            .into_iter()
+            .filter(|k| !k.ends_with("summary.blob"))
+            .map(|k| (k[prefix.len()..].to_string(), store.get(&k).unwrap().to_vec()))
+            .collect()
+    };
+    let (a, b) = (keys(&job), keys(&straight));
+    assert!(a.iter().any(|(k, _)| k.starts_with("dirs/")), "no mirror tile stored");
+    assert!(a == b, "final field blobs differ after a resume");
+    assert!(matches!(job.resume(), Err(StoreError::Job { reason, .. }) if reason.contains("finished")));
+}
+
+/// `|a − b| ≤ rel·|a| + abs` for every value.
+fn assert_close(a: &[[f32; 3]], b: &[[f32; 3]], rel: f32, abs: f32, what: &str) {
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(b) {
+        let peak = x.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        for c in 0..3 {
+            let err = (x[c] - y[c]).abs();
+            assert!(err <= rel * peak + abs, "{what}: {x:?} read back as {y:?}");
+        }
+    }
+}
+
+fn encodings_and_snapshots(o: &Opener) {
+    let mut scene = bundled("mirrors.obj");
+    // Emission far beyond f16's range (65 504): the stored unit keeps it representable.
+    for m in &mut scene.materials {
+        m.emission = m.emission.map(|e| e * 1e6);
+    }
+    let store = o.open();
+    for (encoding, rel) in [
+        (Encoding::F32, 0.0),
+        (Encoding::F16, 2f32.powi(-11)),
+        (Encoding::Rgb9e5, 2f32.powi(-9)),
+    ] {
+        let (job, field) = run(&store, &scene, encoding);
+        let unit = job.summary(Stage::Field).unwrap().radiance_unit as f32;
+        assert!(unit >= 1e6, "{unit}");
+        let back = job.load(Stage::Field).unwrap();
+        let abs = if rel == 0.0 { 0.0 } else { unit * 2f32.powi(-24) };
+        assert_close(
+            &field.radiance,
+            &back.radiance,
+            rel,
+            abs,
+            &format!("{encoding:?} diffuse"),
+        );
+        let (a, b) = (field.specular.as_ref().unwrap(), back.specular.as_ref().unwrap());
+        for (ta, tb) in a.totals.iter().zip(&b.totals) {
+            assert_close(ta, tb, rel, abs, &format!("{encoding:?} mirrors"));
+        }
+        // Snapshot 0 is emission only; the last snapshot is the field (nothing was re-sampled).
+        let zero = job.load(Stage::Iteration(0)).unwrap();
+        for (t, owner) in zero.atlas.owners().iter().enumerate() {
+            let emits = zero.scene.material(*owner as usize).is_emitter();
+            if !emits {
+                assert_eq!(zero.radiance[t], [0.0; 3], "texel {t} of a non-emitter");
+            } else if zero.covered[t] {
+                assert!(zero.radiance[t][0] > 0.0, "texel {t} of an emitter");
+            }
+        }
+        assert!(
+            zero.specular
+                .as_ref()
+                .unwrap()
+                .totals
+                .iter()
+                .flatten()
+                .all(|v| *v == [0.0; 3])
+        );
+        let last = job.load(Stage::Iteration(4)).unwrap();
+        assert_close(&back.radiance, &last.radiance, 0.0, 0.0, "last snapshot");
+        assert_close(
+            &field.specular.as_ref().unwrap().totals.concat(),
+            &last.specular.as_ref().unwrap().totals.concat(),
+            0.0,
+            0.0,
+            "last snapshot mirrors (exact, from its checkpoint)",
+        );
+    }
+}
+
+fn damage_names_the_key(o: &Opener) {
+    let store = o.open();
+    let (job, _) = run(&store, &bundled("mirrors.obj"), Encoding::F16);
+    let id = job.id().clone();
+    let expect = |r: Result<LightField, StoreError>, key: &str, needle: &str| match r {
+        Ok(_) => panic!("damaged `{key}` was accepted"),
+        Err(e) => {
+            let m = e.to_string();
+            assert!(m.contains(key) && m.contains(needle), "{m}");
+        }
+    };
+    // A flipped byte in a mirror tile.
+    let tile = store
+        .list(&layout::direction_prefix(&id, Stage::Field, 5).unwrap())
+        .unwrap()
+        .into_iter()
+        .next()
+        .expect("a tile of direction 5");
+    let good = store.get(&tile).unwrap().to_vec();
+    let mut bad = good.clone();
+    let last = bad.len() - 1;
+    bad[last] ^= 0x10;
+    store.put(&tile, bad).unwrap();
+    expect(job.load(Stage::Field), &tile, "checksum");
+    // Truncated.
+    store.put(&tile, good[..good.len() / 2].to_vec()).unwrap();
+    expect(job.load(Stage::Field), &tile, "");
+    // A valid blob of the wrong shape.
+    let wrong = blob::encode_values(BlobKind::TileRadiance, Encoding::F16, &[1, 3], &[0.5; 3]).unwrap();
+    store.put(&tile, wrong).unwrap();
+    expect(job.load(Stage::Field), &tile, "shape");
+    // A diffuse map of the wrong kind.
+    let map = layout::diffuse(&id, Stage::Iteration(2), 3).unwrap();
+    let tile_kind = blob::encode_values(BlobKind::TileRadiance, Encoding::F16, &[1, 3], &[0.5; 3]).unwrap();
+    store.put(&map, tile_kind).unwrap();
+    expect(job.load(Stage::Iteration(2)), &map, "kind");
+    // A checkpoint whose blob is sound but whose content is not a checkpoint.
+    let state = layout::state(&id, 3).unwrap();
+    store
+        .put(&state, blob::encode_bytes(BlobKind::Snapshot, b"not bincode").unwrap())
+        .unwrap();
+    let err = job.checkpoint(3).unwrap_err();
+    assert!(matches!(err, StoreError::Field { .. }), "{err}");
+    // Unknown jobs, and snapshots that do not exist.
+    let missing = FieldJob::open(&store, &JobId::parse("no-such-job").unwrap()).unwrap_err();
+    assert!(matches!(missing, StoreError::NotFound { .. }), "{missing}");
+    let err = job.load(Stage::Iteration(9)).unwrap_err();
+    assert!(err.to_string().contains("iteration 9 is not finished"), "{err}");
+    // The rest of the job is untouched.
+    assert!(job.load(Stage::Iteration(1)).is_ok());
+}
+
+macro_rules! backend {
+    ($name:ident, $opener:expr) => {
+        mod $name {
+            use super::*;
+
+            fn with(case: &str, f: fn(&Opener)) {
+                let opener: Option<Opener> = ($opener)(case);
+                if let Some(o) = opener {
+                    f(&o);
+                }
+            }
+
+            #[test]
+            fn crash_then_resume_gives_the_same_bits() {
+                with("field-resume", crash_and_resume);
+            }
+            #[test]
+            fn encodings_and_snapshots_read_back() {
+                with("field-encodings", encodings_and_snapshots);
+            }
+            #[test]
+            fn damaged_blobs_name_their_key() {
+                with("field-damage", damage_names_the_key);
+            }
+        }
+    };
+}
+
+backend!(memory, |_| Some(Opener::memory()));
+backend!(path, |_| Some(Opener::file(false)));
+backend!(s3, Opener::s3);
