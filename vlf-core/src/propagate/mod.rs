@@ -45,11 +45,13 @@ mod perturb;
 pub mod plan;
 pub(crate) mod shoot;
 pub mod specular;
+pub mod work;
 
 pub use checkpoint::Checkpoint;
 pub use plan::Plan;
 pub use shoot::Flow;
 pub use specular::{Exchange, Specular};
+pub use work::{BatchSum, IterationWork, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
@@ -217,10 +219,7 @@ pub struct Progress {
     pub directions_total: usize,
 }
 
-/// Directions processed per reduction batch. Fixed (not derived from the
-/// thread count) so the summation order, and therefore the bits, never
-/// depend on how many threads run.
-const BATCH: usize = 16;
+use work::BATCH;
 
 /// A propagation in progress: the field's geometry plus the radiosity maps.
 pub struct Propagation {
@@ -250,7 +249,7 @@ fn sum_rgb(v: &[Rgb]) -> Rgb {
     v.iter().fold([0.0; 3], |a, b| [a[0] + b[0], a[1] + b[1], a[2] + b[2]])
 }
 
-fn luminance(c: &Rgb) -> f64 {
+pub(crate) fn luminance(c: &Rgb) -> f64 {
     (c[0] + c[1] + c[2]) / 3.0
 }
 
@@ -422,122 +421,57 @@ impl Propagation {
         &self.stats
     }
 
-    /// Performs one iteration.
+    /// Performs one iteration in this process: every batch of every pass
+    /// (see [`work`]), absorbed in order.
     pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let started = Instant::now();
-        let index = self.iterations_done();
-        let scene = &self.scene;
-        let atlas = &self.atlas;
-        let geometry = shoot::Geometry {
-            scene,
-            atlas,
-            stacking: &self.stacking,
+        let mut work = self.iteration_work();
+        let passes = work.passes();
+        let l = self.directions.len();
+        let mut maps = match (&mut self.specular, work.uses_mirror_maps()) {
+            (Some(spec), true) => Some(std::mem::take(&mut spec.maps)),
+            _ => None,
         };
-
-        // Deferred propagation: quiet surfaces keep their unshot power.
-        let mut per_surface = vec![0.0f64; scene.surfaces.len()];
-        for (t, c) in self.current.iter().enumerate() {
-            per_surface[self.owners[t] as usize] += luminance(c);
-        }
-        let unshot_total: f64 = per_surface.iter().sum();
-        let deferred: Vec<bool> = match self.options.deferral {
-            Some(threshold) if threshold > 0.0 => {
-                let d: Vec<bool> = per_surface
-                    .iter()
-                    .map(|&p| p > 0.0 && p < threshold * unshot_total)
-                    .collect();
-                // Never defer everything: that would stall the iteration.
-                if per_surface.iter().zip(&d).any(|(&p, &x)| p > 0.0 && !x) {
-                    d
-                } else {
-                    vec![false; d.len()]
-                }
-            }
-            _ => vec![false; per_surface.len()],
-        };
-        let mut carried = vec![[0.0; 3]; self.current.len()];
-        let mut shooting = self.current.clone();
-        for (t, c) in shooting.iter_mut().enumerate() {
-            if deferred[self.owners[t] as usize] {
-                carried[t] = *c;
-                *c = [0.0; 3];
-            }
-        }
-
-        // Perturbed copies only carry diffuse transport; with mirrors in the
-        // scene every iteration goes through the true directions (their maps
-        // exist only there).
-        let p = self.options.perturbation;
-        let perturbed = index < p.iterations && p.count > 0 && self.specular.is_none();
-        let (received, flow) = if perturbed {
-            let (received, flow, unsent) = perturb::shoot_perturbed(
-                geometry,
-                &self.directions,
-                self.options.grid,
-                index,
-                p.count,
-                &shooting,
-                &mut |done, total| {
-                    progress(Progress {
-                        iteration: index,
-                        directions_done: done,
-                        directions_total: total,
-                    })
-                },
-            );
-            for (c, u) in carried.iter_mut().zip(&unsent) {
-                for k in 0..3 {
-                    c[k] += u[k];
-                }
-            }
-            (received, flow)
-        } else {
-            let radiance = radiance_of(&shooting, &self.projected_area);
-            let facing = facing_table(scene, &self.subfields);
-            let total = self.directions.len();
-            let report = |done| {
+        for (p, &pass) in passes.iter().enumerate() {
+            for batch in 0..work.batches() {
+                let range = work.batch_range(batch, l);
+                let own = maps.as_mut().map(|m| &mut m[range.clone()]);
+                let sum = self
+                    .run_batch(&work, pass, batch, own)
+                    .expect("batches of this process's own work are well-formed");
+                work.absorb(pass, batch, &sum)
+                    .expect("this process absorbs its batches in order");
                 progress(Progress {
-                    iteration: index,
-                    directions_done: done,
-                    directions_total: total,
-                })
-            };
-            let (directions, subfields) = (&self.directions, &self.subfields);
-            let beam = |d: usize| shoot::Beam {
-                sub: &subfields[d],
-                weight: directions.get(d).weight,
-                facing: &facing[d],
-            };
-            // Mirror work only once light can have reached a mirror.
-            let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
-            let specular = self.specular.as_mut().filter(|s| index >= first_lit || s.has_unshot());
-            match specular {
-                None => map_reduce_directions(total, atlas.texels, report, |d, buf, scratch| {
-                    shoot::shoot(geometry, beam(d), &radiance, buf, None, scratch)
-                }),
-                Some(spec) => {
-                    let layouts = &spec.layouts;
-                    map_reduce_with_state(&mut spec.maps, atlas.texels, report, |d, maps, buf, scratch| {
-                        let io = shoot::SpecularIo {
-                            mirror_base: &layouts[d].entry_base,
-                            unshot: &maps.unshot,
-                            incident: &mut maps.incident,
-                            total: &mut maps.total,
-                        };
-                        shoot::shoot(geometry, beam(d), &radiance, buf, Some(io), scratch)
-                    })
-                }
+                    iteration: work.index,
+                    directions_done: p * l + range.end,
+                    directions_total: passes.len() * l,
+                });
             }
-        };
-        // Mirrors reflect what arrived on them into new unshot maps.
+        }
+        if let (Some(spec), Some(maps)) = (&mut self.specular, maps) {
+            spec.maps = maps;
+        }
+        self.finish_iteration(work, started)
+    }
+
+    /// Ends an iteration whose passes are all absorbed: mirrors reflect what
+    /// arrived on them (the exchange), diffuse surfaces reflect what they
+    /// received (`Next = ρd · received`, filtered), `Total += Next`, and the
+    /// held-back power joins the new unshot power.
+    pub fn finish_iteration(&mut self, work: IterationWork, started: Instant) -> IterationStats {
+        debug_assert!(
+            work.next_expected().is_none(),
+            "an iteration finished before its passes"
+        );
+        let index = work.index;
+        let scene = &self.scene;
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
         let exchange = match self.specular.as_mut() {
             Some(spec) if index >= first_lit => spec.exchange(scene, &self.directions, &self.subfields),
             _ => Exchange::default(),
         };
-
-        // Reflect: Next = ρd · received; Total += Next.
-        let mut next: Vec<Rgb> = received
+        let mut next: Vec<Rgb> = work
+            .received
             .iter()
             .zip(&self.owners)
             .map(|(r, &s)| {
@@ -546,12 +480,12 @@ impl Propagation {
             })
             .collect();
         if let Some(sigma) = self.options.filter_sigma {
-            filter::gaussian(atlas, &self.projected_area, &mut next, sigma);
+            filter::gaussian(&self.atlas, &self.projected_area, &mut next, sigma);
         }
-        for (t, n) in next.iter_mut().enumerate() {
+        for ((n, total), carried) in next.iter_mut().zip(&mut self.total).zip(&work.carried) {
             for c in 0..3 {
-                self.total[t][c] += n[c];
-                n[c] += carried[t][c];
+                total[c] += n[c];
+                n[c] += carried[c];
             }
         }
         self.current = next;
@@ -561,9 +495,9 @@ impl Propagation {
             .map_or([0.0; 3], |s| s.unshot_power(&self.directions));
         let stats = IterationStats {
             index,
-            flow: flow.into(),
+            flow: work.flow.into(),
             unshot: self.unshot_power(),
-            deferred_surfaces: deferred.iter().filter(|&&d| d).count(),
+            deferred_surfaces: work.deferred_surfaces,
             exchange,
             specular_unshot,
             seconds: started.elapsed().as_secs_f64(),
@@ -604,14 +538,6 @@ pub(crate) fn radiance_of(power: &[Rgb], area: &[f64]) -> Vec<Rgb> {
                 [0.0; 3]
             }
         })
-        .collect()
-}
-
-/// `n_s · w` for every surface and subfield.
-fn facing_table(scene: &Scene, subfields: &[Subfield]) -> Vec<Vec<f64>> {
-    subfields
-        .iter()
-        .map(|sub| scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect())
         .collect()
 }
 

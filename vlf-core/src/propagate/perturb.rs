@@ -9,17 +9,14 @@
 //! create directional totals. Each rotated set gets its own discrete areas
 //! `T_t`, so every sub-shot is exactly power-conserving too.
 //!
+//! The passes that shoot through the copies are in [`super::work`].
+//!
 //! Rotations come from a fixed-seed splitmix64 sequence keyed by iteration
 //! and copy index, so results are reproducible across runs, machines and
 //! library versions (a general-purpose RNG crate makes no such promise).
 
-use super::shoot::{self, Flow};
-use super::{discrete_areas, map_reduce_directions, radiance_of};
 use crate::directions::DirectionSet;
-use crate::psf::{GridSize, Subfield};
-use crate::scene::Rgb;
 use glam::{DMat3, DVec3};
-use std::borrow::Cow;
 
 /// splitmix64: a tiny, well-known generator with a fixed definition.
 pub(crate) struct SplitMix(pub u64);
@@ -49,65 +46,4 @@ pub(crate) fn rotation(directions: &DirectionSet, iteration: u32, copy: u32, cou
     let alpha = directions.mean_solid_angle().sqrt();
     let angle = alpha * (copy as f64 + rng.next_f64()) / count as f64;
     DMat3::from_axis_angle(axis, angle)
-}
-
-/// Shoots `shooting` through `count` rotated copies of the direction set.
-/// Returns the received power, the flow, and the power that could not be
-/// shot (texels no ray of a rotated copy crosses), to be carried over.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn shoot_perturbed(
-    geometry: shoot::Geometry,
-    directions: &DirectionSet,
-    grid: GridSize,
-    iteration: u32,
-    count: u32,
-    shooting: &[Rgb],
-    progress: &mut dyn FnMut(usize, usize),
-) -> (Vec<Rgb>, Flow, Vec<Rgb>) {
-    let (scene, atlas) = (geometry.scene, geometry.atlas);
-    let share = 1.0 / count as f64;
-    let part: Vec<Rgb> = shooting
-        .iter()
-        .map(|p| [p[0] * share, p[1] * share, p[2] * share])
-        .collect();
-    let mut received = vec![[0.0; 3]; atlas.texels];
-    let mut unsent = vec![[0.0; 3]; atlas.texels];
-    let mut flow = Flow::default();
-    let total = directions.len() * count as usize;
-    for copy in 0..count {
-        let rotated = directions.rotated(rotation(directions, iteration, copy, count));
-        let build = |d: usize| Cow::Owned(Subfield::build(scene, rotated.get(d).vector, grid));
-        let area = discrete_areas(geometry, &rotated, build);
-        for (t, a) in area.iter().enumerate() {
-            if *a <= 0.0 {
-                for c in 0..3 {
-                    unsent[t][c] += part[t][c];
-                }
-            }
-        }
-        let radiance = radiance_of(&part, &area);
-        let base = copy as usize * directions.len();
-        let (r, f) = map_reduce_directions(
-            rotated.len(),
-            atlas.texels,
-            |done| progress(base + done, total),
-            |d, buf, scratch| {
-                let sub = Subfield::build(scene, rotated.get(d).vector, grid);
-                let facing: Vec<f64> = scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect();
-                let beam = shoot::Beam {
-                    sub: &sub,
-                    weight: rotated.get(d).weight,
-                    facing: &facing,
-                };
-                shoot::shoot(geometry, beam, &radiance, buf, None, scratch)
-            },
-        );
-        for (acc, v) in received.iter_mut().zip(&r) {
-            for c in 0..3 {
-                acc[c] += v[c];
-            }
-        }
-        flow.add(&f);
-    }
-    (received, flow, unsent)
 }

@@ -1,0 +1,407 @@
+//! An iteration as work that can be split across threads, processes and
+//! machines: **passes** over **batches** of directions, reduced in order.
+//!
+//! Every iteration is a short list of [`Pass`]es. A plain iteration has one,
+//! [`Pass::Shoot`]: every true direction shoots the unshot radiance (and the
+//! mirrors' directional unshot radiance) along its rays. A perturbed
+//! iteration has two per rotated copy of the direction set: [`Pass::Areas`]
+//! (the copy's discrete areas `T_t`, which the copy's radiance `Φ_t / T_t`
+//! needs) then [`Pass::ShootCopy`].
+//!
+//! A pass is cut into batches of [`BATCH`] consecutive directions. A batch is
+//! a pure function of the iteration's inputs ([`IterationWork`], derived
+//! deterministically from the propagation's state), the pass results already
+//! absorbed, and — for [`Pass::Shoot`] — the mirror maps of its own
+//! directions, which it updates. Its output is a [`BatchSum`]: per-texel
+//! power summed over the batch's directions **in direction order, starting
+//! from zero**, and the batch's flow. [`IterationWork::absorb`] then adds the
+//! batch sums **in batch order**. So the bits of an iteration do not depend on
+//! who computed which batch, or when it finished: a single process running
+//! the batches in a loop ([`super::Propagation::step`]) and a coordinator
+//! collecting them from any number of workers get the same field, as long as
+//! the coordinator absorbs in batch order.
+//!
+//! Between iterations, what stays global is small: the texel maps (reduced
+//! here) and the mirror exchange ([`super::Specular::exchange`]), which reads
+//! the incident maps of all directions and writes each direction's new unshot
+//! map.
+
+use super::shoot::{self, Flow, Scratch};
+use super::specular::DirectionMaps;
+use super::{FlowRecord, Propagation, perturb, radiance_of};
+use crate::directions::DirectionSet;
+use crate::psf::Subfield;
+use crate::scene::Rgb;
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::ops::Range;
+
+/// Directions per batch: the unit of work and of reduction. Fixed (not
+/// derived from a thread or worker count) so the summation order, and
+/// therefore the bits, never depend on how the work is spread.
+pub const BATCH: usize = 16;
+
+/// One map-reduce over the directions of an iteration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+pub enum Pass {
+    /// Shoot along the true directions; mirrors' maps take part.
+    Shoot,
+    /// Discrete areas of rotated copy `copy` of the direction set.
+    Areas { copy: u32 },
+    /// Shoot through rotated copy `copy`, carrying `1/count` of the power.
+    ShootCopy { copy: u32 },
+}
+
+/// The output of one batch of a pass.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct BatchSum {
+    /// Per texel, summed over the batch's directions in order: received
+    /// power (shooting passes) or discrete area in channel 0 ([`Pass::Areas`]).
+    pub texels: Vec<Rgb>,
+    /// Power bookkeeping of the batch (zero for [`Pass::Areas`]).
+    pub flow: FlowRecord,
+}
+
+/// What the passes of one iteration read, and what they have produced so far.
+pub struct IterationWork {
+    pub index: u32,
+    /// Unshot power held back this iteration (deferred surfaces, and texels
+    /// no ray of a rotated copy crosses).
+    pub(crate) carried: Vec<Rgb>,
+    pub(crate) deferred_surfaces: usize,
+    mode: Mode,
+    /// Received power, over the passes absorbed so far.
+    pub(crate) received: Vec<Rgb>,
+    pub(crate) flow: Flow,
+    /// The pass being absorbed and the next batch it expects.
+    cursor: (usize, usize),
+    /// Per-pass partial reduction.
+    pass_sum: Vec<Rgb>,
+    batches: usize,
+}
+
+enum Mode {
+    /// Shoot the true directions with this radiance per texel; the mirror
+    /// maps take part when `mirrors`.
+    Direct { radiance: Vec<Rgb>, mirrors: bool },
+    /// Shoot through rotated copies, each with `part` = 1/count of the power.
+    Perturbed {
+        part: Vec<Rgb>,
+        copies: Vec<DirectionSet>,
+        /// Radiance of each copy, once its areas are absorbed.
+        radiance: Vec<Option<Vec<Rgb>>>,
+    },
+}
+
+impl IterationWork {
+    /// The passes of this iteration, in the order they must be absorbed.
+    pub fn passes(&self) -> Vec<Pass> {
+        match &self.mode {
+            Mode::Direct { .. } => vec![Pass::Shoot],
+            Mode::Perturbed { copies, .. } => (0..copies.len() as u32)
+                .flat_map(|copy| [Pass::Areas { copy }, Pass::ShootCopy { copy }])
+                .collect(),
+        }
+    }
+
+    /// Batches per pass.
+    pub fn batches(&self) -> usize {
+        self.batches
+    }
+
+    /// Whether the true directions' mirror maps take part (then batches of
+    /// [`Pass::Shoot`] need the maps of their directions).
+    pub fn uses_mirror_maps(&self) -> bool {
+        matches!(self.mode, Mode::Direct { mirrors: true, .. })
+    }
+
+    /// The pass and batch [`IterationWork::absorb`] expects next, or `None`
+    /// when every pass is absorbed.
+    pub fn next_expected(&self) -> Option<(Pass, usize)> {
+        let passes = self.passes();
+        passes.get(self.cursor.0).map(|&p| (p, self.cursor.1))
+    }
+
+    /// Adds the sum of batch `batch` of `pass`. Batches must come in order,
+    /// pass by pass (see the module docs); anything else is refused.
+    pub fn absorb(&mut self, pass: Pass, batch: usize, sum: &BatchSum) -> crate::Result<()> {
+        let texels = self.received.len();
+        if self.next_expected() != Some((pass, batch)) {
+            return Err(crate::Error::Parameter(format!(
+                "batch {batch} of {pass:?} out of order (expected {:?})",
+                self.next_expected()
+            )));
+        }
+        if sum.texels.len() != texels {
+            return Err(crate::Error::Decode(format!(
+                "batch {batch} of {pass:?} has {} texels, the field {texels}",
+                sum.texels.len()
+            )));
+        }
+        if sum.texels.iter().flatten().any(|v| !v.is_finite()) {
+            return Err(crate::Error::Decode(format!(
+                "batch {batch} of {pass:?} holds non-finite power"
+            )));
+        }
+        add_into(&mut self.pass_sum, &sum.texels);
+        if !matches!(pass, Pass::Areas { .. }) {
+            let f = &sum.flow;
+            self.flow.add(&Flow {
+                shot: f.shot,
+                received: f.received,
+                escaped: f.escaped,
+                blocked: f.blocked,
+            });
+        }
+        self.cursor.1 += 1;
+        if self.cursor.1 == self.batches {
+            let done = std::mem::replace(&mut self.pass_sum, vec![[0.0; 3]; texels]);
+            self.finish_pass(pass, done);
+            self.cursor = (self.cursor.0 + 1, 0);
+        }
+        Ok(())
+    }
+
+    fn finish_pass(&mut self, pass: Pass, sum: Vec<Rgb>) {
+        match (pass, &mut self.mode) {
+            (Pass::Areas { copy }, Mode::Perturbed { part, radiance, .. }) => {
+                let area: Vec<f64> = sum.iter().map(|a| a[0]).collect();
+                for (t, a) in area.iter().enumerate() {
+                    if *a <= 0.0 {
+                        add_into(&mut self.carried[t..t + 1], &part[t..t + 1]);
+                    }
+                }
+                radiance[copy as usize] = Some(radiance_of(part, &area));
+            }
+            _ => add_into(&mut self.received, &sum),
+        }
+    }
+
+    /// The directions of batch `batch`.
+    pub fn batch_range(&self, batch: usize, directions: usize) -> Range<usize> {
+        let start = (batch * BATCH).min(directions);
+        start..(start + BATCH).min(directions)
+    }
+}
+
+impl Propagation {
+    /// The inputs of the next iteration, fixed from the current state:
+    /// deferral, the shooting radiance, perturbation and mirror plan.
+    pub fn iteration_work(&self) -> IterationWork {
+        let index = self.iterations_done();
+        let texels = self.atlas.texels;
+
+        // Deferred propagation: quiet surfaces keep their unshot power.
+        let mut per_surface = vec![0.0f64; self.scene.surfaces.len()];
+        for (t, c) in self.current.iter().enumerate() {
+            per_surface[self.owners[t] as usize] += super::luminance(c);
+        }
+        let unshot_total: f64 = per_surface.iter().sum();
+        let deferred: Vec<bool> = match self.options.deferral {
+            Some(threshold) if threshold > 0.0 => {
+                let d: Vec<bool> = per_surface
+                    .iter()
+                    .map(|&p| p > 0.0 && p < threshold * unshot_total)
+                    .collect();
+                // Never defer everything: that would stall the iteration.
+                if per_surface.iter().zip(&d).any(|(&p, &x)| p > 0.0 && !x) {
+                    d
+                } else {
+                    vec![false; d.len()]
+                }
+            }
+            _ => vec![false; per_surface.len()],
+        };
+        let mut carried = vec![[0.0; 3]; texels];
+        let mut shooting = self.current.clone();
+        for (t, c) in shooting.iter_mut().enumerate() {
+            if deferred[self.owners[t] as usize] {
+                carried[t] = *c;
+                *c = [0.0; 3];
+            }
+        }
+
+        // Perturbed copies only carry diffuse transport; with mirrors in the
+        // scene every iteration goes through the true directions (their maps
+        // exist only there).
+        let p = self.options.perturbation;
+        let perturbed = index < p.iterations && p.count > 0 && self.specular.is_none();
+        let mode = if perturbed {
+            let share = 1.0 / p.count as f64;
+            Mode::Perturbed {
+                part: shooting.iter().map(|v| v.map(|c| c * share)).collect(),
+                copies: (0..p.count)
+                    .map(|copy| {
+                        self.directions
+                            .rotated(perturb::rotation(&self.directions, index, copy, p.count))
+                    })
+                    .collect(),
+                radiance: vec![None; p.count as usize],
+            }
+        } else {
+            // Mirror work only once light can have reached a mirror.
+            let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
+            let mirrors = self
+                .specular
+                .as_ref()
+                .is_some_and(|s| index >= first_lit || s.has_unshot());
+            Mode::Direct {
+                radiance: radiance_of(&shooting, &self.projected_area),
+                mirrors,
+            }
+        };
+        IterationWork {
+            index,
+            carried,
+            deferred_surfaces: deferred.iter().filter(|&&d| d).count(),
+            mode,
+            received: vec![[0.0; 3]; texels],
+            flow: Flow::default(),
+            cursor: (0, 0),
+            pass_sum: vec![[0.0; 3]; texels],
+            batches: self.directions.len().div_ceil(BATCH),
+        }
+    }
+
+    /// Computes batch `batch` of `pass` of `work`. `maps` are the mirror maps
+    /// of the batch's directions, in order, when [`Pass::Shoot`] uses them
+    /// ([`IterationWork::uses_mirror_maps`]); they receive the incident
+    /// radiance and the totals. Directions run in parallel; the sum is in
+    /// direction order.
+    pub fn run_batch(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batch: usize,
+        maps: Option<&mut [DirectionMaps]>,
+    ) -> crate::Result<BatchSum> {
+        let range = work.batch_range(batch, self.directions.len());
+        if range.is_empty() {
+            return Err(crate::Error::Parameter(format!(
+                "batch {batch} out of range ({} batches)",
+                work.batches()
+            )));
+        }
+        let geometry = shoot::Geometry {
+            scene: &self.scene,
+            atlas: &self.atlas,
+            stacking: &self.stacking,
+        };
+        let texels = self.atlas.texels;
+        let scene = &self.scene;
+        let facing =
+            |sub: &Subfield| -> Vec<f64> { scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect() };
+        let per_direction: Vec<(Vec<Rgb>, Flow)> = match (pass, &work.mode) {
+            (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
+                let layouts = self.specular.as_ref().map(|s| &s.layouts);
+                let run = |d: usize, maps: Option<&mut DirectionMaps>, scratch: &mut Scratch| {
+                    let sub = &self.subfields[d];
+                    let facing = facing(sub);
+                    let beam = shoot::Beam {
+                        sub,
+                        weight: self.directions.get(d).weight,
+                        facing: &facing,
+                    };
+                    let mut buf = vec![[0.0; 3]; texels];
+                    let io = maps.zip(layouts).map(|(m, layouts)| shoot::SpecularIo {
+                        mirror_base: &layouts[d].entry_base,
+                        unshot: &m.unshot,
+                        incident: &mut m.incident,
+                        total: &mut m.total,
+                    });
+                    let flow = shoot::shoot(geometry, beam, radiance, &mut buf, io, scratch);
+                    (buf, flow)
+                };
+                match (mirrors, maps) {
+                    (true, Some(maps)) if maps.len() == range.len() => maps
+                        .par_iter_mut()
+                        .enumerate()
+                        .map_init(Scratch::default, |scratch, (i, m)| {
+                            run(range.start + i, Some(m), scratch)
+                        })
+                        .collect(),
+                    (true, _) => {
+                        return Err(crate::Error::Parameter(format!(
+                            "batch {batch} needs the mirror maps of its {} directions",
+                            range.len()
+                        )));
+                    }
+                    (false, _) => range
+                        .clone()
+                        .into_par_iter()
+                        .map_init(Scratch::default, |scratch, d| run(d, None, scratch))
+                        .collect(),
+                }
+            }
+            (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
+                let set = &copies[copy as usize];
+                range
+                    .clone()
+                    .into_par_iter()
+                    .map_init(Scratch::default, |scratch, d| {
+                        let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                        let mut buf = vec![[0.0; 3]; texels];
+                        shoot::count(geometry, &sub, set.get(d).weight, &mut buf, scratch);
+                        (buf, Flow::default())
+                    })
+                    .collect()
+            }
+            (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. }) if (copy as usize) < copies.len() => {
+                let set = &copies[copy as usize];
+                let Some(radiance) = &radiance[copy as usize] else {
+                    return Err(crate::Error::Parameter(format!(
+                        "{pass:?} before the areas of copy {copy} are absorbed"
+                    )));
+                };
+                range
+                    .clone()
+                    .into_par_iter()
+                    .map_init(Scratch::default, |scratch, d| {
+                        let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                        let facing = facing(&sub);
+                        let beam = shoot::Beam {
+                            sub: &sub,
+                            weight: set.get(d).weight,
+                            facing: &facing,
+                        };
+                        let mut buf = vec![[0.0; 3]; texels];
+                        let flow = shoot::shoot(geometry, beam, radiance, &mut buf, None, scratch);
+                        (buf, flow)
+                    })
+                    .collect()
+            }
+            _ => {
+                return Err(crate::Error::Parameter(format!(
+                    "{pass:?} is not a pass of iteration {}",
+                    work.index
+                )));
+            }
+        };
+        // Σ over the batch's directions in direction order, from zero; texel
+        // chunks in parallel (each texel's additions stay in order).
+        let mut sum = vec![[0.0; 3]; texels];
+        sum.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {
+            let base = c * 4096;
+            for (buf, _) in &per_direction {
+                add_into(chunk, &buf[base..base + chunk.len()]);
+            }
+        });
+        let mut flow = Flow::default();
+        for (_, f) in &per_direction {
+            flow.add(f);
+        }
+        Ok(BatchSum {
+            texels: sum,
+            flow: flow.into(),
+        })
+    }
+}
+
+/// `acc += v`, texel by texel.
+pub(crate) fn add_into(acc: &mut [Rgb], v: &[Rgb]) {
+    for (a, b) in acc.iter_mut().zip(v) {
+        a[0] += b[0];
+        a[1] += b[1];
+        a[2] += b[2];
+    }
+}

@@ -1,0 +1,163 @@
+//! The iteration split into passes and batches (`propagate::work`): batches
+//! computed by separate replicas of the propagation, in any order, absorbed
+//! in batch order by a coordinator, give the same bits as the in-process
+//! step — with mirrors (maps travel with their directions) and with
+//! perturbation (the areas pass feeds the copy's shooting pass).
+
+mod common;
+
+use common::*;
+use std::collections::HashMap;
+use vlf_core::propagate::specular::DirectionMaps;
+use vlf_core::propagate::{BatchSum, Checkpoint, Options, Pass, Perturbation, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::scene::Scene;
+
+fn options(perturb: u32) -> Options {
+    Options {
+        directions: 129,
+        grid: GridSize::new(16, 4).unwrap(),
+        stop: Stop::Iterations(4),
+        perturbation: Perturbation {
+            iterations: perturb,
+            count: 3,
+        },
+        filter_sigma: Some(0.8),
+        ..Options::default()
+    }
+}
+
+fn mirror_room() -> Scene {
+    let mut scene = closed_box(
+        0.55,
+        2,
+        &[3],
+        vec![
+            material("wall", 0.5, 0.0),
+            material("lamp", 0.3, 2.0),
+            mirror("glass", 0.0, 0.8),
+            mirror("satin", 0.2, 0.7),
+        ],
+    );
+    for (k, s) in scene.surfaces.iter_mut().enumerate() {
+        match k / 4 {
+            0 => s.material = 2,
+            5 => s.material = 3,
+            _ => {}
+        }
+    }
+    scene
+}
+
+fn without_times(mut c: Checkpoint) -> Checkpoint {
+    for s in &mut c.stats {
+        s.seconds = 0.0;
+    }
+    c
+}
+
+/// A fixed permutation of `0..n` that is far from the identity.
+fn shuffled(n: usize, seed: usize) -> Vec<usize> {
+    let mut v: Vec<usize> = (0..n).collect();
+    for i in (1..n).rev() {
+        let j = (i * 7919 + seed * 104_729) % (i + 1);
+        v.swap(i, j);
+    }
+    v
+}
+
+/// Runs the propagation with `workers` replicas computing the batches of
+/// every pass in a shuffled order, the coordinator absorbing in order.
+fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagation {
+    let mut main = Propagation::new(scene.clone(), options.clone()).unwrap();
+    while !main.finished() {
+        let started = std::time::Instant::now();
+        // Every worker starts the iteration from the coordinator's state.
+        let mut replicas: Vec<Propagation> = (0..workers)
+            .map(|_| Propagation::resume(scene.clone(), options.clone(), main.checkpoint()).unwrap())
+            .collect();
+        let mut works: Vec<_> = replicas.iter().map(|r| r.iteration_work()).collect();
+        let mut work = main.iteration_work();
+        let l = main.directions.len();
+        for pass in work.passes() {
+            let mut done: HashMap<usize, (BatchSum, Option<Vec<DirectionMaps>>)> = HashMap::new();
+            for (i, batch) in shuffled(work.batches(), work.index as usize).into_iter().enumerate() {
+                let w = i % workers;
+                let range = work.batch_range(batch, l);
+                let uses_maps = works[w].uses_mirror_maps();
+                let replica = &mut replicas[w];
+                let mut maps: Option<Vec<DirectionMaps>> =
+                    uses_maps.then(|| replica.specular.as_ref().unwrap().maps[range.clone()].to_vec());
+                let sum = replica.run_batch(&works[w], pass, batch, maps.as_deref_mut()).unwrap();
+                done.insert(batch, (sum, maps));
+            }
+            for batch in 0..work.batches() {
+                let (sum, maps) = &done[&batch];
+                work.absorb(pass, batch, sum).unwrap();
+                for w in &mut works {
+                    w.absorb(pass, batch, sum).unwrap();
+                }
+                if let Some(maps) = maps {
+                    let range = work.batch_range(batch, l);
+                    main.specular.as_mut().unwrap().maps[range].clone_from_slice(maps);
+                }
+            }
+        }
+        main.finish_iteration(work, started);
+    }
+    main
+}
+
+fn same_bits_as_in_process(scene: Scene, options: Options) {
+    let mut straight = Propagation::new(scene.clone(), options.clone()).unwrap();
+    straight.run(|_| {});
+    for workers in [1, 2, 3] {
+        let p = run_distributed(&scene, &options, workers);
+        assert!(
+            without_times(p.checkpoint()) == without_times(straight.checkpoint()),
+            "{workers} workers changed the bits"
+        );
+    }
+}
+
+#[test]
+fn batches_from_several_workers_in_any_order_give_the_same_bits_with_mirrors() {
+    let p = Propagation::new(mirror_room(), options(0)).unwrap();
+    assert!(p.specular.is_some());
+    same_bits_as_in_process(mirror_room(), options(0));
+}
+
+#[test]
+fn perturbed_passes_split_across_workers_give_the_same_bits() {
+    let scene = closed_box(
+        0.6,
+        2,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
+    );
+    same_bits_as_in_process(scene, options(2));
+}
+
+#[test]
+fn out_of_order_and_foreign_batches_are_refused() {
+    let p = Propagation::new(mirror_room(), options(0)).unwrap();
+    let mut work = p.iteration_work();
+    assert_eq!(work.passes(), vec![Pass::Shoot]);
+    let mut maps = p.specular.as_ref().unwrap().maps[16..32].to_vec();
+    let sum = p.run_batch(&work, Pass::Shoot, 1, Some(&mut maps)).unwrap();
+    // Batch 1 before batch 0.
+    assert!(work.absorb(Pass::Shoot, 1, &sum).is_err());
+    // A pass this iteration does not have; a batch past the end; maps missing.
+    assert!(p.run_batch(&work, Pass::Areas { copy: 0 }, 0, None).is_err());
+    assert!(p.run_batch(&work, Pass::Shoot, work.batches(), None).is_err());
+    if work.uses_mirror_maps() {
+        assert!(p.run_batch(&work, Pass::Shoot, 0, None).is_err());
+    }
+    // A sum of the wrong size, or with NaN.
+    let mut short = sum.clone();
+    short.texels.pop();
+    assert!(work.absorb(Pass::Shoot, 0, &short).is_err());
+    let mut nan = sum;
+    nan.texels[0][1] = f64::NAN;
+    assert!(work.absorb(Pass::Shoot, 0, &nan).is_err());
+}
