@@ -69,11 +69,13 @@ pub enum BlobKind {
     Raw = 7,
     /// A stage's summary (JSON): iterations, unshot power, statistics.
     Summary = 8,
+    /// The output of one batch of directions of one pass of an iteration (caller's serialisation).
+    BatchOutput = 9,
 }
 
 impl BlobKind {
     /// Every kind, in numeric order.
-    pub const ALL: [BlobKind; 8] = [
+    pub const ALL: [BlobKind; 9] = [
         BlobKind::Manifest,
         BlobKind::Scene,
         BlobKind::Snapshot,
@@ -82,6 +84,7 @@ impl BlobKind {
         BlobKind::MirrorMaps,
         BlobKind::Raw,
         BlobKind::Summary,
+        BlobKind::BatchOutput,
     ];
 
     /// The number stored in the header.

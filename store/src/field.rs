@@ -382,7 +382,7 @@ impl FieldJob {
         }
     }
 
-    fn field_error(&self, source: vlf_core::Error) -> StoreError {
+    pub(crate) fn field_error(&self, source: vlf_core::Error) -> StoreError {
         StoreError::Field {
             url: self.job.store().url().to_string(),
             job: self.id().to_string(),

@@ -8,6 +8,7 @@
 //! | `jobs/J/scene.blob` | Scene | the normalised scene (caller's bytes) |
 //! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | what resuming propagation after K iterations needs |
 //! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
+//! | `jobs/J/work/KKKKK/PASS/BBBBB.blob` | BatchOutput | a worker's output for one batch of the iteration after snapshot K (deleted once K+1 is committed) |
 //! | `S/diffuse/SSSSSSS.blob` | DiffuseMaps | Total maps of diffuse surface S |
 //! | `S/mirrors/SSSSSSS.blob` | MirrorMaps | directional maps of mirror S |
 //! | `S/dirs/DDDDD/tile-TTTT-TTTT.blob` | TileRadiance | tile (s, t) of direction D's parallel subfield |
@@ -69,6 +70,22 @@ pub fn stage_prefix(job: &JobId, stage: Stage) -> Result<String, StoreError> {
 /// `jobs/J/iters/KKKKK/state.blob`: the resume state after `k` iterations.
 pub fn state(job: &JobId, k: u32) -> Result<String, StoreError> {
     Ok(format!("{}state.blob", stage_prefix(job, Stage::Iteration(k))?))
+}
+
+/// `jobs/J/work/KKKKK/`: the batch outputs of the iteration that starts from snapshot `k`.
+pub fn work_prefix(job: &JobId, k: u32) -> Result<String, StoreError> {
+    let k = check("iteration", k, MAX_ITERATION)?;
+    Ok(format!("{JOBS_PREFIX}{job}/work/{k:05}/"))
+}
+
+/// `jobs/J/work/KKKKK/PASS/BBBBB.blob`: batch `batch` of pass `pass` (a name such as `shoot` or
+/// `areas-00`) of the iteration that starts from snapshot `k`.
+pub fn work_batch(job: &JobId, k: u32, pass: &str, batch: u32) -> Result<String, StoreError> {
+    let batch = check("batch", batch, MAX_DIRECTION)?;
+    if pass.is_empty() || !pass.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-') {
+        return Err(StoreError::Layout(format!("pass name `{pass}` is not a key segment")));
+    }
+    Ok(format!("{}{pass}/{batch:05}.blob", work_prefix(job, k)?))
 }
 
 /// `S/summary.blob`: what a stage is (iterations, unshot power, statistics).

@@ -8,8 +8,7 @@ mod common;
 
 use common::*;
 use std::collections::HashMap;
-use vlf_core::propagate::specular::DirectionMaps;
-use vlf_core::propagate::{BatchSum, Checkpoint, Options, Pass, Perturbation, Propagation, Stop};
+use vlf_core::propagate::{BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
@@ -67,39 +66,34 @@ fn shuffled(n: usize, seed: usize) -> Vec<usize> {
 }
 
 /// Runs the propagation with `workers` replicas computing the batches of
-/// every pass in a shuffled order, the coordinator absorbing in order.
+/// every pass in a shuffled order, their outputs serialised as they would
+/// travel, the coordinator applying them in batch order.
 fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagation {
     let mut main = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let mut replicas: Vec<Propagation> = (0..workers)
+        .map(|_| Propagation::new(scene.clone(), options.clone()).unwrap())
+        .collect();
     while !main.finished() {
         let started = std::time::Instant::now();
-        // Every worker starts the iteration from the coordinator's state.
-        let mut replicas: Vec<Propagation> = (0..workers)
-            .map(|_| Propagation::resume(scene.clone(), options.clone(), main.checkpoint()).unwrap())
-            .collect();
+        // Every worker starts the iteration from the coordinator's checkpoint.
+        for r in &mut replicas {
+            r.restore(main.checkpoint()).unwrap();
+        }
         let mut works: Vec<_> = replicas.iter().map(|r| r.iteration_work()).collect();
         let mut work = main.iteration_work();
-        let l = main.directions.len();
         for pass in work.passes() {
-            let mut done: HashMap<usize, (BatchSum, Option<Vec<DirectionMaps>>)> = HashMap::new();
+            let mut done: HashMap<usize, Vec<u8>> = HashMap::new();
             for (i, batch) in shuffled(work.batches(), work.index as usize).into_iter().enumerate() {
                 let w = i % workers;
-                let range = work.batch_range(batch, l);
-                let uses_maps = works[w].uses_mirror_maps();
-                let replica = &mut replicas[w];
-                let mut maps: Option<Vec<DirectionMaps>> =
-                    uses_maps.then(|| replica.specular.as_ref().unwrap().maps[range.clone()].to_vec());
-                let sum = replica.run_batch(&works[w], pass, batch, maps.as_deref_mut()).unwrap();
-                done.insert(batch, (sum, maps));
+                let out = replicas[w].compute_batch(&works[w], pass, batch).unwrap();
+                done.insert(batch, out.to_bytes());
             }
             for batch in 0..work.batches() {
-                let (sum, maps) = &done[&batch];
-                work.absorb(pass, batch, sum).unwrap();
+                let out = BatchOutput::from_bytes(&done[&batch]).unwrap();
+                main.apply_batch(&mut work, &out).unwrap();
+                // Workers learn the pass results too (a copy's areas feed its shooting pass).
                 for w in &mut works {
-                    w.absorb(pass, batch, sum).unwrap();
-                }
-                if let Some(maps) = maps {
-                    let range = work.batch_range(batch, l);
-                    main.specular.as_mut().unwrap().maps[range].clone_from_slice(maps);
+                    w.absorb(pass, batch, &out.sum).unwrap();
                 }
             }
         }
@@ -160,4 +154,16 @@ fn out_of_order_and_foreign_batches_are_refused() {
     let mut nan = sum;
     nan.texels[0][1] = f64::NAN;
     assert!(work.absorb(Pass::Shoot, 0, &nan).is_err());
+    // Outputs of another iteration, or with maps that do not fit, are refused by the coordinator.
+    let mut main = Propagation::new(mirror_room(), options(0)).unwrap();
+    let mut work = main.iteration_work();
+    let mut out = main.compute_batch(&work, Pass::Shoot, 0).unwrap();
+    out.iteration = 3;
+    assert!(main.apply_batch(&mut work, &out).is_err());
+    out.iteration = 0;
+    if let Some(m) = out.mirrors.as_mut() {
+        m.pop();
+        assert!(main.apply_batch(&mut work, &out).is_err());
+    }
+    assert!(BatchOutput::from_bytes(b"garbage").is_err());
 }

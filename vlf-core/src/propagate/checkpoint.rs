@@ -94,6 +94,16 @@ impl Propagation {
     /// checkpoint was taken from.
     pub fn resume(scene: Scene, options: Options, checkpoint: Checkpoint) -> crate::Result<Propagation> {
         let mut p = Propagation::new(scene, options)?;
+        p.restore(checkpoint)?;
+        Ok(p)
+    }
+
+    /// Replaces this propagation's state by `checkpoint` (of the same scene
+    /// and options), keeping the geometry: how a worker moves on to the next
+    /// iteration without rebuilding its subfields. On error the state is
+    /// unchanged.
+    pub fn restore(&mut self, checkpoint: Checkpoint) -> crate::Result<()> {
+        let p = self;
         let bad = |m: String| {
             Err(Error::Decode(format!(
                 "checkpoint does not fit the scene and options: {m}"
@@ -129,7 +139,7 @@ impl Propagation {
                         spec.maps.len()
                     ));
                 }
-                for (d, (own, saved)) in spec.maps.iter_mut().zip(maps).enumerate() {
+                for (d, (own, saved)) in spec.maps.iter().zip(&maps).enumerate() {
                     let slots = own.total.len();
                     if saved.unshot.len() != slots || saved.total.len() != slots {
                         return bad(format!(
@@ -139,8 +149,11 @@ impl Propagation {
                     if !valid(&saved.unshot) || !valid(&saved.total) {
                         return bad(format!("direction {d}: negative or non-finite mirror radiance"));
                     }
+                }
+                for (own, saved) in spec.maps.iter_mut().zip(maps) {
                     own.unshot = saved.unshot;
                     own.total = saved.total;
+                    own.incident.iter_mut().for_each(|v| *v = [0.0; 3]);
                 }
             }
             (Some(_), None) => return bad("the scene has mirrors, the checkpoint none".into()),
@@ -149,6 +162,6 @@ impl Propagation {
         p.current = checkpoint.current;
         p.total = checkpoint.total;
         p.stats = checkpoint.stats;
-        Ok(p)
+        Ok(())
     }
 }

@@ -51,7 +51,7 @@ pub use checkpoint::Checkpoint;
 pub use plan::Plan;
 pub use shoot::Flow;
 pub use specular::{Exchange, Specular};
-pub use work::{BatchSum, IterationWork, Pass};
+pub use work::{BatchOutput, BatchSum, IterationWork, MirrorUpdate, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;

@@ -62,6 +62,36 @@ pub struct BatchSum {
     pub flow: FlowRecord,
 }
 
+/// The mirror maps of one direction after its batch of [`Pass::Shoot`]: what
+/// arrived on its mirrors (for the exchange) and their totals so far.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MirrorUpdate {
+    pub incident: Vec<Rgb>,
+    pub total: Vec<Rgb>,
+}
+
+/// Everything one batch produces, as it travels from a worker to the
+/// coordinator (through the store, in the distributed service).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct BatchOutput {
+    pub iteration: u32,
+    pub pass: Pass,
+    pub batch: u32,
+    pub sum: BatchSum,
+    /// Mirror maps of the batch's directions, in order, when the pass uses them.
+    pub mirrors: Option<Vec<MirrorUpdate>>,
+}
+
+impl BatchOutput {
+    pub fn to_bytes(&self) -> Vec<u8> {
+        bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
+    }
+
+    pub fn from_bytes(bytes: &[u8]) -> crate::Result<BatchOutput> {
+        bincode::deserialize(bytes).map_err(|e| crate::Error::Decode(format!("batch output: {e}")))
+    }
+}
+
 /// What the passes of one iteration read, and what they have produced so far.
 pub struct IterationWork {
     pub index: u32,
@@ -394,6 +424,77 @@ impl Propagation {
             texels: sum,
             flow: flow.into(),
         })
+    }
+}
+
+impl Propagation {
+    /// Computes batch `batch` of `pass` on a replica whose state is the
+    /// iteration's start (as restored from its checkpoint), without changing
+    /// it: what a worker does.
+    pub fn compute_batch(&self, work: &IterationWork, pass: Pass, batch: usize) -> crate::Result<BatchOutput> {
+        let range = work.batch_range(batch, self.directions.len());
+        let mut maps: Option<Vec<DirectionMaps>> = match (&self.specular, pass, work.uses_mirror_maps()) {
+            (Some(spec), Pass::Shoot, true) if !range.is_empty() => Some(spec.maps[range].to_vec()),
+            _ => None,
+        };
+        let sum = self.run_batch(work, pass, batch, maps.as_deref_mut())?;
+        Ok(BatchOutput {
+            iteration: work.index,
+            pass,
+            batch: batch as u32,
+            sum,
+            mirrors: maps.map(|maps| {
+                maps.into_iter()
+                    .map(|m| MirrorUpdate {
+                        incident: m.incident,
+                        total: m.total,
+                    })
+                    .collect()
+            }),
+        })
+    }
+
+    /// Absorbs a worker's batch output into `work` and takes over its mirror
+    /// maps: what the coordinator does, in batch order. Outputs of another
+    /// iteration, out of order, or whose maps do not fit are refused.
+    pub fn apply_batch(&mut self, work: &mut IterationWork, out: &BatchOutput) -> crate::Result<()> {
+        if out.iteration != work.index {
+            return Err(crate::Error::Parameter(format!(
+                "batch output of iteration {} offered to iteration {}",
+                out.iteration, work.index
+            )));
+        }
+        let range = work.batch_range(out.batch as usize, self.directions.len());
+        let wants_maps = out.pass == Pass::Shoot && work.uses_mirror_maps();
+        let checked = match (&self.specular, &out.mirrors, wants_maps) {
+            (_, None, false) => Ok(None),
+            (Some(spec), Some(updates), true) => {
+                let fits = updates.len() == range.len()
+                    && updates.iter().zip(&spec.maps[range.clone()]).all(|(u, m)| {
+                        u.incident.len() == m.incident.len()
+                            && u.total.len() == m.total.len()
+                            && u.incident.iter().chain(&u.total).flatten().all(|v| v.is_finite())
+                    });
+                if fits {
+                    Ok(Some(updates))
+                } else {
+                    Err(format!("mirror maps of batch {} do not fit its directions", out.batch))
+                }
+            }
+            _ => Err(format!(
+                "batch {} of {:?}: mirror maps missing or unexpected",
+                out.batch, out.pass
+            )),
+        };
+        let updates = checked.map_err(crate::Error::Decode)?;
+        work.absorb(out.pass, out.batch as usize, &out.sum)?;
+        if let (Some(spec), Some(updates)) = (&mut self.specular, updates) {
+            for (m, u) in spec.maps[range].iter_mut().zip(updates) {
+                m.incident.clone_from(&u.incident);
+                m.total.clone_from(&u.total);
+            }
+        }
+        Ok(())
     }
 }
 

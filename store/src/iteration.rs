@@ -1,0 +1,240 @@
+//! An iteration through the store: workers compute batches of directions and write their
+//! outputs into the job; the coordinator absorbs them in batch order and commits the next
+//! snapshot. This is the data path of the distributed service — the coordinator moves no
+//! radiance over the network, only which batches to compute (leases) — and it is usable
+//! in-process as well, with threads for workers.
+//!
+//! The protocol for the iteration that starts from snapshot `k` (see `vlf_core::propagate::work`
+//! for passes and batches):
+//!
+//! 1. For each pass, in order, every batch is computed by some [`Replica`] (a worker's copy of
+//!    the propagation, restored from the checkpoint of snapshot `k`) and written to
+//!    `jobs/J/work/KKKKK/PASS/BBBBB.blob`. Writes are create-only; a batch computed twice (a
+//!    lease that expired and was handed out again, a late result) writes the same bytes, which
+//!    the store accepts as unchanged — and different bytes would be an error, never a silent
+//!    replacement.
+//! 2. When every batch of a pass is written, the [`Coordinator`] reads them in batch order and
+//!    absorbs them; replicas read the same blobs to learn results that later passes need (a
+//!    rotated copy's areas).
+//! 3. After the last pass the coordinator finishes the iteration (mirror exchange, diffuse
+//!    reflection), commits snapshot `k + 1`, and deletes the iteration's batch outputs.
+//!
+//! The bits do not depend on which replica computed which batch, or when: tested with several
+//! replicas in threads, batches assigned in a shuffled order and some computed twice.
+
+use crate::blob::{self, BlobKind};
+use crate::error::StoreError;
+use crate::field::FieldJob;
+use crate::layout;
+use crate::store::PutOutcome;
+use std::ops::Range;
+use std::time::Instant;
+use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, Pass, Propagation};
+
+/// The key segment of a pass.
+fn pass_name(pass: Pass) -> String {
+    match pass {
+        Pass::Shoot => "shoot".into(),
+        Pass::Areas { copy } => format!("areas-{copy:02}"),
+        Pass::ShootCopy { copy } => format!("copy-{copy:02}"),
+    }
+}
+
+impl FieldJob {
+    /// Writes a batch output of the iteration starting from snapshot `output.iteration`
+    /// (create-only: the same bytes again are accepted, different bytes refused).
+    pub fn put_batch(&self, output: &BatchOutput) -> Result<PutOutcome, StoreError> {
+        let key = layout::work_batch(self.id(), output.iteration, &pass_name(output.pass), output.batch)?;
+        let bytes =
+            blob::encode_bytes(BlobKind::BatchOutput, &output.to_bytes()).map_err(|source| StoreError::Blob {
+                url: self.job().store().url().to_string(),
+                key: key.clone(),
+                source,
+            })?;
+        self.job().store().put_new(&key, bytes)
+    }
+
+    /// Reads batch `batch` of `pass` of the iteration starting from snapshot `k`.
+    pub fn get_batch(&self, k: u32, pass: Pass, batch: u32) -> Result<BatchOutput, StoreError> {
+        let key = layout::work_batch(self.id(), k, &pass_name(pass), batch)?;
+        let bytes = self.job().store().get_bytes_blob(&key, BlobKind::BatchOutput)?;
+        let output = BatchOutput::from_bytes(&bytes).map_err(|e| self.decode_error(&key, e.to_string()))?;
+        if (output.iteration, output.pass, output.batch) != (k, pass, batch) {
+            return Err(self.decode_error(
+                &key,
+                format!(
+                    "holds batch {} of {:?} of iteration {}",
+                    output.batch, output.pass, output.iteration
+                ),
+            ));
+        }
+        Ok(output)
+    }
+
+    /// Whether batch `batch` of `pass` of the iteration starting from snapshot `k` is written.
+    pub fn has_batch(&self, k: u32, pass: Pass, batch: u32) -> Result<bool, StoreError> {
+        self.job()
+            .store()
+            .exists(&layout::work_batch(self.id(), k, &pass_name(pass), batch)?)
+    }
+
+    fn decode_error(&self, key: &str, reason: String) -> StoreError {
+        StoreError::Field {
+            url: self.job().store().url().to_string(),
+            job: self.id().to_string(),
+            source: vlf_core::Error::Decode(format!("`{key}`: {reason}")),
+        }
+    }
+}
+
+/// A worker's copy of a job's propagation: the geometry is built once; each iteration restores
+/// the state from the store.
+pub struct Replica {
+    job: FieldJob,
+    prop: Propagation,
+    /// The iteration being worked on, its work, and how many of its passes are absorbed.
+    current: Option<(u32, IterationWork, usize)>,
+}
+
+impl Replica {
+    /// Opens `job` and builds its geometry.
+    pub fn new(job: FieldJob) -> Result<Replica, StoreError> {
+        let prop = Propagation::new(job.scene().clone(), job.options().clone()).map_err(|e| job.field_error(e))?;
+        Ok(Replica {
+            job,
+            prop,
+            current: None,
+        })
+    }
+
+    /// Computes batches `batches` of `pass` of the iteration starting from snapshot `k` and
+    /// writes them into the store. The passes before `pass` must be complete in the store.
+    pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
+        if self.current.as_ref().map(|c| c.0) != Some(k) {
+            if !self.job.job().manifest().is_finished(k) {
+                // The coordinator committed it after this replica last read the manifest.
+                self.job.reload()?;
+            }
+            let checkpoint = self.job.checkpoint(k)?;
+            self.prop.restore(checkpoint).map_err(|e| self.job.field_error(e))?;
+            self.current = Some((k, self.prop.iteration_work(), 0));
+        }
+        let Some((_, work, absorbed)) = self.current.as_mut() else {
+            unreachable!("set just above");
+        };
+        let passes = work.passes();
+        let Some(position) = passes.iter().position(|&p| p == pass) else {
+            return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
+                "{pass:?} is not a pass of iteration {k} (its passes: {passes:?})"
+            ))));
+        };
+        // Learn the results of the earlier passes from the store.
+        while *absorbed < position {
+            let earlier = passes[*absorbed];
+            for b in 0..work.batches() {
+                let out = self.job.get_batch(k, earlier, b as u32)?;
+                work.absorb(earlier, b, &out.sum).map_err(|e| self.job.field_error(e))?;
+            }
+            *absorbed += 1;
+        }
+        for b in batches {
+            let out = self
+                .prop
+                .compute_batch(work, pass, b)
+                .map_err(|e| self.job.field_error(e))?;
+            self.job.put_batch(&out)?;
+        }
+        Ok(())
+    }
+}
+
+/// The coordinator's side: absorbs the batches of each pass in order and commits snapshots.
+pub struct Coordinator {
+    job: FieldJob,
+    prop: Propagation,
+    work: Option<(IterationWork, Instant)>,
+}
+
+impl Coordinator {
+    /// Takes over a job from its last finished snapshot.
+    pub fn resume(mut job: FieldJob) -> Result<Coordinator, StoreError> {
+        let prop = job.resume()?;
+        Ok(Coordinator { job, prop, work: None })
+    }
+
+    pub fn job(&self) -> &FieldJob {
+        &self.job
+    }
+
+    pub fn propagation(&self) -> &Propagation {
+        &self.prop
+    }
+
+    /// The snapshot the current iteration starts from.
+    pub fn iteration(&self) -> u32 {
+        self.prop.iterations_done()
+    }
+
+    /// Whether the stop rule says the job is done.
+    pub fn finished(&self) -> bool {
+        self.prop.finished()
+    }
+
+    /// The next pass whose batches are needed, with its batch count, or `None` when the
+    /// iteration's passes are all absorbed.
+    pub fn pending_pass(&mut self) -> Option<(Pass, usize)> {
+        let (work, _) = self
+            .work
+            .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()));
+        work.next_expected().map(|(pass, _)| (pass, work.batches()))
+    }
+
+    /// Absorbs every batch of the pending pass from the store, in batch order.
+    pub fn absorb_pass(&mut self) -> Result<Pass, StoreError> {
+        let k = self.iteration();
+        let Some((pass, batches)) = self.pending_pass() else {
+            return Err(self.job.field_error(vlf_core::Error::Parameter(
+                "no pass is pending: finish the iteration".into(),
+            )));
+        };
+        let Some((work, _)) = self.work.as_mut() else {
+            unreachable!("pending_pass created it");
+        };
+        for b in 0..batches {
+            let out = self.job.get_batch(k, pass, b as u32)?;
+            self.prop.apply_batch(work, &out).map_err(|e| self.job.field_error(e))?;
+        }
+        Ok(pass)
+    }
+
+    /// Finishes the iteration once every pass is absorbed: commits the next snapshot and
+    /// deletes the iteration's batch outputs.
+    pub fn finish_iteration(&mut self) -> Result<IterationStats, StoreError> {
+        let k = self.iteration();
+        if self.pending_pass().is_some() {
+            return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
+                "iteration {k} has passes left to absorb"
+            ))));
+        }
+        let Some((work, started)) = self.work.take() else {
+            unreachable!("pending_pass created it");
+        };
+        let stats = self.prop.finish_iteration(work, started);
+        self.job.write_snapshot(&self.prop)?;
+        let store = self.job.job().store();
+        for key in store.list(&layout::work_prefix(self.job.id(), k)?)? {
+            store.delete(&key)?;
+        }
+        Ok(stats)
+    }
+
+    /// Writes the final field and marks the job finished.
+    pub fn finish(mut self, resample: bool) -> Result<FieldJob, StoreError> {
+        let mut field = self.prop.into_field();
+        if resample {
+            field.resample_mirrors(8);
+        }
+        self.job.finish(&field, resample)?;
+        Ok(self.job)
+    }
+}

@@ -1,0 +1,187 @@
+//! The distributed data path without the network: replicas in threads
+//! compute batches into the store in a shuffled order (some twice, as a
+//! retried lease would), a coordinator absorbs them in order and commits
+//! snapshots; the job ends bit-identical to a single-process run.
+
+#[allow(dead_code)]
+mod suite;
+
+use suite::Opener;
+use vlf_core::propagate::{Checkpoint, Options, Pass, Perturbation, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_store::blob::Encoding;
+use vlf_store::{Coordinator, FieldJob, Replica, Stage, Store, StoreError, layout};
+
+fn bundled(name: &str) -> Scene {
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes")
+        .join(name);
+    load_obj(&path, &ImportOptions::default()).expect("bundled scene").0
+}
+
+fn options(perturb: u32) -> Options {
+    Options {
+        directions: 33,
+        grid: GridSize::new(16, 4).unwrap(),
+        stop: Stop::Iterations(3),
+        perturbation: Perturbation {
+            iterations: perturb,
+            count: 2,
+        },
+        filter_sigma: Some(1.0),
+        ..Options::default()
+    }
+}
+
+fn shuffled(n: usize, seed: u32) -> Vec<usize> {
+    let mut v: Vec<usize> = (0..n).collect();
+    for i in (1..n).rev() {
+        v.swap(i, (i * 7919 + seed as usize * 104_729) % (i + 1));
+    }
+    v
+}
+
+fn in_process(store: &Store, scene: &Scene, options: &Options) -> FieldJob {
+    let mut p = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let mut job = FieldJob::create(store, &p, Encoding::F32).unwrap();
+    while !p.finished() {
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+    }
+    job.finish(&p.into_field(), false).unwrap();
+    job
+}
+
+fn with_replicas(o: &Opener, scene: &Scene, options: &Options, workers: usize) -> FieldJob {
+    let p = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let job = FieldJob::create(&o.open(), &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    let mut coordinator = Coordinator::resume(job).unwrap();
+    // Each replica has its own store handle, as a worker process would.
+    let mut replicas: Vec<Replica> = (0..workers)
+        .map(|_| Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap())
+        .collect();
+    while !coordinator.finished() {
+        let k = coordinator.iteration();
+        while let Some((pass, batches)) = coordinator.pending_pass() {
+            let order = shuffled(batches, k);
+            std::thread::scope(|s| {
+                for (w, replica) in replicas.iter_mut().enumerate() {
+                    let mine: Vec<usize> = order.iter().skip(w).step_by(workers).copied().collect();
+                    s.spawn(move || {
+                        for b in mine {
+                            replica.compute(k, pass, b..b + 1).unwrap();
+                        }
+                    });
+                }
+            });
+            // A lease that expired and was handed out again: the same bytes, accepted.
+            replicas[workers - 1].compute(k, pass, 0..1).unwrap();
+            coordinator.absorb_pass().unwrap();
+        }
+        coordinator.finish_iteration().unwrap();
+        let store = coordinator.job().job().store();
+        assert!(store.list(&layout::work_prefix(&id, k).unwrap()).unwrap().is_empty());
+    }
+    coordinator.finish(false).unwrap()
+}
+
+fn without_times(mut c: Checkpoint) -> Checkpoint {
+    for s in &mut c.stats {
+        s.seconds = 0.0;
+    }
+    c
+}
+
+fn field_blobs(job: &FieldJob) -> Vec<(String, Vec<u8>)> {
+    let prefix = layout::stage_prefix(job.id(), Stage::Field).unwrap();
+    let store = job.job().store();
+    store
+        .list(&prefix)
+        .unwrap()
+        .into_iter()
+        .filter(|k| !k.ends_with("summary.blob"))
+        .map(|k| (k[prefix.len()..].to_string(), store.get(&k).unwrap().to_vec()))
+        .collect()
+}
+
+fn same_bits(o: &Opener, scene: Scene, options: Options) {
+    let reference = in_process(&o.open(), &scene, &options);
+    for workers in [1, 2, 4] {
+        let job = with_replicas(o, &scene, &options, workers);
+        assert_eq!(job.job().manifest().finished_iterations, vec![0, 1, 2, 3]);
+        assert!(
+            without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()),
+            "{workers} replicas: state differs"
+        );
+        assert!(
+            field_blobs(&job) == field_blobs(&reference),
+            "{workers} replicas: stored field differs"
+        );
+    }
+}
+
+fn mirrors(o: &Opener) {
+    same_bits(o, bundled("mirrors.obj"), options(0));
+}
+
+fn perturbed(o: &Opener) {
+    same_bits(o, bundled("cornell.obj"), options(2));
+}
+
+fn conflicting_or_missing_batches(o: &Opener) {
+    let p = Propagation::new(bundled("cornell.obj"), options(0)).unwrap();
+    let job = FieldJob::create(&o.open(), &p, Encoding::F16).unwrap();
+    let id = job.id().clone();
+    let mut coordinator = Coordinator::resume(job).unwrap();
+    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    let (pass, batches) = coordinator.pending_pass().unwrap();
+    assert_eq!(pass, Pass::Shoot);
+    replica.compute(0, pass, 0..batches - 1).unwrap();
+    // The last batch is missing: the coordinator cannot absorb the pass.
+    let err = coordinator.absorb_pass().unwrap_err();
+    assert!(matches!(err, StoreError::NotFound { .. }), "{err}");
+    // A batch whose content differs from what is stored is refused, never replaced.
+    let reader = FieldJob::open(&o.open(), &id).unwrap();
+    let mut forged = reader.get_batch(0, pass, 0).unwrap();
+    forged.sum.texels[0][0] += 1.0;
+    assert!(matches!(
+        reader.put_batch(&forged),
+        Err(StoreError::AlreadyExists { .. })
+    ));
+    // A pass the iteration does not have.
+    assert!(replica.compute(0, Pass::ShootCopy { copy: 0 }, 0..1).is_err());
+}
+
+macro_rules! backend {
+    ($name:ident, $opener:expr) => {
+        mod $name {
+            use super::*;
+
+            fn with(case: &str, f: fn(&Opener)) {
+                let opener: Option<Opener> = ($opener)(case);
+                if let Some(o) = opener {
+                    f(&o);
+                }
+            }
+
+            #[test]
+            fn replicas_give_the_same_bits_with_mirrors() {
+                with("replicas-mirrors", mirrors);
+            }
+            #[test]
+            fn replicas_give_the_same_bits_with_perturbation() {
+                with("replicas-perturbed", perturbed);
+            }
+            #[test]
+            fn conflicting_or_missing_batches_are_errors() {
+                with("replicas-conflicts", conflicting_or_missing_batches);
+            }
+        }
+    };
+}
+
+backend!(memory, |_| Some(Opener::memory()));
+backend!(path, |_| Some(Opener::file(false)));
+backend!(s3, Opener::s3);
