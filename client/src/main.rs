@@ -8,6 +8,7 @@
 
 mod propagate;
 mod render;
+mod run;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
@@ -27,8 +28,11 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Propagate the light of a scene (OBJ + MTL) into a job of a store.
+    /// Propagate the light of a scene (OBJ + MTL) into a job of a store, in this process.
     Propagate(PropagateArgs),
+    /// Propagate through the embedded service: a coordinator and worker replicas in this
+    /// process, exchanging every iteration's work through the store (same bits as propagate).
+    Run(RunArgs),
     /// Render an image of a job's field (or of one of its snapshots).
     Render(RenderArgs),
     /// List the jobs of a store.
@@ -89,6 +93,15 @@ pub struct PropagateArgs {
     /// Gaussian filter of the Next maps, σ in texels (0 = off).
     #[arg(long, default_value_t = 1.0)]
     filter: f64,
+}
+
+#[derive(Args)]
+pub struct RunArgs {
+    #[command(flatten)]
+    propagate: PropagateArgs,
+    /// Worker replicas (each holds its own copy of the geometry).
+    #[arg(long, default_value_t = 2)]
+    workers: usize,
 }
 
 #[derive(Args)]
@@ -176,6 +189,7 @@ fn main() {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Propagate(args) => propagate::run(args),
+        Command::Run(args) => run::run(args),
         Command::Render(args) => render::run(args),
         Command::Jobs(args) => render::jobs(args),
     };

@@ -9,63 +9,12 @@ use std::time::Instant;
 use vlf_core::propagate::{Options, Perturbation, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, load_obj};
-use vlf_store::{Encoding, FieldJob, JobId, Stage, Store};
+use vlf_store::{Encoding, FieldJob, JobId, Stage, Store, Summary};
 
 pub fn run(args: PropagateArgs) -> Result<()> {
-    let threads = args.threads.unwrap_or(0);
-    if args.threads == Some(0) || threads > 1024 {
-        bail!("--threads must be between 1 and 1024");
-    }
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .context("cannot start the worker threads")?;
+    let pool = thread_pool(&args)?;
     let started = Instant::now();
-    let (mut job, mut prop) = match &args.resume {
-        Some(id) => {
-            let id = JobId::parse(id).map_err(anyhow::Error::msg)?;
-            let store = Store::open_existing(&args.store)?;
-            let mut job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
-            let prop = pool
-                .install(|| job.resume())
-                .with_context(|| format!("cannot resume job {id}"))?;
-            println!(
-                "resuming job {id} in {} after {} iterations",
-                args.store,
-                prop.iterations_done()
-            );
-            (job, prop)
-        }
-        None => {
-            let options = options(&args)?;
-            let path = args
-                .scene
-                .as_ref()
-                .context("a scene is needed unless --resume is given")?;
-            let (scene, warnings) = load_obj(path, &ImportOptions::default())
-                .with_context(|| format!("cannot import {}", path.display()))?;
-            for w in &warnings {
-                tracing::warn!("{w}");
-            }
-            tracing::info!(
-                surfaces = scene.surfaces.len(),
-                materials = scene.materials.len(),
-                "scene imported"
-            );
-            let prop = pool
-                .install(|| Propagation::new(scene, options))
-                .context("cannot set up the light field")?;
-            let store = Store::open(&args.store)?;
-            let encoding = match args.encoding {
-                EncodingArg::F32 => Encoding::F32,
-                EncodingArg::F16 => Encoding::F16,
-                EncodingArg::Rgb9e5 => Encoding::Rgb9e5,
-            };
-            let job = pool.install(|| FieldJob::create(&store, &prop, encoding))?;
-            println!("job {} in {}", job.id(), args.store);
-            (job, prop)
-        }
-    };
+    let (mut job, mut prop) = start(&args, &pool)?;
     print!("{}", prop.plan);
     tracing::info!(
         directions = prop.directions.len(),
@@ -102,7 +51,6 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     outcome?;
 
     let field_bytes = prop.field_bytes();
-    let iterations = prop.iterations_done();
     let mut field = pool.install(|| prop.into_field());
     if args.resample {
         pool.install(|| field.resample_mirrors(8));
@@ -111,10 +59,76 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     pool.install(|| job.finish(&field, args.resample))
         .context("cannot write the final field")?;
     store_seconds += t.elapsed().as_secs_f64();
-    let (stored_field, stored_job) = job.stored_bytes(Stage::Field)?;
 
+    let summary = job.summary(Stage::Field)?;
+    print_summary(&args, &job, &summary, started, store_seconds, Some(field_bytes))?;
+    Ok(())
+}
+
+/// Opens the job to work on: a new one for `args.scene` (snapshot 0 written), or the job named by
+/// `--resume` at its last finished snapshot. Prints the job id.
+pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob, Propagation)> {
+    let (job, prop) = match &args.resume {
+        Some(id) => {
+            let id = JobId::parse(id).map_err(anyhow::Error::msg)?;
+            let store = Store::open_existing(&args.store)?;
+            let mut job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
+            let prop = pool
+                .install(|| job.resume())
+                .with_context(|| format!("cannot resume job {id}"))?;
+            println!(
+                "resuming job {id} in {} after {} iterations",
+                args.store,
+                prop.iterations_done()
+            );
+            (job, prop)
+        }
+        None => {
+            let options = options(args)?;
+            let path = args
+                .scene
+                .as_ref()
+                .context("a scene is needed unless --resume is given")?;
+            let (scene, warnings) = load_obj(path, &ImportOptions::default())
+                .with_context(|| format!("cannot import {}", path.display()))?;
+            for w in &warnings {
+                tracing::warn!("{w}");
+            }
+            tracing::info!(
+                surfaces = scene.surfaces.len(),
+                materials = scene.materials.len(),
+                "scene imported"
+            );
+            let prop = pool
+                .install(|| Propagation::new(scene, options))
+                .context("cannot set up the light field")?;
+            let store = Store::open(&args.store)?;
+            let encoding = match args.encoding {
+                EncodingArg::F32 => Encoding::F32,
+                EncodingArg::F16 => Encoding::F16,
+                EncodingArg::Rgb9e5 => Encoding::Rgb9e5,
+            };
+            let job = pool.install(|| FieldJob::create(&store, &prop, encoding))?;
+            println!("job {} in {}", job.id(), args.store);
+            (job, prop)
+        }
+    };
+    Ok((job, prop))
+}
+
+/// Prints what a finished run did: time, iterations, unshot fraction, energy balance, memory
+/// and the store's figures.
+pub fn print_summary(
+    args: &PropagateArgs,
+    job: &FieldJob,
+    summary: &Summary,
+    started: Instant,
+    store_seconds: f64,
+    field_bytes: Option<usize>,
+) -> Result<()> {
+    let (stored_field, stored_job) = job.stored_bytes(Stage::Field)?;
     let elapsed = started.elapsed().as_secs_f64();
-    let balance = field
+    let balance = summary
         .stats
         .iter()
         .map(|s| {
@@ -128,15 +142,21 @@ pub fn run(args: PropagateArgs) -> Result<()> {
             }
         })
         .fold(0.0, f64::max);
-    let what = match (&args.scene, &args.resume) {
-        (Some(path), _) => path.display().to_string(),
-        (None, _) => format!("job {}", job.id()),
+    let what = match &args.scene {
+        Some(path) => path.display().to_string(),
+        None => format!("job {}", job.id()),
     };
-    println!("propagated {what} in {elapsed:.2} s ({store_seconds:.2} s writing the store)");
-    println!("  iterations      {iterations}");
-    println!("  unshot fraction {:.3e}", field.unshot_fraction);
+    if store_seconds.is_nan() {
+        println!("propagated {what} in {elapsed:.2} s");
+    } else {
+        println!("propagated {what} in {elapsed:.2} s ({store_seconds:.2} s writing the store)");
+    }
+    println!("  iterations      {}", summary.iterations);
+    println!("  unshot fraction {:.3e}", summary.unshot_fraction);
     println!("  energy balance  {balance:.1e} (worst relative mismatch of an iteration)");
-    println!("  field memory    {:.1} MB", field_bytes as f64 / 1e6);
+    if let Some(bytes) = field_bytes {
+        println!("  field memory    {:.1} MB", bytes as f64 / 1e6);
+    }
     println!(
         "  stored field    {:.2} MB compressed ({:?}); whole job with snapshots {:.2} MB",
         stored_field as f64 / 1e6,
@@ -148,6 +168,18 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     }
     println!("  job             {} in {}", job.id(), args.store);
     Ok(())
+}
+
+/// The thread pool `--threads` asks for (default: all cores).
+pub fn thread_pool(args: &PropagateArgs) -> Result<rayon::ThreadPool> {
+    let threads = args.threads.unwrap_or(0);
+    if args.threads == Some(0) || threads > 1024 {
+        bail!("--threads must be between 1 and 1024");
+    }
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("cannot start the worker threads")
 }
 
 /// The propagation options the flags ask for.

@@ -23,8 +23,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let store = Store::open_existing(&args.store)?;
     let id = match &args.job {
         Some(id) => JobId::parse(id).map_err(anyhow::Error::msg)?,
-        None => Job::list(&store)?
-            .pop()
+        None => newest_job(&store)?
             .with_context(|| format!("no job in store {} (run `vlf propagate` first)", args.store))?,
     };
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
@@ -76,6 +75,18 @@ pub fn jobs(args: JobsArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The most recently created job of `store` (ties within a second: the last id).
+fn newest_job(store: &Store) -> Result<Option<JobId>> {
+    let mut newest: Option<(u64, JobId)> = None;
+    for id in Job::list(store)? {
+        let created = Job::open(store, &id)?.manifest().created;
+        if newest.as_ref().is_none_or(|(t, _)| created >= *t) {
+            newest = Some((created, id));
+        }
+    }
+    Ok(newest.map(|(_, id)| id))
 }
 
 fn describe(stage: Stage) -> String {

@@ -377,3 +377,60 @@ fn mirrors_scene_plans_propagates_and_renders_both_ways() {
     assert!(!o.status.success() && stderr(&o).contains("rays"));
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `vlf run` (coordinator and worker replicas in one process, exchanging
+/// their work through the store) stores the same field as `vlf propagate`,
+/// for 1 and 3 workers, on the mirror scene.
+#[test]
+fn embedded_service_matches_propagate_bit_for_bit() {
+    let dir = temp("run");
+    let params = [
+        "--directions",
+        "33",
+        "--resolution",
+        "16",
+        "--tile",
+        "4",
+        "--iterations",
+        "3",
+        "--encoding",
+        "f32",
+    ];
+    let mirrors = scene("mirrors.obj");
+    let mut fields = Vec::new();
+    for (i, command) in [
+        vec!["propagate"],
+        vec!["run", "--workers", "1"],
+        vec!["run", "--workers", "3"],
+    ]
+    .into_iter()
+    .enumerate()
+    {
+        // One store each: job ids made within one second do not sort by time.
+        let store = dir.join(i.to_string());
+        let mut args = command.clone();
+        args.extend([mirrors.as_str(), "--store", store.to_str().unwrap()]);
+        args.extend(params);
+        let o = vlf(&args);
+        assert!(o.status.success(), "{command:?}: {}", stderr(&o));
+        fields.push(only_job(&store).load(Stage::Field).unwrap());
+    }
+    assert!(
+        same_field(&fields[0], &fields[1]),
+        "vlf run (1 worker) differs from vlf propagate"
+    );
+    assert!(
+        same_field(&fields[0], &fields[2]),
+        "vlf run (3 workers) differs from vlf propagate"
+    );
+    let o = vlf(&[
+        "run",
+        &scene("cornell.obj"),
+        "--store",
+        dir.to_str().unwrap(),
+        "--workers",
+        "0",
+    ]);
+    assert!(!o.status.success() && stderr(&o).contains("--workers"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
