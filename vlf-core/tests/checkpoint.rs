@@ -25,29 +25,6 @@ fn options(iterations: u32, perturb: u32) -> Options {
     }
 }
 
-/// A closed box with a mirror wall and a part-mirror wall.
-fn mirror_box() -> Scene {
-    let mut scene = closed_box(
-        0.55,
-        2,
-        &[3],
-        vec![
-            material("wall", 0.5, 0.0),
-            material("lamp", 0.3, 2.0),
-            mirror("glass", 0.0, 0.8),
-            mirror("satin", 0.2, 0.7),
-        ],
-    );
-    for (k, s) in scene.surfaces.iter_mut().enumerate() {
-        match k / 4 {
-            0 => s.material = 2,
-            5 => s.material = 3,
-            _ => {}
-        }
-    }
-    scene
-}
-
 fn diffuse_box() -> Scene {
     closed_box(
         0.6,
@@ -92,7 +69,7 @@ fn resumes_bit_identically(scene: Scene, perturb: u32) {
 
 #[test]
 fn resume_with_mirrors_gives_the_same_bits() {
-    resumes_bit_identically(mirror_box(), 0);
+    resumes_bit_identically(mirror_room(), 0);
 }
 
 #[test]
@@ -102,7 +79,7 @@ fn resume_with_perturbation_and_deferral_gives_the_same_bits() {
 
 #[test]
 fn damaged_checkpoints_are_refused() {
-    let scene = mirror_box();
+    let scene = mirror_room();
     let mut p = Propagation::new(scene.clone(), options(3, 0)).unwrap();
     p.step(|_| {});
     let good = p.checkpoint();
@@ -148,7 +125,7 @@ fn damaged_checkpoints_are_refused() {
 
 #[test]
 fn scene_bytes_round_trip_and_refuse_damage() {
-    let scene = mirror_box();
+    let scene = mirror_room();
     let bytes = scene.to_bytes();
     assert_eq!(Scene::from_bytes(&bytes).unwrap(), scene);
     assert_eq!(scene.content_hash().len(), 64);

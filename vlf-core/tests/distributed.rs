@@ -26,28 +26,6 @@ fn options(perturb: u32) -> Options {
     }
 }
 
-fn mirror_room() -> Scene {
-    let mut scene = closed_box(
-        0.55,
-        2,
-        &[3],
-        vec![
-            material("wall", 0.5, 0.0),
-            material("lamp", 0.3, 2.0),
-            mirror("glass", 0.0, 0.8),
-            mirror("satin", 0.2, 0.7),
-        ],
-    );
-    for (k, s) in scene.surfaces.iter_mut().enumerate() {
-        match k / 4 {
-            0 => s.material = 2,
-            5 => s.material = 3,
-            _ => {}
-        }
-    }
-    scene
-}
-
 fn without_times(mut c: Checkpoint) -> Checkpoint {
     for s in &mut c.stats {
         s.seconds = 0.0;

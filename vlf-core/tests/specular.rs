@@ -27,25 +27,7 @@ fn options(l: usize, n: u32, m: u32, iterations: u32) -> Options {
 /// after each iteration is exactly what the surfaces re-emit.
 #[test]
 fn mirror_box_balances_energy_every_iteration() {
-    let mut scene = closed_box(
-        0.55,
-        2,
-        &[3],
-        vec![
-            material("wall", 0.5, 0.0),
-            material("lamp", 0.3, 2.0),
-            mirror("glass", 0.0, 0.8),
-            mirror("satin", 0.2, 0.7),
-        ],
-    );
-    // Face 0 (−x) pure mirror, face 5 (+z) part diffuse, part mirror.
-    for (k, s) in scene.surfaces.iter_mut().enumerate() {
-        match k / 4 {
-            0 => s.material = 2,
-            5 => s.material = 3,
-            _ => {}
-        }
-    }
+    let scene = mirror_room();
     let mut p = Propagation::new(scene, options(129, 32, 8, 6)).unwrap();
     assert!(p.specular.is_some());
     p.run(|_| {});

@@ -87,3 +87,27 @@ pub fn mirror(name: &str, diffuse: f64, specular: f64) -> Material {
         emission: [0.0; 3],
     }
 }
+
+/// A closed box (lamp in the ceiling) with two mirror walls: face 0 (−x) a
+/// pure mirror, face 5 (+z) part diffuse, part mirror.
+pub fn mirror_room() -> Scene {
+    let mut scene = closed_box(
+        0.55,
+        2,
+        &[3],
+        vec![
+            material("wall", 0.5, 0.0),
+            material("lamp", 0.3, 2.0),
+            mirror("glass", 0.0, 0.8),
+            mirror("satin", 0.2, 0.7),
+        ],
+    );
+    for (k, s) in scene.surfaces.iter_mut().enumerate() {
+        match k / 4 {
+            0 => s.material = 2,
+            5 => s.material = 3,
+            _ => {}
+        }
+    }
+    scene
+}
