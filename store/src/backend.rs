@@ -29,8 +29,8 @@
 //! durable with one `syncfs(2)` of the store's file system, and [`crate::job`] flushes before and
 //! after every manifest write, so the commit order (blobs first, manifest last) survives a power
 //! loss, not just a crash. That costs one sync per commit instead of one `fsync` per blob (a stage
-//! of a mirror scene has thousands of tile blobs: measured 6.6× faster). Elsewhere every object is
-//! fsynced as it is written.
+//! of a mirror scene has thousands of tile blobs: 42 000 blobs took 14.7 s with an fsync each,
+//! 3.2 s without). Elsewhere every object is fsynced as it is written.
 
 use crate::error::StoreError;
 use object_store::ObjectStore;
