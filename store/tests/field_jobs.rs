@@ -4,6 +4,7 @@
 //! encoding's error; damaged or mismatched blobs are errors naming their key.
 
 #[allow(dead_code)]
+#[macro_use]
 mod suite;
 
 use suite::Opener;
@@ -232,34 +233,8 @@ fn damage_names_the_key(o: &Opener) {
     assert!(job.load(Stage::Iteration(1)).is_ok());
 }
 
-macro_rules! backend {
-    ($name:ident, $opener:expr) => {
-        mod $name {
-            use super::*;
-
-            fn with(case: &str, f: fn(&Opener)) {
-                let opener: Option<Opener> = ($opener)(case);
-                if let Some(o) = opener {
-                    f(&o);
-                }
-            }
-
-            #[test]
-            fn crash_then_resume_gives_the_same_bits() {
-                with("field-resume", crash_and_resume);
-            }
-            #[test]
-            fn encodings_and_snapshots_read_back() {
-                with("field-encodings", encodings_and_snapshots);
-            }
-            #[test]
-            fn damaged_blobs_name_their_key() {
-                with("field-damage", damage_names_the_key);
-            }
-        }
-    };
+per_backend! {
+    crash_then_resume_gives_the_same_bits => crate::crash_and_resume,
+    encodings_and_snapshots_read_back => crate::encodings_and_snapshots,
+    damaged_blobs_name_their_key => crate::damage_names_the_key,
 }
-
-backend!(memory, |_| Some(Opener::memory()));
-backend!(path, |_| Some(Opener::file(false)));
-backend!(s3, Opener::s3);

@@ -4,6 +4,7 @@
 //! snapshots; the job ends bit-identical to a single-process run.
 
 #[allow(dead_code)]
+#[macro_use]
 mod suite;
 
 use suite::Opener;
@@ -154,34 +155,8 @@ fn conflicting_or_missing_batches(o: &Opener) {
     assert!(replica.compute(0, Pass::ShootCopy { copy: 0 }, 0..1).is_err());
 }
 
-macro_rules! backend {
-    ($name:ident, $opener:expr) => {
-        mod $name {
-            use super::*;
-
-            fn with(case: &str, f: fn(&Opener)) {
-                let opener: Option<Opener> = ($opener)(case);
-                if let Some(o) = opener {
-                    f(&o);
-                }
-            }
-
-            #[test]
-            fn replicas_give_the_same_bits_with_mirrors() {
-                with("replicas-mirrors", mirrors);
-            }
-            #[test]
-            fn replicas_give_the_same_bits_with_perturbation() {
-                with("replicas-perturbed", perturbed);
-            }
-            #[test]
-            fn conflicting_or_missing_batches_are_errors() {
-                with("replicas-conflicts", conflicting_or_missing_batches);
-            }
-        }
-    };
+per_backend! {
+    replicas_give_the_same_bits_with_mirrors => crate::mirrors,
+    replicas_give_the_same_bits_with_perturbation => crate::perturbed,
+    conflicting_or_missing_batches_are_errors => crate::conflicting_or_missing_batches,
 }
-
-backend!(memory, |_| Some(Opener::memory()));
-backend!(path, |_| Some(Opener::file(false)));
-backend!(s3, Opener::s3);

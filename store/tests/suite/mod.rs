@@ -4,6 +4,32 @@
 use vlf_store::blob::{self, BlobError, BlobKind, Encoding};
 use vlf_store::{Job, JobId, JobState, PutOutcome, Stage, Store, StoreError, layout};
 
+/// Declares, for each `test => case`, one test per backend — modules `memory`, `path` (a
+/// temporary directory), `file_url` (the same as `file://`) and `s3` (runs when
+/// `VLF_TEST_S3_URL` is set) — so that a failure names both the case and the backend. `case` is a
+/// `fn(&Opener)`, named from the test crate's root (`crate::…`).
+macro_rules! per_backend {
+    ($($test:ident => $case:expr),* $(,)?) => {
+        per_backend!(@one memory, |_: &str| Some($crate::suite::Opener::memory()), $($test => $case),*);
+        per_backend!(@one path, |_: &str| Some($crate::suite::Opener::file(false)), $($test => $case),*);
+        per_backend!(@one file_url, |_: &str| Some($crate::suite::Opener::file(true)), $($test => $case),*);
+        per_backend!(@one s3, $crate::suite::Opener::s3, $($test => $case),*);
+    };
+    (@one $backend:ident, $opener:expr, $($test:ident => $case:expr),*) => {
+        mod $backend {
+            $(
+                #[test]
+                fn $test() {
+                    let open: fn(&str) -> Option<$crate::suite::Opener> = $opener;
+                    if let Some(o) = open(stringify!($test)) {
+                        ($case)(&o);
+                    }
+                }
+            )*
+        }
+    };
+}
+
 /// Opens handles onto one storage.
 pub struct Opener {
     /// The URL every handle is opened with.
