@@ -28,10 +28,7 @@ pub fn run(args: RunArgs) -> Result<()> {
     let (job, prop) = start(&args, &pool)?;
     print!("{}", prop.plan);
     let id = job.id().clone();
-    drop(prop);
-    let mut coordinator = pool
-        .install(|| Coordinator::resume(job))
-        .context("cannot start the coordinator")?;
+    let mut coordinator = Coordinator::new(job, prop);
     // Each worker has its own store handle and its own copy of the geometry, as a worker process
     // would.
     let mut replicas: Vec<Replica> = pool

@@ -159,7 +159,14 @@ impl Coordinator {
     /// Takes over a job from its last finished snapshot.
     pub fn resume(mut job: FieldJob) -> Result<Coordinator, StoreError> {
         let prop = job.resume()?;
-        Ok(Coordinator { job, prop, work: None })
+        Ok(Coordinator::new(job, prop))
+    }
+
+    /// Coordinates `job` from `prop`, which must be the job's propagation at its last finished
+    /// snapshot — as [`FieldJob::create`]'s input or [`FieldJob::resume`]'s output is — so the
+    /// geometry is not built twice.
+    pub fn new(job: FieldJob, prop: Propagation) -> Coordinator {
+        Coordinator { job, prop, work: None }
     }
 
     pub fn job(&self) -> &FieldJob {
