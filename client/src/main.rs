@@ -7,6 +7,7 @@
 //! interface: scripts rely on them.
 
 mod propagate;
+mod remote;
 mod render;
 mod run;
 
@@ -33,10 +34,43 @@ enum Command {
     /// Propagate through the embedded service: a coordinator and worker replicas in this
     /// process, exchanging every iteration's work through the store (same bits as propagate).
     Run(RunArgs),
-    /// Render an image of a job's field (or of one of its snapshots).
+    /// Render an image of a job's field (or of one of its snapshots), from a store or a server.
     Render(RenderArgs),
-    /// List the jobs of a store.
+    /// List the jobs of a store, or of a server (--server).
     Jobs(JobsArgs),
+    /// Run the coordinator: jobs, leases to workers, progress, tiles (gRPC).
+    Serve(vlf_server::cli::ServeArgs),
+    /// Run a worker for a coordinator.
+    Worker(vlf_worker::cli::WorkerArgs),
+    /// Submit a scene to a coordinator; prints the job id.
+    Submit(SubmitArgs),
+    /// Show a job's status.
+    Status(JobArgs),
+    /// Follow a job's progress until it ends.
+    Watch(JobArgs),
+    /// Cancel a job.
+    Cancel(JobArgs),
+}
+
+#[derive(Args)]
+pub struct SubmitArgs {
+    /// Wavefront OBJ scene (its MTL libraries are sent with it).
+    scene: PathBuf,
+    #[command(flatten)]
+    server: ServerFlags,
+    #[command(flatten)]
+    job: JobFlags,
+    /// Follow the job's progress until it ends.
+    #[arg(long)]
+    watch: bool,
+}
+
+#[derive(Args)]
+pub struct JobArgs {
+    /// Job id.
+    job: String,
+    #[command(flatten)]
+    server: ServerFlags,
 }
 
 #[derive(Args)]
@@ -53,6 +87,17 @@ pub struct PropagateArgs {
     /// never stopped.
     #[arg(long, value_name = "JOB", conflicts_with = "scene")]
     resume: Option<String>,
+    /// Worker threads (default: all cores). Results are the same bits for any value.
+    #[arg(long)]
+    threads: Option<usize>,
+    #[command(flatten)]
+    job: JobFlags,
+}
+
+/// What a job computes: the settings of `vlf_proto::v1::Parameters`, shared by `propagate`, `run`
+/// and `submit`.
+#[derive(Args, Clone)]
+pub struct JobFlags {
     /// Encoding of the stored radiance: f32 (lossless), f16 or rgb9e5 (compact).
     #[arg(long, value_enum, default_value_t = EncodingArg::F16)]
     encoding: EncodingArg,
@@ -71,9 +116,6 @@ pub struct PropagateArgs {
     /// Iterate until the unshot power is below EPS × the emitted power (default 1e-3).
     #[arg(long)]
     converge: Option<f64>,
-    /// Worker threads (default: all cores). Results are the same bits for any value.
-    #[arg(long)]
-    threads: Option<usize>,
     /// Texel edge in ray spacings (2/N in the normalised frame).
     #[arg(long, default_value_t = 1.0)]
     texel: f64,
@@ -95,6 +137,25 @@ pub struct PropagateArgs {
     filter: f64,
 }
 
+/// How to reach a coordinator.
+#[derive(Args, Clone)]
+pub struct ServerFlags {
+    /// The coordinator: http://HOST:PORT, or https:// for TLS.
+    #[arg(
+        long,
+        env = "VLF_SERVER",
+        default_value = "http://127.0.0.1:7464",
+        value_name = "URL"
+    )]
+    server: String,
+    /// Bearer token, when the coordinator requires one.
+    #[arg(long, env = "VLF_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// PEM of the CA that signed the coordinator's certificate.
+    #[arg(long, value_name = "PEM")]
+    ca_cert: Option<PathBuf>,
+}
+
 #[derive(Args)]
 pub struct RunArgs {
     #[command(flatten)]
@@ -106,8 +167,18 @@ pub struct RunArgs {
 
 #[derive(Args)]
 pub struct RenderArgs {
-    /// Store holding the job (a directory, file:///PATH, s3://BUCKET/PREFIX).
-    store: String,
+    /// Store holding the job (a directory, file:///PATH, s3://BUCKET/PREFIX); not with --server.
+    #[arg(required_unless_present = "server")]
+    store: Option<String>,
+    /// Read the job from this coordinator instead of a store (JOB is then required).
+    #[arg(long, env = "VLF_SERVER", value_name = "URL", conflicts_with = "store")]
+    server: Option<String>,
+    /// Bearer token for --server.
+    #[arg(long, env = "VLF_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// PEM of the CA that signed the coordinator's certificate.
+    #[arg(long, value_name = "PEM")]
+    ca_cert: Option<PathBuf>,
     /// Job id (default: the newest job of the store).
     job: Option<String>,
     /// Render the snapshot after K iterations (default: the final field of a finished job,
@@ -148,8 +219,18 @@ pub struct RenderArgs {
 
 #[derive(Args)]
 pub struct JobsArgs {
-    /// Store to list (a directory, file:///PATH, s3://BUCKET/PREFIX).
-    store: String,
+    /// Store to list (a directory, file:///PATH, s3://BUCKET/PREFIX); not with --server.
+    #[arg(required_unless_present = "server")]
+    store: Option<String>,
+    /// List the jobs of this coordinator instead.
+    #[arg(long, env = "VLF_SERVER", value_name = "URL", conflicts_with = "store")]
+    server: Option<String>,
+    /// Bearer token for --server.
+    #[arg(long, env = "VLF_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// PEM of the CA that signed the coordinator's certificate.
+    #[arg(long, value_name = "PEM")]
+    ca_cert: Option<PathBuf>,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -178,6 +259,20 @@ fn parse_size_arg(s: &str) -> Result<(u32, u32), String> {
     parse_size(s).map_err(|e| e.to_string())
 }
 
+/// Runs an async command on a multi-threaded runtime.
+fn block_on(command: impl std::future::Future<Output = Result<()>>) -> Result<()> {
+    block_on_value(command)
+}
+
+/// Runs a future to its value on a multi-threaded runtime.
+fn block_on_value<T>(future: impl std::future::Future<Output = Result<T>>) -> Result<T> {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| anyhow::anyhow!("cannot start the async runtime: {e}"))?
+        .block_on(future)
+}
+
 fn main() {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -192,6 +287,12 @@ fn main() {
         Command::Run(args) => run::run(args),
         Command::Render(args) => render::run(args),
         Command::Jobs(args) => render::jobs(args),
+        Command::Serve(args) => block_on(vlf_server::cli::serve(args)),
+        Command::Worker(args) => block_on(vlf_worker::cli::work(args)),
+        Command::Submit(args) => block_on(remote::submit(args)),
+        Command::Status(args) => block_on(remote::status(args)),
+        Command::Watch(args) => block_on(remote::watch(args)),
+        Command::Cancel(args) => block_on(remote::cancel(args)),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

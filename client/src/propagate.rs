@@ -2,14 +2,15 @@
 //! field iteration by iteration, and write every iteration's snapshot and the
 //! final field into a job of a store.
 
-use crate::{EncodingArg, PropagateArgs};
+use crate::{EncodingArg, JobFlags, PropagateArgs};
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::time::Instant;
-use vlf_core::propagate::{Options, Perturbation, Propagation, Stop};
-use vlf_core::psf::GridSize;
+use vlf_core::propagate::Propagation;
 use vlf_core::scene::{ImportOptions, load_obj};
-use vlf_store::{Encoding, FieldJob, JobId, Stage, Store, Summary};
+use vlf_proto::JobSpec;
+use vlf_proto::v1::{Encoding as WireEncoding, Parameters};
+use vlf_store::{FieldJob, JobId, Stage, Store, Summary};
 
 pub fn run(args: PropagateArgs) -> Result<()> {
     let pool = thread_pool(&args)?;
@@ -52,11 +53,11 @@ pub fn run(args: PropagateArgs) -> Result<()> {
 
     let field_bytes = prop.field_bytes();
     let mut field = pool.install(|| prop.into_field());
-    if args.resample {
+    if args.job.resample {
         pool.install(|| field.resample_mirrors(8));
     }
     let t = Instant::now();
-    pool.install(|| job.finish(&field, args.resample))
+    pool.install(|| job.finish(&field, args.job.resample))
         .context("cannot write the final field")?;
     store_seconds += t.elapsed().as_secs_f64();
 
@@ -84,7 +85,7 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
             (job, prop)
         }
         None => {
-            let options = options(args)?;
+            let spec = args.job.spec()?;
             let path = args
                 .scene
                 .as_ref()
@@ -100,15 +101,10 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
                 "scene imported"
             );
             let prop = pool
-                .install(|| Propagation::new(scene, options))
+                .install(|| Propagation::new(scene, spec.options))
                 .context("cannot set up the light field")?;
             let store = Store::open(&args.store)?;
-            let encoding = match args.encoding {
-                EncodingArg::F32 => Encoding::F32,
-                EncodingArg::F16 => Encoding::F16,
-                EncodingArg::Rgb9e5 => Encoding::Rgb9e5,
-            };
-            let job = pool.install(|| FieldJob::create(&store, &prop, encoding))?;
+            let job = pool.install(|| FieldJob::create(&store, &prop, spec.encoding))?;
             println!("job {} in {}", job.id(), args.store);
             (job, prop)
         }
@@ -182,29 +178,35 @@ pub fn thread_pool(args: &PropagateArgs) -> Result<rayon::ThreadPool> {
         .context("cannot start the worker threads")
 }
 
-/// The propagation options the flags ask for.
-fn options(args: &PropagateArgs) -> Result<Options> {
-    let stop = match (args.iterations, args.converge) {
-        (Some(k), _) => Stop::Iterations(k),
-        (None, eps) => Stop::Converge {
-            epsilon: eps.unwrap_or(1e-3),
-            max_iterations: 1000,
-        },
-    };
-    let options = Options {
-        directions: args.directions,
-        grid: GridSize::new(args.resolution, args.tile)?,
-        stop,
-        texel_cells: args.texel,
-        deferral: args.defer,
-        perturbation: Perturbation {
-            iterations: args.perturb,
-            count: args.perturb_count,
-        },
-        filter_sigma: (args.filter != 0.0).then_some(args.filter),
-    };
-    options.validate()?;
-    Ok(options)
+impl JobFlags {
+    /// The job settings the flags ask for, as the API carries them (one meaning for `propagate`,
+    /// `run` and `submit`).
+    pub fn parameters(&self) -> Result<Parameters> {
+        let directions = u32::try_from(self.directions).map_err(|_| anyhow::anyhow!("--directions is absurd"))?;
+        Ok(Parameters {
+            directions: Some(directions),
+            resolution: Some(self.resolution),
+            tile: Some(self.tile),
+            iterations: self.iterations,
+            converge: self.converge,
+            texel: Some(self.texel),
+            defer: self.defer,
+            perturb: Some(self.perturb),
+            perturb_count: Some(self.perturb_count),
+            filter: Some(self.filter),
+            resample: self.resample,
+            encoding: match self.encoding {
+                EncodingArg::F32 => WireEncoding::F32,
+                EncodingArg::F16 => WireEncoding::F16,
+                EncodingArg::Rgb9e5 => WireEncoding::Rgb9e5,
+            } as i32,
+        })
+    }
+
+    /// The validated settings.
+    pub fn spec(&self) -> Result<JobSpec> {
+        Ok(JobSpec::from_parameters(&self.parameters()?)?)
+    }
 }
 
 /// Peak resident memory of this process (Linux), in KiB.

@@ -6,6 +6,7 @@ use anyhow::{Context, Result, bail};
 use std::time::Instant;
 use vlf_core::lookup::SpecularMode;
 use vlf_core::render::Camera;
+use vlf_proto::Target;
 use vlf_store::{FieldJob, Job, JobId, JobState, Stage, Store};
 
 pub fn run(args: RenderArgs) -> Result<()> {
@@ -20,17 +21,29 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
-    let store = Store::open_existing(&args.store)?;
-    let id = match &args.job {
-        Some(id) => JobId::parse(id).map_err(anyhow::Error::msg)?,
-        None => newest_job(&store)?
-            .with_context(|| format!("no job in store {} (run `vlf propagate` first)", args.store))?,
+    let (store, id, stage) = match (&args.server, &args.store) {
+        (Some(server), _) => {
+            let job = args.job.as_deref().context("JOB is required with --server")?;
+            let target = Target {
+                url: server.clone(),
+                token: args.token.clone(),
+                ca_cert: args.ca_cert.clone(),
+            };
+            let (store, stage) = crate::block_on_value(crate::remote::fetch_job(&target, job, args.snapshot))?;
+            (store, JobId::parse(job).map_err(anyhow::Error::msg)?, Some(stage))
+        }
+        (None, Some(url)) => {
+            let store = Store::open_existing(url)?;
+            let id = match &args.job {
+                Some(id) => JobId::parse(id).map_err(anyhow::Error::msg)?,
+                None => newest_job(&store)?.with_context(|| format!("no job in store {url} (run `vlf run` first)"))?,
+            };
+            (store, id, args.snapshot.map(Stage::Iteration))
+        }
+        (None, None) => bail!("give a store, or --server and a job"),
     };
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
-    let stage = match args.snapshot {
-        Some(k) => Stage::Iteration(k),
-        None => job.latest_stage(),
-    };
+    let stage = stage.unwrap_or_else(|| job.latest_stage());
     let started = Instant::now();
     let field = job
         .load(stage)
@@ -52,10 +65,21 @@ pub fn run(args: RenderArgs) -> Result<()> {
 }
 
 pub fn jobs(args: JobsArgs) -> Result<()> {
-    let store = Store::open_existing(&args.store)?;
+    let url = match (&args.server, &args.store) {
+        (Some(server), _) => {
+            return crate::block_on(crate::remote::jobs(Target {
+                url: server.clone(),
+                token: args.token.clone(),
+                ca_cert: args.ca_cert.clone(),
+            }));
+        }
+        (None, Some(url)) => url,
+        (None, None) => bail!("give a store, or --server"),
+    };
+    let store = Store::open_existing(url)?;
     let ids = Job::list(&store)?;
     if ids.is_empty() {
-        println!("no job in {}", args.store);
+        println!("no job in {url}");
     }
     for id in ids {
         let job = Job::open(&store, &id)?;

@@ -1,19 +1,23 @@
-//! `vlf run`: the embedded service. A coordinator and `--workers` worker
-//! replicas in this process, over a store: every iteration's batches of
-//! directions are handed out to the workers, whose outputs go through the
-//! store, and the coordinator absorbs them in order and commits a snapshot —
-//! the distributed service's data path (`vlf_store::iteration`), on one
-//! machine and with no set-up. The result is the same bits as
-//! `vlf propagate` and as any number of workers.
+//! `vlf run`: the embedded service. The coordinator (`vlf serve`) and `--workers` workers
+//! (`vlf worker`) in this process, over a local store, talking gRPC on a loopback port: the
+//! distributed service with nothing to set up. Every iteration's batches are leased to the
+//! workers, which write their outputs into the store; the coordinator absorbs them in batch order
+//! and commits a snapshot. The result is the same bits as `vlf propagate` and as any number of
+//! workers, in this process or others.
+//!
+//! `--resume JOB` starts the service over the store, which takes up every unfinished job of it
+//! (the coordinator's recovery), and follows JOB to its end.
 
 use crate::RunArgs;
-use crate::propagate::{print_summary, start, thread_pool};
+use crate::propagate::print_summary;
+use crate::remote;
 use anyhow::{Context, Result, bail};
-use indicatif::{ProgressBar, ProgressStyle};
-use std::sync::Mutex;
-use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::Instant;
-use vlf_store::{Coordinator, FieldJob, Replica, Stage, Store};
+use vlf_core::scene::{ImportOptions, load_obj};
+use vlf_proto::Target;
+use vlf_server::{ServeConfig, Server};
+use vlf_store::{FieldJob, JobId, Stage, Store};
+use vlf_worker::{StoreChoice, WorkerConfig};
 
 pub fn run(args: RunArgs) -> Result<()> {
     let RunArgs {
@@ -23,77 +27,100 @@ pub fn run(args: RunArgs) -> Result<()> {
     if !(1..=64).contains(&workers) {
         bail!("--workers must be between 1 and 64, got {workers}");
     }
-    let pool = thread_pool(&args)?;
-    let started = Instant::now();
-    let (job, prop) = start(&args, &pool)?;
-    print!("{}", prop.plan);
-    let id = job.id().clone();
-    let mut coordinator = Coordinator::new(job, prop);
-    // Each worker has its own store handle and its own copy of the geometry, as a worker process
-    // would.
-    let mut replicas: Vec<Replica> = pool
-        .install(|| -> Result<Vec<Replica>, vlf_store::StoreError> {
-            (0..workers)
-                .map(|_| Replica::new(FieldJob::open(&Store::open(&args.store)?, &id)?))
-                .collect()
-        })
-        .context("cannot start the workers")?;
-
-    let bar = ProgressBar::new(0);
-    bar.set_style(
-        ProgressStyle::with_template("{prefix:>14} [{bar:40}] {pos}/{len} batches {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar())
-            .progress_chars("=> "),
-    );
-    while !coordinator.finished() {
-        let k = coordinator.iteration();
-        bar.set_prefix(format!("iteration {}", k + 1));
-        bar.set_message(format!(
-            "unshot {:.2e}, {workers} workers",
-            coordinator.propagation().unshot_fraction()
-        ));
-        while let Some((pass, batches)) = coordinator.pending_pass() {
-            bar.set_length(batches as u64);
-            bar.set_position(0);
-            let next = AtomicUsize::new(0);
-            let failure = Mutex::new(None);
-            pool.install(|| {
-                rayon::scope(|s| {
-                    for replica in replicas.iter_mut() {
-                        let (next, failure, bar) = (&next, &failure, &bar);
-                        s.spawn(move |_| {
-                            loop {
-                                let b = next.fetch_add(1, Ordering::Relaxed);
-                                if b >= batches {
-                                    break;
-                                }
-                                if let Err(e) = replica.compute(k, pass, b..b + 1) {
-                                    // Stop handing out work; the first error is reported.
-                                    next.store(batches, Ordering::Relaxed);
-                                    let mut slot = failure.lock().unwrap_or_else(|p| p.into_inner());
-                                    slot.get_or_insert(e);
-                                    break;
-                                }
-                                bar.inc(1);
-                            }
-                        });
-                    }
-                })
-            });
-            if let Some(e) = failure.into_inner().unwrap_or_else(|p| p.into_inner()) {
-                bar.finish_and_clear();
-                return Err(e).with_context(|| format!("a worker failed in iteration {}", k + 1));
-            }
-            pool.install(|| coordinator.absorb_pass())
-                .with_context(|| format!("cannot absorb {pass:?} of iteration {}", k + 1))?;
-        }
-        pool.install(|| coordinator.finish_iteration())
-            .with_context(|| format!("cannot finish iteration {}", k + 1))?;
+    if args.threads == Some(0) || args.threads.is_some_and(|t| t > 1024) {
+        bail!("--threads must be between 1 and 1024");
     }
-    bar.finish_and_clear();
-    let job = pool
-        .install(|| coordinator.finish(args.resample))
-        .context("cannot write the final field")?;
+    let started = Instant::now();
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    // The cores are shared among the workers; each computes its batches with its share.
+    let per_worker = (threads / workers).max(1);
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+    let id = runtime.block_on(async {
+        let store = {
+            let url = args.store.clone();
+            vlf_store::blocking(move || Store::open(&url)).await??
+        };
+        let loopback = "127.0.0.1:0".parse().context("loopback address")?;
+        let server = Server::start_with_store(ServeConfig::new(args.store.clone(), loopback), store.clone())
+            .await
+            .context("cannot start the coordinator")?;
+        let target = Target::new(format!("http://{}", server.addr()));
+
+        let id = match &args.resume {
+            Some(id) => {
+                let id = JobId::parse(id).map_err(anyhow::Error::msg)?;
+                let status = server
+                    .scheduler()
+                    .status(&id)
+                    .with_context(|| format!("no job {id} in {}", args.store))?;
+                println!(
+                    "resuming job {id} in {} after {} iterations",
+                    args.store,
+                    status.snapshots.len().saturating_sub(1)
+                );
+                id
+            }
+            None => {
+                let spec = args.job.spec()?;
+                let path = args
+                    .scene
+                    .clone()
+                    .context("a scene is needed unless --resume is given")?;
+                let (scene, warnings) = vlf_store::blocking(move || {
+                    load_obj(&path, &ImportOptions::default())
+                        .with_context(|| format!("cannot import {}", path.display()))
+                })
+                .await??;
+                for w in &warnings {
+                    tracing::warn!("{w}");
+                }
+                let status = vlf_server::driver::submit(server.scheduler(), scene, spec)
+                    .await
+                    .context("cannot create the job")?;
+                println!("job {} in {}", status.job_id, args.store);
+                JobId::parse(&status.job_id).map_err(anyhow::Error::msg)?
+            }
+        };
+
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let handles: Vec<_> = (0..workers)
+            .map(|w| {
+                let config = WorkerConfig {
+                    target: target.clone(),
+                    name: format!("embedded-{w}"),
+                    threads: Some(per_worker),
+                    store: StoreChoice::Handle(store.clone()),
+                    hang_after: None,
+                };
+                let mut stop = stop_rx.clone();
+                tokio::spawn(vlf_worker::run(config, async move {
+                    let _ = stop.wait_for(|s| *s).await;
+                }))
+            })
+            .collect();
+
+        let mut clients = remote::connect(&target).await?;
+        let followed = remote::follow(&mut clients, id.as_str()).await;
+        let _ = stop_tx.send(true);
+        for handle in handles {
+            match handle.await {
+                Ok(Ok(_)) => {}
+                Ok(Err(e)) => tracing::warn!("a worker stopped with an error: {e}"),
+                Err(e) => tracing::warn!("a worker panicked: {e}"),
+            }
+        }
+        server.shutdown().await;
+        followed?;
+        anyhow::Ok(id)
+    })?;
+
+    let store = Store::open_existing(&args.store)?;
+    let job = FieldJob::open(&store, &id)?;
     let summary = job.summary(Stage::Field)?;
     print_summary(&args, &job, &summary, started, f64::NAN, None)
 }

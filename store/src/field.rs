@@ -205,7 +205,17 @@ impl FieldJob {
 
     /// Marks the job failed with `message` (the blobs written so far stay readable).
     pub fn fail(&mut self, message: String) -> Result<(), StoreError> {
-        self.job.set_state(JobState::Failed { message })
+        self.set_state(JobState::Failed { message })
+    }
+
+    /// Records whether the final field is to be re-sampled (see [`crate::Manifest::resample`]).
+    pub fn set_resample(&mut self, resample: bool) -> Result<(), StoreError> {
+        self.job.set_resample(resample)
+    }
+
+    /// Sets the job's state (see [`Job::set_state`]).
+    pub fn set_state(&mut self, state: JobState) -> Result<(), StoreError> {
+        self.job.set_state(state)
     }
 
     /// The propagation as it stood after the last finished snapshot, ready to step on with the

@@ -26,6 +26,7 @@ use crate::blob::{self, BlobKind};
 use crate::error::StoreError;
 use crate::field::FieldJob;
 use crate::layout;
+use crate::manifest::JobState;
 use crate::store::PutOutcome;
 use std::ops::Range;
 use std::time::Instant;
@@ -194,6 +195,26 @@ impl Coordinator {
             .work
             .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()));
         work.next_expected().map(|(pass, _)| (pass, work.batches()))
+    }
+
+    /// Every pass of the current iteration, in order, and the batch count of each.
+    pub fn passes(&mut self) -> (Vec<Pass>, usize) {
+        let (work, _) = self
+            .work
+            .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()));
+        (work.passes(), work.batches())
+    }
+
+    /// Whether batch `batch` of `pass` of the current iteration is already in the store (a
+    /// restarted coordinator reuses what workers wrote before it stopped: the bytes are the same).
+    pub fn has_batch(&self, pass: Pass, batch: usize) -> Result<bool, StoreError> {
+        self.job.has_batch(self.iteration(), pass, batch as u32)
+    }
+
+    /// Ends the job in `state` (failed or cancelled): the snapshots written so far stay
+    /// readable, and the job is not resumed.
+    pub fn end(&mut self, state: JobState) -> Result<(), StoreError> {
+        self.job.set_state(state)
     }
 
     /// Absorbs every batch of the pending pass from the store, in batch order.

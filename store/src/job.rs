@@ -202,6 +202,13 @@ impl Job {
         self.write_manifest(manifest)
     }
 
+    /// Records whether the final field is to be re-sampled (see [`Manifest::resample`]).
+    pub fn set_resample(&mut self, resample: bool) -> Result<(), StoreError> {
+        let mut manifest = self.manifest.clone();
+        manifest.resample = resample;
+        self.write_manifest(manifest)
+    }
+
     /// Marks the job finished, committing the final field.
     pub fn finish(&mut self) -> Result<(), StoreError> {
         self.set_state(JobState::Finished)

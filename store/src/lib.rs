@@ -31,4 +31,4 @@ pub use iteration::{Coordinator, Replica};
 pub use job::Job;
 pub use layout::Stage;
 pub use manifest::{JobState, Manifest};
-pub use store::{AsyncStore, PutOutcome, Store};
+pub use store::{AsyncStore, Panicked, PutOutcome, Store, blocking};

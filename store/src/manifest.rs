@@ -52,6 +52,15 @@ pub struct Manifest {
     pub created: u64,
     /// Time of the last update, Unix seconds.
     pub updated: u64,
+    /// Whether the final field's mirror maps are re-sampled by backward ray tracing (a setting of
+    /// the job's last step, kept so that whoever finishes the job — a restarted coordinator —
+    /// does what was asked). Absent in older manifests: false.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub resample: bool,
+}
+
+fn is_false(b: &bool) -> bool {
+    !*b
 }
 
 impl Manifest {
@@ -68,6 +77,7 @@ impl Manifest {
             encoding,
             created: now,
             updated: now,
+            resample: false,
         }
     }
 

@@ -1,0 +1,328 @@
+//! The commands that talk to a coordinator: `submit`, `status`, `watch`, `cancel`, `jobs
+//! --server`, and the fetching of a job's blobs for `render --server`.
+
+use crate::{JobArgs, ServerFlags, SubmitArgs};
+use anyhow::{Context, Result, bail};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::collections::BTreeMap;
+use std::path::Path;
+use vlf_proto::v1::{self, JobStatus, State};
+use vlf_proto::{Clients, Target};
+use vlf_store::{JobId, Stage, Store, layout};
+
+impl ServerFlags {
+    pub fn target(&self) -> Target {
+        Target {
+            url: self.server.clone(),
+            token: self.token.clone(),
+            ca_cert: self.ca_cert.clone(),
+        }
+    }
+}
+
+/// Connects to `target`, with the URL in the message when nothing answers.
+pub async fn connect(target: &Target) -> Result<Clients> {
+    target
+        .connect()
+        .await
+        .with_context(|| format!("is a coordinator running at {}? (vlf serve)", target.url))
+}
+
+/// A status error with its code in words.
+fn call_error(status: tonic::Status) -> anyhow::Error {
+    let code = match status.code() {
+        tonic::Code::NotFound => "not found",
+        tonic::Code::InvalidArgument => "invalid argument",
+        tonic::Code::Unauthenticated => "unauthenticated",
+        tonic::Code::ResourceExhausted => "too large",
+        tonic::Code::Unavailable => "coordinator unavailable",
+        _ => "error",
+    };
+    anyhow::anyhow!("{code}: {}", status.message())
+}
+
+/// The OBJ and the MTL libraries its `mtllib` lines name (those that exist next to it; a missing
+/// one is reported by the server's importer, with the line that names it).
+pub fn read_upload(path: &Path) -> Result<v1::SceneUpload> {
+    let obj = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
+    let dir = path.parent().unwrap_or(Path::new(""));
+    let mut mtl = std::collections::HashMap::new();
+    for line in String::from_utf8_lossy(&obj).lines() {
+        let mut words = line.split_whitespace();
+        if words.next() != Some("mtllib") {
+            continue;
+        }
+        for name in words {
+            let file = dir.join(name);
+            let plain = Path::new(name).file_name().map(|f| f == std::ffi::OsStr::new(name)) == Some(true);
+            if plain && let Ok(bytes) = std::fs::read(&file) {
+                mtl.insert(name.to_string(), bytes);
+            }
+        }
+    }
+    let obj_name = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "scene.obj".into());
+    Ok(v1::SceneUpload { obj_name, obj, mtl })
+}
+
+pub async fn submit(args: SubmitArgs) -> Result<()> {
+    let parameters = args.job.parameters()?;
+    // Refuse bad settings before uploading anything.
+    vlf_proto::JobSpec::from_parameters(&parameters)?;
+    let upload = read_upload(&args.scene)?;
+    let mut clients = connect(&args.server.target()).await?;
+    let status = clients
+        .jobs
+        .submit(v1::SubmitRequest {
+            scene: Some(v1::submit_request::Scene::Upload(upload)),
+            parameters: Some(parameters),
+        })
+        .await
+        .map_err(call_error)
+        .with_context(|| format!("cannot submit {}", args.scene.display()))?
+        .into_inner();
+    println!("{}", status.job_id);
+    if args.watch {
+        follow(&mut clients, &status.job_id).await?;
+    }
+    Ok(())
+}
+
+pub async fn status(args: JobArgs) -> Result<()> {
+    let mut clients = connect(&args.server.target()).await?;
+    let status = clients
+        .jobs
+        .get(v1::JobRequest {
+            job_id: args.job.clone(),
+        })
+        .await
+        .map_err(call_error)?
+        .into_inner();
+    println!("{}", describe(&status));
+    Ok(())
+}
+
+pub async fn watch(args: JobArgs) -> Result<()> {
+    let mut clients = connect(&args.server.target()).await?;
+    follow(&mut clients, &args.job).await.map(|_| ())
+}
+
+pub async fn cancel(args: JobArgs) -> Result<()> {
+    let mut clients = connect(&args.server.target()).await?;
+    let status = clients
+        .jobs
+        .cancel(v1::JobRequest {
+            job_id: args.job.clone(),
+        })
+        .await
+        .map_err(call_error)?
+        .into_inner();
+    if status.state == State::Cancelled as i32
+        || status.state == State::Propagating as i32
+        || status.state == State::Queued as i32
+    {
+        println!("cancelling job {}", status.job_id);
+    } else {
+        println!("job {} had already ended: {}", status.job_id, describe(&status));
+    }
+    Ok(())
+}
+
+pub async fn jobs(target: Target) -> Result<()> {
+    let mut clients = connect(&target).await?;
+    let jobs = clients
+        .jobs
+        .list(v1::ListJobsRequest {})
+        .await
+        .map_err(call_error)?
+        .into_inner()
+        .jobs;
+    if jobs.is_empty() {
+        println!("no job at {}", target.url);
+    }
+    for status in jobs {
+        println!("{}", describe(&status));
+    }
+    Ok(())
+}
+
+/// One line that says where a job stands.
+pub fn describe(s: &JobStatus) -> String {
+    let state = State::try_from(s.state).unwrap_or(State::Unspecified);
+    let what = match state {
+        State::Queued => "queued".to_string(),
+        State::Propagating => format!(
+            "propagating iteration {}{} ({}/{} batches, {} leased)",
+            s.iteration,
+            if s.iterations_planned > 0 {
+                format!(" of {}", s.iterations_planned)
+            } else {
+                String::new()
+            },
+            s.batches_done,
+            s.batches_total,
+            s.leases_out
+        ),
+        State::Finished => "finished".to_string(),
+        State::Failed => format!("failed: {}", s.message),
+        State::Cancelled => "cancelled".to_string(),
+        State::Unspecified => "unknown".to_string(),
+    };
+    let mut line = format!(
+        "{}  {what}  unshot {:.3e}  snapshots {:?}",
+        s.job_id, s.unshot_fraction, s.snapshots
+    );
+    if state == State::Propagating {
+        line += &format!(
+            "  {} workers  {:.0} directions/s",
+            s.workers_alive, s.directions_per_second
+        );
+        if s.eta_job_seconds >= 0.0 {
+            line += &format!("  ETA {:.1} s", s.eta_job_seconds);
+        } else if s.eta_iteration_seconds >= 0.0 {
+            line += &format!("  iteration ETA {:.1} s", s.eta_iteration_seconds);
+        }
+    }
+    line
+}
+
+/// Follows a job's status stream with a progress bar per iteration until it ends; returns the
+/// final status, or an error when the job failed or was cancelled.
+pub async fn follow(clients: &mut Clients, job: &str) -> Result<JobStatus> {
+    let mut stream = clients
+        .jobs
+        .watch(v1::JobRequest {
+            job_id: job.to_string(),
+        })
+        .await
+        .map_err(call_error)?
+        .into_inner();
+    let style = ProgressStyle::with_template("{prefix:>14} [{bar:40}] {pos}/{len} batches {msg}")
+        .unwrap_or_else(|_| ProgressStyle::default_bar())
+        .progress_chars("=> ");
+    let mut bar: Option<(u32, ProgressBar)> = None;
+    let mut last: Option<JobStatus> = None;
+    while let Some(status) = stream.message().await.map_err(call_error)? {
+        if let Some(previous) = &last
+            && status.seq <= previous.seq
+        {
+            bail!("progress arrived out of order ({} after {})", status.seq, previous.seq);
+        }
+        if status.state == State::Propagating as i32 {
+            if bar.as_ref().is_none_or(|(k, _)| *k != status.iteration) {
+                if let Some((_, b)) = bar.take() {
+                    b.finish_and_clear();
+                }
+                let b = ProgressBar::new(u64::from(status.batches_total));
+                b.set_style(style.clone());
+                b.set_prefix(format!("iteration {}", status.iteration));
+                bar = Some((status.iteration, b));
+            }
+            if let Some((_, b)) = &bar {
+                b.set_length(u64::from(status.batches_total.max(1)));
+                b.set_position(u64::from(status.batches_done));
+                b.set_message(format!(
+                    "unshot {:.2e}, {} workers, {:.0} dir/s",
+                    status.unshot_fraction, status.workers_alive, status.directions_per_second
+                ));
+            }
+        }
+        last = Some(status);
+    }
+    if let Some((_, b)) = bar.take() {
+        b.finish_and_clear();
+    }
+    let last = last.context("the coordinator sent no status")?;
+    println!("{}", describe(&last));
+    match State::try_from(last.state) {
+        Ok(State::Finished) => Ok(last),
+        Ok(State::Failed) => bail!("job {} failed: {}", last.job_id, last.message),
+        Ok(State::Cancelled) => bail!("job {} was cancelled", last.job_id),
+        _ => bail!(
+            "the coordinator closed the progress stream before job {} ended",
+            last.job_id
+        ),
+    }
+}
+
+/// Copies the blobs of `job` that rendering `stage` needs (manifest, scene, the stage) from the
+/// coordinator into a fresh in-memory store. Blobs arrive as stored and are verified when read.
+/// Returns the store and the stage (the latest, when none is asked for).
+pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Result<(Store, Stage)> {
+    let id = JobId::parse(job).map_err(anyhow::Error::msg)?;
+    let mut clients = connect(target).await?;
+    let status = clients
+        .jobs
+        .get(v1::JobRequest {
+            job_id: job.to_string(),
+        })
+        .await
+        .map_err(call_error)?
+        .into_inner();
+    let stage = match snapshot {
+        Some(k) if status.snapshots.contains(&k) => Stage::Iteration(k),
+        Some(k) => bail!(
+            "snapshot {k} of job {job} is not finished (finished: {:?})",
+            status.snapshots
+        ),
+        None if status.state == State::Finished as i32 => Stage::Field,
+        None => Stage::Iteration(
+            *status
+                .snapshots
+                .last()
+                .with_context(|| format!("job {job} has no finished snapshot yet"))?,
+        ),
+    };
+    let job_prefix = layout::job_prefix(&id);
+    let stage_prefix = layout::stage_prefix(&id, stage)?;
+    let relative = stage_prefix
+        .strip_prefix(&job_prefix)
+        .unwrap_or(&stage_prefix)
+        .to_string();
+    let mut names = vec!["manifest.blob".to_string(), "scene.blob".to_string()];
+    names.extend(
+        clients
+            .tiles
+            .list_blobs(v1::ListBlobsRequest {
+                job_id: job.to_string(),
+                prefix: relative.clone(),
+            })
+            .await
+            .map_err(call_error)?
+            .into_inner()
+            .names,
+    );
+    names.sort();
+    names.dedup();
+    let mut stream = clients
+        .tiles
+        .fetch(v1::FetchRequest {
+            job_id: job.to_string(),
+            names: names.clone(),
+        })
+        .await
+        .map_err(call_error)?
+        .into_inner();
+    let mut blobs = BTreeMap::new();
+    while let Some(blob) = stream.message().await.map_err(call_error)? {
+        blobs.insert(blob.name, blob.data);
+    }
+    if blobs.len() != names.len() {
+        bail!(
+            "the coordinator sent {} of the {} blobs asked for",
+            blobs.len(),
+            names.len()
+        );
+    }
+    let store = vlf_store::blocking(move || -> Result<Store> {
+        let store = Store::open("memory://")?;
+        for (name, data) in blobs {
+            store.put(&format!("{job_prefix}{name}"), data)?;
+        }
+        Ok(store)
+    })
+    .await??;
+    Ok((store, stage))
+}

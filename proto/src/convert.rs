@@ -1,0 +1,183 @@
+//! Messages ↔ library types. [`Parameters`] is the one description of a job's settings: the
+//! command line builds it from its flags (for `propagate` as well as `submit`), the server
+//! validates it into [`JobSpec`], so a job means the same thing however it was started.
+
+use crate::v1::{self, Parameters};
+use vlf_core::propagate::{Options, Pass, Perturbation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_store::Encoding;
+
+/// A job's settings, validated.
+#[derive(Clone, Debug, PartialEq)]
+pub struct JobSpec {
+    pub options: Options,
+    pub encoding: Encoding,
+    /// Re-sample mirror maps by backward ray tracing after the last iteration.
+    pub resample: bool,
+}
+
+impl JobSpec {
+    /// Default number of directions.
+    pub const DIRECTIONS: u32 = 513;
+    /// Default resolution N.
+    pub const RESOLUTION: u32 = 64;
+    /// Default tile m.
+    pub const TILE: u32 = 8;
+    /// Default convergence threshold.
+    pub const CONVERGE: f64 = 1e-3;
+    /// Iteration cap of a run to convergence.
+    pub const MAX_ITERATIONS: u32 = 1000;
+    /// Default perturbed iterations and copies.
+    pub const PERTURB: u32 = 2;
+    pub const PERTURB_COUNT: u32 = 4;
+    /// Default filter sigma (texels).
+    pub const FILTER: f64 = 1.0;
+
+    /// Validates `p` (unset fields take their defaults); the error names the parameter.
+    pub fn from_parameters(p: &Parameters) -> Result<JobSpec, vlf_core::Error> {
+        if p.iterations.is_some() && p.converge.is_some() {
+            return Err(vlf_core::Error::Parameter(
+                "give either a fixed iteration count or a convergence threshold, not both".into(),
+            ));
+        }
+        let stop = match (p.iterations, p.converge) {
+            (Some(k), _) => Stop::Iterations(k),
+            (None, eps) => Stop::Converge {
+                epsilon: eps.unwrap_or(Self::CONVERGE),
+                max_iterations: Self::MAX_ITERATIONS,
+            },
+        };
+        let filter = p.filter.unwrap_or(Self::FILTER);
+        let options = Options {
+            directions: p.directions.unwrap_or(Self::DIRECTIONS) as usize,
+            grid: GridSize::new(p.resolution.unwrap_or(Self::RESOLUTION), p.tile.unwrap_or(Self::TILE))?,
+            stop,
+            texel_cells: p.texel.unwrap_or(1.0),
+            deferral: p.defer,
+            perturbation: Perturbation {
+                iterations: p.perturb.unwrap_or(Self::PERTURB),
+                count: p.perturb_count.unwrap_or(Self::PERTURB_COUNT),
+            },
+            filter_sigma: (filter != 0.0).then_some(filter),
+        };
+        options.validate()?;
+        let encoding = match v1::Encoding::try_from(p.encoding) {
+            Ok(v1::Encoding::Unspecified | v1::Encoding::F16) => Encoding::F16,
+            Ok(v1::Encoding::F32) => Encoding::F32,
+            Ok(v1::Encoding::Rgb9e5) => Encoding::Rgb9e5,
+            Err(_) => {
+                return Err(vlf_core::Error::Parameter(format!(
+                    "encoding {} is not one of F32, F16, RGB9E5",
+                    p.encoding
+                )));
+            }
+        };
+        Ok(JobSpec {
+            options,
+            encoding,
+            resample: p.resample,
+        })
+    }
+}
+
+/// A pass as the two numbers of a [`v1::Lease`].
+pub fn pass_to_wire(pass: Pass) -> (u32, u32) {
+    match pass {
+        Pass::Shoot => (0, 0),
+        Pass::Areas { copy } => (1, copy),
+        Pass::ShootCopy { copy } => (2, copy),
+    }
+}
+
+/// The pass of a [`v1::Lease`], if its numbers name one.
+pub fn pass_from_wire(kind: u32, copy: u32) -> Option<Pass> {
+    match kind {
+        0 if copy == 0 => Some(Pass::Shoot),
+        1 => Some(Pass::Areas { copy }),
+        2 => Some(Pass::ShootCopy { copy }),
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn defaults_are_the_command_lines() {
+        let spec = JobSpec::from_parameters(&Parameters::default()).unwrap();
+        assert_eq!(spec.options.directions, 513);
+        assert_eq!(spec.options.grid, GridSize::new(64, 8).unwrap());
+        assert_eq!(
+            spec.options.stop,
+            Stop::Converge {
+                epsilon: 1e-3,
+                max_iterations: 1000
+            }
+        );
+        assert_eq!(spec.options.filter_sigma, Some(1.0));
+        assert_eq!(spec.encoding, Encoding::F16);
+    }
+
+    #[test]
+    fn bad_parameters_name_themselves() {
+        let bad = |p: Parameters, what: &str| {
+            let e = JobSpec::from_parameters(&p).unwrap_err().to_string();
+            assert!(e.contains(what), "`{e}` does not mention {what}");
+        };
+        bad(
+            Parameters {
+                directions: Some(100),
+                ..Default::default()
+            },
+            "directions",
+        );
+        bad(
+            Parameters {
+                resolution: Some(60),
+                tile: Some(8),
+                ..Default::default()
+            },
+            "60",
+        );
+        bad(
+            Parameters {
+                iterations: Some(0),
+                ..Default::default()
+            },
+            "iterations",
+        );
+        bad(
+            Parameters {
+                iterations: Some(2),
+                converge: Some(0.1),
+                ..Default::default()
+            },
+            "not both",
+        );
+        bad(
+            Parameters {
+                converge: Some(f64::NAN),
+                ..Default::default()
+            },
+            "convergence",
+        );
+        bad(
+            Parameters {
+                encoding: 17,
+                ..Default::default()
+            },
+            "encoding",
+        );
+    }
+
+    #[test]
+    fn passes_round_trip() {
+        for pass in [Pass::Shoot, Pass::Areas { copy: 3 }, Pass::ShootCopy { copy: 0 }] {
+            let (k, c) = pass_to_wire(pass);
+            assert_eq!(pass_from_wire(k, c), Some(pass));
+        }
+        assert_eq!(pass_from_wire(0, 1), None);
+        assert_eq!(pass_from_wire(3, 0), None);
+    }
+}

@@ -1,0 +1,17 @@
+//! The VLF gRPC API, package `vlf.v1` (see `vlf/v1/vlf.proto`): the code tonic and prost
+//! generate from it, and the conversions between its messages and the library's types, so the
+//! server, the workers and the command line agree on one meaning of every field.
+
+/// The generated code of `vlf.v1`.
+pub mod v1 {
+    tonic::include_proto!("vlf.v1");
+}
+
+mod connect;
+mod convert;
+
+pub use connect::{Authed, BearerToken, Clients, ConnectError, Target};
+pub use convert::{JobSpec, pass_from_wire, pass_to_wire};
+
+/// The metadata key of the bearer token.
+pub const AUTHORIZATION: &str = "authorization";

@@ -1,0 +1,321 @@
+//! One task per job: it walks the job's iterations and passes, opening each pass for leasing,
+//! waiting at the barrier, absorbing the pass from the store in batch order, and committing a
+//! snapshot after every iteration — [`vlf_store::Coordinator`]'s protocol, with the batches
+//! computed by remote workers instead of local threads.
+//!
+//! A coordinator that restarts calls [`recover`]: every job of the store that was queued or
+//! propagating is resumed from its last finished snapshot (`Coordinator::resume`), and batches
+//! of the interrupted iteration that workers had already written are used as they are (a batch's
+//! output is a pure function of the job and the batch, so they are the same bytes a new
+//! computation would write).
+
+use crate::scheduler::{PassOutcome, Scheduler};
+use std::sync::Arc;
+use tokio::sync::Notify;
+use vlf_core::propagate::Propagation;
+use vlf_core::scene::Scene;
+use vlf_proto::JobSpec;
+use vlf_proto::v1::{JobStatus, State as WireState};
+use vlf_store::{Coordinator, FieldJob, Job, JobId, JobState, Store, StoreError};
+
+/// Why a job could not be created.
+#[derive(Debug, thiserror::Error)]
+pub enum SubmitError {
+    /// The scene and parameters do not make a propagation (the library's message).
+    #[error("{0}")]
+    Invalid(vlf_core::Error),
+    /// The store refused the job.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("internal error: {0}")]
+    Internal(String),
+}
+
+/// Creates a job for `scene` with `spec` in the scheduler's store (snapshot 0 written), and
+/// starts driving it. Returns its first status.
+pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Result<JobStatus, SubmitError> {
+    let store = sched.store().clone();
+    let created = vlf_store::blocking(move || -> Result<_, SubmitError> {
+        let prop = Propagation::new(scene, spec.options).map_err(SubmitError::Invalid)?;
+        let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
+        if spec.resample {
+            job.set_resample(true)?;
+        }
+        Ok(Coordinator::new(job, prop))
+    })
+    .await
+    .map_err(|e| SubmitError::Internal(e.to_string()))??;
+    let id = created.job().id().clone();
+    tracing::info!(job = %id, "job submitted");
+    start(sched, created);
+    sched.status(&id).map_err(|e| SubmitError::Internal(e.to_string()))
+}
+
+/// Takes up every job of the store: unfinished ones are resumed from their last snapshot and
+/// driven; ended ones are listed with their final state. A job that cannot be read is listed as
+/// failed with the reason, and the others go on.
+pub async fn recover(sched: &Arc<Scheduler>) -> Result<usize, StoreError> {
+    let store = sched.store().clone();
+    let ids = vlf_store::blocking(move || Job::list(&store))
+        .await
+        .map_err(|e| StoreError::Layout(e.to_string()))??;
+    let mut resumed = 0;
+    for id in ids {
+        if sched.has_job(&id) {
+            continue;
+        }
+        let store = sched.store().clone();
+        let opened = {
+            let id = id.clone();
+            vlf_store::blocking(move || -> Result<Result<Coordinator, JobStatus>, StoreError> {
+                let job = FieldJob::open(&store, &id)?;
+                match job.job().manifest().state {
+                    JobState::Queued | JobState::Propagating { .. } => Ok(Ok(Coordinator::resume(job)?)),
+                    _ => Ok(Err(stored_status(&job))),
+                }
+            })
+            .await
+            .map_err(|e| StoreError::Layout(e.to_string()))?
+        };
+        match opened {
+            Ok(Ok(coordinator)) => {
+                tracing::info!(job = %id, snapshot = coordinator.iteration(), "resuming job");
+                start(sched, coordinator);
+                resumed += 1;
+            }
+            Ok(Err(status)) => {
+                let _ = sched.add_job(status);
+            }
+            Err(e) => {
+                tracing::error!(job = %id, "cannot take up job: {e}");
+                let _ = sched.add_job(JobStatus {
+                    job_id: id.to_string(),
+                    state: WireState::Failed as i32,
+                    message: format!("the coordinator cannot read this job: {e}"),
+                    ..Default::default()
+                });
+            }
+        }
+    }
+    Ok(resumed)
+}
+
+/// The status of a job as its store records it (for jobs this coordinator does not drive).
+pub fn stored_status(job: &FieldJob) -> JobStatus {
+    let manifest = job.job().manifest();
+    let (state, message, iteration) = match &manifest.state {
+        JobState::Queued => (WireState::Queued, String::new(), 0),
+        JobState::Propagating { iteration } => (WireState::Propagating, String::new(), *iteration),
+        JobState::Finished => (WireState::Finished, String::new(), 0),
+        JobState::Failed { message } => (WireState::Failed, message.clone(), 0),
+        JobState::Cancelled => (WireState::Cancelled, String::new(), 0),
+    };
+    let unshot = job
+        .summary(job.latest_stage())
+        .map(|s| s.unshot_fraction)
+        .unwrap_or(f64::NAN);
+    JobStatus {
+        job_id: job.id().to_string(),
+        state: state as i32,
+        message,
+        iteration,
+        iterations_planned: planned(job),
+        unshot_fraction: unshot,
+        snapshots: manifest.finished_iterations.clone(),
+        store_url: job.job().store().url().to_string(),
+        eta_iteration_seconds: -1.0,
+        eta_job_seconds: -1.0,
+        ..Default::default()
+    }
+}
+
+/// Opens a job of `store` that the scheduler does not drive and reads its status.
+pub fn read_stored_status(store: &Store, id: &JobId) -> Result<JobStatus, StoreError> {
+    Ok(stored_status(&FieldJob::open(store, id)?))
+}
+
+fn planned(job: &FieldJob) -> u32 {
+    match job.options().stop {
+        vlf_core::propagate::Stop::Iterations(k) => k,
+        vlf_core::propagate::Stop::Converge { .. } => 0,
+    }
+}
+
+/// Registers the job with the scheduler and spawns its driver.
+fn start(sched: &Arc<Scheduler>, coordinator: Coordinator) {
+    let mut status = stored_status(coordinator.job());
+    status.unshot_fraction = coordinator.propagation().unshot_fraction();
+    let wake = match sched.add_job(status) {
+        Ok(wake) => wake,
+        Err(e) => {
+            tracing::error!("cannot schedule job {}: {e}", coordinator.job().id());
+            return;
+        }
+    };
+    let resample = coordinator.job().job().manifest().resample;
+    let driver = Driver {
+        sched: sched.clone(),
+        wake,
+        id: coordinator.job().id().clone(),
+        coordinator: Some(coordinator),
+    };
+    tokio::spawn(driver.run(resample));
+}
+
+struct Driver {
+    sched: Arc<Scheduler>,
+    wake: Arc<Notify>,
+    id: JobId,
+    /// Out while a blocking step has it.
+    coordinator: Option<Coordinator>,
+}
+
+/// How a job's drive ended early.
+enum Stop {
+    Cancelled,
+    Failed(String),
+}
+
+impl Driver {
+    async fn run(mut self, resample: bool) {
+        let ended = match self.propagate().await {
+            Ok(()) => self.finish(resample).await.err().map(Stop::Failed),
+            Err(stop) => Some(stop),
+        };
+        let Some(stop) = ended else {
+            tracing::info!(job = %self.id, "job finished");
+            return;
+        };
+        let (state, wire, message) = match stop {
+            Stop::Cancelled => (JobState::Cancelled, WireState::Cancelled, String::new()),
+            Stop::Failed(message) => (
+                JobState::Failed {
+                    message: message.clone(),
+                },
+                WireState::Failed,
+                message,
+            ),
+        };
+        tracing::warn!(job = %self.id, ?state, "job ended");
+        // Record the end in the store, so a restarted coordinator does not take the job up again.
+        let recorded = self.blocking(move |c| c.end(state)).await;
+        let message = match recorded {
+            Ok(Ok(())) => message,
+            Ok(Err(e)) => format!("{message} (and recording it in the store failed: {e})"),
+            Err(e) => format!("{message} ({e})"),
+        };
+        self.sched.update(&self.id, |s| {
+            s.state = wire as i32;
+            s.message = message;
+        });
+    }
+
+    /// Iterates until the job's stop rule is met.
+    async fn propagate(&mut self) -> Result<(), Stop> {
+        loop {
+            let c = self.coordinator.as_mut().ok_or_else(lost)?;
+            if c.finished() {
+                return Ok(());
+            }
+            let k = c.iteration();
+            let (passes, batches) = c.passes();
+            let directions = c.propagation().directions.len();
+            self.sched.start_iteration(&self.id, passes.len(), batches, directions);
+            self.sched.update(&self.id, |s| {
+                s.state = WireState::Propagating as i32;
+                s.iteration = k + 1;
+            });
+            for pass in passes {
+                self.check_cancelled()?;
+                let done = self
+                    .blocking(move |c| {
+                        (0..batches)
+                            .map(|b| c.has_batch(pass, b))
+                            .collect::<Result<Vec<_>, _>>()
+                    })
+                    .await
+                    .map_err(Stop::Failed)?
+                    .map_err(|e| Stop::Failed(e.to_string()))?;
+                self.sched.start_pass(&self.id, k, pass, &done);
+                loop {
+                    let notified = self.wake.notified();
+                    match self.sched.pass_outcome(&self.id) {
+                        PassOutcome::Running => notified.await,
+                        PassOutcome::Complete => break,
+                        PassOutcome::Cancelled => return Err(Stop::Cancelled),
+                        PassOutcome::Failed(m) => return Err(Stop::Failed(m)),
+                    }
+                }
+                self.blocking(|c| c.absorb_pass())
+                    .await
+                    .map_err(Stop::Failed)?
+                    .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
+            }
+            self.check_cancelled()?;
+            self.blocking(|c| c.finish_iteration())
+                .await
+                .map_err(Stop::Failed)?
+                .map_err(|e| Stop::Failed(format!("cannot commit snapshot {}: {e}", k + 1)))?;
+            self.sched.end_iteration(&self.id);
+            let unshot = self
+                .coordinator
+                .as_ref()
+                .map(|c| c.propagation().unshot_fraction())
+                .unwrap_or(f64::NAN);
+            self.sched.update(&self.id, |s| {
+                s.snapshots.push(k + 1);
+                s.unshot_fraction = unshot;
+            });
+            tracing::info!(job = %self.id, snapshot = k + 1, unshot, "iteration committed");
+        }
+    }
+
+    /// Writes the final field and marks the job finished.
+    async fn finish(&mut self, resample: bool) -> Result<(), String> {
+        self.check_cancelled().map_err(|_| "cancelled".to_string())?;
+        let coordinator = self
+            .coordinator
+            .take()
+            .ok_or_else(|| "internal: coordinator lost".to_string())?;
+        let unshot = coordinator.propagation().unshot_fraction();
+        vlf_store::blocking(move || coordinator.finish(resample))
+            .await
+            .map_err(|e| format!("internal: {e}"))?
+            .map_err(|e| format!("cannot write the final field: {e}"))?;
+        self.sched.update(&self.id, |s| {
+            s.state = WireState::Finished as i32;
+            s.unshot_fraction = unshot;
+        });
+        Ok(())
+    }
+
+    fn check_cancelled(&self) -> Result<(), Stop> {
+        match self.sched.pass_outcome(&self.id) {
+            PassOutcome::Cancelled => Err(Stop::Cancelled),
+            _ => Ok(()),
+        }
+    }
+
+    /// Runs `step` on the coordinator on a blocking thread (store I/O, absorbing).
+    async fn blocking<T: Send + 'static>(
+        &mut self,
+        step: impl FnOnce(&mut Coordinator) -> T + Send + 'static,
+    ) -> Result<T, String> {
+        let mut c = self
+            .coordinator
+            .take()
+            .ok_or_else(|| "internal: coordinator lost".to_string())?;
+        let (c, out) = vlf_store::blocking(move || {
+            let out = step(&mut c);
+            (c, out)
+        })
+        .await
+        .map_err(|e| format!("internal: {e}"))?;
+        self.coordinator = Some(c);
+        Ok(out)
+    }
+}
+
+fn lost() -> Stop {
+    Stop::Failed("internal: coordinator lost".into())
+}

@@ -1,0 +1,793 @@
+//! Jobs, leases and workers: the coordinator's state machine, with no networking.
+//!
+//! **Leases.** The pass a job is computing is a row of batches, each `Pending`, `Leased` or
+//! `Done`. [`Scheduler::lease`] hands the first pending batch of the oldest job to a worker for
+//! [`Timing::lease`]; the worker computes it, writes the output into the store and
+//! [`Scheduler::report`]s. A lease that is not reported in time (a dead or stalled worker)
+//! expires and its batch is pending again; a worker that misses three heartbeats loses its leases
+//! at once. A report on a lease that is gone (expired, job cancelled) is ignored: the batch's
+//! output is a pure function of the job and the batch, written create-only, so a late or
+//! duplicated result can only write the bytes that are already there.
+//!
+//! **Barriers.** When every batch of the pass is done, the job's driver (see
+//! [`crate::driver`]) is woken; it absorbs the pass from the store and starts the next pass or
+//! iteration. A worker's failed batch goes back to the pool; the third failure of the same batch
+//! fails the job (a deterministic failure would otherwise loop for ever).
+//!
+//! **Status.** Every change publishes the job's [`JobStatus`] on a watch channel with a
+//! sequence number one higher; watchers see changes in order (possibly coalesced) and the last
+//! one they see is terminal.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+use tokio::sync::{Notify, watch};
+use vlf_core::propagate::Pass;
+use vlf_proto::v1::{JobStatus, State as WireState};
+use vlf_store::{JobId, Store};
+
+/// How long leases last and how often workers must be heard from.
+#[derive(Clone, Copy, Debug)]
+pub struct Timing {
+    /// A lease's lifetime: a batch not reported by then goes to another worker.
+    pub lease: Duration,
+    /// The heartbeat interval asked of workers; silent for three, a worker is dead.
+    pub heartbeat: Duration,
+}
+
+impl Default for Timing {
+    fn default() -> Self {
+        Timing {
+            lease: Duration::from_secs(60),
+            heartbeat: Duration::from_secs(2),
+        }
+    }
+}
+
+/// A lease handed to a worker: one batch of one pass of the iteration after `snapshot`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Grant {
+    pub lease_id: String,
+    pub job: JobId,
+    pub snapshot: u32,
+    pub pass: Pass,
+    pub batch: usize,
+    pub deadline: Duration,
+}
+
+/// What a driver finds when it wakes during a pass.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PassOutcome {
+    /// Batches are still out.
+    Running,
+    /// Every batch is written.
+    Complete,
+    /// Cancelled by a client.
+    Cancelled,
+    /// A batch failed too often.
+    Failed(String),
+}
+
+/// A request that names something the scheduler does not know.
+#[derive(Debug, thiserror::Error)]
+pub enum Unknown {
+    #[error("no job `{0}`")]
+    Job(String),
+    #[error("worker `{0}` is not registered (the coordinator may have restarted): register again")]
+    Worker(String),
+}
+
+/// The coordinator's state, shared by the gRPC services and the job drivers.
+pub struct Scheduler {
+    store: Store,
+    timing: Timing,
+    state: Mutex<State>,
+    /// Woken when batches become pending (a pass starts, a lease expires or fails).
+    work_ready: Notify,
+}
+
+struct State {
+    jobs: HashMap<JobId, JobEntry>,
+    workers: HashMap<String, WorkerEntry>,
+    leases: HashMap<String, LeaseEntry>,
+    /// Source of job order, lease and worker ids.
+    counter: u64,
+}
+
+struct JobEntry {
+    /// Submission order: the oldest job with pending batches is served first.
+    order: u64,
+    /// The published status; `seq` is bumped on every change.
+    status: watch::Sender<JobStatus>,
+    /// The pass being computed.
+    pass: Option<PassRun>,
+    cancel_requested: bool,
+    failure: Option<String>,
+    /// Woken when the pass completes, fails or the job is cancelled (a stored permit: no
+    /// wake-up is lost while the driver is busy).
+    driver: Arc<Notify>,
+    clock: Clock,
+}
+
+/// Timing of a job's current iteration, for throughput and ETA.
+struct Clock {
+    created: Instant,
+    iteration_started: Instant,
+    /// Batches of the iteration done before the current pass.
+    batches_before_pass: usize,
+    /// Batches of all the iteration's passes.
+    batches_total: usize,
+    /// Directions per pass (l).
+    directions: usize,
+    /// Batches per pass.
+    batches_per_pass: usize,
+    /// Durations of the iterations this coordinator finished.
+    iteration_seconds: Vec<f64>,
+}
+
+struct PassRun {
+    snapshot: u32,
+    pass: Pass,
+    batches: Vec<Batch>,
+    done: usize,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum BatchState {
+    Pending,
+    Leased(u64),
+    Done,
+}
+
+struct Batch {
+    state: BatchState,
+    failures: u32,
+}
+
+struct WorkerEntry {
+    last_seen: Instant,
+}
+
+struct LeaseEntry {
+    /// The number in the lease's id, which its batch's state records.
+    number: u64,
+    job: JobId,
+    worker: String,
+    batch: usize,
+    deadline: Instant,
+}
+
+/// A batch that failed this many times fails its job.
+const MAX_BATCH_FAILURES: u32 = 3;
+
+impl Scheduler {
+    pub fn new(store: Store, timing: Timing) -> Arc<Scheduler> {
+        Arc::new(Scheduler {
+            store,
+            timing,
+            state: Mutex::new(State {
+                jobs: HashMap::new(),
+                workers: HashMap::new(),
+                leases: HashMap::new(),
+                counter: 0,
+            }),
+            work_ready: Notify::new(),
+        })
+    }
+
+    pub fn store(&self) -> &Store {
+        &self.store
+    }
+
+    pub fn timing(&self) -> Timing {
+        self.timing
+    }
+
+    fn lock(&self) -> MutexGuard<'_, State> {
+        // A panic while holding the lock leaves plain data that every operation re-checks.
+        self.state.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    // ------------------------------------------------------------ jobs
+
+    /// Adds a job with its initial status (`seq` is set here); returns the driver's wake-up.
+    /// `directions` and `batches_per_pass` size the progress figures.
+    pub fn add_job(&self, mut status: JobStatus) -> Result<Arc<Notify>, String> {
+        let id = JobId::parse(&status.job_id)?;
+        let mut state = self.lock();
+        state.counter += 1;
+        let order = state.counter;
+        status.seq = 1;
+        status.store_url = self.store.url().to_string();
+        let driver = Arc::new(Notify::new());
+        let now = Instant::now();
+        let (tx, _) = watch::channel(status);
+        state.jobs.insert(
+            id,
+            JobEntry {
+                order,
+                status: tx,
+                pass: None,
+                cancel_requested: false,
+                failure: None,
+                driver: driver.clone(),
+                clock: Clock {
+                    created: now,
+                    iteration_started: now,
+                    batches_before_pass: 0,
+                    batches_total: 0,
+                    directions: 0,
+                    batches_per_pass: 0,
+                    iteration_seconds: Vec::new(),
+                },
+            },
+        );
+        Ok(driver)
+    }
+
+    /// Whether the scheduler knows `job`.
+    pub fn has_job(&self, job: &JobId) -> bool {
+        self.lock().jobs.contains_key(job)
+    }
+
+    /// The job's status now.
+    pub fn status(&self, job: &JobId) -> Result<JobStatus, Unknown> {
+        let state = self.lock();
+        let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
+        Ok(entry.status.borrow().clone())
+    }
+
+    /// Every job's status, oldest first.
+    pub fn list(&self) -> Vec<JobStatus> {
+        let state = self.lock();
+        let mut jobs: Vec<_> = state.jobs.values().collect();
+        jobs.sort_by_key(|j| j.order);
+        jobs.iter().map(|j| j.status.borrow().clone()).collect()
+    }
+
+    /// A receiver of the job's status changes.
+    pub fn subscribe(&self, job: &JobId) -> Result<watch::Receiver<JobStatus>, Unknown> {
+        let state = self.lock();
+        let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
+        Ok(entry.status.subscribe())
+    }
+
+    /// Changes the job's status with `change` and publishes it (the driver's milestones).
+    pub fn update(&self, job: &JobId, change: impl FnOnce(&mut JobStatus)) {
+        let mut state = self.lock();
+        let alive = alive_workers(&state, self.timing);
+        if let Some(entry) = state.jobs.get_mut(job) {
+            let mut status = entry.status.borrow().clone();
+            change(&mut status);
+            publish(entry, status, alive);
+        }
+    }
+
+    /// Starts iteration `snapshot + 1` of `job`: `passes` passes of `batches` batches over
+    /// `directions` directions.
+    pub fn start_iteration(&self, job: &JobId, passes: usize, batches: usize, directions: usize) {
+        let mut state = self.lock();
+        if let Some(entry) = state.jobs.get_mut(job) {
+            let clock = &mut entry.clock;
+            clock.iteration_started = Instant::now();
+            clock.batches_before_pass = 0;
+            clock.batches_total = passes * batches;
+            clock.directions = directions;
+            clock.batches_per_pass = batches;
+        }
+    }
+
+    /// Records that the current iteration ended (for the job's ETA).
+    pub fn end_iteration(&self, job: &JobId) {
+        let mut state = self.lock();
+        if let Some(entry) = state.jobs.get_mut(job) {
+            let seconds = entry.clock.iteration_started.elapsed().as_secs_f64();
+            entry.clock.iteration_seconds.push(seconds);
+            entry.pass = None;
+        }
+    }
+
+    /// Opens `pass` of the iteration after `snapshot` for leasing; batches whose output is
+    /// already in the store (`done[b]`) are not computed again.
+    pub fn start_pass(&self, job: &JobId, snapshot: u32, pass: Pass, done: &[bool]) {
+        let mut state = self.lock();
+        let alive = alive_workers(&state, self.timing);
+        let Some(entry) = state.jobs.get_mut(job) else {
+            return;
+        };
+        if let Some(previous) = entry.pass.take() {
+            entry.clock.batches_before_pass += previous.batches.len();
+        }
+        let batches: Vec<Batch> = done
+            .iter()
+            .map(|&d| Batch {
+                state: if d { BatchState::Done } else { BatchState::Pending },
+                failures: 0,
+            })
+            .collect();
+        let done_count = done.iter().filter(|&&d| d).count();
+        let complete = done_count == batches.len();
+        entry.pass = Some(PassRun {
+            snapshot,
+            pass,
+            batches,
+            done: done_count,
+        });
+        let status = entry.status.borrow().clone();
+        publish(entry, status, alive);
+        if complete {
+            entry.driver.notify_one();
+        }
+        drop(state);
+        self.work_ready.notify_waiters();
+    }
+
+    /// What the job's current pass has come to.
+    pub fn pass_outcome(&self, job: &JobId) -> PassOutcome {
+        let state = self.lock();
+        let Some(entry) = state.jobs.get(job) else {
+            return PassOutcome::Cancelled;
+        };
+        if entry.cancel_requested {
+            PassOutcome::Cancelled
+        } else if let Some(message) = &entry.failure {
+            PassOutcome::Failed(message.clone())
+        } else {
+            match &entry.pass {
+                Some(run) if run.done == run.batches.len() => PassOutcome::Complete,
+                _ => PassOutcome::Running,
+            }
+        }
+    }
+
+    /// Asks for the job to stop: its pending batches are withdrawn and its leases dropped; the
+    /// driver records the cancellation in the store. Returns the status as it stands.
+    pub fn cancel(&self, job: &JobId) -> Result<JobStatus, Unknown> {
+        let mut state = self.lock();
+        let entry = state.jobs.get_mut(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
+        if !is_terminal(entry.status.borrow().state) {
+            entry.cancel_requested = true;
+            entry.pass = None;
+            entry.driver.notify_one();
+            state.leases.retain(|_, lease| lease.job != *job);
+        }
+        let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
+        Ok(entry.status.borrow().clone())
+    }
+
+    // ------------------------------------------------------------ workers
+
+    /// Registers a worker; returns its id.
+    pub fn register(&self, name: &str) -> String {
+        let mut state = self.lock();
+        state.counter += 1;
+        let id = format!("w{}-{}", state.counter, sanitize(name));
+        state.workers.insert(
+            id.clone(),
+            WorkerEntry {
+                last_seen: Instant::now(),
+            },
+        );
+        tracing::info!(worker = id, "worker registered");
+        id
+    }
+
+    /// Notes that `worker` is alive.
+    pub fn heartbeat(&self, worker: &str) -> Result<(), Unknown> {
+        let mut state = self.lock();
+        touch(&mut state, worker)
+    }
+
+    /// Leases the first pending batch of the oldest job to `worker`, waiting up to `wait` for
+    /// one.
+    pub async fn lease(&self, worker: &str, wait: Duration) -> Result<Option<Grant>, Unknown> {
+        let until = Instant::now() + wait;
+        loop {
+            let notified = self.work_ready.notified();
+            tokio::pin!(notified);
+            // Register interest before looking, so a pass opened in between is not missed.
+            notified.as_mut().enable();
+            if let Some(grant) = self.try_lease(worker)? {
+                return Ok(Some(grant));
+            }
+            let left = until.saturating_duration_since(Instant::now());
+            if left.is_zero() {
+                return Ok(None);
+            }
+            tokio::select! {
+                _ = &mut notified => {}
+                _ = tokio::time::sleep(left) => {}
+            }
+        }
+    }
+
+    fn try_lease(&self, worker: &str) -> Result<Option<Grant>, Unknown> {
+        let mut state = self.lock();
+        touch(&mut state, worker)?;
+        let alive = alive_workers(&state, self.timing);
+        let mut jobs: Vec<(&JobId, &JobEntry)> = state.jobs.iter().collect();
+        jobs.sort_by_key(|(_, j)| j.order);
+        let found = jobs.iter().find_map(|(id, entry)| {
+            let run = entry.pass.as_ref()?;
+            if entry.cancel_requested || entry.failure.is_some() {
+                return None;
+            }
+            let b = run.batches.iter().position(|b| b.state == BatchState::Pending)?;
+            Some(((*id).clone(), b))
+        });
+        let Some((job, batch)) = found else {
+            return Ok(None);
+        };
+        state.counter += 1;
+        let number = state.counter;
+        let lease_id = format!("l{number}");
+        let deadline = Instant::now() + self.timing.lease;
+        state.leases.insert(
+            lease_id.clone(),
+            LeaseEntry {
+                number,
+                job: job.clone(),
+                worker: worker.to_string(),
+                batch,
+                deadline,
+            },
+        );
+        let Some(entry) = state.jobs.get_mut(&job) else {
+            unreachable!("found above");
+        };
+        let Some(run) = entry.pass.as_mut() else {
+            unreachable!("found above");
+        };
+        run.batches[batch].state = BatchState::Leased(number);
+        let grant = Grant {
+            lease_id,
+            job,
+            snapshot: run.snapshot,
+            pass: run.pass,
+            batch,
+            deadline: self.timing.lease,
+        };
+        let status = entry.status.borrow().clone();
+        publish(entry, status, alive);
+        Ok(Some(grant))
+    }
+
+    /// Records a worker's result for a lease: `Ok(())` when the batch's output is in the store,
+    /// `Err(message)` when it could not be computed. Returns whether the report was taken
+    /// (`false`: the lease had expired or its job ended; nothing changes).
+    pub fn report(&self, worker: &str, lease_id: &str, result: Result<(), String>) -> Result<bool, Unknown> {
+        let mut state = self.lock();
+        touch(&mut state, worker)?;
+        let alive = alive_workers(&state, self.timing);
+        let Some(lease) = state.leases.get(lease_id) else {
+            return Ok(false);
+        };
+        if lease.worker != worker {
+            return Ok(false);
+        }
+        let Some(lease) = state.leases.remove(lease_id) else {
+            return Ok(false);
+        };
+        let number = lease.number;
+        let Some(entry) = state.jobs.get_mut(&lease.job) else {
+            return Ok(false);
+        };
+        let Some(run) = entry.pass.as_mut() else {
+            return Ok(false);
+        };
+        let batch = &mut run.batches[lease.batch];
+        if batch.state != BatchState::Leased(number) {
+            return Ok(false);
+        }
+        let mut requeued = false;
+        match result {
+            Ok(()) => {
+                batch.state = BatchState::Done;
+                run.done += 1;
+                if run.done == run.batches.len() {
+                    entry.driver.notify_one();
+                }
+            }
+            Err(message) => {
+                batch.failures += 1;
+                tracing::warn!(job = %lease.job, batch = lease.batch, worker, "batch failed: {message}");
+                if batch.failures >= MAX_BATCH_FAILURES {
+                    entry.failure = Some(format!(
+                        "batch {} of {:?} failed {} times; last: {message}",
+                        lease.batch, run.pass, batch.failures
+                    ));
+                    entry.driver.notify_one();
+                } else {
+                    batch.state = BatchState::Pending;
+                    requeued = true;
+                }
+            }
+        }
+        let status = entry.status.borrow().clone();
+        publish(entry, status, alive);
+        drop(state);
+        if requeued {
+            self.work_ready.notify_waiters();
+        }
+        Ok(true)
+    }
+
+    /// Expires leases past their deadline and forgets workers silent for three heartbeats
+    /// (their leases expire with them). Returns how many leases expired.
+    pub fn reap(&self) -> usize {
+        let now = Instant::now();
+        let mut state = self.lock();
+        let dead_after = self.timing.heartbeat * 3;
+        let dead: Vec<String> = state
+            .workers
+            .iter()
+            .filter(|(_, w)| now.duration_since(w.last_seen) > dead_after)
+            .map(|(id, _)| id.clone())
+            .collect();
+        for id in &dead {
+            tracing::warn!(
+                worker = id,
+                "worker silent for 3 heartbeats: its leases go back to the pool"
+            );
+            state.workers.remove(id);
+        }
+        let expired: Vec<String> = state
+            .leases
+            .iter()
+            .filter(|(_, l)| l.deadline <= now || dead.contains(&l.worker))
+            .map(|(id, _)| id.clone())
+            .collect();
+        let alive = alive_workers(&state, self.timing);
+        for id in &expired {
+            let Some(lease) = state.leases.remove(id) else {
+                continue;
+            };
+            let number = lease.number;
+            if let Some(entry) = state.jobs.get_mut(&lease.job) {
+                if let Some(run) = entry.pass.as_mut()
+                    && run.batches[lease.batch].state == BatchState::Leased(number)
+                {
+                    tracing::warn!(job = %lease.job, batch = lease.batch, worker = lease.worker, "lease expired");
+                    run.batches[lease.batch].state = BatchState::Pending;
+                }
+                let status = entry.status.borrow().clone();
+                publish(entry, status, alive);
+            }
+        }
+        drop(state);
+        if !expired.is_empty() {
+            self.work_ready.notify_waiters();
+        }
+        expired.len()
+    }
+}
+
+/// Whether a wire state is one a job does not leave.
+pub fn is_terminal(state: i32) -> bool {
+    matches!(
+        WireState::try_from(state),
+        Ok(WireState::Finished | WireState::Failed | WireState::Cancelled)
+    )
+}
+
+fn touch(state: &mut State, worker: &str) -> Result<(), Unknown> {
+    let entry = state
+        .workers
+        .get_mut(worker)
+        .ok_or_else(|| Unknown::Worker(worker.to_string()))?;
+    entry.last_seen = Instant::now();
+    Ok(())
+}
+
+fn alive_workers(state: &State, timing: Timing) -> u32 {
+    let now = Instant::now();
+    state
+        .workers
+        .values()
+        .filter(|w| now.duration_since(w.last_seen) <= timing.heartbeat * 3)
+        .count() as u32
+}
+
+/// Publishes `status` with the progress figures of `entry` and the next sequence number.
+fn publish(entry: &mut JobEntry, mut status: JobStatus, workers_alive: u32) {
+    let clock = &entry.clock;
+    let (done, leased) = match &entry.pass {
+        Some(run) => (
+            run.done,
+            run.batches
+                .iter()
+                .filter(|b| matches!(b.state, BatchState::Leased(_)))
+                .count(),
+        ),
+        None => (0, 0),
+    };
+    let batches_done = clock.batches_before_pass + done;
+    let elapsed = clock.iteration_started.elapsed().as_secs_f64();
+    status.seq += 1;
+    status.workers_alive = workers_alive;
+    status.leases_out = leased as u32;
+    status.elapsed_seconds = clock.created.elapsed().as_secs_f64();
+    if is_terminal(status.state) {
+        status.batches_done = 0;
+        status.batches_total = 0;
+        status.directions_per_second = 0.0;
+        status.eta_iteration_seconds = -1.0;
+        status.eta_job_seconds = if status.state == WireState::Finished as i32 {
+            0.0
+        } else {
+            -1.0
+        };
+    } else {
+        status.batches_done = batches_done as u32;
+        status.batches_total = clock.batches_total as u32;
+        let per_batch = if clock.batches_per_pass > 0 {
+            clock.directions as f64 / clock.batches_per_pass as f64
+        } else {
+            0.0
+        };
+        let rate = if elapsed > 0.0 && batches_done > 0 {
+            batches_done as f64 / elapsed
+        } else {
+            0.0
+        };
+        status.directions_per_second = rate * per_batch;
+        let left = clock.batches_total.saturating_sub(batches_done) as f64;
+        status.eta_iteration_seconds = if rate > 0.0 { left / rate } else { -1.0 };
+        status.eta_job_seconds = -1.0;
+        if status.iterations_planned > 0 && status.eta_iteration_seconds >= 0.0 {
+            let per_iteration = if clock.iteration_seconds.is_empty() {
+                elapsed + status.eta_iteration_seconds
+            } else {
+                clock.iteration_seconds.iter().sum::<f64>() / clock.iteration_seconds.len() as f64
+            };
+            let after = status.iterations_planned.saturating_sub(status.iteration.max(1)) as f64;
+            status.eta_job_seconds = status.eta_iteration_seconds + after * per_iteration;
+        }
+    }
+    entry.status.send_replace(status);
+}
+
+/// A worker's name as it may appear in its id.
+fn sanitize(name: &str) -> String {
+    name.chars()
+        .filter(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'))
+        .take(48)
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scheduler(lease_ms: u64) -> Arc<Scheduler> {
+        Scheduler::new(
+            Store::open("memory://").unwrap(),
+            Timing {
+                lease: Duration::from_millis(lease_ms),
+                heartbeat: Duration::from_secs(60),
+            },
+        )
+    }
+
+    fn job(s: &Scheduler) -> JobId {
+        let id = JobId::generate();
+        s.add_job(JobStatus {
+            job_id: id.to_string(),
+            state: WireState::Propagating as i32,
+            ..Default::default()
+        })
+        .unwrap();
+        s.start_iteration(&id, 1, 3, 40);
+        id
+    }
+
+    #[tokio::test]
+    async fn batches_are_leased_once_and_a_pass_completes_when_all_are_reported() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        s.start_pass(&id, 0, Pass::Shoot, &[false, true, false]);
+        let w = s.register("a");
+        let a = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        let b = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((a.batch, b.batch), (0, 2), "batch 1 was already in the store");
+        assert_eq!(s.lease(&w, Duration::from_millis(10)).await.unwrap(), None);
+        assert_eq!(s.pass_outcome(&id), PassOutcome::Running);
+        assert!(s.report(&w, &a.lease_id, Ok(())).unwrap());
+        assert!(!s.report(&w, &a.lease_id, Ok(())).unwrap(), "a lease reports once");
+        assert_eq!(s.status(&id).unwrap().batches_done, 2);
+        assert!(s.report(&w, &b.lease_id, Ok(())).unwrap());
+        assert_eq!(s.pass_outcome(&id), PassOutcome::Complete);
+        assert!(matches!(s.heartbeat("nobody"), Err(Unknown::Worker(_))));
+    }
+
+    #[tokio::test]
+    async fn an_expired_lease_goes_to_another_worker_and_its_late_report_is_ignored() {
+        let s = scheduler(20);
+        let id = job(&s);
+        s.start_pass(&id, 4, Pass::Areas { copy: 1 }, &[false]);
+        let (w1, w2) = (s.register("slow"), s.register("fast"));
+        let first = s.lease(&w1, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((first.snapshot, first.pass), (4, Pass::Areas { copy: 1 }));
+        assert_eq!(s.lease(&w2, Duration::ZERO).await.unwrap(), None);
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        assert_eq!(s.reap(), 1);
+        let second = s.lease(&w2, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(second.batch, first.batch);
+        assert!(!s.report(&w1, &first.lease_id, Ok(())).unwrap(), "late report ignored");
+        assert_eq!(s.pass_outcome(&id), PassOutcome::Running);
+        assert!(s.report(&w2, &second.lease_id, Ok(())).unwrap());
+        assert_eq!(s.pass_outcome(&id), PassOutcome::Complete);
+    }
+
+    #[tokio::test]
+    async fn a_waiting_lease_is_served_when_a_pass_opens() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let w = s.register("a");
+        let waiter = {
+            let (s, w) = (s.clone(), w.clone());
+            tokio::spawn(async move { s.lease(&w, Duration::from_secs(30)).await })
+        };
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        s.start_pass(&id, 0, Pass::Shoot, &[false]);
+        let grant = tokio::time::timeout(Duration::from_secs(5), waiter)
+            .await
+            .expect("woken")
+            .unwrap()
+            .unwrap();
+        assert!(grant.is_some());
+    }
+
+    #[tokio::test]
+    async fn repeated_failures_fail_the_job_and_cancel_withdraws_work() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        s.start_pass(&id, 0, Pass::Shoot, &[false, false]);
+        let w = s.register("a");
+        for attempt in 1..=MAX_BATCH_FAILURES {
+            let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+            assert_eq!(g.batch, 0, "a failed batch is handed out again first");
+            assert!(s.report(&w, &g.lease_id, Err("disk full".into())).unwrap());
+            let outcome = s.pass_outcome(&id);
+            if attempt < MAX_BATCH_FAILURES {
+                assert_eq!(outcome, PassOutcome::Running);
+            } else {
+                assert!(matches!(outcome, PassOutcome::Failed(m) if m.contains("disk full")));
+            }
+        }
+        assert_eq!(
+            s.lease(&w, Duration::ZERO).await.unwrap(),
+            None,
+            "a failed job leases nothing"
+        );
+
+        let other = job(&s);
+        s.start_pass(&other, 0, Pass::Shoot, &[false, false]);
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.job, other);
+        s.cancel(&other).unwrap();
+        assert_eq!(s.pass_outcome(&other), PassOutcome::Cancelled);
+        assert!(
+            !s.report(&w, &g.lease_id, Ok(())).unwrap(),
+            "a cancelled job's lease is void"
+        );
+        assert_eq!(s.lease(&w, Duration::ZERO).await.unwrap(), None);
+        assert!(matches!(s.cancel(&JobId::generate()), Err(Unknown::Job(_))));
+    }
+
+    #[tokio::test]
+    async fn status_sequence_increases_with_every_change() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let mut rx = s.subscribe(&id).unwrap();
+        let first = rx.borrow_and_update().seq;
+        s.start_pass(&id, 0, Pass::Shoot, &[false]);
+        let w = s.register("a");
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        s.report(&w, &g.lease_id, Ok(())).unwrap();
+        let last = rx.borrow_and_update().clone();
+        assert!(last.seq > first + 2, "{} after {first}", last.seq);
+        assert_eq!(last.batches_done, 1);
+        assert_eq!(last.batches_total, 3);
+    }
+}

@@ -1,0 +1,262 @@
+//! The listening coordinator: configuration, bearer-token authentication, optional TLS, the
+//! lease reaper, and recovery of the store's jobs at start.
+
+use crate::driver;
+use crate::scheduler::{Scheduler, Timing};
+use crate::service::Api;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+use tonic::service::Interceptor;
+use tonic::transport::{Identity, ServerTlsConfig};
+use tonic::{Request, Status};
+use vlf_proto::v1::{jobs_server::JobsServer, tiles_server::TilesServer, workers_server::WorkersServer};
+use vlf_store::{Store, StoreError};
+
+/// A certificate chain and its private key, PEM files.
+#[derive(Clone, Debug)]
+pub struct TlsFiles {
+    pub cert: PathBuf,
+    pub key: PathBuf,
+}
+
+/// What a coordinator serves, and how.
+#[derive(Clone, Debug)]
+pub struct ServeConfig {
+    /// The store every job lives in.
+    pub store: String,
+    /// Where to listen (port 0: any free port; see [`Server::addr`]).
+    pub listen: SocketAddr,
+    /// When set, every call must carry `authorization: Bearer <token>`.
+    pub token: Option<String>,
+    /// When set, serve over TLS.
+    pub tls: Option<TlsFiles>,
+    pub timing: Timing,
+    /// Largest scene upload accepted, bytes.
+    pub max_upload_bytes: u64,
+}
+
+impl ServeConfig {
+    /// Default upload limit: 64 MiB.
+    pub const MAX_UPLOAD_BYTES: u64 = 64 << 20;
+
+    /// A configuration with the defaults for `store` on `listen`.
+    pub fn new(store: impl Into<String>, listen: SocketAddr) -> ServeConfig {
+        ServeConfig {
+            store: store.into(),
+            listen,
+            token: None,
+            tls: None,
+            timing: Timing::default(),
+            max_upload_bytes: Self::MAX_UPLOAD_BYTES,
+        }
+    }
+}
+
+/// Why a coordinator could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        addr: SocketAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("TLS: {0}")]
+    Tls(String),
+    #[error("the token must be 1..=4096 printable ASCII characters")]
+    Token,
+}
+
+/// A running coordinator.
+pub struct Server {
+    addr: SocketAddr,
+    scheduler: Arc<Scheduler>,
+    shutdown: Option<oneshot::Sender<()>>,
+    task: JoinHandle<Result<(), tonic::transport::Error>>,
+    reaper: JoinHandle<()>,
+}
+
+impl Server {
+    /// Opens the store, takes up its unfinished jobs, and starts serving.
+    pub async fn start(config: ServeConfig) -> Result<Server, ServeError> {
+        let url = config.store.clone();
+        let store = vlf_store::blocking(move || Store::open(&url))
+            .await
+            .map_err(|e| StoreError::Layout(e.to_string()))??;
+        Server::start_with_store(config, store).await
+    }
+
+    /// As [`Server::start`] with an open store (in-process use: a `memory://` store is shared
+    /// with in-process workers only through its handle).
+    pub async fn start_with_store(config: ServeConfig, store: Store) -> Result<Server, ServeError> {
+        let token = match &config.token {
+            Some(t) if t.is_empty() || t.len() > 4096 || !t.bytes().all(|b| b.is_ascii_graphic()) => {
+                return Err(ServeError::Token);
+            }
+            t => t.clone(),
+        };
+        let scheduler = Scheduler::new(store, config.timing);
+        let resumed = driver::recover(&scheduler).await?;
+        if resumed > 0 {
+            tracing::info!(resumed, "took up unfinished jobs of the store");
+        }
+
+        let listener = tokio::net::TcpListener::bind(config.listen)
+            .await
+            .map_err(|source| ServeError::Bind {
+                addr: config.listen,
+                source,
+            })?;
+        let addr = listener.local_addr().map_err(|source| ServeError::Bind {
+            addr: config.listen,
+            source,
+        })?;
+
+        let api = Api::new(scheduler.clone(), config.max_upload_bytes);
+        let auth = BearerAuth {
+            token: token.map(|t| Arc::from(format!("Bearer {t}").as_str())),
+        };
+        // Room for the upload plus the request's other fields; the upload itself is checked
+        // against the limit with a message that states it.
+        let decode_limit = usize::try_from(config.max_upload_bytes.saturating_add(1 << 20)).unwrap_or(usize::MAX);
+        let jobs = JobsServer::new(api.clone()).max_decoding_message_size(decode_limit);
+        let mut builder = tonic::transport::Server::builder();
+        if let Some(tls) = &config.tls {
+            let cert = std::fs::read(&tls.cert)
+                .map_err(|e| ServeError::Tls(format!("cannot read {}: {e}", tls.cert.display())))?;
+            let key = std::fs::read(&tls.key)
+                .map_err(|e| ServeError::Tls(format!("cannot read {}: {e}", tls.key.display())))?;
+            builder = builder
+                .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))
+                .map_err(|e| ServeError::Tls(e.to_string()))?;
+        }
+        let router = builder
+            .add_service(tonic::service::interceptor::InterceptedService::new(jobs, auth.clone()))
+            .add_service(WorkersServer::with_interceptor(api.clone(), auth.clone()))
+            .add_service(TilesServer::with_interceptor(api, auth));
+
+        let (tx, rx) = oneshot::channel::<()>();
+        let incoming = tokio_stream::wrappers::TcpListenerStream::new(listener);
+        let task = tokio::spawn(router.serve_with_incoming_shutdown(incoming, async {
+            let _ = rx.await;
+        }));
+        let reaper = {
+            let scheduler = scheduler.clone();
+            let timing = scheduler.timing();
+            let tick =
+                (timing.lease.min(timing.heartbeat) / 4).clamp(Duration::from_millis(20), Duration::from_millis(250));
+            tokio::spawn(async move {
+                let mut interval = tokio::time::interval(tick);
+                loop {
+                    interval.tick().await;
+                    scheduler.reap();
+                }
+            })
+        };
+        tracing::info!(%addr, store = config.store, tls = config.tls.is_some(), "coordinator listening");
+        Ok(Server {
+            addr,
+            scheduler,
+            shutdown: Some(tx),
+            task,
+            reaper,
+        })
+    }
+
+    /// The address it listens on.
+    pub fn addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    pub fn scheduler(&self) -> &Arc<Scheduler> {
+        &self.scheduler
+    }
+
+    /// Stops serving (open calls end) and waits for the server task.
+    pub async fn shutdown(mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        self.reaper.abort();
+        let _ = (&mut self.task).await;
+    }
+
+    /// Serves until the server task ends (an error) or `stop` resolves.
+    pub async fn run_until(
+        mut self,
+        stop: impl std::future::Future<Output = ()>,
+    ) -> Result<(), tonic::transport::Error> {
+        let result = tokio::select! {
+            r = &mut self.task => r.unwrap_or(Ok(())),
+            _ = stop => Ok(()),
+        };
+        self.shutdown().await;
+        result
+    }
+}
+
+/// Checks `authorization: Bearer <token>` on every call when a token is configured.
+#[derive(Clone)]
+struct BearerAuth {
+    /// `Bearer <token>`.
+    token: Option<Arc<str>>,
+}
+
+impl Interceptor for BearerAuth {
+    fn call(&mut self, request: Request<()>) -> Result<Request<()>, Status> {
+        let Some(expected) = &self.token else {
+            return Ok(request);
+        };
+        let given = request
+            .metadata()
+            .get(vlf_proto::AUTHORIZATION)
+            .map(|v| v.as_bytes())
+            .unwrap_or_default();
+        if constant_time_eq(given, expected.as_bytes()) {
+            Ok(request)
+        } else {
+            Err(Status::unauthenticated(
+                "this server requires a bearer token (vlf --token, or VLF_TOKEN)",
+            ))
+        }
+    }
+}
+
+/// Equality whose time does not depend on where the inputs differ (a token is a secret).
+fn constant_time_eq(a: &[u8], b: &[u8]) -> bool {
+    if a.len() != b.len() {
+        return false;
+    }
+    a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tokens_compare_exactly() {
+        assert!(constant_time_eq(b"Bearer abc", b"Bearer abc"));
+        assert!(!constant_time_eq(b"Bearer abd", b"Bearer abc"));
+        assert!(!constant_time_eq(b"Bearer ab", b"Bearer abc"));
+        let mut auth = BearerAuth {
+            token: Some(Arc::from("Bearer s3cret")),
+        };
+        assert_eq!(
+            auth.call(Request::new(())).unwrap_err().code(),
+            tonic::Code::Unauthenticated
+        );
+        let mut ok = Request::new(());
+        ok.metadata_mut()
+            .insert(vlf_proto::AUTHORIZATION, "Bearer s3cret".parse().unwrap());
+        assert!(auth.call(ok).is_ok());
+        let mut open = BearerAuth { token: None };
+        assert!(open.call(Request::new(())).is_ok());
+    }
+}

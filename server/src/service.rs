@@ -1,0 +1,304 @@
+//! The gRPC services of `vlf.v1`, a thin layer over the [`Scheduler`]: requests are checked and
+//! turned into scheduler calls, scheduler answers into messages, and errors into status codes —
+//! `NOT_FOUND` for unknown jobs, workers and blobs, `INVALID_ARGUMENT` for bad ids, scenes and
+//! parameters (with the importer's message), `RESOURCE_EXHAUSTED` for uploads over the limit.
+
+use crate::driver::{self, SubmitError};
+use crate::scheduler::{Scheduler, Unknown, is_terminal};
+use crate::upload::{self, UploadError};
+use futures::Stream;
+use std::pin::Pin;
+use std::sync::Arc;
+use std::time::Duration;
+use tonic::{Request, Response, Status};
+use vlf_proto::v1::{self, jobs_server, tiles_server, workers_server};
+use vlf_proto::{JobSpec, pass_to_wire};
+use vlf_store::{JobId, StoreError, layout};
+
+/// The three services over one scheduler.
+#[derive(Clone)]
+pub struct Api {
+    sched: Arc<Scheduler>,
+    max_upload: u64,
+}
+
+impl Api {
+    pub fn new(sched: Arc<Scheduler>, max_upload: u64) -> Api {
+        Api { sched, max_upload }
+    }
+
+    /// The status of `id`: the scheduler's, or, for a job it does not drive (written into the
+    /// store by another process), the store's.
+    async fn status_of(&self, id: &JobId) -> Result<v1::JobStatus, Status> {
+        match self.sched.status(id) {
+            Ok(status) => Ok(status),
+            Err(_) => {
+                let (store, id) = (self.sched.store().clone(), id.clone());
+                vlf_store::blocking(move || driver::read_stored_status(&store, &id))
+                    .await
+                    .map_err(|e| Status::internal(e.to_string()))?
+                    .map_err(store_status)
+            }
+        }
+    }
+}
+
+fn job_id(id: &str) -> Result<JobId, Status> {
+    JobId::parse(id).map_err(|e| Status::invalid_argument(format!("job id `{id}`: {e}")))
+}
+
+fn unknown(e: Unknown) -> Status {
+    Status::not_found(e.to_string())
+}
+
+/// A store error as a status: a missing job or blob is `NOT_FOUND`.
+fn store_status(e: StoreError) -> Status {
+    match e {
+        StoreError::NotFound { .. } => Status::not_found(e.to_string()),
+        StoreError::InvalidKey { .. } | StoreError::Layout(_) => Status::invalid_argument(e.to_string()),
+        e => Status::internal(e.to_string()),
+    }
+}
+
+type StatusStream = Pin<Box<dyn Stream<Item = Result<v1::JobStatus, Status>> + Send>>;
+type BlobStream = Pin<Box<dyn Stream<Item = Result<v1::StoredBlob, Status>> + Send>>;
+
+#[tonic::async_trait]
+impl jobs_server::Jobs for Api {
+    async fn submit(&self, request: Request<v1::SubmitRequest>) -> Result<Response<v1::JobStatus>, Status> {
+        let request = request.into_inner();
+        let parameters = request.parameters.unwrap_or_default();
+        let spec = JobSpec::from_parameters(&parameters).map_err(|e| Status::invalid_argument(e.to_string()))?;
+        let scene = match request.scene {
+            Some(v1::submit_request::Scene::Upload(upload)) => {
+                let limit = self.max_upload;
+                let (scene, warnings) = vlf_store::blocking(move || upload::import(&upload, limit))
+                    .await
+                    .map_err(|e| Status::internal(e.to_string()))?
+                    .map_err(|e| match e {
+                        UploadError::TooLarge { .. } => Status::resource_exhausted(e.to_string()),
+                        UploadError::Io(_) => Status::internal(e.to_string()),
+                        _ => Status::invalid_argument(e.to_string()),
+                    })?;
+                for w in warnings {
+                    tracing::warn!("uploaded scene: {w}");
+                }
+                scene
+            }
+            Some(v1::submit_request::Scene::SceneOfJob(id)) => {
+                let id = job_id(&id)?;
+                let store = self.sched.store().clone();
+                vlf_store::blocking(move || vlf_store::FieldJob::open(&store, &id).map(|j| j.scene().clone()))
+                    .await
+                    .map_err(|e| Status::internal(e.to_string()))?
+                    .map_err(store_status)?
+            }
+            None => return Err(Status::invalid_argument("no scene: upload one or name a job's")),
+        };
+        let status = driver::submit(&self.sched, scene, spec).await.map_err(|e| match e {
+            SubmitError::Invalid(e) => Status::invalid_argument(e.to_string()),
+            e => Status::internal(e.to_string()),
+        })?;
+        Ok(Response::new(status))
+    }
+
+    async fn get(&self, request: Request<v1::JobRequest>) -> Result<Response<v1::JobStatus>, Status> {
+        let id = job_id(&request.into_inner().job_id)?;
+        Ok(Response::new(self.status_of(&id).await?))
+    }
+
+    async fn list(&self, _: Request<v1::ListJobsRequest>) -> Result<Response<v1::ListJobsReply>, Status> {
+        Ok(Response::new(v1::ListJobsReply {
+            jobs: self.sched.list(),
+        }))
+    }
+
+    type WatchStream = StatusStream;
+
+    async fn watch(&self, request: Request<v1::JobRequest>) -> Result<Response<Self::WatchStream>, Status> {
+        let id = job_id(&request.into_inner().job_id)?;
+        let mut rx = match self.sched.subscribe(&id) {
+            Ok(rx) => rx,
+            Err(_) => {
+                // Not driven here: the store's status is final as far as this server knows.
+                let status = self.status_of(&id).await?;
+                return Ok(Response::new(Box::pin(futures::stream::iter([Ok(status)]))));
+            }
+        };
+        let stream = async_stream(move |tx| async move {
+            loop {
+                let status = rx.borrow_and_update().clone();
+                let terminal = is_terminal(status.state);
+                if tx.send(Ok(status)).await.is_err() || terminal {
+                    return;
+                }
+                if rx.changed().await.is_err() {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(stream))
+    }
+
+    async fn cancel(&self, request: Request<v1::JobRequest>) -> Result<Response<v1::JobStatus>, Status> {
+        let id = job_id(&request.into_inner().job_id)?;
+        match self.sched.cancel(&id) {
+            Ok(status) => {
+                tracing::info!(job = %id, "cancel requested");
+                Ok(Response::new(status))
+            }
+            // A job of the store that is not driven here cannot be running here.
+            Err(_) => Ok(Response::new(self.status_of(&id).await?)),
+        }
+    }
+
+    async fn list_snapshots(
+        &self,
+        request: Request<v1::JobRequest>,
+    ) -> Result<Response<v1::ListSnapshotsReply>, Status> {
+        let id = job_id(&request.into_inner().job_id)?;
+        let status = self.status_of(&id).await?;
+        Ok(Response::new(v1::ListSnapshotsReply {
+            job_id: status.job_id,
+            iterations: status.snapshots,
+            field: status.state == v1::State::Finished as i32,
+        }))
+    }
+}
+
+#[tonic::async_trait]
+impl workers_server::Workers for Api {
+    async fn register(&self, request: Request<v1::RegisterRequest>) -> Result<Response<v1::RegisterReply>, Status> {
+        let request = request.into_inner();
+        let worker_id = self.sched.register(&request.name);
+        Ok(Response::new(v1::RegisterReply {
+            worker_id,
+            store_url: self.sched.store().url().to_string(),
+            heartbeat_ms: self.sched.timing().heartbeat.as_millis() as u32,
+        }))
+    }
+
+    async fn heartbeat(&self, request: Request<v1::HeartbeatRequest>) -> Result<Response<v1::HeartbeatReply>, Status> {
+        self.sched.heartbeat(&request.into_inner().worker_id).map_err(unknown)?;
+        Ok(Response::new(v1::HeartbeatReply {}))
+    }
+
+    async fn lease(&self, request: Request<v1::LeaseRequest>) -> Result<Response<v1::LeaseReply>, Status> {
+        let request = request.into_inner();
+        // A long poll, bounded so that a connection is never held for long.
+        let wait = Duration::from_millis(u64::from(request.wait_ms.min(10_000)));
+        let grant = self.sched.lease(&request.worker_id, wait).await.map_err(unknown)?;
+        Ok(Response::new(v1::LeaseReply {
+            lease: grant.map(|g| {
+                let (pass_kind, pass_copy) = pass_to_wire(g.pass);
+                v1::Lease {
+                    lease_id: g.lease_id,
+                    job_id: g.job.to_string(),
+                    snapshot: g.snapshot,
+                    pass_kind,
+                    pass_copy,
+                    batch: g.batch as u32,
+                    deadline_ms: g.deadline.as_millis() as u32,
+                }
+            }),
+        }))
+    }
+
+    async fn report(&self, request: Request<v1::ReportRequest>) -> Result<Response<v1::ReportReply>, Status> {
+        let request = request.into_inner();
+        let result = if request.error.is_empty() {
+            Ok(())
+        } else {
+            Err(request.error)
+        };
+        let accepted = self
+            .sched
+            .report(&request.worker_id, &request.lease_id, result)
+            .map_err(unknown)?;
+        Ok(Response::new(v1::ReportReply { accepted }))
+    }
+}
+
+/// A blob name relative to a job: plain segments only.
+fn blob_key(id: &JobId, name: &str) -> Result<String, Status> {
+    let ok = !name.is_empty()
+        && name.len() <= 512
+        && name
+            .split('/')
+            .all(|s| !s.is_empty() && s != "." && s != ".." && !s.contains('\\'));
+    if ok {
+        Ok(format!("{}{name}", layout::job_prefix(id)))
+    } else {
+        Err(Status::invalid_argument(format!(
+            "`{name}` is not a blob name of a job"
+        )))
+    }
+}
+
+#[tonic::async_trait]
+impl tiles_server::Tiles for Api {
+    type FetchStream = BlobStream;
+
+    async fn fetch(&self, request: Request<v1::FetchRequest>) -> Result<Response<Self::FetchStream>, Status> {
+        let request = request.into_inner();
+        let id = job_id(&request.job_id)?;
+        let keys = request
+            .names
+            .iter()
+            .map(|n| blob_key(&id, n).map(|k| (n.clone(), k)))
+            .collect::<Result<Vec<_>, _>>()?;
+        let store = self.sched.store().as_async().clone();
+        let stream = async_stream(move |tx| async move {
+            for (name, key) in keys {
+                let item = match store.get(&key).await {
+                    Ok(bytes) => Ok(v1::StoredBlob {
+                        name,
+                        data: bytes.to_vec(),
+                    }),
+                    Err(e) => Err(store_status(e)),
+                };
+                let failed = item.is_err();
+                if tx.send(item).await.is_err() || failed {
+                    return;
+                }
+            }
+        });
+        Ok(Response::new(stream))
+    }
+
+    async fn list_blobs(&self, request: Request<v1::ListBlobsRequest>) -> Result<Response<v1::ListBlobsReply>, Status> {
+        let request = request.into_inner();
+        let id = job_id(&request.job_id)?;
+        let job_prefix = layout::job_prefix(&id);
+        let prefix = if request.prefix.is_empty() {
+            job_prefix.clone()
+        } else {
+            blob_key(&id, request.prefix.trim_end_matches('/'))? + "/"
+        };
+        let listed = self
+            .sched
+            .store()
+            .as_async()
+            .list_sizes(&prefix)
+            .await
+            .map_err(store_status)?;
+        let (names, sizes) = listed
+            .into_iter()
+            .filter_map(|(key, size)| Some((key.strip_prefix(&job_prefix)?.to_string(), size)))
+            .unzip();
+        Ok(Response::new(v1::ListBlobsReply { names, sizes }))
+    }
+}
+
+/// A stream fed by `produce` through a small channel (backpressure: a slow client slows the
+/// producer, nothing piles up).
+fn async_stream<T, F, Fut>(produce: F) -> Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>
+where
+    T: Send + 'static,
+    F: FnOnce(tokio::sync::mpsc::Sender<Result<T, Status>>) -> Fut,
+    Fut: std::future::Future<Output = ()> + Send + 'static,
+{
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tokio::spawn(produce(tx));
+    Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))
+}
