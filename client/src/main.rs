@@ -170,8 +170,8 @@ pub struct RenderArgs {
     /// Store holding the job (a directory, file:///PATH, s3://BUCKET/PREFIX); not with --server.
     #[arg(required_unless_present = "server")]
     store: Option<String>,
-    /// Read the job from this coordinator instead of a store (JOB is then required).
-    #[arg(long, env = "VLF_SERVER", value_name = "URL", conflicts_with = "store")]
+    /// Read the job from this coordinator instead of a store: `vlf render --server URL JOB …`.
+    #[arg(long, env = "VLF_SERVER", value_name = "URL")]
     server: Option<String>,
     /// Bearer token for --server.
     #[arg(long, env = "VLF_TOKEN", hide_env_values = true)]

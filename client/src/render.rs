@@ -22,8 +22,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
     let (store, id, stage) = match (&args.server, &args.store) {
-        (Some(server), _) => {
-            let job = args.job.as_deref().context("JOB is required with --server")?;
+        (Some(server), store) => {
+            // With --server the one positional argument is the job.
+            let job = match (store, &args.job) {
+                (Some(job), None) => job.as_str(),
+                (None, Some(job)) => job.as_str(),
+                _ => bail!("with --server, give the job and no store: vlf render --server URL JOB"),
+            };
             let target = Target {
                 url: server.clone(),
                 token: args.token.clone(),

@@ -1,0 +1,554 @@
+//! The distributed service across real processes on loopback: `vlf serve`, `vlf worker` and the
+//! client commands as separate processes, killed and restarted the way machines fail.
+//!
+//! Every job's final field is compared with `vlf propagate`'s (the library in one process): the
+//! same bits whatever the number of workers, a worker killed holding a lease, or a coordinator
+//! restarted in the middle of an iteration.
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+use tonic::Code;
+use vlf_core::field::LightField;
+use vlf_proto::Target;
+use vlf_proto::v1::{self, State};
+use vlf_store::{FieldJob, Job, JobId, Stage, Store};
+
+const VLF: &str = env!("CARGO_BIN_EXE_vlf");
+
+/// A child process killed (SIGKILL) when dropped, so a failing test leaves nothing running.
+struct Proc {
+    child: Child,
+    name: String,
+    log: PathBuf,
+}
+
+impl Proc {
+    fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+
+    /// The first stdout line containing `needle` (the process must print it within a minute).
+    fn wait_for_line(&mut self, needle: &str) -> String {
+        let stdout = self.child.stdout.take().expect("stdout piped");
+        let (tx, rx) = std::sync::mpsc::channel();
+        let needle = needle.to_string();
+        std::thread::spawn(move || {
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if line.contains(&needle) {
+                    let _ = tx.send(line);
+                    return;
+                }
+            }
+        });
+        match rx.recv_timeout(Duration::from_secs(60)) {
+            Ok(line) => line,
+            Err(_) => panic!("{} never printed the line; its log:\n{}", self.name, self.log()),
+        }
+    }
+
+    fn log(&self) -> String {
+        std::fs::read_to_string(&self.log).unwrap_or_default()
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+fn spawn(dir: &Path, name: &str, args: &[&str]) -> Proc {
+    let log = dir.join(format!("{name}.log"));
+    let child = Command::new(VLF)
+        .args(args)
+        .env_remove("VLF_TOKEN")
+        .env_remove("VLF_SERVER")
+        .stdout(Stdio::piped())
+        .stderr(std::fs::File::create(&log).expect("log file"))
+        .spawn()
+        .expect("spawn vlf");
+    Proc {
+        child,
+        name: name.to_string(),
+        log,
+    }
+}
+
+/// A coordinator on `listen` (port 0: any); returns it and its URL.
+fn serve(dir: &Path, store: &Path, listen: &str, extra: &[&str]) -> (Proc, String) {
+    let mut args = vec!["serve", "--store", store.to_str().unwrap(), "--listen", listen];
+    args.extend(extra);
+    let mut server = spawn(dir, "server", &args);
+    let line = server.wait_for_line("listening on ");
+    let url = line.trim_start_matches("listening on ").trim().to_string();
+    (server, url)
+}
+
+fn worker(dir: &Path, name: &str, url: &str, extra: &[&str]) -> Proc {
+    let mut args = vec!["worker", "--server", url, "--threads", "1", "--name", name];
+    args.extend(extra);
+    spawn(dir, name, &args)
+}
+
+fn vlf(args: &[&str]) -> Output {
+    Command::new(VLF)
+        .args(args)
+        .env_remove("VLF_TOKEN")
+        .env_remove("VLF_SERVER")
+        .output()
+        .expect("run vlf")
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "status {:?}\nstdout:\n{}\nstderr:\n{}",
+        o.status.code(),
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+fn scene(name: &str) -> String {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../scenes")
+        .join(name)
+        .to_string_lossy()
+        .into_owned()
+}
+
+fn temp(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("vlf-service-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+/// A free loopback port (for a coordinator that must come back on the same address).
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// The mirror scene at a size that runs in a second: mirrors make specular radiance cross
+/// workers, perturbation (on by default) makes iterations of several passes.
+const PARAMS: [&str; 8] = [
+    "--directions",
+    "33",
+    "--resolution",
+    "16",
+    "--tile",
+    "4",
+    "--encoding",
+    "f32",
+];
+
+/// `vlf propagate`'s field for the mirror scene with `PARAMS` and `extra`.
+fn reference(dir: &Path, extra: &[&str]) -> LightField {
+    let store = dir.join("reference");
+    let mirrors = scene("mirrors.obj");
+    let mut args = vec!["propagate", mirrors.as_str(), "--store", store.to_str().unwrap()];
+    args.extend(PARAMS);
+    args.extend(extra);
+    let o = vlf(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    let store = Store::open_existing(store.to_str().unwrap()).unwrap();
+    let id = Job::list(&store).unwrap().pop().unwrap();
+    FieldJob::open(&store, &id).unwrap().load(Stage::Field).unwrap()
+}
+
+fn field(store: &Path, id: &str) -> LightField {
+    let store = Store::open_existing(store.to_str().unwrap()).unwrap();
+    FieldJob::open(&store, &JobId::parse(id).unwrap())
+        .unwrap()
+        .load(Stage::Field)
+        .unwrap()
+}
+
+/// Fields equal up to the wall-clock times in their statistics.
+fn assert_same_field(a: &LightField, b: &LightField, what: &str) {
+    let mut b = b.clone();
+    for (sa, sb) in a.stats.iter().zip(b.stats.iter_mut()) {
+        sb.seconds = sa.seconds;
+    }
+    assert!(*a == b, "{what}: the field differs from vlf propagate's");
+}
+
+/// Submits the mirror scene; returns the job id.
+fn submit(url: &str, extra: &[&str]) -> String {
+    let mirrors = scene("mirrors.obj");
+    let mut args = vec!["submit", mirrors.as_str(), "--server", url];
+    args.extend(PARAMS);
+    args.extend(extra);
+    let o = vlf(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .next()
+        .unwrap()
+        .trim()
+        .to_string()
+}
+
+/// `vlf watch` to the end; asserts the job finished.
+fn watch(url: &str, id: &str) -> String {
+    let o = vlf(&["watch", id, "--server", url]);
+    assert!(o.status.success(), "{}", text(&o));
+    let out = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(out.contains("finished"), "{out}");
+    out
+}
+
+/// The code and message of a failed call (`None` when it succeeded).
+fn code<T>(r: Result<tonic::Response<T>, tonic::Status>) -> Option<(Code, String)> {
+    r.err().map(|s| (s.code(), s.message().to_string()))
+}
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+/// Polls `job` until `ok` holds for its status (a minute at most).
+fn wait_status(url: &str, id: &str, what: &str, ok: impl Fn(&v1::JobStatus) -> bool) -> v1::JobStatus {
+    let rt = runtime();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let status = rt.block_on(async {
+            let mut c = Target::new(url).connect().await.ok()?;
+            c.jobs
+                .get(v1::JobRequest { job_id: id.to_string() })
+                .await
+                .ok()
+                .map(|r| r.into_inner())
+        });
+        if let Some(s) = status {
+            if ok(&s) {
+                return s;
+            }
+            assert!(Instant::now() < deadline, "timed out waiting for {what}: {s:?}");
+        } else {
+            assert!(Instant::now() < deadline, "timed out waiting for {what}: no answer");
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn one_two_and_four_worker_processes_give_propagates_bits() {
+    let dir = temp("workers");
+    let expected = reference(&dir, &["--iterations", "3"]);
+    for workers in [1, 2, 4] {
+        let store = dir.join(format!("store-{workers}"));
+        let (_server, url) = serve(&dir, &store, "127.0.0.1:0", &[]);
+        let _workers: Vec<Proc> = (0..workers)
+            .map(|w| worker(&dir, &format!("worker-{workers}-{w}"), &url, &[]))
+            .collect();
+        let id = submit(&url, &["--iterations", "3"]);
+        watch(&url, &id);
+        assert_same_field(&expected, &field(&store, &id), &format!("{workers} workers"));
+        // The iteration's work blobs are gone once its snapshot is committed.
+        let work = store.join("jobs").join(&id).join("work");
+        let left = std::fs::read_dir(&work).map(|d| d.count()).unwrap_or(0);
+        assert_eq!(left, 0, "work blobs left in {}", work.display());
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_bits() {
+    let dir = temp("kill");
+    let expected = reference(&dir, &["--iterations", "3"]);
+    let store = dir.join("store");
+    let (_server, url) = serve(
+        &dir,
+        &store,
+        "127.0.0.1:0",
+        &["--lease-seconds", "600", "--heartbeat-seconds", "0.2"],
+    );
+    let id = submit(&url, &["--iterations", "3"]);
+    // The first worker computes 4 batches of the first iteration, then stalls on a fifth lease.
+    let mut doomed = worker(&dir, "doomed", &url, &["--hang-after-batches", "4"]);
+    doomed.wait_for_line("stalled holding lease");
+    let status = wait_status(&url, &id, "the lease", |s| s.leases_out == 1);
+    assert_eq!(status.state, State::Propagating as i32);
+    assert!(
+        status.batches_done < status.batches_total,
+        "killed in the middle of an iteration: {status:?}"
+    );
+    doomed.kill();
+    // The lease lasts ten minutes: only the missed heartbeats can hand the batch on.
+    let _rescuer = worker(&dir, "rescuer", &url, &[]);
+    watch(&url, &id);
+    assert_same_field(&expected, &field(&store, &id), "after a killed worker");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
+    let dir = temp("restart");
+    // One pass of 3 batches per iteration: 5 batches are snapshot 1 and 2 of iteration 2's 3.
+    let extra = ["--iterations", "4", "--perturb", "0"];
+    let expected = reference(&dir, &extra);
+    let store = dir.join("store");
+    let listen = format!("127.0.0.1:{}", free_port());
+    let (mut server, url) = serve(&dir, &store, &listen, &[]);
+    let id = submit(&url, &extra);
+    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "5"]);
+    stalled.wait_for_line("stalled holding lease");
+    let status = wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
+    assert_eq!((status.iteration, status.batches_done), (2, 2), "{status:?}");
+    server.kill();
+    stalled.kill();
+    // A worker that starts while no coordinator answers waits for one.
+    let _patient = worker(&dir, "patient", &url, &[]);
+    std::thread::sleep(Duration::from_millis(300));
+    let (_server, url) = serve(&dir, &store, &listen, &[]);
+    let resumed = wait_status(&url, &id, "the resumed job", |_| true);
+    assert!(resumed.snapshots.starts_with(&[0, 1]), "{resumed:?}");
+    watch(&url, &id);
+    assert_same_field(&expected, &field(&store, &id), "after a coordinator restart");
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() {
+    let dir = temp("progress");
+    let store = dir.join("store");
+    let (_server, url) = serve(&dir, &store, "127.0.0.1:0", &["--lease-seconds", "1"]);
+    let extra = ["--iterations", "3", "--perturb", "0"];
+    let id = submit(&url, &extra);
+    let rt = runtime();
+    // Subscribe before any work is done, so the stream sees the whole job.
+    let mut clients = rt.block_on(Target::new(&url).connect()).unwrap();
+    let mut stream = rt
+        .block_on(clients.jobs.watch(v1::JobRequest { job_id: id.clone() }))
+        .unwrap()
+        .into_inner();
+    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "4"]);
+    stalled.wait_for_line("stalled holding lease");
+    wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
+    // Snapshot 1 renders while iteration 2 runs; snapshot 2 does not exist yet.
+    let image = dir.join("snapshot1.pfm");
+    let mut render = vec!["render", "--server", url.as_str(), id.as_str(), "--eye", "0.5,0.5,-1.2"];
+    render.extend(["--target", "0.5,0.5,0.5", "--size", "32x32", "--samples", "1"]);
+    let o = vlf(&[
+        render.as_slice(),
+        &["--snapshot", "1", "--out", image.to_str().unwrap()],
+    ]
+    .concat());
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(std::fs::metadata(&image).unwrap().len() > 32 * 32 * 12);
+    let o = vlf(&[
+        render.as_slice(),
+        &["--snapshot", "2", "--out", image.to_str().unwrap()],
+    ]
+    .concat());
+    assert!(!o.status.success());
+    assert!(
+        String::from_utf8_lossy(&o.stderr).contains("snapshot 2"),
+        "{}",
+        text(&o)
+    );
+
+    // The stalled lease expires after a second and a healthy worker finishes the job.
+    let _healthy = worker(&dir, "healthy", &url, &[]);
+    let events: Vec<v1::JobStatus> = rt.block_on(async {
+        let mut events = Vec::new();
+        while let Some(s) = stream.message().await.unwrap() {
+            events.push(s);
+        }
+        events
+    });
+    assert!(events.len() >= 3, "{events:?}");
+    assert!(events.windows(2).all(|w| w[0].seq < w[1].seq), "sequence out of order");
+    assert!(
+        events.windows(2).all(|w| w[0].snapshots.len() <= w[1].snapshots.len()),
+        "snapshots went backwards"
+    );
+    let last = events.last().unwrap();
+    assert_eq!(last.state, State::Finished as i32, "{last:?}");
+    assert_eq!(last.snapshots, [0, 1, 2, 3]);
+    assert!(
+        events[..events.len() - 1]
+            .iter()
+            .all(|s| s.state != State::Finished as i32)
+    );
+    assert!(
+        events
+            .iter()
+            .any(|s| s.state == State::Propagating as i32 && s.batches_done > 0)
+    );
+    // The final field renders from the server too.
+    let o = vlf(&[render.as_slice(), &["--out", image.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", text(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn auth_and_bad_requests_get_their_status_codes() {
+    let dir = temp("auth");
+    let store = dir.join("store");
+    let (_server, url) = serve(
+        &dir,
+        &store,
+        "127.0.0.1:0",
+        &["--token", "s3cret", "--max-upload-bytes", "20000"],
+    );
+    let rt = runtime();
+
+    // Without the token, or with another, nothing is served.
+    for token in [None, Some("wrong".to_string())] {
+        let target = Target {
+            url: url.clone(),
+            token,
+            ca_cert: None,
+        };
+        let mut c = rt.block_on(target.connect()).unwrap();
+        let r = rt.block_on(c.jobs.list(v1::ListJobsRequest {}));
+        assert_eq!(code(r).map(|c| c.0), Some(Code::Unauthenticated));
+        let r = rt.block_on(c.workers.register(v1::RegisterRequest::default()));
+        assert_eq!(
+            code(r).map(|c| c.0),
+            Some(Code::Unauthenticated),
+            "another deployment's worker"
+        );
+    }
+    let o = vlf(&["jobs", "--server", &url]);
+    assert!(
+        !o.status.success() && text(&o).contains("unauthenticated"),
+        "{}",
+        text(&o)
+    );
+    let o = vlf(&["worker", "--server", &url, "--token", "wrong"]);
+    assert!(!o.status.success() && text(&o).contains("refused"), "{}", text(&o));
+
+    let target = Target {
+        url: url.clone(),
+        token: Some("s3cret".into()),
+        ca_cert: None,
+    };
+    let mut c = rt.block_on(target.connect()).unwrap();
+    let unknown = JobId::generate().to_string();
+    let r = rt.block_on(c.jobs.get(v1::JobRequest {
+        job_id: unknown.clone(),
+    }));
+    assert_eq!(code(r).map(|c| c.0), Some(Code::NotFound));
+    let r = rt.block_on(c.jobs.watch(v1::JobRequest {
+        job_id: unknown.clone(),
+    }));
+    assert_eq!(code(r).map(|c| c.0), Some(Code::NotFound));
+    let r = rt.block_on(c.jobs.get(v1::JobRequest {
+        job_id: "../etc".into(),
+    }));
+    assert_eq!(code(r).map(|c| c.0), Some(Code::InvalidArgument));
+    let o = vlf(&["status", &unknown, "--server", &url, "--token", "s3cret"]);
+    assert!(!o.status.success() && text(&o).contains("not found"), "{}", text(&o));
+
+    let submit = |obj: &str, parameters: v1::Parameters| {
+        let mut c = c.clone();
+        rt.block_on(c.jobs.submit(v1::SubmitRequest {
+            scene: Some(v1::submit_request::Scene::Upload(v1::SceneUpload {
+                obj_name: "bad.obj".into(),
+                obj: obj.as_bytes().to_vec(),
+                mtl: Default::default(),
+            })),
+            parameters: Some(parameters),
+        }))
+    };
+    let (c1, m1) = code(submit("v 0 0 0\nv 1 0 nan\nv 0 1 0\nf 1 2 3\n", Default::default())).unwrap();
+    assert_eq!(c1, Code::InvalidArgument);
+    assert!(m1.contains("bad.obj:2"), "{m1}");
+    let (c2, m2) = code(submit(
+        "v 0 0 0\n",
+        v1::Parameters {
+            directions: Some(100),
+            ..Default::default()
+        },
+    ))
+    .unwrap();
+    assert_eq!(c2, Code::InvalidArgument);
+    assert!(m2.contains("directions"), "{m2}");
+    let (c3, m3) = code(submit(&"# padding\n".repeat(3000), Default::default())).unwrap();
+    assert_eq!(c3, Code::ResourceExhausted);
+    assert!(m3.contains("at most 20000 bytes"), "{m3}");
+
+    let r = rt.block_on(c.workers.heartbeat(v1::HeartbeatRequest { worker_id: "w9".into() }));
+    assert_eq!(code(r).map(|c| c.0), Some(Code::NotFound));
+    let r = rt.block_on(c.workers.lease(v1::LeaseRequest {
+        worker_id: "w9".into(),
+        wait_ms: 0,
+    }));
+    assert_eq!(code(r).map(|c| c.0), Some(Code::NotFound));
+
+    // A job with no worker: cancel it; its state is recorded in the store, and the blobs are
+    // served (a missing one is NOT_FOUND, a path outside the job INVALID_ARGUMENT).
+    let mirrors = scene("mirrors.obj");
+    let mut args = vec![
+        "submit",
+        mirrors.as_str(),
+        "--server",
+        url.as_str(),
+        "--token",
+        "s3cret",
+    ];
+    args.extend(PARAMS);
+    let o = vlf(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    let id = String::from_utf8_lossy(&o.stdout)
+        .lines()
+        .next()
+        .unwrap()
+        .trim()
+        .to_string();
+    let o = vlf(&["cancel", &id, "--server", &url, "--token", "s3cret"]);
+    assert!(o.status.success(), "{}", text(&o));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let o = vlf(&["jobs", store.to_str().unwrap()]);
+        if String::from_utf8_lossy(&o.stdout).contains("cancelled") {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the store never recorded the cancellation: {}",
+            text(&o)
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let o = vlf(&["watch", &id, "--server", &url, "--token", "s3cret"]);
+    assert!(!o.status.success() && text(&o).contains("cancelled"), "{}", text(&o));
+    let fetch = |names: &[&str]| {
+        let (mut c, id) = (c.clone(), id.clone());
+        rt.block_on(async move {
+            let mut s = c
+                .tiles
+                .fetch(v1::FetchRequest {
+                    job_id: id.clone(),
+                    names: names.iter().map(|n| n.to_string()).collect(),
+                })
+                .await?
+                .into_inner();
+            let mut got = Vec::new();
+            while let Some(b) = s.message().await? {
+                got.push(b);
+            }
+            Ok::<_, tonic::Status>(got)
+        })
+    };
+    let got = fetch(&["manifest.blob", "iters/00000/summary.blob"]).unwrap();
+    assert_eq!(got.len(), 2);
+    assert_eq!(fetch(&["field/summary.blob"]).unwrap_err().code(), Code::NotFound);
+    assert_eq!(
+        fetch(&["../other/manifest.blob"]).unwrap_err().code(),
+        Code::InvalidArgument
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
