@@ -552,3 +552,52 @@ fn auth_and_bad_requests_get_their_status_codes() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn tls_with_a_token_serves_workers_and_clients_that_trust_the_ca() {
+    let dir = temp("tls");
+    let store = dir.join("store");
+    let cert = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
+    let (cert_pem, key_pem, ca) = (dir.join("cert.pem"), dir.join("key.pem"), dir.join("ca.pem"));
+    std::fs::write(&cert_pem, cert.cert.pem()).unwrap();
+    std::fs::write(&key_pem, cert.signing_key.serialize_pem()).unwrap();
+    // Self-signed: the certificate is its own CA.
+    std::fs::write(&ca, cert.cert.pem()).unwrap();
+    let (_server, url) = serve(
+        &dir,
+        &store,
+        "127.0.0.1:0",
+        &[
+            "--tls-cert",
+            cert_pem.to_str().unwrap(),
+            "--tls-key",
+            key_pem.to_str().unwrap(),
+            "--token",
+            "t0ken",
+        ],
+    );
+    assert!(url.starts_with("https://"), "{url}");
+    let url = url.replace("127.0.0.1", "localhost");
+    let ca = ca.to_str().unwrap();
+    let _worker = worker(&dir, "tls-worker", &url, &["--ca-cert", ca, "--token", "t0ken"]);
+    let mirrors = scene("mirrors.obj");
+    let mut args = vec!["submit", mirrors.as_str(), "--server", url.as_str(), "--ca-cert", ca];
+    args.extend(["--token", "t0ken", "--iterations", "2", "--watch"]);
+    args.extend(PARAMS);
+    let o = vlf(&args);
+    assert!(o.status.success(), "{}", text(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("finished"), "{}", text(&o));
+    // A client that does not trust the CA is refused by TLS, before any token is read.
+    let o = vlf(&["jobs", "--server", &url, "--token", "t0ken"]);
+    assert!(!o.status.success(), "{}", text(&o));
+    // Plain HTTP to a TLS port gets no answer either.
+    let o = vlf(&[
+        "jobs",
+        "--server",
+        &url.replace("https://", "http://"),
+        "--token",
+        "t0ken",
+    ]);
+    assert!(!o.status.success(), "{}", text(&o));
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -82,6 +82,7 @@ impl Target {
         }
         let mut endpoint = Endpoint::from_shared(self.url.clone()).map_err(|e| url_error(e.to_string()))?;
         if self.url.starts_with("https://") {
+            crate::install_crypto_provider();
             let mut tls = ClientTlsConfig::new().with_enabled_roots();
             if let Some(path) = &self.ca_cert {
                 let pem = std::fs::read(path).map_err(|source| ConnectError::Ca {

@@ -15,3 +15,11 @@ pub use convert::{JobSpec, pass_from_wire, pass_to_wire};
 
 /// The metadata key of the bearer token.
 pub const AUTHORIZATION: &str = "authorization";
+
+/// Makes ring the process's TLS crypto provider, unless one is installed already. rustls cannot
+/// pick one by itself when, as here, more than one is compiled in (the S3 client brings
+/// aws-lc-rs); both the server and the clients call this before any TLS set-up.
+pub fn install_crypto_provider() {
+    // An error means a provider is installed already, which is all that is needed.
+    let _ = rustls::crypto::ring::default_provider().install_default();
+}

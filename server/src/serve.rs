@@ -128,6 +128,7 @@ impl Server {
         let jobs = JobsServer::new(api.clone()).max_decoding_message_size(decode_limit);
         let mut builder = tonic::transport::Server::builder();
         if let Some(tls) = &config.tls {
+            vlf_proto::install_crypto_provider();
             let cert = std::fs::read(&tls.cert)
                 .map_err(|e| ServeError::Tls(format!("cannot read {}: {e}", tls.cert.display())))?;
             let key = std::fs::read(&tls.key)
