@@ -10,6 +10,7 @@ mod propagate;
 mod remote;
 mod render;
 mod run;
+mod study;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
@@ -50,6 +51,9 @@ enum Command {
     Watch(JobArgs),
     /// Cancel a job.
     Cancel(JobArgs),
+    /// Measure what accuracy costs: sweep the parameters against a reference path tracer
+    /// (Mitsuba 3, or a given image) and write CSV, Markdown and plots.
+    Study(study::StudyArgs),
 }
 
 #[derive(Args)]
@@ -293,6 +297,7 @@ fn main() {
         Command::Status(args) => block_on(remote::status(args)),
         Command::Watch(args) => block_on(remote::watch(args)),
         Command::Cancel(args) => block_on(remote::cancel(args)),
+        Command::Study(args) => study::run(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -37,6 +37,9 @@ pub struct LightField {
     pub unshot_fraction: f64,
     /// Directional radiance of mirrors; `None` for a scene without mirrors.
     pub specular: Option<SpecularField>,
+    /// Set by [`LightField::use_exact_direct`]: shade with exact direct light.
+    #[serde(default)]
+    pub exact_direct: Option<crate::direct::ExactDirect>,
 }
 
 /// The directional part of the field: for every direction, the radiance
@@ -142,12 +145,18 @@ impl LightField {
             emitted: p.emitted,
             stats,
             unshot_fraction,
+            exact_direct: None,
         }
     }
 
     /// Outgoing diffuse radiance of `surface` at point `p` (VLF frame),
     /// bilinear between texel centres.
     pub fn radiance_at(&self, surface: usize, p: DVec3) -> Rgb {
+        self.bilinear(&self.radiance, surface, p)
+    }
+
+    /// Bilinear look-up of per-texel `values` (laid out like the atlas).
+    pub(crate) fn bilinear(&self, values: &[[f32; 3]], surface: usize, p: DVec3) -> Rgb {
         let g = &self.atlas.grids[surface];
         let c = g.coords(p) - 0.5;
         let (x0, y0) = (c.x.floor(), c.y.floor());
@@ -155,7 +164,7 @@ impl LightField {
         let clamp = |v: f64, n: u32| (v.max(0.0) as u32).min(n - 1);
         let (xa, xb) = (clamp(x0, g.width), clamp(x0 + 1.0, g.width));
         let (ya, yb) = (clamp(y0, g.height), clamp(y0 + 1.0, g.height));
-        let at = |x: u32, y: u32| self.radiance[g.first + (y * g.width + x) as usize];
+        let at = |x: u32, y: u32| values[g.first + (y * g.width + x) as usize];
         let mut out = [0.0; 3];
         for (x, y, w) in [
             (xa, ya, (1.0 - fx) * (1.0 - fy)),
@@ -173,6 +182,36 @@ impl LightField {
 }
 
 impl Propagation {
+    /// The field as it stands after the iterations done so far, leaving the
+    /// propagation free to go on: what a study renders after every
+    /// iteration. Costs a copy of the geometry; [`Propagation::into_field`]
+    /// is the move at the end.
+    pub fn field_now(&self) -> LightField {
+        let covered: Vec<bool> = self.projected_area.iter().map(|&a| a > 0.0).collect();
+        let specular = self
+            .specular
+            .as_ref()
+            .zip(self.mirror_totals())
+            .map(|(s, totals)| SpecularField {
+                directions: self.directions.clone(),
+                subfields: self.subfields.clone(),
+                layouts: s.layouts.clone(),
+                totals,
+            });
+        LightField {
+            scene: self.scene.clone(),
+            options: self.options.clone(),
+            atlas: self.atlas.clone(),
+            radiance: self.diffuse_radiance(),
+            covered,
+            emitted: self.emitted,
+            stats: self.stats.clone(),
+            unshot_fraction: self.unshot_fraction(),
+            specular,
+            exact_direct: None,
+        }
+    }
+
     /// Outgoing diffuse radiance of every texel as it stands, `Total_t / T_t`
     /// (emitted plus reflected so far), with texels no ray crosses filled
     /// from their neighbours: what rendering reads.

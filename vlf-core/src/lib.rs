@@ -13,6 +13,7 @@
 //!
 //! This crate has no networking and no async: servers are thin layers on it.
 
+pub mod direct;
 pub mod directions;
 pub mod error;
 pub mod field;

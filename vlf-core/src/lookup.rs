@@ -104,7 +104,7 @@ impl LightField {
         if !hit.front {
             return [0.0; 3];
         }
-        let mut out = self.radiance_at(hit.surface, hit.point);
+        let mut out = self.diffuse_radiance_at(bvh, hit.surface, hit.point);
         let material = self.scene.material(hit.surface);
         if !material.is_mirror() {
             return out;

@@ -15,6 +15,7 @@
 
 pub mod bvh;
 pub mod camera;
+pub mod compare;
 pub mod image;
 
 pub use self::bvh::{Bvh, Hit, Node};

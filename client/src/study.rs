@@ -1,0 +1,202 @@
+//! `vlf study`: what accuracy costs in time, measured against a reference
+//! path tracer (see the `vlf-study` crate).
+
+use crate::{JobFlags, parse_size_arg, parse_vec3_arg};
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use vlf_core::render::Camera;
+use vlf_study::reference::Mitsuba;
+use vlf_study::sweep::Sweep;
+use vlf_study::{ReferenceSource, Study};
+
+#[derive(Args)]
+pub struct StudyArgs {
+    /// Wavefront OBJ scene.
+    scene: PathBuf,
+    /// Output folder (CSV, Markdown, plots, images).
+    #[arg(long, default_value = "study-out")]
+    out: PathBuf,
+    /// Eye position, scene units.
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
+    eye: glam::DVec3,
+    /// Point looked at, scene units.
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
+    target: glam::DVec3,
+    /// Up vector.
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true, default_value = "0,1,0")]
+    up: glam::DVec3,
+    /// Vertical field of view in degrees.
+    #[arg(long, default_value_t = 45.0)]
+    fovy: f64,
+    /// Image size WxH.
+    #[arg(long, default_value = "320x240", value_parser = parse_size_arg)]
+    size: (u32, u32),
+    /// Samples per pixel axis of the field's renders (box filter over samples²).
+    #[arg(long, default_value_t = 2)]
+    samples: u32,
+    /// Reference image (PFM, same camera and size) instead of rendering one with Mitsuba 3.
+    #[arg(long, value_name = "PFM")]
+    reference: Option<PathBuf>,
+    /// Samples per pixel of the Mitsuba reference.
+    #[arg(long, default_value_t = 4096)]
+    spp: u32,
+    /// Sample counts of the timed path-tracer renders (equal-quality comparison); "" for none.
+    #[arg(long, default_value = "1,4,16,64", value_delimiter = ',')]
+    ladder: Vec<String>,
+    /// Python interpreter with study/mitsuba/requirements.txt installed.
+    #[arg(long, env = "VLF_PYTHON", default_value = "python3")]
+    python: PathBuf,
+    /// Cache of reference renders (default: $XDG_CACHE_HOME/vlf/references or ~/.cache/vlf/references).
+    #[arg(long)]
+    cache: Option<PathBuf>,
+    /// (l, N) pairs refined together, as L/N ("" for none).
+    #[arg(long, default_value = "33/16,129/32,513/64,2049/128", value_delimiter = ',')]
+    sweep_joint: Vec<String>,
+    /// Directions l to sweep ("" for none).
+    #[arg(long, default_value = "33,129,513,2049", value_delimiter = ',')]
+    sweep_directions: Vec<String>,
+    /// Resolutions N to sweep ("" for none).
+    #[arg(long, default_value = "32,64,128", value_delimiter = ',')]
+    sweep_resolution: Vec<String>,
+    /// Tiles m to sweep ("" for none).
+    #[arg(long, default_value = "4,8,16", value_delimiter = ',')]
+    sweep_tile: Vec<String>,
+    /// Texel edges (in ray spacings) to sweep ("" for none).
+    #[arg(long, default_value = "1,2", value_delimiter = ',')]
+    sweep_texel: Vec<String>,
+    /// Skip the renders after every iteration of the base propagation.
+    #[arg(long)]
+    no_iterations: bool,
+    /// Skip the runs with perturbation and filtering toggled.
+    #[arg(long)]
+    no_toggles: bool,
+    /// Mirror depth of ray-traced renders.
+    #[arg(long, default_value_t = 8)]
+    depth: u32,
+    /// Quadrature points per emitter for exact direct light.
+    #[arg(long, default_value_t = 64)]
+    direct_samples: u32,
+    /// Block edge in pixels of the block error.
+    #[arg(long, default_value_t = 16)]
+    block: u32,
+    /// The base point of the sweep (the other parameters stay at it).
+    #[command(flatten)]
+    job: JobFlags,
+}
+
+fn numbers<T: std::str::FromStr>(name: &str, values: &[String]) -> Result<Vec<T>> {
+    values
+        .iter()
+        .map(|v| v.trim())
+        .filter(|v| !v.is_empty())
+        .map(|v| {
+            v.parse()
+                .map_err(|_| anyhow::anyhow!("--{name}: '{v}' is not a number"))
+        })
+        .collect()
+}
+
+fn pairs(values: &[String]) -> Result<Vec<(usize, u32)>> {
+    values
+        .iter()
+        .map(|v| v.trim())
+        .filter(|v| !v.is_empty())
+        .map(|v| {
+            let (l, n) = v
+                .split_once('/')
+                .ok_or_else(|| anyhow::anyhow!("--sweep-joint: '{v}' is not L/N, e.g. 513/64"))?;
+            Ok((
+                l.trim()
+                    .parse()
+                    .map_err(|_| anyhow::anyhow!("--sweep-joint: bad l in '{v}'"))?,
+                n.trim()
+                    .parse()
+                    .map_err(|_| anyhow::anyhow!("--sweep-joint: bad N in '{v}'"))?,
+            ))
+        })
+        .collect()
+}
+
+fn default_cache() -> PathBuf {
+    let base = std::env::var_os("XDG_CACHE_HOME")
+        .map(PathBuf::from)
+        .or_else(|| std::env::var_os("HOME").map(|h| PathBuf::from(h).join(".cache")))
+        .unwrap_or_else(std::env::temp_dir);
+    base.join("vlf").join("references")
+}
+
+pub fn run(args: StudyArgs) -> Result<()> {
+    if !(1..=16).contains(&args.samples) {
+        bail!("--samples must be 1..=16, got {}", args.samples);
+    }
+    if args.block == 0 || args.depth > 64 {
+        bail!("--block must be at least 1 and --depth at most 64");
+    }
+    let camera = Camera::new(args.eye, args.target, args.up, args.fovy, args.size.0, args.size.1)?;
+    let spec = args.job.spec()?;
+    let reference = match &args.reference {
+        Some(path) => ReferenceSource::Image(path.clone()),
+        None => ReferenceSource::Mitsuba(Mitsuba {
+            python: args.python.clone(),
+            spp: args.spp,
+            ladder: numbers("ladder", &args.ladder)?,
+            cache: args.cache.clone().unwrap_or_else(default_cache),
+        }),
+    };
+    let study = Study {
+        scene: args.scene.clone(),
+        camera,
+        samples: args.samples,
+        base: spec.options,
+        sweep: Sweep {
+            joint: pairs(&args.sweep_joint)?,
+            directions: numbers("sweep-directions", &args.sweep_directions)?,
+            resolution: numbers("sweep-resolution", &args.sweep_resolution)?,
+            tile: numbers("sweep-tile", &args.sweep_tile)?,
+            texel: numbers("sweep-texel", &args.sweep_texel)?,
+            iterations: !args.no_iterations,
+            perturbation: !args.no_toggles,
+            filter: !args.no_toggles,
+        },
+        encoding: spec.encoding,
+        trace_depth: args.depth,
+        direct_samples: args.direct_samples,
+        block: args.block,
+        reference,
+        out: args.out.clone(),
+    };
+    let bar = ProgressBar::new(1);
+    bar.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> "),
+    );
+    let outcome = vlf_study::run(&study, &mut |done, total, message| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+        bar.set_message(message.to_string());
+    })
+    .with_context(|| format!("study of {} failed", args.scene.display()))?;
+    bar.finish_and_clear();
+    if let Some(base) = outcome.rows.iter().find(|r| r.is_base()) {
+        println!(
+            "base {}: propagation {:.2} s, frame {:.3} s, relative RMSE {:.2} %, block error {:.2} %{}",
+            base.label,
+            base.propagate_s,
+            base.render_s,
+            base.error.relative_rmse * 100.0,
+            base.error.block_error * 100.0,
+            base.break_even_frames().map_or(String::new(), |f| format!(
+                ", cheaper than path tracing after {:.0} frames",
+                f.ceil()
+            ))
+        );
+    }
+    println!("{} rows; wrote:", outcome.rows.len());
+    for f in &outcome.files {
+        println!("  {}", f.display());
+    }
+    Ok(())
+}
