@@ -219,6 +219,21 @@ pub struct RenderArgs {
     /// Maximum number of mirror bounces when ray tracing.
     #[arg(long, default_value_t = 8)]
     depth: u32,
+    /// Direct light: from the field, or exact (shadow rays to the emitters per pixel, in place
+    /// of the field's direct part; needs the job's snapshot 1).
+    #[arg(long, value_enum, default_value_t = DirectArg::Field)]
+    direct: DirectArg,
+    /// Quadrature points per emitter for --direct exact.
+    #[arg(long, default_value_t = 64)]
+    direct_samples: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+pub enum DirectArg {
+    /// Read from the field like all other light.
+    Field,
+    /// Computed per pixel: sharp shadows, exact to the quadrature.
+    Exact,
 }
 
 #[derive(Args)]

@@ -1,7 +1,7 @@
 //! `vlf render` and `vlf jobs`: read a job's field back from a store and
 //! render it; list a store's jobs.
 
-use crate::{JobsArgs, RenderArgs, SpecularArg};
+use crate::{DirectArg, JobsArgs, RenderArgs, SpecularArg};
 use anyhow::{Context, Result, bail};
 use std::time::Instant;
 use vlf_core::lookup::SpecularMode;
@@ -21,6 +21,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
+    let exact_direct = args.direct == DirectArg::Exact;
+    if exact_direct && !(1..=65536).contains(&args.direct_samples) {
+        bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
+    }
+    // With --server and exact direct light, snapshot 1 comes in a store of its own.
+    let mut first_store = None;
     let (store, id, stage) = match (&args.server, &args.store) {
         (Some(server), store) => {
             // With --server the one positional argument is the job.
@@ -35,6 +41,11 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 ca_cert: args.ca_cert.clone(),
             };
             let (store, stage) = crate::block_on_value(crate::remote::fetch_job(&target, job, args.snapshot))?;
+            if exact_direct {
+                let (first, _) = crate::block_on_value(crate::remote::fetch_job(&target, job, Some(1)))
+                    .context("exact direct light needs snapshot 1")?;
+                first_store = Some(first);
+            }
             (store, JobId::parse(job).map_err(anyhow::Error::msg)?, Some(stage))
         }
         (None, Some(url)) => {
@@ -50,9 +61,19 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
     let stage = stage.unwrap_or_else(|| job.latest_stage());
     let started = Instant::now();
-    let field = job
+    let mut field = job
         .load(stage)
         .with_context(|| format!("cannot read {} of job {id}", describe(stage)))?;
+    if exact_direct {
+        let first_job = match &first_store {
+            Some(s) => FieldJob::open(s, &id).with_context(|| format!("cannot open job {id}"))?,
+            None => job,
+        };
+        let first = first_job
+            .load(Stage::Iteration(1))
+            .with_context(|| format!("exact direct light needs snapshot 1 of job {id}"))?;
+        field.use_exact_direct(&first, args.direct_samples)?;
+    }
     let loaded = started.elapsed().as_secs_f64();
     let image = field.render(&camera, args.samples, mode);
     image

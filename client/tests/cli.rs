@@ -434,3 +434,145 @@ fn embedded_service_matches_propagate_bit_for_bit() {
     assert!(!o.status.success() && stderr(&o).contains("--workers"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The Mitsuba 3 reference of the bundled Cornell box at 64×48 (see `study/tests/tiny_study.rs`).
+fn cornell_reference() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../study/tests/data/cornell-64x48.pfm")
+}
+
+#[test]
+fn exact_direct_light_renders_closer_to_the_path_tracer() {
+    use vlf_core::render::compare::{Pixels, compare};
+    let out = temp("exact-direct");
+    let o = propagate(&out, "2");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let render = |direct: &str| {
+        let image = out.join(format!("{direct}.pfm"));
+        let o = vlf(&[
+            "render",
+            out.to_str().unwrap(),
+            "--eye",
+            "278,273,-800",
+            "--target",
+            "278,273,0",
+            "--fovy",
+            "39",
+            "--size",
+            "64x48",
+            "--direct",
+            direct,
+            "--direct-samples",
+            "32",
+            "--out",
+            image.to_str().unwrap(),
+        ]);
+        assert!(o.status.success(), "{}", stderr(&o));
+        vlf_core::render::Image::load_pfm(image).unwrap()
+    };
+    let reference = vlf_core::render::Image::load_pfm(cornell_reference()).unwrap();
+    // Leave out the light's pixels (both draw it exactly; only coverage differs).
+    let exclude: Vec<bool> = reference.pixels.iter().map(|p| p[0] > 2.0).collect();
+    let pixels = Pixels {
+        exclude: Some(&exclude),
+        mask: None,
+    };
+    let field = compare(&render("field"), &reference, 8, pixels).unwrap();
+    let exact = compare(&render("exact"), &reference, 8, pixels).unwrap();
+    assert!(
+        exact.relative_rmse < 0.6 * field.relative_rmse && exact.block_error < field.block_error,
+        "exact {exact:?} field {field:?}"
+    );
+    let o = vlf(&[
+        "render",
+        out.to_str().unwrap(),
+        "--eye",
+        "278,273,-800",
+        "--target",
+        "278,273,0",
+        "--direct",
+        "exact",
+        "--direct-samples",
+        "0",
+        "--out",
+        out.join("x.png").to_str().unwrap(),
+    ]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--direct-samples"),
+        "{}",
+        stderr(&o)
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+#[test]
+fn study_with_a_given_reference_writes_its_report() {
+    let out = temp("study");
+    let o = vlf(&[
+        "study",
+        &scene("cornell.obj"),
+        "--out",
+        out.to_str().unwrap(),
+        "--reference",
+        cornell_reference().to_str().unwrap(),
+        "--eye",
+        "278,273,-800",
+        "--target",
+        "278,273,0",
+        "--fovy",
+        "39",
+        "--size",
+        "64x48",
+        "--directions",
+        "33",
+        "--resolution",
+        "16",
+        "--sweep-joint",
+        "",
+        "--sweep-directions",
+        "9",
+        "--sweep-resolution",
+        "",
+        "--sweep-tile",
+        "",
+        "--sweep-texel",
+        "",
+        "--no-toggles",
+        "--direct-samples",
+        "8",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("base l=33 N=16 m=8"), "{stdout}");
+    let csv = std::fs::read_to_string(out.join("study.csv")).unwrap();
+    // Base and l = 9, two render modes each, plus the base's iterations but the last.
+    assert!(csv.lines().filter(|l| l.starts_with("base,")).count() == 2, "{csv}");
+    assert!(
+        csv.lines().filter(|l| l.starts_with("directions,")).count() == 2,
+        "{csv}"
+    );
+    for f in [
+        "study.md",
+        "error-vs-time.png",
+        "block-error-vs-time.png",
+        "reference.png",
+    ] {
+        assert!(out.join(f).exists(), "{f}");
+    }
+    // A reference of another size is refused with both sizes named.
+    let o = vlf(&[
+        "study",
+        &scene("cornell.obj"),
+        "--out",
+        out.to_str().unwrap(),
+        "--reference",
+        cornell_reference().to_str().unwrap(),
+        "--eye",
+        "278,273,-800",
+        "--target",
+        "278,273,0",
+        "--size",
+        "32x24",
+    ]);
+    assert!(!o.status.success() && stderr(&o).contains("64x48"), "{}", stderr(&o));
+    let _ = std::fs::remove_dir_all(&out);
+}

@@ -123,6 +123,22 @@ pub fn curves(rows: &[Row], measure: Measure) -> Vec<Curve> {
     out
 }
 
+/// Tick values 1, 2, 5 × 10^k within `[lo, hi]` (log axes).
+fn one_two_five(lo: f64, hi: f64) -> Vec<f64> {
+    let mut out = Vec::new();
+    let mut decade = 10f64.powf(lo.log10().floor());
+    while decade <= hi {
+        for m in [1.0, 2.0, 5.0] {
+            let v = m * decade;
+            if v >= lo && v <= hi {
+                out.push(v);
+            }
+        }
+        decade *= 10.0;
+    }
+    out
+}
+
 fn point_label(axis: &str, r: &Row) -> String {
     match axis {
         "joint" => format!("{}/{}", r.directions, r.resolution),
@@ -149,8 +165,10 @@ pub fn error_vs_time(path: &Path, title: &str, rows: &[Row], measure: Measure) -
         let (lo, hi) = v.fold((f64::INFINITY, 0.0f64), |(lo, hi), x| (lo.min(x), hi.max(x)));
         (lo / 1.5, hi * 1.5)
     };
+    // Room above the data for the legend (log axis: a factor).
     let (t0, t1) = bounds(&mut all.iter().map(|p| p.0));
     let (e0, e1) = bounds(&mut all.iter().map(|p| p.1));
+    let e1 = e1 * 4.0;
     let block = rows.first().map_or(16, |r| r.error.block);
 
     let mut buffer = vec![255u8; (WIDTH * HEIGHT * 3) as usize];
@@ -162,7 +180,10 @@ pub fn error_vs_time(path: &Path, title: &str, rows: &[Row], measure: Measure) -
             .margin(12)
             .x_label_area_size(48)
             .y_label_area_size(72)
-            .build_cartesian_2d((t0..t1).log_scale(), (e0..e1).log_scale())
+            .build_cartesian_2d(
+                (t0..t1).log_scale().with_key_points(one_two_five(t0, t1)),
+                (e0..e1).log_scale().with_key_points(one_two_five(e0, e1)),
+            )
             .map_err(|e| anyhow!("{e}"))?;
         chart
             .configure_mesh()
@@ -178,7 +199,7 @@ pub fn error_vs_time(path: &Path, title: &str, rows: &[Row], measure: Measure) -
                     format!("{p:.2} %")
                 }
             })
-            .x_label_formatter(&|v| format!("{v:.2}"))
+            .x_label_formatter(&|v| if *v >= 1.0 { format!("{v:.0}") } else { format!("{v}") })
             .label_style(("sans-serif", 14))
             .draw()
             .map_err(|e| anyhow!("{e}"))?;

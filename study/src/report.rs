@@ -166,6 +166,15 @@ pub struct Setting<'a> {
     pub excluded: usize,
 }
 
+/// Seconds with two significant digits (0.0042 s, 0.56 s, 21 s).
+fn seconds(v: f64) -> String {
+    if !v.is_finite() || v <= 0.0 {
+        return format!("{v}");
+    }
+    let digits = (1 - v.log10().floor() as i32).max(0) as usize;
+    format!("{v:.digits$}")
+}
+
 fn percent(v: f64) -> String {
     format!("{:.2} %", v * 100.0)
 }
@@ -267,21 +276,21 @@ pub fn write_markdown(path: &Path, cx: &Setting, rows: &[Row]) -> Result<()> {
             writeln!(
                 md,
                 "The base field ({}, mirrors {}, direct light from the field) has a relative RMSE of {}: the path tracer \
-                 reaches that in {:.1} s per frame, the field costs {:.2} s once plus {:.3} s per frame, so the field \
+                 reaches that in {} s per frame, the field costs {} s once plus {} s per frame, so the field \
                  is cheaper from frame {} of a walkthrough on. Matching its block error instead takes the path \
-                 tracer {:.1} s per frame.",
+                 tracer {} s per frame.",
                 base.label,
                 base.specular,
                 percent(base.error.relative_rmse),
-                base.pt_equal_s.unwrap_or(f64::NAN),
-                base.propagate_s,
-                base.render_s,
+                seconds(base.pt_equal_s.unwrap_or(f64::NAN)),
+                seconds(base.propagate_s),
+                seconds(base.render_s),
                 base.break_even_frames()
                     .map_or("— never (the path tracer is faster per frame)".into(), |f| format!(
                         "{:.0}",
                         f.ceil()
                     )),
-                base.pt_equal_block_s.unwrap_or(f64::NAN),
+                seconds(base.pt_equal_block_s.unwrap_or(f64::NAN)),
             )?;
         }
         _ => writeln!(
@@ -353,6 +362,14 @@ mod tests {
         assert!((fit.seconds_per_spp - 0.5).abs() < 1e-12);
         // 0.4 / √spp = 0.1 at 16 spp: 8 s.
         assert!((fit.seconds_for_rmse(0.1) - 8.0).abs() < 1e-4);
+    }
+
+    #[test]
+    fn seconds_keep_two_significant_digits() {
+        assert_eq!(seconds(0.0042), "0.0042");
+        assert_eq!(seconds(0.56), "0.56");
+        assert_eq!(seconds(7.09), "7.1");
+        assert_eq!(seconds(21.4), "21");
     }
 
     #[test]
