@@ -158,6 +158,7 @@ fn start(sched: &Arc<Scheduler>, coordinator: Coordinator) {
         wake,
         id: coordinator.job().id().clone(),
         coordinator: Some(coordinator),
+        traffic: Default::default(),
     };
     tokio::spawn(driver.run(resample));
 }
@@ -168,6 +169,8 @@ struct Driver {
     id: JobId,
     /// Out while a blocking step has it.
     coordinator: Option<Coordinator>,
+    /// Work moved through the store by the iterations this driver finished.
+    traffic: vlf_store::WorkTraffic,
 }
 
 /// How a job's drive ended early.
@@ -183,7 +186,12 @@ impl Driver {
             Err(stop) => Some(stop),
         };
         let Some(stop) = ended else {
-            tracing::info!(job = %self.id, "job finished");
+            tracing::info!(
+                job = %self.id,
+                work_blobs = self.traffic.blobs,
+                work_mb = format!("{:.2}", self.traffic.bytes as f64 / 1e6),
+                "job finished"
+            );
             return;
         };
         let (state, wire, message) = match stop {
@@ -262,11 +270,25 @@ impl Driver {
                 .as_ref()
                 .map(|c| c.propagation().unshot_fraction())
                 .unwrap_or(f64::NAN);
+            let traffic = self
+                .coordinator
+                .as_ref()
+                .and_then(|c| c.traffic().last().copied())
+                .unwrap_or_default();
             self.sched.update(&self.id, |s| {
                 s.snapshots.push(k + 1);
                 s.unshot_fraction = unshot;
             });
-            tracing::info!(job = %self.id, snapshot = k + 1, unshot, "iteration committed");
+            self.traffic.blobs += traffic.blobs;
+            self.traffic.bytes += traffic.bytes;
+            tracing::info!(
+                job = %self.id,
+                snapshot = k + 1,
+                unshot,
+                work_blobs = traffic.blobs,
+                work_mb = format!("{:.2}", traffic.bytes as f64 / 1e6),
+                "iteration committed"
+            );
         }
     }
 

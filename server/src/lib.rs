@@ -1,7 +1,7 @@
 //! The VLF coordinator: a thin gRPC layer over `vlf-store`'s iteration protocol.
 //!
-//! A job's iteration is a list of passes, each cut into batches of 16 directions
-//! (`vlf_core::propagate::work`). The coordinator hands batches out as **leases** with a
+//! A job's iteration is a list of passes, each cut into batches of directions
+//! (`vlf_core::propagate::work::batch_size`). The coordinator hands batches out as **leases** with a
 //! deadline; a worker computes its batch from the store and writes the output back into the
 //! store; the coordinator, once every batch of a pass is reported, reads them back *in batch
 //! order* and absorbs them ([`vlf_store::Coordinator`]), so the result has the same bits however

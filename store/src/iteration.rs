@@ -149,11 +149,20 @@ impl Replica {
     }
 }
 
+/// What an iteration moved through the store: the batch outputs workers wrote and the
+/// coordinator read back (compressed, as stored). Snapshots come on top.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WorkTraffic {
+    pub blobs: u64,
+    pub bytes: u64,
+}
+
 /// The coordinator's side: absorbs the batches of each pass in order and commits snapshots.
 pub struct Coordinator {
     job: FieldJob,
     prop: Propagation,
     work: Option<(IterationWork, Instant)>,
+    traffic: Vec<WorkTraffic>,
 }
 
 impl Coordinator {
@@ -167,7 +176,17 @@ impl Coordinator {
     /// snapshot — as [`FieldJob::create`]'s input or [`FieldJob::resume`]'s output is — so the
     /// geometry is not built twice.
     pub fn new(job: FieldJob, prop: Propagation) -> Coordinator {
-        Coordinator { job, prop, work: None }
+        Coordinator {
+            job,
+            prop,
+            work: None,
+            traffic: Vec::new(),
+        }
+    }
+
+    /// Work blobs and bytes of every iteration this coordinator finished, in order.
+    pub fn traffic(&self) -> &[WorkTraffic] {
+        &self.traffic
     }
 
     pub fn job(&self) -> &FieldJob {
@@ -250,7 +269,12 @@ impl Coordinator {
         let stats = self.prop.finish_iteration(work, started);
         self.job.write_snapshot(&self.prop)?;
         let store = self.job.job().store();
-        for key in store.list(&layout::work_prefix(self.job.id(), k)?)? {
+        let blobs = store.list_sizes(&layout::work_prefix(self.job.id(), k)?)?;
+        self.traffic.push(WorkTraffic {
+            blobs: blobs.len() as u64,
+            bytes: blobs.iter().map(|(_, size)| size).sum(),
+        });
+        for (key, _) in blobs {
             store.delete(&key)?;
         }
         Ok(stats)

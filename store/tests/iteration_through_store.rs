@@ -65,7 +65,9 @@ fn with_replicas(o: &Opener, scene: &Scene, options: &Options, workers: usize) -
         .collect();
     while !coordinator.finished() {
         let k = coordinator.iteration();
+        let mut expected_blobs = 0;
         while let Some((pass, batches)) = coordinator.pending_pass() {
+            expected_blobs += batches as u64;
             let order = shuffled(batches, k);
             std::thread::scope(|s| {
                 for (w, replica) in replicas.iter_mut().enumerate() {
@@ -81,7 +83,19 @@ fn with_replicas(o: &Opener, scene: &Scene, options: &Options, workers: usize) -
             replicas[workers - 1].compute(k, pass, 0..1).unwrap();
             coordinator.absorb_pass().unwrap();
         }
+        let store = coordinator.job().job().store();
+        let written: u64 = store
+            .list_sizes(&layout::work_prefix(&id, k).unwrap())
+            .unwrap()
+            .iter()
+            .map(|(_, size)| size)
+            .sum();
         coordinator.finish_iteration().unwrap();
+        // What went through the store is accounted for: one blob per batch of every pass.
+        let traffic = *coordinator.traffic().last().unwrap();
+        assert_eq!(traffic.blobs, expected_blobs);
+        assert_eq!(traffic.bytes, written);
+        assert!(written > 0);
         let store = coordinator.job().job().store();
         assert!(store.list(&layout::work_prefix(&id, k).unwrap()).unwrap().is_empty());
     }

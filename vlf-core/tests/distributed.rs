@@ -100,6 +100,24 @@ fn batches_from_several_workers_in_any_order_give_the_same_bits_with_mirrors() {
 }
 
 #[test]
+fn batches_of_several_chunks_keep_each_directions_mirror_maps() {
+    // l = 513: batches of 32 directions, computed 16 at a time, so a batch's
+    // mirror maps are split between chunks.
+    let options = Options {
+        directions: 513,
+        stop: Stop::Iterations(3),
+        ..options(0)
+    };
+    assert_eq!(vlf_core::propagate::work::batch_size(513), 32);
+    let p = Propagation::new(mirror_room(), options.clone()).unwrap();
+    assert_eq!(p.iteration_work().batches(), 17);
+    // (That each chunk gets its own directions' maps is checked by physics:
+    // mirror_render.rs compares mirrors from the rays with ray tracing at
+    // l = 513.)
+    same_bits_as_in_process(mirror_room(), options);
+}
+
+#[test]
 fn perturbed_passes_split_across_workers_give_the_same_bits() {
     let scene = closed_box(
         0.6,

@@ -219,7 +219,7 @@ pub struct Progress {
     pub directions_total: usize,
 }
 
-use work::BATCH;
+use work::CHUNK;
 
 /// A propagation in progress: the field's geometry plus the radiosity maps.
 pub struct Propagation {
@@ -285,10 +285,10 @@ where
     let count = states.len();
     let mut sum = vec![[0.0; 3]; texels];
     let mut flow = Flow::default();
-    let mut buffers: Vec<Vec<Rgb>> = (0..BATCH.min(count)).map(|_| vec![[0.0; 3]; texels]).collect();
+    let mut buffers: Vec<Vec<Rgb>> = (0..CHUNK.min(count)).map(|_| vec![[0.0; 3]; texels]).collect();
     let mut start = 0;
     while start < count {
-        let end = (start + BATCH).min(count);
+        let end = (start + CHUNK).min(count);
         let flows: Vec<Flow> = buffers[..end - start]
             .par_iter_mut()
             .zip(states[start..end].par_iter_mut())

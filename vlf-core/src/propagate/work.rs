@@ -8,7 +8,7 @@
 //! (the copy's discrete areas `T_t`, which the copy's radiance `Φ_t / T_t`
 //! needs) then [`Pass::ShootCopy`].
 //!
-//! A pass is cut into batches of [`BATCH`] consecutive directions. A batch is
+//! A pass is cut into batches of [`batch_size`] consecutive directions. A batch is
 //! a pure function of the iteration's inputs ([`IterationWork`], derived
 //! deterministically from the propagation's state), the pass results already
 //! absorbed, and — for [`Pass::Shoot`] — the mirror maps of its own
@@ -36,10 +36,20 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
 
-/// Directions per batch: the unit of work and of reduction. Fixed (not
-/// derived from a thread or worker count) so the summation order, and
-/// therefore the bits, never depend on how the work is spread.
-pub const BATCH: usize = 16;
+/// Directions computed at once inside a batch, in parallel: each needs a
+/// texel-sized buffer, so this bounds the memory of a batch, not its size.
+pub const CHUNK: usize = 16;
+
+/// Directions per batch, the unit of work and of reduction: `(l − 1) / 16`,
+/// at least [`CHUNK`] — about 16 batches per pass for l ≥ 513 (9 for l =
+/// 129, 3 for l = 33). A function of `l` alone (not of a thread or worker
+/// count), so the summation order, and therefore the bits, never depend on
+/// how the work is spread. Fewer, larger batches cost fewer leases, blobs
+/// and absorbs (each batch's output is a dense texel-sized sum written
+/// through the store), while 16 of them still balance a few workers.
+pub fn batch_size(directions: usize) -> usize {
+    (directions.saturating_sub(1) / 16).max(CHUNK)
+}
 
 /// One map-reduce over the directions of an iteration.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -209,8 +219,9 @@ impl IterationWork {
 
     /// The directions of batch `batch`.
     pub fn batch_range(&self, batch: usize, directions: usize) -> Range<usize> {
-        let start = (batch * BATCH).min(directions);
-        start..(start + BATCH).min(directions)
+        let size = batch_size(directions);
+        let start = (batch * size).min(directions);
+        start..(start + size).min(directions)
     }
 }
 
@@ -289,7 +300,7 @@ impl Propagation {
             flow: Flow::default(),
             cursor: (0, 0),
             pass_sum: vec![[0.0; 3]; texels],
-            batches: self.directions.len().div_ceil(BATCH),
+            batches: self.directions.len().div_ceil(batch_size(self.directions.len())),
         }
     }
 
@@ -321,104 +332,128 @@ impl Propagation {
         let scene = &self.scene;
         let facing =
             |sub: &Subfield| -> Vec<f64> { scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect() };
-        let per_direction: Vec<(Vec<Rgb>, Flow)> = match (pass, &work.mode) {
-            (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
-                let layouts = self.specular.as_ref().map(|s| &s.layouts);
-                let run = |d: usize, maps: Option<&mut DirectionMaps>, scratch: &mut Scratch| {
-                    let sub = &self.subfields[d];
-                    let facing = facing(sub);
-                    let beam = shoot::Beam {
-                        sub,
-                        weight: self.directions.get(d).weight,
-                        facing: &facing,
-                    };
-                    let mut buf = vec![[0.0; 3]; texels];
-                    let io = maps.zip(layouts).map(|(m, layouts)| shoot::SpecularIo {
-                        mirror_base: &layouts[d].entry_base,
-                        unshot: &m.unshot,
-                        incident: &mut m.incident,
-                        total: &mut m.total,
-                    });
-                    let flow = shoot::shoot(geometry, beam, radiance, &mut buf, io, scratch);
-                    (buf, flow)
-                };
-                match (mirrors, maps) {
-                    (true, Some(maps)) if maps.len() == range.len() => maps
-                        .par_iter_mut()
-                        .enumerate()
-                        .map_init(Scratch::default, |scratch, (i, m)| {
-                            run(range.start + i, Some(m), scratch)
-                        })
-                        .collect(),
-                    (true, _) => {
+        // The batch's directions, CHUNK at a time: each chunk's directions in
+        // parallel, then added to the sum in direction order.
+        let compute =
+            |range: Range<usize>, maps: Option<&mut [DirectionMaps]>| -> crate::Result<Vec<(Vec<Rgb>, Flow)>> {
+                Ok(match (pass, &work.mode) {
+                    (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
+                        let layouts = self.specular.as_ref().map(|s| &s.layouts);
+                        let run = |d: usize, maps: Option<&mut DirectionMaps>, scratch: &mut Scratch| {
+                            let sub = &self.subfields[d];
+                            let facing = facing(sub);
+                            let beam = shoot::Beam {
+                                sub,
+                                weight: self.directions.get(d).weight,
+                                facing: &facing,
+                            };
+                            let mut buf = vec![[0.0; 3]; texels];
+                            let io = maps.zip(layouts).map(|(m, layouts)| shoot::SpecularIo {
+                                mirror_base: &layouts[d].entry_base,
+                                unshot: &m.unshot,
+                                incident: &mut m.incident,
+                                total: &mut m.total,
+                            });
+                            let flow = shoot::shoot(geometry, beam, radiance, &mut buf, io, scratch);
+                            (buf, flow)
+                        };
+                        match (mirrors, maps) {
+                            (true, Some(maps)) => maps
+                                .par_iter_mut()
+                                .enumerate()
+                                .map_init(Scratch::default, |scratch, (i, m)| {
+                                    run(range.start + i, Some(m), scratch)
+                                })
+                                .collect(),
+                            (true, None) => {
+                                return Err(crate::Error::Parameter(format!(
+                                    "batch {batch} needs the mirror maps of its directions"
+                                )));
+                            }
+                            (false, _) => range
+                                .clone()
+                                .into_par_iter()
+                                .map_init(Scratch::default, |scratch, d| run(d, None, scratch))
+                                .collect(),
+                        }
+                    }
+                    (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
+                        let set = &copies[copy as usize];
+                        range
+                            .clone()
+                            .into_par_iter()
+                            .map_init(Scratch::default, |scratch, d| {
+                                let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                                let mut buf = vec![[0.0; 3]; texels];
+                                shoot::count(geometry, &sub, set.get(d).weight, &mut buf, scratch);
+                                (buf, Flow::default())
+                            })
+                            .collect()
+                    }
+                    (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. })
+                        if (copy as usize) < copies.len() =>
+                    {
+                        let set = &copies[copy as usize];
+                        let Some(radiance) = &radiance[copy as usize] else {
+                            return Err(crate::Error::Parameter(format!(
+                                "{pass:?} before the areas of copy {copy} are absorbed"
+                            )));
+                        };
+                        range
+                            .clone()
+                            .into_par_iter()
+                            .map_init(Scratch::default, |scratch, d| {
+                                let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                                let facing = facing(&sub);
+                                let beam = shoot::Beam {
+                                    sub: &sub,
+                                    weight: set.get(d).weight,
+                                    facing: &facing,
+                                };
+                                let mut buf = vec![[0.0; 3]; texels];
+                                let flow = shoot::shoot(geometry, beam, radiance, &mut buf, None, scratch);
+                                (buf, flow)
+                            })
+                            .collect()
+                    }
+                    _ => {
                         return Err(crate::Error::Parameter(format!(
-                            "batch {batch} needs the mirror maps of its {} directions",
-                            range.len()
+                            "{pass:?} is not a pass of iteration {}",
+                            work.index
                         )));
                     }
-                    (false, _) => range
-                        .clone()
-                        .into_par_iter()
-                        .map_init(Scratch::default, |scratch, d| run(d, None, scratch))
-                        .collect(),
-                }
-            }
-            (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
-                let set = &copies[copy as usize];
-                range
-                    .clone()
-                    .into_par_iter()
-                    .map_init(Scratch::default, |scratch, d| {
-                        let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
-                        let mut buf = vec![[0.0; 3]; texels];
-                        shoot::count(geometry, &sub, set.get(d).weight, &mut buf, scratch);
-                        (buf, Flow::default())
-                    })
-                    .collect()
-            }
-            (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. }) if (copy as usize) < copies.len() => {
-                let set = &copies[copy as usize];
-                let Some(radiance) = &radiance[copy as usize] else {
-                    return Err(crate::Error::Parameter(format!(
-                        "{pass:?} before the areas of copy {copy} are absorbed"
-                    )));
-                };
-                range
-                    .clone()
-                    .into_par_iter()
-                    .map_init(Scratch::default, |scratch, d| {
-                        let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
-                        let facing = facing(&sub);
-                        let beam = shoot::Beam {
-                            sub: &sub,
-                            weight: set.get(d).weight,
-                            facing: &facing,
-                        };
-                        let mut buf = vec![[0.0; 3]; texels];
-                        let flow = shoot::shoot(geometry, beam, radiance, &mut buf, None, scratch);
-                        (buf, flow)
-                    })
-                    .collect()
-            }
-            _ => {
-                return Err(crate::Error::Parameter(format!(
-                    "{pass:?} is not a pass of iteration {}",
-                    work.index
-                )));
-            }
-        };
+                })
+            };
+        if let (Pass::Shoot, Mode::Direct { mirrors: true, .. }) = (pass, &work.mode)
+            && maps.as_ref().is_none_or(|m| m.len() != range.len())
+        {
+            return Err(crate::Error::Parameter(format!(
+                "batch {batch} needs the mirror maps of its {} directions",
+                range.len()
+            )));
+        }
         // Σ over the batch's directions in direction order, from zero; texel
-        // chunks in parallel (each texel's additions stay in order).
+        // blocks in parallel (each texel's additions stay in order).
         let mut sum = vec![[0.0; 3]; texels];
-        sum.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {
-            let base = c * 4096;
-            for (buf, _) in &per_direction {
-                add_into(chunk, &buf[base..base + chunk.len()]);
-            }
-        });
         let mut flow = Flow::default();
-        for (_, f) in &per_direction {
-            flow.add(f);
+        let mut maps = maps;
+        let mut start = range.start;
+        while start < range.end {
+            let end = (start + CHUNK).min(range.end);
+            let own = maps
+                .as_deref_mut()
+                .map(|m| &mut m[start - range.start..end - range.start]);
+            let per_direction = compute(start..end, own)?;
+            sum.par_chunks_mut(4096).enumerate().for_each(|(c, block)| {
+                let base = c * 4096;
+                for (buf, _) in &per_direction {
+                    add_into(block, &buf[base..base + block.len()]);
+                }
+            });
+            for (_, f) in &per_direction {
+                flow.add(f);
+            }
+            start = end;
         }
         Ok(BatchSum {
             texels: sum,
