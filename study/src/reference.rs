@@ -191,6 +191,9 @@ impl Reference {
                 settings.spp
             );
         }
+        if let Some(bad) = settings.ladder.iter().find(|&&spp| spp == 0) {
+            bail!("the timed path-tracer renders need at least 1 sample per pixel, got {bad}");
+        }
         let json = SceneExport::new(scene, camera).to_json();
         let mut hasher = sha2::Sha256::new();
         hasher.update(&json);
@@ -371,7 +374,16 @@ mod tests {
         };
         let e = format!("{:#}", Reference::mitsuba(&scene, &camera, &settings).unwrap_err());
         assert!(e.contains("no-such-python") && e.contains("requirements.txt"), "{e}");
-        let odd = Mitsuba { spp: 3, ..settings };
+        let odd = Mitsuba {
+            spp: 3,
+            ..settings.clone()
+        };
         assert!(Reference::mitsuba(&scene, &camera, &odd).is_err());
+        let zero = Mitsuba {
+            ladder: vec![4, 0],
+            ..settings
+        };
+        let e = format!("{:#}", Reference::mitsuba(&scene, &camera, &zero).unwrap_err());
+        assert!(e.contains("at least 1 sample"), "{e}");
     }
 }
