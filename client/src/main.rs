@@ -189,18 +189,8 @@ pub struct RenderArgs {
     /// else its last finished snapshot).
     #[arg(long, value_name = "K")]
     snapshot: Option<u32>,
-    /// Eye position, scene units.
-    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
-    eye: glam::DVec3,
-    /// Point looked at, scene units.
-    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
-    target: glam::DVec3,
-    /// Up vector.
-    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true, default_value = "0,1,0")]
-    up: glam::DVec3,
-    /// Vertical field of view in degrees.
-    #[arg(long, default_value_t = 45.0)]
-    fovy: f64,
+    #[command(flatten)]
+    view: ViewFlags,
     /// Image size WxH.
     #[arg(long, default_value = "512x512", value_parser = parse_size_arg)]
     size: (u32, u32),
@@ -234,6 +224,31 @@ pub enum DirectArg {
     Field,
     /// Computed per pixel: sharp shadows, exact to the quadrature.
     Exact,
+}
+
+/// Where a camera stands and looks (scene units), shared by `render` and `study`; the image size
+/// is each command's own (their defaults differ).
+#[derive(Args, Clone, Copy)]
+pub struct ViewFlags {
+    /// Eye position, scene units.
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
+    eye: glam::DVec3,
+    /// Point looked at, scene units.
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
+    target: glam::DVec3,
+    /// Up vector.
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true, default_value = "0,1,0")]
+    up: glam::DVec3,
+    /// Vertical field of view in degrees.
+    #[arg(long, default_value_t = 45.0)]
+    fovy: f64,
+}
+
+impl ViewFlags {
+    /// The validated camera for an image of `size`.
+    pub fn camera(&self, size: (u32, u32)) -> vlf_core::Result<vlf_core::render::Camera> {
+        vlf_core::render::Camera::new(self.eye, self.target, self.up, self.fovy, size.0, size.1)
+    }
 }
 
 #[derive(Args)]
@@ -293,15 +308,7 @@ fn block_on_value<T>(future: impl std::future::Future<Output = Result<T>>) -> Re
 }
 
 fn main() {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
-        )
-        .with_writer(std::io::stderr)
-        // Colour codes only for a person watching, not in logs and pipes.
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
+    vlf_proto::init_logging();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Propagate(args) => propagate::run(args),

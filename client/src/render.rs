@@ -5,7 +5,6 @@ use crate::{DirectArg, JobsArgs, RenderArgs, SpecularArg};
 use anyhow::{Context, Result, bail};
 use std::time::Instant;
 use vlf_core::lookup::SpecularMode;
-use vlf_core::render::Camera;
 use vlf_proto::Target;
 use vlf_store::{FieldJob, Job, JobId, JobState, Stage, Store};
 
@@ -16,7 +15,7 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if args.depth > 64 {
         bail!("--depth must be at most 64, got {}", args.depth);
     }
-    let camera = Camera::new(args.eye, args.target, args.up, args.fovy, args.size.0, args.size.1)?;
+    let camera = args.view.camera(args.size)?;
     let mode = match args.specular {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },

@@ -1,12 +1,11 @@
 //! `vlf study`: what accuracy costs in time, measured against a reference
 //! path tracer (see the `vlf-study` crate).
 
-use crate::{JobFlags, parse_size_arg, parse_vec3_arg};
+use crate::{JobFlags, ViewFlags, parse_size_arg};
 use anyhow::{Context, Result, bail};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
-use vlf_core::render::Camera;
 use vlf_study::reference::Mitsuba;
 use vlf_study::sweep::Sweep;
 use vlf_study::{ReferenceSource, Study};
@@ -18,18 +17,8 @@ pub struct StudyArgs {
     /// Output folder (CSV, Markdown, plots, images).
     #[arg(long, default_value = "study-out")]
     out: PathBuf,
-    /// Eye position, scene units.
-    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
-    eye: glam::DVec3,
-    /// Point looked at, scene units.
-    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
-    target: glam::DVec3,
-    /// Up vector.
-    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true, default_value = "0,1,0")]
-    up: glam::DVec3,
-    /// Vertical field of view in degrees.
-    #[arg(long, default_value_t = 45.0)]
-    fovy: f64,
+    #[command(flatten)]
+    view: ViewFlags,
     /// Image size WxH.
     #[arg(long, default_value = "320x240", value_parser = parse_size_arg)]
     size: (u32, u32),
@@ -134,7 +123,7 @@ pub fn run(args: StudyArgs) -> Result<()> {
     if args.block == 0 || args.depth > 64 {
         bail!("--block must be at least 1 and --depth at most 64");
     }
-    let camera = Camera::new(args.eye, args.target, args.up, args.fovy, args.size.0, args.size.1)?;
+    let camera = args.view.camera(args.size)?;
     let spec = args.job.spec()?;
     let reference = match &args.reference {
         Some(path) => ReferenceSource::Image(path.clone()),

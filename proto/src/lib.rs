@@ -23,3 +23,17 @@ pub fn install_crypto_provider() {
     // An error means a provider is installed already, which is all that is needed.
     let _ = rustls::crypto::ring::default_provider().install_default();
 }
+
+/// Logging of every VLF binary (`vlf`, `vlf-server`, `vlf-worker`): `tracing` events to stderr,
+/// filtered by `RUST_LOG` (default `info`), with colour codes only when stderr is a terminal (a
+/// person watching), not in logs and pipes.
+pub fn init_logging() {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .init();
+}
