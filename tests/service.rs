@@ -294,17 +294,18 @@ fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_b
 #[test]
 fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     let dir = temp("restart");
-    // One pass of 3 batches per iteration: 5 batches are snapshot 1 and 2 of iteration 2's 3.
+    // One pass of 2 batches per iteration (l = 33): 3 batches are snapshot 1 and 1 of iteration
+    // 2's 2.
     let extra = ["--iterations", "4", "--perturb", "0"];
     let expected = reference(&dir, &extra);
     let store = dir.join("store");
     let listen = format!("127.0.0.1:{}", free_port());
     let (mut server, url) = serve(&dir, &store, &listen, &[]);
     let id = submit(&url, &extra);
-    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "5"]);
+    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "3"]);
     stalled.wait_for_line("stalled holding lease");
     let status = wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
-    assert_eq!((status.iteration, status.batches_done), (2, 2), "{status:?}");
+    assert_eq!((status.iteration, status.batches_done), (2, 1), "{status:?}");
     server.kill();
     stalled.kill();
     // A worker that starts while no coordinator answers waits for one.
@@ -332,7 +333,8 @@ fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() 
         .block_on(clients.jobs.watch(v1::JobRequest { job_id: id.clone() }))
         .unwrap()
         .into_inner();
-    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "4"]);
+    // Iterations have 2 batches (l = 33): the fourth lease, iteration 2's last batch, stalls.
+    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "3"]);
     stalled.wait_for_line("stalled holding lease");
     wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
     // Snapshot 1 renders while iteration 2 runs; snapshot 2 does not exist yet.

@@ -12,7 +12,7 @@
 use crate::scheduler::{PassOutcome, Scheduler};
 use std::sync::Arc;
 use tokio::sync::Notify;
-use vlf_core::propagate::Propagation;
+use vlf_core::propagate::{Pass, Propagation};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{JobStatus, State as WireState};
@@ -233,31 +233,39 @@ impl Driver {
                 s.state = WireState::Propagating as i32;
                 s.iteration = k + 1;
             });
-            for pass in passes {
-                self.check_cancelled()?;
-                let done = self
-                    .blocking(move |c| {
-                        (0..batches)
-                            .map(|b| c.has_batch(pass, b))
-                            .collect::<Result<Vec<_>, _>>()
-                    })
-                    .await
-                    .map_err(Stop::Failed)?
-                    .map_err(|e| Stop::Failed(e.to_string()))?;
-                self.sched.start_pass(&self.id, k, pass, &done);
-                loop {
-                    let notified = self.wake.notified();
-                    match self.sched.pass_outcome(&self.id) {
-                        PassOutcome::Running => notified.await,
-                        PassOutcome::Complete => break,
-                        PassOutcome::Cancelled => return Err(Stop::Cancelled),
-                        PassOutcome::Failed(m) => return Err(Stop::Failed(m)),
-                    }
+            // Batches a previous coordinator's workers already wrote are not computed again.
+            let stored = self
+                .blocking(|c| c.batches_in_store())
+                .await
+                .map_err(Stop::Failed)?
+                .map_err(|e| Stop::Failed(e.to_string()))?;
+            let mut opened = vec![false; passes.len()];
+            let mut absorbed = Vec::new();
+            self.open_ready(k, &passes, &stored, &absorbed, &mut opened);
+            for (pass, _) in &passes {
+                let pass = *pass;
+                // Take each batch in as soon as it is written, in order, while the rest are
+                // computed.
+                let mut next = 0;
+                while next < batches {
+                    let end = loop {
+                        let notified = self.wake.notified();
+                        match self.sched.pass_outcome(&self.id, pass, next) {
+                            PassOutcome::Running => notified.await,
+                            PassOutcome::Ready(end) => break end,
+                            PassOutcome::Cancelled => return Err(Stop::Cancelled),
+                            PassOutcome::Failed(m) => return Err(Stop::Failed(m)),
+                        }
+                    };
+                    self.blocking(move |c| c.absorb_until(pass, end))
+                        .await
+                        .map_err(Stop::Failed)?
+                        .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
+                    next = end;
                 }
-                self.blocking(|c| c.absorb_pass())
-                    .await
-                    .map_err(Stop::Failed)?
-                    .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
+                self.sched.end_pass(&self.id, k, pass);
+                absorbed.push(pass);
+                self.open_ready(k, &passes, &stored, &absorbed, &mut opened);
             }
             self.check_cancelled()?;
             self.blocking(|c| c.finish_iteration())
@@ -311,10 +319,29 @@ impl Driver {
         Ok(())
     }
 
+    /// Opens for leasing every pass of the iteration after snapshot `k` that is not open yet and
+    /// whose prerequisites are all absorbed.
+    fn open_ready(
+        &self,
+        k: u32,
+        passes: &[(Pass, Vec<Pass>)],
+        stored: &[Vec<bool>],
+        absorbed: &[Pass],
+        opened: &mut [bool],
+    ) {
+        for (i, (pass, needs)) in passes.iter().enumerate() {
+            if !opened[i] && needs.iter().all(|p| absorbed.contains(p)) {
+                self.sched.start_pass(&self.id, k, *pass, &stored[i]);
+                opened[i] = true;
+            }
+        }
+    }
+
     fn check_cancelled(&self) -> Result<(), Stop> {
-        match self.sched.pass_outcome(&self.id) {
-            PassOutcome::Cancelled => Err(Stop::Cancelled),
-            _ => Ok(()),
+        if self.sched.is_cancelled(&self.id) {
+            Err(Stop::Cancelled)
+        } else {
+            Ok(())
         }
     }
 

@@ -1,7 +1,9 @@
 //! Jobs, leases and workers: the coordinator's state machine, with no networking.
 //!
-//! **Leases.** The pass a job is computing is a row of batches, each `Pending`, `Leased` or
-//! `Done`. [`Scheduler::lease`] hands the first pending batch of the oldest job to a worker for
+//! **Leases.** Each pass a job has open is a row of batches, each `Pending`, `Leased` or `Done`;
+//! several passes of an iteration can be open at once (a perturbed iteration opens every rotated
+//! copy's areas together). [`Scheduler::lease`] hands the first pending batch of the first open
+//! pass of the oldest job to a worker for
 //! [`Timing::lease`]; the worker computes it, writes the output into the store and
 //! [`Scheduler::report`]s. A lease that is not reported in time (a dead or stalled worker)
 //! expires and its batch is pending again; a worker that misses three heartbeats loses its leases
@@ -9,10 +11,11 @@
 //! output is a pure function of the job and the batch, written create-only, so a late or
 //! duplicated result can only write the bytes that are already there.
 //!
-//! **Barriers.** When every batch of the pass is done, the job's driver (see
-//! [`crate::driver`]) is woken; it absorbs the pass from the store and starts the next pass or
-//! iteration. A worker's failed batch goes back to the pool; the third failure of the same batch
-//! fails the job (a deterministic failure would otherwise loop for ever).
+//! **Absorbing.** Every batch reported done wakes the job's driver (see [`crate::driver`]), which
+//! absorbs the batches from the store in order as they come, opens the passes whose
+//! prerequisites are then absorbed, and ends the iteration after the last one. A worker's failed
+//! batch goes back to the pool; the third failure of the same batch fails the job (a
+//! deterministic failure would otherwise loop for ever).
 //!
 //! **Status.** Every change publishes the job's [`JobStatus`] on a watch channel with a
 //! sequence number one higher; watchers see changes in order (possibly coalesced) and the last
@@ -55,13 +58,13 @@ pub struct Grant {
     pub deadline: Duration,
 }
 
-/// What a driver finds when it wakes during a pass.
+/// What a driver finds when it wakes, waiting for a batch.
 #[derive(Clone, Debug, PartialEq)]
 pub enum PassOutcome {
-    /// Batches are still out.
+    /// The batch waited for is still out.
     Running,
-    /// Every batch is written.
-    Complete,
+    /// The batches from the one waited for up to this one (excluded) are written.
+    Ready(usize),
     /// Cancelled by a client.
     Cancelled,
     /// A batch failed too often.
@@ -99,8 +102,8 @@ struct JobEntry {
     order: u64,
     /// The published status; `seq` is bumped on every change.
     status: watch::Sender<JobStatus>,
-    /// The pass being computed.
-    pass: Option<PassRun>,
+    /// The passes open for leasing, in absorbing order.
+    passes: Vec<PassRun>,
     cancel_requested: bool,
     failure: Option<String>,
     /// Woken when the pass completes, fails or the job is cancelled (a stored permit: no
@@ -113,7 +116,7 @@ struct JobEntry {
 struct Clock {
     created: Instant,
     iteration_started: Instant,
-    /// Batches of the iteration done before the current pass.
+    /// Batches of the iteration's passes already absorbed and closed.
     batches_before_pass: usize,
     /// Batches of all the iteration's passes.
     batches_total: usize,
@@ -152,6 +155,8 @@ struct LeaseEntry {
     /// The number in the lease's id, which its batch's state records.
     number: u64,
     job: JobId,
+    snapshot: u32,
+    pass: Pass,
     worker: String,
     batch: usize,
     deadline: Instant,
@@ -207,7 +212,7 @@ impl Scheduler {
             JobEntry {
                 order,
                 status: tx,
-                pass: None,
+                passes: Vec::new(),
                 cancel_requested: false,
                 failure: None,
                 driver: driver.clone(),
@@ -283,21 +288,18 @@ impl Scheduler {
         if let Some(entry) = state.jobs.get_mut(job) {
             let seconds = entry.clock.iteration_started.elapsed().as_secs_f64();
             entry.clock.iteration_seconds.push(seconds);
-            entry.pass = None;
+            entry.passes.clear();
         }
     }
 
-    /// Opens `pass` of the iteration after `snapshot` for leasing; batches whose output is
-    /// already in the store (`done[b]`) are not computed again.
+    /// Opens `pass` of the iteration after `snapshot` for leasing, after the passes already
+    /// open; batches whose output is already in the store (`done[b]`) are not computed again.
     pub fn start_pass(&self, job: &JobId, snapshot: u32, pass: Pass, done: &[bool]) {
         let mut state = self.lock();
         let alive = alive_workers(&state, self.timing);
         let Some(entry) = state.jobs.get_mut(job) else {
             return;
         };
-        if let Some(previous) = entry.pass.take() {
-            entry.clock.batches_before_pass += previous.batches.len();
-        }
         let batches: Vec<Batch> = done
             .iter()
             .map(|&d| Batch {
@@ -306,8 +308,7 @@ impl Scheduler {
             })
             .collect();
         let done_count = done.iter().filter(|&&d| d).count();
-        let complete = done_count == batches.len();
-        entry.pass = Some(PassRun {
+        entry.passes.push(PassRun {
             snapshot,
             pass,
             batches,
@@ -315,29 +316,58 @@ impl Scheduler {
         });
         let status = entry.status.borrow().clone();
         publish(entry, status, alive);
-        if complete {
+        if done_count > 0 {
             entry.driver.notify_one();
         }
         drop(state);
         self.work_ready.notify_waiters();
     }
 
-    /// What the job's current pass has come to.
-    pub fn pass_outcome(&self, job: &JobId) -> PassOutcome {
+    /// Closes `pass` of the iteration after `snapshot`, whose batches are all absorbed.
+    pub fn end_pass(&self, job: &JobId, snapshot: u32, pass: Pass) {
+        let mut state = self.lock();
+        if let Some(entry) = state.jobs.get_mut(job)
+            && let Some(i) = entry
+                .passes
+                .iter()
+                .position(|r| (r.snapshot, r.pass) == (snapshot, pass))
+        {
+            let run = entry.passes.remove(i);
+            entry.clock.batches_before_pass += run.batches.len();
+        }
+    }
+
+    /// Whether batch `from` of the open `pass` is written, and how many after it are too.
+    pub fn pass_outcome(&self, job: &JobId, pass: Pass, from: usize) -> PassOutcome {
         let state = self.lock();
         let Some(entry) = state.jobs.get(job) else {
             return PassOutcome::Cancelled;
         };
         if entry.cancel_requested {
-            PassOutcome::Cancelled
-        } else if let Some(message) = &entry.failure {
-            PassOutcome::Failed(message.clone())
-        } else {
-            match &entry.pass {
-                Some(run) if run.done == run.batches.len() => PassOutcome::Complete,
-                _ => PassOutcome::Running,
-            }
+            return PassOutcome::Cancelled;
         }
+        if let Some(message) = &entry.failure {
+            return PassOutcome::Failed(message.clone());
+        }
+        let Some(run) = entry.passes.iter().find(|r| r.pass == pass) else {
+            return PassOutcome::Running;
+        };
+        let ready = run
+            .batches
+            .iter()
+            .skip(from)
+            .take_while(|b| b.state == BatchState::Done)
+            .count();
+        if ready == 0 {
+            PassOutcome::Running
+        } else {
+            PassOutcome::Ready(from + ready)
+        }
+    }
+
+    /// Whether the job was cancelled.
+    pub fn is_cancelled(&self, job: &JobId) -> bool {
+        self.lock().jobs.get(job).is_none_or(|e| e.cancel_requested)
     }
 
     /// Asks for the job to stop: its pending batches are withdrawn and its leases dropped; the
@@ -347,7 +377,7 @@ impl Scheduler {
         let entry = state.jobs.get_mut(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
         if !is_terminal(entry.status.borrow().state) {
             entry.cancel_requested = true;
-            entry.pass = None;
+            entry.passes.clear();
             entry.driver.notify_one();
             state.leases.retain(|_, lease| lease.job != *job);
         }
@@ -408,40 +438,29 @@ impl Scheduler {
         let mut jobs: Vec<(&JobId, &JobEntry)> = state.jobs.iter().collect();
         jobs.sort_by_key(|(_, j)| j.order);
         let found = jobs.iter().find_map(|(id, entry)| {
-            let run = entry.pass.as_ref()?;
             if entry.cancel_requested || entry.failure.is_some() {
                 return None;
             }
-            let b = run.batches.iter().position(|b| b.state == BatchState::Pending)?;
-            Some(((*id).clone(), b))
+            entry.passes.iter().enumerate().find_map(|(p, run)| {
+                let b = run.batches.iter().position(|b| b.state == BatchState::Pending)?;
+                Some(((*id).clone(), p, b))
+            })
         });
-        let Some((job, batch)) = found else {
+        let Some((job, p, batch)) = found else {
             return Ok(None);
         };
         state.counter += 1;
         let number = state.counter;
         let lease_id = format!("l{number}");
         let deadline = Instant::now() + self.timing.lease;
-        state.leases.insert(
-            lease_id.clone(),
-            LeaseEntry {
-                number,
-                job: job.clone(),
-                worker: worker.to_string(),
-                batch,
-                deadline,
-            },
-        );
         let Some(entry) = state.jobs.get_mut(&job) else {
             unreachable!("found above");
         };
-        let Some(run) = entry.pass.as_mut() else {
-            unreachable!("found above");
-        };
+        let run = &mut entry.passes[p];
         run.batches[batch].state = BatchState::Leased(number);
         let grant = Grant {
-            lease_id,
-            job,
+            lease_id: lease_id.clone(),
+            job: job.clone(),
             snapshot: run.snapshot,
             pass: run.pass,
             batch,
@@ -449,6 +468,18 @@ impl Scheduler {
         };
         let status = entry.status.borrow().clone();
         publish(entry, status, alive);
+        state.leases.insert(
+            lease_id,
+            LeaseEntry {
+                number,
+                job,
+                snapshot: grant.snapshot,
+                pass: grant.pass,
+                worker: worker.to_string(),
+                batch,
+                deadline,
+            },
+        );
         Ok(Some(grant))
     }
 
@@ -472,7 +503,7 @@ impl Scheduler {
         let Some(entry) = state.jobs.get_mut(&lease.job) else {
             return Ok(false);
         };
-        let Some(run) = entry.pass.as_mut() else {
+        let Some(run) = find_run(&mut entry.passes, &lease) else {
             return Ok(false);
         };
         let batch = &mut run.batches[lease.batch];
@@ -484,9 +515,7 @@ impl Scheduler {
             Ok(()) => {
                 batch.state = BatchState::Done;
                 run.done += 1;
-                if run.done == run.batches.len() {
-                    entry.driver.notify_one();
-                }
+                entry.driver.notify_one();
             }
             Err(message) => {
                 batch.failures += 1;
@@ -544,7 +573,7 @@ impl Scheduler {
             };
             let number = lease.number;
             if let Some(entry) = state.jobs.get_mut(&lease.job) {
-                if let Some(run) = entry.pass.as_mut()
+                if let Some(run) = find_run(&mut entry.passes, &lease)
                     && run.batches[lease.batch].state == BatchState::Leased(number)
                 {
                     tracing::warn!(job = %lease.job, batch = lease.batch, worker = lease.worker, "lease expired");
@@ -570,6 +599,13 @@ pub fn is_terminal(state: i32) -> bool {
     )
 }
 
+/// The open pass a lease belongs to.
+fn find_run<'a>(passes: &'a mut [PassRun], lease: &LeaseEntry) -> Option<&'a mut PassRun> {
+    passes
+        .iter_mut()
+        .find(|r| (r.snapshot, r.pass) == (lease.snapshot, lease.pass))
+}
+
 fn touch(state: &mut State, worker: &str) -> Result<(), Unknown> {
     let entry = state
         .workers
@@ -591,16 +627,13 @@ fn alive_workers(state: &State, timing: Timing) -> u32 {
 /// Publishes `status` with the progress figures of `entry` and the next sequence number.
 fn publish(entry: &mut JobEntry, mut status: JobStatus, workers_alive: u32) {
     let clock = &entry.clock;
-    let (done, leased) = match &entry.pass {
-        Some(run) => (
-            run.done,
-            run.batches
-                .iter()
-                .filter(|b| matches!(b.state, BatchState::Leased(_)))
-                .count(),
-        ),
-        None => (0, 0),
-    };
+    let done: usize = entry.passes.iter().map(|r| r.done).sum();
+    let leased = entry
+        .passes
+        .iter()
+        .flat_map(|r| &r.batches)
+        .filter(|b| matches!(b.state, BatchState::Leased(_)))
+        .count();
     let batches_done = clock.batches_before_pass + done;
     let elapsed = clock.iteration_started.elapsed().as_secs_f64();
     status.seq += 1;
@@ -691,12 +724,18 @@ mod tests {
         let b = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!((a.batch, b.batch), (0, 2), "batch 1 was already in the store");
         assert_eq!(s.lease(&w, Duration::from_millis(10)).await.unwrap(), None);
-        assert_eq!(s.pass_outcome(&id), PassOutcome::Running);
+        assert_eq!(s.pass_outcome(&id, Pass::Shoot, 0), PassOutcome::Running);
         assert!(s.report(&w, &a.lease_id, Ok(())).unwrap());
         assert!(!s.report(&w, &a.lease_id, Ok(())).unwrap(), "a lease reports once");
         assert_eq!(s.status(&id).unwrap().batches_done, 2);
+        assert_eq!(
+            s.pass_outcome(&id, Pass::Shoot, 0),
+            PassOutcome::Ready(2),
+            "batches 0 and 1 can be absorbed while 2 is out"
+        );
+        assert_eq!(s.pass_outcome(&id, Pass::Shoot, 2), PassOutcome::Running);
         assert!(s.report(&w, &b.lease_id, Ok(())).unwrap());
-        assert_eq!(s.pass_outcome(&id), PassOutcome::Complete);
+        assert_eq!(s.pass_outcome(&id, Pass::Shoot, 2), PassOutcome::Ready(3));
         assert!(matches!(s.heartbeat("nobody"), Err(Unknown::Worker(_))));
     }
 
@@ -714,9 +753,45 @@ mod tests {
         let second = s.lease(&w2, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(second.batch, first.batch);
         assert!(!s.report(&w1, &first.lease_id, Ok(())).unwrap(), "late report ignored");
-        assert_eq!(s.pass_outcome(&id), PassOutcome::Running);
+        let areas = Pass::Areas { copy: 1 };
+        assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Running);
         assert!(s.report(&w2, &second.lease_id, Ok(())).unwrap());
-        assert_eq!(s.pass_outcome(&id), PassOutcome::Complete);
+        assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(1));
+    }
+
+    #[tokio::test]
+    async fn several_open_passes_are_leased_in_order_and_closed_as_absorbed() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let (a0, a1) = (Pass::Areas { copy: 0 }, Pass::Areas { copy: 1 });
+        s.start_pass(&id, 2, a0, &[false, false, false]);
+        s.start_pass(&id, 2, a1, &[false, true, false]);
+        let w = s.register("a");
+        let mut grants = Vec::new();
+        while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
+            grants.push(g);
+        }
+        let order: Vec<_> = grants.iter().map(|g| (g.pass, g.batch)).collect();
+        assert_eq!(order, vec![(a0, 0), (a0, 1), (a0, 2), (a1, 0), (a1, 2)]);
+        assert!(grants.iter().all(|g| g.snapshot == 2));
+        // A report finds its own pass's batch, whichever pass it is.
+        assert!(s.report(&w, &grants[3].lease_id, Ok(())).unwrap());
+        assert_eq!(s.pass_outcome(&id, a1, 0), PassOutcome::Ready(2));
+        assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Running);
+        for g in &grants[..3] {
+            assert!(s.report(&w, &g.lease_id, Ok(())).unwrap());
+        }
+        assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Ready(3));
+        assert_eq!(s.status(&id).unwrap().batches_done, 5);
+        s.end_pass(&id, 2, a0);
+        assert_eq!(
+            s.status(&id).unwrap().batches_done,
+            5,
+            "a closed pass still counts as done"
+        );
+        assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Running, "closed");
+        assert!(s.report(&w, &grants[4].lease_id, Ok(())).unwrap());
+        assert_eq!(s.pass_outcome(&id, a1, 2), PassOutcome::Ready(3));
     }
 
     #[tokio::test]
@@ -748,7 +823,7 @@ mod tests {
             let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
             assert_eq!(g.batch, 0, "a failed batch is handed out again first");
             assert!(s.report(&w, &g.lease_id, Err("disk full".into())).unwrap());
-            let outcome = s.pass_outcome(&id);
+            let outcome = s.pass_outcome(&id, Pass::Shoot, 0);
             if attempt < MAX_BATCH_FAILURES {
                 assert_eq!(outcome, PassOutcome::Running);
             } else {
@@ -766,7 +841,7 @@ mod tests {
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.job, other);
         s.cancel(&other).unwrap();
-        assert_eq!(s.pass_outcome(&other), PassOutcome::Cancelled);
+        assert_eq!(s.pass_outcome(&other, Pass::Shoot, 0), PassOutcome::Cancelled);
         assert!(
             !s.report(&w, &g.lease_id, Ok(())).unwrap(),
             "a cancelled job's lease is void"

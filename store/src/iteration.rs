@@ -7,15 +7,15 @@
 //! The protocol for the iteration that starts from snapshot `k` (see `vlf_core::propagate::work`
 //! for passes and batches):
 //!
-//! 1. For each pass, in order, every batch is computed by some [`Replica`] (a worker's copy of
-//!    the propagation, restored from the checkpoint of snapshot `k`) and written to
-//!    `jobs/J/work/KKKKK/PASS/BBBBB.blob`. Writes are create-only; a batch computed twice (a
-//!    lease that expired and was handed out again, a late result) writes the same bytes, which
-//!    the store accepts as unchanged — and different bytes would be an error, never a silent
-//!    replacement.
-//! 2. When every batch of a pass is written, the [`Coordinator`] reads them in batch order and
-//!    absorbs them; replicas read the same blobs to learn results that later passes need (a
-//!    rotated copy's areas).
+//! 1. Every batch of a pass is computed by some [`Replica`] (a worker's copy of the
+//!    propagation, restored from the checkpoint of snapshot `k`) once the pass's prerequisites
+//!    are absorbed, and written to `jobs/J/work/KKKKK/PASS/BBBBB.blob`. Writes are create-only;
+//!    a batch computed twice (a lease that expired and was handed out again, a late result)
+//!    writes the same bytes, which the store accepts as unchanged — and different bytes would be
+//!    an error, never a silent replacement.
+//! 2. The [`Coordinator`] reads the batches in pass and batch order and absorbs each as soon as
+//!    it is written (the next ones are still being computed meanwhile); replicas read the
+//!    batches of a pass's prerequisites to learn what it needs (a rotated copy's areas).
 //! 3. After the last pass the coordinator finishes the iteration (mirror exchange, diffuse
 //!    reflection), commits snapshot `k + 1`, and deletes the iteration's batch outputs.
 //!
@@ -93,23 +93,30 @@ impl FieldJob {
 pub struct Replica {
     job: FieldJob,
     prop: Propagation,
-    /// The iteration being worked on, its work, and how many of its passes are absorbed.
-    current: Option<(u32, IterationWork, usize)>,
+    /// The iteration being worked on and its work (with the prerequisites learnt so far).
+    current: Option<(u32, IterationWork)>,
 }
 
 impl Replica {
     /// Opens `job` and builds its geometry.
     pub fn new(job: FieldJob) -> Result<Replica, StoreError> {
         let prop = Propagation::new(job.scene().clone(), job.options().clone()).map_err(|e| job.field_error(e))?;
-        Ok(Replica {
+        Ok(Replica::with_propagation(job, prop))
+    }
+
+    /// A replica of `job` over `prop`, a propagation of the same scene and options (built by
+    /// someone else in this process: the geometry is not built twice). Its state is restored
+    /// from the store before every iteration, so what it holds now does not matter.
+    pub fn with_propagation(job: FieldJob, prop: Propagation) -> Replica {
+        Replica {
             job,
             prop,
             current: None,
-        })
+        }
     }
 
     /// Computes batches `batches` of `pass` of the iteration starting from snapshot `k` and
-    /// writes them into the store. The passes before `pass` must be complete in the store.
+    /// writes them into the store. The pass's prerequisites must be complete in the store.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         if self.current.as_ref().map(|c| c.0) != Some(k) {
             if !self.job.job().manifest().is_finished(k) {
@@ -118,25 +125,25 @@ impl Replica {
             }
             let checkpoint = self.job.checkpoint(k)?;
             self.prop.restore(checkpoint).map_err(|e| self.job.field_error(e))?;
-            self.current = Some((k, self.prop.iteration_work(), 0));
+            self.current = Some((k, self.prop.iteration_work()));
         }
-        let Some((_, work, absorbed)) = self.current.as_mut() else {
+        let Some((_, work)) = self.current.as_mut() else {
             unreachable!("set just above");
         };
         let passes = work.passes();
-        let Some(position) = passes.iter().position(|&p| p == pass) else {
+        if !passes.contains(&pass) {
             return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
                 "{pass:?} is not a pass of iteration {k} (its passes: {passes:?})"
             ))));
-        };
-        // Learn the results of the earlier passes from the store.
-        while *absorbed < position {
-            let earlier = passes[*absorbed];
-            for b in 0..work.batches() {
-                let out = self.job.get_batch(k, earlier, b as u32)?;
-                work.absorb(earlier, b, &out.sum).map_err(|e| self.job.field_error(e))?;
+        }
+        // Learn what the pass reads (a rotated copy's areas) from the store.
+        if !work.is_ready(pass) {
+            for earlier in work.prerequisites(pass) {
+                let sums = (0..work.batches())
+                    .map(|b| self.job.get_batch(k, earlier, b as u32).map(|out| out.sum))
+                    .collect::<Result<Vec<_>, _>>()?;
+                work.learn(earlier, &sums).map_err(|e| self.job.field_error(e))?;
             }
-            *absorbed += 1;
         }
         for b in batches {
             let out = self
@@ -207,21 +214,30 @@ impl Coordinator {
         self.prop.finished()
     }
 
+    fn work(&mut self) -> &mut IterationWork {
+        &mut self
+            .work
+            .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()))
+            .0
+    }
+
     /// The next pass whose batches are needed, with its batch count, or `None` when the
     /// iteration's passes are all absorbed.
     pub fn pending_pass(&mut self) -> Option<(Pass, usize)> {
-        let (work, _) = self
-            .work
-            .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()));
-        work.next_expected().map(|(pass, _)| (pass, work.batches()))
+        self.next_batch().map(|(pass, _)| (pass, self.work().batches()))
     }
 
-    /// Every pass of the current iteration, in order, and the batch count of each.
-    pub fn passes(&mut self) -> (Vec<Pass>, usize) {
-        let (work, _) = self
-            .work
-            .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()));
-        (work.passes(), work.batches())
+    /// The batch the iteration absorbs next, or `None` when its passes are all absorbed.
+    pub fn next_batch(&mut self) -> Option<(Pass, usize)> {
+        self.work().next_expected()
+    }
+
+    /// Every pass of the current iteration, in absorbing order, with its prerequisites, and the
+    /// batch count of each.
+    pub fn passes(&mut self) -> (Vec<(Pass, Vec<Pass>)>, usize) {
+        let work = self.work();
+        let passes = work.passes().into_iter().map(|p| (p, work.prerequisites(p))).collect();
+        (passes, work.batches())
     }
 
     /// Whether batch `batch` of `pass` of the current iteration is already in the store (a
@@ -230,28 +246,60 @@ impl Coordinator {
         self.job.has_batch(self.iteration(), pass, batch as u32)
     }
 
+    /// [`Coordinator::has_batch`] for every batch of every pass of the current iteration, in
+    /// [`Coordinator::passes`] order, from one listing of the store.
+    pub fn batches_in_store(&mut self) -> Result<Vec<Vec<bool>>, StoreError> {
+        let k = self.iteration();
+        let (passes, batches) = self.passes();
+        let store = self.job.job().store();
+        let written: std::collections::HashSet<String> = store
+            .list(&layout::work_prefix(self.job.id(), k)?)?
+            .into_iter()
+            .collect();
+        passes
+            .iter()
+            .map(|(pass, _)| {
+                (0..batches)
+                    .map(|b| Ok(written.contains(&layout::work_batch(self.job.id(), k, &pass_name(*pass), b as u32)?)))
+                    .collect()
+            })
+            .collect()
+    }
+
     /// Ends the job in `state` (failed or cancelled): the snapshots written so far stay
     /// readable, and the job is not resumed.
     pub fn end(&mut self, state: JobState) -> Result<(), StoreError> {
         self.job.set_state(state)
     }
 
-    /// Absorbs every batch of the pending pass from the store, in batch order.
+    /// Absorbs every batch of the pending pass from the store that is not absorbed yet, in batch
+    /// order.
     pub fn absorb_pass(&mut self) -> Result<Pass, StoreError> {
-        let k = self.iteration();
         let Some((pass, batches)) = self.pending_pass() else {
             return Err(self.job.field_error(vlf_core::Error::Parameter(
                 "no pass is pending: finish the iteration".into(),
             )));
         };
-        let Some((work, _)) = self.work.as_mut() else {
-            unreachable!("pending_pass created it");
-        };
-        for b in 0..batches {
+        self.absorb_until(pass, batches)?;
+        Ok(pass)
+    }
+
+    /// Absorbs the batches of `pass` from the next one expected up to `end` (excluded) from the
+    /// store, in batch order: the coordinator takes each batch in as soon as it is written. A
+    /// batch that cannot be read stops it there; what was absorbed stays absorbed.
+    pub fn absorb_until(&mut self, pass: Pass, end: usize) -> Result<(), StoreError> {
+        let k = self.iteration();
+        while let Some((next, b)) = self.next_batch() {
+            if next != pass || b >= end {
+                break;
+            }
             let out = self.job.get_batch(k, pass, b as u32)?;
+            let Some((work, _)) = self.work.as_mut() else {
+                unreachable!("next_batch created it");
+            };
             self.prop.apply_batch(work, &out).map_err(|e| self.job.field_error(e))?;
         }
-        Ok(pass)
+        Ok(())
     }
 
     /// Finishes the iteration once every pass is absorbed: commits the next snapshot and

@@ -59,20 +59,25 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagat
         }
         let mut works: Vec<_> = replicas.iter().map(|r| r.iteration_work()).collect();
         let mut work = main.iteration_work();
+        // Every output of the iteration, as stored: workers read a pass's
+        // prerequisites from here, never from the coordinator.
+        let mut stored: HashMap<(Pass, usize), Vec<u8>> = HashMap::new();
         for pass in work.passes() {
-            let mut done: HashMap<usize, Vec<u8>> = HashMap::new();
             for (i, batch) in shuffled(work.batches(), work.index as usize).into_iter().enumerate() {
                 let w = i % workers;
+                for earlier in works[w].prerequisites(pass) {
+                    let sums: Vec<_> = (0..work.batches())
+                        .map(|b| BatchOutput::from_bytes(&stored[&(earlier, b)]).unwrap().sum)
+                        .collect();
+                    works[w].learn(earlier, &sums).unwrap();
+                }
+                assert!(works[w].is_ready(pass));
                 let out = replicas[w].compute_batch(&works[w], pass, batch).unwrap();
-                done.insert(batch, out.to_bytes());
+                stored.insert((pass, batch), out.to_bytes());
             }
             for batch in 0..work.batches() {
-                let out = BatchOutput::from_bytes(&done[&batch]).unwrap();
+                let out = BatchOutput::from_bytes(&stored[&(pass, batch)]).unwrap();
                 main.apply_batch(&mut work, &out).unwrap();
-                // Workers learn the pass results too (a copy's areas feed its shooting pass).
-                for w in &mut works {
-                    w.absorb(pass, batch, &out.sum).unwrap();
-                }
             }
         }
         main.finish_iteration(work, started);
@@ -101,8 +106,8 @@ fn batches_from_several_workers_in_any_order_give_the_same_bits_with_mirrors() {
 
 #[test]
 fn batches_of_several_chunks_keep_each_directions_mirror_maps() {
-    // l = 513: batches of 32 directions, computed 16 at a time, so a batch's
-    // mirror maps are split between chunks.
+    // l = 513: batches of 32 directions (the last 33), computed 16 at a
+    // time, so a batch's mirror maps are split between chunks.
     let options = Options {
         directions: 513,
         stop: Stop::Iterations(3),
@@ -110,7 +115,7 @@ fn batches_of_several_chunks_keep_each_directions_mirror_maps() {
     };
     assert_eq!(vlf_core::propagate::work::batch_size(513), 32);
     let p = Propagation::new(mirror_room(), options.clone()).unwrap();
-    assert_eq!(p.iteration_work().batches(), 17);
+    assert_eq!(p.iteration_work().batches(), 16);
     // (That each chunk gets its own directions' maps is checked by physics:
     // mirror_render.rs compares mirrors from the rays with ray tracing at
     // l = 513.)
@@ -126,6 +131,60 @@ fn perturbed_passes_split_across_workers_give_the_same_bits() {
         vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
     );
     same_bits_as_in_process(scene, options(2));
+}
+
+#[test]
+fn batches_partition_the_directions_into_whole_chunks() {
+    use vlf_core::propagate::work::{CHUNK, batch_count, batch_range};
+    for l in [9, 33, 129, 513, 2049, 8193] {
+        let count = batch_count(l);
+        assert!((1..=16).contains(&count), "l = {l}: {count} batches");
+        let mut next = 0;
+        for b in 0..count {
+            let r = batch_range(b, l);
+            assert_eq!(r.start, next, "l = {l}, batch {b}");
+            assert!(!r.is_empty());
+            if b + 1 < count {
+                assert_eq!(r.len() % CHUNK, 0, "l = {l}, batch {b} of {} directions", r.len());
+            }
+            next = r.end;
+        }
+        assert_eq!(next, l, "l = {l}: batches end at {next}");
+        assert!(batch_range(count, l).is_empty());
+    }
+    assert_eq!((batch_count(513), batch_range(15, 513)), (16, 480..513));
+    assert_eq!((batch_count(33), batch_range(1, 33)), (2, 16..33));
+}
+
+#[test]
+fn a_perturbed_iteration_lists_every_copys_areas_first_and_learns_only_areas() {
+    let scene = closed_box(
+        0.6,
+        2,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
+    );
+    let p = Propagation::new(scene, options(1)).unwrap();
+    let mut work = p.iteration_work();
+    let areas = |copy| Pass::Areas { copy };
+    let shoot = |copy| Pass::ShootCopy { copy };
+    assert_eq!(
+        work.passes(),
+        vec![areas(0), areas(1), areas(2), shoot(0), shoot(1), shoot(2)]
+    );
+    assert_eq!(work.prerequisites(shoot(1)), vec![areas(1)]);
+    assert!(work.prerequisites(areas(2)).is_empty());
+    assert!(!work.is_ready(shoot(1)));
+    assert!(p.compute_batch(&work, shoot(1), 0).is_err(), "areas unknown");
+    let sums: Vec<_> = (0..work.batches())
+        .map(|b| p.run_batch(&work, areas(1), b, None).unwrap())
+        .collect();
+    assert!(work.learn(shoot(1), &sums).is_err(), "not a prerequisite");
+    assert!(work.learn(areas(1), &sums[1..]).is_err(), "a batch missing");
+    assert!(work.learn(areas(7), &sums).is_err(), "no such copy");
+    work.learn(areas(1), &sums).unwrap();
+    assert!(work.is_ready(shoot(1)) && !work.is_ready(shoot(0)));
+    p.compute_batch(&work, shoot(1), 0).unwrap();
 }
 
 #[test]

@@ -6,9 +6,14 @@
 //! mirrors' directional unshot radiance) along its rays. A perturbed
 //! iteration has two per rotated copy of the direction set: [`Pass::Areas`]
 //! (the copy's discrete areas `T_t`, which the copy's radiance `Φ_t / T_t`
-//! needs) then [`Pass::ShootCopy`].
+//! needs) and [`Pass::ShootCopy`]. They are listed every `Areas` first, then
+//! every `ShootCopy`, and a pass needs only its
+//! [`IterationWork::prerequisites`] (a copy's shooting needs that copy's
+//! areas; the areas need nothing), so a distributed run can compute every
+//! copy's areas at once and start shooting copy 0 while the others' areas
+//! are still out: no barrier between passes that do not depend on each other.
 //!
-//! A pass is cut into batches of [`batch_size`] consecutive directions. A batch is
+//! A pass is cut into [`batch_count`] batches of consecutive directions. A batch is
 //! a pure function of the iteration's inputs ([`IterationWork`], derived
 //! deterministically from the propagation's state), the pass results already
 //! absorbed, and — for [`Pass::Shoot`] — the mirror maps of its own
@@ -40,15 +45,34 @@ use std::ops::Range;
 /// texel-sized buffer, so this bounds the memory of a batch, not its size.
 pub const CHUNK: usize = 16;
 
-/// Directions per batch, the unit of work and of reduction: `(l − 1) / 16`,
-/// at least [`CHUNK`] — about 16 batches per pass for l ≥ 513 (9 for l =
-/// 129, 3 for l = 33). A function of `l` alone (not of a thread or worker
-/// count), so the summation order, and therefore the bits, never depend on
-/// how the work is spread. Fewer, larger batches cost fewer leases, blobs
-/// and absorbs (each batch's output is a dense texel-sized sum written
-/// through the store), while 16 of them still balance a few workers.
+/// Directions per batch, the unit of work and of reduction: `(l − 1) / 16`
+/// rounded down to a multiple of [`CHUNK`] (so every chunk of a batch keeps
+/// all threads busy), at least [`CHUNK`]; the last batch also takes the
+/// remainder (see [`batch_range`]). That makes 16 batches per pass for l ≥
+/// 513 (8 for l = 129, 2 for l = 33). A function of `l` alone (not of a
+/// thread or worker count), so the summation order, and therefore the bits,
+/// never depend on how the work is spread. Fewer, larger batches cost fewer
+/// leases, blobs and absorbs (each batch's output is a dense texel-sized sum
+/// written through the store), while 16 of them still balance a few workers.
 pub fn batch_size(directions: usize) -> usize {
-    (directions.saturating_sub(1) / 16).max(CHUNK)
+    (directions.saturating_sub(1) / 16 / CHUNK * CHUNK).max(CHUNK)
+}
+
+/// Batches per pass: `l / batch_size(l)`, at least one.
+pub fn batch_count(directions: usize) -> usize {
+    (directions / batch_size(directions)).max(1)
+}
+
+/// The directions of batch `batch`: `batch_size(l)` of them from `batch ·
+/// batch_size(l)`, the last batch running to `l` (empty past the last).
+pub fn batch_range(batch: usize, directions: usize) -> Range<usize> {
+    let (size, count) = (batch_size(directions), batch_count(directions));
+    let start = (batch * size).min(directions);
+    match batch + 1 {
+        n if n < count => start..start + size,
+        n if n == count => start..directions,
+        _ => directions..directions,
+    }
 }
 
 /// One map-reduce over the directions of an iteration.
@@ -134,14 +158,78 @@ enum Mode {
 }
 
 impl IterationWork {
-    /// The passes of this iteration, in the order they must be absorbed.
+    /// The passes of this iteration, in the order they must be absorbed:
+    /// every pass comes after its [`prerequisites`](Self::prerequisites).
     pub fn passes(&self) -> Vec<Pass> {
         match &self.mode {
             Mode::Direct { .. } => vec![Pass::Shoot],
-            Mode::Perturbed { copies, .. } => (0..copies.len() as u32)
-                .flat_map(|copy| [Pass::Areas { copy }, Pass::ShootCopy { copy }])
-                .collect(),
+            Mode::Perturbed { copies, .. } => {
+                let copies = 0..copies.len() as u32;
+                copies
+                    .clone()
+                    .map(|copy| Pass::Areas { copy })
+                    .chain(copies.map(|copy| Pass::ShootCopy { copy }))
+                    .collect()
+            }
         }
+    }
+
+    /// The passes whose results `pass` reads: its batches can be computed as
+    /// soon as these are absorbed (or [`learn`](Self::learn)ed), whatever
+    /// else is still running.
+    pub fn prerequisites(&self, pass: Pass) -> Vec<Pass> {
+        match pass {
+            Pass::ShootCopy { copy } => vec![Pass::Areas { copy }],
+            Pass::Shoot | Pass::Areas { .. } => Vec::new(),
+        }
+    }
+
+    /// Whether the results `pass` reads are known here.
+    pub fn is_ready(&self, pass: Pass) -> bool {
+        match (pass, &self.mode) {
+            (Pass::ShootCopy { copy }, Mode::Perturbed { radiance, .. }) => {
+                radiance.get(copy as usize).is_some_and(Option::is_some)
+            }
+            _ => true,
+        }
+    }
+
+    /// Takes in the result of a prerequisite pass from all its batch sums,
+    /// in batch order, summed from zero exactly as [`absorb`](Self::absorb)
+    /// sums them: how a worker learns a rotated copy's areas before shooting
+    /// it. Only the coordinator's `absorb` moves the iteration forward; this
+    /// touches nothing a later absorb reads twice.
+    pub fn learn<'a>(&mut self, pass: Pass, sums: impl IntoIterator<Item = &'a BatchSum>) -> crate::Result<()> {
+        let Pass::Areas { copy } = pass else {
+            return Err(crate::Error::Parameter(format!(
+                "{pass:?} is no other pass's prerequisite"
+            )));
+        };
+        if !self.passes().contains(&pass) {
+            return Err(crate::Error::Parameter(format!(
+                "{pass:?} is not a pass of iteration {}",
+                self.index
+            )));
+        }
+        if self.is_ready(Pass::ShootCopy { copy }) {
+            return Ok(());
+        }
+        let texels = self.received.len();
+        let mut sum = vec![[0.0; 3]; texels];
+        let mut count = 0;
+        for (batch, s) in sums.into_iter().enumerate() {
+            check_sum(pass, batch, s, texels)?;
+            add_into(&mut sum, &s.texels);
+            count += 1;
+        }
+        if count != self.batches {
+            return Err(crate::Error::Decode(format!(
+                "{pass:?} has {} batches, {count} were given",
+                self.batches
+            )));
+        }
+        self.finish_pass(pass, sum);
+        Ok(())
     }
 
     /// Batches per pass.
@@ -172,17 +260,7 @@ impl IterationWork {
                 self.next_expected()
             )));
         }
-        if sum.texels.len() != texels {
-            return Err(crate::Error::Decode(format!(
-                "batch {batch} of {pass:?} has {} texels, the field {texels}",
-                sum.texels.len()
-            )));
-        }
-        if sum.texels.iter().flatten().any(|v| !v.is_finite()) {
-            return Err(crate::Error::Decode(format!(
-                "batch {batch} of {pass:?} holds non-finite power"
-            )));
-        }
+        check_sum(pass, batch, sum, texels)?;
         add_into(&mut self.pass_sum, &sum.texels);
         if !matches!(pass, Pass::Areas { .. }) {
             let f = &sum.flow;
@@ -217,12 +295,26 @@ impl IterationWork {
         }
     }
 
-    /// The directions of batch `batch`.
+    /// The directions of batch `batch` (see [`batch_range`]).
     pub fn batch_range(&self, batch: usize, directions: usize) -> Range<usize> {
-        let size = batch_size(directions);
-        let start = (batch * size).min(directions);
-        start..(start + size).min(directions)
+        batch_range(batch, directions)
     }
+}
+
+/// Refuses a batch sum of the wrong size or with non-finite values.
+fn check_sum(pass: Pass, batch: usize, sum: &BatchSum, texels: usize) -> crate::Result<()> {
+    if sum.texels.len() != texels {
+        return Err(crate::Error::Decode(format!(
+            "batch {batch} of {pass:?} has {} texels, the field {texels}",
+            sum.texels.len()
+        )));
+    }
+    if sum.texels.iter().flatten().any(|v| !v.is_finite()) {
+        return Err(crate::Error::Decode(format!(
+            "batch {batch} of {pass:?} holds non-finite power"
+        )));
+    }
+    Ok(())
 }
 
 impl Propagation {
@@ -300,7 +392,7 @@ impl Propagation {
             flow: Flow::default(),
             cursor: (0, 0),
             pass_sum: vec![[0.0; 3]; texels],
-            batches: self.directions.len().div_ceil(batch_size(self.directions.len())),
+            batches: batch_count(self.directions.len()),
         }
     }
 
