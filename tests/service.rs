@@ -271,11 +271,19 @@ fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_b
         &dir,
         &store,
         "127.0.0.1:0",
-        &["--lease-seconds", "600", "--heartbeat-seconds", "0.2"],
+        &[
+            "--lease-seconds",
+            "600",
+            "--heartbeat-seconds",
+            "0.2",
+            "--max-lease-batches",
+            "1",
+        ],
     );
     let id = submit(&url, &["--iterations", "3"]);
-    // The first worker computes 4 batches of the first iteration, then stalls on a fifth lease.
-    let mut doomed = worker(&dir, "doomed", &url, &["--hang-after-batches", "4"]);
+    // Leases of one batch, two per iteration (l = 33): the first worker computes 4 batches, then
+    // stalls on a fifth lease, in the middle of the third iteration.
+    let mut doomed = worker(&dir, "doomed", &url, &["--hang-after-leases", "4"]);
     doomed.wait_for_line("stalled holding lease");
     let status = wait_status(&url, &id, "the lease", |s| s.leases_out == 1);
     assert_eq!(status.state, State::Propagating as i32);
@@ -300,9 +308,10 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     let expected = reference(&dir, &extra);
     let store = dir.join("store");
     let listen = format!("127.0.0.1:{}", free_port());
-    let (mut server, url) = serve(&dir, &store, &listen, &[]);
+    let one = ["--max-lease-batches", "1"];
+    let (mut server, url) = serve(&dir, &store, &listen, &one);
     let id = submit(&url, &extra);
-    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "3"]);
+    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-leases", "3"]);
     stalled.wait_for_line("stalled holding lease");
     let status = wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
     assert_eq!((status.iteration, status.batches_done), (2, 1), "{status:?}");
@@ -311,7 +320,7 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     // A worker that starts while no coordinator answers waits for one.
     let _patient = worker(&dir, "patient", &url, &[]);
     std::thread::sleep(Duration::from_millis(300));
-    let (_server, url) = serve(&dir, &store, &listen, &[]);
+    let (_server, url) = serve(&dir, &store, &listen, &one);
     let resumed = wait_status(&url, &id, "the resumed job", |_| true);
     assert!(resumed.snapshots.starts_with(&[0, 1]), "{resumed:?}");
     watch(&url, &id);
@@ -323,7 +332,12 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
 fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() {
     let dir = temp("progress");
     let store = dir.join("store");
-    let (_server, url) = serve(&dir, &store, "127.0.0.1:0", &["--lease-seconds", "1"]);
+    let (_server, url) = serve(
+        &dir,
+        &store,
+        "127.0.0.1:0",
+        &["--lease-seconds", "1", "--max-lease-batches", "1"],
+    );
     let extra = ["--iterations", "3", "--perturb", "0"];
     let id = submit(&url, &extra);
     let rt = runtime();
@@ -334,7 +348,7 @@ fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() 
         .unwrap()
         .into_inner();
     // Iterations have 2 batches (l = 33): the fourth lease, iteration 2's last batch, stalls.
-    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-batches", "3"]);
+    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-leases", "3"]);
     stalled.wait_for_line("stalled holding lease");
     wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
     // Snapshot 1 renders while iteration 2 runs; snapshot 2 does not exist yet.

@@ -40,7 +40,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    let id = runtime.block_on(async {
+    let (id, store) = runtime.block_on(async {
         let store = {
             let url = args.store.clone();
             vlf_store::blocking(move || Store::open(&url)).await??
@@ -50,6 +50,28 @@ pub fn run(args: RunArgs) -> Result<()> {
             .await
             .context("cannot start the coordinator")?;
         let target = Target::new(format!("http://{}", server.addr()));
+
+        // The workers first: leases are sized to the workers alive when a pass opens.
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let handles: Vec<_> = (0..workers)
+            .map(|w| {
+                let config = WorkerConfig {
+                    target: target.clone(),
+                    name: format!("embedded-{w}"),
+                    threads: Some(per_worker),
+                    store: StoreChoice::Handle(store.clone()),
+                    hang_after: None,
+                };
+                let mut stop = stop_rx.clone();
+                tokio::spawn(vlf_worker::run(config, async move {
+                    let _ = stop.wait_for(|s| *s).await;
+                }))
+            })
+            .collect();
+        let registered = Instant::now();
+        while server.scheduler().workers_alive() < workers as u32 && registered.elapsed().as_secs() < 10 {
+            tokio::time::sleep(std::time::Duration::from_millis(2)).await;
+        }
 
         let id = match &args.resume {
             Some(id) => {
@@ -87,23 +109,6 @@ pub fn run(args: RunArgs) -> Result<()> {
             }
         };
 
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let handles: Vec<_> = (0..workers)
-            .map(|w| {
-                let config = WorkerConfig {
-                    target: target.clone(),
-                    name: format!("embedded-{w}"),
-                    threads: Some(per_worker),
-                    store: StoreChoice::Handle(store.clone()),
-                    hang_after: None,
-                };
-                let mut stop = stop_rx.clone();
-                tokio::spawn(vlf_worker::run(config, async move {
-                    let _ = stop.wait_for(|s| *s).await;
-                }))
-            })
-            .collect();
-
         let mut clients = remote::connect(&target).await?;
         let followed = remote::follow(&mut clients, id.as_str()).await;
         let _ = stop_tx.send(true);
@@ -116,10 +121,10 @@ pub fn run(args: RunArgs) -> Result<()> {
         }
         server.shutdown().await;
         followed?;
-        anyhow::Ok(id)
+        anyhow::Ok((id, store))
     })?;
 
-    let store = Store::open_existing(&args.store)?;
+    // The handle the service used: a `memory://` store lives only in it.
     let job = FieldJob::open(&store, &id)?;
     let summary = job.summary(Stage::Field)?;
     print_summary(&args, &job, &summary, started, f64::NAN, None)

@@ -31,6 +31,10 @@ pub struct ServeArgs {
     /// Heartbeat interval asked of workers, seconds (silent for three: dead).
     #[arg(long, default_value_t = 2.0)]
     pub heartbeat_seconds: f64,
+    /// Most batches one lease may hold (leases are otherwise sized to the workers alive and the
+    /// job's speed; the result is the same bits either way).
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u32).range(1..=1024))]
+    pub max_lease_batches: u32,
     /// Largest scene upload accepted, bytes.
     #[arg(long, default_value_t = ServeConfig::MAX_UPLOAD_BYTES)]
     pub max_upload_bytes: u64,
@@ -59,6 +63,7 @@ impl ServeArgs {
             timing: Timing {
                 lease: seconds("lease-seconds", self.lease_seconds)?,
                 heartbeat: seconds("heartbeat-seconds", self.heartbeat_seconds)?,
+                max_lease_batches: self.max_lease_batches as usize,
             },
             max_upload_bytes: self.max_upload_bytes,
         })

@@ -235,37 +235,37 @@ impl Driver {
             });
             // Batches a previous coordinator's workers already wrote are not computed again.
             let stored = self
-                .blocking(|c| c.batches_in_store())
+                .blocking(|c| c.blocks_in_store())
                 .await
                 .map_err(Stop::Failed)?
                 .map_err(|e| Stop::Failed(e.to_string()))?;
             let mut opened = vec![false; passes.len()];
             let mut absorbed = Vec::new();
-            self.open_ready(k, &passes, &stored, &absorbed, &mut opened);
+            self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
             for (pass, _) in &passes {
                 let pass = *pass;
-                // Take each batch in as soon as it is written, in order, while the rest are
+                // Take each block in as soon as it is written, in order, while the rest are
                 // computed.
                 let mut next = 0;
                 while next < batches {
-                    let end = loop {
+                    let ready = loop {
                         let notified = self.wake.notified();
                         match self.sched.pass_outcome(&self.id, pass, next) {
                             PassOutcome::Running => notified.await,
-                            PassOutcome::Ready(end) => break end,
+                            PassOutcome::Ready(blocks) => break blocks,
                             PassOutcome::Cancelled => return Err(Stop::Cancelled),
                             PassOutcome::Failed(m) => return Err(Stop::Failed(m)),
                         }
                     };
-                    self.blocking(move |c| c.absorb_until(pass, end))
+                    next = ready.last().map_or(next, |b| b.end);
+                    self.blocking(move |c| c.absorb_blocks(pass, &ready))
                         .await
                         .map_err(Stop::Failed)?
                         .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
-                    next = end;
                 }
                 self.sched.end_pass(&self.id, k, pass);
                 absorbed.push(pass);
-                self.open_ready(k, &passes, &stored, &absorbed, &mut opened);
+                self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
             }
             self.check_cancelled()?;
             self.blocking(|c| c.finish_iteration())
@@ -325,13 +325,14 @@ impl Driver {
         &self,
         k: u32,
         passes: &[(Pass, Vec<Pass>)],
-        stored: &[Vec<bool>],
+        batches: usize,
+        stored: &[Vec<std::ops::Range<usize>>],
         absorbed: &[Pass],
         opened: &mut [bool],
     ) {
         for (i, (pass, needs)) in passes.iter().enumerate() {
             if !opened[i] && needs.iter().all(|p| absorbed.contains(p)) {
-                self.sched.start_pass(&self.id, k, *pass, &stored[i]);
+                self.sched.start_pass(&self.id, k, *pass, batches, &stored[i]);
                 opened[i] = true;
             }
         }

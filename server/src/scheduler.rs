@@ -1,9 +1,15 @@
 //! Jobs, leases and workers: the coordinator's state machine, with no networking.
 //!
-//! **Leases.** Each pass a job has open is a row of batches, each `Pending`, `Leased` or `Done`;
-//! several passes of an iteration can be open at once (a perturbed iteration opens every rotated
-//! copy's areas together). [`Scheduler::lease`] hands the first pending batch of the first open
-//! pass of the oldest job to a worker for
+//! **Leases.** Each pass a job has open is a row of **blocks** of batches, each `Pending`,
+//! `Leased` or `Done`; several passes of an iteration can be open at once (a perturbed iteration
+//! opens every rotated copy's areas together). A block is an aligned run of batches (a node of the
+//! pass's reduction tree, `vlf_core::propagate::reduce`), so its size changes nothing in the
+//! result, only the cost: one lease, one output and one absorb per block. Blocks are cut when a
+//! worker asks, at most [`block_len`] batches — the whole pass for one worker, a quarter of a
+//! pass per worker beyond, and never so large that a block would take more than a quarter of the
+//! lease's lifetime at the job's measured speed — so the sizes follow the workers alive and the
+//! speed as they change. [`Scheduler::lease`] hands the largest such block of pending batches
+//! from the first pending batch of the first open pass of the oldest job to a worker for
 //! [`Timing::lease`]; the worker computes it, writes the output into the store and
 //! [`Scheduler::report`]s. A lease that is not reported in time (a dead or stalled worker)
 //! expires and its batch is pending again; a worker that misses three heartbeats loses its leases
@@ -11,7 +17,7 @@
 //! output is a pure function of the job and the batch, written create-only, so a late or
 //! duplicated result can only write the bytes that are already there.
 //!
-//! **Absorbing.** Every batch reported done wakes the job's driver (see [`crate::driver`]), which
+//! **Absorbing.** Every block reported done wakes the job's driver (see [`crate::driver`]), which
 //! absorbs the batches from the store in order as they come, opens the passes whose
 //! prerequisites are then absorbed, and ends the iteration after the last one. A worker's failed
 //! batch goes back to the pool; the third failure of the same batch fails the job (a
@@ -22,10 +28,12 @@
 //! one they see is terminal.
 
 use std::collections::HashMap;
+use std::ops::Range;
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 use tokio::sync::{Notify, watch};
 use vlf_core::propagate::Pass;
+use vlf_core::propagate::reduce::is_aligned_block;
 use vlf_proto::v1::{JobStatus, State as WireState};
 use vlf_store::{JobId, Store};
 
@@ -36,6 +44,8 @@ pub struct Timing {
     pub lease: Duration,
     /// The heartbeat interval asked of workers; silent for three, a worker is dead.
     pub heartbeat: Duration,
+    /// Most batches a lease may hold (see [`block_len`]).
+    pub max_lease_batches: usize,
 }
 
 impl Default for Timing {
@@ -43,28 +53,30 @@ impl Default for Timing {
         Timing {
             lease: Duration::from_secs(60),
             heartbeat: Duration::from_secs(2),
+            max_lease_batches: 1024,
         }
     }
 }
 
-/// A lease handed to a worker: one batch of one pass of the iteration after `snapshot`.
+/// A lease handed to a worker: one block of batches of one pass of the iteration after
+/// `snapshot`.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Grant {
     pub lease_id: String,
     pub job: JobId,
     pub snapshot: u32,
     pub pass: Pass,
-    pub batch: usize,
+    pub batches: Range<usize>,
     pub deadline: Duration,
 }
 
 /// What a driver finds when it wakes, waiting for a batch.
 #[derive(Clone, Debug, PartialEq)]
 pub enum PassOutcome {
-    /// The batch waited for is still out.
+    /// The block waited for is still out.
     Running,
-    /// The batches from the one waited for up to this one (excluded) are written.
-    Ready(usize),
+    /// These blocks, from the one waited for on, are written (in order, contiguous).
+    Ready(Vec<Range<usize>>),
     /// Cancelled by a client.
     Cancelled,
     /// A batch failed too often.
@@ -126,12 +138,17 @@ struct Clock {
     batches_per_pass: usize,
     /// Durations of the iterations this coordinator finished.
     iteration_seconds: Vec<f64>,
+    /// Compute seconds per batch of the last block reported (sizes the next passes' blocks).
+    batch_seconds: Option<f64>,
 }
 
 struct PassRun {
     snapshot: u32,
     pass: Pass,
     batches: Vec<Batch>,
+    /// The blocks whose outputs are written, in order (they never overlap).
+    done_blocks: Vec<Range<usize>>,
+    /// How many batches are done.
     done: usize,
 }
 
@@ -144,6 +161,7 @@ enum BatchState {
 
 struct Batch {
     state: BatchState,
+    /// Failed leases that held this batch.
     failures: u32,
 }
 
@@ -158,7 +176,7 @@ struct LeaseEntry {
     snapshot: u32,
     pass: Pass,
     worker: String,
-    batch: usize,
+    batches: Range<usize>,
     deadline: Instant,
 }
 
@@ -224,6 +242,7 @@ impl Scheduler {
                     directions: 0,
                     batches_per_pass: 0,
                     iteration_seconds: Vec::new(),
+                    batch_seconds: None,
                 },
             },
         );
@@ -292,31 +311,43 @@ impl Scheduler {
         }
     }
 
-    /// Opens `pass` of the iteration after `snapshot` for leasing, after the passes already
-    /// open; batches whose output is already in the store (`done[b]`) are not computed again.
-    pub fn start_pass(&self, job: &JobId, snapshot: u32, pass: Pass, done: &[bool]) {
+    /// Opens `pass` of the iteration after `snapshot`, `batches` batches, for leasing after the
+    /// passes already open. Blocks whose output is already in the store (`stored`, such as
+    /// [`vlf_store::FieldJob::stored_blocks`] lists) are used as they are.
+    pub fn start_pass(&self, job: &JobId, snapshot: u32, pass: Pass, batches: usize, stored: &[Range<usize>]) {
         let mut state = self.lock();
         let alive = alive_workers(&state, self.timing);
         let Some(entry) = state.jobs.get_mut(job) else {
             return;
         };
-        let batches: Vec<Batch> = done
-            .iter()
-            .map(|&d| Batch {
-                state: if d { BatchState::Done } else { BatchState::Pending },
-                failures: 0,
-            })
-            .collect();
-        let done_count = done.iter().filter(|&&d| d).count();
-        entry.passes.push(PassRun {
+        let mut run = PassRun {
             snapshot,
             pass,
-            batches,
-            done: done_count,
-        });
+            batches: (0..batches)
+                .map(|_| Batch {
+                    state: BatchState::Pending,
+                    failures: 0,
+                })
+                .collect(),
+            done_blocks: Vec::new(),
+            done: 0,
+        };
+        // Where two stored blocks start together, the larger.
+        let mut stored = stored.to_vec();
+        stored.sort_by_key(|b| (b.start, std::cmp::Reverse(b.end)));
+        for block in &stored {
+            let free = run.batches[block.start.min(batches)..block.end.min(batches)]
+                .iter()
+                .all(|b| b.state == BatchState::Pending);
+            if is_aligned_block(block, batches) && free {
+                run.mark_done(block.clone());
+            }
+        }
+        let any_done = run.done > 0;
+        entry.passes.push(run);
         let status = entry.status.borrow().clone();
         publish(entry, status, alive);
-        if done_count > 0 {
+        if any_done {
             entry.driver.notify_one();
         }
         drop(state);
@@ -337,7 +368,8 @@ impl Scheduler {
         }
     }
 
-    /// Whether batch `from` of the open `pass` is written, and how many after it are too.
+    /// Whether the block of the open `pass` that starts at batch `from` is written, and which
+    /// blocks after it are too.
     pub fn pass_outcome(&self, job: &JobId, pass: Pass, from: usize) -> PassOutcome {
         let state = self.lock();
         let Some(entry) = state.jobs.get(job) else {
@@ -352,16 +384,16 @@ impl Scheduler {
         let Some(run) = entry.passes.iter().find(|r| r.pass == pass) else {
             return PassOutcome::Running;
         };
-        let ready = run
-            .batches
-            .iter()
-            .skip(from)
-            .take_while(|b| b.state == BatchState::Done)
-            .count();
-        if ready == 0 {
+        let mut ready: Vec<Range<usize>> = Vec::new();
+        let mut at = from;
+        while let Some(b) = run.done_blocks.iter().find(|b| b.start == at) {
+            at = b.end;
+            ready.push(b.clone());
+        }
+        if ready.is_empty() {
             PassOutcome::Running
         } else {
-            PassOutcome::Ready(from + ready)
+            PassOutcome::Ready(ready)
         }
     }
 
@@ -400,6 +432,11 @@ impl Scheduler {
         );
         tracing::info!(worker = id, "worker registered");
         id
+    }
+
+    /// Workers heard from within three heartbeats.
+    pub fn workers_alive(&self) -> u32 {
+        alive_workers(&self.lock(), self.timing)
     }
 
     /// Notes that `worker` is alive.
@@ -446,7 +483,7 @@ impl Scheduler {
                 Some(((*id).clone(), p, b))
             })
         });
-        let Some((job, p, batch)) = found else {
+        let Some((job, p, first)) = found else {
             return Ok(None);
         };
         state.counter += 1;
@@ -456,14 +493,24 @@ impl Scheduler {
         let Some(entry) = state.jobs.get_mut(&job) else {
             unreachable!("found above");
         };
+        let len = block_len(
+            entry.passes[p].batches.len(),
+            alive,
+            entry.clock.batch_seconds,
+            self.timing.lease,
+        )
+        .min(self.timing.max_lease_batches.max(1));
         let run = &mut entry.passes[p];
-        run.batches[batch].state = BatchState::Leased(number);
+        let batches = run.pending_block(first, len);
+        for b in &mut run.batches[batches.clone()] {
+            b.state = BatchState::Leased(number);
+        }
         let grant = Grant {
             lease_id: lease_id.clone(),
             job: job.clone(),
             snapshot: run.snapshot,
             pass: run.pass,
-            batch,
+            batches,
             deadline: self.timing.lease,
         };
         let status = entry.status.borrow().clone();
@@ -476,17 +523,24 @@ impl Scheduler {
                 snapshot: grant.snapshot,
                 pass: grant.pass,
                 worker: worker.to_string(),
-                batch,
+                batches: grant.batches.clone(),
                 deadline,
             },
         );
         Ok(Some(grant))
     }
 
-    /// Records a worker's result for a lease: `Ok(())` when the batch's output is in the store,
-    /// `Err(message)` when it could not be computed. Returns whether the report was taken
-    /// (`false`: the lease had expired or its job ended; nothing changes).
-    pub fn report(&self, worker: &str, lease_id: &str, result: Result<(), String>) -> Result<bool, Unknown> {
+    /// Records a worker's result for a lease: `Ok(())` when the block's output is in the store,
+    /// `Err(message)` when it could not be computed; `seconds` is what computing it took. Returns
+    /// whether the report was taken (`false`: the lease had expired or its job ended; nothing
+    /// changes).
+    pub fn report(
+        &self,
+        worker: &str,
+        lease_id: &str,
+        result: Result<(), String>,
+        seconds: f64,
+    ) -> Result<bool, Unknown> {
         let mut state = self.lock();
         touch(&mut state, worker)?;
         let alive = alive_workers(&state, self.timing);
@@ -506,28 +560,37 @@ impl Scheduler {
         let Some(run) = find_run(&mut entry.passes, &lease) else {
             return Ok(false);
         };
-        let batch = &mut run.batches[lease.batch];
-        if batch.state != BatchState::Leased(number) {
+        let pass = run.pass;
+        let batches = lease.batches.clone();
+        if !run.batches[batches.clone()]
+            .iter()
+            .all(|b| b.state == BatchState::Leased(number))
+        {
             return Ok(false);
         }
         let mut requeued = false;
         match result {
             Ok(()) => {
-                batch.state = BatchState::Done;
-                run.done += 1;
+                run.mark_done(batches.clone());
+                if seconds.is_finite() && seconds > 0.0 {
+                    entry.clock.batch_seconds = Some(seconds / batches.len() as f64);
+                }
                 entry.driver.notify_one();
             }
             Err(message) => {
-                batch.failures += 1;
-                tracing::warn!(job = %lease.job, batch = lease.batch, worker, "batch failed: {message}");
-                if batch.failures >= MAX_BATCH_FAILURES {
+                tracing::warn!(job = %lease.job, ?batches, worker, "block failed: {message}");
+                let mut failures = 0;
+                for b in &mut run.batches[batches.clone()] {
+                    b.failures += 1;
+                    b.state = BatchState::Pending;
+                    failures = failures.max(b.failures);
+                }
+                if failures >= MAX_BATCH_FAILURES {
                     entry.failure = Some(format!(
-                        "batch {} of {:?} failed {} times; last: {message}",
-                        lease.batch, run.pass, batch.failures
+                        "batches {batches:?} of {pass:?} failed {failures} times; last: {message}"
                     ));
                     entry.driver.notify_one();
                 } else {
-                    batch.state = BatchState::Pending;
                     requeued = true;
                 }
             }
@@ -573,11 +636,18 @@ impl Scheduler {
             };
             let number = lease.number;
             if let Some(entry) = state.jobs.get_mut(&lease.job) {
-                if let Some(run) = find_run(&mut entry.passes, &lease)
-                    && run.batches[lease.batch].state == BatchState::Leased(number)
-                {
-                    tracing::warn!(job = %lease.job, batch = lease.batch, worker = lease.worker, "lease expired");
-                    run.batches[lease.batch].state = BatchState::Pending;
+                if let Some(run) = find_run(&mut entry.passes, &lease) {
+                    let batches = lease.batches.clone();
+                    let mut any = false;
+                    for b in &mut run.batches[batches.clone()] {
+                        if b.state == BatchState::Leased(number) {
+                            b.state = BatchState::Pending;
+                            any = true;
+                        }
+                    }
+                    if any {
+                        tracing::warn!(job = %lease.job, ?batches, worker = lease.worker, "lease expired");
+                    }
                 }
                 let status = entry.status.borrow().clone();
                 publish(entry, status, alive);
@@ -597,6 +667,56 @@ pub fn is_terminal(state: i32) -> bool {
         WireState::try_from(state),
         Ok(WireState::Finished | WireState::Failed | WireState::Cancelled)
     )
+}
+
+/// Batches per block for a pass of `batches` batches: all of them for one worker (a lease per
+/// pass), a quarter of a pass per worker beyond (`batches / 2·workers`, rounded to a power of
+/// two, so that a slow worker holds back little), and small enough that a block takes at most a
+/// quarter of the lease's lifetime at `batch_seconds` per batch. Before the job's first report
+/// nothing is known of its speed: blocks of one batch.
+pub fn block_len(batches: usize, workers: u32, batch_seconds: Option<f64>, lease: Duration) -> usize {
+    let Some(per_batch) = batch_seconds else {
+        return 1;
+    };
+    let by_workers = match workers {
+        0 | 1 => batches,
+        w => batches / (2 * w as usize).next_power_of_two(),
+    };
+    let budget = lease.as_secs_f64() / 4.0;
+    let mut len = by_workers.max(1).next_power_of_two();
+    while len > 1 && (len > batches || len as f64 * per_batch > budget) {
+        len /= 2;
+    }
+    len
+}
+
+impl PassRun {
+    /// The largest aligned block of at most `len` batches from `first` (a pending batch) whose
+    /// batches are all pending.
+    fn pending_block(&self, first: usize, len: usize) -> Range<usize> {
+        let n = self.batches.len();
+        let mut size = len.max(1).next_power_of_two();
+        while size > 1
+            && (!first.is_multiple_of(size)
+                || first + size > n
+                || self.batches[first..first + size]
+                    .iter()
+                    .any(|b| b.state != BatchState::Pending))
+        {
+            size /= 2;
+        }
+        first..first + size
+    }
+
+    /// Records that the output of `block` is written.
+    fn mark_done(&mut self, block: Range<usize>) {
+        for b in &mut self.batches[block.clone()] {
+            b.state = BatchState::Done;
+        }
+        self.done += block.len();
+        let at = self.done_blocks.partition_point(|b| b.start < block.start);
+        self.done_blocks.insert(at, block);
+    }
 }
 
 /// The open pass a lease belongs to.
@@ -628,12 +748,17 @@ fn alive_workers(state: &State, timing: Timing) -> u32 {
 fn publish(entry: &mut JobEntry, mut status: JobStatus, workers_alive: u32) {
     let clock = &entry.clock;
     let done: usize = entry.passes.iter().map(|r| r.done).sum();
-    let leased = entry
+    let mut leases: Vec<u64> = entry
         .passes
         .iter()
         .flat_map(|r| &r.batches)
-        .filter(|b| matches!(b.state, BatchState::Leased(_)))
-        .count();
+        .filter_map(|b| match b.state {
+            BatchState::Leased(n) => Some(n),
+            _ => None,
+        })
+        .collect();
+    leases.dedup();
+    let leased = leases.len();
     let batches_done = clock.batches_before_pass + done;
     let elapsed = clock.iteration_started.elapsed().as_secs_f64();
     status.seq += 1;
@@ -689,6 +814,8 @@ fn sanitize(name: &str) -> String {
 }
 
 #[cfg(test)]
+// Blocks of one range are what these tests mean.
+#[allow(clippy::single_range_in_vec_init)]
 mod tests {
     use super::*;
 
@@ -698,6 +825,7 @@ mod tests {
             Timing {
                 lease: Duration::from_millis(lease_ms),
                 heartbeat: Duration::from_secs(60),
+                max_lease_batches: 1024,
             },
         )
     }
@@ -718,24 +846,27 @@ mod tests {
     async fn batches_are_leased_once_and_a_pass_completes_when_all_are_reported() {
         let s = scheduler(60_000);
         let id = job(&s);
-        s.start_pass(&id, 0, Pass::Shoot, &[false, true, false]);
+        s.start_pass(&id, 0, Pass::Shoot, 3, &[1..2]);
         let w = s.register("a");
         let a = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         let b = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
-        assert_eq!((a.batch, b.batch), (0, 2), "batch 1 was already in the store");
+        assert_eq!((a.batches, b.batches), (0..1, 2..3), "batch 1 was already in the store");
         assert_eq!(s.lease(&w, Duration::from_millis(10)).await.unwrap(), None);
         assert_eq!(s.pass_outcome(&id, Pass::Shoot, 0), PassOutcome::Running);
-        assert!(s.report(&w, &a.lease_id, Ok(())).unwrap());
-        assert!(!s.report(&w, &a.lease_id, Ok(())).unwrap(), "a lease reports once");
+        assert!(s.report(&w, &a.lease_id, Ok(()), 0.01).unwrap());
+        assert!(
+            !s.report(&w, &a.lease_id, Ok(()), 0.01).unwrap(),
+            "a lease reports once"
+        );
         assert_eq!(s.status(&id).unwrap().batches_done, 2);
         assert_eq!(
             s.pass_outcome(&id, Pass::Shoot, 0),
-            PassOutcome::Ready(2),
+            PassOutcome::Ready(vec![0..1, 1..2]),
             "batches 0 and 1 can be absorbed while 2 is out"
         );
         assert_eq!(s.pass_outcome(&id, Pass::Shoot, 2), PassOutcome::Running);
-        assert!(s.report(&w, &b.lease_id, Ok(())).unwrap());
-        assert_eq!(s.pass_outcome(&id, Pass::Shoot, 2), PassOutcome::Ready(3));
+        assert!(s.report(&w, &b.lease_id, Ok(()), 0.01).unwrap());
+        assert_eq!(s.pass_outcome(&id, Pass::Shoot, 2), PassOutcome::Ready(vec![2..3]));
         assert!(matches!(s.heartbeat("nobody"), Err(Unknown::Worker(_))));
     }
 
@@ -743,7 +874,7 @@ mod tests {
     async fn an_expired_lease_goes_to_another_worker_and_its_late_report_is_ignored() {
         let s = scheduler(20);
         let id = job(&s);
-        s.start_pass(&id, 4, Pass::Areas { copy: 1 }, &[false]);
+        s.start_pass(&id, 4, Pass::Areas { copy: 1 }, 1, &[]);
         let (w1, w2) = (s.register("slow"), s.register("fast"));
         let first = s.lease(&w1, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!((first.snapshot, first.pass), (4, Pass::Areas { copy: 1 }));
@@ -751,12 +882,15 @@ mod tests {
         tokio::time::sleep(Duration::from_millis(30)).await;
         assert_eq!(s.reap(), 1);
         let second = s.lease(&w2, Duration::ZERO).await.unwrap().unwrap();
-        assert_eq!(second.batch, first.batch);
-        assert!(!s.report(&w1, &first.lease_id, Ok(())).unwrap(), "late report ignored");
+        assert_eq!(second.batches, first.batches);
+        assert!(
+            !s.report(&w1, &first.lease_id, Ok(()), 0.01).unwrap(),
+            "late report ignored"
+        );
         let areas = Pass::Areas { copy: 1 };
         assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Running);
-        assert!(s.report(&w2, &second.lease_id, Ok(())).unwrap());
-        assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(1));
+        assert!(s.report(&w2, &second.lease_id, Ok(()), 0.01).unwrap());
+        assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(vec![0..1]));
     }
 
     #[tokio::test]
@@ -764,24 +898,24 @@ mod tests {
         let s = scheduler(60_000);
         let id = job(&s);
         let (a0, a1) = (Pass::Areas { copy: 0 }, Pass::Areas { copy: 1 });
-        s.start_pass(&id, 2, a0, &[false, false, false]);
-        s.start_pass(&id, 2, a1, &[false, true, false]);
+        s.start_pass(&id, 2, a0, 3, &[]);
+        s.start_pass(&id, 2, a1, 3, &[1..2]);
         let w = s.register("a");
         let mut grants = Vec::new();
         while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
             grants.push(g);
         }
-        let order: Vec<_> = grants.iter().map(|g| (g.pass, g.batch)).collect();
+        let order: Vec<_> = grants.iter().map(|g| (g.pass, g.batches.start)).collect();
         assert_eq!(order, vec![(a0, 0), (a0, 1), (a0, 2), (a1, 0), (a1, 2)]);
         assert!(grants.iter().all(|g| g.snapshot == 2));
         // A report finds its own pass's batch, whichever pass it is.
-        assert!(s.report(&w, &grants[3].lease_id, Ok(())).unwrap());
-        assert_eq!(s.pass_outcome(&id, a1, 0), PassOutcome::Ready(2));
+        assert!(s.report(&w, &grants[3].lease_id, Ok(()), 0.01).unwrap());
+        assert_eq!(s.pass_outcome(&id, a1, 0), PassOutcome::Ready(vec![0..1, 1..2]));
         assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Running);
         for g in &grants[..3] {
-            assert!(s.report(&w, &g.lease_id, Ok(())).unwrap());
+            assert!(s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
         }
-        assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Ready(3));
+        assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Ready(vec![0..1, 1..2, 2..3]));
         assert_eq!(s.status(&id).unwrap().batches_done, 5);
         s.end_pass(&id, 2, a0);
         assert_eq!(
@@ -790,8 +924,65 @@ mod tests {
             "a closed pass still counts as done"
         );
         assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Running, "closed");
-        assert!(s.report(&w, &grants[4].lease_id, Ok(())).unwrap());
-        assert_eq!(s.pass_outcome(&id, a1, 2), PassOutcome::Ready(3));
+        assert!(s.report(&w, &grants[4].lease_id, Ok(()), 0.01).unwrap());
+        assert_eq!(s.pass_outcome(&id, a1, 2), PassOutcome::Ready(vec![2..3]));
+    }
+
+    #[test]
+    fn blocks_grow_with_fewer_workers_and_shrink_for_slow_batches() {
+        let minute = Duration::from_secs(60);
+        assert_eq!(block_len(16, 1, None, minute), 1, "speed unknown");
+        assert_eq!(block_len(16, 1, Some(0.01), minute), 16, "one worker: the whole pass");
+        assert_eq!(block_len(16, 0, Some(0.01), minute), 16);
+        assert_eq!(block_len(16, 2, Some(0.01), minute), 4);
+        assert_eq!(block_len(16, 3, Some(0.01), minute), 2);
+        assert_eq!(block_len(16, 64, Some(0.01), minute), 1);
+        assert_eq!(block_len(8, 1, Some(2.0), minute), 4, "4 × 2 s ≤ 15 s < 8 × 2 s");
+        assert_eq!(block_len(8, 1, Some(100.0), minute), 1);
+        assert_eq!(block_len(2, 1, Some(0.01), minute), 2);
+    }
+
+    #[tokio::test]
+    async fn stored_blocks_are_kept_and_new_blocks_never_straddle_them() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let w = s.register("a");
+        // The speed is known: one worker leases as much as it can.
+        s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert!(s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
+        s.end_pass(&id, 0, Pass::Shoot);
+        let areas = Pass::Areas { copy: 0 };
+        // In the store: 0..2 and 0..4 (the larger is taken), 1..3 (not a node of the tree:
+        // ignored), 4..6 and 12..16.
+        s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16]);
+        assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(vec![0..4, 4..6]));
+        let mut grants = Vec::new();
+        while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
+            grants.push(g.batches);
+        }
+        assert_eq!(grants, vec![6..8, 8..12]);
+    }
+
+    #[tokio::test]
+    async fn after_a_report_a_lone_worker_leases_whole_passes() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let w = s.register("a");
+        s.start_pass(&id, 0, Pass::Shoot, 16, &[]);
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 0..1, "speed unknown: one batch");
+        assert!(s.report(&w, &g.lease_id, Ok(()), 0.05).unwrap());
+        s.start_pass(&id, 0, Pass::Areas { copy: 0 }, 16, &[]);
+        let mut grants = Vec::new();
+        while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
+            grants.push((g.pass, g.batches));
+        }
+        // The rest of the pass in the largest aligned blocks, then the next pass whole.
+        let shoot = Pass::Shoot;
+        let expected = vec![(shoot, 1..2), (shoot, 2..4), (shoot, 4..8), (shoot, 8..16)];
+        assert_eq!(grants[..4], expected);
+        assert_eq!(grants[4..], [(Pass::Areas { copy: 0 }, 0..16)]);
     }
 
     #[tokio::test]
@@ -804,7 +995,7 @@ mod tests {
             tokio::spawn(async move { s.lease(&w, Duration::from_secs(30)).await })
         };
         tokio::time::sleep(Duration::from_millis(20)).await;
-        s.start_pass(&id, 0, Pass::Shoot, &[false]);
+        s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
         let grant = tokio::time::timeout(Duration::from_secs(5), waiter)
             .await
             .expect("woken")
@@ -817,12 +1008,12 @@ mod tests {
     async fn repeated_failures_fail_the_job_and_cancel_withdraws_work() {
         let s = scheduler(60_000);
         let id = job(&s);
-        s.start_pass(&id, 0, Pass::Shoot, &[false, false]);
+        s.start_pass(&id, 0, Pass::Shoot, 2, &[]);
         let w = s.register("a");
         for attempt in 1..=MAX_BATCH_FAILURES {
             let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
-            assert_eq!(g.batch, 0, "a failed batch is handed out again first");
-            assert!(s.report(&w, &g.lease_id, Err("disk full".into())).unwrap());
+            assert_eq!(g.batches, 0..1, "a failed block is handed out again first");
+            assert!(s.report(&w, &g.lease_id, Err("disk full".into()), 0.01).unwrap());
             let outcome = s.pass_outcome(&id, Pass::Shoot, 0);
             if attempt < MAX_BATCH_FAILURES {
                 assert_eq!(outcome, PassOutcome::Running);
@@ -837,13 +1028,13 @@ mod tests {
         );
 
         let other = job(&s);
-        s.start_pass(&other, 0, Pass::Shoot, &[false, false]);
+        s.start_pass(&other, 0, Pass::Shoot, 2, &[]);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.job, other);
         s.cancel(&other).unwrap();
         assert_eq!(s.pass_outcome(&other, Pass::Shoot, 0), PassOutcome::Cancelled);
         assert!(
-            !s.report(&w, &g.lease_id, Ok(())).unwrap(),
+            !s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap(),
             "a cancelled job's lease is void"
         );
         assert_eq!(s.lease(&w, Duration::ZERO).await.unwrap(), None);
@@ -856,10 +1047,10 @@ mod tests {
         let id = job(&s);
         let mut rx = s.subscribe(&id).unwrap();
         let first = rx.borrow_and_update().seq;
-        s.start_pass(&id, 0, Pass::Shoot, &[false]);
+        s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
         let w = s.register("a");
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
-        s.report(&w, &g.lease_id, Ok(())).unwrap();
+        s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap();
         let last = rx.borrow_and_update().clone();
         assert!(last.seq > first + 2, "{} after {first}", last.seq);
         assert_eq!(last.batches_done, 1);

@@ -197,7 +197,8 @@ impl workers_server::Workers for Api {
                     snapshot: g.snapshot,
                     pass_kind,
                     pass_copy,
-                    batch: g.batch as u32,
+                    batch: g.batches.start as u32,
+                    batch_count: g.batches.len() as u32,
                     deadline_ms: g.deadline.as_millis() as u32,
                 }
             }),
@@ -213,7 +214,7 @@ impl workers_server::Workers for Api {
         };
         let accepted = self
             .sched
-            .report(&request.worker_id, &request.lease_id, result)
+            .report(&request.worker_id, &request.lease_id, result, request.seconds)
             .map_err(unknown)?;
         Ok(Response::new(v1::ReportReply { accepted }))
     }

@@ -30,6 +30,7 @@ use crate::manifest::JobState;
 use crate::store::PutOutcome;
 use std::ops::Range;
 use std::time::Instant;
+use vlf_core::propagate::reduce::is_aligned_block;
 use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, Pass, Propagation};
 
 /// The key segment of a pass.
@@ -42,10 +43,16 @@ fn pass_name(pass: Pass) -> String {
 }
 
 impl FieldJob {
-    /// Writes a batch output of the iteration starting from snapshot `output.iteration`
+    /// Writes a block output of the iteration starting from snapshot `output.iteration`
     /// (create-only: the same bytes again are accepted, different bytes refused).
     pub fn put_batch(&self, output: &BatchOutput) -> Result<PutOutcome, StoreError> {
-        let key = layout::work_batch(self.id(), output.iteration, &pass_name(output.pass), output.batch)?;
+        let key = layout::work_block(
+            self.id(),
+            output.iteration,
+            &pass_name(output.pass),
+            output.batches.start,
+            output.batches.end,
+        )?;
         let bytes =
             blob::encode_bytes(BlobKind::BatchOutput, &output.to_bytes()).map_err(|source| StoreError::Blob {
                 url: self.job().store().url().to_string(),
@@ -55,28 +62,39 @@ impl FieldJob {
         self.job().store().put_new(&key, bytes)
     }
 
-    /// Reads batch `batch` of `pass` of the iteration starting from snapshot `k`.
-    pub fn get_batch(&self, k: u32, pass: Pass, batch: u32) -> Result<BatchOutput, StoreError> {
-        let key = layout::work_batch(self.id(), k, &pass_name(pass), batch)?;
+    /// Reads the output of batches `batches` of `pass` of the iteration starting from snapshot
+    /// `k`.
+    pub fn get_batch(&self, k: u32, pass: Pass, batches: Range<usize>) -> Result<BatchOutput, StoreError> {
+        let key = layout::work_block(self.id(), k, &pass_name(pass), batches.start as u32, batches.end as u32)?;
         let bytes = self.job().store().get_bytes_blob(&key, BlobKind::BatchOutput)?;
         let output = BatchOutput::from_bytes(&bytes).map_err(|e| self.decode_error(&key, e.to_string()))?;
-        if (output.iteration, output.pass, output.batch) != (k, pass, batch) {
+        let held = output.batches.start as usize..output.batches.end as usize;
+        if (output.iteration, output.pass, &held) != (k, pass, &batches) {
             return Err(self.decode_error(
                 &key,
                 format!(
-                    "holds batch {} of {:?} of iteration {}",
-                    output.batch, output.pass, output.iteration
+                    "holds batches {held:?} of {:?} of iteration {}",
+                    output.pass, output.iteration
                 ),
             ));
         }
         Ok(output)
     }
 
-    /// Whether batch `batch` of `pass` of the iteration starting from snapshot `k` is written.
-    pub fn has_batch(&self, k: u32, pass: Pass, batch: u32) -> Result<bool, StoreError> {
-        self.job()
+    /// The blocks of `pass` of the iteration starting from snapshot `k` whose outputs are in the
+    /// store, in order of their first batch (larger first where two start together).
+    pub fn stored_blocks(&self, k: u32, pass: Pass) -> Result<Vec<Range<usize>>, StoreError> {
+        let prefix = layout::work_pass(self.id(), k, &pass_name(pass))?;
+        let mut blocks: Vec<Range<usize>> = self
+            .job()
             .store()
-            .exists(&layout::work_batch(self.id(), k, &pass_name(pass), batch)?)
+            .list(&prefix)?
+            .iter()
+            .filter_map(|key| layout::parse_work_block(&prefix, key))
+            .map(|r| r.start as usize..r.end as usize)
+            .collect();
+        blocks.sort_by_key(|r| (r.start, std::cmp::Reverse(r.end)));
+        Ok(blocks)
     }
 
     fn decode_error(&self, key: &str, reason: String) -> StoreError {
@@ -115,8 +133,9 @@ impl Replica {
         }
     }
 
-    /// Computes batches `batches` of `pass` of the iteration starting from snapshot `k` and
-    /// writes them into the store. The pass's prerequisites must be complete in the store.
+    /// Computes the aligned block `batches` of `pass` of the iteration starting from snapshot `k`
+    /// and writes its output into the store. The pass's prerequisites must be complete in the
+    /// store.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         if self.current.as_ref().map(|c| c.0) != Some(k) {
             if !self.job.job().manifest().is_finished(k) {
@@ -139,21 +158,41 @@ impl Replica {
         // Learn what the pass reads (a rotated copy's areas) from the store.
         if !work.is_ready(pass) {
             for earlier in work.prerequisites(pass) {
-                let sums = (0..work.batches())
-                    .map(|b| self.job.get_batch(k, earlier, b as u32).map(|out| out.sum))
+                let stored = self.job.stored_blocks(k, earlier)?;
+                let cover = cover(&stored, work.batches()).ok_or_else(|| {
+                    self.job.field_error(vlf_core::Error::Parameter(format!(
+                        "{pass:?} of iteration {k} needs {earlier:?}, which is not complete in the store"
+                    )))
+                })?;
+                let sums = cover
+                    .into_iter()
+                    .map(|b| self.job.get_batch(k, earlier, b.clone()).map(|out| (b, out.sum)))
                     .collect::<Result<Vec<_>, _>>()?;
-                work.learn(earlier, &sums).map_err(|e| self.job.field_error(e))?;
+                work.learn(earlier, sums).map_err(|e| self.job.field_error(e))?;
             }
         }
-        for b in batches {
-            let out = self
-                .prop
-                .compute_batch(work, pass, b)
-                .map_err(|e| self.job.field_error(e))?;
-            self.job.put_batch(&out)?;
-        }
+        let out = self
+            .prop
+            .compute_block(work, pass, batches)
+            .map_err(|e| self.job.field_error(e))?;
+        self.job.put_batch(&out)?;
         Ok(())
     }
+}
+
+/// Aligned blocks among `stored` (sorted as [`FieldJob::stored_blocks`] sorts them) that cover
+/// `0..batches` one after another, the largest at each step; `None` if there is a gap.
+pub fn cover(stored: &[Range<usize>], batches: usize) -> Option<Vec<Range<usize>>> {
+    let mut out = Vec::new();
+    let mut next = 0;
+    while next < batches {
+        let block = stored
+            .iter()
+            .find(|b| b.start == next && is_aligned_block(b, batches))?;
+        next = block.end;
+        out.push(block.clone());
+    }
+    Some(out)
 }
 
 /// What an iteration moved through the store: the batch outputs workers wrote and the
@@ -240,29 +279,15 @@ impl Coordinator {
         (passes, work.batches())
     }
 
-    /// Whether batch `batch` of `pass` of the current iteration is already in the store (a
-    /// restarted coordinator reuses what workers wrote before it stopped: the bytes are the same).
-    pub fn has_batch(&self, pass: Pass, batch: usize) -> Result<bool, StoreError> {
-        self.job.has_batch(self.iteration(), pass, batch as u32)
-    }
-
-    /// [`Coordinator::has_batch`] for every batch of every pass of the current iteration, in
-    /// [`Coordinator::passes`] order, from one listing of the store.
-    pub fn batches_in_store(&mut self) -> Result<Vec<Vec<bool>>, StoreError> {
+    /// The blocks of every pass of the current iteration already in the store, in
+    /// [`Coordinator::passes`] order (a restarted coordinator reuses what workers wrote before it
+    /// stopped: the bytes are the same).
+    pub fn blocks_in_store(&mut self) -> Result<Vec<Vec<Range<usize>>>, StoreError> {
         let k = self.iteration();
-        let (passes, batches) = self.passes();
-        let store = self.job.job().store();
-        let written: std::collections::HashSet<String> = store
-            .list(&layout::work_prefix(self.job.id(), k)?)?
-            .into_iter()
-            .collect();
+        let (passes, _) = self.passes();
         passes
             .iter()
-            .map(|(pass, _)| {
-                (0..batches)
-                    .map(|b| Ok(written.contains(&layout::work_batch(self.job.id(), k, &pass_name(*pass), b as u32)?)))
-                    .collect()
-            })
+            .map(|(pass, _)| self.job.stored_blocks(k, *pass))
             .collect()
     }
 
@@ -272,32 +297,49 @@ impl Coordinator {
         self.job.set_state(state)
     }
 
-    /// Absorbs every batch of the pending pass from the store that is not absorbed yet, in batch
-    /// order.
+    /// Absorbs the rest of the pending pass from the store: the blocks written that cover it, in
+    /// order (the largest where several start at the same batch).
     pub fn absorb_pass(&mut self) -> Result<Pass, StoreError> {
-        let Some((pass, batches)) = self.pending_pass() else {
+        let Some((pass, next)) = self.next_batch() else {
             return Err(self.job.field_error(vlf_core::Error::Parameter(
                 "no pass is pending: finish the iteration".into(),
             )));
         };
-        self.absorb_until(pass, batches)?;
+        let batches = self.work().batches();
+        let stored: Vec<_> = self
+            .job
+            .stored_blocks(self.iteration(), pass)?
+            .into_iter()
+            .filter(|b| b.start >= next)
+            .collect();
+        let mut blocks = Vec::new();
+        let mut at = next;
+        while at < batches {
+            let Some(block) = stored.iter().find(|b| b.start == at) else {
+                return Err(StoreError::NotFound {
+                    url: self.job.job().store().url().to_string(),
+                    key: format!("batch {at} of {pass:?} of iteration {}", self.iteration() + 1),
+                });
+            };
+            at = block.end;
+            blocks.push(block.clone());
+        }
+        self.absorb_blocks(pass, &blocks)?;
         Ok(pass)
     }
 
-    /// Absorbs the batches of `pass` from the next one expected up to `end` (excluded) from the
-    /// store, in batch order: the coordinator takes each batch in as soon as it is written. A
-    /// batch that cannot be read stops it there; what was absorbed stays absorbed.
-    pub fn absorb_until(&mut self, pass: Pass, end: usize) -> Result<(), StoreError> {
+    /// Absorbs the outputs of `blocks` of `pass` (the next ones expected, in order) from the
+    /// store: the coordinator takes each block in as soon as it is written. A block that cannot
+    /// be read stops it there; what was absorbed stays absorbed.
+    pub fn absorb_blocks(&mut self, pass: Pass, blocks: &[Range<usize>]) -> Result<(), StoreError> {
         let k = self.iteration();
-        while let Some((next, b)) = self.next_batch() {
-            if next != pass || b >= end {
-                break;
-            }
-            let out = self.job.get_batch(k, pass, b as u32)?;
+        self.work();
+        for block in blocks {
+            let out = self.job.get_batch(k, pass, block.clone())?;
             let Some((work, _)) = self.work.as_mut() else {
-                unreachable!("next_batch created it");
+                unreachable!("passes() created it");
             };
-            self.prop.apply_batch(work, &out).map_err(|e| self.job.field_error(e))?;
+            self.prop.apply_batch(work, out).map_err(|e| self.job.field_error(e))?;
         }
         Ok(())
     }

@@ -78,14 +78,37 @@ pub fn work_prefix(job: &JobId, k: u32) -> Result<String, StoreError> {
     Ok(format!("{JOBS_PREFIX}{job}/work/{k:05}/"))
 }
 
-/// `jobs/J/work/KKKKK/PASS/BBBBB.blob`: batch `batch` of pass `pass` (a name such as `shoot` or
-/// `areas-00`) of the iteration that starts from snapshot `k`.
-pub fn work_batch(job: &JobId, k: u32, pass: &str, batch: u32) -> Result<String, StoreError> {
-    let batch = check("batch", batch, MAX_DIRECTION)?;
+/// `jobs/J/work/KKKKK/PASS/`: the outputs of pass `pass` (a name such as `shoot` or `areas-00`)
+/// of the iteration that starts from snapshot `k`.
+pub fn work_pass(job: &JobId, k: u32, pass: &str) -> Result<String, StoreError> {
     if pass.is_empty() || !pass.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'-') {
         return Err(StoreError::Layout(format!("pass name `{pass}` is not a key segment")));
     }
-    Ok(format!("{}{pass}/{batch:05}.blob", work_prefix(job, k)?))
+    Ok(format!("{}{pass}/", work_prefix(job, k)?))
+}
+
+/// `jobs/J/work/KKKKK/PASS/SSSSS-EEEEE.blob`: the output of batches `start..end` of pass `pass`
+/// of the iteration that starts from snapshot `k`.
+pub fn work_block(job: &JobId, k: u32, pass: &str, start: u32, end: u32) -> Result<String, StoreError> {
+    let start = check("batch", start, MAX_DIRECTION)?;
+    let end = check("batch", end, MAX_DIRECTION)?;
+    if end <= start {
+        return Err(StoreError::Layout(format!("empty batch range {start}..{end}")));
+    }
+    Ok(format!("{}{start:05}-{end:05}.blob", work_pass(job, k, pass)?))
+}
+
+/// The batch range a [`work_block`] key names, if `key` is one under `prefix` (its pass's
+/// [`work_pass`]).
+pub fn parse_work_block(prefix: &str, key: &str) -> Option<std::ops::Range<u32>> {
+    let name = key.strip_prefix(prefix)?.strip_suffix(".blob")?;
+    let (start, end) = name.split_once('-')?;
+    let digits = |s: &str| s.len() == 5 && s.bytes().all(|b| b.is_ascii_digit());
+    if !digits(start) || !digits(end) {
+        return None;
+    }
+    let (start, end) = (start.parse().ok()?, end.parse().ok()?);
+    (start < end).then_some(start..end)
 }
 
 /// `S/summary.blob`: what a stage is (iterations, unshot power, statistics).

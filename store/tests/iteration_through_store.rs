@@ -23,7 +23,7 @@ fn bundled(name: &str) -> Scene {
 
 fn options(perturb: u32) -> Options {
     Options {
-        directions: 33,
+        directions: 129,
         grid: GridSize::new(16, 4).unwrap(),
         stop: Stop::Iterations(3),
         perturbation: Perturbation {
@@ -67,20 +67,27 @@ fn with_replicas(o: &Opener, scene: &Scene, options: &Options, workers: usize) -
         let k = coordinator.iteration();
         let mut expected_blobs = 0;
         while let Some((pass, batches)) = coordinator.pending_pass() {
-            expected_blobs += batches as u64;
-            let order = shuffled(batches, k);
+            // Leases of `workers` batches (8 per pass: blocks of 1, 2 or 4).
+            let blocks = vlf_core::propagate::reduce::blocks(batches, workers);
+            expected_blobs += blocks.len() as u64;
+            let order = shuffled(blocks.len(), k);
             std::thread::scope(|s| {
                 for (w, replica) in replicas.iter_mut().enumerate() {
-                    let mine: Vec<usize> = order.iter().skip(w).step_by(workers).copied().collect();
+                    let mine: Vec<_> = order
+                        .iter()
+                        .skip(w)
+                        .step_by(workers)
+                        .map(|&b| blocks[b].clone())
+                        .collect();
                     s.spawn(move || {
                         for b in mine {
-                            replica.compute(k, pass, b..b + 1).unwrap();
+                            replica.compute(k, pass, b).unwrap();
                         }
                     });
                 }
             });
             // A lease that expired and was handed out again: the same bytes, accepted.
-            replicas[workers - 1].compute(k, pass, 0..1).unwrap();
+            replicas[workers - 1].compute(k, pass, blocks[0].clone()).unwrap();
             coordinator.absorb_pass().unwrap();
         }
         let store = coordinator.job().job().store();
@@ -152,14 +159,17 @@ fn conflicting_or_missing_batches(o: &Opener) {
     let mut coordinator = Coordinator::resume(job).unwrap();
     let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
     let (pass, batches) = coordinator.pending_pass().unwrap();
-    assert_eq!(pass, Pass::Shoot);
-    replica.compute(0, pass, 0..batches - 1).unwrap();
-    // The last batch is missing: the coordinator cannot absorb the pass.
+    assert_eq!((pass, batches), (Pass::Shoot, 8));
+    replica.compute(0, pass, 0..4).unwrap();
+    replica.compute(0, pass, 4..6).unwrap();
+    // Not a node of the reduction tree.
+    assert!(replica.compute(0, pass, 5..7).is_err());
+    // The last batches are missing: the coordinator cannot absorb the pass.
     let err = coordinator.absorb_pass().unwrap_err();
     assert!(matches!(err, StoreError::NotFound { .. }), "{err}");
-    // A batch whose content differs from what is stored is refused, never replaced.
+    // A block whose content differs from what is stored is refused, never replaced.
     let reader = FieldJob::open(&o.open(), &id).unwrap();
-    let mut forged = reader.get_batch(0, pass, 0).unwrap();
+    let mut forged = reader.get_batch(0, pass, 0..4).unwrap();
     forged.sum.texels[0][0] += 1.0;
     assert!(matches!(
         reader.put_batch(&forged),

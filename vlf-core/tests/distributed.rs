@@ -8,7 +8,7 @@ mod common;
 
 use common::*;
 use std::collections::HashMap;
-use vlf_core::propagate::{BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, Stop};
+use vlf_core::propagate::{BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, Stop, reduce};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
@@ -60,24 +60,32 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagat
         let mut works: Vec<_> = replicas.iter().map(|r| r.iteration_work()).collect();
         let mut work = main.iteration_work();
         // Every output of the iteration, as stored: workers read a pass's
-        // prerequisites from here, never from the coordinator.
+        // prerequisites from here, never from the coordinator. Leases hold
+        // blocks of 1, 2 or 4 batches with 1, 2 or 3 workers.
+        let blocks = reduce::blocks(work.batches(), 1 << (workers - 1));
         let mut stored: HashMap<(Pass, usize), Vec<u8>> = HashMap::new();
         for pass in work.passes() {
-            for (i, batch) in shuffled(work.batches(), work.index as usize).into_iter().enumerate() {
+            for (i, b) in shuffled(blocks.len(), work.index as usize).into_iter().enumerate() {
                 let w = i % workers;
                 for earlier in works[w].prerequisites(pass) {
-                    let sums: Vec<_> = (0..work.batches())
-                        .map(|b| BatchOutput::from_bytes(&stored[&(earlier, b)]).unwrap().sum)
+                    let sums: Vec<_> = blocks
+                        .iter()
+                        .map(|b| {
+                            (
+                                b.clone(),
+                                BatchOutput::from_bytes(&stored[&(earlier, b.start)]).unwrap().sum,
+                            )
+                        })
                         .collect();
-                    works[w].learn(earlier, &sums).unwrap();
+                    works[w].learn(earlier, sums).unwrap();
                 }
                 assert!(works[w].is_ready(pass));
-                let out = replicas[w].compute_batch(&works[w], pass, batch).unwrap();
-                stored.insert((pass, batch), out.to_bytes());
+                let out = replicas[w].compute_block(&works[w], pass, blocks[b].clone()).unwrap();
+                stored.insert((pass, blocks[b].start), out.to_bytes());
             }
-            for batch in 0..work.batches() {
-                let out = BatchOutput::from_bytes(&stored[&(pass, batch)]).unwrap();
-                main.apply_batch(&mut work, &out).unwrap();
+            for b in &blocks {
+                let out = BatchOutput::from_bytes(&stored[&(pass, b.start)]).unwrap();
+                main.apply_batch(&mut work, out).unwrap();
             }
         }
         main.finish_iteration(work, started);
@@ -175,16 +183,23 @@ fn a_perturbed_iteration_lists_every_copys_areas_first_and_learns_only_areas() {
     assert_eq!(work.prerequisites(shoot(1)), vec![areas(1)]);
     assert!(work.prerequisites(areas(2)).is_empty());
     assert!(!work.is_ready(shoot(1)));
-    assert!(p.compute_batch(&work, shoot(1), 0).is_err(), "areas unknown");
+    assert!(p.compute_block(&work, shoot(1), 0..1).is_err(), "areas unknown");
     let sums: Vec<_> = (0..work.batches())
-        .map(|b| p.run_batch(&work, areas(1), b, None).unwrap())
+        .map(|b| (b..b + 1, p.run_batch(&work, areas(1), b, None).unwrap()))
         .collect();
-    assert!(work.learn(shoot(1), &sums).is_err(), "not a prerequisite");
-    assert!(work.learn(areas(1), &sums[1..]).is_err(), "a batch missing");
-    assert!(work.learn(areas(7), &sums).is_err(), "no such copy");
-    work.learn(areas(1), &sums).unwrap();
+    assert!(work.learn(shoot(1), sums.clone()).is_err(), "not a prerequisite");
+    assert!(work.learn(areas(1), sums[1..].to_vec()).is_err(), "a batch missing");
+    assert!(work.learn(areas(7), sums.clone()).is_err(), "no such copy");
+    // The areas learnt from single batches equal those from one block of all.
+    let mut whole = p.iteration_work();
+    let all = p.compute_block(&whole, areas(1), 0..work.batches()).unwrap();
+    whole.learn(areas(1), [(0..work.batches(), all.sum)]).unwrap();
+    work.learn(areas(1), sums).unwrap();
     assert!(work.is_ready(shoot(1)) && !work.is_ready(shoot(0)));
-    p.compute_batch(&work, shoot(1), 0).unwrap();
+    let a = p.compute_block(&work, shoot(1), 0..2).unwrap();
+    let b = p.compute_block(&whole, shoot(1), 0..2).unwrap();
+    assert!(a == b, "a copy's areas depend on how they were leased");
+    assert!(p.compute_block(&work, shoot(1), 1..3).is_err(), "not aligned");
 }
 
 #[test]
@@ -194,8 +209,9 @@ fn out_of_order_and_foreign_batches_are_refused() {
     assert_eq!(work.passes(), vec![Pass::Shoot]);
     let mut maps = p.specular.as_ref().unwrap().maps[16..32].to_vec();
     let sum = p.run_batch(&work, Pass::Shoot, 1, Some(&mut maps)).unwrap();
-    // Batch 1 before batch 0.
-    assert!(work.absorb(Pass::Shoot, 1, &sum).is_err());
+    // Batch 1 before batch 0; a block that is not a node of the tree.
+    assert!(work.absorb(Pass::Shoot, 1..2, sum.clone()).is_err());
+    assert!(work.absorb(Pass::Shoot, 0..3, sum.clone()).is_err());
     // A pass this iteration does not have; a batch past the end; maps missing.
     assert!(p.run_batch(&work, Pass::Areas { copy: 0 }, 0, None).is_err());
     assert!(p.run_batch(&work, Pass::Shoot, work.batches(), None).is_err());
@@ -205,20 +221,23 @@ fn out_of_order_and_foreign_batches_are_refused() {
     // A sum of the wrong size, or with NaN.
     let mut short = sum.clone();
     short.texels.pop();
-    assert!(work.absorb(Pass::Shoot, 0, &short).is_err());
-    let mut nan = sum;
+    assert!(work.absorb(Pass::Shoot, 0..1, short).is_err());
+    let mut nan = sum.clone();
     nan.texels[0][1] = f64::NAN;
-    assert!(work.absorb(Pass::Shoot, 0, &nan).is_err());
+    assert!(work.absorb(Pass::Shoot, 0..1, nan).is_err());
+    let mut nan = sum;
+    nan.flow.escaped[2] = f64::INFINITY;
+    assert!(work.absorb(Pass::Shoot, 0..1, nan).is_err());
     // Outputs of another iteration, or with maps that do not fit, are refused by the coordinator.
     let mut main = Propagation::new(mirror_room(), options(0)).unwrap();
     let mut work = main.iteration_work();
-    let mut out = main.compute_batch(&work, Pass::Shoot, 0).unwrap();
+    let mut out = main.compute_block(&work, Pass::Shoot, 0..2).unwrap();
     out.iteration = 3;
-    assert!(main.apply_batch(&mut work, &out).is_err());
+    assert!(main.apply_batch(&mut work, out.clone()).is_err());
     out.iteration = 0;
     if let Some(m) = out.mirrors.as_mut() {
         m.pop();
-        assert!(main.apply_batch(&mut work, &out).is_err());
+        assert!(main.apply_batch(&mut work, out.clone()).is_err());
     }
     assert!(BatchOutput::from_bytes(b"garbage").is_err());
 }

@@ -25,9 +25,9 @@ pub struct WorkerArgs {
     /// Name in the coordinator's logs (default: host name and process id).
     #[arg(long)]
     pub name: Option<String>,
-    /// Test hook: stall with a lease after this many batches.
+    /// Test hook: stall with a lease after this many leases.
     #[arg(long, hide = true)]
-    pub hang_after_batches: Option<u64>,
+    pub hang_after_leases: Option<u64>,
 }
 
 impl WorkerArgs {
@@ -53,7 +53,7 @@ impl WorkerArgs {
                 Some(url) => StoreChoice::Url(url.clone()),
                 None => StoreChoice::FromServer,
             },
-            hang_after: self.hang_after_batches,
+            hang_after: self.hang_after_leases,
         })
     }
 }

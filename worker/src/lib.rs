@@ -37,8 +37,8 @@ pub struct WorkerConfig {
     /// Compute threads (default: all cores).
     pub threads: Option<usize>,
     pub store: StoreChoice,
-    /// Test hook: after this many batches, take one more lease and stall for ever (never
-    /// report), as a hung machine would.
+    /// Test hook: after this many leases, take one more and stall for ever (never report), as a
+    /// hung machine would.
     pub hang_after: Option<u64>,
 }
 
@@ -58,6 +58,7 @@ pub enum WorkerError {
 /// What a worker did.
 #[derive(Clone, Copy, Debug, Default)]
 pub struct WorkerStats {
+    /// Leases computed.
     pub batches: u64,
     pub failed: u64,
     pub compute_seconds: f64,
@@ -272,10 +273,11 @@ async fn compute(
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
     let (store, pool, replicas) = (store.clone(), pool.clone(), replicas.clone());
     let (k, b) = (lease.snapshot, lease.batch as usize);
+    let batches = b..b + (lease.batch_count as usize).max(1);
     vlf_store::blocking(move || {
         pool.install(|| -> Result<(), StoreError> {
             let mut replicas = lock(&replicas);
-            replicas.replica(&store, &job)?.compute(k, pass, b..b + 1)
+            replicas.replica(&store, &job)?.compute(k, pass, batches)
         })
     })
     .await

@@ -43,6 +43,7 @@ pub mod checkpoint;
 mod filter;
 mod perturb;
 pub mod plan;
+pub mod reduce;
 pub(crate) mod shoot;
 pub mod specular;
 pub mod work;
@@ -439,7 +440,7 @@ impl Propagation {
                 let sum = self
                     .run_batch(&work, pass, batch, own)
                     .expect("batches of this process's own work are well-formed");
-                work.absorb(pass, batch, &sum)
+                work.absorb(pass, batch..batch + 1, sum)
                     .expect("this process absorbs its batches in order");
                 progress(Progress {
                     iteration: work.index,

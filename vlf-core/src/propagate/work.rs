@@ -19,18 +19,21 @@
 //! absorbed, and — for [`Pass::Shoot`] — the mirror maps of its own
 //! directions, which it updates. Its output is a [`BatchSum`]: per-texel
 //! power summed over the batch's directions **in direction order, starting
-//! from zero**, and the batch's flow. [`IterationWork::absorb`] then adds the
-//! batch sums **in batch order**. So the bits of an iteration do not depend on
-//! who computed which batch, or when it finished: a single process running
-//! the batches in a loop ([`super::Propagation::step`]) and a coordinator
-//! collecting them from any number of workers get the same field, as long as
-//! the coordinator absorbs in batch order.
+//! from zero**, and the batch's flow. The batch sums of a pass are added up
+//! along a fixed binary tree ([`super::reduce`]), so a worker may compute a
+//! whole aligned block of batches and send the block's node sum alone, and
+//! [`IterationWork::absorb`] takes the blocks in order. So the bits of an
+//! iteration do not depend on who computed which batch, how many batches a
+//! lease held, or when it finished: a single process running the batches in
+//! a loop ([`super::Propagation::step`]) and a coordinator collecting blocks
+//! from any number of workers get the same field.
 //!
 //! Between iterations, what stays global is small: the texel maps (reduced
 //! here) and the mirror exchange ([`super::Specular::exchange`]), which reads
 //! the incident maps of all directions and writes each direction's new unshot
 //! map.
 
+use super::reduce::{TreeSum, is_aligned_block};
 use super::shoot::{self, Flow, Scratch};
 use super::specular::DirectionMaps;
 use super::{FlowRecord, Propagation, perturb, radiance_of};
@@ -104,15 +107,17 @@ pub struct MirrorUpdate {
     pub total: Vec<Rgb>,
 }
 
-/// Everything one batch produces, as it travels from a worker to the
-/// coordinator (through the store, in the distributed service).
+/// Everything one aligned block of batches produces, as it travels from a
+/// worker to the coordinator (through the store, in the distributed service).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BatchOutput {
     pub iteration: u32,
     pub pass: Pass,
-    pub batch: u32,
+    /// The block of batches (a node of the pass's reduction tree).
+    pub batches: Range<u32>,
+    /// The block's node sum.
     pub sum: BatchSum,
-    /// Mirror maps of the batch's directions, in order, when the pass uses them.
+    /// Mirror maps of the block's directions, in order, when the pass uses them.
     pub mirrors: Option<Vec<MirrorUpdate>>,
 }
 
@@ -137,10 +142,9 @@ pub struct IterationWork {
     /// Received power, over the passes absorbed so far.
     pub(crate) received: Vec<Rgb>,
     pub(crate) flow: Flow,
-    /// The pass being absorbed and the next batch it expects.
-    cursor: (usize, usize),
-    /// Per-pass partial reduction.
-    pass_sum: Vec<Rgb>,
+    /// The pass being absorbed (its index) and its partial sums.
+    cursor: usize,
+    tree: TreeSum,
     batches: usize,
 }
 
@@ -194,12 +198,16 @@ impl IterationWork {
         }
     }
 
-    /// Takes in the result of a prerequisite pass from all its batch sums,
-    /// in batch order, summed from zero exactly as [`absorb`](Self::absorb)
-    /// sums them: how a worker learns a rotated copy's areas before shooting
-    /// it. Only the coordinator's `absorb` moves the iteration forward; this
-    /// touches nothing a later absorb reads twice.
-    pub fn learn<'a>(&mut self, pass: Pass, sums: impl IntoIterator<Item = &'a BatchSum>) -> crate::Result<()> {
+    /// Takes in the result of a prerequisite pass from the node sums of
+    /// aligned blocks covering it, in order, reduced exactly as
+    /// [`absorb`](Self::absorb) reduces them: how a worker learns a rotated
+    /// copy's areas before shooting it. Only the coordinator's `absorb` moves
+    /// the iteration forward; this touches nothing a later absorb reads twice.
+    pub fn learn(
+        &mut self,
+        pass: Pass,
+        blocks: impl IntoIterator<Item = (Range<usize>, BatchSum)>,
+    ) -> crate::Result<()> {
         let Pass::Areas { copy } = pass else {
             return Err(crate::Error::Parameter(format!(
                 "{pass:?} is no other pass's prerequisite"
@@ -215,20 +223,19 @@ impl IterationWork {
             return Ok(());
         }
         let texels = self.received.len();
-        let mut sum = vec![[0.0; 3]; texels];
-        let mut count = 0;
-        for (batch, s) in sums.into_iter().enumerate() {
-            check_sum(pass, batch, s, texels)?;
-            add_into(&mut sum, &s.texels);
-            count += 1;
+        let mut tree = TreeSum::new(self.batches);
+        for (batches, sum) in blocks {
+            check_sum(pass, &batches, &sum, texels)?;
+            tree.push(batches, sum)
+                .map_err(|e| crate::Error::Decode(format!("{pass:?}: {e}")))?;
         }
-        if count != self.batches {
+        let Some(root) = tree.finish() else {
             return Err(crate::Error::Decode(format!(
-                "{pass:?} has {} batches, {count} were given",
+                "{pass:?}: the blocks given do not cover its {} batches",
                 self.batches
             )));
-        }
-        self.finish_pass(pass, sum);
+        };
+        self.finish_pass(pass, root.texels);
         Ok(())
     }
 
@@ -243,39 +250,41 @@ impl IterationWork {
         matches!(self.mode, Mode::Direct { mirrors: true, .. })
     }
 
-    /// The pass and batch [`IterationWork::absorb`] expects next, or `None`
-    /// when every pass is absorbed.
+    /// The pass and first batch [`IterationWork::absorb`] expects next, or
+    /// `None` when every pass is absorbed.
     pub fn next_expected(&self) -> Option<(Pass, usize)> {
         let passes = self.passes();
-        passes.get(self.cursor.0).map(|&p| (p, self.cursor.1))
+        passes.get(self.cursor).map(|&p| (p, self.tree.next()))
     }
 
-    /// Adds the sum of batch `batch` of `pass`. Batches must come in order,
-    /// pass by pass (see the module docs); anything else is refused.
-    pub fn absorb(&mut self, pass: Pass, batch: usize, sum: &BatchSum) -> crate::Result<()> {
-        let texels = self.received.len();
-        if self.next_expected() != Some((pass, batch)) {
+    /// Adds the node sum of the aligned block `batches` of `pass`. Blocks
+    /// must come in order, pass by pass (see the module docs); anything else
+    /// is refused.
+    pub fn absorb(&mut self, pass: Pass, batches: Range<usize>, sum: BatchSum) -> crate::Result<()> {
+        let expected = self.next_expected();
+        if expected.map(|(p, _)| p) != Some(pass) {
             return Err(crate::Error::Parameter(format!(
-                "batch {batch} of {pass:?} out of order (expected {:?})",
-                self.next_expected()
+                "batches {batches:?} of {pass:?} out of order (expected {expected:?})"
             )));
         }
-        check_sum(pass, batch, sum, texels)?;
-        add_into(&mut self.pass_sum, &sum.texels);
-        if !matches!(pass, Pass::Areas { .. }) {
-            let f = &sum.flow;
-            self.flow.add(&Flow {
-                shot: f.shot,
-                received: f.received,
-                escaped: f.escaped,
-                blocked: f.blocked,
-            });
-        }
-        self.cursor.1 += 1;
-        if self.cursor.1 == self.batches {
-            let done = std::mem::replace(&mut self.pass_sum, vec![[0.0; 3]; texels]);
-            self.finish_pass(pass, done);
-            self.cursor = (self.cursor.0 + 1, 0);
+        check_sum(pass, &batches, &sum, self.received.len())?;
+        self.tree
+            .push(batches, sum)
+            .map_err(|e| crate::Error::Parameter(format!("{pass:?}: {e}")))?;
+        if self.tree.is_complete() {
+            let tree = std::mem::replace(&mut self.tree, TreeSum::new(self.batches));
+            let root = tree.finish().expect("a complete tree has a root");
+            if !matches!(pass, Pass::Areas { .. }) {
+                let f = &root.flow;
+                self.flow.add(&Flow {
+                    shot: f.shot,
+                    received: f.received,
+                    escaped: f.escaped,
+                    blocked: f.blocked,
+                });
+            }
+            self.finish_pass(pass, root.texels);
+            self.cursor += 1;
         }
         Ok(())
     }
@@ -301,17 +310,17 @@ impl IterationWork {
     }
 }
 
-/// Refuses a batch sum of the wrong size or with non-finite values.
-fn check_sum(pass: Pass, batch: usize, sum: &BatchSum, texels: usize) -> crate::Result<()> {
+/// Refuses a block sum of the wrong size or with non-finite values.
+fn check_sum(pass: Pass, batches: &Range<usize>, sum: &BatchSum, texels: usize) -> crate::Result<()> {
     if sum.texels.len() != texels {
         return Err(crate::Error::Decode(format!(
-            "batch {batch} of {pass:?} has {} texels, the field {texels}",
+            "batches {batches:?} of {pass:?} have {} texels, the field {texels}",
             sum.texels.len()
         )));
     }
-    if sum.texels.iter().flatten().any(|v| !v.is_finite()) {
+    if sum.texels.iter().flatten().any(|v| !v.is_finite()) || !sum.flow.is_finite() {
         return Err(crate::Error::Decode(format!(
-            "batch {batch} of {pass:?} holds non-finite power"
+            "batches {batches:?} of {pass:?} hold non-finite power"
         )));
     }
     Ok(())
@@ -390,8 +399,8 @@ impl Propagation {
             mode,
             received: vec![[0.0; 3]; texels],
             flow: Flow::default(),
-            cursor: (0, 0),
-            pass_sum: vec![[0.0; 3]; texels],
+            cursor: 0,
+            tree: TreeSum::new(batch_count(self.directions.len())),
             batches: batch_count(self.directions.len()),
         }
     }
@@ -555,21 +564,31 @@ impl Propagation {
 }
 
 impl Propagation {
-    /// Computes batch `batch` of `pass` on a replica whose state is the
-    /// iteration's start (as restored from its checkpoint), without changing
-    /// it: what a worker does.
-    pub fn compute_batch(&self, work: &IterationWork, pass: Pass, batch: usize) -> crate::Result<BatchOutput> {
-        let range = work.batch_range(batch, self.directions.len());
+    /// Computes the aligned block `batches` of `pass` on a replica whose
+    /// state is the iteration's start (as restored from its checkpoint),
+    /// without changing it: what a worker does for a lease. The output holds
+    /// the block's node sum ([`super::reduce`]) and, when the pass uses them,
+    /// the block's mirror maps.
+    pub fn compute_block(&self, work: &IterationWork, pass: Pass, batches: Range<usize>) -> crate::Result<BatchOutput> {
+        let directions = self.block_directions(work, &batches)?;
         let mut maps: Option<Vec<DirectionMaps>> = match (&self.specular, pass, work.uses_mirror_maps()) {
-            (Some(spec), Pass::Shoot, true) if !range.is_empty() => Some(spec.maps[range].to_vec()),
+            (Some(spec), Pass::Shoot, true) => Some(spec.maps[directions.clone()].to_vec()),
             _ => None,
         };
-        let sum = self.run_batch(work, pass, batch, maps.as_deref_mut())?;
+        let mut tree = TreeSum::new(batches.len());
+        for (i, batch) in batches.clone().enumerate() {
+            let range = work.batch_range(batch, self.directions.len());
+            let own = maps
+                .as_deref_mut()
+                .map(|m| &mut m[range.start - directions.start..range.end - directions.start]);
+            let leaf = self.run_batch(work, pass, batch, own)?;
+            tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
+        }
         Ok(BatchOutput {
             iteration: work.index,
             pass,
-            batch: batch as u32,
-            sum,
+            batches: batches.start as u32..batches.end as u32,
+            sum: tree.finish().expect("every leaf of the block was pushed"),
             mirrors: maps.map(|maps| {
                 maps.into_iter()
                     .map(|m| MirrorUpdate {
@@ -581,20 +600,33 @@ impl Propagation {
         })
     }
 
-    /// Absorbs a worker's batch output into `work` and takes over its mirror
-    /// maps: what the coordinator does, in batch order. Outputs of another
+    /// The directions of an aligned block of batches, or why it is not one.
+    fn block_directions(&self, work: &IterationWork, batches: &Range<usize>) -> crate::Result<Range<usize>> {
+        if !is_aligned_block(batches, work.batches()) {
+            return Err(crate::Error::Parameter(format!(
+                "batches {batches:?} are not an aligned block of the {} batches",
+                work.batches()
+            )));
+        }
+        let l = self.directions.len();
+        Ok(work.batch_range(batches.start, l).start..work.batch_range(batches.end - 1, l).end)
+    }
+
+    /// Absorbs a worker's block output into `work` and takes over its mirror
+    /// maps: what the coordinator does, in order. Outputs of another
     /// iteration, out of order, or whose maps do not fit are refused.
-    pub fn apply_batch(&mut self, work: &mut IterationWork, out: &BatchOutput) -> crate::Result<()> {
+    pub fn apply_batch(&mut self, work: &mut IterationWork, out: BatchOutput) -> crate::Result<()> {
         if out.iteration != work.index {
             return Err(crate::Error::Parameter(format!(
                 "batch output of iteration {} offered to iteration {}",
                 out.iteration, work.index
             )));
         }
-        let range = work.batch_range(out.batch as usize, self.directions.len());
+        let batches = out.batches.start as usize..out.batches.end as usize;
+        let range = self.block_directions(work, &batches)?;
         let wants_maps = out.pass == Pass::Shoot && work.uses_mirror_maps();
         let checked = match (&self.specular, &out.mirrors, wants_maps) {
-            (_, None, false) => Ok(None),
+            (_, None, false) => Ok(()),
             (Some(spec), Some(updates), true) => {
                 let fits = updates.len() == range.len()
                     && updates.iter().zip(&spec.maps[range.clone()]).all(|(u, m)| {
@@ -603,22 +635,24 @@ impl Propagation {
                             && u.incident.iter().chain(&u.total).flatten().all(|v| v.is_finite())
                     });
                 if fits {
-                    Ok(Some(updates))
+                    Ok(())
                 } else {
-                    Err(format!("mirror maps of batch {} do not fit its directions", out.batch))
+                    Err(format!(
+                        "mirror maps of batches {batches:?} do not fit their directions"
+                    ))
                 }
             }
             _ => Err(format!(
-                "batch {} of {:?}: mirror maps missing or unexpected",
-                out.batch, out.pass
+                "batches {batches:?} of {:?}: mirror maps missing or unexpected",
+                out.pass
             )),
         };
-        let updates = checked.map_err(crate::Error::Decode)?;
-        work.absorb(out.pass, out.batch as usize, &out.sum)?;
-        if let (Some(spec), Some(updates)) = (&mut self.specular, updates) {
+        checked.map_err(crate::Error::Decode)?;
+        work.absorb(out.pass, batches, out.sum)?;
+        if let (Some(spec), Some(updates)) = (&mut self.specular, out.mirrors) {
             for (m, u) in spec.maps[range].iter_mut().zip(updates) {
-                m.incident.clone_from(&u.incident);
-                m.total.clone_from(&u.total);
+                m.incident = u.incident;
+                m.total = u.total;
             }
         }
         Ok(())
