@@ -6,6 +6,7 @@
 //! viewpoint; `vlf jobs` lists a store's jobs. Exact flags are part of the
 //! interface: scripts rely on them.
 
+mod bench;
 mod propagate;
 mod remote;
 mod render;
@@ -54,6 +55,9 @@ enum Command {
     /// Measure what accuracy costs: sweep the parameters against a reference path tracer
     /// (Mitsuba 3, or a given image) and write CSV, Markdown and plots.
     Study(study::StudyArgs),
+    /// Measure what the distributed service costs over an in-process propagation (same bits,
+    /// 1 and k workers, work moved per iteration).
+    Bench(bench::BenchArgs),
 }
 
 #[derive(Args)]
@@ -164,8 +168,9 @@ pub struct ServerFlags {
 pub struct RunArgs {
     #[command(flatten)]
     propagate: PropagateArgs,
-    /// Worker replicas (each holds its own copy of the geometry).
-    #[arg(long, default_value_t = 2)]
+    /// Worker replicas, sharing the threads (each builds its own copy of the geometry; one worker
+    /// with every core is the fastest on one machine).
+    #[arg(long, default_value_t = 1)]
     workers: usize,
 }
 
@@ -322,6 +327,7 @@ fn main() {
         Command::Watch(args) => block_on(remote::watch(args)),
         Command::Cancel(args) => block_on(remote::cancel(args)),
         Command::Study(args) => study::run(args),
+        Command::Bench(args) => bench::run(args),
     };
     if let Err(e) = result {
         eprintln!("error: {e:#}");

@@ -1,7 +1,7 @@
 //! `vlf run`: the embedded service. The coordinator (`vlf serve`) and `--workers` workers
 //! (`vlf worker`) in this process, over a local store, talking gRPC on a loopback port: the
 //! distributed service with nothing to set up. Every iteration's batches are leased to the
-//! workers, which write their outputs into the store; the coordinator absorbs them in batch order
+//! workers, which write their outputs into the store; the coordinator absorbs them in order
 //! and commits a snapshot. The result is the same bits as `vlf propagate` and as any number of
 //! workers, in this process or others.
 //!
@@ -12,11 +12,11 @@ use crate::RunArgs;
 use crate::propagate::print_summary;
 use crate::remote;
 use anyhow::{Context, Result, bail};
-use std::time::Instant;
-use vlf_core::scene::{ImportOptions, load_obj};
-use vlf_proto::Target;
+use std::time::{Duration, Instant};
+use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_proto::{JobSpec, Target};
 use vlf_server::{ServeConfig, Server};
-use vlf_store::{FieldJob, JobId, Stage, Store};
+use vlf_store::{FieldJob, JobId, Prototypes, Stage, Store, WorkTraffic};
 use vlf_worker::{StoreChoice, WorkerConfig};
 
 pub fn run(args: RunArgs) -> Result<()> {
@@ -24,108 +24,185 @@ pub fn run(args: RunArgs) -> Result<()> {
         propagate: args,
         workers,
     } = args;
-    if !(1..=64).contains(&workers) {
-        bail!("--workers must be between 1 and 64, got {workers}");
-    }
-    if args.threads == Some(0) || args.threads.is_some_and(|t| t > 1024) {
-        bail!("--threads must be between 1 and 1024");
-    }
     let started = Instant::now();
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    // The cores are shared among the workers; each computes its batches with its share.
-    let per_worker = (threads / workers).max(1);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .context("cannot start the async runtime")?;
-    let (id, store) = runtime.block_on(async {
-        let store = {
-            let url = args.store.clone();
-            vlf_store::blocking(move || Store::open(&url)).await??
-        };
-        let loopback = "127.0.0.1:0".parse().context("loopback address")?;
-        let server = Server::start_with_store(ServeConfig::new(args.store.clone(), loopback), store.clone())
-            .await
-            .context("cannot start the coordinator")?;
-        let target = Target::new(format!("http://{}", server.addr()));
-
-        // The workers first: leases are sized to the workers alive when a pass opens.
-        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-        let handles: Vec<_> = (0..workers)
-            .map(|w| {
-                let config = WorkerConfig {
-                    target: target.clone(),
-                    name: format!("embedded-{w}"),
-                    threads: Some(per_worker),
-                    store: StoreChoice::Handle(store.clone()),
-                    hang_after: None,
-                };
-                let mut stop = stop_rx.clone();
-                tokio::spawn(vlf_worker::run(config, async move {
-                    let _ = stop.wait_for(|s| *s).await;
-                }))
-            })
-            .collect();
-        let registered = Instant::now();
-        while server.scheduler().workers_alive() < workers as u32 && registered.elapsed().as_secs() < 10 {
-            tokio::time::sleep(std::time::Duration::from_millis(2)).await;
+    let job = match &args.resume {
+        Some(id) => EmbeddedJob::Resume(JobId::parse(id).map_err(anyhow::Error::msg)?),
+        None => {
+            let spec = args.job.spec()?;
+            let path = args
+                .scene
+                .clone()
+                .context("a scene is needed unless --resume is given")?;
+            let (scene, warnings) = load_obj(&path, &ImportOptions::default())
+                .with_context(|| format!("cannot import {}", path.display()))?;
+            for w in &warnings {
+                tracing::warn!("{w}");
+            }
+            EmbeddedJob::New(scene, spec)
         }
-
-        let id = match &args.resume {
-            Some(id) => {
-                let id = JobId::parse(id).map_err(anyhow::Error::msg)?;
-                let status = server
-                    .scheduler()
-                    .status(&id)
-                    .with_context(|| format!("no job {id} in {}", args.store))?;
-                println!(
-                    "resuming job {id} in {} after {} iterations",
-                    args.store,
-                    status.snapshots.len().saturating_sub(1)
-                );
-                id
-            }
-            None => {
-                let spec = args.job.spec()?;
-                let path = args
-                    .scene
-                    .clone()
-                    .context("a scene is needed unless --resume is given")?;
-                let (scene, warnings) = vlf_store::blocking(move || {
-                    load_obj(&path, &ImportOptions::default())
-                        .with_context(|| format!("cannot import {}", path.display()))
-                })
-                .await??;
-                for w in &warnings {
-                    tracing::warn!("{w}");
-                }
-                let status = vlf_server::driver::submit(server.scheduler(), scene, spec)
-                    .await
-                    .context("cannot create the job")?;
-                println!("job {} in {}", status.job_id, args.store);
-                JobId::parse(&status.job_id).map_err(anyhow::Error::msg)?
-            }
-        };
-
-        let mut clients = remote::connect(&target).await?;
-        let followed = remote::follow(&mut clients, id.as_str()).await;
-        let _ = stop_tx.send(true);
-        for handle in handles {
-            match handle.await {
-                Ok(Ok(_)) => {}
-                Ok(Err(e)) => tracing::warn!("a worker stopped with an error: {e}"),
-                Err(e) => tracing::warn!("a worker panicked: {e}"),
-            }
-        }
-        server.shutdown().await;
-        followed?;
-        anyhow::Ok((id, store))
-    })?;
-
+    };
+    let store = {
+        let url = args.store.clone();
+        runtime.block_on(vlf_store::blocking(move || Store::open(&url)))??
+    };
+    let done = runtime.block_on(embedded(
+        store,
+        job,
+        Workers {
+            count: workers,
+            threads,
+        },
+        Follow::Progress,
+    ))?;
     // The handle the service used: a `memory://` store lives only in it.
-    let job = FieldJob::open(&store, &id)?;
+    let job = FieldJob::open(&done.store, &done.id)?;
     let summary = job.summary(Stage::Field)?;
     print_summary(&args, &job, &summary, started, f64::NAN, None)
+}
+
+/// The job an embedded service runs.
+pub enum EmbeddedJob {
+    New(Scene, JobSpec),
+    /// A job of the store, resumed from its last finished snapshot.
+    Resume(JobId),
+}
+
+/// Worker replicas in this process, sharing `threads` compute threads.
+#[derive(Clone, Copy, Debug)]
+pub struct Workers {
+    pub count: usize,
+    pub threads: usize,
+}
+
+/// How to wait for the job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Follow {
+    /// Through the API, with progress bars (what `vlf watch` shows).
+    Progress,
+    /// Silently (benchmarks).
+    Quiet,
+}
+
+/// What an embedded run did.
+pub struct Embedded {
+    pub id: JobId,
+    pub store: Store,
+    /// Per iteration: seconds from its start to its snapshot's commit, and the work it moved
+    /// through the store.
+    pub iterations: Vec<(f64, WorkTraffic)>,
+}
+
+/// Runs `job` to its end on a coordinator and `workers` in this process, over `store`, talking
+/// gRPC on a loopback port.
+pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: Follow) -> Result<Embedded> {
+    if !(1..=64).contains(&workers.count) {
+        bail!("--workers must be between 1 and 64, got {}", workers.count);
+    }
+    if !(1..=1024).contains(&workers.threads) {
+        bail!("--threads must be between 1 and 1024");
+    }
+    // The cores are shared among the workers; each computes its batches with its share.
+    let per_worker = (workers.threads / workers.count).max(1);
+    let url = store.url().to_string();
+    let loopback = "127.0.0.1:0".parse().context("loopback address")?;
+    // The coordinator offers every job's geometry to the workers: built once per process.
+    let prototypes = Prototypes::default();
+    let config = ServeConfig {
+        prototypes: Some(prototypes.clone()),
+        ..ServeConfig::new(url.clone(), loopback)
+    };
+    let server = Server::start_with_store(config, store.clone())
+        .await
+        .context("cannot start the coordinator")?;
+    let target = Target::new(format!("http://{}", server.addr()));
+
+    // The workers first: leases are sized to the workers alive when they ask.
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let handles: Vec<_> = (0..workers.count)
+        .map(|w| {
+            let config = WorkerConfig {
+                target: target.clone(),
+                name: format!("embedded-{w}"),
+                threads: Some(per_worker),
+                store: StoreChoice::Handle(store.clone()),
+                hang_after: None,
+                prototypes: Some(prototypes.clone()),
+            };
+            let mut stop = stop_rx.clone();
+            tokio::spawn(vlf_worker::run(config, async move {
+                let _ = stop.wait_for(|s| *s).await;
+            }))
+        })
+        .collect();
+    let registering = Instant::now();
+    while server.scheduler().workers_alive() < workers.count as u32 && registering.elapsed() < Duration::from_secs(10) {
+        tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+
+    let id = match job {
+        EmbeddedJob::Resume(id) => {
+            let status = server
+                .scheduler()
+                .status(&id)
+                .with_context(|| format!("no job {id} in {url}"))?;
+            if follow == Follow::Progress {
+                println!(
+                    "resuming job {id} in {url} after {} iterations",
+                    status.snapshots.len().saturating_sub(1)
+                );
+            }
+            id
+        }
+        EmbeddedJob::New(scene, spec) => {
+            let status = vlf_server::driver::submit(server.scheduler(), scene, spec)
+                .await
+                .context("cannot create the job")?;
+            if follow == Follow::Progress {
+                println!("job {} in {url}", status.job_id);
+            }
+            JobId::parse(&status.job_id).map_err(anyhow::Error::msg)?
+        }
+    };
+
+    let followed = match follow {
+        Follow::Progress => match remote::connect(&target).await {
+            Ok(mut clients) => remote::follow(&mut clients, id.as_str()).await.map(|_| ()),
+            Err(e) => Err(e),
+        },
+        Follow::Quiet => wait_quietly(&server, &id).await,
+    };
+    let _ = stop_tx.send(true);
+    for handle in handles {
+        match handle.await {
+            Ok(Ok(_)) => {}
+            Ok(Err(e)) => tracing::warn!("a worker stopped with an error: {e}"),
+            Err(e) => tracing::warn!("a worker panicked: {e}"),
+        }
+    }
+    let iterations = server.scheduler().iterations(&id).unwrap_or_default();
+    server.shutdown().await;
+    followed?;
+    Ok(Embedded { id, store, iterations })
+}
+
+/// Waits for the job's last status; an error unless it finished.
+async fn wait_quietly(server: &Server, id: &JobId) -> Result<()> {
+    let mut rx = server.scheduler().subscribe(id)?;
+    loop {
+        let status = rx.borrow_and_update().clone();
+        if vlf_server::scheduler::is_terminal(status.state) {
+            if status.state == vlf_proto::v1::State::Finished as i32 {
+                return Ok(());
+            }
+            bail!("job {id} ended {:?}: {}", status.state(), status.message);
+        }
+        rx.changed().await.context("the coordinator stopped")?;
+    }
 }

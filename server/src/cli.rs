@@ -66,6 +66,7 @@ impl ServeArgs {
                 max_lease_batches: self.max_lease_batches as usize,
             },
             max_upload_bytes: self.max_upload_bytes,
+            prototypes: None,
         })
     }
 }

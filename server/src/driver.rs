@@ -152,13 +152,15 @@ fn start(sched: &Arc<Scheduler>, coordinator: Coordinator) {
             return;
         }
     };
+    if let Some(prototypes) = sched.prototypes() {
+        prototypes.insert(coordinator.job().id().clone(), coordinator.propagation().clone());
+    }
     let resample = coordinator.job().job().manifest().resample;
     let driver = Driver {
         sched: sched.clone(),
         wake,
         id: coordinator.job().id().clone(),
         coordinator: Some(coordinator),
-        traffic: Default::default(),
     };
     tokio::spawn(driver.run(resample));
 }
@@ -169,8 +171,6 @@ struct Driver {
     id: JobId,
     /// Out while a blocking step has it.
     coordinator: Option<Coordinator>,
-    /// Work moved through the store by the iterations this driver finished.
-    traffic: vlf_store::WorkTraffic,
 }
 
 /// How a job's drive ended early.
@@ -185,11 +185,18 @@ impl Driver {
             Ok(()) => self.finish(resample).await.err().map(Stop::Failed),
             Err(stop) => Some(stop),
         };
+        if let Some(prototypes) = self.sched.prototypes() {
+            prototypes.remove(&self.id);
+        }
         let Some(stop) = ended else {
+            let iterations = self.sched.iterations(&self.id).unwrap_or_default();
+            let (blobs, bytes) = iterations
+                .iter()
+                .fold((0, 0), |(n, b), (_, t)| (n + t.blobs, b + t.bytes));
             tracing::info!(
                 job = %self.id,
-                work_blobs = self.traffic.blobs,
-                work_mb = format!("{:.2}", self.traffic.bytes as f64 / 1e6),
+                work_blobs = blobs,
+                work_mb = format!("{:.2}", bytes as f64 / 1e6),
                 "job finished"
             );
             return;
@@ -272,23 +279,21 @@ impl Driver {
                 .await
                 .map_err(Stop::Failed)?
                 .map_err(|e| Stop::Failed(format!("cannot commit snapshot {}: {e}", k + 1)))?;
-            self.sched.end_iteration(&self.id);
-            let unshot = self
-                .coordinator
-                .as_ref()
-                .map(|c| c.propagation().unshot_fraction())
-                .unwrap_or(f64::NAN);
             let traffic = self
                 .coordinator
                 .as_ref()
                 .and_then(|c| c.traffic().last().copied())
                 .unwrap_or_default();
+            self.sched.end_iteration(&self.id, traffic);
+            let unshot = self
+                .coordinator
+                .as_ref()
+                .map(|c| c.propagation().unshot_fraction())
+                .unwrap_or(f64::NAN);
             self.sched.update(&self.id, |s| {
                 s.snapshots.push(k + 1);
                 s.unshot_fraction = unshot;
             });
-            self.traffic.blobs += traffic.blobs;
-            self.traffic.bytes += traffic.bytes;
             tracing::info!(
                 job = %self.id,
                 snapshot = k + 1,

@@ -35,7 +35,7 @@ use tokio::sync::{Notify, watch};
 use vlf_core::propagate::Pass;
 use vlf_core::propagate::reduce::is_aligned_block;
 use vlf_proto::v1::{JobStatus, State as WireState};
-use vlf_store::{JobId, Store};
+use vlf_store::{JobId, Prototypes, Store, WorkTraffic};
 
 /// How long leases last and how often workers must be heard from.
 #[derive(Clone, Copy, Debug)]
@@ -96,6 +96,8 @@ pub enum Unknown {
 pub struct Scheduler {
     store: Store,
     timing: Timing,
+    /// Where jobs' propagations are offered to workers in this process, if any share it.
+    prototypes: Option<Prototypes>,
     state: Mutex<State>,
     /// Woken when batches become pending (a pass starts, a lease expires or fails).
     work_ready: Notify,
@@ -136,8 +138,9 @@ struct Clock {
     directions: usize,
     /// Batches per pass.
     batches_per_pass: usize,
-    /// Durations of the iterations this coordinator finished.
+    /// Durations of the iterations this coordinator finished, and their work traffic.
     iteration_seconds: Vec<f64>,
+    traffic: Vec<WorkTraffic>,
     /// Compute seconds per batch of the last block reported (sizes the next passes' blocks).
     batch_seconds: Option<f64>,
 }
@@ -184,10 +187,13 @@ struct LeaseEntry {
 const MAX_BATCH_FAILURES: u32 = 3;
 
 impl Scheduler {
-    pub fn new(store: Store, timing: Timing) -> Arc<Scheduler> {
+    /// A scheduler over `store`; with `prototypes`, every job's propagation is offered there to
+    /// workers of this process (see [`Prototypes`]).
+    pub fn new(store: Store, timing: Timing, prototypes: Option<Prototypes>) -> Arc<Scheduler> {
         Arc::new(Scheduler {
             store,
             timing,
+            prototypes,
             state: Mutex::new(State {
                 jobs: HashMap::new(),
                 workers: HashMap::new(),
@@ -200,6 +206,10 @@ impl Scheduler {
 
     pub fn store(&self) -> &Store {
         &self.store
+    }
+
+    pub fn prototypes(&self) -> Option<&Prototypes> {
+        self.prototypes.as_ref()
     }
 
     pub fn timing(&self) -> Timing {
@@ -242,6 +252,7 @@ impl Scheduler {
                     directions: 0,
                     batches_per_pass: 0,
                     iteration_seconds: Vec::new(),
+                    traffic: Vec::new(),
                     batch_seconds: None,
                 },
             },
@@ -302,13 +313,29 @@ impl Scheduler {
     }
 
     /// Records that the current iteration ended (for the job's ETA).
-    pub fn end_iteration(&self, job: &JobId) {
+    /// `traffic` is what the iteration moved through the store.
+    pub fn end_iteration(&self, job: &JobId, traffic: WorkTraffic) {
         let mut state = self.lock();
         if let Some(entry) = state.jobs.get_mut(job) {
             let seconds = entry.clock.iteration_started.elapsed().as_secs_f64();
             entry.clock.iteration_seconds.push(seconds);
+            entry.clock.traffic.push(traffic);
             entry.passes.clear();
         }
+    }
+
+    /// The iterations this coordinator finished for `job`: how long each took, from its start to
+    /// its snapshot's commit, and what it moved through the store.
+    pub fn iterations(&self, job: &JobId) -> Result<Vec<(f64, WorkTraffic)>, Unknown> {
+        let state = self.lock();
+        let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
+        let clock = &entry.clock;
+        Ok(clock
+            .iteration_seconds
+            .iter()
+            .copied()
+            .zip(clock.traffic.iter().copied())
+            .collect())
     }
 
     /// Opens `pass` of the iteration after `snapshot`, `batches` batches, for leasing after the
@@ -827,6 +854,7 @@ mod tests {
                 heartbeat: Duration::from_secs(60),
                 max_lease_batches: 1024,
             },
+            None,
         )
     }
 

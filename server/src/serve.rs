@@ -14,7 +14,7 @@ use tonic::service::Interceptor;
 use tonic::transport::{Identity, ServerTlsConfig};
 use tonic::{Request, Status};
 use vlf_proto::v1::{jobs_server::JobsServer, tiles_server::TilesServer, workers_server::WorkersServer};
-use vlf_store::{Store, StoreError};
+use vlf_store::{Prototypes, Store, StoreError};
 
 /// A certificate chain and its private key, PEM files.
 #[derive(Clone, Debug)]
@@ -37,6 +37,9 @@ pub struct ServeConfig {
     pub timing: Timing,
     /// Largest scene upload accepted, bytes.
     pub max_upload_bytes: u64,
+    /// Workers in this process take their jobs' geometry from here instead of building it
+    /// (`vlf run`).
+    pub prototypes: Option<Prototypes>,
 }
 
 impl ServeConfig {
@@ -52,6 +55,7 @@ impl ServeConfig {
             tls: None,
             timing: Timing::default(),
             max_upload_bytes: Self::MAX_UPLOAD_BYTES,
+            prototypes: None,
         }
     }
 }
@@ -101,7 +105,7 @@ impl Server {
             }
             t => t.clone(),
         };
-        let scheduler = Scheduler::new(store, config.timing);
+        let scheduler = Scheduler::new(store, config.timing, config.prototypes.clone());
         let resumed = driver::recover(&scheduler).await?;
         if resumed > 0 {
             tracing::info!(resumed, "took up unfinished jobs of the store");

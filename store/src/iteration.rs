@@ -25,10 +25,13 @@
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;
 use crate::field::FieldJob;
+use crate::id::JobId;
 use crate::layout;
 use crate::manifest::JobState;
 use crate::store::PutOutcome;
+use std::collections::HashMap;
 use std::ops::Range;
+use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use vlf_core::propagate::reduce::is_aligned_block;
 use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, Pass, Propagation};
@@ -103,6 +106,42 @@ impl FieldJob {
             job: self.id().to_string(),
             source: vlf_core::Error::Decode(format!("`{key}`: {reason}")),
         }
+    }
+}
+
+/// Propagations of jobs built in this process, for replicas to clone instead of building the
+/// geometry again — a coordinator and workers sharing a process (`vlf run`). The geometry is a
+/// pure function of the job's scene and options, and a replica restores its state from the store
+/// before every iteration, so a clone gives the same bits as a replica built from the store.
+#[derive(Clone, Default)]
+pub struct Prototypes(Arc<Mutex<HashMap<JobId, Propagation>>>);
+
+impl Prototypes {
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<JobId, Propagation>> {
+        // Plain data: a panic elsewhere cannot leave it half-changed.
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Offers `prop`, a propagation of job `id`, to the replicas of this process.
+    pub fn insert(&self, id: JobId, prop: Propagation) {
+        self.lock().insert(id, prop);
+    }
+
+    /// A copy of job `id`'s propagation, if one was offered.
+    pub fn get(&self, id: &JobId) -> Option<Propagation> {
+        self.lock().get(id).cloned()
+    }
+
+    /// Withdraws job `id`'s propagation (the job ended).
+    pub fn remove(&self, id: &JobId) {
+        self.lock().remove(id);
+    }
+}
+
+impl std::fmt::Debug for Prototypes {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let jobs: Vec<String> = self.lock().keys().map(|id| id.to_string()).collect();
+        f.debug_tuple("Prototypes").field(&jobs).finish()
     }
 }
 

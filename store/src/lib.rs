@@ -27,7 +27,7 @@ pub use blob::{BlobError, BlobKind, Data, Decoded, Encoding};
 pub use error::StoreError;
 pub use field::{FieldJob, Summary};
 pub use id::JobId;
-pub use iteration::{Coordinator, Replica, WorkTraffic};
+pub use iteration::{Coordinator, Prototypes, Replica, WorkTraffic};
 pub use job::Job;
 pub use layout::Stage;
 pub use manifest::{JobState, Manifest};

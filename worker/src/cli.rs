@@ -54,6 +54,7 @@ impl WorkerArgs {
                 None => StoreChoice::FromServer,
             },
             hang_after: self.hang_after_leases,
+            prototypes: None,
         })
     }
 }

@@ -40,6 +40,8 @@ pub struct WorkerConfig {
     /// Test hook: after this many leases, take one more and stall for ever (never report), as a
     /// hung machine would.
     pub hang_after: Option<u64>,
+    /// Propagations offered by a coordinator in this process: cloned instead of built.
+    pub prototypes: Option<vlf_store::Prototypes>,
 }
 
 /// Why a worker stopped.
@@ -68,6 +70,7 @@ pub struct WorkerStats {
 struct Replicas {
     store: Option<(String, Store)>,
     jobs: Vec<(JobId, Replica)>,
+    prototypes: Option<vlf_store::Prototypes>,
 }
 
 const CACHED_JOBS: usize = 2;
@@ -97,7 +100,11 @@ impl Replicas {
                 self.jobs.insert(0, entry);
             }
             None => {
-                let replica = Replica::new(FieldJob::open(store, job)?)?;
+                let opened = FieldJob::open(store, job)?;
+                let replica = match self.prototypes.as_ref().and_then(|p| p.get(job)) {
+                    Some(prop) => Replica::with_propagation(opened, prop),
+                    None => Replica::new(opened)?,
+                };
                 self.jobs.insert(0, (job.clone(), replica));
                 self.jobs.truncate(CACHED_JOBS);
             }
@@ -132,6 +139,7 @@ pub async fn run(
     let replicas = Arc::new(Mutex::new(Replicas {
         store: None,
         jobs: Vec::new(),
+        prototypes: config.prototypes.clone(),
     }));
     let mut stats = WorkerStats::default();
     let mut backoff = Duration::from_millis(50);
@@ -233,6 +241,16 @@ async fn lease_loop(
         let started = Instant::now();
         let result = compute(store, pool, replicas, &lease).await;
         let seconds = started.elapsed().as_secs_f64();
+        tracing::debug!(
+            lease = lease.lease_id,
+            snapshot = lease.snapshot,
+            pass = lease.pass_kind,
+            copy = lease.pass_copy,
+            batch = lease.batch,
+            count = lease.batch_count,
+            ms = format!("{:.1}", seconds * 1e3),
+            "lease computed"
+        );
         match &result {
             Ok(()) => {
                 stats.batches += 1;

@@ -223,6 +223,7 @@ pub struct Progress {
 use work::CHUNK;
 
 /// A propagation in progress: the field's geometry plus the radiosity maps.
+#[derive(Clone)]
 pub struct Propagation {
     pub scene: Scene,
     pub options: Options,

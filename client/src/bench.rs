@@ -1,0 +1,240 @@
+//! `vlf bench`: what the distributed service costs over an in-process propagation.
+//!
+//! The same job (scene and parameters) runs `--repeat` times each way, interleaved so that a
+//! noisy machine spreads its noise evenly: `vlf propagate`'s loop in this process (setup, every
+//! iteration, every snapshot written into a `memory://` store) and the embedded service (`vlf
+//! run`: a coordinator and `--workers` workers in this process talking gRPC on loopback, every
+//! batch output going through a `memory://` store). The `memory://` store keeps the disk's latency
+//! out of the comparison; what is left is the service's own cost: leases, encoding and moving
+//! the batch outputs, the coordinator's absorbing, and each worker building its geometry.
+//!
+//! Reported per way: the median and fastest wall time, the ratio of the medians to the
+//! in-process run, the median time of every iteration, and the work each iteration moved through
+//! the store (blobs and MB). Every service run's last checkpoint is checked bit for bit against
+//! the in-process one.
+
+use crate::JobFlags;
+use crate::run::{Embedded, EmbeddedJob, Follow, Workers, embedded};
+use anyhow::{Context, Result, bail};
+use clap::Args;
+use std::fmt::Write as _;
+use std::path::PathBuf;
+use std::time::Instant;
+use vlf_core::propagate::{Checkpoint, Propagation};
+use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_proto::JobSpec;
+use vlf_store::{FieldJob, Store, WorkTraffic};
+
+#[derive(Args)]
+pub struct BenchArgs {
+    /// Wavefront OBJ scene.
+    scene: PathBuf,
+    #[command(flatten)]
+    job: JobFlags,
+    /// Worker counts of the service runs, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "1,2")]
+    workers: Vec<usize>,
+    /// Runs of each way (the median is reported).
+    #[arg(long, default_value_t = 5)]
+    repeat: usize,
+    /// Compute threads (default: all cores), shared by a service run's workers.
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Also write the report (Markdown) to this file.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+/// One run of one way.
+struct Sample {
+    seconds: f64,
+    iterations: Vec<(f64, WorkTraffic)>,
+}
+
+pub fn run(args: BenchArgs) -> Result<()> {
+    if !(1..=100).contains(&args.repeat) {
+        bail!("--repeat must be between 1 and 100, got {}", args.repeat);
+    }
+    if args.workers.is_empty() || args.workers.iter().any(|w| !(1..=64).contains(w)) {
+        bail!("--workers must list counts between 1 and 64");
+    }
+    let threads = match args.threads {
+        Some(t) if (1..=1024).contains(&t) => t,
+        Some(t) => bail!("--threads must be between 1 and 1024, got {t}"),
+        None => std::thread::available_parallelism().map_or(1, |n| n.get()),
+    };
+    let spec = args.job.spec()?;
+    let (scene, _) = load_obj(&args.scene, &ImportOptions::default())
+        .with_context(|| format!("cannot import {}", args.scene.display()))?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .context("cannot start the compute threads")?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("cannot start the async runtime")?;
+
+    let ways: Vec<Option<usize>> = std::iter::once(None)
+        .chain(args.workers.iter().copied().map(Some))
+        .collect();
+    let mut samples: Vec<Vec<Sample>> = ways.iter().map(|_| Vec::new()).collect();
+    let mut reference: Option<Checkpoint> = None;
+    let bar = indicatif::ProgressBar::new((args.repeat * ways.len()) as u64);
+    for _ in 0..args.repeat {
+        for (way, workers) in ways.iter().enumerate() {
+            let (sample, last) = match workers {
+                None => pool.install(|| in_process(&scene, &spec))?,
+                Some(count) => service(&runtime, &scene, &spec, Workers { count: *count, threads })?,
+            };
+            let last = without_times(last);
+            match &reference {
+                None => reference = Some(last),
+                Some(r) if *r != last => {
+                    bail!("the service with {workers:?} workers changed the bits of the field")
+                }
+                Some(_) => {}
+            }
+            samples[way].push(sample);
+            bar.inc(1);
+        }
+    }
+    bar.finish_and_clear();
+
+    let report = report(&args, threads, &ways, &samples);
+    print!("{report}");
+    if let Some(path) = &args.out {
+        std::fs::write(path, &report).with_context(|| format!("cannot write {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// `vlf propagate`'s loop into a `memory://` store.
+fn in_process(scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
+    let started = Instant::now();
+    let store = Store::open("memory://")?;
+    let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
+    let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
+    let mut iterations = Vec::new();
+    while !prop.finished() {
+        let t = Instant::now();
+        prop.step(|_| {});
+        job.write_snapshot(&prop)?;
+        iterations.push((t.elapsed().as_secs_f64(), WorkTraffic::default()));
+    }
+    let last = prop.checkpoint();
+    job.finish(&prop.into_field(), false)?;
+    let seconds = started.elapsed().as_secs_f64();
+    Ok((Sample { seconds, iterations }, last))
+}
+
+/// The embedded service over a `memory://` store.
+fn service(
+    runtime: &tokio::runtime::Runtime,
+    scene: &Scene,
+    spec: &JobSpec,
+    workers: Workers,
+) -> Result<(Sample, Checkpoint)> {
+    let started = Instant::now();
+    let store = Store::open("memory://")?;
+    let job = EmbeddedJob::New(scene.clone(), spec.clone());
+    let Embedded { id, store, iterations } = runtime.block_on(embedded(store, job, workers, Follow::Quiet))?;
+    let seconds = started.elapsed().as_secs_f64();
+    let job = FieldJob::open(&store, &id)?;
+    let last = job.checkpoint(iterations.len() as u32)?;
+    Ok((Sample { seconds, iterations }, last))
+}
+
+fn without_times(mut c: Checkpoint) -> Checkpoint {
+    for s in &mut c.stats {
+        s.seconds = 0.0;
+    }
+    c
+}
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    match v.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => v[n / 2],
+        n => (v[n / 2 - 1] + v[n / 2]) / 2.0,
+    }
+}
+
+fn name(workers: Option<usize>) -> String {
+    match workers {
+        None => "in-process".into(),
+        Some(1) => "service, 1 worker".into(),
+        Some(w) => format!("service, {w} workers"),
+    }
+}
+
+/// The Markdown report.
+fn report(args: &BenchArgs, threads: usize, ways: &[Option<usize>], samples: &[Vec<Sample>]) -> String {
+    let mut out = String::new();
+    let cpu = cpu_name().unwrap_or_else(|| "unknown CPU".into());
+    let _ = writeln!(
+        out,
+        "# vlf bench: {} (l = {}, N = {}, m = {})\n",
+        args.scene.display(),
+        args.job.directions,
+        args.job.resolution,
+        args.job.tile
+    );
+    let _ = writeln!(
+        out,
+        "{threads} threads on {cpu}; `memory://` store; median of {} runs each, interleaved. \
+         Every service run gave the in-process bits.\n",
+        args.repeat
+    );
+    let base = median(samples[0].iter().map(|s| s.seconds).collect());
+    let _ = writeln!(out, "| run | median s | fastest s | × in-process |");
+    let _ = writeln!(out, "|---|---:|---:|---:|");
+    for (way, runs) in ways.iter().zip(samples) {
+        let times: Vec<f64> = runs.iter().map(|s| s.seconds).collect();
+        let fastest = times.iter().copied().fold(f64::INFINITY, f64::min);
+        let m = median(times);
+        let _ = writeln!(out, "| {} | {m:.3} | {fastest:.3} | {:.2} |", name(*way), m / base);
+    }
+
+    let _ = writeln!(
+        out,
+        "\nPer iteration (median seconds; work through the store, per service run):\n"
+    );
+    let mut header = "| iteration |".to_string();
+    let mut rule = "|---:|".to_string();
+    for way in ways {
+        let _ = write!(header, " {} s |", name(*way));
+        rule.push_str("---:|");
+    }
+    for way in &ways[1..] {
+        let _ = write!(header, " {} blobs / MB |", name(*way));
+        rule.push_str("---:|");
+    }
+    let _ = writeln!(out, "{header}\n{rule}");
+    let count = samples[0].first().map_or(0, |s| s.iterations.len());
+    for k in 0..count {
+        let mut row = format!("| {} |", k + 1);
+        for runs in samples {
+            let t = median(runs.iter().filter_map(|s| s.iterations.get(k).map(|i| i.0)).collect());
+            let _ = write!(row, " {t:.3} |");
+        }
+        for runs in &samples[1..] {
+            let traffic = runs
+                .first()
+                .and_then(|s| s.iterations.get(k))
+                .map(|i| i.1)
+                .unwrap_or_default();
+            let _ = write!(row, " {} / {:.2} |", traffic.blobs, traffic.bytes as f64 / 1e6);
+        }
+        let _ = writeln!(out, "{row}");
+    }
+    out
+}
+
+/// The CPU's model name (Linux).
+fn cpu_name() -> Option<String> {
+    let info = std::fs::read_to_string("/proc/cpuinfo").ok()?;
+    let line = info.lines().find(|l| l.starts_with("model name"))?;
+    Some(line.split_once(':')?.1.trim().to_string())
+}
