@@ -432,6 +432,68 @@ fn embedded_service_matches_propagate_bit_for_bit() {
         "0",
     ]);
     assert!(!o.status.success() && stderr(&o).contains("--workers"));
+    // A `memory://` store lives in the process: the summary reads it through the same handle.
+    let mut args = vec!["run", mirrors.as_str(), "--store", "memory://"];
+    args.extend(params);
+    let o = vlf(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(String::from_utf8_lossy(&o.stdout).contains("unshot fraction"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
+    let dir = temp("bench");
+    std::fs::create_dir_all(&dir).unwrap();
+    let report = dir.join("bench.md");
+    let cornell = scene("cornell.obj");
+    let args = [
+        "bench",
+        cornell.as_str(),
+        "--directions",
+        "33",
+        "--resolution",
+        "16",
+        "--tile",
+        "4",
+        "--iterations",
+        "3",
+        "--repeat",
+        "2",
+        "--workers",
+        "1,2",
+        "--out",
+        report.to_str().unwrap(),
+    ];
+    let o = vlf(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let printed = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert_eq!(std::fs::read_to_string(&report).unwrap(), printed);
+    assert!(
+        printed.contains("Every service run gave the in-process bits"),
+        "{printed}"
+    );
+    for way in ["| in-process | ", "| service, 1 worker | ", "| service, 2 workers | "] {
+        assert!(printed.contains(way), "{way} missing:\n{printed}");
+    }
+    // One row per iteration, with the work each service run moved (perturbed: several blobs).
+    let rows: Vec<&str> = printed
+        .lines()
+        .filter(|l| l.starts_with("| 1 |") || l.starts_with("| 2 |") || l.starts_with("| 3 |"))
+        .collect();
+    assert_eq!(rows.len(), 3, "{printed}");
+    assert!(!printed.contains("| 4 |"));
+    assert!(rows[0].ends_with("MB |") || rows[0].contains(" / "), "{}", rows[0]);
+    for bad in [["--repeat", "0"], ["--workers", "0"], ["--threads", "0"]] {
+        let mut a = args[..2].to_vec();
+        a.extend(bad);
+        let o = vlf(&a);
+        assert!(
+            !o.status.success() && stderr(&o).contains(bad[0]),
+            "{bad:?}: {}",
+            stderr(&o)
+        );
+    }
     let _ = std::fs::remove_dir_all(&dir);
 }
 

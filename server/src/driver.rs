@@ -1,12 +1,13 @@
-//! One task per job: it walks the job's iterations and passes, opening each pass for leasing,
-//! waiting at the barrier, absorbing the pass from the store in batch order, and committing a
-//! snapshot after every iteration — [`vlf_store::Coordinator`]'s protocol, with the batches
-//! computed by remote workers instead of local threads.
+//! One task per job: it walks the job's iterations and passes, opening each pass for leasing as
+//! soon as its prerequisites are absorbed, absorbing every block from the store in order as soon
+//! as it is reported, and committing a snapshot after every iteration —
+//! [`vlf_store::Coordinator`]'s protocol, with the blocks computed by remote workers instead of
+//! local threads.
 //!
 //! A coordinator that restarts calls [`recover`]: every job of the store that was queued or
-//! propagating is resumed from its last finished snapshot (`Coordinator::resume`), and batches
-//! of the interrupted iteration that workers had already written are used as they are (a batch's
-//! output is a pure function of the job and the batch, so they are the same bytes a new
+//! propagating is resumed from its last finished snapshot (`Coordinator::resume`), and blocks
+//! of the interrupted iteration that workers had already written are used as they are (a block's
+//! output is a pure function of the job and the block, so they are the same bytes a new
 //! computation would write).
 
 use crate::scheduler::{PassOutcome, Scheduler};

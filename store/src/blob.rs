@@ -75,7 +75,8 @@ pub enum BlobKind {
     Raw = 7,
     /// A stage's summary (JSON): iterations, unshot power, statistics.
     Summary = 8,
-    /// The output of one batch of directions of one pass of an iteration (caller's serialisation).
+    /// The output of one block of batches of directions of one pass of an iteration (caller's
+    /// serialisation).
     BatchOutput = 9,
 }
 

@@ -1,26 +1,28 @@
-//! An iteration through the store: workers compute batches of directions and write their
-//! outputs into the job; the coordinator absorbs them in batch order and commits the next
+//! An iteration through the store: workers compute blocks of batches of directions and write
+//! their outputs into the job; the coordinator absorbs them in order and commits the next
 //! snapshot. This is the data path of the distributed service — the coordinator moves no
-//! radiance over the network, only which batches to compute (leases) — and it is usable
+//! radiance over the network, only which blocks to compute (leases) — and it is usable
 //! in-process as well, with threads for workers.
 //!
 //! The protocol for the iteration that starts from snapshot `k` (see `vlf_core::propagate::work`
-//! for passes and batches):
+//! for passes and batches, `vlf_core::propagate::reduce` for blocks):
 //!
 //! 1. Every batch of a pass is computed by some [`Replica`] (a worker's copy of the
 //!    propagation, restored from the checkpoint of snapshot `k`) once the pass's prerequisites
-//!    are absorbed, and written to `jobs/J/work/KKKKK/PASS/BBBBB.blob`. Writes are create-only;
-//!    a batch computed twice (a lease that expired and was handed out again, a late result)
-//!    writes the same bytes, which the store accepts as unchanged — and different bytes would be
-//!    an error, never a silent replacement.
-//! 2. The [`Coordinator`] reads the batches in pass and batch order and absorbs each as soon as
+//!    are absorbed, as part of an aligned block whose node sum is written to
+//!    `jobs/J/work/KKKKK/PASS/SSSSS-EEEEE.blob`. Writes are create-only; a block computed twice
+//!    (a lease that expired and was handed out again, a late result) writes the same bytes,
+//!    which the store accepts as unchanged — and different bytes would be an error, never a
+//!    silent replacement.
+//! 2. The [`Coordinator`] reads the blocks in pass and batch order and absorbs each as soon as
 //!    it is written (the next ones are still being computed meanwhile); replicas read the
-//!    batches of a pass's prerequisites to learn what it needs (a rotated copy's areas).
+//!    blocks of a pass's prerequisites to learn what it needs (a rotated copy's areas).
 //! 3. After the last pass the coordinator finishes the iteration (mirror exchange, diffuse
-//!    reflection), commits snapshot `k + 1`, and deletes the iteration's batch outputs.
+//!    reflection), commits snapshot `k + 1`, and deletes the iteration's outputs.
 //!
-//! The bits do not depend on which replica computed which batch, or when: tested with several
-//! replicas in threads, batches assigned in a shuffled order and some computed twice.
+//! The bits do not depend on which replica computed which block, how large the blocks were, or
+//! when: tested with several replicas in threads, blocks of 1, 2 and 4 batches assigned in a
+//! shuffled order and some computed twice.
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;

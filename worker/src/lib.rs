@@ -1,6 +1,7 @@
-//! A VLF worker: registers with a coordinator, heartbeats, and loops over leases — each one batch
-//! of directions of one pass of one iteration of one job — computing the batch from the store
-//! with all its cores (rayon) and writing the output back into the store before it reports.
+//! A VLF worker: registers with a coordinator, heartbeats, and loops over leases — each one
+//! aligned block of batches of directions of one pass of one iteration of one job — computing the
+//! block from the store with all its cores (rayon) and writing its output back into the store
+//! before it reports.
 //!
 //! Stateless: everything a lease needs is in the store (the job's scene, options and the
 //! checkpoint its iteration starts from); the geometry of the last jobs seen is kept only as a
