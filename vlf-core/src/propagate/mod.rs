@@ -434,12 +434,13 @@ impl Propagation {
             (Some(spec), true) => Some(std::mem::take(&mut spec.maps)),
             _ => None,
         };
+        let mut buffers = Vec::new();
         for (p, &pass) in passes.iter().enumerate() {
             for batch in 0..work.batches() {
                 let range = work.batch_range(batch, l);
                 let own = maps.as_mut().map(|m| &mut m[range.clone()]);
                 let sum = self
-                    .run_batch(&work, pass, batch, own)
+                    .run_batch_with(&work, pass, batch, own, &mut buffers)
                     .expect("batches of this process's own work are well-formed");
                 work.absorb(pass, batch..batch + 1, sum)
                     .expect("this process absorbs its batches in order");

@@ -417,6 +417,21 @@ impl Propagation {
         batch: usize,
         maps: Option<&mut [DirectionMaps]>,
     ) -> crate::Result<BatchSum> {
+        self.run_batch_with(work, pass, batch, maps, &mut Vec::new())
+    }
+
+    /// [`Propagation::run_batch`] with `buffers`, the per-direction texel
+    /// buffers of a chunk, kept by the caller from batch to batch: allocating
+    /// them afresh for every direction (a few hundred kB each) made the
+    /// kernel map and fault in pages faster than the propagation used them.
+    pub(crate) fn run_batch_with(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batch: usize,
+        maps: Option<&mut [DirectionMaps]>,
+        buffers: &mut Vec<Vec<Rgb>>,
+    ) -> crate::Result<BatchSum> {
         let range = work.batch_range(batch, self.directions.len());
         if range.is_empty() {
             return Err(crate::Error::Parameter(format!(
@@ -433,14 +448,22 @@ impl Propagation {
         let scene = &self.scene;
         let facing =
             |sub: &Subfield| -> Vec<f64> { scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect() };
+        let clear = |buf: &mut Vec<Rgb>| {
+            buf.clear();
+            buf.resize(texels, [0.0; 3]);
+        };
         // The batch's directions, CHUNK at a time: each chunk's directions in
-        // parallel, then added to the sum in direction order.
-        let compute =
-            |range: Range<usize>, maps: Option<&mut [DirectionMaps]>| -> crate::Result<Vec<(Vec<Rgb>, Flow)>> {
-                Ok(match (pass, &work.mode) {
-                    (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
-                        let layouts = self.specular.as_ref().map(|s| &s.layouts);
-                        let run = |d: usize, maps: Option<&mut DirectionMaps>, scratch: &mut Scratch| {
+        // parallel, each into its own buffer, then added to the sum in
+        // direction order.
+        let compute = |range: Range<usize>,
+                       maps: Option<&mut [DirectionMaps]>,
+                       bufs: &mut [Vec<Rgb>]|
+         -> crate::Result<Vec<Flow>> {
+            Ok(match (pass, &work.mode) {
+                (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
+                    let layouts = self.specular.as_ref().map(|s| &s.layouts);
+                    let run =
+                        |d: usize, maps: Option<&mut DirectionMaps>, buf: &mut Vec<Rgb>, scratch: &mut Scratch| {
                             let sub = &self.subfields[d];
                             let facing = facing(sub);
                             let beam = shoot::Beam {
@@ -448,83 +471,85 @@ impl Propagation {
                                 weight: self.directions.get(d).weight,
                                 facing: &facing,
                             };
-                            let mut buf = vec![[0.0; 3]; texels];
+                            clear(buf);
                             let io = maps.zip(layouts).map(|(m, layouts)| shoot::SpecularIo {
                                 mirror_base: &layouts[d].entry_base,
                                 unshot: &m.unshot,
                                 incident: &mut m.incident,
                                 total: &mut m.total,
                             });
-                            let flow = shoot::shoot(geometry, beam, radiance, &mut buf, io, scratch);
-                            (buf, flow)
+                            shoot::shoot(geometry, beam, radiance, buf, io, scratch)
                         };
-                        match (mirrors, maps) {
-                            (true, Some(maps)) => maps
-                                .par_iter_mut()
-                                .enumerate()
-                                .map_init(Scratch::default, |scratch, (i, m)| {
-                                    run(range.start + i, Some(m), scratch)
-                                })
-                                .collect(),
-                            (true, None) => {
-                                return Err(crate::Error::Parameter(format!(
-                                    "batch {batch} needs the mirror maps of its directions"
-                                )));
-                            }
-                            (false, _) => range
-                                .clone()
-                                .into_par_iter()
-                                .map_init(Scratch::default, |scratch, d| run(d, None, scratch))
-                                .collect(),
-                        }
-                    }
-                    (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
-                        let set = &copies[copy as usize];
-                        range
-                            .clone()
-                            .into_par_iter()
-                            .map_init(Scratch::default, |scratch, d| {
-                                let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
-                                let mut buf = vec![[0.0; 3]; texels];
-                                shoot::count(geometry, &sub, set.get(d).weight, &mut buf, scratch);
-                                (buf, Flow::default())
+                    match (mirrors, maps) {
+                        (true, Some(maps)) => maps
+                            .par_iter_mut()
+                            .zip(bufs.par_iter_mut())
+                            .enumerate()
+                            .map_init(Scratch::default, |scratch, (i, (m, buf))| {
+                                run(range.start + i, Some(m), buf, scratch)
                             })
-                            .collect()
-                    }
-                    (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. })
-                        if (copy as usize) < copies.len() =>
-                    {
-                        let set = &copies[copy as usize];
-                        let Some(radiance) = &radiance[copy as usize] else {
+                            .collect(),
+                        (true, None) => {
                             return Err(crate::Error::Parameter(format!(
-                                "{pass:?} before the areas of copy {copy} are absorbed"
+                                "batch {batch} needs the mirror maps of its directions"
                             )));
-                        };
-                        range
+                        }
+                        (false, _) => range
                             .clone()
                             .into_par_iter()
-                            .map_init(Scratch::default, |scratch, d| {
-                                let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
-                                let facing = facing(&sub);
-                                let beam = shoot::Beam {
-                                    sub: &sub,
-                                    weight: set.get(d).weight,
-                                    facing: &facing,
-                                };
-                                let mut buf = vec![[0.0; 3]; texels];
-                                let flow = shoot::shoot(geometry, beam, radiance, &mut buf, None, scratch);
-                                (buf, flow)
-                            })
-                            .collect()
+                            .zip(bufs.par_iter_mut())
+                            .map_init(Scratch::default, |scratch, (d, buf)| run(d, None, buf, scratch))
+                            .collect(),
                     }
-                    _ => {
+                }
+                (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
+                    let set = &copies[copy as usize];
+                    range
+                        .clone()
+                        .into_par_iter()
+                        .zip(bufs.par_iter_mut())
+                        .map_init(Scratch::default, |scratch, (d, buf)| {
+                            let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                            clear(buf);
+                            shoot::count(geometry, &sub, set.get(d).weight, buf, scratch);
+                            Flow::default()
+                        })
+                        .collect()
+                }
+                (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. })
+                    if (copy as usize) < copies.len() =>
+                {
+                    let set = &copies[copy as usize];
+                    let Some(radiance) = &radiance[copy as usize] else {
                         return Err(crate::Error::Parameter(format!(
-                            "{pass:?} is not a pass of iteration {}",
-                            work.index
+                            "{pass:?} before the areas of copy {copy} are absorbed"
                         )));
-                    }
-                })
-            };
+                    };
+                    range
+                        .clone()
+                        .into_par_iter()
+                        .zip(bufs.par_iter_mut())
+                        .map_init(Scratch::default, |scratch, (d, buf)| {
+                            let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                            let facing = facing(&sub);
+                            let beam = shoot::Beam {
+                                sub: &sub,
+                                weight: set.get(d).weight,
+                                facing: &facing,
+                            };
+                            clear(buf);
+                            shoot::shoot(geometry, beam, radiance, buf, None, scratch)
+                        })
+                        .collect()
+                }
+                _ => {
+                    return Err(crate::Error::Parameter(format!(
+                        "{pass:?} is not a pass of iteration {}",
+                        work.index
+                    )));
+                }
+            })
+        };
         if let (Pass::Shoot, Mode::Direct { mirrors: true, .. }) = (pass, &work.mode)
             && maps.as_ref().is_none_or(|m| m.len() != range.len())
         {
@@ -532,6 +557,9 @@ impl Propagation {
                 "batch {batch} needs the mirror maps of its {} directions",
                 range.len()
             )));
+        }
+        if buffers.len() < CHUNK {
+            buffers.resize_with(CHUNK, Vec::new);
         }
         // Σ over the batch's directions in direction order, from zero; texel
         // blocks in parallel (each texel's additions stay in order).
@@ -544,14 +572,16 @@ impl Propagation {
             let own = maps
                 .as_deref_mut()
                 .map(|m| &mut m[start - range.start..end - range.start]);
-            let per_direction = compute(start..end, own)?;
+            let bufs = &mut buffers[..end - start];
+            let flows = compute(start..end, own, bufs)?;
+            let bufs = &*bufs;
             sum.par_chunks_mut(4096).enumerate().for_each(|(c, block)| {
                 let base = c * 4096;
-                for (buf, _) in &per_direction {
+                for buf in bufs {
                     add_into(block, &buf[base..base + block.len()]);
                 }
             });
-            for (_, f) in &per_direction {
+            for f in &flows {
                 flow.add(f);
             }
             start = end;
@@ -576,12 +606,13 @@ impl Propagation {
             _ => None,
         };
         let mut tree = TreeSum::new(batches.len());
+        let mut buffers = Vec::new();
         for (i, batch) in batches.clone().enumerate() {
             let range = work.batch_range(batch, self.directions.len());
             let own = maps
                 .as_deref_mut()
                 .map(|m| &mut m[range.start - directions.start..range.end - directions.start]);
-            let leaf = self.run_batch(work, pass, batch, own)?;
+            let leaf = self.run_batch_with(work, pass, batch, own, &mut buffers)?;
             tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
         }
         Ok(BatchOutput {
