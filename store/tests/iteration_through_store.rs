@@ -21,9 +21,10 @@ fn bundled(name: &str) -> Scene {
     load_obj(&path, &ImportOptions::default()).expect("bundled scene").0
 }
 
-fn options(perturb: u32) -> Options {
+/// l = 33 gives 2 batches per pass, l = 129 gives 8 (blocks of 1, 2 and 4 for 1, 2 and 4 workers).
+fn options(perturb: u32, directions: usize) -> Options {
     Options {
-        directions: 129,
+        directions,
         grid: GridSize::new(16, 4).unwrap(),
         stop: Stop::Iterations(3),
         perturbation: Perturbation {
@@ -145,15 +146,15 @@ fn same_bits(o: &Opener, scene: Scene, options: Options) {
 }
 
 fn mirrors(o: &Opener) {
-    same_bits(o, bundled("mirrors.obj"), options(0));
+    same_bits(o, bundled("mirrors.obj"), options(0, 33));
 }
 
 fn perturbed(o: &Opener) {
-    same_bits(o, bundled("cornell.obj"), options(2));
+    same_bits(o, bundled("cornell.obj"), options(2, 129));
 }
 
 fn conflicting_or_missing_batches(o: &Opener) {
-    let p = Propagation::new(bundled("cornell.obj"), options(0)).unwrap();
+    let p = Propagation::new(bundled("cornell.obj"), options(0, 129)).unwrap();
     let job = FieldJob::create(&o.open(), &p, Encoding::F16).unwrap();
     let id = job.id().clone();
     let mut coordinator = Coordinator::resume(job).unwrap();
