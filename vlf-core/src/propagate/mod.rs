@@ -468,6 +468,18 @@ impl Propagation {
         );
         let index = work.index;
         let scene = &self.scene;
+        // Every mirror slot sent its unshot radiance once along its direction
+        // (see `shoot::leaving`): Total += Unshot, before the exchange makes
+        // the next unshot maps.
+        if let (Some(spec), true) = (self.specular.as_mut(), work.uses_mirror_maps()) {
+            spec.maps.par_iter_mut().for_each(|m| {
+                for (t, u) in m.total.iter_mut().zip(&m.unshot) {
+                    for c in 0..3 {
+                        t[c] += u[c];
+                    }
+                }
+            });
+        }
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
         let exchange = match self.specular.as_mut() {
             Some(spec) if index >= first_lit => spec.exchange(scene, &self.directions, &self.subfields),

@@ -239,15 +239,17 @@ pub(crate) struct Beam<'a> {
 }
 
 /// What a hit sends along its ray: its diffuse radiance, plus its unshot
-/// mirror radiance (recorded in the mirror's total as it leaves).
+/// mirror radiance. Every hit leaves exactly once per shot (forward if its
+/// front faces +w, backward if −w), so every mirror slot sends its unshot
+/// radiance once: the iteration's end adds it to the slot's total
+/// ([`super::Propagation::finish_iteration`]), and a shot changes only the
+/// incident maps.
 fn leaving(h: &RayHit, radiance: &[Rgb], spec: &mut Option<SpecularIo>) -> Rgb {
     let mut l = radiance[h.texel as usize];
     if h.mirror != NO_SLOT
         && let Some(s) = spec.as_mut()
     {
-        let u = s.unshot[h.mirror as usize];
-        add_scaled(&mut s.total[h.mirror as usize], &u, 1.0);
-        add_scaled(&mut l, &u, 1.0);
+        add_scaled(&mut l, &s.unshot[h.mirror as usize], 1.0);
     }
     l
 }
@@ -260,8 +262,6 @@ pub(crate) struct SpecularIo<'a> {
     pub unshot: &'a [Rgb],
     /// Radiance arriving on each mirror slot (either orientation), added to.
     pub incident: &'a mut [Rgb],
-    /// Total radiance leaving each mirror slot, added to.
-    pub total: &'a mut [Rgb],
 }
 
 /// Shoots along one direction of solid-angle weight `weight`.

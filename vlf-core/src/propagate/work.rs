@@ -100,11 +100,10 @@ pub struct BatchSum {
 }
 
 /// The mirror maps of one direction after its batch of [`Pass::Shoot`]: what
-/// arrived on its mirrors (for the exchange) and their totals so far.
+/// arrived on its mirrors, for the exchange (the only map a shot changes).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct MirrorUpdate {
     pub incident: Vec<Rgb>,
-    pub total: Vec<Rgb>,
 }
 
 /// Everything one aligned block of batches produces, as it travels from a
@@ -476,7 +475,6 @@ impl Propagation {
                                 mirror_base: &layouts[d].entry_base,
                                 unshot: &m.unshot,
                                 incident: &mut m.incident,
-                                total: &mut m.total,
                             });
                             shoot::shoot(geometry, beam, radiance, buf, io, scratch)
                         };
@@ -622,10 +620,7 @@ impl Propagation {
             sum: tree.finish().expect("every leaf of the block was pushed"),
             mirrors: maps.map(|maps| {
                 maps.into_iter()
-                    .map(|m| MirrorUpdate {
-                        incident: m.incident,
-                        total: m.total,
-                    })
+                    .map(|m| MirrorUpdate { incident: m.incident })
                     .collect()
             }),
         })
@@ -661,9 +656,7 @@ impl Propagation {
             (Some(spec), Some(updates), true) => {
                 let fits = updates.len() == range.len()
                     && updates.iter().zip(&spec.maps[range.clone()]).all(|(u, m)| {
-                        u.incident.len() == m.incident.len()
-                            && u.total.len() == m.total.len()
-                            && u.incident.iter().chain(&u.total).flatten().all(|v| v.is_finite())
+                        u.incident.len() == m.incident.len() && u.incident.iter().flatten().all(|v| v.is_finite())
                     });
                 if fits {
                     Ok(())
@@ -683,7 +676,6 @@ impl Propagation {
         if let (Some(spec), Some(updates)) = (&mut self.specular, out.mirrors) {
             for (m, u) in spec.maps[range].iter_mut().zip(updates) {
                 m.incident = u.incident;
-                m.total = u.total;
             }
         }
         Ok(())
