@@ -451,6 +451,21 @@ impl Propagation {
             buf.clear();
             buf.resize(texels, [0.0; 3]);
         };
+        // The directions `range` of a rotated copy, in parallel, each into its
+        // own cleared buffer: their subfields are built on the fly (a copy is
+        // used for one iteration only, so they are not kept).
+        type Kernel<'k> = dyn Fn(&Subfield, f64, &mut [Rgb], &mut Scratch) -> Flow + Sync + 'k;
+        let rotated = |set: &DirectionSet, range: Range<usize>, bufs: &mut [Vec<Rgb>], kernel: &Kernel| -> Vec<Flow> {
+            range
+                .into_par_iter()
+                .zip(bufs.par_iter_mut())
+                .map_init(Scratch::default, |scratch, (d, buf)| {
+                    let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                    clear(buf);
+                    kernel(&sub, set.get(d).weight, buf, scratch)
+                })
+                .collect()
+        };
         // The batch's directions, CHUNK at a time: each chunk's directions in
         // parallel, each into its own buffer, then added to the sum in
         // direction order.
@@ -501,44 +516,28 @@ impl Propagation {
                     }
                 }
                 (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
-                    let set = &copies[copy as usize];
-                    range
-                        .clone()
-                        .into_par_iter()
-                        .zip(bufs.par_iter_mut())
-                        .map_init(Scratch::default, |scratch, (d, buf)| {
-                            let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
-                            clear(buf);
-                            shoot::count(geometry, &sub, set.get(d).weight, buf, scratch);
-                            Flow::default()
-                        })
-                        .collect()
+                    rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
+                        shoot::count(geometry, sub, weight, buf, scratch);
+                        Flow::default()
+                    })
                 }
                 (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. })
                     if (copy as usize) < copies.len() =>
                 {
-                    let set = &copies[copy as usize];
                     let Some(radiance) = &radiance[copy as usize] else {
                         return Err(crate::Error::Parameter(format!(
                             "{pass:?} before the areas of copy {copy} are absorbed"
                         )));
                     };
-                    range
-                        .clone()
-                        .into_par_iter()
-                        .zip(bufs.par_iter_mut())
-                        .map_init(Scratch::default, |scratch, (d, buf)| {
-                            let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
-                            let facing = facing(&sub);
-                            let beam = shoot::Beam {
-                                sub: &sub,
-                                weight: set.get(d).weight,
-                                facing: &facing,
-                            };
-                            clear(buf);
-                            shoot::shoot(geometry, beam, radiance, buf, None, scratch)
-                        })
-                        .collect()
+                    rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
+                        let facing = facing(sub);
+                        let beam = shoot::Beam {
+                            sub,
+                            weight,
+                            facing: &facing,
+                        };
+                        shoot::shoot(geometry, beam, radiance, buf, None, scratch)
+                    })
                 }
                 _ => {
                     return Err(crate::Error::Parameter(format!(
