@@ -21,7 +21,7 @@ use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
 use vlf_core::propagate::{Checkpoint, Propagation};
-use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_store::{FieldJob, Store, WorkTraffic};
 
@@ -64,8 +64,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };
     let spec = args.job.spec()?;
-    let (scene, _) = load_obj(&args.scene, &ImportOptions::default())
-        .with_context(|| format!("cannot import {}", args.scene.display()))?;
+    let scene = crate::propagate::import(&args.scene)?;
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()

@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::time::Instant;
 use vlf_core::propagate::Propagation;
-use vlf_core::scene::{ImportOptions, load_obj};
+use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{Encoding as WireEncoding, Parameters};
 use vlf_store::{FieldJob, JobId, Stage, Store, Summary};
@@ -90,11 +90,7 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
                 .scene
                 .as_ref()
                 .context("a scene is needed unless --resume is given")?;
-            let (scene, warnings) = load_obj(path, &ImportOptions::default())
-                .with_context(|| format!("cannot import {}", path.display()))?;
-            for w in &warnings {
-                tracing::warn!("{w}");
-            }
+            let scene = import(path)?;
             tracing::info!(
                 surfaces = scene.surfaces.len(),
                 materials = scene.materials.len(),
@@ -110,6 +106,16 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
         }
     };
     Ok((job, prop))
+}
+
+/// Imports an OBJ scene (materials from its MTL), logging the importer's warnings.
+pub fn import(path: &std::path::Path) -> Result<Scene> {
+    let (scene, warnings) =
+        load_obj(path, &ImportOptions::default()).with_context(|| format!("cannot import {}", path.display()))?;
+    for w in &warnings {
+        tracing::warn!("{w}");
+    }
+    Ok(scene)
 }
 
 /// Prints what a finished run did: time, iterations, unshot fraction, energy balance, memory

@@ -9,11 +9,11 @@
 //! (the coordinator's recovery), and follows JOB to its end.
 
 use crate::RunArgs;
-use crate::propagate::print_summary;
+use crate::propagate::{import, print_summary};
 use crate::remote;
 use anyhow::{Context, Result, bail};
 use std::time::{Duration, Instant};
-use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_core::scene::Scene;
 use vlf_proto::{JobSpec, Target};
 use vlf_server::{ServeConfig, Server};
 use vlf_store::{FieldJob, JobId, Prototypes, Stage, Store, WorkTraffic};
@@ -40,12 +40,7 @@ pub fn run(args: RunArgs) -> Result<()> {
                 .scene
                 .clone()
                 .context("a scene is needed unless --resume is given")?;
-            let (scene, warnings) = load_obj(&path, &ImportOptions::default())
-                .with_context(|| format!("cannot import {}", path.display()))?;
-            for w in &warnings {
-                tracing::warn!("{w}");
-            }
-            EmbeddedJob::New(scene, spec)
+            EmbeddedJob::New(import(&path)?, spec)
         }
     };
     let store = {

@@ -200,9 +200,9 @@ impl Replica {
         if !work.is_ready(pass) {
             for earlier in work.prerequisites(pass) {
                 let stored = self.job.stored_blocks(k, earlier)?;
-                let cover = cover(&stored, work.batches()).ok_or_else(|| {
+                let cover = cover(&stored, 0..work.batches()).map_err(|at| {
                     self.job.field_error(vlf_core::Error::Parameter(format!(
-                        "{pass:?} of iteration {k} needs {earlier:?}, which is not complete in the store"
+                        "{pass:?} of iteration {k} needs {earlier:?}, whose batch {at} is not in the store"
                     )))
                 })?;
                 let sums = cover
@@ -222,18 +222,20 @@ impl Replica {
 }
 
 /// Aligned blocks among `stored` (sorted as [`FieldJob::stored_blocks`] sorts them) that cover
-/// `0..batches` one after another, the largest at each step; `None` if there is a gap.
-pub fn cover(stored: &[Range<usize>], batches: usize) -> Option<Vec<Range<usize>>> {
+/// the batches `span` of a pass one after another, the largest at each step; the first batch
+/// no stored block starts at, if there is a gap.
+fn cover(stored: &[Range<usize>], span: Range<usize>) -> Result<Vec<Range<usize>>, usize> {
     let mut out = Vec::new();
-    let mut next = 0;
-    while next < batches {
+    let mut next = span.start;
+    while next < span.end {
         let block = stored
             .iter()
-            .find(|b| b.start == next && is_aligned_block(b, batches))?;
+            .find(|b| b.start == next && is_aligned_block(b, span.end))
+            .ok_or(next)?;
         next = block.end;
         out.push(block.clone());
     }
-    Some(out)
+    Ok(out)
 }
 
 /// What an iteration moved through the store: the batch outputs workers wrote and the
@@ -347,24 +349,11 @@ impl Coordinator {
             )));
         };
         let batches = self.work().batches();
-        let stored: Vec<_> = self
-            .job
-            .stored_blocks(self.iteration(), pass)?
-            .into_iter()
-            .filter(|b| b.start >= next)
-            .collect();
-        let mut blocks = Vec::new();
-        let mut at = next;
-        while at < batches {
-            let Some(block) = stored.iter().find(|b| b.start == at) else {
-                return Err(StoreError::NotFound {
-                    url: self.job.job().store().url().to_string(),
-                    key: format!("batch {at} of {pass:?} of iteration {}", self.iteration() + 1),
-                });
-            };
-            at = block.end;
-            blocks.push(block.clone());
-        }
+        let stored = self.job.stored_blocks(self.iteration(), pass)?;
+        let blocks = cover(&stored, next..batches).map_err(|at| StoreError::NotFound {
+            url: self.job.job().store().url().to_string(),
+            key: format!("batch {at} of {pass:?} of iteration {}", self.iteration() + 1),
+        })?;
         self.absorb_blocks(pass, &blocks)?;
         Ok(pass)
     }
