@@ -18,6 +18,12 @@ use clap::{Args, Parser, Subcommand};
 use std::path::PathBuf;
 use vlf_core::render::camera::{parse_size, parse_vec3};
 
+/// mimalloc keeps freed pages for reuse, where glibc's malloc hands large blocks back to the
+/// system and faults them in again: an iteration allocates and frees megabytes of maps, blobs and
+/// buffers, and on a VM the page faults cost more than the copies.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser)]
 #[command(
     name = "vlf",

@@ -2,6 +2,10 @@
 
 use clap::Parser;
 
+/// mimalloc reuses freed pages (see the `vlf` binary): fewer page faults per iteration.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[derive(Parser)]
 #[command(
     name = "vlf-server",
