@@ -227,6 +227,11 @@ pub struct RenderArgs {
     /// Quadrature points per emitter for --direct exact.
     #[arg(long, default_value_t = 64)]
     direct_samples: u32,
+    /// Draw with the GPU (wgpu; a software adapter such as Mesa's lavapipe will do), with the
+    /// same sample positions and filter as the CPU. Diffuse surfaces and emitters so far:
+    /// a scene with mirrors needs `--specular trace --depth 0` (mirrors without reflections).
+    #[arg(long)]
+    gpu: bool,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

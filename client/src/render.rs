@@ -21,6 +21,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
     let exact_direct = args.direct == DirectArg::Exact;
+    if args.gpu && exact_direct {
+        bail!("--gpu draws the field's direct light only: drop --direct exact, or --gpu");
+    }
     if exact_direct && !(1..=65536).contains(&args.direct_samples) {
         bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
     }
@@ -74,7 +77,11 @@ pub fn run(args: RenderArgs) -> Result<()> {
         field.use_exact_direct(&first, args.direct_samples)?;
     }
     let loaded = started.elapsed().as_secs_f64();
-    let image = field.render(&camera, args.samples, mode);
+    let image = if args.gpu {
+        gpu_render(&field, &camera, args.samples, mode)?
+    } else {
+        field.render(&camera, args.samples, mode)
+    };
     image
         .save(&args.out, args.exposure)
         .with_context(|| format!("cannot write {}", args.out.display()))?;
@@ -87,6 +94,31 @@ pub fn run(args: RenderArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+/// `--gpu`: the same view drawn by wgpu.
+fn gpu_render(
+    field: &vlf_core::field::LightField,
+    camera: &vlf_core::render::Camera,
+    samples: u32,
+    mode: SpecularMode,
+) -> Result<vlf_core::render::Image> {
+    let mirrors = field
+        .scene
+        .surfaces
+        .iter()
+        .enumerate()
+        .any(|(i, _)| field.scene.material(i).is_mirror());
+    if mirrors && mode != (SpecularMode::Trace { depth: 0 }) {
+        bail!(
+            "--gpu does not draw reflections yet: this scene has mirrors, so add --specular trace \
+             --depth 0 (mirrors without reflections) or render on the CPU (drop --gpu)"
+        );
+    }
+    let gpu = vlf_viewer::Gpu::new()?;
+    tracing::info!(adapter = %gpu.describe(), "rendering on the GPU");
+    let renderer = vlf_viewer::FieldRenderer::new(&gpu, field)?;
+    Ok(vlf_viewer::render(&gpu, &renderer, camera, samples)?)
 }
 
 pub fn jobs(args: JobsArgs) -> Result<()> {

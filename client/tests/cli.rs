@@ -84,6 +84,38 @@ fn propagate_then_render_every_format() {
     }
     let img = vlf_core::render::Image::load_pfm(out.join("view.pfm")).unwrap();
     assert_eq!((img.width, img.height), (64, 48));
+    // The same view on the GPU: the same image up to edge pixels (the viewer's tests bound it).
+    let gpu_image = out.join("gpu.pfm");
+    let mut args = vec![
+        "render",
+        out.to_str().unwrap(),
+        "--eye",
+        "278,273,-800",
+        "--target",
+        "278,273,0",
+        "--fovy",
+        "39",
+        "--size",
+        "64x48",
+        "--gpu",
+        "--out",
+        gpu_image.to_str().unwrap(),
+    ];
+    if gpu_available(&vlf(&args)) {
+        let gpu = vlf_core::render::Image::load_pfm(&gpu_image).unwrap();
+        let (a, b) = (img.mean(), gpu.mean());
+        assert!(
+            (0..3).all(|c| (a[c] - b[c]).abs() < 1e-3 * a[c]),
+            "CPU {a:?} vs GPU {b:?}"
+        );
+    }
+    args.extend(["--direct", "exact"]);
+    let o = vlf(&args);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--direct exact"),
+        "{}",
+        stderr(&o)
+    );
     let mean = img.mean();
     assert!(
         mean.iter().all(|&c| c > 0.01 && c.is_finite()),
@@ -97,6 +129,21 @@ fn propagate_then_render_every_format() {
         "walls swapped: left {left:?} right {right:?}"
     );
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Whether a `vlf render --gpu` ran: it succeeded, or failed only for want of an adapter on a
+/// machine that does not require one (CI installs lavapipe and sets `VLF_REQUIRE_GPU`).
+fn gpu_available(o: &Output) -> bool {
+    if o.status.success() {
+        return true;
+    }
+    let err = stderr(o);
+    assert!(
+        err.contains("no GPU adapter") && std::env::var_os("VLF_REQUIRE_GPU").is_none(),
+        "vlf render --gpu failed: {err}"
+    );
+    eprintln!("skipped the GPU render: {err}");
+    false
 }
 
 /// The newest job of a store directory.
@@ -362,6 +409,40 @@ fn mirrors_scene_plans_propagates_and_renders_both_ways() {
     }
     // The two mirror modes differ only on the mirrors' pixels.
     assert!((means[0] - means[1]).abs() < 0.25 * means[1], "{means:?}");
+    // The GPU draws no reflections yet: it says so, and draws mirrors without them on request.
+    let view = [
+        "render",
+        out.to_str().unwrap(),
+        "--eye",
+        "278,273,-800",
+        "--target",
+        "278,273,0",
+        "--fovy",
+        "39",
+        "--size",
+        "48x48",
+        "--gpu",
+    ];
+    let image = out.join("gpu.pfm");
+    let o = vlf(&[&view[..], &["--out", image.to_str().unwrap()]].concat());
+    assert!(
+        !o.status.success() && stderr(&o).contains("--depth 0"),
+        "{}",
+        stderr(&o)
+    );
+    let o = vlf(&[
+        &view[..],
+        &["--specular", "trace", "--depth", "0", "--out", image.to_str().unwrap()],
+    ]
+    .concat());
+    if gpu_available(&o) {
+        let img = vlf_core::render::Image::load_pfm(&image).unwrap();
+        assert!(
+            img.mean()[0] > 0.0 && img.mean()[0] < means[1],
+            "{:?} vs {means:?}",
+            img.mean()
+        );
+    }
     let o = vlf(&[
         "render",
         out.to_str().unwrap(),

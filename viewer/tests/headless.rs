@@ -1,0 +1,171 @@
+//! The GPU renderer against the CPU renderer, on the bundled scenes.
+//!
+//! Both draw the same field with the same sample positions and box filter, so they differ only
+//! where f32 rasterisation and f64 ray casting disagree: which polygon a sample on an edge
+//! belongs to, and the last bits of the bilinear weights. The tolerance says so: at most 1 % of
+//! the pixels (edge pixels) differ by more than 10⁻³ relative, at most 0.5 % by more than half,
+//! and the image means agree within 5·10⁻⁴. Measured on lavapipe: 0 to 2 pixels of 12288 beyond
+//! 10⁻³, means within 1.2·10⁻⁴.
+//!
+//! CI installs Mesa's lavapipe and sets `VLF_REQUIRE_GPU=1`; elsewhere a machine without any
+//! adapter skips these tests with a message.
+
+use glam::DVec3;
+use std::path::Path;
+use vlf_core::field::LightField;
+use vlf_core::lookup::SpecularMode;
+use vlf_core::propagate::{Options, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::render::{Camera, Image};
+use vlf_core::scene::{ImportOptions, load_obj};
+use vlf_viewer::{FieldRenderer, Gpu, ViewerError};
+
+fn gpu() -> Option<Gpu> {
+    match Gpu::new() {
+        Ok(gpu) => {
+            eprintln!("GPU: {}", gpu.describe());
+            Some(gpu)
+        }
+        Err(e) if std::env::var_os("VLF_REQUIRE_GPU").is_none() => {
+            eprintln!("skipped: {e}");
+            None
+        }
+        Err(e) => panic!("VLF_REQUIRE_GPU is set but {e}"),
+    }
+}
+
+fn field(scene: &str, iterations: u32) -> LightField {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(scene);
+    let (scene, _) = load_obj(&path, &ImportOptions::default()).expect("bundled scene");
+    let options = Options {
+        directions: 33,
+        grid: GridSize::new(32, 8).expect("grid"),
+        stop: Stop::Iterations(iterations),
+        ..Options::default()
+    };
+    let mut p = Propagation::new(scene, options).expect("propagation");
+    p.run(|_| {});
+    p.into_field()
+}
+
+fn camera(width: u32, height: u32) -> Camera {
+    Camera::new(
+        DVec3::new(278.0, 273.0, -800.0),
+        DVec3::new(278.0, 273.0, 0.0),
+        DVec3::Y,
+        39.0,
+        width,
+        height,
+    )
+    .expect("camera")
+}
+
+/// Pixels whose channels differ by more than `rel` of the larger value (and 10⁻⁶ absolute).
+fn differing(a: &Image, b: &Image, rel: f32) -> usize {
+    a.pixels
+        .iter()
+        .zip(&b.pixels)
+        .filter(|(p, q)| (0..3).any(|c| (p[c] - q[c]).abs() > rel * p[c].abs().max(q[c].abs()) + 1e-6))
+        .count()
+}
+
+fn compare(gpu: &Gpu, field: &LightField, camera: &Camera, samples: u32) {
+    let cpu = field.render(camera, samples, SpecularMode::Trace { depth: 0 });
+    let renderer = FieldRenderer::new(gpu, field).expect("upload");
+    let gpu_image = vlf_viewer::render(gpu, &renderer, camera, samples).expect("GPU render");
+    assert_eq!((gpu_image.width, gpu_image.height), (camera.width, camera.height));
+    let pixels = cpu.pixels.len();
+    let lit = cpu.pixels.iter().filter(|p| p.iter().any(|&v| v > 0.0)).count();
+    assert!(
+        lit > pixels / 2,
+        "the view sees the scene: {lit} of {pixels} pixels lit"
+    );
+    // Edge pixels: a sample on a polygon's edge may fall on either side.
+    let off = differing(&cpu, &gpu_image, 1e-3);
+    eprintln!("{off} of {pixels} pixels differ by more than 1e-3");
+    assert!(off * 100 <= pixels, "{off} of {pixels} pixels differ by more than 10⁻³");
+    let way_off = differing(&cpu, &gpu_image, 0.5);
+    assert!(
+        way_off * 200 <= pixels,
+        "{way_off} of {pixels} pixels differ by more than half"
+    );
+    let (m, n) = (cpu.mean(), gpu_image.mean());
+    for c in 0..3 {
+        assert!(
+            (m[c] - n[c]).abs() <= 5e-4 * m[c].abs(),
+            "image means differ: CPU {m:?}, GPU {n:?}"
+        );
+    }
+}
+
+#[test]
+fn cornell_box_matches_the_cpu_renderer() {
+    let Some(gpu) = gpu() else { return };
+    let field = field("cornell.obj", 4);
+    compare(&gpu, &field, &camera(128, 96), 1);
+    compare(&gpu, &field, &camera(64, 48), 3);
+}
+
+#[test]
+fn mirror_scene_matches_the_cpu_renderer_without_reflections() {
+    let Some(gpu) = gpu() else { return };
+    let field = field("mirrors.obj", 3);
+    assert!(field.specular.is_some(), "the scene has mirrors");
+    compare(&gpu, &field, &camera(128, 96), 2);
+}
+
+#[test]
+fn an_image_samples_the_field_not_a_constant() {
+    // The GPU image follows the field: doubling the radiance doubles every pixel, and a field
+    // with every map zero renders black.
+    let Some(gpu) = gpu() else { return };
+    let mut field = field("cornell.obj", 2);
+    let cam = camera(48, 36);
+    let base = vlf_viewer::render(&gpu, &FieldRenderer::new(&gpu, &field).unwrap(), &cam, 1).unwrap();
+    for r in &mut field.radiance {
+        *r = r.map(|v| v * 2.0);
+    }
+    let doubled = vlf_viewer::render(&gpu, &FieldRenderer::new(&gpu, &field).unwrap(), &cam, 1).unwrap();
+    for (a, b) in base.pixels.iter().zip(&doubled.pixels) {
+        for c in 0..3 {
+            assert_eq!(a[c] * 2.0, b[c]);
+        }
+    }
+    field.radiance.iter_mut().for_each(|r| *r = [0.0; 3]);
+    let black = vlf_viewer::render(&gpu, &FieldRenderer::new(&gpu, &field).unwrap(), &cam, 1).unwrap();
+    assert!(black.pixels.iter().all(|p| *p == [0.0; 3]));
+}
+
+#[test]
+fn no_adapter_is_a_clear_error() {
+    match Gpu::with_backends(wgpu::Backends::empty()) {
+        Err(e @ ViewerError::NoAdapter(_)) => {
+            let message = e.to_string();
+            assert!(message.contains("mesa-vulkan-drivers"), "{message}");
+        }
+        Err(e) => panic!("expected NoAdapter, got {e}"),
+        Ok(gpu) => panic!("no backend allowed, yet got {}", gpu.describe()),
+    }
+}
+
+#[test]
+fn oversized_image_is_refused() {
+    let Some(gpu) = gpu() else { return };
+    let field = field("cornell.obj", 1);
+    let renderer = FieldRenderer::new(&gpu, &field).unwrap();
+    let side = gpu.limits.max_texture_dimension_2d + 1;
+    let Ok(cam) = Camera::new(
+        DVec3::new(278.0, 273.0, -800.0),
+        DVec3::new(278.0, 273.0, 0.0),
+        DVec3::Y,
+        39.0,
+        side,
+        1,
+    ) else {
+        return; // the camera's own limit is lower: nothing to test here
+    };
+    match vlf_viewer::render(&gpu, &renderer, &cam, 1) {
+        Err(ViewerError::TooLarge(m)) => assert!(m.contains("pixels a side"), "{m}"),
+        other => panic!("expected TooLarge, got {:?}", other.map(|_| ())),
+    }
+}
