@@ -98,7 +98,10 @@ impl FieldRenderer {
             .collect();
         let radiance: Vec<f32> = field.radiance.iter().flatten().copied().collect();
         let radiance_bytes = (radiance.len() * 4) as u64;
-        let limit = gpu.limits.max_storage_buffer_binding_size.min(gpu.limits.max_buffer_size);
+        let limit = gpu
+            .limits
+            .max_storage_buffer_binding_size
+            .min(gpu.limits.max_buffer_size);
         if radiance_bytes > limit || atlas.texels > u32::MAX as usize / 3 {
             return Err(ViewerError::TooLarge(format!(
                 "the field's radiance maps take {:.1} MB; {} binds at most {:.1} MB",
