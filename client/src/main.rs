@@ -12,6 +12,7 @@ mod remote;
 mod render;
 mod run;
 mod study;
+mod view;
 
 use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
@@ -44,6 +45,9 @@ enum Command {
     Run(RunArgs),
     /// Render an image of a job's field (or of one of its snapshots), from a store or a server.
     Render(RenderArgs),
+    /// Walk through a job's field in a window (wgpu): WASD and Q/E move, a drag looks, the wheel
+    /// sets the speed, M cycles the mirror mode, + and − the exposure, P saves a screenshot.
+    View(ViewArgs),
     /// List the jobs of a store, or of a server (--server).
     Jobs(JobsArgs),
     /// Run the coordinator: jobs, leases to workers, progress, tiles (gRPC).
@@ -180,8 +184,10 @@ pub struct RunArgs {
     workers: usize,
 }
 
+/// Where a field to look at comes from: a store and a job, or a coordinator and a job; which
+/// snapshot. Shared by `render` and `view`.
 #[derive(Args)]
-pub struct RenderArgs {
+pub struct FieldSource {
     /// Store holding the job (a directory, file:///PATH, s3://BUCKET/PREFIX); not with --server.
     #[arg(required_unless_present = "server")]
     store: Option<String>,
@@ -196,10 +202,16 @@ pub struct RenderArgs {
     ca_cert: Option<PathBuf>,
     /// Job id (default: the newest job of the store).
     job: Option<String>,
-    /// Render the snapshot after K iterations (default: the final field of a finished job,
-    /// else its last finished snapshot).
+    /// Use the snapshot after K iterations (default: the final field of a finished job, else
+    /// its last finished snapshot).
     #[arg(long, value_name = "K")]
     snapshot: Option<u32>,
+}
+
+#[derive(Args)]
+pub struct RenderArgs {
+    #[command(flatten)]
+    source: FieldSource,
     #[command(flatten)]
     view: ViewFlags,
     /// Image size WxH.
@@ -228,10 +240,52 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 64)]
     direct_samples: u32,
     /// Draw with the GPU (wgpu; a software adapter such as Mesa's lavapipe will do), with the
-    /// same sample positions and filter as the CPU. Diffuse surfaces and emitters so far:
-    /// a scene with mirrors needs `--specular trace --depth 0` (mirrors without reflections).
+    /// same sample positions and filter as the CPU, mirrors either way.
     #[arg(long)]
     gpu: bool,
+}
+
+#[derive(Args)]
+pub struct ViewArgs {
+    #[command(flatten)]
+    source: FieldSource,
+    /// Where the walk starts, scene units (default: the middle of the scene).
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
+    eye: Option<glam::DVec3>,
+    /// A point looked at from the start (default: along +z from the eye).
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
+    target: Option<glam::DVec3>,
+    /// Vertical field of view in degrees.
+    #[arg(long, default_value_t = 45.0)]
+    fovy: f64,
+    /// Window size WxH (physical pixels).
+    #[arg(long, default_value = "1280x720", value_parser = parse_size_arg)]
+    size: (u32, u32),
+    /// Exposure in stops (pixel × 2^exposure); + and − change it while viewing.
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    exposure: f64,
+    /// How mirrors are drawn at the start (M cycles while viewing).
+    #[arg(long, value_enum, default_value_t = SpecularArg::Rays)]
+    specular: SpecularArg,
+    /// Maximum number of mirror bounces when ray tracing.
+    #[arg(long, default_value_t = 8)]
+    depth: u32,
+    /// Walking speed in scene units per second (default: a quarter of the scene's size); the
+    /// wheel changes it while viewing.
+    #[arg(long)]
+    speed: Option<f64>,
+    /// Quit after this many frames (scripted runs and benchmarks); prints the frame rate.
+    #[arg(long)]
+    frames: Option<u64>,
+    /// Write the last frame to this image when quitting (.png tone-mapped, .pfm/.exr linear).
+    #[arg(long, value_name = "IMAGE")]
+    screenshot: Option<PathBuf>,
+    /// Directory for the screenshots taken with P.
+    #[arg(long, default_value = ".")]
+    screenshot_dir: PathBuf,
+    /// Draw as fast as possible instead of at the display's refresh rate.
+    #[arg(long)]
+    no_vsync: bool,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
@@ -330,6 +384,7 @@ fn main() {
         Command::Propagate(args) => propagate::run(args),
         Command::Run(args) => run::run(args),
         Command::Render(args) => render::run(args),
+        Command::View(args) => view::run(args),
         Command::Jobs(args) => render::jobs(args),
         Command::Serve(args) => block_on(vlf_server::cli::serve(args)),
         Command::Worker(args) => block_on(vlf_worker::cli::work(args)),

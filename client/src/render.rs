@@ -1,7 +1,7 @@
 //! `vlf render` and `vlf jobs`: read a job's field back from a store and
 //! render it; list a store's jobs.
 
-use crate::{DirectArg, JobsArgs, RenderArgs, SpecularArg};
+use crate::{DirectArg, FieldSource, JobsArgs, RenderArgs, SpecularArg};
 use anyhow::{Context, Result, bail};
 use std::time::Instant;
 use vlf_core::lookup::SpecularMode;
@@ -27,39 +27,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     if exact_direct && !(1..=65536).contains(&args.direct_samples) {
         bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
     }
-    // With --server and exact direct light, snapshot 1 comes in a store of its own.
-    let mut first_store = None;
-    let (store, id, stage) = match (&args.server, &args.store) {
-        (Some(server), store) => {
-            // With --server the one positional argument is the job.
-            let job = match (store, &args.job) {
-                (Some(job), None) => job.as_str(),
-                (None, Some(job)) => job.as_str(),
-                _ => bail!("with --server, give the job and no store: vlf render --server URL JOB"),
-            };
-            let target = Target {
-                url: server.clone(),
-                token: args.token.clone(),
-                ca_cert: args.ca_cert.clone(),
-            };
-            let (store, stage) = crate::block_on_value(crate::remote::fetch_job(&target, job, args.snapshot))?;
-            if exact_direct {
-                let (first, _) = crate::block_on_value(crate::remote::fetch_job(&target, job, Some(1)))
-                    .context("exact direct light needs snapshot 1")?;
-                first_store = Some(first);
-            }
-            (store, JobId::parse(job).map_err(anyhow::Error::msg)?, Some(stage))
-        }
-        (None, Some(url)) => {
-            let store = Store::open_existing(url)?;
-            let id = match &args.job {
-                Some(id) => JobId::parse(id).map_err(anyhow::Error::msg)?,
-                None => newest_job(&store)?.with_context(|| format!("no job in store {url} (run `vlf run` first)"))?,
-            };
-            (store, id, args.snapshot.map(Stage::Iteration))
-        }
-        (None, None) => bail!("give a store, or --server and a job"),
-    };
+    let Opened {
+        store,
+        id,
+        stage,
+        first_store,
+    } = args.source.open("render", exact_direct)?;
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
     let stage = stage.unwrap_or_else(|| job.latest_stage());
     let started = Instant::now();
@@ -103,22 +76,72 @@ fn gpu_render(
     samples: u32,
     mode: SpecularMode,
 ) -> Result<vlf_core::render::Image> {
-    let mirrors = field
-        .scene
-        .surfaces
-        .iter()
-        .enumerate()
-        .any(|(i, _)| field.scene.material(i).is_mirror());
-    if mirrors && mode != (SpecularMode::Trace { depth: 0 }) {
-        bail!(
-            "--gpu does not draw reflections yet: this scene has mirrors, so add --specular trace \
-             --depth 0 (mirrors without reflections) or render on the CPU (drop --gpu)"
-        );
-    }
     let gpu = vlf_viewer::Gpu::new()?;
     tracing::info!(adapter = %gpu.describe(), "rendering on the GPU");
     let renderer = vlf_viewer::FieldRenderer::new(&gpu, field)?;
-    Ok(vlf_viewer::render(&gpu, &renderer, camera, samples)?)
+    Ok(vlf_viewer::render(&gpu, &renderer, camera, samples, mode)?)
+}
+
+/// A job opened for looking at.
+pub struct Opened {
+    pub store: Store,
+    pub id: JobId,
+    /// The stage asked for, if any.
+    pub stage: Option<Stage>,
+    /// With `--server` and `first`: snapshot 1, in a store of its own.
+    pub first_store: Option<Store>,
+}
+
+impl FieldSource {
+    /// Opens the job: from the store, or fetched from `--server` (the asked stage, and snapshot 1
+    /// too when `first`). `command` names the command in messages.
+    pub fn open(&self, command: &str, first: bool) -> Result<Opened> {
+        match (&self.server, &self.store) {
+            (Some(server), store) => {
+                // With --server the one positional argument is the job.
+                let job = match (store, &self.job) {
+                    (Some(job), None) => job.as_str(),
+                    (None, Some(job)) => job.as_str(),
+                    _ => bail!("with --server, give the job and no store: vlf {command} --server URL JOB"),
+                };
+                let target = Target {
+                    url: server.clone(),
+                    token: self.token.clone(),
+                    ca_cert: self.ca_cert.clone(),
+                };
+                let (store, stage) = crate::block_on_value(crate::remote::fetch_job(&target, job, self.snapshot))?;
+                let first_store = if first {
+                    let (first, _) = crate::block_on_value(crate::remote::fetch_job(&target, job, Some(1)))
+                        .context("exact direct light needs snapshot 1")?;
+                    Some(first)
+                } else {
+                    None
+                };
+                Ok(Opened {
+                    store,
+                    id: JobId::parse(job).map_err(anyhow::Error::msg)?,
+                    stage: Some(stage),
+                    first_store,
+                })
+            }
+            (None, Some(url)) => {
+                let store = Store::open_existing(url)?;
+                let id = match &self.job {
+                    Some(id) => JobId::parse(id).map_err(anyhow::Error::msg)?,
+                    None => {
+                        newest_job(&store)?.with_context(|| format!("no job in store {url} (run `vlf run` first)"))?
+                    }
+                };
+                Ok(Opened {
+                    store,
+                    id,
+                    stage: self.snapshot.map(Stage::Iteration),
+                    first_store: None,
+                })
+            }
+            (None, None) => bail!("give a store, or --server and a job"),
+        }
+    }
 }
 
 pub fn jobs(args: JobsArgs) -> Result<()> {
@@ -170,7 +193,7 @@ fn newest_job(store: &Store) -> Result<Option<JobId>> {
     Ok(newest.map(|(_, id)| id))
 }
 
-fn describe(stage: Stage) -> String {
+pub fn describe(stage: Stage) -> String {
     match stage {
         Stage::Iteration(k) => format!("snapshot {k}"),
         Stage::Field => "the final field".into(),

@@ -6,11 +6,13 @@
 //! polygon becomes a triangle fan whose vertices carry their texel coordinates in the polygon's
 //! grid, computed in f64 (see `shaders/field.wgsl`).
 
+use crate::rays::RayTables;
 use crate::{Gpu, ViewerError};
 use bytemuck::{Pod, Zeroable};
-use glam::{DMat4, DVec3, Mat4};
+use glam::{DMat4, DVec3, Mat4, Vec3};
 use vlf_core::field::LightField;
-use vlf_core::render::Camera;
+use vlf_core::lookup::SpecularMode;
+use vlf_core::render::{Bvh, Camera};
 use wgpu::util::DeviceExt;
 
 /// The colour format drawn into: linear radiance, no clamping (tone mapping comes after).
@@ -29,19 +31,74 @@ struct Vertex {
     surface: u32,
 }
 
+/// A surface as the shader reads it (`Surface` in `shaders/field.wgsl`: WGSL's layout, where a
+/// `vec3<f32>` takes 12 bytes aligned to 16 and the next scalar fills the gap).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct Grid {
+struct GpuSurface {
+    normal: [f32; 3],
+    offset: f32,
+    specular: [f32; 3],
+    mirror: u32,
+    grid_origin: [f32; 3],
+    inv_texel: f32,
+    axis_u: [f32; 3],
     first: u32,
+    axis_v: [f32; 3],
     width: u32,
+    first_vertex: u32,
+    vertex_count: u32,
     height: u32,
-    _pad: u32,
+    mirror_index: u32,
+}
+
+/// A BVH node as the shader reads it (the layout of `vlf_core::render::bvh::Node`).
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct GpuNode {
+    min: [f32; 3],
+    max: [f32; 3],
+    index: u32,
+    count: u32,
 }
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct ViewUniform {
     clip_from_vlf: [[f32; 4]; 4],
+    eye: [f32; 4],
+    depth: u32,
+    mode: u32,
+    _pad: [u32; 2],
+}
+
+/// Where the field is seen from, as the shader needs it.
+#[derive(Clone, Copy, Debug)]
+pub struct Viewpoint {
+    /// The VLF frame to clip space.
+    pub clip_from_vlf: Mat4,
+    /// The eye in the VLF frame.
+    pub eye: Vec3,
+    /// How mirrors are drawn.
+    pub mirrors: MirrorMode,
+}
+
+/// How the shader draws mirrors (the CPU renderer's `SpecularMode`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MirrorMode {
+    /// From the field's directional radiance maps.
+    Rays,
+    /// Ray traced through the scene at most `depth` mirrors deep (0: no reflections).
+    Trace { depth: u32 },
+}
+
+impl From<SpecularMode> for MirrorMode {
+    fn from(mode: SpecularMode) -> MirrorMode {
+        match mode {
+            SpecularMode::Rays => MirrorMode::Rays,
+            SpecularMode::Trace { depth } => MirrorMode::Trace { depth },
+        }
+    }
 }
 
 /// A field's surfaces and radiance maps, uploaded, with the pipeline that draws them.
@@ -53,10 +110,11 @@ pub struct FieldRenderer {
     vertex_count: u32,
     /// Maps the scene's units into the VLF frame.
     normalisation: vlf_core::scene::Normalisation,
+    has_mirrors: bool,
 }
 
 impl FieldRenderer {
-    /// Uploads `field`'s surfaces and diffuse radiance maps.
+    /// Uploads `field`'s surfaces, diffuse radiance maps, materials and BVH.
     pub fn new(gpu: &Gpu, field: &LightField) -> Result<FieldRenderer, ViewerError> {
         let scene = &field.scene;
         let atlas = &field.atlas;
@@ -69,15 +127,16 @@ impl FieldRenderer {
                 field.radiance.len()
             )));
         }
+        let rays = RayTables::new(field);
+        // Per surface: its fan for the rasteriser, its polygon, grid and material for the shader.
         let mut vertices = Vec::new();
+        let mut polygon_vertices: Vec<[f32; 4]> = Vec::new();
+        let mut surfaces = Vec::with_capacity(scene.surfaces.len());
         for (i, (surface, grid)) in scene.surfaces.iter().zip(&atlas.grids).enumerate() {
-            let corner = |v: DVec3| {
-                let c = grid.coords(v) - 0.5;
-                Vertex {
-                    position: v.as_vec3().to_array(),
-                    texel: c.as_vec2().to_array(),
-                    surface: i as u32,
-                }
+            let corner = |v: DVec3| Vertex {
+                position: v.as_vec3().to_array(),
+                texel: (grid.coords(v) - 0.5).as_vec2().to_array(),
+                surface: i as u32,
             };
             // A convex polygon, counter-clockwise about its front normal: a fan.
             for k in 1..surface.vertices.len().saturating_sub(1) {
@@ -85,15 +144,35 @@ impl FieldRenderer {
                 vertices.push(corner(surface.vertices[k]));
                 vertices.push(corner(surface.vertices[k + 1]));
             }
+            let material = scene.material(i);
+            surfaces.push(GpuSurface {
+                normal: surface.normal.as_vec3().to_array(),
+                offset: surface.offset as f32,
+                specular: material.specular.map(|c| c as f32),
+                mirror: material.is_mirror() as u32,
+                grid_origin: grid.origin.as_vec3().to_array(),
+                inv_texel: (1.0 / grid.texel) as f32,
+                axis_u: grid.axis_u.as_vec3().to_array(),
+                first: grid.first as u32,
+                axis_v: grid.axis_v.as_vec3().to_array(),
+                width: grid.width,
+                first_vertex: polygon_vertices.len() as u32,
+                vertex_count: surface.vertices.len() as u32,
+                height: grid.height,
+                mirror_index: rays.mirror_index[i],
+            });
+            polygon_vertices.extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
         }
-        let grids: Vec<Grid> = atlas
-            .grids
+        let surfaces_have_mirrors = surfaces.iter().any(|s| s.mirror != 0);
+        let bvh = Bvh::build(scene);
+        let nodes: Vec<GpuNode> = bvh
+            .nodes()
             .iter()
-            .map(|g| Grid {
-                first: g.first as u32,
-                width: g.width,
-                height: g.height,
-                _pad: 0,
+            .map(|n| GpuNode {
+                min: n.min,
+                max: n.max,
+                index: n.index,
+                count: n.count,
             })
             .collect();
         let radiance: Vec<f32> = field.radiance.iter().flatten().copied().collect();
@@ -124,16 +203,19 @@ impl FieldRenderer {
                 usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
-            let grids = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("grids"),
-                contents: &nonempty(bytemuck::cast_slice(&grids), 16),
-                usage: wgpu::BufferUsages::STORAGE,
-            });
-            let radiance = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("radiance"),
-                contents: &nonempty(bytemuck::cast_slice(&radiance), 16),
-                usage: wgpu::BufferUsages::STORAGE,
-            });
+            let storage = |label, contents: &[u8]| {
+                device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents: &nonempty(contents, 256),
+                    usage: wgpu::BufferUsages::STORAGE,
+                })
+            };
+            let surfaces = storage("surfaces", bytemuck::cast_slice(&surfaces));
+            let polygon_vertices = storage("polygon vertices", bytemuck::cast_slice(&polygon_vertices));
+            let nodes_buffer = storage("bvh nodes", bytemuck::cast_slice(&nodes));
+            let primitives = storage("bvh primitives", bytemuck::cast_slice(bvh.primitives()));
+            let radiance = storage("radiance", bytemuck::cast_slice(&radiance));
+            let rays = storage("mirror rays", bytemuck::cast_slice(&rays.words));
             let vertex_count = vertices.len() as u32;
             let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("vertices"),
@@ -144,35 +226,26 @@ impl FieldRenderer {
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some("field"),
                 entries: &[
-                    binding(0, wgpu::ShaderStages::VERTEX, wgpu::BufferBindingType::Uniform),
-                    binding(
-                        1,
-                        wgpu::ShaderStages::FRAGMENT,
-                        wgpu::BufferBindingType::Storage { read_only: true },
-                    ),
-                    binding(
-                        2,
-                        wgpu::ShaderStages::FRAGMENT,
-                        wgpu::BufferBindingType::Storage { read_only: true },
-                    ),
+                    binding(0, wgpu::ShaderStages::VERTEX_FRAGMENT, wgpu::BufferBindingType::Uniform),
+                    binding(1, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    binding(2, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    binding(3, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    binding(4, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    binding(5, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    binding(6, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
                 ],
             });
             let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("field"),
                 layout: &layout,
                 entries: &[
-                    wgpu::BindGroupEntry {
-                        binding: 0,
-                        resource: view.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 1,
-                        resource: grids.as_entire_binding(),
-                    },
-                    wgpu::BindGroupEntry {
-                        binding: 2,
-                        resource: radiance.as_entire_binding(),
-                    },
+                    entry(0, &view),
+                    entry(1, &surfaces),
+                    entry(2, &radiance),
+                    entry(3, &polygon_vertices),
+                    entry(4, &nodes_buffer),
+                    entry(5, &primitives),
+                    entry(6, &rays),
                 ],
             });
             let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -229,17 +302,24 @@ impl FieldRenderer {
                 vertices,
                 vertex_count,
                 normalisation: scene.normalisation,
+                has_mirrors: surfaces_have_mirrors,
             }
         })
     }
 
-    /// The matrix from the VLF frame to clip space for `camera` (scene units), with the image
-    /// content shifted by `jitter` pixels (x right, y down): the rasteriser's sample at a pixel's
-    /// centre `x + ½` then sees what the camera's ray through `x + ½ − jitter` sees.
+    /// Whether some surface is a mirror.
+    pub fn has_mirrors(&self) -> bool {
+        self.has_mirrors
+    }
+
+    /// Where `camera` (scene units) sees the field from, mirrors drawn as `mirrors` says,
+    /// and the image content shifted by `jitter` pixels (x right, y down): the rasteriser's
+    /// sample at a pixel's centre `x + ½` then sees what the camera's ray through `x + ½ −
+    /// jitter` sees.
     ///
     /// The projection is [`Camera::ray`]'s: forward, right and up from `look_at`, the vertical
     /// field of view and the image's aspect; depth is reversed and infinite.
-    pub fn clip_from_vlf(&self, camera: &Camera, jitter: (f64, f64)) -> Mat4 {
+    pub fn viewpoint(&self, camera: &Camera, jitter: (f64, f64), mirrors: MirrorMode) -> Viewpoint {
         let n = self.normalisation;
         let eye = n.to_vlf(camera.eye);
         let target = n.to_vlf(camera.target);
@@ -257,21 +337,35 @@ impl FieldRenderer {
             -2.0 * jitter.1 / camera.height as f64,
             0.0,
         ));
-        (shift * projection * view).as_mat4()
+        Viewpoint {
+            clip_from_vlf: (shift * projection * view).as_mat4(),
+            eye: eye.as_vec3(),
+            mirrors,
+        }
     }
 
-    /// Draws the field seen through `clip_from_vlf` into `color` (cleared to black) with `depth`
+    /// Draws the field seen from `viewpoint` into `color` (cleared to black) with `depth`
     /// (cleared), both of the same size, in formats [`COLOR_FORMAT`] and [`DEPTH_FORMAT`].
+    ///
+    /// The viewpoint is written with `Queue::write_buffer`, which takes effect at the next
+    /// submission: one draw per submitted encoder.
     pub fn draw(
         &self,
         gpu: &Gpu,
         encoder: &mut wgpu::CommandEncoder,
-        clip_from_vlf: Mat4,
+        viewpoint: &Viewpoint,
         color: &wgpu::TextureView,
         depth: &wgpu::TextureView,
     ) {
         let uniform = ViewUniform {
-            clip_from_vlf: clip_from_vlf.to_cols_array_2d(),
+            clip_from_vlf: viewpoint.clip_from_vlf.to_cols_array_2d(),
+            eye: viewpoint.eye.extend(1.0).to_array(),
+            depth: match viewpoint.mirrors {
+                MirrorMode::Trace { depth } => depth,
+                MirrorMode::Rays => 0,
+            },
+            mode: (viewpoint.mirrors == MirrorMode::Rays) as u32,
+            _pad: [0; 2],
         };
         gpu.queue.write_buffer(&self.view, 0, bytemuck::bytes_of(&uniform));
         let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
@@ -301,6 +395,15 @@ impl FieldRenderer {
         pass.set_bind_group(0, &self.bind_group, &[]);
         pass.set_vertex_buffer(0, self.vertices.slice(..));
         pass.draw(0..self.vertex_count, 0..1);
+    }
+}
+
+const READ_ONLY: wgpu::BufferBindingType = wgpu::BufferBindingType::Storage { read_only: true };
+
+fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
+    wgpu::BindGroupEntry {
+        binding,
+        resource: buffer.as_entire_binding(),
     }
 }
 

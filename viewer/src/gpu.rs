@@ -6,7 +6,8 @@ use crate::ViewerError;
 pub struct Gpu {
     pub device: wgpu::Device,
     pub queue: wgpu::Queue,
-    pub adapter: wgpu::AdapterInfo,
+    pub adapter: wgpu::Adapter,
+    pub info: wgpu::AdapterInfo,
     pub limits: wgpu::Limits,
 }
 
@@ -14,8 +15,12 @@ impl Gpu {
     /// The best adapter of any backend this build supports — a real GPU if there is one, else a
     /// software one such as Mesa's lavapipe — with the adapter's own limits, so large fields
     /// fit where the hardware allows.
+    ///
+    /// The primary backends (Vulkan, Metal, DirectX 12) are tried first and OpenGL only if they
+    /// have no adapter: probing EGL where Vulkan works only logs driver errors.
     pub fn new() -> Result<Gpu, ViewerError> {
-        Gpu::with_backends(wgpu::Backends::all())
+        Gpu::with_backends(wgpu::Backends::PRIMARY)
+            .or_else(|primary| Gpu::with_backends(wgpu::Backends::SECONDARY).map_err(|_| primary))
     }
 
     /// As [`Gpu::new`], looking only at `backends` (`WGPU_BACKEND` in the environment narrows it
@@ -23,11 +28,15 @@ impl Gpu {
     pub fn with_backends(backends: wgpu::Backends) -> Result<Gpu, ViewerError> {
         let mut desc = wgpu::InstanceDescriptor::new_without_display_handle_from_env();
         desc.backends &= backends;
-        let instance = wgpu::Instance::new(desc);
+        Gpu::from_instance(&wgpu::Instance::new(desc), None)
+    }
+
+    /// The best adapter of `instance` that can present to `surface` (if any), and its device.
+    pub fn from_instance(instance: &wgpu::Instance, surface: Option<&wgpu::Surface<'_>>) -> Result<Gpu, ViewerError> {
         let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
             force_fallback_adapter: false,
-            compatible_surface: None,
+            compatible_surface: surface,
             apply_limit_buckets: false,
         }))
         .map_err(|e| ViewerError::NoAdapter(e.to_string()))?;
@@ -46,14 +55,15 @@ impl Gpu {
         Ok(Gpu {
             device,
             queue,
-            adapter: info,
+            adapter,
+            info,
             limits,
         })
     }
 
     /// The adapter in words: `llvmpipe (LLVM 15.0.6, 256 bits) (Vulkan, Cpu)`.
     pub fn describe(&self) -> String {
-        describe(&self.adapter)
+        describe(&self.info)
     }
 
     /// Runs `f` and turns any validation or out-of-memory error it raised into a

@@ -13,16 +13,26 @@
 //! * [`headless`]: `vlf render --gpu`: the same sample positions and box filter
 //!   as the CPU renderer, into an [`vlf_core::render::Image`].
 //!
-//! Mirrors are drawn with their diffuse part only so far (the CPU renderer's
-//! `Trace { depth: 0 }`); their directional radiance comes next.
+//! * [`rays`]: mirrors "from the rays": the field's directional maps and the
+//!   tables that find a ray again, for the shader.
+//!
+//! Mirrors are drawn both ways of the CPU renderer: from the field's rays, or
+//! ray traced through the scene's BVH.
 
 pub mod field;
+pub mod frame;
 pub mod gpu;
 pub mod headless;
+pub mod rays;
+pub mod tonemap;
+pub mod walk;
+pub mod window;
 
-pub use field::FieldRenderer;
+pub use field::{FieldRenderer, MirrorMode, Viewpoint};
 pub use gpu::Gpu;
 pub use headless::render;
+pub use walk::Walk;
+pub use window::{ViewOptions, ViewStats, view};
 
 /// What can go wrong drawing on the GPU.
 #[derive(Debug, thiserror::Error)]
@@ -42,6 +52,12 @@ pub enum ViewerError {
     /// What the field holds cannot be drawn on the GPU yet.
     #[error("{0}")]
     Unsupported(String),
+    /// No window can be opened (no display server).
+    #[error("cannot open a window: {0}")]
+    NoDisplay(String),
+    /// Writing a file (a screenshot) failed.
+    #[error("{0}")]
+    Io(String),
     /// A GPU operation failed (validation, out of memory, a lost device).
     #[error("GPU error: {0}")]
     Gpu(String),

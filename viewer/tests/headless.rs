@@ -69,10 +69,10 @@ fn differing(a: &Image, b: &Image, rel: f32) -> usize {
         .count()
 }
 
-fn compare(gpu: &Gpu, field: &LightField, camera: &Camera, samples: u32) {
-    let cpu = field.render(camera, samples, SpecularMode::Trace { depth: 0 });
+fn compare(gpu: &Gpu, field: &LightField, camera: &Camera, samples: u32, mode: SpecularMode) {
+    let cpu = field.render(camera, samples, mode);
     let renderer = FieldRenderer::new(gpu, field).expect("upload");
-    let gpu_image = vlf_viewer::render(gpu, &renderer, camera, samples).expect("GPU render");
+    let gpu_image = vlf_viewer::render(gpu, &renderer, camera, samples, mode).expect("GPU render");
     assert_eq!((gpu_image.width, gpu_image.height), (camera.width, camera.height));
     let pixels = cpu.pixels.len();
     let lit = cpu.pixels.iter().filter(|p| p.iter().any(|&v| v > 0.0)).count();
@@ -102,16 +102,48 @@ fn compare(gpu: &Gpu, field: &LightField, camera: &Camera, samples: u32) {
 fn cornell_box_matches_the_cpu_renderer() {
     let Some(gpu) = gpu() else { return };
     let field = field("cornell.obj", 4);
-    compare(&gpu, &field, &camera(128, 96), 1);
-    compare(&gpu, &field, &camera(64, 48), 3);
+    compare(&gpu, &field, &camera(128, 96), 1, SpecularMode::Rays);
+    compare(&gpu, &field, &camera(64, 48), 3, SpecularMode::Trace { depth: 8 });
 }
 
 #[test]
-fn mirror_scene_matches_the_cpu_renderer_without_reflections() {
+fn mirror_scene_matches_the_cpu_renderer_both_ways() {
     let Some(gpu) = gpu() else { return };
     let field = field("mirrors.obj", 3);
     assert!(field.specular.is_some(), "the scene has mirrors");
-    compare(&gpu, &field, &camera(128, 96), 2);
+    let cam = camera(128, 96);
+    for depth in [0, 1, 8] {
+        compare(&gpu, &field, &cam, 2, SpecularMode::Trace { depth });
+    }
+    compare(&gpu, &field, &cam, 2, SpecularMode::Rays);
+    // From another side, where the floor mirror is seen at a grazing angle.
+    let side = Camera::new(
+        DVec3::new(500.0, 450.0, -300.0),
+        DVec3::new(250.0, 50.0, 300.0),
+        DVec3::Y,
+        60.0,
+        96,
+        72,
+    )
+    .unwrap();
+    compare(&gpu, &field, &side, 1, SpecularMode::Rays);
+    // Reflections add light: the traced image is brighter than the one without them.
+    let renderer = FieldRenderer::new(&gpu, &field).unwrap();
+    let flat = vlf_viewer::render(&gpu, &renderer, &cam, 1, SpecularMode::Trace { depth: 0 }).unwrap();
+    let traced = vlf_viewer::render(&gpu, &renderer, &cam, 1, SpecularMode::Trace { depth: 8 }).unwrap();
+    let rays = vlf_viewer::render(&gpu, &renderer, &cam, 1, SpecularMode::Rays).unwrap();
+    assert!(
+        rays.mean()[0] > flat.mean()[0] * 1.01,
+        "{:?} vs {:?}",
+        rays.mean(),
+        flat.mean()
+    );
+    assert!(
+        traced.mean()[0] > flat.mean()[0] * 1.01,
+        "{:?} vs {:?}",
+        traced.mean(),
+        flat.mean()
+    );
 }
 
 #[test]
@@ -121,18 +153,39 @@ fn an_image_samples_the_field_not_a_constant() {
     let Some(gpu) = gpu() else { return };
     let mut field = field("cornell.obj", 2);
     let cam = camera(48, 36);
-    let base = vlf_viewer::render(&gpu, &FieldRenderer::new(&gpu, &field).unwrap(), &cam, 1).unwrap();
+    let base = vlf_viewer::render(
+        &gpu,
+        &FieldRenderer::new(&gpu, &field).unwrap(),
+        &cam,
+        1,
+        SpecularMode::Rays,
+    )
+    .unwrap();
     for r in &mut field.radiance {
         *r = r.map(|v| v * 2.0);
     }
-    let doubled = vlf_viewer::render(&gpu, &FieldRenderer::new(&gpu, &field).unwrap(), &cam, 1).unwrap();
+    let doubled = vlf_viewer::render(
+        &gpu,
+        &FieldRenderer::new(&gpu, &field).unwrap(),
+        &cam,
+        1,
+        SpecularMode::Rays,
+    )
+    .unwrap();
     for (a, b) in base.pixels.iter().zip(&doubled.pixels) {
         for c in 0..3 {
             assert_eq!(a[c] * 2.0, b[c]);
         }
     }
     field.radiance.iter_mut().for_each(|r| *r = [0.0; 3]);
-    let black = vlf_viewer::render(&gpu, &FieldRenderer::new(&gpu, &field).unwrap(), &cam, 1).unwrap();
+    let black = vlf_viewer::render(
+        &gpu,
+        &FieldRenderer::new(&gpu, &field).unwrap(),
+        &cam,
+        1,
+        SpecularMode::Rays,
+    )
+    .unwrap();
     assert!(black.pixels.iter().all(|p| *p == [0.0; 3]));
 }
 
@@ -164,8 +217,98 @@ fn oversized_image_is_refused() {
     ) else {
         return; // the camera's own limit is lower: nothing to test here
     };
-    match vlf_viewer::render(&gpu, &renderer, &cam, 1) {
+    match vlf_viewer::render(&gpu, &renderer, &cam, 1, SpecularMode::Rays) {
         Err(ViewerError::TooLarge(m)) => assert!(m.contains("pixels a side"), "{m}"),
         other => panic!("expected TooLarge, got {:?}", other.map(|_| ())),
+    }
+}
+
+/// Reads an `Rgba8*` texture of `width × height` back.
+fn read_rgba8(gpu: &Gpu, texture: &wgpu::Texture, width: u32, height: u32) -> Vec<u8> {
+    let row = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
+    let buffer = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+        label: None,
+        size: (row * height) as u64,
+        usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+        mapped_at_creation: false,
+    });
+    let mut encoder = gpu.device.create_command_encoder(&Default::default());
+    encoder.copy_texture_to_buffer(
+        texture.as_image_copy(),
+        wgpu::TexelCopyBufferInfo {
+            buffer: &buffer,
+            layout: wgpu::TexelCopyBufferLayout {
+                offset: 0,
+                bytes_per_row: Some(row),
+                rows_per_image: Some(height),
+            },
+        },
+        wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+    );
+    gpu.queue.submit([encoder.finish()]);
+    buffer.slice(..).map_async(wgpu::MapMode::Read, |r| r.expect("map"));
+    gpu.device.poll(wgpu::PollType::wait_indefinitely()).expect("poll");
+    let bytes = buffer.slice(..).get_mapped_range().expect("mapped");
+    bytes
+        .chunks_exact(row as usize)
+        .flat_map(|r| r[..(width * 4) as usize].to_vec())
+        .collect()
+}
+
+#[test]
+fn the_screen_shows_what_a_png_would() {
+    // The viewer's tone-mapping pass, onto an sRGB format (the hardware encodes) and a linear
+    // one (the shader encodes), gives the bytes of the CPU's PNG tone map to within one step.
+    let Some(gpu) = gpu() else { return };
+    let field = field("cornell.obj", 3);
+    let renderer = FieldRenderer::new(&gpu, &field).unwrap();
+    let (w, h) = (64, 48);
+    let frame = vlf_viewer::frame::Frame::new(&gpu, w, h).unwrap();
+    let viewpoint = renderer.viewpoint(&camera(w, h), (0.0, 0.0), vlf_viewer::MirrorMode::Rays);
+    let mut encoder = gpu.device.create_command_encoder(&Default::default());
+    renderer.draw(&gpu, &mut encoder, &viewpoint, &frame.color_view, &frame.depth_view);
+    gpu.queue.submit([encoder.finish()]);
+    let linear = frame.image(&gpu).unwrap();
+    for format in [wgpu::TextureFormat::Rgba8UnormSrgb, wgpu::TextureFormat::Rgba8Unorm] {
+        let tonemap = vlf_viewer::tonemap::Tonemap::new(&gpu, format);
+        let target = gpu.device.create_texture(&wgpu::TextureDescriptor {
+            label: None,
+            size: wgpu::Extent3d {
+                width: w,
+                height: h,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format,
+            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+            view_formats: &[],
+        });
+        for exposure in [-1.0, 1.5] {
+            let mut encoder = gpu.device.create_command_encoder(&Default::default());
+            let view = target.create_view(&Default::default());
+            tonemap.draw(&gpu, &mut encoder, &frame, &view, exposure);
+            gpu.queue.submit([encoder.finish()]);
+            let bytes = read_rgba8(&gpu, &target, w, h);
+            let mut worst = 0;
+            let mut saturated = 0;
+            for (p, q) in linear.pixels.iter().zip(bytes.chunks_exact(4)) {
+                for c in 0..3 {
+                    let expected = vlf_core::render::image::tone_map(p[c], exposure);
+                    worst = worst.max((expected as i32 - q[c] as i32).abs());
+                    saturated += (expected == 255) as usize;
+                }
+            }
+            assert!(worst <= 1, "{format:?} exposure {exposure}: off by {worst}");
+            assert!(
+                saturated < linear.pixels.len() * 3 / 2,
+                "{format:?} exposure {exposure}: mostly white"
+            );
+        }
     }
 }

@@ -494,6 +494,14 @@ impl DirectionSet {
         }
     }
 
+    /// What [`DirectionSet::triangle`] reads, for re-implementing it elsewhere (the GPU viewer's
+    /// shader): the subdivisions `n`, the rotation from the lattice frame, the `(2n+1)²` lattice
+    /// table (row `j + n`, column `i + n`; points outside the diamond have index `u32::MAX`) and
+    /// the unrotated unit vector of every line direction.
+    pub fn lookup_tables(&self) -> (i32, DMat3, &[Oriented], &[DVec3]) {
+        (self.subdivisions, self.rotation, &self.lattice, &self.lattice_vectors)
+    }
+
     /// Mean solid angle of a direction's cell, `2π/l` (steradians).
     pub fn mean_solid_angle(&self) -> f64 {
         std::f64::consts::TAU / self.len() as f64

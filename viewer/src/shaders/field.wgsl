@@ -1,32 +1,82 @@
-// Draws a light field's diffuse surfaces (and emitters) with their radiance maps.
+// Draws a light field: diffuse surfaces and emitters with their radiance maps, mirrors with
+// their diffuse part plus what ray tracing through the static scene finds.
 //
-// Every surface owns a rectangular grid of texels in one global atlas (see
-// `vlf_core::maps`): texel (s, t) of surface i is `radiance[first_i + t·width_i + s]`.
-// A fragment reads the outgoing radiance bilinearly between texel centres,
-// clamping at the grid's border, exactly as `LightField::radiance_at` does on
-// the CPU. The texel coordinates (already shifted by ½ to texel centres) are
-// computed per vertex in f64 on the CPU: they are affine on the polygon's
-// plane, so perspective-correct interpolation reproduces them exactly.
+// Radiance maps. Every surface owns a rectangular grid of texels in one global atlas (see
+// `vlf_core::maps`): texel (s, t) of surface i is `radiance[first_i + t·width_i + s]`. A point
+// reads its outgoing radiance bilinearly between texel centres, clamping at the grid's border,
+// exactly as `LightField::radiance_at` does on the CPU. For the visible surface the texel
+// coordinates (shifted by ½ to texel centres) come per vertex, computed in f64 on the CPU: they
+// are affine on the polygon's plane, so perspective-correct interpolation reproduces them.
 //
-// Back faces are drawn black: they still hide what lies behind them, as a
-// back-face hit does for the CPU renderer's rays.
+// Mirrors (`SpecularMode::Trace` of the CPU renderer). The eye ray is reflected at the mirror
+// and traced through the scene's BVH (`vlf_core::render::bvh`, uploaded as it is: flat nodes in
+// depth-first order, leaves listing surfaces); the diffuse radiance of what it meets is added,
+// weighted by the product of the mirrors' ρs, up to `view.depth` mirrors deep. A back face or a
+// miss ends the path with nothing.
+//
+// Back faces are drawn black: they still hide what lies behind them, as a back-face hit does for
+// the CPU renderer's rays.
 
 struct View {
     // VLF frame → clip space, sub-pixel jitter included.
     clip_from_vlf: mat4x4<f32>,
+    // The eye in the VLF frame (w unused).
+    eye: vec4<f32>,
+    // Mirrors traced at most this deep; 0 draws mirrors without reflections.
+    depth: u32,
+    // How mirrors are drawn: 0 ray traced (`depth` deep), 1 from the field's rays.
+    mode: u32,
+    _pad1: u32,
+    _pad2: u32,
 };
 
-struct Grid {
+struct Surface {
+    normal: vec3<f32>,
+    // Plane: normal · x = offset.
+    offset: f32,
+    specular: vec3<f32>,
+    mirror: u32,
+    grid_origin: vec3<f32>,
+    inv_texel: f32,
+    axis_u: vec3<f32>,
     first: u32,
+    axis_v: vec3<f32>,
     width: u32,
+    first_vertex: u32,
+    vertex_count: u32,
     height: u32,
-    _pad: u32,
+    // Index among the mirrors (for the ray tables), NONE for other surfaces.
+    mirror_index: u32,
+};
+
+struct Node {
+    min_x: f32, min_y: f32, min_z: f32,
+    max_x: f32, max_y: f32, max_z: f32,
+    // Interior: the right child (the left one is the next node). Leaf: the first primitive.
+    index: u32,
+    // Primitives of a leaf; 0 marks an interior node.
+    count: u32,
 };
 
 @group(0) @binding(0) var<uniform> view: View;
-@group(0) @binding(1) var<storage, read> grids: array<Grid>;
+@group(0) @binding(1) var<storage, read> surfaces: array<Surface>;
 // Radiance of every atlas texel, RGB packed tightly (3 floats per texel).
 @group(0) @binding(2) var<storage, read> radiance: array<f32>;
+// Polygon vertices (xyz, w unused), surface by surface.
+@group(0) @binding(3) var<storage, read> vertices: array<vec4<f32>>;
+@group(0) @binding(4) var<storage, read> nodes: array<Node>;
+@group(0) @binding(5) var<storage, read> primitives: array<u32>;
+// The mirrors' directional radiance and its look-up tables (see `rays.rs` for the layout).
+@group(0) @binding(6) var<storage, read> rays: array<u32>;
+
+// Secondary rays start this far off the mirror and ignore hits closer than it (VLF frame, where
+// the scene spans 2): f32 keeps about 10⁻⁷ there.
+const RAY_EPSILON: f32 = 1e-5;
+// A point at most this far outside a polygon's edge still hits it (VLF units).
+const EDGE_EPSILON: f32 = 1e-6;
+// Deeper than `vlf_core::render::bvh::MAX_DEPTH`: a traversal never overflows it.
+const STACK_SIZE: u32 = 64u;
+const NONE: u32 = 0xffffffffu;
 
 struct VertexIn {
     @location(0) position: vec3<f32>,
@@ -38,6 +88,7 @@ struct VertexOut {
     @builtin(position) clip: vec4<f32>,
     @location(0) texel: vec2<f32>,
     @location(1) @interpolate(flat) surface: u32,
+    @location(2) position: vec3<f32>,
 };
 
 @vertex
@@ -46,12 +97,274 @@ fn vs_main(v: VertexIn) -> VertexOut {
     out.clip = view.clip_from_vlf * vec4<f32>(v.position, 1.0);
     out.texel = v.texel;
     out.surface = v.surface;
+    out.position = v.position;
     return out;
 }
 
-fn texel_radiance(g: Grid, x: u32, y: u32) -> vec3<f32> {
-    let i = (g.first + y * g.width + x) * 3u;
+fn texel_radiance(s: Surface, x: u32, y: u32) -> vec3<f32> {
+    let i = (s.first + y * s.width + x) * 3u;
     return vec3<f32>(radiance[i], radiance[i + 1u], radiance[i + 2u]);
+}
+
+// Bilinear between texel centres at texel coordinates `c` (already shifted by ½).
+fn bilinear(s: Surface, c: vec2<f32>) -> vec3<f32> {
+    let c0 = floor(c);
+    let f = c - c0;
+    let hi = vec2<f32>(f32(s.width - 1u), f32(s.height - 1u));
+    let a = vec2<u32>(clamp(c0, vec2<f32>(0.0), hi));
+    let b = vec2<u32>(clamp(c0 + 1.0, vec2<f32>(0.0), hi));
+    return texel_radiance(s, a.x, a.y) * ((1.0 - f.x) * (1.0 - f.y))
+         + texel_radiance(s, b.x, a.y) * (f.x * (1.0 - f.y))
+         + texel_radiance(s, a.x, b.y) * ((1.0 - f.x) * f.y)
+         + texel_radiance(s, b.x, b.y) * (f.x * f.y);
+}
+
+// Diffuse radiance of surface `s` at point `p` (VLF frame).
+fn diffuse_at(s: Surface, p: vec3<f32>) -> vec3<f32> {
+    let d = p - s.grid_origin;
+    return bilinear(s, vec2<f32>(dot(d, s.axis_u), dot(d, s.axis_v)) * s.inv_texel - 0.5);
+}
+
+// Entry distance of the ray into a node's box, or -1 when it misses it within [t_min, t_max].
+fn slab(node: Node, o: vec3<f32>, inv: vec3<f32>, t_min: f32, t_max: f32) -> f32 {
+    let a = (vec3<f32>(node.min_x, node.min_y, node.min_z) - o) * inv;
+    let b = (vec3<f32>(node.max_x, node.max_y, node.max_z) - o) * inv;
+    let lo = min(a, b);
+    let hi = max(a, b);
+    let near = max(max(lo.x, lo.y), max(lo.z, t_min));
+    let far = min(min(hi.x, hi.y), min(hi.z, t_max));
+    if (near <= far) {
+        return near;
+    }
+    return -1.0;
+}
+
+struct Hit {
+    surface: u32,
+    t: f32,
+    front: bool,
+};
+
+// The ray against convex polygon `index`: its `t` if hit within [t_min, t_max], else -1. Both
+// faces are hit; the inside test is inclusive with EDGE_EPSILON, as on the CPU.
+fn intersect_surface(index: u32, o: vec3<f32>, d: vec3<f32>, t_min: f32, t_max: f32) -> f32 {
+    let s = surfaces[index];
+    let denom = dot(s.normal, d);
+    if (denom == 0.0 || s.vertex_count < 3u) {
+        return -1.0;
+    }
+    let t = (s.offset - dot(s.normal, o)) / denom;
+    if (!(t >= t_min && t <= t_max)) {
+        return -1.0;
+    }
+    let p = o + t * d;
+    var previous = vertices[s.first_vertex + s.vertex_count - 1u].xyz;
+    for (var k = 0u; k < s.vertex_count; k++) {
+        let vertex = vertices[s.first_vertex + k].xyz;
+        let edge = vertex - previous;
+        let c = dot(cross(edge, p - previous), s.normal);
+        if (c < 0.0 && c * c > EDGE_EPSILON * EDGE_EPSILON * dot(edge, edge)) {
+            return -1.0;
+        }
+        previous = vertex;
+    }
+    return t;
+}
+
+// The nearest surface along `o + t·d`, t ≥ t_min (ties to the lowest index, as on the CPU).
+fn trace(o: vec3<f32>, d: vec3<f32>, t_min: f32) -> Hit {
+    // Only fragments of drawn polygons trace, so the scene has surfaces and the BVH a root.
+    var best = Hit(NONE, 3.4e38, false);
+    // Components below 1e-30 become 1e-30, so the slab test never divides by zero (for a ray that
+    // parallel to a slab, the sign of its huge inverse does not change the interval).
+    let inv = 1.0 / select(d, vec3<f32>(1e-30), abs(d) < vec3<f32>(1e-30));
+    var stack: array<u32, STACK_SIZE>;
+    var top = 0u;
+    if (slab(nodes[0], o, inv, t_min, best.t) < 0.0) {
+        return best;
+    }
+    var current = 0u;
+    loop {
+        let node = nodes[current];
+        var descended = false;
+        if (node.count > 0u) {
+            for (var k = 0u; k < node.count; k++) {
+                let s = primitives[node.index + k];
+                let t = intersect_surface(s, o, d, t_min, best.t);
+                if (t >= 0.0 && (t < best.t || (t == best.t && s < best.surface))) {
+                    best = Hit(s, t, dot(surfaces[s].normal, d) < 0.0);
+                }
+            }
+        } else {
+            let left = current + 1u;
+            let right = node.index;
+            let tl = slab(nodes[left], o, inv, t_min, best.t);
+            let tr = slab(nodes[right], o, inv, t_min, best.t);
+            if (tl >= 0.0 && tr >= 0.0) {
+                if (tl <= tr) {
+                    stack[top] = right;
+                    current = left;
+                } else {
+                    stack[top] = left;
+                    current = right;
+                }
+                top = min(top + 1u, STACK_SIZE - 1u);
+                descended = true;
+            } else if (tl >= 0.0) {
+                current = left;
+                descended = true;
+            } else if (tr >= 0.0) {
+                current = right;
+                descended = true;
+            }
+        }
+        if (!descended) {
+            // Pop the next node still worth visiting.
+            var found = false;
+            loop {
+                if (top == 0u) {
+                    break;
+                }
+                top -= 1u;
+                if (slab(nodes[stack[top]], o, inv, t_min, best.t) >= 0.0) {
+                    current = stack[top];
+                    found = true;
+                    break;
+                }
+            }
+            if (!found) {
+                break;
+            }
+        }
+    }
+    return best;
+}
+
+
+// ---- Mirrors from the rays (`LightField::mirror_radiance_from_rays`; tables in `rays.rs`) ----
+
+fn ray_f32(i: u32) -> f32 {
+    return bitcast<f32>(rays[i]);
+}
+
+fn ray_vec3(i: u32) -> vec3<f32> {
+    return vec3<f32>(ray_f32(i), ray_f32(i + 1u), ray_f32(i + 2u));
+}
+
+// The unrotated unit vector of the lattice point (i, j) and its line direction's index.
+fn lattice_point(i: i32, j: i32, n: i32) -> vec4<f32> {
+    let o = rays[rays[4u] + u32((j + n) * (2 * n + 1) + (i + n))];
+    let index = o & 0x7fffffffu;
+    var v = ray_vec3(rays[5u] + 3u * index);
+    if ((o >> 31u) != 0u) {
+        v = -v;
+    }
+    return vec4<f32>(v, bitcast<f32>(index));
+}
+
+// The mirror slot of ray cell (x, y) of direction d for mirror m, or NONE.
+fn mirror_slot(d: u32, m: u32, x: i32, y: i32) -> u32 {
+    let w = rays[7u] + 5u * (d * rays[2u] + m);
+    let x0 = i32(rays[w]);
+    let y0 = i32(rays[w + 1u]);
+    let width = i32(rays[w + 2u]);
+    let height = i32(rays[w + 3u]);
+    if (x < x0 || y < y0 || x >= x0 + width || y >= y0 + height) {
+        return NONE;
+    }
+    return rays[rays[8u] + rays[w + 4u] + u32((y - y0) * width + (x - x0))];
+}
+
+// Radiance leaving mirror `s` at `p` towards unit direction `outgoing`, from the maps.
+fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec3<f32> {
+    // The spherical triangle of line directions around `outgoing` (`DirectionSet::triangle`).
+    let rotation = mat3x3<f32>(ray_vec3(16u), ray_vec3(19u), ray_vec3(22u));
+    var local = transpose(rotation) * outgoing;
+    if (local.z < 0.0) {
+        local = -local;
+    }
+    let n = i32(rays[0u]);
+    let scale = f32(n) / (abs(local.x) + abs(local.y) + local.z);
+    let px = local.x * scale;
+    let py = local.y * scale;
+    let sx = select(1, -1, px < 0.0);
+    let sy = select(1, -1, py < 0.0);
+    let a = abs(px);
+    let b = abs(py);
+    let fa = clamp(i32(floor(a)), 0, n - 1);
+    let fb = clamp(i32(floor(b)), 0, n - 1 - fa);
+    let upper = fa + fb < n - 1 && (a - f32(fa)) + (b - f32(fb)) > 1.0;
+    var points: array<vec2<i32>, 3>;
+    if (upper) {
+        points = array<vec2<i32>, 3>(vec2<i32>(fa + 1, fb + 1), vec2<i32>(fa + 1, fb), vec2<i32>(fa, fb + 1));
+    } else {
+        points = array<vec2<i32>, 3>(vec2<i32>(fa, fb), vec2<i32>(fa + 1, fb), vec2<i32>(fa, fb + 1));
+    }
+    var v: array<vec3<f32>, 3>;
+    var index: array<u32, 3>;
+    for (var t = 0; t < 3; t++) {
+        let q = lattice_point(sx * points[t].x, sy * points[t].y, n);
+        v[t] = q.xyz;
+        index[t] = bitcast<u32>(q.w);
+    }
+    let c23 = cross(v[1], v[2]);
+    let c31 = cross(v[2], v[0]);
+    let c12 = cross(v[0], v[1]);
+    let det = dot(v[0], c23);
+    var weights = max(vec3<f32>(dot(local, c23), dot(local, c31), dot(local, c12)) / det, vec3<f32>(0.0));
+    let sum = weights.x + weights.y + weights.z;
+    if (sum > 0.0) {
+        weights = weights / sum;
+    } else {
+        let dots = vec3<f32>(dot(local, v[0]), dot(local, v[1]), dot(local, v[2]));
+        if (dots.x >= dots.y && dots.x >= dots.z) {
+            weights = vec3<f32>(1.0, 0.0, 0.0);
+        } else if (dots.y >= dots.z) {
+            weights = vec3<f32>(0.0, 1.0, 0.0);
+        } else {
+            weights = vec3<f32>(0.0, 0.0, 1.0);
+        }
+    }
+    // In each direction's subfield: bilinear between the four rays around p's projection.
+    let half_n = f32(rays[3u]) * 0.5;
+    var out = vec3<f32>(0.0);
+    var weight = 0.0;
+    for (var t = 0; t < 3; t++) {
+        let bt = weights[t];
+        if (bt <= 0.0) {
+            continue;
+        }
+        let d = index[t];
+        let dir = rays[6u] + 7u * d;
+        let g = vec2<f32>((dot(p, ray_vec3(dir)) + 1.0) * half_n, (dot(p, ray_vec3(dir + 3u)) + 1.0) * half_n) - 0.5;
+        let g0 = floor(g);
+        let f = g - g0;
+        var value = vec3<f32>(0.0);
+        var w_sum = 0.0;
+        for (var k = 0; k < 4; k++) {
+            let dx = k & 1;
+            let dy = k >> 1u;
+            let w = select(1.0 - f.x, f.x, dx == 1) * select(1.0 - f.y, f.y, dy == 1);
+            let x = i32(g0.x) + dx;
+            let y = i32(g0.y) + dy;
+            if (w <= 0.0 || x < 0 || y < 0) {
+                continue;
+            }
+            let slot = mirror_slot(d, s.mirror_index, x, y);
+            if (slot != NONE) {
+                value += ray_vec3(rays[9u] + 3u * (rays[dir + 6u] + slot)) * w;
+                w_sum += w;
+            }
+        }
+        if (w_sum > 0.0) {
+            out += value / w_sum * bt;
+            weight += bt;
+        }
+    }
+    if (weight > 0.0) {
+        out /= weight;
+    }
+    return out;
 }
 
 @fragment
@@ -59,15 +372,37 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) ve
     if (!front) {
         return vec4<f32>(0.0, 0.0, 0.0, 1.0);
     }
-    let g = grids[in.surface];
-    let c0 = floor(in.texel);
-    let f = in.texel - c0;
-    let hi = vec2<f32>(f32(g.width - 1u), f32(g.height - 1u));
-    let a = vec2<u32>(clamp(c0, vec2<f32>(0.0), hi));
-    let b = vec2<u32>(clamp(c0 + 1.0, vec2<f32>(0.0), hi));
-    let l = texel_radiance(g, a.x, a.y) * ((1.0 - f.x) * (1.0 - f.y))
-          + texel_radiance(g, b.x, a.y) * (f.x * (1.0 - f.y))
-          + texel_radiance(g, a.x, b.y) * ((1.0 - f.x) * f.y)
-          + texel_radiance(g, b.x, b.y) * (f.x * f.y);
+    var s = surfaces[in.surface];
+    var l = bilinear(s, in.texel);
+    if (s.mirror == 0u) {
+        return vec4<f32>(l, 1.0);
+    }
+    if (view.mode == 1u) {
+        return vec4<f32>(l + mirror_from_rays(s, in.position, normalize(view.eye.xyz - in.position)), 1.0);
+    }
+    if (view.depth == 0u) {
+        return vec4<f32>(l, 1.0);
+    }
+    // Reflections: follow the eye ray from mirror to mirror.
+    var weight = vec3<f32>(1.0);
+    var p = in.position;
+    var d = normalize(in.position - view.eye.xyz);
+    var remaining = view.depth;
+    loop {
+        weight *= s.specular;
+        d = d - 2.0 * dot(d, s.normal) * s.normal;
+        let origin = p + s.normal * RAY_EPSILON;
+        let hit = trace(origin, d, RAY_EPSILON);
+        if (hit.surface == NONE || !hit.front) {
+            break;
+        }
+        p = origin + hit.t * d;
+        s = surfaces[hit.surface];
+        l += weight * diffuse_at(s, p);
+        remaining -= 1u;
+        if (s.mirror == 0u || remaining == 0u) {
+            break;
+        }
+    }
     return vec4<f32>(l, 1.0);
 }

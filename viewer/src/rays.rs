@@ -1,0 +1,128 @@
+//! Mirrors "from the rays" on the GPU: the field's directional radiance maps and what is needed
+//! to find a ray again, packed into one `array<u32>` for the shader (`shaders/field.wgsl`,
+//! `mirror_from_rays`), which re-implements `LightField::mirror_radiance_from_rays`:
+//!
+//! 1. The outgoing direction lies in a spherical triangle of three line directions with
+//!    barycentric weights (`DirectionSet::triangle`: the octahedral lattice table, its
+//!    rotation and the unit vectors are uploaded as they are).
+//! 2. In each direction's subfield the point projects between four rays; each ray's mirror slot
+//!    is read from a dense *window* per (direction, mirror) — the rectangle of ray cells the
+//!    mirror covers, holding the slot `MirrorLayout::locate` gives or `NONE` — and the slots'
+//!    totals are interpolated bilinearly over the rays that exist.
+//! 3. The three are blended by the barycentric weights of the directions that had a ray.
+//!
+//! The windows replace the CPU's tile lists and span search by one indexed read; they hold
+//! about as many cells as the mirrors have slots (the rectangles' fill).
+//!
+//! Layout of the words (offsets in words, floats as their bits):
+//!
+//! | words | what |
+//! |---|---|
+//! | 0..16 | header: `n`, `l`, mirrors, resolution `N`, offsets of lattice, vectors, directions, windows, cells, totals; rotation (9 floats, column-major) from word 16 |
+//! | lattice | `(2n+1)²` words: line direction index, bit 31 set for `−ω`; `NONE` outside |
+//! | vectors | 3 floats per line direction: its unrotated unit vector |
+//! | directions | 7 words per line direction: PSF frame `u`, `v` (3 floats each), first total |
+//! | windows | 5 words per (direction, mirror): `x0`, `y0`, width, height, first cell |
+//! | cells | one word per ray cell of a window: the mirror slot, or `NONE` |
+//! | totals | 3 floats per mirror slot, direction after direction |
+
+use vlf_core::field::LightField;
+
+/// No slot, no direction.
+pub const NONE: u32 = u32::MAX;
+const HEADER_WORDS: usize = 32;
+
+/// The words, and the mirror index of every surface (`NONE` for a non-mirror).
+pub struct RayTables {
+    pub words: Vec<u32>,
+    pub mirror_index: Vec<u32>,
+}
+
+impl RayTables {
+    /// The tables of `field`; a field without mirror maps gets a header only (nothing reads it).
+    pub fn new(field: &LightField) -> RayTables {
+        let scene = &field.scene;
+        let mut mirror_index = vec![NONE; scene.surfaces.len()];
+        let mut mirror_surfaces = Vec::new();
+        for (i, index) in mirror_index.iter_mut().enumerate() {
+            if scene.material(i).is_mirror() {
+                *index = mirror_surfaces.len() as u32;
+                mirror_surfaces.push(i as u32);
+            }
+        }
+        let mirrors = mirror_surfaces.len() as u32;
+        let mut words = vec![0u32; HEADER_WORDS];
+        let Some(spec) = &field.specular else {
+            return RayTables { words, mirror_index };
+        };
+        let (n, rotation, lattice, vectors) = spec.directions.lookup_tables();
+        let l = spec.subfields.len();
+        let resolution = spec.subfields.first().map_or(0, |s| s.grid.resolution);
+        let f = |v: f64| (v as f32).to_bits();
+        words[0] = n as u32;
+        words[1] = l as u32;
+        words[2] = mirrors;
+        words[3] = resolution;
+        for (k, v) in rotation.to_cols_array().iter().enumerate() {
+            words[16 + k] = f(*v);
+        }
+
+        words[4] = words.len() as u32;
+        words.extend(lattice.iter().map(|o| {
+            if o.index == u32::MAX {
+                NONE
+            } else {
+                o.index | (u32::from(o.reversed) << 31)
+            }
+        }));
+
+        words[5] = words.len() as u32;
+        words.extend(vectors.iter().flat_map(|v| v.to_array().map(f)));
+
+        words[6] = words.len() as u32;
+        let mut total_base = 0u32;
+        for (sub, totals) in spec.subfields.iter().zip(&spec.totals) {
+            words.extend(sub.frame.u.to_array().map(f));
+            words.extend(sub.frame.v.to_array().map(f));
+            words.push(total_base);
+            total_base += totals.len() as u32;
+        }
+
+        // Windows: the rectangle of ray cells each mirror covers in each direction.
+        let mut windows = Vec::with_capacity(l * mirrors as usize);
+        let mut cells = Vec::new();
+        for (sub, layout) in spec.subfields.iter().zip(&spec.layouts) {
+            let mut bounds = vec![(u32::MAX, u32::MAX, 0u32, 0u32); mirrors as usize];
+            for &(surface, k, entry) in &layout.entries {
+                let m = mirror_index[surface as usize];
+                if m == NONE {
+                    continue;
+                }
+                let b = &mut bounds[m as usize];
+                sub.rays_of(k as usize, &sub.entries[entry as usize], |_, x, y| {
+                    *b = (b.0.min(x), b.1.min(y), b.2.max(x + 1), b.3.max(y + 1));
+                });
+            }
+            for (m, &(x0, y0, x1, y1)) in bounds.iter().enumerate() {
+                if x0 == u32::MAX {
+                    windows.extend([0, 0, 0, 0, 0]);
+                    continue;
+                }
+                let surface = mirror_surfaces[m];
+                windows.extend([x0, y0, x1 - x0, y1 - y0, cells.len() as u32]);
+                for y in y0..y1 {
+                    for x in x0..x1 {
+                        cells.push(layout.locate(sub, surface, x, y).unwrap_or(NONE));
+                    }
+                }
+            }
+        }
+        words[7] = words.len() as u32;
+        words.extend(windows);
+        words[8] = words.len() as u32;
+        words.extend(cells);
+        words[9] = words.len() as u32;
+        words.extend(spec.totals.iter().flatten().flatten().map(|&c| c.to_bits()));
+        RayTables { words, mirror_index }
+    }
+}

@@ -1,0 +1,395 @@
+//! `vlf view`: a walkthrough of a field in a window.
+//!
+//! Every frame draws the field into a linear [`Frame`] at the window's size (the same pipeline
+//! as `vlf render --gpu`, one sample per pixel) and tone-maps it onto the window's surface.
+//! The window's title is the status line: frames per second, the mirror mode, the exposure,
+//! the eye's speed. Keys:
+//!
+//! | key | does |
+//! |---|---|
+//! | W A S D | walk forward, left, back, right (level, whatever the pitch) |
+//! | Q / E | down / up |
+//! | drag (any button) | look around |
+//! | wheel | walking speed ×1.25 per notch |
+//! | M | cycle the mirror mode: from the rays, traced, without reflections |
+//! | + / − | exposure ±½ stop |
+//! | P | save a screenshot (the linear frame, tone-mapped as on screen, or linear for `.pfm`) |
+//! | Esc | quit |
+
+use crate::field::MirrorMode;
+use crate::frame::Frame;
+use crate::tonemap::Tonemap;
+use crate::walk::{Move, Walk};
+use crate::{FieldRenderer, Gpu, ViewerError};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+use vlf_core::field::LightField;
+use winit::application::ApplicationHandler;
+use winit::dpi::PhysicalSize;
+use winit::event::{ElementState, MouseScrollDelta, WindowEvent};
+use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
+use winit::keyboard::{KeyCode, PhysicalKey};
+use winit::window::{Window, WindowId};
+
+/// How `vlf view` starts, and when it stops by itself.
+#[derive(Clone, Debug)]
+pub struct ViewOptions {
+    pub title: String,
+    pub size: (u32, u32),
+    pub walk: Walk,
+    pub exposure: f64,
+    pub mirrors: MirrorMode,
+    /// Whether presenting waits for the display's refresh.
+    pub vsync: bool,
+    /// Quit after this many frames (scripted runs, benchmarks).
+    pub frames: Option<u64>,
+    /// Where `P` writes screenshots: `DIR/vlf-N.png`.
+    pub screenshot_dir: PathBuf,
+    /// A screenshot of the last frame, written when quitting.
+    pub screenshot_at_exit: Option<PathBuf>,
+}
+
+/// What a viewing session did.
+#[derive(Clone, Debug, Default)]
+pub struct ViewStats {
+    pub frames: u64,
+    pub seconds: f64,
+    /// Seconds from the start to the first frame on screen.
+    pub first_frame_seconds: Option<f64>,
+    pub adapter: String,
+    pub screenshots: Vec<PathBuf>,
+}
+
+/// Opens the window and runs until it is closed, Esc is pressed or `options.frames` are drawn.
+pub fn view(field: LightField, options: ViewOptions) -> Result<ViewStats, ViewerError> {
+    let event_loop = EventLoop::new().map_err(|e| {
+        ViewerError::NoDisplay(format!(
+            "{e}; set DISPLAY (or WAYLAND_DISPLAY), or run under xvfb-run, or render without a window: vlf render --gpu"
+        ))
+    })?;
+    event_loop.set_control_flow(ControlFlow::Poll);
+    let mut app = App {
+        field,
+        options,
+        started: Instant::now(),
+        state: None,
+        error: None,
+        stats: ViewStats::default(),
+    };
+    event_loop
+        .run_app(&mut app)
+        .map_err(|e| ViewerError::NoDisplay(e.to_string()))?;
+    match app.error {
+        Some(e) => Err(e),
+        None => Ok(app.stats),
+    }
+}
+
+struct App {
+    field: LightField,
+    options: ViewOptions,
+    started: Instant,
+    state: Option<State>,
+    error: Option<ViewerError>,
+    stats: ViewStats,
+}
+
+/// What exists once the window does.
+struct State {
+    window: Arc<Window>,
+    surface: wgpu::Surface<'static>,
+    config: wgpu::SurfaceConfiguration,
+    gpu: Gpu,
+    renderer: FieldRenderer,
+    tonemap: Tonemap,
+    frame: Frame,
+    last: Instant,
+    /// Smoothed frames per second, and when the title was last updated.
+    fps: f64,
+    titled: Instant,
+    /// Where the cursor was while a button is held.
+    drag: Option<(f64, f64)>,
+    buttons: u32,
+}
+
+impl App {
+    fn fail(&mut self, event_loop: &ActiveEventLoop, e: ViewerError) {
+        self.error.get_or_insert(e);
+        event_loop.exit();
+    }
+
+    fn start(&mut self, event_loop: &ActiveEventLoop) -> Result<State, ViewerError> {
+        let (w, h) = self.options.size;
+        let window = Arc::new(
+            event_loop
+                .create_window(
+                    Window::default_attributes()
+                        .with_title(&self.options.title)
+                        .with_inner_size(PhysicalSize::new(w, h)),
+                )
+                .map_err(|e| ViewerError::NoDisplay(e.to_string()))?,
+        );
+        // The primary backends first, OpenGL only without them (as `Gpu::new`).
+        let attempt = |backends: wgpu::Backends| -> Result<(wgpu::Surface<'static>, Gpu), ViewerError> {
+            let mut desc =
+                wgpu::InstanceDescriptor::new_with_display_handle_from_env(Box::new(event_loop.owned_display_handle()));
+            desc.backends &= backends;
+            let instance = wgpu::Instance::new(desc);
+            let surface = instance
+                .create_surface(window.clone())
+                .map_err(|e| ViewerError::Gpu(format!("cannot draw into the window: {e}")))?;
+            let gpu = Gpu::from_instance(&instance, Some(&surface))?;
+            Ok((surface, gpu))
+        };
+        let (surface, gpu) = attempt(wgpu::Backends::PRIMARY)
+            .or_else(|primary| attempt(wgpu::Backends::SECONDARY).map_err(|_| primary))?;
+        let size = window.inner_size();
+        let caps = surface.get_capabilities(&gpu.adapter);
+        let format = caps
+            .formats
+            .iter()
+            .copied()
+            .find(|f| f.is_srgb())
+            .or(caps.formats.first().copied())
+            .ok_or_else(|| ViewerError::Gpu(format!("{} cannot present to this window", gpu.describe())))?;
+        let mut config = surface
+            .get_default_config(&gpu.adapter, size.width.max(1), size.height.max(1))
+            .ok_or_else(|| ViewerError::Gpu(format!("{} cannot present to this window", gpu.describe())))?;
+        config.format = format;
+        config.present_mode = if self.options.vsync {
+            wgpu::PresentMode::AutoVsync
+        } else {
+            wgpu::PresentMode::AutoNoVsync
+        };
+        gpu.checked(|| surface.configure(&gpu.device, &config))?;
+        let renderer = FieldRenderer::new(&gpu, &self.field)?;
+        let tonemap = Tonemap::new(&gpu, format);
+        let frame = Frame::new(&gpu, config.width, config.height)?;
+        self.stats.adapter = gpu.describe();
+        tracing::info!(adapter = %gpu.describe(), ?format, "viewer window");
+        Ok(State {
+            window,
+            surface,
+            config,
+            gpu,
+            renderer,
+            tonemap,
+            frame,
+            last: Instant::now(),
+            fps: 0.0,
+            titled: Instant::now(),
+            drag: None,
+            buttons: 0,
+        })
+    }
+
+    /// Draws one frame; `Ok(false)` when the surface had none to give (try again next time).
+    fn redraw(&mut self) -> Result<bool, ViewerError> {
+        let Some(s) = self.state.as_mut() else {
+            return Ok(false);
+        };
+        let now = Instant::now();
+        let dt = now.duration_since(s.last).as_secs_f64().min(0.25);
+        s.last = now;
+        self.options.walk.advance(dt);
+        let camera = self
+            .options
+            .walk
+            .camera(s.config.width, s.config.height)
+            .map_err(|e| ViewerError::Unsupported(e.to_string()))?;
+        let texture = match s.surface.get_current_texture() {
+            wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
+            wgpu::CurrentSurfaceTexture::Timeout | wgpu::CurrentSurfaceTexture::Occluded => return Ok(false),
+            wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
+                s.surface.configure(&s.gpu.device, &s.config);
+                return Ok(false);
+            }
+            wgpu::CurrentSurfaceTexture::Validation => {
+                return Err(ViewerError::Gpu("the window's surface refused a frame".into()));
+            }
+        };
+        let viewpoint = s.renderer.viewpoint(&camera, (0.0, 0.0), self.options.mirrors);
+        let target = texture.texture.create_view(&Default::default());
+        s.gpu.checked(|| {
+            let mut encoder = s.gpu.device.create_command_encoder(&Default::default());
+            s.renderer.draw(
+                &s.gpu,
+                &mut encoder,
+                &viewpoint,
+                &s.frame.color_view,
+                &s.frame.depth_view,
+            );
+            s.tonemap
+                .draw(&s.gpu, &mut encoder, &s.frame, &target, self.options.exposure);
+            s.gpu.queue.submit([encoder.finish()]);
+        })?;
+        s.gpu.queue.present(texture);
+        self.stats.frames += 1;
+        self.stats
+            .first_frame_seconds
+            .get_or_insert(self.started.elapsed().as_secs_f64());
+        if dt > 0.0 {
+            s.fps = if s.fps == 0.0 { 1.0 / dt } else { 0.9 * s.fps + 0.1 / dt };
+        }
+        if s.titled.elapsed().as_secs_f64() > 0.5 {
+            s.titled = Instant::now();
+            let mode = match self.options.mirrors {
+                MirrorMode::Rays => "mirrors from the rays".to_string(),
+                MirrorMode::Trace { depth: 0 } => "mirrors without reflections".to_string(),
+                MirrorMode::Trace { depth } => format!("mirrors traced {depth} deep"),
+            };
+            s.window.set_title(&format!(
+                "{} — {:.1} fps · {} × {} · {mode} · exposure {:+.1} · speed {:.3}",
+                self.options.title,
+                s.fps,
+                s.config.width,
+                s.config.height,
+                self.options.exposure,
+                self.options.walk.speed
+            ));
+        }
+        Ok(true)
+    }
+
+    /// Writes the frame on screen to `path`: tone-mapped for PNG, linear for PFM/EXR.
+    fn screenshot(&mut self, path: PathBuf) -> Result<(), ViewerError> {
+        let Some(s) = self.state.as_ref() else {
+            return Ok(());
+        };
+        let image = s.frame.image(&s.gpu)?;
+        image
+            .save(&path, self.options.exposure)
+            .map_err(|e| ViewerError::Io(format!("cannot write {}: {e}", path.display())))?;
+        tracing::info!(path = %path.display(), "screenshot");
+        self.stats.screenshots.push(path);
+        Ok(())
+    }
+
+    fn key(&mut self, event_loop: &ActiveEventLoop, code: KeyCode, pressed: bool) {
+        let walk = &mut self.options.walk;
+        let movement = match code {
+            KeyCode::KeyW | KeyCode::ArrowUp => Some(Move::Forward),
+            KeyCode::KeyS | KeyCode::ArrowDown => Some(Move::Back),
+            KeyCode::KeyA | KeyCode::ArrowLeft => Some(Move::Left),
+            KeyCode::KeyD | KeyCode::ArrowRight => Some(Move::Right),
+            KeyCode::KeyQ | KeyCode::PageDown => Some(Move::Down),
+            KeyCode::KeyE | KeyCode::PageUp => Some(Move::Up),
+            _ => None,
+        };
+        if let Some(m) = movement {
+            walk.set(m, pressed);
+            return;
+        }
+        if !pressed {
+            return;
+        }
+        match code {
+            KeyCode::Escape => event_loop.exit(),
+            KeyCode::KeyM => {
+                self.options.mirrors = match self.options.mirrors {
+                    MirrorMode::Rays => MirrorMode::Trace { depth: 8 },
+                    MirrorMode::Trace { depth: 0 } => MirrorMode::Rays,
+                    MirrorMode::Trace { .. } => MirrorMode::Trace { depth: 0 },
+                }
+            }
+            KeyCode::Equal | KeyCode::NumpadAdd => self.options.exposure += 0.5,
+            KeyCode::Minus | KeyCode::NumpadSubtract => self.options.exposure -= 0.5,
+            KeyCode::KeyP | KeyCode::F12 => {
+                let n = self.stats.screenshots.len() + 1;
+                let path = self.options.screenshot_dir.join(format!("vlf-{n}.png"));
+                if let Err(e) = self.screenshot(path) {
+                    tracing::error!("{e}");
+                }
+            }
+            _ => {}
+        }
+    }
+}
+
+impl ApplicationHandler for App {
+    fn resumed(&mut self, event_loop: &ActiveEventLoop) {
+        if self.state.is_some() {
+            return;
+        }
+        match self.start(event_loop) {
+            Ok(state) => self.state = Some(state),
+            Err(e) => self.fail(event_loop, e),
+        }
+    }
+
+    fn window_event(&mut self, event_loop: &ActiveEventLoop, _: WindowId, event: WindowEvent) {
+        match event {
+            WindowEvent::CloseRequested => event_loop.exit(),
+            WindowEvent::Resized(size) => {
+                let Some(s) = self.state.as_mut() else { return };
+                if size.width == 0 || size.height == 0 {
+                    return;
+                }
+                s.config.width = size.width;
+                s.config.height = size.height;
+                s.surface.configure(&s.gpu.device, &s.config);
+                match Frame::new(&s.gpu, size.width, size.height) {
+                    Ok(frame) => s.frame = frame,
+                    Err(e) => self.fail(event_loop, e),
+                }
+            }
+            WindowEvent::KeyboardInput { event, .. } => {
+                if let PhysicalKey::Code(code) = event.physical_key {
+                    self.key(event_loop, code, event.state == ElementState::Pressed);
+                }
+            }
+            WindowEvent::MouseInput { state, .. } => {
+                let Some(s) = self.state.as_mut() else { return };
+                match state {
+                    ElementState::Pressed => s.buttons += 1,
+                    ElementState::Released => s.buttons = s.buttons.saturating_sub(1),
+                }
+                if s.buttons == 0 {
+                    s.drag = None;
+                }
+            }
+            WindowEvent::CursorMoved { position, .. } => {
+                let Some(s) = self.state.as_mut() else { return };
+                if s.buttons > 0 {
+                    if let Some((x, y)) = s.drag {
+                        self.options.walk.look(position.x - x, position.y - y);
+                    }
+                    s.drag = Some((position.x, position.y));
+                }
+            }
+            WindowEvent::MouseWheel { delta, .. } => {
+                let notches = match delta {
+                    MouseScrollDelta::LineDelta(_, y) => y as f64,
+                    MouseScrollDelta::PixelDelta(p) => p.y / 40.0,
+                };
+                self.options.walk.wheel(notches);
+            }
+            WindowEvent::RedrawRequested => {
+                match self.redraw() {
+                    Ok(_) => {}
+                    Err(e) => return self.fail(event_loop, e),
+                }
+                if self.options.frames.is_some_and(|n| self.stats.frames >= n) {
+                    if let Some(path) = self.options.screenshot_at_exit.clone()
+                        && let Err(e) = self.screenshot(path)
+                    {
+                        return self.fail(event_loop, e);
+                    }
+                    event_loop.exit();
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn about_to_wait(&mut self, _: &ActiveEventLoop) {
+        if let Some(s) = &self.state {
+            s.window.request_redraw();
+        }
+    }
+
+    fn exiting(&mut self, _: &ActiveEventLoop) {
+        self.stats.seconds = self.started.elapsed().as_secs_f64();
+    }
+}
