@@ -326,3 +326,21 @@ pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Res
     .await??;
     Ok((store, stage))
 }
+
+/// The status of `job` on the coordinator `target`.
+pub async fn status_of(target: &Target, job: &str) -> Result<JobStatus> {
+    let mut clients = connect(target).await?;
+    Ok(clients
+        .jobs
+        .get(v1::JobRequest {
+            job_id: job.to_string(),
+        })
+        .await
+        .map_err(call_error)?
+        .into_inner())
+}
+
+/// Whether the job has finished (its final field is stored).
+pub fn is_finished(status: &JobStatus) -> bool {
+    status.state == State::Finished as i32
+}

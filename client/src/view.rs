@@ -1,10 +1,11 @@
 //! `vlf view`: a walkthrough of a job's field in a window (`vlf_viewer::view`).
 
-use crate::{SpecularArg, ViewArgs};
+use crate::{FieldSource, SpecularArg, ViewArgs};
 use anyhow::{Context, Result, bail};
 use glam::DVec3;
-use vlf_store::FieldJob;
-use vlf_viewer::{MirrorMode, ViewOptions, Walk};
+use vlf_core::field::LightField;
+use vlf_store::{FieldJob, JobId, Stage, Store};
+use vlf_viewer::{Loader, MirrorMode, Switch, ViewOptions, Walk};
 
 pub fn run(args: ViewArgs) -> Result<()> {
     if args.depth > 64 {
@@ -22,9 +23,8 @@ pub fn run(args: ViewArgs) -> Result<()> {
     let id = opened.id.clone();
     let job = FieldJob::open(&opened.store, &id).with_context(|| format!("cannot open job {id}"))?;
     let stage = opened.stage.unwrap_or_else(|| job.latest_stage());
-    let field = job
-        .load(stage)
-        .with_context(|| format!("cannot read {} of job {id}", crate::render::describe(stage)))?;
+    let field = load(&opened.store, &id, stage)?;
+    let loader = snapshot_loader(&args.source, opened.store, id.clone(), stage);
     // The scene spans about 2 / scale scene units (the VLF frame is [-1, 1]³).
     let n = field.scene.normalisation;
     let size = 2.0 / n.scale;
@@ -37,7 +37,7 @@ pub fn run(args: ViewArgs) -> Result<()> {
     // The camera's own checks (field of view, size) before a window opens.
     walk.camera(args.size.0, args.size.1)?;
     let options = ViewOptions {
-        title: format!("vlf view {id} {}", crate::render::describe(stage)),
+        title: title(&id, stage),
         size: args.size,
         walk,
         exposure: args.exposure,
@@ -49,6 +49,7 @@ pub fn run(args: ViewArgs) -> Result<()> {
         frames: args.frames,
         screenshot_dir: args.screenshot_dir,
         screenshot_at_exit: args.screenshot,
+        loader: Some(loader),
     };
     let stats = vlf_viewer::view(field, options)?;
     if stats.frames > 0 {
@@ -65,4 +66,155 @@ pub fn run(args: ViewArgs) -> Result<()> {
         println!("screenshot → {}", path.display());
     }
     Ok(())
+}
+
+fn title(id: &JobId, stage: Stage) -> String {
+    format!("vlf view {id} {}", crate::render::describe(stage))
+}
+
+fn load(store: &Store, id: &JobId, stage: Stage) -> Result<LightField> {
+    let job = FieldJob::open(store, id).with_context(|| format!("cannot open job {id}"))?;
+    job.load(stage)
+        .with_context(|| format!("cannot read {} of job {id}", crate::render::describe(stage)))
+}
+
+/// The stage one `switch` away from `current`, in the order snapshot 0, 1, …, then the final
+/// field (`finished` lists the finished snapshots in order); `None` past either end.
+fn step(current: Stage, finished: &[u32], field: bool, switch: Switch) -> Option<Stage> {
+    let mut order: Vec<Stage> = finished.iter().map(|&k| Stage::Iteration(k)).collect();
+    if field {
+        order.push(Stage::Field);
+    }
+    let here = order.iter().position(|&s| s == current);
+    let next = match (switch, here) {
+        (Switch::Latest, _) => order.last().copied(),
+        (Switch::Previous, Some(i)) => i.checked_sub(1).map(|i| order[i]),
+        (Switch::Next, Some(i)) => order.get(i + 1).copied(),
+        // The stage shown is gone (the job was resumed elsewhere): start again from the newest.
+        (_, None) => order.last().copied(),
+    };
+    next.filter(|&s| s != current)
+}
+
+/// Loads the snapshots around the one shown: from the store, re-reading the job's manifest each
+/// time (a running job finishes new ones), or fetched again from `--server`.
+fn snapshot_loader(source: &FieldSource, store: Store, id: JobId, mut current: Stage) -> Loader {
+    let remote = source.server.clone().map(|url| vlf_proto::Target {
+        url,
+        token: source.token.clone(),
+        ca_cert: source.ca_cert.clone(),
+    });
+    Box::new(move |switch| {
+        let mut found = || -> Result<Option<(LightField, String)>> {
+            let (finished, done) = match &remote {
+                Some(target) => {
+                    let status = crate::block_on_value(crate::remote::status_of(target, id.as_str()))?;
+                    (status.snapshots.clone(), crate::remote::is_finished(&status))
+                }
+                None => {
+                    let job = FieldJob::open(&store, &id)?;
+                    let m = job.job().manifest();
+                    (m.finished_iterations.clone(), job.latest_stage() == Stage::Field)
+                }
+            };
+            let Some(next) = step(current, &finished, done, switch) else {
+                return Ok(None);
+            };
+            let field = match &remote {
+                Some(target) => {
+                    let k = match next {
+                        Stage::Iteration(k) => Some(k),
+                        Stage::Field => None,
+                    };
+                    let (fetched, stage) = crate::block_on_value(crate::remote::fetch_job(target, id.as_str(), k))?;
+                    load(&fetched, &id, stage)?
+                }
+                None => load(&store, &id, next)?,
+            };
+            current = next;
+            Ok(Some((field, title(&id, next))))
+        };
+        found().map_err(|e| format!("{e:#}"))
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use vlf_core::propagate::{Options, Propagation, Stop};
+    use vlf_core::psf::GridSize;
+
+    /// A job in a `memory://` store with snapshots 0..=2, running (no final field yet).
+    fn running_job() -> (Store, JobId, Propagation) {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cornell.obj");
+        let scene = crate::propagate::import(&path).unwrap();
+        let options = Options {
+            directions: 9,
+            grid: GridSize::new(16, 8).unwrap(),
+            stop: Stop::Iterations(3),
+            ..Options::default()
+        };
+        let store = Store::open("memory://").unwrap();
+        let mut p = Propagation::new(scene, options).unwrap();
+        let mut job = FieldJob::create(&store, &p, vlf_store::blob::Encoding::F32).unwrap();
+        for _ in 0..2 {
+            p.step(|_| {});
+            job.write_snapshot(&p).unwrap();
+        }
+        (store, job.id().clone(), p)
+    }
+
+    fn source() -> FieldSource {
+        FieldSource {
+            store: None,
+            server: None,
+            token: None,
+            ca_cert: None,
+            job: None,
+            snapshot: None,
+        }
+    }
+
+    #[test]
+    fn the_loader_walks_a_running_jobs_snapshots() {
+        let (store, id, mut p) = running_job();
+        let mut loader = snapshot_loader(&source(), store.clone(), id.clone(), Stage::Iteration(1));
+        let mut stage_of = |switch| {
+            loader(switch)
+                .unwrap()
+                .map(|(field, title): (LightField, String)| (field.stats.len(), title))
+        };
+        let (iterations, title) = stage_of(Switch::Next).expect("snapshot 2");
+        assert_eq!(iterations, 2);
+        assert!(title.ends_with("snapshot 2"), "{title}");
+        assert!(stage_of(Switch::Next).is_none(), "nothing after the newest snapshot");
+        assert_eq!(stage_of(Switch::Previous).unwrap().0, 1);
+        assert_eq!(stage_of(Switch::Previous).unwrap().0, 0);
+        assert!(stage_of(Switch::Previous).is_none());
+        // The job goes on: the next snapshot and then the final field appear.
+        let mut job = FieldJob::open(&store, &id).unwrap();
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+        assert_eq!(stage_of(Switch::Latest).unwrap().0, 3);
+        job.finish(&p.field_now(), false).unwrap();
+        let (_, title) = stage_of(Switch::Next).expect("the final field");
+        assert!(title.ends_with("the final field"), "{title}");
+    }
+
+    #[test]
+    fn steps_through_snapshots_then_the_field() {
+        let it = Stage::Iteration;
+        let finished = [0, 1, 2, 3];
+        assert_eq!(step(it(2), &finished, false, Switch::Previous), Some(it(1)));
+        assert_eq!(step(it(2), &finished, false, Switch::Next), Some(it(3)));
+        assert_eq!(step(it(3), &finished, false, Switch::Next), None);
+        assert_eq!(step(it(3), &finished, true, Switch::Next), Some(Stage::Field));
+        assert_eq!(step(it(0), &finished, true, Switch::Previous), None);
+        assert_eq!(step(Stage::Field, &finished, true, Switch::Previous), Some(it(3)));
+        assert_eq!(step(it(1), &finished, true, Switch::Latest), Some(Stage::Field));
+        assert_eq!(step(it(1), &finished, false, Switch::Latest), Some(it(3)));
+        assert_eq!(step(it(3), &finished, false, Switch::Latest), None);
+        // A stage no longer listed: the newest.
+        assert_eq!(step(it(9), &finished, false, Switch::Previous), Some(it(3)));
+    }
 }

@@ -14,7 +14,12 @@
 //! | M | cycle the mirror mode: from the rays, traced, without reflections |
 //! | + / − | exposure ±½ stop |
 //! | P | save a screenshot (the linear frame, tone-mapped as on screen, or linear for `.pfm`) |
+//! | [ / ] / L | the previous / next / latest snapshot (watch a running job converge) |
 //! | Esc | quit |
+//!
+//! Switching snapshots loads the other field on a thread of its own (through the caller's
+//! [`Loader`]); the walk goes on meanwhile and the new field replaces the old one when it is
+//! uploaded.
 
 use crate::field::MirrorMode;
 use crate::frame::Frame;
@@ -22,7 +27,7 @@ use crate::tonemap::Tonemap;
 use crate::walk::{Move, Walk};
 use crate::{FieldRenderer, Gpu, ViewerError};
 use std::path::PathBuf;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, mpsc};
 use std::time::Instant;
 use vlf_core::field::LightField;
 use winit::application::ApplicationHandler;
@@ -32,8 +37,20 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
+/// A step between the snapshots of a job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Switch {
+    Previous,
+    Next,
+    Latest,
+}
+
+/// Loads the field one [`Switch`] away from the one shown: `Ok(None)` when there is none (the
+/// first snapshot has no previous one), else the field and a title for the window. Called on a
+/// thread of its own, one call at a time.
+pub type Loader = Box<dyn FnMut(Switch) -> Result<Option<(LightField, String)>, String> + Send>;
+
 /// How `vlf view` starts, and when it stops by itself.
-#[derive(Clone, Debug)]
 pub struct ViewOptions {
     pub title: String,
     pub size: (u32, u32),
@@ -48,6 +65,8 @@ pub struct ViewOptions {
     pub screenshot_dir: PathBuf,
     /// A screenshot of the last frame, written when quitting.
     pub screenshot_at_exit: Option<PathBuf>,
+    /// Where other snapshots come from; without one, [ ] L do nothing.
+    pub loader: Option<Loader>,
 }
 
 /// What a viewing session did.
@@ -62,14 +81,19 @@ pub struct ViewStats {
 }
 
 /// Opens the window and runs until it is closed, Esc is pressed or `options.frames` are drawn.
-pub fn view(field: LightField, options: ViewOptions) -> Result<ViewStats, ViewerError> {
+pub fn view(field: LightField, mut options: ViewOptions) -> Result<ViewStats, ViewerError> {
     let event_loop = EventLoop::new().map_err(|e| {
         ViewerError::NoDisplay(format!(
             "{e}; set DISPLAY (or WAYLAND_DISPLAY), or run under xvfb-run, or render without a window: vlf render --gpu"
         ))
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
+    let (sender, loaded) = std::sync::mpsc::channel();
     let mut app = App {
+        loader: options.loader.take().map(|l| Arc::new(Mutex::new(l))),
+        loading: false,
+        sender,
+        loaded,
         field,
         options,
         started: Instant::now(),
@@ -86,7 +110,14 @@ pub fn view(field: LightField, options: ViewOptions) -> Result<ViewStats, Viewer
     }
 }
 
+type Loaded = Result<Option<(LightField, String)>, String>;
+
 struct App {
+    loader: Option<Arc<Mutex<Loader>>>,
+    /// Whether a snapshot is being loaded.
+    loading: bool,
+    sender: mpsc::Sender<Loaded>,
+    loaded: mpsc::Receiver<Loaded>,
     field: LightField,
     options: ViewOptions,
     started: Instant,
@@ -186,6 +217,7 @@ impl App {
 
     /// Draws one frame; `Ok(false)` when the surface had none to give (try again next time).
     fn redraw(&mut self) -> Result<bool, ViewerError> {
+        self.take_loaded()?;
         let Some(s) = self.state.as_mut() else {
             return Ok(false);
         };
@@ -266,6 +298,47 @@ impl App {
         Ok(())
     }
 
+    /// Starts loading another snapshot, unless one is loading already.
+    fn switch(&mut self, switch: Switch) {
+        let Some(loader) = self.loader.clone() else {
+            tracing::info!("this view has no other snapshots");
+            return;
+        };
+        if self.loading {
+            return;
+        }
+        self.loading = true;
+        let sender = self.sender.clone();
+        std::thread::spawn(move || {
+            let result = match loader.lock() {
+                Ok(mut load) => load(switch),
+                Err(_) => Err("the snapshot loader failed earlier".to_string()),
+            };
+            let _ = sender.send(result);
+        });
+    }
+
+    /// Takes in a snapshot loaded since the last frame.
+    fn take_loaded(&mut self) -> Result<(), ViewerError> {
+        let Ok(loaded) = self.loaded.try_recv() else {
+            return Ok(());
+        };
+        self.loading = false;
+        match loaded {
+            Ok(Some((field, title))) => {
+                if let Some(s) = self.state.as_mut() {
+                    s.renderer = FieldRenderer::new(&s.gpu, &field)?;
+                }
+                tracing::info!(%title, "switched snapshot");
+                self.options.title = title;
+                self.field = field;
+            }
+            Ok(None) => tracing::info!("no snapshot that way"),
+            Err(e) => tracing::error!("cannot switch snapshot: {e}"),
+        }
+        Ok(())
+    }
+
     fn key(&mut self, event_loop: &ActiveEventLoop, code: KeyCode, pressed: bool) {
         let walk = &mut self.options.walk;
         let movement = match code {
@@ -295,6 +368,9 @@ impl App {
             }
             KeyCode::Equal | KeyCode::NumpadAdd => self.options.exposure += 0.5,
             KeyCode::Minus | KeyCode::NumpadSubtract => self.options.exposure -= 0.5,
+            KeyCode::BracketLeft => self.switch(Switch::Previous),
+            KeyCode::BracketRight => self.switch(Switch::Next),
+            KeyCode::KeyL => self.switch(Switch::Latest),
             KeyCode::KeyP | KeyCode::F12 => {
                 let n = self.stats.screenshots.len() + 1;
                 let path = self.options.screenshot_dir.join(format!("vlf-{n}.png"));
