@@ -40,6 +40,7 @@ use crate::store::Store;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
+use vlf_core::lookup::ViewNeeds;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{Checkpoint, IterationStats, Options, Propagation};
@@ -261,6 +262,18 @@ impl FieldJob {
     /// Reads a committed stage back into a field that renders like the one written (up to the
     /// job's encoding).
     pub fn load(&self, stage: Stage) -> Result<LightField, StoreError> {
+        Ok(self.load_parts(stage, None)?.0)
+    }
+
+    /// Reads what a view needs of a committed stage ([`LightField::view_needs`]), or everything
+    /// with `None`: the diffuse maps of the needed surfaces and the needed mirror tiles; the rest
+    /// of the field stays zero. A field read this way draws that view with the same bits as the
+    /// whole field. Also returns how many radiance blobs were read (a snapshot's mirror radiance
+    /// is one blob, its checkpoint, read when any mirror tile is needed).
+    pub fn load_parts(&self, stage: Stage, needs: Option<&ViewNeeds>) -> Result<(LightField, usize), StoreError> {
+        let wants_surface = |s: usize| needs.is_none_or(|n| n.surfaces.contains(&(s as u32)));
+        let wants_tile = |d: usize, k: u32| needs.is_none_or(|n| n.mirror_tiles.contains(&(d as u32, k)));
+        let mut blobs = 0;
         let summary = self.summary(stage)?;
         let unit = summary.radiance_unit;
         if !(unit.is_finite() && unit > 0.0 && unit.log2().fract() == 0.0) {
@@ -271,7 +284,9 @@ impl FieldJob {
         let unit = unit as f32;
         let p = Propagation::new(self.scene.clone(), self.options.clone()).map_err(|e| self.field_error(e))?;
         let atlas = &p.atlas;
-        let surfaces: Vec<(usize, Vec<f32>)> = (0..atlas.grids.len())
+        let wanted: Vec<usize> = (0..atlas.grids.len()).filter(|&s| wants_surface(s)).collect();
+        blobs += wanted.len();
+        let surfaces: Vec<(usize, Vec<f32>)> = wanted
             .into_par_iter()
             .map(|s| {
                 let g = &atlas.grids[s];
@@ -291,14 +306,24 @@ impl FieldJob {
         }
         let totals = match (&p.specular, stage) {
             (None, _) => None,
-            (Some(_), Stage::Iteration(k)) => self.checkpoint(k)?.mirrors.map(|maps| {
-                maps.iter()
-                    .map(|m| m.total.iter().map(|t| t.map(|c| c as f32)).collect())
-                    .collect()
-            }),
+            (Some(spec), Stage::Iteration(_)) if needs.is_some_and(|n| n.mirror_tiles.is_empty()) => {
+                Some(spec.layouts.iter().map(|l| vec![[0.0; 3]; l.len as usize]).collect())
+            }
+            (Some(_), Stage::Iteration(k)) => {
+                blobs += 1;
+                self.checkpoint(k)?.mirrors.map(|maps| {
+                    maps.iter()
+                        .map(|m| m.total.iter().map(|t| t.map(|c| c as f32)).collect())
+                        .collect()
+                })
+            }
             (Some(spec), Stage::Field) => {
                 let per_side = self.options.grid.tiles_per_side();
-                let tiles = mirror_tiles(&spec.layouts, &p.subfields);
+                let tiles: Vec<_> = mirror_tiles(&spec.layouts, &p.subfields)
+                    .into_iter()
+                    .filter(|(d, k, _)| wants_tile(*d, *k))
+                    .collect();
+                blobs += tiles.len();
                 let values: Vec<Vec<f32>> = tiles
                     .par_iter()
                     .map(|(d, k, range)| {
@@ -320,7 +345,8 @@ impl FieldJob {
                 Some(totals)
             }
         };
-        LightField::from_radiance(p, summary.stats, radiance, totals).map_err(|e| self.field_error(e))
+        let field = LightField::from_radiance(p, summary.stats, radiance, totals).map_err(|e| self.field_error(e))?;
+        Ok((field, blobs))
     }
 
     /// Bytes the store holds for `stage` (its blobs as stored, compressed) and for the whole job.

@@ -29,6 +29,32 @@ pub enum SpecularMode {
     Trace { depth: u32 },
 }
 
+/// One ray read by a look-up from the rays (see [`LightField::mirror_rays`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RayRead {
+    /// Which vertex of the spherical triangle (0..3).
+    pub vertex: usize,
+    /// Its line direction.
+    pub direction: usize,
+    /// The vertex's barycentric weight.
+    pub barycentric: f64,
+    /// The ray's bilinear weight in the subfield.
+    pub bilinear: f64,
+    /// The tile holding the ray (row-major over the subfield's tiles).
+    pub tile: u32,
+    /// The ray's mirror slot in the direction's maps.
+    pub slot: u32,
+}
+
+/// What a view reads from a field ([`LightField::view_needs`]).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct ViewNeeds {
+    /// Surfaces whose diffuse map is read.
+    pub surfaces: std::collections::BTreeSet<u32>,
+    /// Mirror tiles read, as (line direction, tile index).
+    pub mirror_tiles: std::collections::BTreeSet<(u32, u32)>,
+}
+
 /// Offset along the normal for secondary rays (VLF frame: the scene spans 2).
 const RAY_EPSILON: f64 = 1e-7;
 
@@ -40,10 +66,47 @@ impl LightField {
         let Some(spec) = &self.specular else {
             return [0.0; 3];
         };
-        let tri = spec.directions.triangle(outgoing);
+        // Per vertex of the triangle: Σ w·total over its rays, Σ w, and its weight b.
+        let mut value = [[0.0f64; 3]; 3];
+        let mut w_sum = [0.0f64; 3];
+        let mut b = [0.0f64; 3];
+        self.mirror_rays(surface, p, outgoing, |r| {
+            let t = spec.totals[r.direction][r.slot as usize];
+            for c in 0..3 {
+                value[r.vertex][c] += t[c] as f64 * r.bilinear;
+            }
+            w_sum[r.vertex] += r.bilinear;
+            b[r.vertex] = r.barycentric;
+        });
         let mut out = [0.0; 3];
         let mut weight = 0.0;
-        for (o, b) in tri.vertices.iter().zip(tri.weights) {
+        for v in 0..3 {
+            if w_sum[v] > 0.0 {
+                for c in 0..3 {
+                    out[c] += value[v][c] / w_sum[v] * b[v];
+                }
+                weight += b[v];
+            }
+        }
+        if weight > 0.0 {
+            for v in &mut out {
+                *v /= weight;
+            }
+        }
+        out
+    }
+
+    /// Visits, in order, every ray a look-up from the rays reads (see the module docs): for each
+    /// direction of the spherical triangle around `outgoing` with a positive weight, each of the
+    /// four rays around `p`'s projection with a positive bilinear weight that crosses mirror
+    /// `surface`. What [`LightField::mirror_radiance_from_rays`] blends, and what a viewer that
+    /// streams the field must have fetched ([`LightField::view_needs`]).
+    pub fn mirror_rays(&self, surface: usize, p: DVec3, outgoing: DVec3, mut visit: impl FnMut(RayRead)) {
+        let Some(spec) = &self.specular else {
+            return;
+        };
+        let tri = spec.directions.triangle(outgoing);
+        for (vertex, (o, b)) in tri.vertices.iter().zip(tri.weights).enumerate() {
             if b <= 0.0 {
                 continue;
             }
@@ -55,8 +118,6 @@ impl LightField {
             let g = sub.frame.to_grid(p, n) - 0.5;
             let (x0, y0) = (g.x.floor(), g.y.floor());
             let (fx, fy) = (g.x - x0, g.y - y0);
-            let mut value = [0.0; 3];
-            let mut w_sum = 0.0;
             for (dx, dy, w) in [
                 (0.0, 0.0, (1.0 - fx) * (1.0 - fy)),
                 (1.0, 0.0, fx * (1.0 - fy)),
@@ -67,27 +128,64 @@ impl LightField {
                 if w <= 0.0 || x < 0.0 || y < 0.0 {
                     continue;
                 }
-                if let Some(slot) = layout.locate(sub, surface as u32, x as u32, y as u32) {
-                    let t = spec.totals[d][slot as usize];
-                    for c in 0..3 {
-                        value[c] += t[c] as f64 * w;
-                    }
-                    w_sum += w;
+                let (x, y) = (x as u32, y as u32);
+                if let Some(slot) = layout.locate(sub, surface as u32, x, y) {
+                    let m = sub.grid.tile;
+                    visit(RayRead {
+                        vertex,
+                        direction: d,
+                        barycentric: b,
+                        bilinear: w,
+                        tile: (y / m) * sub.grid.tiles_per_side() + x / m,
+                        slot,
+                    });
                 }
             }
-            if w_sum > 0.0 {
-                for c in 0..3 {
-                    out[c] += value[c] / w_sum * b;
+        }
+    }
+
+    /// What drawing `camera`'s view with `samples_per_axis²` samples per pixel reads from this
+    /// field: the diffuse maps of the surfaces seen (directly, or through mirrors when traced)
+    /// and, from the rays, the mirror tiles. Everything else can stay unfetched: a field holding
+    /// just these renders the view with the same bits.
+    pub fn view_needs(&self, camera: &Camera, samples_per_axis: u32, mode: SpecularMode) -> ViewNeeds {
+        let bvh = Bvh::build(&self.scene);
+        let needs = std::sync::Mutex::new(ViewNeeds::default());
+        render(&self.scene, &bvh, camera, samples_per_axis, |hit: &Hit, dir| {
+            let mut local = ViewNeeds::default();
+            self.needs_of(&bvh, hit, dir, mode, &mut local);
+            if let Ok(mut all) = needs.lock() {
+                all.surfaces.extend(local.surfaces);
+                all.mirror_tiles.extend(local.mirror_tiles);
+            }
+            [0.0; 3]
+        });
+        needs.into_inner().unwrap_or_default()
+    }
+
+    /// What [`LightField::shade`] reads for `hit`.
+    fn needs_of(&self, bvh: &Bvh, hit: &Hit, dir: DVec3, mode: SpecularMode, needs: &mut ViewNeeds) {
+        if !hit.front {
+            return;
+        }
+        needs.surfaces.insert(hit.surface as u32);
+        if !self.scene.material(hit.surface).is_mirror() {
+            return;
+        }
+        match mode {
+            SpecularMode::Rays => self.mirror_rays(hit.surface, hit.point, -dir, |r| {
+                needs.mirror_tiles.insert((r.direction as u32, r.tile));
+            }),
+            SpecularMode::Trace { depth: 0 } => {}
+            SpecularMode::Trace { depth } => {
+                let n = self.scene.surfaces[hit.surface].normal;
+                let reflected = dir - 2.0 * dir.dot(n) * n;
+                let origin = hit.point + n * RAY_EPSILON;
+                if let Some(next) = bvh.intersect(&self.scene, origin, reflected, RAY_EPSILON, f64::INFINITY) {
+                    self.needs_of(bvh, &next, reflected, SpecularMode::Trace { depth: depth - 1 }, needs);
                 }
-                weight += b;
             }
         }
-        if weight > 0.0 {
-            for v in &mut out {
-                *v /= weight;
-            }
-        }
-        out
     }
 
     /// Radiance arriving at `origin` from direction `-dir` (i.e. seen looking
