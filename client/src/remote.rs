@@ -251,7 +251,7 @@ pub async fn follow(clients: &mut Clients, job: &str) -> Result<JobStatus> {
 /// coordinator into a fresh in-memory store. Blobs arrive as stored and are verified when read.
 /// Returns the store and the stage (the latest, when none is asked for).
 pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Result<(Store, Stage)> {
-    let id = JobId::parse(job).map_err(anyhow::Error::msg)?;
+    JobId::parse(job).map_err(anyhow::Error::msg)?;
     let mut clients = connect(target).await?;
     let status = clients
         .jobs
@@ -261,7 +261,20 @@ pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Res
         .await
         .map_err(call_error)?
         .into_inner();
-    let stage = match snapshot {
+    let stage = resolve_stage(&status, job, snapshot)?;
+    let mut names = vec!["manifest.blob".to_string(), "scene.blob".to_string()];
+    names.extend(stage_blobs(&mut clients, job, stage).await?);
+    names.sort();
+    names.dedup();
+    let store = vlf_store::blocking(|| Store::open("memory://")).await??;
+    fetch_into(&mut clients, job, names, &store).await?;
+    Ok((store, stage))
+}
+
+/// The stage of `job` to look at: snapshot `k` if asked (it must be finished), else the final
+/// field of a finished job, else its latest snapshot.
+pub fn resolve_stage(status: &JobStatus, job: &str, snapshot: Option<u32>) -> Result<Stage> {
+    Ok(match snapshot {
         Some(k) if status.snapshots.contains(&k) => Stage::Iteration(k),
         Some(k) => bail!(
             "snapshot {k} of job {job} is not finished (finished: {:?})",
@@ -274,33 +287,21 @@ pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Res
                 .last()
                 .with_context(|| format!("job {job} has no finished snapshot yet"))?,
         ),
-    };
+    })
+}
+
+/// Fetches the named blobs of `job` (names relative to the job's prefix) over the tile stream
+/// into `store` (a `memory://` store standing for the job's part of the server's store);
+/// returns the bytes received.
+pub async fn fetch_into(clients: &mut Clients, job: &str, names: Vec<String>, store: &Store) -> Result<u64> {
+    let id = JobId::parse(job).map_err(anyhow::Error::msg)?;
     let job_prefix = layout::job_prefix(&id);
-    let stage_prefix = layout::stage_prefix(&id, stage)?;
-    let relative = stage_prefix
-        .strip_prefix(&job_prefix)
-        .unwrap_or(&stage_prefix)
-        .to_string();
-    let mut names = vec!["manifest.blob".to_string(), "scene.blob".to_string()];
-    names.extend(
-        clients
-            .tiles
-            .list_blobs(v1::ListBlobsRequest {
-                job_id: job.to_string(),
-                prefix: relative.clone(),
-            })
-            .await
-            .map_err(call_error)?
-            .into_inner()
-            .names,
-    );
-    names.sort();
-    names.dedup();
+    let asked = names.len();
     let mut stream = clients
         .tiles
         .fetch(v1::FetchRequest {
             job_id: job.to_string(),
-            names: names.clone(),
+            names,
         })
         .await
         .map_err(call_error)?
@@ -309,22 +310,40 @@ pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Res
     while let Some(blob) = stream.message().await.map_err(call_error)? {
         blobs.insert(blob.name, blob.data);
     }
-    if blobs.len() != names.len() {
-        bail!(
-            "the coordinator sent {} of the {} blobs asked for",
-            blobs.len(),
-            names.len()
-        );
+    if blobs.len() != asked {
+        bail!("the coordinator sent {} of the {asked} blobs asked for", blobs.len());
     }
-    let store = vlf_store::blocking(move || -> Result<Store> {
-        let store = Store::open("memory://")?;
+    let bytes = blobs.values().map(|d| d.len() as u64).sum();
+    let store = store.clone();
+    vlf_store::blocking(move || -> Result<()> {
         for (name, data) in blobs {
             store.put(&format!("{job_prefix}{name}"), data)?;
         }
-        Ok(store)
+        Ok(())
     })
     .await??;
-    Ok((store, stage))
+    Ok(bytes)
+}
+
+/// The names of every blob of `stage` of `job` on the coordinator (relative to the job's prefix).
+pub async fn stage_blobs(clients: &mut Clients, job: &str, stage: Stage) -> Result<Vec<String>> {
+    let id = JobId::parse(job).map_err(anyhow::Error::msg)?;
+    let job_prefix = layout::job_prefix(&id);
+    let stage_prefix = layout::stage_prefix(&id, stage)?;
+    let relative = stage_prefix
+        .strip_prefix(&job_prefix)
+        .unwrap_or(&stage_prefix)
+        .to_string();
+    Ok(clients
+        .tiles
+        .list_blobs(v1::ListBlobsRequest {
+            job_id: job.to_string(),
+            prefix: relative,
+        })
+        .await
+        .map_err(call_error)?
+        .into_inner()
+        .names)
 }
 
 /// The status of `job` on the coordinator `target`.

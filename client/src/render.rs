@@ -93,22 +93,30 @@ pub struct Opened {
 }
 
 impl FieldSource {
+    /// With `--server`: the coordinator and the job (with `--server` the one positional argument
+    /// is the job).
+    pub fn remote(&self, command: &str) -> Result<Option<(Target, String)>> {
+        let Some(server) = &self.server else {
+            return Ok(None);
+        };
+        let job = match (&self.store, &self.job) {
+            (Some(job), None) | (None, Some(job)) => job.clone(),
+            _ => bail!("with --server, give the job and no store: vlf {command} --server URL JOB"),
+        };
+        let target = Target {
+            url: server.clone(),
+            token: self.token.clone(),
+            ca_cert: self.ca_cert.clone(),
+        };
+        Ok(Some((target, job)))
+    }
+
     /// Opens the job: from the store, or fetched from `--server` (the asked stage, and snapshot 1
     /// too when `first`). `command` names the command in messages.
     pub fn open(&self, command: &str, first: bool) -> Result<Opened> {
-        match (&self.server, &self.store) {
-            (Some(server), store) => {
-                // With --server the one positional argument is the job.
-                let job = match (store, &self.job) {
-                    (Some(job), None) => job.as_str(),
-                    (None, Some(job)) => job.as_str(),
-                    _ => bail!("with --server, give the job and no store: vlf {command} --server URL JOB"),
-                };
-                let target = Target {
-                    url: server.clone(),
-                    token: self.token.clone(),
-                    ca_cert: self.ca_cert.clone(),
-                };
+        match (self.remote(command)?, &self.store) {
+            (Some((target, job)), _) => {
+                let job = job.as_str();
                 let (store, stage) = crate::block_on_value(crate::remote::fetch_job(&target, job, self.snapshot))?;
                 let first_store = if first {
                     let (first, _) = crate::block_on_value(crate::remote::fetch_job(&target, job, Some(1)))

@@ -4,8 +4,9 @@ use crate::{FieldSource, SpecularArg, ViewArgs};
 use anyhow::{Context, Result, bail};
 use glam::DVec3;
 use vlf_core::field::LightField;
+use vlf_core::lookup::{SpecularMode, ViewNeeds};
 use vlf_store::{FieldJob, JobId, Stage, Store};
-use vlf_viewer::{Loader, MirrorMode, Switch, ViewOptions, Walk};
+use vlf_viewer::{Loader, Switch, ViewOptions, Walk};
 
 pub fn run(args: ViewArgs) -> Result<()> {
     if args.depth > 64 {
@@ -19,14 +20,41 @@ pub fn run(args: ViewArgs) -> Result<()> {
     {
         bail!("--speed must be a positive number of scene units per second, got {speed}");
     }
-    let opened = args.source.open("view", false)?;
-    let id = opened.id.clone();
-    let job = FieldJob::open(&opened.store, &id).with_context(|| format!("cannot open job {id}"))?;
-    let stage = opened.stage.unwrap_or_else(|| job.latest_stage());
-    let field = load(&opened.store, &id, stage)?;
-    let loader = snapshot_loader(&args.source, opened.store, id.clone(), stage);
+    let specular = match args.specular {
+        SpecularArg::Rays => SpecularMode::Rays,
+        SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
+    };
+    // The job's description first: the store's, or its manifest, scene and the stage's summary
+    // fetched from the coordinator into a memory store that the rest streams into.
+    let remote = args.source.remote("view")?;
+    let (store, id, stage) = match &remote {
+        None => {
+            let opened = args.source.open("view", false)?;
+            let job =
+                FieldJob::open(&opened.store, &opened.id).with_context(|| format!("cannot open job {}", opened.id))?;
+            let stage = opened.stage.unwrap_or_else(|| job.latest_stage());
+            (opened.store, opened.id, stage)
+        }
+        Some((target, job)) => {
+            let id = JobId::parse(job).map_err(anyhow::Error::msg)?;
+            let (store, stage) = crate::block_on_value(async {
+                let status = crate::remote::status_of(target, job).await?;
+                let stage = crate::remote::resolve_stage(&status, job, args.source.snapshot)?;
+                let store = vlf_store::blocking(|| Store::open("memory://")).await??;
+                let summary = relative(&id, &vlf_store::layout::summary(&id, stage)?);
+                let mut clients = crate::remote::connect(target).await?;
+                let names = vec!["manifest.blob".into(), "scene.blob".into(), summary];
+                crate::remote::fetch_into(&mut clients, job, names, &store).await?;
+                Ok((store, stage))
+            })?;
+            (store, id, stage)
+        }
+    };
+    let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
+    // The geometry alone (no radiance read) places the walk and finds what the first view needs.
+    let (geometry, _) = job.load_parts(stage, Some(&ViewNeeds::default()))?;
     // The scene spans about 2 / scale scene units (the VLF frame is [-1, 1]³).
-    let n = field.scene.normalisation;
+    let n = geometry.scene.normalisation;
     let size = 2.0 / n.scale;
     let eye = args.eye.unwrap_or(n.center);
     let target = args.target.unwrap_or(eye + DVec3::Z);
@@ -34,24 +62,62 @@ pub fn run(args: ViewArgs) -> Result<()> {
         bail!("--eye and --target must be finite and apart, got {eye} and {target}");
     }
     let walk = Walk::new(eye, target, args.fovy, args.speed.unwrap_or(0.25 * size));
-    // The camera's own checks (field of view, size) before a window opens.
-    walk.camera(args.size.0, args.size.1)?;
+    let camera = walk.camera(args.size.0, args.size.1)?;
+    let needs = geometry.view_needs(&camera, 1, specular);
+    let first_keys = job.needed_keys(stage, &needs)?;
+    let stage_keys = stage_keys(&store, &id, stage, remote.as_ref())?;
+    if let Some((target, job)) = &remote {
+        let names = first_keys.iter().map(|k| relative(&id, k)).collect();
+        crate::block_on_value(async {
+            let mut clients = crate::remote::connect(target).await?;
+            crate::remote::fetch_into(&mut clients, job, names, &store).await
+        })?;
+    }
+    let (first, _) = job.load_parts(stage, Some(&needs))?;
+    println!(
+        "first view: {} of the {} blobs of {} ({} surfaces, {} mirror tiles); the rest follows",
+        first_keys.len(),
+        stage_keys.len(),
+        crate::render::describe(stage),
+        needs.surfaces.len(),
+        needs.mirror_tiles.len()
+    );
+    let rest = {
+        let (store, id, remote) = (store.clone(), id.clone(), remote.clone());
+        let fetched: std::collections::BTreeSet<String> = first_keys.into_iter().collect();
+        move || -> vlf_viewer::Loaded {
+            let all = || -> Result<(LightField, String)> {
+                if let Some((target, job)) = &remote {
+                    let names = stage_keys
+                        .iter()
+                        .filter(|k| !fetched.contains(*k))
+                        .map(|k| relative(&id, k))
+                        .collect();
+                    crate::block_on_value(async {
+                        let mut clients = crate::remote::connect(target).await?;
+                        crate::remote::fetch_into(&mut clients, job, names, &store).await
+                    })?;
+                }
+                Ok((load(&store, &id, stage)?, title(&id, stage)))
+            };
+            all().map(Some).map_err(|e| format!("{e:#}"))
+        }
+    };
+    let loader = snapshot_loader(&args.source, store, id.clone(), stage);
     let options = ViewOptions {
         title: title(&id, stage),
         size: args.size,
         walk,
         exposure: args.exposure,
-        mirrors: match args.specular {
-            SpecularArg::Rays => MirrorMode::Rays,
-            SpecularArg::Trace => MirrorMode::Trace { depth: args.depth },
-        },
+        mirrors: specular.into(),
         vsync: !args.no_vsync,
         frames: args.frames,
         screenshot_dir: args.screenshot_dir,
         screenshot_at_exit: args.screenshot,
         loader: Some(loader),
+        rest: Some(Box::new(rest)),
     };
-    let stats = vlf_viewer::view(field, options)?;
+    let stats = vlf_viewer::view(first, options)?;
     if stats.frames > 0 {
         println!(
             "{} frames in {:.2} s ({:.1} fps) on {}; first frame after {:.2} s",
@@ -66,6 +132,32 @@ pub fn run(args: ViewArgs) -> Result<()> {
         println!("screenshot → {}", path.display());
     }
     Ok(())
+}
+
+/// `key` relative to the job's prefix (how the tile service names blobs).
+fn relative(id: &JobId, key: &str) -> String {
+    let prefix = vlf_store::layout::job_prefix(id);
+    key.strip_prefix(&prefix).unwrap_or(key).to_string()
+}
+
+/// Every key of `stage` (full keys): listed by the coordinator, or in the store.
+fn stage_keys(
+    store: &Store,
+    id: &JobId,
+    stage: Stage,
+    remote: Option<&(vlf_proto::Target, String)>,
+) -> Result<Vec<String>> {
+    let prefix = vlf_store::layout::job_prefix(id);
+    match remote {
+        Some((target, job)) => {
+            let names = crate::block_on_value(async {
+                let mut clients = crate::remote::connect(target).await?;
+                crate::remote::stage_blobs(&mut clients, job, stage).await
+            })?;
+            Ok(names.into_iter().map(|n| format!("{prefix}{n}")).collect())
+        }
+        None => Ok(store.list(&vlf_store::layout::stage_prefix(id, stage)?)?),
+    }
 }
 
 fn title(id: &JobId, stage: Stage) -> String {

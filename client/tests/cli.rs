@@ -813,6 +813,13 @@ fn view_draws_in_a_window_what_render_draws() {
     }
     let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("3 frames"), "{stdout}");
+    // The first frame needed only part of the stage's blobs (the rest streams in behind it).
+    let first: Vec<usize> = stdout
+        .lines()
+        .find(|l| l.starts_with("first view: "))
+        .map(|l| l.split_whitespace().filter_map(|w| w.parse().ok()).take(2).collect())
+        .unwrap_or_default();
+    assert!(first.len() == 2 && first[0] < first[1], "{stdout}");
     // The window's frame is the headless GPU render's with one sample, bit for bit.
     let rendered = out.join("render.pfm");
     let o = vlf(&[

@@ -349,6 +349,29 @@ impl FieldJob {
         Ok((field, blobs))
     }
 
+    /// The keys [`FieldJob::load_parts`] reads for `needs` of `stage`, besides the job's
+    /// manifest and scene: the stage's summary, the needed diffuse maps and mirror tiles (a
+    /// snapshot's checkpoint instead, when any tile is needed). What a viewer fetches first.
+    pub fn needed_keys(&self, stage: Stage, needs: &ViewNeeds) -> Result<Vec<String>, StoreError> {
+        let id = self.id();
+        let mut keys = vec![layout::summary(id, stage)?];
+        for &s in &needs.surfaces {
+            keys.push(layout::diffuse(id, stage, s)?);
+        }
+        if !needs.mirror_tiles.is_empty() {
+            match stage {
+                Stage::Iteration(k) => keys.push(layout::state(id, k)?),
+                Stage::Field => {
+                    let per_side = self.options.grid.tiles_per_side();
+                    for &(d, k) in &needs.mirror_tiles {
+                        keys.push(layout::tile(id, stage, d, k % per_side, k / per_side)?);
+                    }
+                }
+            }
+        }
+        Ok(keys)
+    }
+
     /// Bytes the store holds for `stage` (its blobs as stored, compressed) and for the whole job.
     pub fn stored_bytes(&self, stage: Stage) -> Result<(u64, u64), StoreError> {
         let store = self.job.store();

@@ -111,3 +111,36 @@ fn a_close_view_needs_a_fraction_of_the_tiles() {
     );
     assert!(read * 2 < all_blobs, "{read} of {all_blobs}");
 }
+
+#[test]
+fn the_needed_keys_are_all_a_view_reads() {
+    // A store holding the manifest, the scene and the needed keys only — what a streaming
+    // viewer fetched first — draws the view with the same bits.
+    let job = mirror_job();
+    let id = job.id().clone();
+    let camera = &views()[1];
+    for stage in [Stage::Field, Stage::Iteration(3)] {
+        let whole = job.load(stage).unwrap();
+        let needs = whole.view_needs(camera, 1, SpecularMode::Rays);
+        let keys = job.needed_keys(stage, &needs).unwrap();
+        let partial = Store::open("memory://").unwrap();
+        for key in [vlf_store::layout::manifest(&id), vlf_store::layout::scene(&id)]
+            .iter()
+            .chain(&keys)
+        {
+            partial.put(key, job.job().store().get(key).unwrap()).unwrap();
+        }
+        let job_there = FieldJob::open(&partial, &id).unwrap();
+        let (field, read) = job_there.load_parts(stage, Some(&needs)).unwrap();
+        assert_eq!(
+            read + 1,
+            keys.len(),
+            "{stage:?}: every key but the summary is a radiance blob read"
+        );
+        let expected = whole.render(camera, 1, SpecularMode::Rays);
+        assert!(
+            bits(&field.render(camera, 1, SpecularMode::Rays)) == bits(&expected),
+            "{stage:?}"
+        );
+    }
+}

@@ -32,7 +32,7 @@ pub use field::{FieldRenderer, MirrorMode, Viewpoint};
 pub use gpu::Gpu;
 pub use headless::render;
 pub use walk::Walk;
-pub use window::{Loader, Switch, ViewOptions, ViewStats, view};
+pub use window::{Loaded, Loader, Switch, ViewOptions, ViewStats, view};
 
 /// What can go wrong drawing on the GPU.
 #[derive(Debug, thiserror::Error)]

@@ -50,6 +50,9 @@ pub enum Switch {
 /// thread of its own, one call at a time.
 pub type Loader = Box<dyn FnMut(Switch) -> Result<Option<(LightField, String)>, String> + Send>;
 
+/// What a [`Loader`] gives: another field and its title, none, or why it failed.
+pub type Loaded = Result<Option<(LightField, String)>, String>;
+
 /// How `vlf view` starts, and when it stops by itself.
 pub struct ViewOptions {
     pub title: String,
@@ -67,6 +70,9 @@ pub struct ViewOptions {
     pub screenshot_at_exit: Option<PathBuf>,
     /// Where other snapshots come from; without one, [ ] L do nothing.
     pub loader: Option<Loader>,
+    /// Loads the rest of the field shown when the window opens with part of it (what the first
+    /// view needs): run on a thread once the window is up; its field replaces the first one.
+    pub rest: Option<Box<dyn FnOnce() -> Loaded + Send>>,
 }
 
 /// What a viewing session did.
@@ -109,8 +115,6 @@ pub fn view(field: LightField, mut options: ViewOptions) -> Result<ViewStats, Vi
         None => Ok(app.stats),
     }
 }
-
-type Loaded = Result<Option<(LightField, String)>, String>;
 
 struct App {
     loader: Option<Arc<Mutex<Loader>>>,
@@ -329,7 +333,7 @@ impl App {
                 if let Some(s) = self.state.as_mut() {
                     s.renderer = FieldRenderer::new(&s.gpu, &field)?;
                 }
-                tracing::info!(%title, "switched snapshot");
+                tracing::info!(%title, "field replaced");
                 self.options.title = title;
                 self.field = field;
             }
@@ -390,7 +394,14 @@ impl ApplicationHandler for App {
         }
         match self.start(event_loop) {
             Ok(state) => self.state = Some(state),
-            Err(e) => self.fail(event_loop, e),
+            Err(e) => return self.fail(event_loop, e),
+        }
+        if let Some(rest) = self.options.rest.take() {
+            self.loading = true;
+            let sender = self.sender.clone();
+            std::thread::spawn(move || {
+                let _ = sender.send(rest());
+            });
         }
     }
 
