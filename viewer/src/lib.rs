@@ -23,6 +23,7 @@ pub mod field;
 pub mod frame;
 pub mod gpu;
 pub mod headless;
+pub mod overlay;
 pub mod rays;
 pub mod tonemap;
 pub mod walk;

@@ -2,8 +2,9 @@
 //!
 //! Every frame draws the field into a linear [`Frame`] at the window's size (the same pipeline
 //! as `vlf render --gpu`, one sample per pixel) and tone-maps it onto the window's surface.
-//! The window's title is the status line: frames per second, the mirror mode, the exposure,
-//! the eye's speed. Keys:
+//! A status line in the top-left corner (and the window's title) gives the frames per second,
+//! the size, the mirror mode, the exposure, the eye's speed and whether the field is complete.
+//! Keys:
 //!
 //! | key | does |
 //! |---|---|
@@ -23,6 +24,7 @@
 
 use crate::field::MirrorMode;
 use crate::frame::Frame;
+use crate::overlay::Overlay;
 use crate::tonemap::Tonemap;
 use crate::walk::{Move, Walk};
 use crate::{FieldRenderer, Gpu, ViewerError};
@@ -138,6 +140,7 @@ struct State {
     gpu: Gpu,
     renderer: FieldRenderer,
     tonemap: Tonemap,
+    status: Overlay,
     frame: Frame,
     last: Instant,
     /// Smoothed frames per second, and when the title was last updated.
@@ -200,6 +203,7 @@ impl App {
         gpu.checked(|| surface.configure(&gpu.device, &config))?;
         let renderer = FieldRenderer::new(&gpu, &self.field)?;
         let tonemap = Tonemap::new(&gpu, format);
+        let status = Overlay::new(&gpu, format);
         let frame = Frame::new(&gpu, config.width, config.height)?;
         self.stats.adapter = gpu.describe();
         tracing::info!(adapter = %gpu.describe(), ?format, "viewer window");
@@ -210,6 +214,7 @@ impl App {
             gpu,
             renderer,
             tonemap,
+            status,
             frame,
             last: Instant::now(),
             fps: 0.0,
@@ -275,15 +280,13 @@ impl App {
                 MirrorMode::Trace { depth: 0 } => "mirrors without reflections".to_string(),
                 MirrorMode::Trace { depth } => format!("mirrors traced {depth} deep"),
             };
-            s.window.set_title(&format!(
-                "{} — {:.1} fps · {} × {} · {mode} · exposure {:+.1} · speed {:.3}",
-                self.options.title,
-                s.fps,
-                s.config.width,
-                s.config.height,
-                self.options.exposure,
-                self.options.walk.speed
-            ));
+            let field = if self.loading { "loading" } else { "complete" };
+            let line = format!(
+                "{:.1} fps | {}x{} | {mode} | exposure {:+.1} | speed {:.3} | field {field}",
+                s.fps, s.config.width, s.config.height, self.options.exposure, self.options.walk.speed
+            );
+            s.status.set_text(&s.gpu, &line);
+            s.window.set_title(&format!("{} | {line}", self.options.title));
         }
         Ok(true)
     }

@@ -312,3 +312,74 @@ fn the_screen_shows_what_a_png_would() {
         }
     }
 }
+
+#[test]
+fn the_status_line_spells_its_text() {
+    // "Ab" at (4, 4), one screen pixel per font pixel, over white: every pixel of the two
+    // glyph cells is white exactly where font8x8 sets a bit and 40 % white elsewhere (the
+    // translucent band); outside the band the target is untouched.
+    let Some(gpu) = gpu() else { return };
+    let (w, h) = (32, 16);
+    let format = wgpu::TextureFormat::Rgba8Unorm;
+    let target = gpu.device.create_texture(&wgpu::TextureDescriptor {
+        label: None,
+        size: wgpu::Extent3d {
+            width: w,
+            height: h,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    });
+    let view = target.create_view(&Default::default());
+    let mut overlay = vlf_viewer::overlay::Overlay::new(&gpu, format);
+    overlay.set_text(&gpu, "Ab");
+    let mut encoder = gpu.device.create_command_encoder(&Default::default());
+    drop(encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+        label: None,
+        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+            view: &view,
+            depth_slice: None,
+            resolve_target: None,
+            ops: wgpu::Operations {
+                load: wgpu::LoadOp::Clear(wgpu::Color::WHITE),
+                store: wgpu::StoreOp::Store,
+            },
+        })],
+        depth_stencil_attachment: None,
+        timestamp_writes: None,
+        occlusion_query_set: None,
+        multiview_mask: None,
+    }));
+    overlay.draw(&gpu, &mut encoder, &view, (w, h), (4.0, 4.0), 1.0);
+    gpu.queue.submit([encoder.finish()]);
+    let bytes = read_rgba8(&gpu, &target, w, h);
+    let red = |x: u32, y: u32| bytes[((y * w + x) * 4) as usize];
+    let mut lit = 0;
+    for y in 0..h {
+        for x in 0..w {
+            let in_band = (2..22).contains(&x) && (2..14).contains(&y);
+            let in_text = (4..20).contains(&x) && (4..12).contains(&y);
+            let expected = if in_text {
+                let glyph = font8x8::legacy::BASIC_LEGACY[if x < 12 { b'A' } else { b'b' } as usize];
+                let on = glyph[(y - 4) as usize] >> ((x - 4) % 8) & 1 == 1;
+                lit += on as usize;
+                if on { 255 } else { 102 }
+            } else if in_band {
+                102
+            } else {
+                255
+            };
+            assert!(
+                (red(x, y) as i32 - expected).abs() <= 1,
+                "({x}, {y}): {} vs {expected}",
+                red(x, y)
+            );
+        }
+    }
+    assert!(lit > 20, "the glyphs have pixels: {lit}");
+}
