@@ -348,7 +348,11 @@ pub async fn stage_blobs(clients: &mut Clients, job: &str, stage: Stage) -> Resu
 
 /// The status of `job` on the coordinator `target`.
 pub async fn status_of(target: &Target, job: &str) -> Result<JobStatus> {
-    let mut clients = connect(target).await?;
+    job_status(&mut connect(target).await?, job).await
+}
+
+/// The status of `job` over `clients`.
+pub async fn job_status(clients: &mut Clients, job: &str) -> Result<JobStatus> {
     Ok(clients
         .jobs
         .get(v1::JobRequest {

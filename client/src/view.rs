@@ -26,8 +26,8 @@ pub fn run(args: ViewArgs) -> Result<()> {
     };
     // The job's description first: the store's, or its manifest, scene and the stage's summary
     // fetched from the coordinator into a memory store that the rest streams into.
-    let remote = args.source.remote("view")?;
-    let (store, id, stage) = match &remote {
+    let mut remote = args.source.remote("view")?.map(Remote::connect).transpose()?;
+    let (store, id, stage) = match &mut remote {
         None => {
             let opened = args.source.open("view", false)?;
             let job =
@@ -35,18 +35,13 @@ pub fn run(args: ViewArgs) -> Result<()> {
             let stage = opened.stage.unwrap_or_else(|| job.latest_stage());
             (opened.store, opened.id, stage)
         }
-        Some((target, job)) => {
-            let id = JobId::parse(job).map_err(anyhow::Error::msg)?;
-            let (store, stage) = crate::block_on_value(async {
-                let status = crate::remote::status_of(target, job).await?;
-                let stage = crate::remote::resolve_stage(&status, job, args.source.snapshot)?;
-                let store = vlf_store::blocking(|| Store::open("memory://")).await??;
-                let summary = relative(&id, &vlf_store::layout::summary(&id, stage)?);
-                let mut clients = crate::remote::connect(target).await?;
-                let names = vec!["manifest.blob".into(), "scene.blob".into(), summary];
-                crate::remote::fetch_into(&mut clients, job, names, &store).await?;
-                Ok((store, stage))
-            })?;
+        Some(remote) => {
+            let id = JobId::parse(&remote.job).map_err(anyhow::Error::msg)?;
+            let status = remote.status()?;
+            let stage = crate::remote::resolve_stage(&status, &remote.job, args.source.snapshot)?;
+            let store = Store::open("memory://")?;
+            let summary = relative(&id, &vlf_store::layout::summary(&id, stage)?);
+            remote.fetch(vec!["manifest.blob".into(), "scene.blob".into(), summary], &store)?;
             (store, id, stage)
         }
     };
@@ -65,13 +60,17 @@ pub fn run(args: ViewArgs) -> Result<()> {
     let camera = walk.camera(args.size.0, args.size.1)?;
     let needs = geometry.view_needs(&camera, 1, specular);
     let first_keys = job.needed_keys(stage, &needs)?;
-    let stage_keys = stage_keys(&store, &id, stage, remote.as_ref())?;
-    if let Some((target, job)) = &remote {
-        let names = first_keys.iter().map(|k| relative(&id, k)).collect();
-        crate::block_on_value(async {
-            let mut clients = crate::remote::connect(target).await?;
-            crate::remote::fetch_into(&mut clients, job, names, &store).await
-        })?;
+    // Every key of the stage, full: listed by the coordinator, or in the store.
+    let stage_keys: Vec<String> = match &mut remote {
+        Some(remote) => {
+            let prefix = vlf_store::layout::job_prefix(&id);
+            let names = remote.stage_blobs(stage)?;
+            names.into_iter().map(|n| format!("{prefix}{n}")).collect()
+        }
+        None => store.list(&vlf_store::layout::stage_prefix(&id, stage)?)?,
+    };
+    if let Some(remote) = &mut remote {
+        remote.fetch(first_keys.iter().map(|k| relative(&id, k)).collect(), &store)?;
     }
     let (first, _) = job.load_parts(stage, Some(&needs))?;
     println!(
@@ -82,21 +81,19 @@ pub fn run(args: ViewArgs) -> Result<()> {
         needs.surfaces.len(),
         needs.mirror_tiles.len()
     );
+    // The rest of the stage on a thread, over the same connection.
     let rest = {
-        let (store, id, remote) = (store.clone(), id.clone(), remote.clone());
+        let (store, id) = (store.clone(), id.clone());
         let fetched: std::collections::BTreeSet<String> = first_keys.into_iter().collect();
         move || -> vlf_viewer::Loaded {
             let all = || -> Result<(LightField, String)> {
-                if let Some((target, job)) = &remote {
+                if let Some(mut remote) = remote {
                     let names = stage_keys
                         .iter()
                         .filter(|k| !fetched.contains(*k))
                         .map(|k| relative(&id, k))
                         .collect();
-                    crate::block_on_value(async {
-                        let mut clients = crate::remote::connect(target).await?;
-                        crate::remote::fetch_into(&mut clients, job, names, &store).await
-                    })?;
+                    remote.fetch(names, &store)?;
                 }
                 Ok((load(&store, &id, stage)?, title(&id, stage)))
             };
@@ -140,23 +137,37 @@ fn relative(id: &JobId, key: &str) -> String {
     key.strip_prefix(&prefix).unwrap_or(key).to_string()
 }
 
-/// Every key of `stage` (full keys): listed by the coordinator, or in the store.
-fn stage_keys(
-    store: &Store,
-    id: &JobId,
-    stage: Stage,
-    remote: Option<&(vlf_proto::Target, String)>,
-) -> Result<Vec<String>> {
-    let prefix = vlf_store::layout::job_prefix(id);
-    match remote {
-        Some((target, job)) => {
-            let names = crate::block_on_value(async {
-                let mut clients = crate::remote::connect(target).await?;
-                crate::remote::stage_blobs(&mut clients, job, stage).await
-            })?;
-            Ok(names.into_iter().map(|n| format!("{prefix}{n}")).collect())
-        }
-        None => Ok(store.list(&vlf_store::layout::stage_prefix(id, stage)?)?),
+/// One connection to the coordinator (and the runtime it lives on), kept from the job's
+/// description to the rest of the stage.
+struct Remote {
+    runtime: tokio::runtime::Runtime,
+    clients: vlf_proto::Clients,
+    job: String,
+}
+
+impl Remote {
+    fn connect((target, job): (vlf_proto::Target, String)) -> Result<Remote> {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .enable_all()
+            .build()
+            .context("cannot start the async runtime")?;
+        let clients = runtime.block_on(crate::remote::connect(&target))?;
+        Ok(Remote { runtime, clients, job })
+    }
+
+    fn status(&mut self) -> Result<vlf_proto::v1::JobStatus> {
+        self.runtime
+            .block_on(crate::remote::job_status(&mut self.clients, &self.job))
+    }
+
+    fn stage_blobs(&mut self, stage: Stage) -> Result<Vec<String>> {
+        self.runtime
+            .block_on(crate::remote::stage_blobs(&mut self.clients, &self.job, stage))
+    }
+
+    fn fetch(&mut self, names: Vec<String>, store: &Store) -> Result<u64> {
+        self.runtime
+            .block_on(crate::remote::fetch_into(&mut self.clients, &self.job, names, store))
     }
 }
 

@@ -29,6 +29,9 @@ fn temp(name: &str) -> PathBuf {
     dir
 }
 
+/// The bundled Cornell scenes' usual camera, as flags.
+const CORNELL_VIEW: [&str; 6] = ["--eye", "278,273,-800", "--target", "278,273,0", "--fovy", "39"];
+
 fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
@@ -86,21 +89,8 @@ fn propagate_then_render_every_format() {
     assert_eq!((img.width, img.height), (64, 48));
     // The same view on the GPU: the same image up to edge pixels (the viewer's tests bound it).
     let gpu_image = out.join("gpu.pfm");
-    let mut args = vec![
-        "render",
-        out.to_str().unwrap(),
-        "--eye",
-        "278,273,-800",
-        "--target",
-        "278,273,0",
-        "--fovy",
-        "39",
-        "--size",
-        "64x48",
-        "--gpu",
-        "--out",
-        gpu_image.to_str().unwrap(),
-    ];
+    let mut args = [&["render", out.to_str().unwrap()][..], &CORNELL_VIEW[..]].concat();
+    args.extend(["--size", "64x48", "--gpu", "--out", gpu_image.to_str().unwrap()]);
     if gpu_available(&vlf(&args)) {
         let gpu = vlf_core::render::Image::load_pfm(&gpu_image).unwrap();
         let (a, b) = (img.mean(), gpu.mean());
@@ -411,18 +401,11 @@ fn mirrors_scene_plans_propagates_and_renders_both_ways() {
     assert!((means[0] - means[1]).abs() < 0.25 * means[1], "{means:?}");
     // The GPU draws mirrors both ways, as the CPU does.
     let view = [
-        "render",
-        out.to_str().unwrap(),
-        "--eye",
-        "278,273,-800",
-        "--target",
-        "278,273,0",
-        "--fovy",
-        "39",
-        "--size",
-        "48x48",
-        "--gpu",
-    ];
+        &["render", out.to_str().unwrap()][..],
+        &CORNELL_VIEW[..],
+        &["--size", "48x48", "--gpu"][..],
+    ]
+    .concat();
     let image = out.join("gpu.pfm");
     for (mode, cpu) in ["rays", "trace"].iter().zip(&means) {
         let o = vlf(&[&view[..], &["--specular", mode, "--out", image.to_str().unwrap()]].concat());
@@ -772,16 +755,7 @@ fn view_draws_in_a_window_what_render_draws() {
     let out = temp("view");
     let o = propagate(&out, "2");
     assert!(o.status.success(), "{}", stderr(&o));
-    let camera = [
-        "--eye",
-        "278,273,-800",
-        "--target",
-        "278,273,0",
-        "--fovy",
-        "39",
-        "--size",
-        "96x72",
-    ];
+    let camera = [&CORNELL_VIEW[..], &["--size", "96x72"][..]].concat();
     // Without any display: a clear error, not a panic.
     let o = Command::new(env!("CARGO_BIN_EXE_vlf"))
         .args([&["view", out.to_str().unwrap()][..], &camera[..], &["--frames", "1"]].concat())

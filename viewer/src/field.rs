@@ -6,6 +6,7 @@
 //! polygon becomes a triangle fan whose vertices carry their texel coordinates in the polygon's
 //! grid, computed in f64 (see `shaders/field.wgsl`).
 
+use crate::pass::{READ_ONLY, bind_entry, buffer_entry, color_pass, uniform_buffer};
 use crate::rays::RayTables;
 use crate::{Gpu, ViewerError};
 use bytemuck::{Pod, Zeroable};
@@ -110,7 +111,6 @@ pub struct FieldRenderer {
     vertex_count: u32,
     /// Maps the scene's units into the VLF frame.
     normalisation: vlf_core::scene::Normalisation,
-    has_mirrors: bool,
 }
 
 impl FieldRenderer {
@@ -163,7 +163,6 @@ impl FieldRenderer {
             });
             polygon_vertices.extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
         }
-        let surfaces_have_mirrors = surfaces.iter().any(|s| s.mirror != 0);
         let bvh = Bvh::build(scene);
         let nodes: Vec<GpuNode> = bvh
             .nodes()
@@ -176,18 +175,26 @@ impl FieldRenderer {
             })
             .collect();
         let radiance: Vec<f32> = field.radiance.iter().flatten().copied().collect();
-        let radiance_bytes = (radiance.len() * 4) as u64;
+        // Every storage buffer must fit one binding, and the shader indexes them with u32 words.
         let limit = gpu
             .limits
             .max_storage_buffer_binding_size
             .min(gpu.limits.max_buffer_size);
-        if radiance_bytes > limit || atlas.texels > u32::MAX as usize / 3 {
-            return Err(ViewerError::TooLarge(format!(
-                "the field's radiance maps take {:.1} MB; {} binds at most {:.1} MB",
-                radiance_bytes as f64 / 1e6,
-                gpu.describe(),
-                limit as f64 / 1e6
-            )));
+        for (what, bytes) in [
+            ("radiance maps", std::mem::size_of_val(radiance.as_slice())),
+            ("mirror rays", std::mem::size_of_val(rays.words.as_slice())),
+            ("surfaces", std::mem::size_of_val(surfaces.as_slice())),
+            ("polygon vertices", std::mem::size_of_val(polygon_vertices.as_slice())),
+            ("BVH nodes", std::mem::size_of_val(nodes.as_slice())),
+        ] {
+            if bytes as u64 > limit || bytes / 4 > u32::MAX as usize {
+                return Err(ViewerError::TooLarge(format!(
+                    "the field's {what} take {:.1} MB; {} binds at most {:.1} MB",
+                    bytes as f64 / 1e6,
+                    gpu.describe(),
+                    limit.min(4 * u32::MAX as u64) as f64 / 1e6
+                )));
+            }
         }
         // Empty buffers cannot be bound: a scene without surfaces still gets one padding element.
         let nonempty = |bytes: &[u8], min: usize| {
@@ -197,12 +204,7 @@ impl FieldRenderer {
         };
         gpu.checked(|| {
             let device = &gpu.device;
-            let view = device.create_buffer(&wgpu::BufferDescriptor {
-                label: Some("view"),
-                size: std::mem::size_of::<ViewUniform>() as u64,
-                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-                mapped_at_creation: false,
-            });
+            let view = uniform_buffer(device, "view", std::mem::size_of::<ViewUniform>());
             let storage = |label, contents: &[u8]| {
                 device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                     label: Some(label),
@@ -226,26 +228,26 @@ impl FieldRenderer {
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some("field"),
                 entries: &[
-                    binding(0, wgpu::ShaderStages::VERTEX_FRAGMENT, wgpu::BufferBindingType::Uniform),
-                    binding(1, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    binding(2, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    binding(3, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    binding(4, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    binding(5, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    binding(6, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    buffer_entry(0, wgpu::ShaderStages::VERTEX_FRAGMENT, wgpu::BufferBindingType::Uniform),
+                    buffer_entry(1, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    buffer_entry(2, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    buffer_entry(3, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    buffer_entry(4, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    buffer_entry(5, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    buffer_entry(6, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
                 ],
             });
             let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("field"),
                 layout: &layout,
                 entries: &[
-                    entry(0, &view),
-                    entry(1, &surfaces),
-                    entry(2, &radiance),
-                    entry(3, &polygon_vertices),
-                    entry(4, &nodes_buffer),
-                    entry(5, &primitives),
-                    entry(6, &rays),
+                    bind_entry(0, &view),
+                    bind_entry(1, &surfaces),
+                    bind_entry(2, &radiance),
+                    bind_entry(3, &polygon_vertices),
+                    bind_entry(4, &nodes_buffer),
+                    bind_entry(5, &primitives),
+                    bind_entry(6, &rays),
                 ],
             });
             let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -302,14 +304,8 @@ impl FieldRenderer {
                 vertices,
                 vertex_count,
                 normalisation: scene.normalisation,
-                has_mirrors: surfaces_have_mirrors,
             }
         })
-    }
-
-    /// Whether some surface is a mirror.
-    pub fn has_mirrors(&self) -> bool {
-        self.has_mirrors
     }
 
     /// Where `camera` (scene units) sees the field from, mirrors drawn as `mirrors` says,
@@ -368,54 +364,24 @@ impl FieldRenderer {
             _pad: [0; 2],
         };
         gpu.queue.write_buffer(&self.view, 0, bytemuck::bytes_of(&uniform));
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("field"),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: color,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(wgpu::Color::BLACK),
-                    store: wgpu::StoreOp::Store,
-                },
-            })],
-            depth_stencil_attachment: Some(wgpu::RenderPassDepthStencilAttachment {
-                view: depth,
-                depth_ops: Some(wgpu::Operations {
-                    load: wgpu::LoadOp::Clear(0.0),
-                    store: wgpu::StoreOp::Discard,
-                }),
-                stencil_ops: None,
+        let depth = wgpu::RenderPassDepthStencilAttachment {
+            view: depth,
+            depth_ops: Some(wgpu::Operations {
+                load: wgpu::LoadOp::Clear(0.0),
+                store: wgpu::StoreOp::Discard,
             }),
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
+            stencil_ops: None,
+        };
+        let mut pass = color_pass(
+            encoder,
+            "field",
+            color,
+            wgpu::LoadOp::Clear(wgpu::Color::BLACK),
+            Some(depth),
+        );
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
         pass.set_vertex_buffer(0, self.vertices.slice(..));
         pass.draw(0..self.vertex_count, 0..1);
-    }
-}
-
-const READ_ONLY: wgpu::BufferBindingType = wgpu::BufferBindingType::Storage { read_only: true };
-
-fn entry(binding: u32, buffer: &wgpu::Buffer) -> wgpu::BindGroupEntry<'_> {
-    wgpu::BindGroupEntry {
-        binding,
-        resource: buffer.as_entire_binding(),
-    }
-}
-
-fn binding(index: u32, visibility: wgpu::ShaderStages, ty: wgpu::BufferBindingType) -> wgpu::BindGroupLayoutEntry {
-    wgpu::BindGroupLayoutEntry {
-        binding: index,
-        visibility,
-        ty: wgpu::BindingType::Buffer {
-            ty,
-            has_dynamic_offset: false,
-            min_binding_size: None,
-        },
-        count: None,
     }
 }

@@ -24,6 +24,7 @@ pub mod frame;
 pub mod gpu;
 pub mod headless;
 pub mod overlay;
+pub mod pass;
 pub mod rays;
 pub mod tonemap;
 pub mod walk;

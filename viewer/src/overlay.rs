@@ -2,6 +2,7 @@
 //! has arrived), drawn over the tone-mapped frame with an 8×8 bitmap font (`shaders/overlay.wgsl`).
 
 use crate::Gpu;
+use crate::pass::{READ_ONLY, bind_entry, buffer_entry, color_pass, overlay_pipeline, uniform_buffer};
 use bytemuck::{Pod, Zeroable};
 
 /// Characters the line holds at most; longer text is cut.
@@ -52,80 +53,24 @@ impl Overlay {
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             mapped_at_creation: false,
         });
-        let params = device.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("status params"),
-            size: std::mem::size_of::<Params>() as u64,
-            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
+        let params = uniform_buffer(device, "status params", std::mem::size_of::<Params>());
         let shader = device.create_shader_module(wgpu::include_wgsl!("shaders/overlay.wgsl"));
-        let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::VERTEX_FRAGMENT,
-            ty: wgpu::BindingType::Buffer {
-                ty,
-                has_dynamic_offset: false,
-                min_binding_size: None,
-            },
-            count: None,
-        };
-        let storage = wgpu::BufferBindingType::Storage { read_only: true };
+        let both = wgpu::ShaderStages::VERTEX_FRAGMENT;
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("status"),
             entries: &[
-                entry(0, wgpu::BufferBindingType::Uniform),
-                entry(1, storage),
-                entry(2, storage),
+                buffer_entry(0, both, wgpu::BufferBindingType::Uniform),
+                buffer_entry(1, both, READ_ONLY),
+                buffer_entry(2, both, READ_ONLY),
             ],
         });
         let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("status"),
             layout: &layout,
-            entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: params.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: glyphs.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: text.as_entire_binding(),
-                },
-            ],
+            entries: &[bind_entry(0, &params), bind_entry(1, &glyphs), bind_entry(2, &text)],
         });
-        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-            label: Some("status"),
-            bind_group_layouts: &[Some(&layout)],
-            immediate_size: 0,
-        });
-        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
-            label: Some("status"),
-            layout: Some(&pipeline_layout),
-            vertex: wgpu::VertexState {
-                module: &shader,
-                entry_point: Some("vs_main"),
-                compilation_options: Default::default(),
-                buffers: &[],
-            },
-            primitive: Default::default(),
-            depth_stencil: None,
-            multisample: Default::default(),
-            fragment: Some(wgpu::FragmentState {
-                module: &shader,
-                entry_point: Some("fs_main"),
-                compilation_options: Default::default(),
-                targets: &[Some(wgpu::ColorTargetState {
-                    format,
-                    blend: Some(wgpu::BlendState::ALPHA_BLENDING),
-                    write_mask: wgpu::ColorWrites::ALL,
-                })],
-            }),
-            multiview_mask: None,
-            cache: None,
-        });
+        let blend = Some(wgpu::BlendState::ALPHA_BLENDING);
+        let pipeline = overlay_pipeline(device, "status", &shader, &layout, format, blend);
         Overlay {
             pipeline,
             bind_group,
@@ -171,22 +116,7 @@ impl Overlay {
             _pad: [0.0; 2],
         };
         gpu.queue.write_buffer(&self.params, 0, bytemuck::bytes_of(&params));
-        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-            label: Some("status"),
-            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                view: target,
-                depth_slice: None,
-                resolve_target: None,
-                ops: wgpu::Operations {
-                    load: wgpu::LoadOp::Load,
-                    store: wgpu::StoreOp::Store,
-                },
-            })],
-            depth_stencil_attachment: None,
-            timestamp_writes: None,
-            occlusion_query_set: None,
-            multiview_mask: None,
-        });
+        let mut pass = color_pass(encoder, "status", target, wgpu::LoadOp::Load, None);
         pass.set_pipeline(&self.pipeline);
         pass.set_bind_group(0, &self.bind_group, &[]);
         pass.draw(0..6, 0..1);

@@ -102,7 +102,7 @@ pub fn view(field: LightField, mut options: ViewOptions) -> Result<ViewStats, Vi
         loading: false,
         sender,
         loaded,
-        field,
+        field: Some(field),
         options,
         started: Instant::now(),
         state: None,
@@ -124,7 +124,8 @@ struct App {
     loading: bool,
     sender: mpsc::Sender<Loaded>,
     loaded: mpsc::Receiver<Loaded>,
-    field: LightField,
+    /// The field to upload when the window opens (it lives on the GPU from then on).
+    field: Option<LightField>,
     options: ViewOptions,
     started: Instant,
     state: Option<State>,
@@ -201,10 +202,14 @@ impl App {
             wgpu::PresentMode::AutoNoVsync
         };
         gpu.checked(|| surface.configure(&gpu.device, &config))?;
-        let renderer = FieldRenderer::new(&gpu, &self.field)?;
-        let tonemap = Tonemap::new(&gpu, format);
-        let status = Overlay::new(&gpu, format);
+        let field = self
+            .field
+            .take()
+            .ok_or_else(|| ViewerError::Unsupported("the window opened twice".into()))?;
+        let renderer = FieldRenderer::new(&gpu, &field)?;
         let frame = Frame::new(&gpu, config.width, config.height)?;
+        let tonemap = Tonemap::new(&gpu, format, &frame);
+        let status = Overlay::new(&gpu, format);
         self.stats.adapter = gpu.describe();
         tracing::info!(adapter = %gpu.describe(), ?format, "viewer window");
         Ok(State {
@@ -261,8 +266,7 @@ impl App {
                 &s.frame.color_view,
                 &s.frame.depth_view,
             );
-            s.tonemap
-                .draw(&s.gpu, &mut encoder, &s.frame, &target, self.options.exposure);
+            s.tonemap.draw(&s.gpu, &mut encoder, &target, self.options.exposure);
             s.gpu.queue.submit([encoder.finish()]);
         })?;
         s.gpu.queue.present(texture);
@@ -338,7 +342,6 @@ impl App {
                 }
                 tracing::info!(%title, "field replaced");
                 self.options.title = title;
-                self.field = field;
             }
             Ok(None) => tracing::info!("no snapshot that way"),
             Err(e) => tracing::error!("cannot switch snapshot: {e}"),
@@ -420,7 +423,10 @@ impl ApplicationHandler for App {
                 s.config.height = size.height;
                 s.surface.configure(&s.gpu.device, &s.config);
                 match Frame::new(&s.gpu, size.width, size.height) {
-                    Ok(frame) => s.frame = frame,
+                    Ok(frame) => {
+                        s.tonemap.set_frame(&s.gpu, &frame);
+                        s.frame = frame;
+                    }
                     Err(e) => self.fail(event_loop, e),
                 }
             }

@@ -223,6 +223,24 @@ fn oversized_image_is_refused() {
     }
 }
 
+/// An `Rgba8*` texture of `width × height` to draw into and read back.
+fn rgba8_target(gpu: &Gpu, format: wgpu::TextureFormat, width: u32, height: u32) -> wgpu::Texture {
+    gpu.device.create_texture(&wgpu::TextureDescriptor {
+        label: None,
+        size: wgpu::Extent3d {
+            width,
+            height,
+            depth_or_array_layers: 1,
+        },
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format,
+        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
+        view_formats: &[],
+    })
+}
+
 /// Reads an `Rgba8*` texture of `width × height` back.
 fn read_rgba8(gpu: &Gpu, texture: &wgpu::Texture, width: u32, height: u32) -> Vec<u8> {
     let row = (width * 4).div_ceil(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT) * wgpu::COPY_BYTES_PER_ROW_ALIGNMENT;
@@ -274,25 +292,12 @@ fn the_screen_shows_what_a_png_would() {
     gpu.queue.submit([encoder.finish()]);
     let linear = frame.image(&gpu).unwrap();
     for format in [wgpu::TextureFormat::Rgba8UnormSrgb, wgpu::TextureFormat::Rgba8Unorm] {
-        let tonemap = vlf_viewer::tonemap::Tonemap::new(&gpu, format);
-        let target = gpu.device.create_texture(&wgpu::TextureDescriptor {
-            label: None,
-            size: wgpu::Extent3d {
-                width: w,
-                height: h,
-                depth_or_array_layers: 1,
-            },
-            mip_level_count: 1,
-            sample_count: 1,
-            dimension: wgpu::TextureDimension::D2,
-            format,
-            usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-            view_formats: &[],
-        });
+        let tonemap = vlf_viewer::tonemap::Tonemap::new(&gpu, format, &frame);
+        let target = rgba8_target(&gpu, format, w, h);
         for exposure in [-1.0, 1.5] {
             let mut encoder = gpu.device.create_command_encoder(&Default::default());
             let view = target.create_view(&Default::default());
-            tonemap.draw(&gpu, &mut encoder, &frame, &view, exposure);
+            tonemap.draw(&gpu, &mut encoder, &view, exposure);
             gpu.queue.submit([encoder.finish()]);
             let bytes = read_rgba8(&gpu, &target, w, h);
             let mut worst = 0;
@@ -321,40 +326,18 @@ fn the_status_line_spells_its_text() {
     let Some(gpu) = gpu() else { return };
     let (w, h) = (32, 16);
     let format = wgpu::TextureFormat::Rgba8Unorm;
-    let target = gpu.device.create_texture(&wgpu::TextureDescriptor {
-        label: None,
-        size: wgpu::Extent3d {
-            width: w,
-            height: h,
-            depth_or_array_layers: 1,
-        },
-        mip_level_count: 1,
-        sample_count: 1,
-        dimension: wgpu::TextureDimension::D2,
-        format,
-        usage: wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::COPY_SRC,
-        view_formats: &[],
-    });
+    let target = rgba8_target(&gpu, format, w, h);
     let view = target.create_view(&Default::default());
     let mut overlay = vlf_viewer::overlay::Overlay::new(&gpu, format);
     overlay.set_text(&gpu, "Ab");
     let mut encoder = gpu.device.create_command_encoder(&Default::default());
-    drop(encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-        label: None,
-        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-            view: &view,
-            depth_slice: None,
-            resolve_target: None,
-            ops: wgpu::Operations {
-                load: wgpu::LoadOp::Clear(wgpu::Color::WHITE),
-                store: wgpu::StoreOp::Store,
-            },
-        })],
-        depth_stencil_attachment: None,
-        timestamp_writes: None,
-        occlusion_query_set: None,
-        multiview_mask: None,
-    }));
+    drop(vlf_viewer::pass::color_pass(
+        &mut encoder,
+        "clear",
+        &view,
+        wgpu::LoadOp::Clear(wgpu::Color::WHITE),
+        None,
+    ));
     overlay.draw(&gpu, &mut encoder, &view, (w, h), (4.0, 4.0), 1.0);
     gpu.queue.submit([encoder.finish()]);
     let bytes = read_rgba8(&gpu, &target, w, h);
