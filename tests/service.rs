@@ -5,6 +5,9 @@
 //! same bits whatever the number of workers, a worker killed holding a lease, or a coordinator
 //! restarted in the middle of an iteration.
 
+#[path = "support/display.rs"]
+mod display;
+
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
@@ -119,11 +122,12 @@ fn scene(name: &str) -> String {
         .into_owned()
 }
 
-fn temp(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("vlf-service-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
+/// A fresh scratch directory, removed when the guard drops (pass or fail).
+fn temp(name: &str) -> tempfile::TempDir {
+    tempfile::Builder::new()
+        .prefix(&format!("vlf-service-{name}-"))
+        .tempdir()
+        .expect("scratch directory")
 }
 
 /// A free loopback port (for a coordinator that must come back on the same address).
@@ -243,13 +247,14 @@ fn wait_status(url: &str, id: &str, what: &str, ok: impl Fn(&v1::JobStatus) -> b
 
 #[test]
 fn one_two_and_four_worker_processes_give_propagates_bits() {
-    let dir = temp("workers");
-    let expected = reference(&dir, &["--iterations", "3"]);
+    let scratch = temp("workers");
+    let dir = scratch.path();
+    let expected = reference(dir, &["--iterations", "3"]);
     for workers in [1, 2, 4] {
         let store = dir.join(format!("store-{workers}"));
-        let (_server, url) = serve(&dir, &store, "127.0.0.1:0", &[]);
+        let (_server, url) = serve(dir, &store, "127.0.0.1:0", &[]);
         let _workers: Vec<Proc> = (0..workers)
-            .map(|w| worker(&dir, &format!("worker-{workers}-{w}"), &url, &[]))
+            .map(|w| worker(dir, &format!("worker-{workers}-{w}"), &url, &[]))
             .collect();
         let id = submit(&url, &["--iterations", "3"]);
         watch(&url, &id);
@@ -259,16 +264,16 @@ fn one_two_and_four_worker_processes_give_propagates_bits() {
         let left = std::fs::read_dir(&work).map(|d| d.count()).unwrap_or(0);
         assert_eq!(left, 0, "work blobs left in {}", work.display());
     }
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_bits() {
-    let dir = temp("kill");
-    let expected = reference(&dir, &["--iterations", "3"]);
+    let scratch = temp("kill");
+    let dir = scratch.path();
+    let expected = reference(dir, &["--iterations", "3"]);
     let store = dir.join("store");
     let (_server, url) = serve(
-        &dir,
+        dir,
         &store,
         "127.0.0.1:0",
         &[
@@ -283,7 +288,7 @@ fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_b
     let id = submit(&url, &["--iterations", "3"]);
     // Leases of one batch, two per iteration (l = 33): the first worker computes 4 batches, then
     // stalls on a fifth lease, in the middle of the third iteration.
-    let mut doomed = worker(&dir, "doomed", &url, &["--hang-after-leases", "4"]);
+    let mut doomed = worker(dir, "doomed", &url, &["--hang-after-leases", "4"]);
     doomed.wait_for_line("stalled holding lease");
     let status = wait_status(&url, &id, "the lease", |s| s.leases_out == 1);
     assert_eq!(status.state, State::Propagating as i32);
@@ -293,47 +298,47 @@ fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_b
     );
     doomed.kill();
     // The lease lasts ten minutes: only the missed heartbeats can hand the batch on.
-    let _rescuer = worker(&dir, "rescuer", &url, &[]);
+    let _rescuer = worker(dir, "rescuer", &url, &[]);
     watch(&url, &id);
     assert_same_field(&expected, &field(&store, &id), "after a killed worker");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
-    let dir = temp("restart");
+    let scratch = temp("restart");
+    let dir = scratch.path();
     // One pass of 2 batches per iteration (l = 33): 3 batches are snapshot 1 and 1 of iteration
     // 2's 2.
     let extra = ["--iterations", "4", "--perturb", "0"];
-    let expected = reference(&dir, &extra);
+    let expected = reference(dir, &extra);
     let store = dir.join("store");
     let listen = format!("127.0.0.1:{}", free_port());
     let one = ["--max-lease-batches", "1"];
-    let (mut server, url) = serve(&dir, &store, &listen, &one);
+    let (mut server, url) = serve(dir, &store, &listen, &one);
     let id = submit(&url, &extra);
-    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-leases", "3"]);
+    let mut stalled = worker(dir, "stalled", &url, &["--hang-after-leases", "3"]);
     stalled.wait_for_line("stalled holding lease");
     let status = wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
     assert_eq!((status.iteration, status.batches_done), (2, 1), "{status:?}");
     server.kill();
     stalled.kill();
     // A worker that starts while no coordinator answers waits for one.
-    let _patient = worker(&dir, "patient", &url, &[]);
+    let _patient = worker(dir, "patient", &url, &[]);
     std::thread::sleep(Duration::from_millis(300));
-    let (_server, url) = serve(&dir, &store, &listen, &one);
+    let (_server, url) = serve(dir, &store, &listen, &one);
     let resumed = wait_status(&url, &id, "the resumed job", |_| true);
     assert!(resumed.snapshots.starts_with(&[0, 1]), "{resumed:?}");
     watch(&url, &id);
     assert_same_field(&expected, &field(&store, &id), "after a coordinator restart");
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() {
-    let dir = temp("progress");
+    let scratch = temp("progress");
+    let dir = scratch.path();
     let store = dir.join("store");
     let (_server, url) = serve(
-        &dir,
+        dir,
         &store,
         "127.0.0.1:0",
         &["--lease-seconds", "1", "--max-lease-batches", "1"],
@@ -348,7 +353,7 @@ fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() 
         .unwrap()
         .into_inner();
     // Iterations have 2 batches (l = 33): the fourth lease, iteration 2's last batch, stalls.
-    let mut stalled = worker(&dir, "stalled", &url, &["--hang-after-leases", "3"]);
+    let mut stalled = worker(dir, "stalled", &url, &["--hang-after-leases", "3"]);
     stalled.wait_for_line("stalled holding lease");
     wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
     // Snapshot 1 renders while iteration 2 runs; snapshot 2 does not exist yet.
@@ -375,7 +380,7 @@ fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() 
     );
 
     // The stalled lease expires after a second and a healthy worker finishes the job.
-    let _healthy = worker(&dir, "healthy", &url, &[]);
+    let _healthy = worker(dir, "healthy", &url, &[]);
     let events: Vec<v1::JobStatus> = rt.block_on(async {
         let mut events = Vec::new();
         while let Some(s) = stream.message().await.unwrap() {
@@ -405,15 +410,15 @@ fn progress_arrives_in_order_and_finished_snapshots_render_while_the_job_runs() 
     // The final field renders from the server too.
     let o = vlf(&[render.as_slice(), &["--out", image.to_str().unwrap()]].concat());
     assert!(o.status.success(), "{}", text(&o));
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn auth_and_bad_requests_get_their_status_codes() {
-    let dir = temp("auth");
+    let scratch = temp("auth");
+    let dir = scratch.path();
     let store = dir.join("store");
     let (_server, url) = serve(
-        &dir,
+        dir,
         &store,
         "127.0.0.1:0",
         &["--token", "s3cret", "--max-upload-bytes", "20000"],
@@ -566,12 +571,12 @@ fn auth_and_bad_requests_get_their_status_codes() {
         fetch(&["../other/manifest.blob"]).unwrap_err().code(),
         Code::InvalidArgument
     );
-    let _ = std::fs::remove_dir_all(&dir);
 }
 
 #[test]
 fn tls_with_a_token_serves_workers_and_clients_that_trust_the_ca() {
-    let dir = temp("tls");
+    let scratch = temp("tls");
+    let dir = scratch.path();
     let store = dir.join("store");
     let cert = rcgen::generate_simple_self_signed(vec!["localhost".to_string()]).unwrap();
     let (cert_pem, key_pem, ca) = (dir.join("cert.pem"), dir.join("key.pem"), dir.join("ca.pem"));
@@ -580,7 +585,7 @@ fn tls_with_a_token_serves_workers_and_clients_that_trust_the_ca() {
     // Self-signed: the certificate is its own CA.
     std::fs::write(&ca, cert.cert.pem()).unwrap();
     let (_server, url) = serve(
-        &dir,
+        dir,
         &store,
         "127.0.0.1:0",
         &[
@@ -595,7 +600,7 @@ fn tls_with_a_token_serves_workers_and_clients_that_trust_the_ca() {
     assert!(url.starts_with("https://"), "{url}");
     let url = url.replace("127.0.0.1", "localhost");
     let ca = ca.to_str().unwrap();
-    let _worker = worker(&dir, "tls-worker", &url, &["--ca-cert", ca, "--token", "t0ken"]);
+    let _worker = worker(dir, "tls-worker", &url, &["--ca-cert", ca, "--token", "t0ken"]);
     let mirrors = scene("mirrors.obj");
     let mut args = vec!["submit", mirrors.as_str(), "--server", url.as_str(), "--ca-cert", ca];
     args.extend(["--token", "t0ken", "--iterations", "2", "--watch"]);
@@ -615,5 +620,125 @@ fn tls_with_a_token_serves_workers_and_clients_that_trust_the_ca() {
         "t0ken",
     ]);
     assert!(!o.status.success(), "{}", text(&o));
-    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// A TCP proxy in front of `upstream` (an `http://HOST:PORT` URL) that drops connections: the
+/// k-th connection it accepts is cut, both ways, once the server has sent `cut × 2^(k-1)` bytes
+/// through it. Every call fails on the first connections; later ones live long enough.
+struct FlakyProxy {
+    url: String,
+    cuts: std::sync::Arc<std::sync::atomic::AtomicUsize>,
+}
+
+fn flaky_proxy(upstream: &str, cut: usize) -> FlakyProxy {
+    use std::io::{Read, Write};
+    use std::net::{Shutdown, TcpListener, TcpStream};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let upstream = upstream.trim_start_matches("http://").to_string();
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+    let url = format!("http://{}", listener.local_addr().unwrap());
+    let cuts = std::sync::Arc::new(AtomicUsize::new(0));
+    let counter = cuts.clone();
+    std::thread::spawn(move || {
+        for (k, client) in listener.incoming().enumerate() {
+            let Ok(client) = client else { continue };
+            let Ok(server) = TcpStream::connect(&upstream) else {
+                continue;
+            };
+            let limit = cut.saturating_mul(1 << k.min(40));
+            let (mut c_in, mut s_out) = (client.try_clone().unwrap(), server.try_clone().unwrap());
+            std::thread::spawn(move || {
+                let _ = std::io::copy(&mut c_in, &mut s_out);
+                let _ = s_out.shutdown(Shutdown::Write);
+            });
+            let counter = counter.clone();
+            std::thread::spawn(move || {
+                let (mut from, mut to) = (server, client);
+                let mut sent = 0;
+                let mut buffer = [0u8; 4096];
+                loop {
+                    let n = match from.read(&mut buffer) {
+                        Ok(0) | Err(_) => break,
+                        Ok(n) => n.min(limit - sent),
+                    };
+                    if to.write_all(&buffer[..n]).is_err() {
+                        break;
+                    }
+                    sent += n;
+                    if sent >= limit {
+                        counter.fetch_add(1, Ordering::SeqCst);
+                        break;
+                    }
+                }
+                let _ = to.shutdown(Shutdown::Both);
+                let _ = from.shutdown(Shutdown::Both);
+            });
+        }
+    });
+    FlakyProxy { url, cuts }
+}
+
+#[test]
+fn view_streams_through_a_coordinator_that_drops_connections() {
+    let scratch = temp("flaky");
+    let dir = scratch.path();
+    let store = dir.join("store");
+    let (_server, url) = serve(dir, &store, "127.0.0.1:0", &[]);
+    let _worker = worker(dir, "w1", &url, &[]);
+    let id = submit(&url, &[]);
+    watch(&url, &id);
+    let Some(display) = display::x_display() else { return };
+    let proxy = flaky_proxy(&url, 1500);
+    // The wall mirror close up, mirrors from the rays: diffuse maps and tiles stream.
+    let view = |server: &str, name: &str| -> (Output, PathBuf) {
+        let shot = dir.join(name);
+        let o = Command::new(VLF)
+            .args([
+                "view",
+                "--server",
+                server,
+                &id,
+                "--eye",
+                "300,270,295",
+                "--target",
+                "0,270,295",
+            ])
+            .args([
+                "--fovy",
+                "30",
+                "--size",
+                "64x48",
+                "--frames",
+                "2",
+                "--no-vsync",
+                "--screenshot",
+            ])
+            .arg(&shot)
+            .env("DISPLAY", &display.name)
+            .env_remove("VLF_TOKEN")
+            .env_remove("VLF_SERVER")
+            .output()
+            .expect("run vlf view");
+        (o, shot)
+    };
+    let (direct, a) = view(&url, "direct.pfm");
+    if !direct.status.success()
+        && String::from_utf8_lossy(&direct.stderr).contains("no GPU adapter")
+        && std::env::var_os("VLF_REQUIRE_GPU").is_none()
+    {
+        eprintln!("skipped: no GPU adapter");
+        return;
+    }
+    assert!(direct.status.success(), "{}", text(&direct));
+    let (flaky, b) = view(&proxy.url, "flaky.pfm");
+    assert!(flaky.status.success(), "{}", text(&flaky));
+    let cuts = proxy.cuts.load(std::sync::atomic::Ordering::SeqCst);
+    assert!(cuts >= 2, "the proxy cut {cuts} connections");
+    // Nothing half-fetched was drawn: the same frame as over a sound connection.
+    let (a, b) = (
+        vlf_core::render::Image::load_pfm(&a).unwrap(),
+        vlf_core::render::Image::load_pfm(&b).unwrap(),
+    );
+    assert!(a.pixels == b.pixels, "the frames differ\n{}", text(&flaky));
+    assert!(a.mean()[0] > 0.0);
 }

@@ -286,6 +286,16 @@ pub struct ViewArgs {
     /// Draw as fast as possible instead of at the display's refresh rate.
     #[arg(long)]
     no_vsync: bool,
+    /// Radiance kept on the GPU, in MB: the least recently used parts of the field make room
+    /// for what the view needs.
+    #[arg(long, default_value_t = 256.0)]
+    cache_mb: f64,
+    /// A scripted walk over --frames: turn this many degrees (to the left) …
+    #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
+    turn: f64,
+    /// … while walking from --eye to this point.
+    #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
+    to: Option<glam::DVec3>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

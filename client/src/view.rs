@@ -1,12 +1,17 @@
-//! `vlf view`: a walkthrough of a job's field in a window (`vlf_viewer::view`).
+//! `vlf view`: a walkthrough of a job's field in a window (`vlf_viewer::view`), its radiance
+//! streamed part by part as the view needs it (`vlf_viewer::stream`): read straight from a
+//! store, or fetched over a coordinator's tile stream (`--server`).
 
 use crate::{FieldSource, SpecularArg, ViewArgs};
 use anyhow::{Context, Result, bail};
 use glam::DVec3;
+use std::sync::Arc;
+use std::time::Duration;
 use vlf_core::field::LightField;
-use vlf_core::lookup::{SpecularMode, ViewNeeds};
-use vlf_store::{FieldJob, JobId, Stage, Store};
-use vlf_viewer::{Loader, Switch, ViewOptions, Walk};
+use vlf_core::lookup::SpecularMode;
+use vlf_core::parts::PartCatalog;
+use vlf_store::{FieldJob, JobId, Stage, StageParts, Store};
+use vlf_viewer::{Loader, PartSource, StreamConfig, Switch, ViewOptions, Walk};
 
 pub fn run(args: ViewArgs) -> Result<()> {
     if args.depth > 64 {
@@ -20,34 +25,46 @@ pub fn run(args: ViewArgs) -> Result<()> {
     {
         bail!("--speed must be a positive number of scene units per second, got {speed}");
     }
+    if !(args.cache_mb.is_finite() && args.cache_mb > 0.0 && args.cache_mb <= 1e6) {
+        bail!(
+            "--cache-mb must be a positive number of megabytes (at most 10⁶), got {}",
+            args.cache_mb
+        );
+    }
+    if !args.turn.is_finite() {
+        bail!("--turn must be a finite number of degrees, got {}", args.turn);
+    }
+    if (args.turn != 0.0 || args.to.is_some()) && args.frames.is_none() {
+        bail!("--turn and --to script a walk over --frames N; give --frames");
+    }
     let specular = match args.specular {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
-    // The job's description first: the store's, or its manifest, scene and the stage's summary
-    // fetched from the coordinator into a memory store that the rest streams into.
-    let mut remote = args.source.remote("view")?.map(Remote::connect).transpose()?;
-    let (store, id, stage) = match &mut remote {
+    // The stage's parts: read from the store, or fetched from the coordinator (which first
+    // sends the job's manifest, scene and the stage's summary).
+    let (source, stage, id): (Box<dyn StageSource>, Stage, JobId) = match args.source.remote("view")? {
         None => {
             let opened = args.source.open("view", false)?;
             let job =
                 FieldJob::open(&opened.store, &opened.id).with_context(|| format!("cannot open job {}", opened.id))?;
             let stage = opened.stage.unwrap_or_else(|| job.latest_stage());
-            (opened.store, opened.id, stage)
+            let parts = StageParts::open(job, stage)
+                .with_context(|| format!("cannot read {} of job {}", crate::render::describe(stage), opened.id))?;
+            (Box::new(StoreParts::new(parts, None)?), stage, opened.id)
         }
-        Some(remote) => {
-            let id = JobId::parse(&remote.job).map_err(anyhow::Error::msg)?;
-            let status = remote.status()?;
+        Some((target, job)) => {
+            let mut remote = Remote::new(target, job)?;
+            let status = remote.call(|r, c| {
+                let (mut c, job) = (c.clone(), r.job.clone());
+                Box::pin(async move { crate::remote::job_status(&mut c, &job).await })
+            })?;
             let stage = crate::remote::resolve_stage(&status, &remote.job, args.source.snapshot)?;
-            let store = Store::open("memory://")?;
-            let summary = relative(&id, &vlf_store::layout::summary(&id, stage)?);
-            remote.fetch(vec!["manifest.blob".into(), "scene.blob".into(), summary], &store)?;
-            (store, id, stage)
+            let id = JobId::parse(&remote.job).map_err(anyhow::Error::msg)?;
+            (Box::new(RemoteParts::open(remote, stage, None)?), stage, id)
         }
     };
-    let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
-    // The geometry alone (no radiance read) places the walk and finds what the first view needs.
-    let (geometry, _) = job.load_parts(stage, Some(&ViewNeeds::default()))?;
+    let geometry = source.geometry().clone();
     // The scene spans about 2 / scale scene units (the VLF frame is [-1, 1]³).
     let n = geometry.scene.normalisation;
     let size = 2.0 / n.scale;
@@ -56,51 +73,38 @@ pub fn run(args: ViewArgs) -> Result<()> {
     if eye == target || !(eye.is_finite() && target.is_finite()) {
         bail!("--eye and --target must be finite and apart, got {eye} and {target}");
     }
-    let walk = Walk::new(eye, target, args.fovy, args.speed.unwrap_or(0.25 * size));
-    let camera = walk.camera(args.size.0, args.size.1)?;
-    let needs = geometry.view_needs(&camera, 1, specular);
-    let first_keys = job.needed_keys(stage, &needs)?;
-    // Every key of the stage, full: listed by the coordinator, or in the store.
-    let stage_keys: Vec<String> = match &mut remote {
-        Some(remote) => {
-            let prefix = vlf_store::layout::job_prefix(&id);
-            let names = remote.stage_blobs(stage)?;
-            names.into_iter().map(|n| format!("{prefix}{n}")).collect()
-        }
-        None => store.list(&vlf_store::layout::stage_prefix(&id, stage)?)?,
-    };
-    if let Some(remote) = &mut remote {
-        remote.fetch(first_keys.iter().map(|k| relative(&id, k)).collect(), &store)?;
+    let mut walk = Walk::new(eye, target, args.fovy, args.speed.unwrap_or(0.25 * size));
+    walk.camera(args.size.0, args.size.1)?;
+    if let Some(frames) = args.frames
+        && (args.turn != 0.0 || args.to.is_some())
+    {
+        walk.script(args.to.unwrap_or(eye), args.turn, frames)?;
     }
-    let (first, _) = job.load_parts(stage, Some(&needs))?;
+    let catalog = PartCatalog::new(&geometry);
+    let (field_values, cache_values) = (catalog.total_values(), (args.cache_mb * 1e6 / 12.0) as usize);
     println!(
-        "first view: {} of the {} blobs of {} ({} surfaces, {} mirror tiles); the rest follows",
-        first_keys.len(),
-        stage_keys.len(),
+        "streaming {} of job {id}: {} parts, {:.1} MB of radiance; cache {:.1} MB{}",
         crate::render::describe(stage),
-        needs.surfaces.len(),
-        needs.mirror_tiles.len()
-    );
-    // The rest of the stage on a thread, over the same connection.
-    let rest = {
-        let (store, id) = (store.clone(), id.clone());
-        let fetched: std::collections::BTreeSet<String> = first_keys.into_iter().collect();
-        move || -> vlf_viewer::Loaded {
-            let all = || -> Result<(LightField, String)> {
-                if let Some(mut remote) = remote {
-                    let names = stage_keys
-                        .iter()
-                        .filter(|k| !fetched.contains(*k))
-                        .map(|k| relative(&id, k))
-                        .collect();
-                    remote.fetch(names, &store)?;
-                }
-                Ok((load(&store, &id, stage)?, title(&id, stage)))
-            };
-            all().map(Some).map_err(|e| format!("{e:#}"))
+        catalog.len(),
+        field_values as f64 * 12e-6,
+        args.cache_mb,
+        if cache_values >= field_values {
+            " (holds it all)"
+        } else {
+            ""
         }
+    );
+    let stream = StreamConfig {
+        capacity: cache_values.min(field_values),
+        ..StreamConfig::with_megabytes(args.cache_mb)
     };
-    let loader = snapshot_loader(&args.source, store, id.clone(), stage);
+    let loader = snapshot_loader(
+        &args.source,
+        source.store().clone(),
+        id.clone(),
+        stage,
+        geometry.clone(),
+    );
     let options = ViewOptions {
         title: title(&id, stage),
         size: args.size,
@@ -112,9 +116,11 @@ pub fn run(args: ViewArgs) -> Result<()> {
         screenshot_dir: args.screenshot_dir,
         screenshot_at_exit: args.screenshot,
         loader: Some(loader),
-        rest: Some(Box::new(rest)),
+        source: source.into_part_source(),
+        stream,
+        settle: args.frames.is_some(),
     };
-    let stats = vlf_viewer::view(first, options)?;
+    let stats = vlf_viewer::view(Arc::unwrap_or_clone(geometry), options)?;
     if stats.frames > 0 {
         println!(
             "{} frames in {:.2} s ({:.1} fps) on {}; first frame after {:.2} s",
@@ -125,10 +131,167 @@ pub fn run(args: ViewArgs) -> Result<()> {
             stats.first_frame_seconds.unwrap_or(f64::NAN)
         );
     }
+    let s = &stats.stream;
+    println!(
+        "streamed {:.2} MB: {} parts fetched for {} views, {} resident ({:.1} MB) at the end{}{}",
+        s.bytes as f64 * 1e-6,
+        s.fetched,
+        s.views,
+        s.resident,
+        s.resident_values as f64 * 12e-6,
+        if s.retries > 0 {
+            format!(", {} fetches retried", s.retries)
+        } else {
+            String::new()
+        },
+        if s.cache_full {
+            ", the last view needs more than the cache"
+        } else {
+            ""
+        }
+    );
     for path in &stats.screenshots {
         println!("screenshot → {}", path.display());
     }
     Ok(())
+}
+
+fn title(id: &JobId, stage: Stage) -> String {
+    format!("vlf view {id} {}", crate::render::describe(stage))
+}
+
+/// A stage's parts with the geometry they fit, from a store or a coordinator.
+trait StageSource: PartSource {
+    fn geometry(&self) -> &Arc<LightField>;
+    /// The store the job's description was read from (the memory store fetched into, with
+    /// `--server`).
+    fn store(&self) -> &Store;
+    fn into_part_source(self: Box<Self>) -> Box<dyn PartSource>;
+}
+
+/// Parts read straight from a store.
+struct StoreParts {
+    parts: StageParts,
+    geometry: Arc<LightField>,
+    catalog: PartCatalog,
+}
+
+impl StoreParts {
+    /// `parts` with the geometry of its job: `geometry` if given (any stage of the same job has
+    /// the same), else rebuilt.
+    fn new(parts: StageParts, geometry: Option<Arc<LightField>>) -> Result<StoreParts> {
+        let geometry = match geometry {
+            Some(g) => g,
+            None => Arc::new(parts.geometry()?),
+        };
+        Ok(StoreParts {
+            catalog: PartCatalog::new(&geometry),
+            geometry,
+            parts,
+        })
+    }
+}
+
+impl PartSource for StoreParts {
+    fn fetch(&mut self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String> {
+        self.read(parts).map_err(|e| format!("{e:#}"))
+    }
+
+    fn bytes(&self) -> u64 {
+        self.parts.bytes_read()
+    }
+}
+
+impl StageSource for StoreParts {
+    fn geometry(&self) -> &Arc<LightField> {
+        &self.geometry
+    }
+
+    fn store(&self) -> &Store {
+        self.parts.job().job().store()
+    }
+
+    fn into_part_source(self: Box<Self>) -> Box<dyn PartSource> {
+        self
+    }
+}
+
+/// Parts fetched from a coordinator's tile stream: the blobs holding them are fetched into a
+/// memory store, read from it like a store's and dropped from it (a snapshot's checkpoint, which
+/// holds all its tiles, is kept). A dropped connection is reconnected on the next fetch.
+struct RemoteParts {
+    remote: Remote,
+    local: StoreParts,
+    /// Bytes received over the network.
+    bytes: u64,
+}
+
+impl RemoteParts {
+    /// Fetches the job's description and `stage`'s summary, and opens the stage (with
+    /// `geometry`, if known, as in [`StoreParts::new`]).
+    fn open(mut remote: Remote, stage: Stage, geometry: Option<Arc<LightField>>) -> Result<RemoteParts> {
+        let id = JobId::parse(&remote.job).map_err(anyhow::Error::msg)?;
+        let store = Store::open("memory://")?;
+        let summary = relative(&id, &vlf_store::layout::summary(&id, stage)?);
+        let names = vec!["manifest.blob".to_string(), "scene.blob".to_string(), summary];
+        let bytes = remote.fetch(names, &store)?;
+        let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
+        let parts = StageParts::open(job, stage)
+            .with_context(|| format!("cannot read {} of job {id}", crate::render::describe(stage)))?;
+        Ok(RemoteParts {
+            remote,
+            local: StoreParts::new(parts, geometry)?,
+            bytes,
+        })
+    }
+}
+
+impl PartSource for RemoteParts {
+    fn fetch(&mut self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String> {
+        let mut result = || -> Result<Vec<Vec<[f32; 3]>>> {
+            let local = &self.local;
+            let store = local.store();
+            let id = local.parts.job().id().clone();
+            let mut keys = local.parts.keys(&local.catalog, parts)?;
+            keys.retain(|k| !store.exists(k).unwrap_or(false));
+            let names = keys.iter().map(|k| relative(&id, k)).collect();
+            self.bytes += self.remote.fetch(names, store)?;
+            let values = local.read(parts);
+            let state = match local.parts.stage() {
+                Stage::Iteration(k) => Some(vlf_store::layout::state(&id, k)?),
+                Stage::Field => None,
+            };
+            for key in keys.iter().filter(|k| Some(*k) != state.as_ref()) {
+                store.delete(key)?;
+            }
+            values
+        };
+        result().map_err(|e| format!("{e:#}"))
+    }
+
+    fn bytes(&self) -> u64 {
+        self.bytes
+    }
+}
+
+impl StoreParts {
+    fn read(&self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>> {
+        Ok(self.parts.read(&self.geometry, &self.catalog, parts)?)
+    }
+}
+
+impl StageSource for RemoteParts {
+    fn geometry(&self) -> &Arc<LightField> {
+        self.local.geometry()
+    }
+
+    fn store(&self) -> &Store {
+        self.local.store()
+    }
+
+    fn into_part_source(self: Box<Self>) -> Box<dyn PartSource> {
+        self
+    }
 }
 
 /// `key` relative to the job's prefix (how the tile service names blobs).
@@ -137,48 +300,86 @@ fn relative(id: &JobId, key: &str) -> String {
     key.strip_prefix(&prefix).unwrap_or(key).to_string()
 }
 
-/// One connection to the coordinator (and the runtime it lives on), kept from the job's
-/// description to the rest of the stage.
+/// A connection to the coordinator, made again after a call fails (the server may have dropped
+/// it), with every call bounded in time.
 struct Remote {
     runtime: tokio::runtime::Runtime,
-    clients: vlf_proto::Clients,
+    target: vlf_proto::Target,
+    clients: Option<vlf_proto::Clients>,
     job: String,
 }
 
+/// How long one call may take before the connection is given up.
+const CALL_TIMEOUT: Duration = Duration::from_secs(60);
+/// Tries of a call, each on a fresh connection after a failure.
+const ATTEMPTS: u32 = 3;
+
+type Call<'a, T> = std::pin::Pin<Box<dyn std::future::Future<Output = Result<T>> + Send + 'a>>;
+
 impl Remote {
-    fn connect((target, job): (vlf_proto::Target, String)) -> Result<Remote> {
+    fn new(target: vlf_proto::Target, job: String) -> Result<Remote> {
         let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
             .enable_all()
             .build()
             .context("cannot start the async runtime")?;
-        let clients = runtime.block_on(crate::remote::connect(&target))?;
-        Ok(Remote { runtime, clients, job })
+        Ok(Remote {
+            runtime,
+            target,
+            clients: None,
+            job,
+        })
     }
 
-    fn status(&mut self) -> Result<vlf_proto::v1::JobStatus> {
-        self.runtime
-            .block_on(crate::remote::job_status(&mut self.clients, &self.job))
+    /// Runs `call` on the connection (connecting first if there is none). A failed call drops
+    /// the connection (the server may have dropped it) and is tried again on a new one, up to
+    /// [`ATTEMPTS`] times in all.
+    fn call<T>(&mut self, call: impl Fn(&Remote, &mut vlf_proto::Clients) -> Call<'static, T>) -> Result<T> {
+        let mut attempt = 1;
+        loop {
+            match self.call_once(&call) {
+                Ok(value) => return Ok(value),
+                Err(e) if attempt >= ATTEMPTS => return Err(e),
+                Err(e) => {
+                    tracing::warn!("{e:#}; trying again on a new connection");
+                    std::thread::sleep(Duration::from_millis(100 << attempt));
+                    attempt += 1;
+                }
+            }
+        }
     }
 
-    fn stage_blobs(&mut self, stage: Stage) -> Result<Vec<String>> {
-        self.runtime
-            .block_on(crate::remote::stage_blobs(&mut self.clients, &self.job, stage))
+    fn call_once<T>(&mut self, call: &impl Fn(&Remote, &mut vlf_proto::Clients) -> Call<'static, T>) -> Result<T> {
+        let mut clients = match self.clients.take() {
+            Some(c) => c,
+            None => self.runtime.block_on(async {
+                tokio::time::timeout(CALL_TIMEOUT, crate::remote::connect(&self.target))
+                    .await
+                    .map_err(|_| anyhow::anyhow!("connecting to {} timed out", self.target.url))?
+            })?,
+        };
+        let future = call(self, &mut clients);
+        let result = self.runtime.block_on(async {
+            tokio::time::timeout(CALL_TIMEOUT, future)
+                .await
+                .map_err(|_| anyhow::anyhow!("no answer from {} in {CALL_TIMEOUT:?}", self.target.url))?
+        });
+        if result.is_ok() {
+            self.clients = Some(clients);
+        }
+        result
     }
 
+    /// Fetches `names` (relative to the job) into `store`; the bytes received.
     fn fetch(&mut self, names: Vec<String>, store: &Store) -> Result<u64> {
-        self.runtime
-            .block_on(crate::remote::fetch_into(&mut self.clients, &self.job, names, store))
+        if names.is_empty() {
+            return Ok(0);
+        }
+        self.call(|r, c| {
+            let (mut c, job, names, store) = (c.clone(), r.job.clone(), names.clone(), store.clone());
+            Box::pin(async move { crate::remote::fetch_into(&mut c, &job, names, &store).await })
+        })
     }
-}
-
-fn title(id: &JobId, stage: Stage) -> String {
-    format!("vlf view {id} {}", crate::render::describe(stage))
-}
-
-fn load(store: &Store, id: &JobId, stage: Stage) -> Result<LightField> {
-    let job = FieldJob::open(store, id).with_context(|| format!("cannot open job {id}"))?;
-    job.load(stage)
-        .with_context(|| format!("cannot read {} of job {id}", crate::render::describe(stage)))
 }
 
 /// The stage one `switch` away from `current`, in the order snapshot 0, 1, …, then the final
@@ -199,16 +400,23 @@ fn step(current: Stage, finished: &[u32], field: bool, switch: Switch) -> Option
     next.filter(|&s| s != current)
 }
 
-/// Loads the snapshots around the one shown: from the store, re-reading the job's manifest each
-/// time (a running job finishes new ones), or fetched again from `--server`.
-fn snapshot_loader(source: &FieldSource, store: Store, id: JobId, mut current: Stage) -> Loader {
+/// Opens the stages around the one shown for streaming: from the store, re-reading the job's
+/// manifest each time (a running job finishes new ones), or from `--server` over a new
+/// connection. The geometry is the job's, whatever the stage.
+fn snapshot_loader(
+    source: &FieldSource,
+    store: Store,
+    id: JobId,
+    mut current: Stage,
+    geometry: Arc<LightField>,
+) -> Loader {
     let remote = source.server.clone().map(|url| vlf_proto::Target {
         url,
         token: source.token.clone(),
         ca_cert: source.ca_cert.clone(),
     });
     Box::new(move |switch| {
-        let mut found = || -> Result<Option<(LightField, String)>> {
+        let mut found = || -> Result<Option<(Box<dyn PartSource>, String)>> {
             let (finished, done) = match &remote {
                 Some(target) => {
                     let status = crate::block_on_value(crate::remote::status_of(target, id.as_str()))?;
@@ -223,19 +431,18 @@ fn snapshot_loader(source: &FieldSource, store: Store, id: JobId, mut current: S
             let Some(next) = step(current, &finished, done, switch) else {
                 return Ok(None);
             };
-            let field = match &remote {
+            let source: Box<dyn PartSource> = match &remote {
                 Some(target) => {
-                    let k = match next {
-                        Stage::Iteration(k) => Some(k),
-                        Stage::Field => None,
-                    };
-                    let (fetched, stage) = crate::block_on_value(crate::remote::fetch_job(target, id.as_str(), k))?;
-                    load(&fetched, &id, stage)?
+                    let remote = Remote::new(target.clone(), id.to_string())?;
+                    Box::new(RemoteParts::open(remote, next, Some(geometry.clone()))?)
                 }
-                None => load(&store, &id, next)?,
+                None => {
+                    let job = FieldJob::open(&store, &id)?;
+                    Box::new(StoreParts::new(StageParts::open(job, next)?, Some(geometry.clone()))?)
+                }
             };
             current = next;
-            Ok(Some((field, title(&id, next))))
+            Ok(Some((source, title(&id, next))))
         };
         found().map_err(|e| format!("{e:#}"))
     })
@@ -281,26 +488,39 @@ mod tests {
     #[test]
     fn the_loader_walks_a_running_jobs_snapshots() {
         let (store, id, mut p) = running_job();
-        let mut loader = snapshot_loader(&source(), store.clone(), id.clone(), Stage::Iteration(1));
-        let mut stage_of = |switch| {
-            loader(switch)
-                .unwrap()
-                .map(|(field, title): (LightField, String)| (field.stats.len(), title))
+        let job = FieldJob::open(&store, &id).unwrap();
+        let geometry = Arc::new(StageParts::open(job, Stage::Iteration(1)).unwrap().geometry().unwrap());
+        let catalog = PartCatalog::new(&geometry);
+        let mut loader = snapshot_loader(&source(), store.clone(), id.clone(), Stage::Iteration(1), geometry);
+        // The stage a switch opens, told by its title and checked by its parts: every one is the
+        // stage's, read whole.
+        let mut stage_of = |switch| -> Option<String> {
+            let (mut parts, title) = loader(switch).unwrap()?;
+            let stage = match title.rsplit_once("snapshot ") {
+                Some((_, k)) => Stage::Iteration(k.parse().unwrap()),
+                None => Stage::Field,
+            };
+            let whole = FieldJob::open(&store, &id).unwrap().load(stage).unwrap();
+            let all: Vec<u32> = (0..catalog.len() as u32).collect();
+            let values = parts.fetch(&all).unwrap();
+            for (&i, v) in all.iter().zip(&values) {
+                assert!(v.as_slice() == whole.part_values(&catalog, i), "{title}: part {i}");
+            }
+            Some(title)
         };
-        let (iterations, title) = stage_of(Switch::Next).expect("snapshot 2");
-        assert_eq!(iterations, 2);
+        let title = stage_of(Switch::Next).expect("snapshot 2");
         assert!(title.ends_with("snapshot 2"), "{title}");
         assert!(stage_of(Switch::Next).is_none(), "nothing after the newest snapshot");
-        assert_eq!(stage_of(Switch::Previous).unwrap().0, 1);
-        assert_eq!(stage_of(Switch::Previous).unwrap().0, 0);
+        assert!(stage_of(Switch::Previous).unwrap().ends_with("snapshot 1"));
+        assert!(stage_of(Switch::Previous).unwrap().ends_with("snapshot 0"));
         assert!(stage_of(Switch::Previous).is_none());
         // The job goes on: the next snapshot and then the final field appear.
         let mut job = FieldJob::open(&store, &id).unwrap();
         p.step(|_| {});
         job.write_snapshot(&p).unwrap();
-        assert_eq!(stage_of(Switch::Latest).unwrap().0, 3);
+        assert!(stage_of(Switch::Latest).unwrap().ends_with("snapshot 3"));
         job.finish(&p.field_now(), false).unwrap();
-        let (_, title) = stage_of(Switch::Next).expect("the final field");
+        let title = stage_of(Switch::Next).expect("the final field");
         assert!(title.ends_with("the final field"), "{title}");
     }
 

@@ -40,7 +40,6 @@ use crate::store::Store;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
-use vlf_core::lookup::ViewNeeds;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{Checkpoint, IterationStats, Options, Propagation};
@@ -238,7 +237,12 @@ impl FieldJob {
 
     /// The exact checkpoint of finished snapshot `k`.
     pub fn checkpoint(&self, k: u32) -> Result<Checkpoint, StoreError> {
-        Checkpoint::from_bytes(&self.job.get_state(k)?)
+        self.decode_checkpoint(k, &self.job.get_state(k)?)
+    }
+
+    /// The checkpoint of snapshot `k` from its state blob's contents.
+    pub(crate) fn decode_checkpoint(&self, k: u32, state: &[u8]) -> Result<Checkpoint, StoreError> {
+        Checkpoint::from_bytes(state)
             .and_then(|c| {
                 if c.iterations() == k {
                     Ok(c)
@@ -263,113 +267,6 @@ impl FieldJob {
     /// job's encoding).
     pub fn load(&self, stage: Stage) -> Result<LightField, StoreError> {
         Ok(self.load_parts(stage, None)?.0)
-    }
-
-    /// Reads what a view needs of a committed stage ([`LightField::view_needs`]), or everything
-    /// with `None`: the diffuse maps of the needed surfaces and the needed mirror tiles; the rest
-    /// of the field stays zero. A field read this way draws that view with the same bits as the
-    /// whole field. Also returns how many radiance blobs were read (a snapshot's mirror radiance
-    /// is one blob, its checkpoint, read when any mirror tile is needed).
-    pub fn load_parts(&self, stage: Stage, needs: Option<&ViewNeeds>) -> Result<(LightField, usize), StoreError> {
-        let wants_surface = |s: usize| needs.is_none_or(|n| n.surfaces.contains(&(s as u32)));
-        let wants_tile = |d: usize, k: u32| needs.is_none_or(|n| n.mirror_tiles.contains(&(d as u32, k)));
-        let mut blobs = 0;
-        let summary = self.summary(stage)?;
-        let unit = summary.radiance_unit;
-        if !(unit.is_finite() && unit > 0.0 && unit.log2().fract() == 0.0) {
-            return Err(self.field_error(vlf_core::Error::Decode(format!(
-                "summary of {stage:?}: radiance unit {unit} is not a power of two"
-            ))));
-        }
-        let unit = unit as f32;
-        let p = Propagation::new(self.scene.clone(), self.options.clone()).map_err(|e| self.field_error(e))?;
-        let atlas = &p.atlas;
-        let wanted: Vec<usize> = (0..atlas.grids.len()).filter(|&s| wants_surface(s)).collect();
-        blobs += wanted.len();
-        let surfaces: Vec<(usize, Vec<f32>)> = wanted
-            .into_par_iter()
-            .map(|s| {
-                let g = &atlas.grids[s];
-                let (shape, values) = self.job.get_diffuse(stage, s as u32)?;
-                self.check_shape(&shape, &[g.height, g.width, 3], || {
-                    layout::diffuse(self.id(), stage, s as u32)
-                })?;
-                Ok((s, values))
-            })
-            .collect::<Result<_, StoreError>>()?;
-        let mut radiance = vec![[0.0f32; 3]; atlas.texels];
-        for (s, values) in surfaces {
-            let first = atlas.grids[s].first;
-            for (i, v) in values.chunks_exact(3).enumerate() {
-                radiance[first + i] = [v[0] * unit, v[1] * unit, v[2] * unit];
-            }
-        }
-        let totals = match (&p.specular, stage) {
-            (None, _) => None,
-            (Some(spec), Stage::Iteration(_)) if needs.is_some_and(|n| n.mirror_tiles.is_empty()) => {
-                Some(spec.layouts.iter().map(|l| vec![[0.0; 3]; l.len as usize]).collect())
-            }
-            (Some(_), Stage::Iteration(k)) => {
-                blobs += 1;
-                self.checkpoint(k)?.mirrors.map(|maps| {
-                    maps.iter()
-                        .map(|m| m.total.iter().map(|t| t.map(|c| c as f32)).collect())
-                        .collect()
-                })
-            }
-            (Some(spec), Stage::Field) => {
-                let per_side = self.options.grid.tiles_per_side();
-                let tiles: Vec<_> = mirror_tiles(&spec.layouts, &p.subfields)
-                    .into_iter()
-                    .filter(|(d, k, _)| wants_tile(*d, *k))
-                    .collect();
-                blobs += tiles.len();
-                let values: Vec<Vec<f32>> = tiles
-                    .par_iter()
-                    .map(|(d, k, range)| {
-                        let (s, t) = (k % per_side, k / per_side);
-                        let (shape, values) = self.job.get_tile(stage, *d as u32, s, t)?;
-                        self.check_shape(&shape, &[range.len() as u32, 3], || {
-                            layout::tile(self.id(), stage, *d as u32, s, t)
-                        })?;
-                        Ok(values)
-                    })
-                    .collect::<Result<_, StoreError>>()?;
-                let mut totals: Vec<Vec<[f32; 3]>> =
-                    spec.layouts.iter().map(|l| vec![[0.0; 3]; l.len as usize]).collect();
-                for ((d, _, range), values) in tiles.iter().zip(values) {
-                    for (slot, v) in totals[*d][range.clone()].iter_mut().zip(values.chunks_exact(3)) {
-                        *slot = [v[0] * unit, v[1] * unit, v[2] * unit];
-                    }
-                }
-                Some(totals)
-            }
-        };
-        let field = LightField::from_radiance(p, summary.stats, radiance, totals).map_err(|e| self.field_error(e))?;
-        Ok((field, blobs))
-    }
-
-    /// The keys [`FieldJob::load_parts`] reads for `needs` of `stage`, besides the job's
-    /// manifest and scene: the stage's summary, the needed diffuse maps and mirror tiles (a
-    /// snapshot's checkpoint instead, when any tile is needed). What a viewer fetches first.
-    pub fn needed_keys(&self, stage: Stage, needs: &ViewNeeds) -> Result<Vec<String>, StoreError> {
-        let id = self.id();
-        let mut keys = vec![layout::summary(id, stage)?];
-        for &s in &needs.surfaces {
-            keys.push(layout::diffuse(id, stage, s)?);
-        }
-        if !needs.mirror_tiles.is_empty() {
-            match stage {
-                Stage::Iteration(k) => keys.push(layout::state(id, k)?),
-                Stage::Field => {
-                    let per_side = self.options.grid.tiles_per_side();
-                    for &(d, k) in &needs.mirror_tiles {
-                        keys.push(layout::tile(id, stage, d, k % per_side, k / per_side)?);
-                    }
-                }
-            }
-        }
-        Ok(keys)
     }
 
     /// Bytes the store holds for `stage` (its blobs as stored, compressed) and for the whole job.
@@ -418,7 +315,7 @@ impl FieldJob {
     }
 
     /// A blob whose shape does not fit the rebuilt geometry: an error naming its key.
-    fn check_shape(
+    pub(crate) fn check_shape(
         &self,
         shape: &[u32],
         expected: &[u32],

@@ -4,7 +4,8 @@
 //! Read top-down: [`blob`] (the byte format of every stored object) → `codec` (how radiance
 //! becomes bytes: F32, F16, RGB9E5) → [`backend`] (URL → `object_store` backend) → [`store`]
 //! (keys → bytes, blocking and async) → [`layout`] (the keys of a job) → [`manifest`] and [`job`]
-//! (what a job is, and the commit protocol that keeps it consistent through crashes).
+//! (what a job is, and the commit protocol that keeps it consistent through crashes); [`parts`]
+//! reads a stage part by part, for viewers.
 //!
 //! Everything but [`field`] stores what it is given; [`field`] is the one module that maps
 //! `vlf-core`'s propagations and fields onto a job's keys (what is stored, in which encoding, and
@@ -21,6 +22,7 @@ pub mod iteration;
 pub mod job;
 pub mod layout;
 pub mod manifest;
+pub mod parts;
 pub mod store;
 
 pub use blob::{BlobError, BlobKind, Data, Decoded, Encoding};
@@ -31,4 +33,5 @@ pub use iteration::{Coordinator, Prototypes, Replica, WorkTraffic};
 pub use job::Job;
 pub use layout::Stage;
 pub use manifest::{JobState, Manifest};
+pub use parts::StageParts;
 pub use store::{AsyncStore, Panicked, PutOutcome, Store, blocking};

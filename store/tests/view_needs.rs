@@ -5,12 +5,13 @@
 
 use glam::DVec3;
 use vlf_core::lookup::SpecularMode;
+use vlf_core::parts::{Part, PartCatalog};
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::render::{Camera, Image};
 use vlf_core::scene::{ImportOptions, load_obj};
 use vlf_store::blob::Encoding;
-use vlf_store::{FieldJob, Stage, Store};
+use vlf_store::{FieldJob, Stage, StageParts, Store};
 
 fn mirror_job() -> FieldJob {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/mirrors.obj");
@@ -122,7 +123,11 @@ fn the_needed_keys_are_all_a_view_reads() {
     for stage in [Stage::Field, Stage::Iteration(3)] {
         let whole = job.load(stage).unwrap();
         let needs = whole.view_needs(camera, 1, SpecularMode::Rays);
-        let keys = job.needed_keys(stage, &needs).unwrap();
+        let reader = StageParts::open(job.clone(), stage).unwrap();
+        let geometry = reader.geometry().unwrap();
+        let catalog = PartCatalog::new(&geometry);
+        let mut keys = reader.keys(&catalog, &catalog.needed(&needs)).unwrap();
+        keys.push(vlf_store::layout::summary(&id, stage).unwrap());
         let partial = Store::open("memory://").unwrap();
         for key in [vlf_store::layout::manifest(&id), vlf_store::layout::scene(&id)]
             .iter()
@@ -143,4 +148,49 @@ fn the_needed_keys_are_all_a_view_reads() {
             "{stage:?}"
         );
     }
+}
+
+#[test]
+fn parts_read_one_by_one_are_the_fields_and_bad_blobs_are_named() {
+    let job = mirror_job();
+    for stage in [Stage::Field, Stage::Iteration(2)] {
+        let whole = job.load(stage).unwrap();
+        let reader = StageParts::open(job.clone(), stage).unwrap();
+        let geometry = reader.geometry().unwrap();
+        let catalog = PartCatalog::new(&geometry);
+        assert_eq!(catalog, PartCatalog::new(&whole));
+        // Every part, in an order of its own: the whole field's values, bit for bit.
+        let parts: Vec<u32> = (0..catalog.len() as u32).rev().collect();
+        let values = reader.read(&geometry, &catalog, &parts).unwrap();
+        for (&p, v) in parts.iter().zip(&values) {
+            let want = whole.part_values(&catalog, p);
+            assert!(
+                v.iter()
+                    .flatten()
+                    .map(|c| c.to_bits())
+                    .eq(want.iter().flatten().map(|c| c.to_bits())),
+                "{stage:?}: part {p}"
+            );
+        }
+        let (_, job_bytes) = job.stored_bytes(stage).unwrap();
+        assert!(reader.bytes_read() > 0 && reader.bytes_read() < job_bytes);
+    }
+    // A corrupted tile: an error that names its key; the other parts still read.
+    let reader = StageParts::open(job.clone(), Stage::Field).unwrap();
+    let geometry = reader.geometry().unwrap();
+    let catalog = PartCatalog::new(&geometry);
+    let tile = (0..catalog.len() as u32)
+        .find(|&p| matches!(catalog.part(p), Part::Tile { .. }))
+        .unwrap();
+    let key = reader.key(&catalog, tile).unwrap();
+    let store = job.job().store();
+    let mut bytes = store.get(&key).unwrap().to_vec();
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x55;
+    store.put(&key, bytes).unwrap();
+    let error = reader.read(&geometry, &catalog, &[0, tile]).unwrap_err().to_string();
+    assert!(error.contains(&key), "{error}");
+    assert!(reader.read(&geometry, &catalog, &[0]).is_ok());
+    // A stage that is not committed is refused.
+    assert!(StageParts::open(job.clone(), Stage::Iteration(99)).is_err());
 }

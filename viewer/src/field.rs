@@ -1,18 +1,27 @@
 //! A light field's diffuse surfaces on the GPU: geometry, radiance maps and the pipeline that
 //! draws them.
 //!
+//! Radiance lives in a *pool* part by part (`vlf_core::parts`: a surface's diffuse map, a mirror
+//! tile): a part table gives each part's place in the pool, or `NONE` while it is not resident.
+//! A complete field fills the pool once ([`FieldRenderer::new`]); a streaming viewer gives the
+//! pool the size of its cache and moves parts in and out as the view changes
+//! ([`FieldRenderer::streaming`], [`FieldRenderer::upload`], [`FieldRenderer::evict`]). What is
+//! missing draws black, and a mirror missing a tile of the view falls back to ray tracing
+//! through the diffuse maps that are there (see `shaders/field.wgsl`).
+//!
 //! Geometry stays in the VLF frame (the scene normalised into `[-1, 1]³`), where f32 keeps
 //! about 10⁻⁷ of the scene's size; the view matrix carries the camera into it. Every convex
 //! polygon becomes a triangle fan whose vertices carry their texel coordinates in the polygon's
 //! grid, computed in f64 (see `shaders/field.wgsl`).
 
 use crate::pass::{READ_ONLY, bind_entry, buffer_entry, color_pass, uniform_buffer};
-use crate::rays::RayTables;
+use crate::rays::{NONE, RayTables};
 use crate::{Gpu, ViewerError};
 use bytemuck::{Pod, Zeroable};
 use glam::{DMat4, DVec3, Mat4, Vec3};
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
+use vlf_core::parts::PartCatalog;
 use vlf_core::render::{Bvh, Camera};
 use wgpu::util::DeviceExt;
 
@@ -44,7 +53,8 @@ struct GpuSurface {
     grid_origin: [f32; 3],
     inv_texel: f32,
     axis_u: [f32; 3],
-    first: u32,
+    /// The surface's part number (its diffuse map's entry in the part table).
+    part: u32,
     axis_v: [f32; 3],
     width: u32,
     first_vertex: u32,
@@ -105,6 +115,13 @@ impl From<SpecularMode> for MirrorMode {
 /// A field's surfaces and radiance maps, uploaded, with the pipeline that draws them.
 pub struct FieldRenderer {
     pipeline: wgpu::RenderPipeline,
+    /// Resident radiance, 3 floats per value, part after part wherever they were put.
+    pool: wgpu::Buffer,
+    /// Per part: its first value in the pool, or `NONE`.
+    parts: wgpu::Buffer,
+    /// Values the pool holds.
+    capacity: usize,
+    catalog: PartCatalog,
     bind_group: wgpu::BindGroup,
     view: wgpu::Buffer,
     vertices: wgpu::Buffer,
@@ -114,8 +131,21 @@ pub struct FieldRenderer {
 }
 
 impl FieldRenderer {
-    /// Uploads `field`'s surfaces, diffuse radiance maps, materials and BVH.
+    /// Uploads `field`'s surfaces, materials and BVH, and all of its radiance.
     pub fn new(gpu: &Gpu, field: &LightField) -> Result<FieldRenderer, ViewerError> {
+        let catalog = PartCatalog::new(field);
+        let renderer = FieldRenderer::streaming(gpu, field, catalog.total_values())?;
+        let mut base = 0;
+        for i in 0..catalog.len() as u32 {
+            renderer.upload(gpu, i, base, field.part_values(&catalog, i))?;
+            base += catalog.values(i);
+        }
+        Ok(renderer)
+    }
+
+    /// Uploads `field`'s surfaces, materials and BVH (its radiance is not read) with a pool of
+    /// `capacity` RGB values and no part resident: radiance comes with [`FieldRenderer::upload`].
+    pub fn streaming(gpu: &Gpu, field: &LightField, capacity: usize) -> Result<FieldRenderer, ViewerError> {
         let scene = &field.scene;
         let atlas = &field.atlas;
         if atlas.grids.len() != scene.surfaces.len() || field.radiance.len() != atlas.texels {
@@ -127,7 +157,8 @@ impl FieldRenderer {
                 field.radiance.len()
             )));
         }
-        let rays = RayTables::new(field);
+        let catalog = PartCatalog::new(field);
+        let rays = RayTables::new(field, &catalog);
         // Per surface: its fan for the rasteriser, its polygon, grid and material for the shader.
         let mut vertices = Vec::new();
         let mut polygon_vertices: Vec<[f32; 4]> = Vec::new();
@@ -153,7 +184,7 @@ impl FieldRenderer {
                 grid_origin: grid.origin.as_vec3().to_array(),
                 inv_texel: (1.0 / grid.texel) as f32,
                 axis_u: grid.axis_u.as_vec3().to_array(),
-                first: grid.first as u32,
+                part: i as u32,
                 axis_v: grid.axis_v.as_vec3().to_array(),
                 width: grid.width,
                 first_vertex: polygon_vertices.len() as u32,
@@ -174,14 +205,14 @@ impl FieldRenderer {
                 count: n.count,
             })
             .collect();
-        let radiance: Vec<f32> = field.radiance.iter().flatten().copied().collect();
         // Every storage buffer must fit one binding, and the shader indexes them with u32 words.
         let limit = gpu
             .limits
             .max_storage_buffer_binding_size
             .min(gpu.limits.max_buffer_size);
         for (what, bytes) in [
-            ("radiance maps", std::mem::size_of_val(radiance.as_slice())),
+            ("radiance pool", capacity * 12),
+            ("part table", catalog.len() * 4),
             ("mirror rays", std::mem::size_of_val(rays.words.as_slice())),
             ("surfaces", std::mem::size_of_val(surfaces.as_slice())),
             ("polygon vertices", std::mem::size_of_val(polygon_vertices.as_slice())),
@@ -216,7 +247,17 @@ impl FieldRenderer {
             let polygon_vertices = storage("polygon vertices", bytemuck::cast_slice(&polygon_vertices));
             let nodes_buffer = storage("bvh nodes", bytemuck::cast_slice(&nodes));
             let primitives = storage("bvh primitives", bytemuck::cast_slice(bvh.primitives()));
-            let radiance = storage("radiance", bytemuck::cast_slice(&radiance));
+            let pool = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("radiance pool"),
+                size: (capacity as u64 * 12).max(256),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let parts = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("part table"),
+                contents: &nonempty(bytemuck::cast_slice(&vec![NONE; catalog.len()]), 256),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
+            });
             let rays = storage("mirror rays", bytemuck::cast_slice(&rays.words));
             let vertex_count = vertices.len() as u32;
             let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -235,6 +276,7 @@ impl FieldRenderer {
                     buffer_entry(4, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
                     buffer_entry(5, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
                     buffer_entry(6, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
+                    buffer_entry(7, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
                 ],
             });
             let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -243,11 +285,12 @@ impl FieldRenderer {
                 entries: &[
                     bind_entry(0, &view),
                     bind_entry(1, &surfaces),
-                    bind_entry(2, &radiance),
+                    bind_entry(2, &pool),
                     bind_entry(3, &polygon_vertices),
                     bind_entry(4, &nodes_buffer),
                     bind_entry(5, &primitives),
                     bind_entry(6, &rays),
+                    bind_entry(7, &parts),
                 ],
             });
             let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -299,6 +342,10 @@ impl FieldRenderer {
             });
             FieldRenderer {
                 pipeline,
+                pool,
+                parts,
+                capacity,
+                catalog,
                 bind_group,
                 view,
                 vertices,
@@ -306,6 +353,46 @@ impl FieldRenderer {
                 normalisation: scene.normalisation,
             }
         })
+    }
+
+    /// The parts of the field, numbered as [`FieldRenderer::upload`] takes them.
+    pub fn catalog(&self) -> &PartCatalog {
+        &self.catalog
+    }
+
+    /// RGB values the pool holds.
+    pub fn capacity(&self) -> usize {
+        self.capacity
+    }
+
+    /// Puts part `part`'s `values` into the pool from value `base` on and makes it resident.
+    /// Takes effect at the next submission, after the uploads and evictions before it: a part
+    /// evicted and another uploaded where it was, in that order, leave the pool consistent.
+    pub fn upload(&self, gpu: &Gpu, part: u32, base: usize, values: &[[f32; 3]]) -> Result<(), ViewerError> {
+        let fits = base.checked_add(values.len()).is_some_and(|end| end <= self.capacity);
+        if part as usize >= self.catalog.len() || values.len() != self.catalog.values(part) || !fits {
+            return Err(ViewerError::Unsupported(format!(
+                "part {part} of {} values at {base} does not fit (catalog of {}, pool of {} values)",
+                values.len(),
+                self.catalog.len(),
+                self.capacity
+            )));
+        }
+        if !values.is_empty() {
+            gpu.queue
+                .write_buffer(&self.pool, base as u64 * 12, bytemuck::cast_slice(values));
+        }
+        gpu.queue
+            .write_buffer(&self.parts, part as u64 * 4, bytemuck::bytes_of(&(base as u32)));
+        Ok(())
+    }
+
+    /// Makes part `part` non-resident (its place in the pool may be reused).
+    pub fn evict(&self, gpu: &Gpu, part: u32) {
+        if (part as usize) < self.catalog.len() {
+            gpu.queue
+                .write_buffer(&self.parts, part as u64 * 4, bytemuck::bytes_of(&NONE));
+        }
     }
 
     /// Where `camera` (scene units) sees the field from, mirrors drawn as `mirrors` says,

@@ -15,6 +15,8 @@
 //!
 //! * [`rays`]: mirrors "from the rays": the field's directional maps and the
 //!   tables that find a ray again, for the shader.
+//! * [`stream`]: the parts of a field a view needs, fetched on a thread into a
+//!   bounded pool on the GPU (LRU), for `vlf view`.
 //!
 //! Mirrors are drawn both ways of the CPU renderer: from the field's rays, or
 //! ray traced through the scene's BVH.
@@ -26,6 +28,7 @@ pub mod headless;
 pub mod overlay;
 pub mod pass;
 pub mod rays;
+pub mod stream;
 pub mod tonemap;
 pub mod walk;
 pub mod window;
@@ -33,6 +36,7 @@ pub mod window;
 pub use field::{FieldRenderer, MirrorMode, Viewpoint};
 pub use gpu::Gpu;
 pub use headless::render;
+pub use stream::{PartSource, StreamConfig, StreamStats, Streamer};
 pub use walk::Walk;
 pub use window::{Loaded, Loader, Switch, ViewOptions, ViewStats, view};
 

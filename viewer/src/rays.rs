@@ -7,26 +7,30 @@
 //!    rotation and the unit vectors are uploaded as they are).
 //! 2. In each direction's subfield the point projects between four rays; each ray's mirror slot
 //!    is read from a dense *window* per (direction, mirror) — the rectangle of ray cells the
-//!    mirror covers, holding the slot `MirrorLayout::locate` gives or `NONE` — and the slots'
-//!    totals are interpolated bilinearly over the rays that exist.
+//!    mirror covers, holding where `MirrorLayout::locate` puts the ray, or `NONE` — and the
+//!    rays' radiance is interpolated bilinearly over the rays that exist.
 //! 3. The three are blended by the barycentric weights of the directions that had a ray.
 //!
 //! The windows replace the CPU's tile lists and span search by one indexed read; they hold
 //! about as many cells as the mirrors have slots (the rectangles' fill).
 //!
+//! The radiance itself is not here: a cell names the *part* holding its ray (the mirror tile,
+//! `vlf_core::parts`) and the ray's place in it; the part's values lie wherever the renderer's
+//! pool put them (`FieldRenderer::upload`), or nowhere yet while a viewer streams them.
+//!
 //! Layout of the words (offsets in words, floats as their bits):
 //!
 //! | words | what |
 //! |---|---|
-//! | 0..16 | header: `n`, `l`, mirrors, resolution `N`, offsets of lattice, vectors, directions, windows, cells, totals; rotation (9 floats, column-major) from word 16 |
+//! | 0..16 | header: `n`, `l`, mirrors, resolution `N`, offsets of lattice, vectors, directions, windows, cells; rotation (9 floats, column-major) from word 16 |
 //! | lattice | `(2n+1)²` words: line direction index, bit 31 set for `−ω`; `NONE` outside |
 //! | vectors | 3 floats per line direction: its unrotated unit vector |
-//! | directions | 7 words per line direction: PSF frame `u`, `v` (3 floats each), first total |
+//! | directions | 6 words per line direction: PSF frame `u`, `v` (3 floats each) |
 //! | windows | 5 words per (direction, mirror): `x0`, `y0`, width, height, first cell |
-//! | cells | one word per ray cell of a window: the mirror slot, or `NONE` |
-//! | totals | 3 floats per mirror slot, direction after direction |
+//! | cells | two words per ray cell of a window: the part holding the ray and its index in the part, or `NONE`, `NONE` |
 
 use vlf_core::field::LightField;
+use vlf_core::parts::{Part, PartCatalog};
 
 /// No slot, no direction.
 pub const NONE: u32 = u32::MAX;
@@ -39,8 +43,9 @@ pub struct RayTables {
 }
 
 impl RayTables {
-    /// The tables of `field`; a field without mirror maps gets a header only (nothing reads it).
-    pub fn new(field: &LightField) -> RayTables {
+    /// The tables of `field`, whose parts `catalog` numbers; a field without mirror maps gets a
+    /// header only (nothing reads it).
+    pub fn new(field: &LightField, catalog: &PartCatalog) -> RayTables {
         let scene = &field.scene;
         let mut mirror_index = vec![NONE; scene.surfaces.len()];
         let mut mirror_surfaces = Vec::new();
@@ -80,18 +85,27 @@ impl RayTables {
         words.extend(vectors.iter().flat_map(|v| v.to_array().map(f)));
 
         words[6] = words.len() as u32;
-        let mut total_base = 0u32;
-        for (sub, totals) in spec.subfields.iter().zip(&spec.totals) {
+        for sub in &spec.subfields {
             words.extend(sub.frame.u.to_array().map(f));
             words.extend(sub.frame.v.to_array().map(f));
-            words.push(total_base);
-            total_base += totals.len() as u32;
         }
 
         // Windows: the rectangle of ray cells each mirror covers in each direction.
         let mut windows = Vec::with_capacity(l * mirrors as usize);
         let mut cells = Vec::new();
-        for (sub, layout) in spec.subfields.iter().zip(&spec.layouts) {
+        for (d, (sub, layout)) in spec.subfields.iter().zip(&spec.layouts).enumerate() {
+            let (tile_size, per_side) = (sub.grid.tile, sub.grid.tiles_per_side());
+            // The part holding the ray of cell (x, y) at `slot`, and the ray's index in it.
+            let place = |x: u32, y: u32, slot: u32| {
+                let part = catalog.index_of(Part::Tile {
+                    direction: d as u32,
+                    tile: (y / tile_size) * per_side + x / tile_size,
+                });
+                match part {
+                    Some(part) => [part, slot - catalog.range(part).start as u32],
+                    None => [NONE, NONE],
+                }
+            };
             let mut bounds = vec![(u32::MAX, u32::MAX, 0u32, 0u32); mirrors as usize];
             for &(surface, k, entry) in &layout.entries {
                 let m = mirror_index[surface as usize];
@@ -109,10 +123,13 @@ impl RayTables {
                     continue;
                 }
                 let surface = mirror_surfaces[m];
-                windows.extend([x0, y0, x1 - x0, y1 - y0, cells.len() as u32]);
+                windows.extend([x0, y0, x1 - x0, y1 - y0, cells.len() as u32 / 2]);
                 for y in y0..y1 {
                     for x in x0..x1 {
-                        cells.push(layout.locate(sub, surface, x, y).unwrap_or(NONE));
+                        cells.extend(match layout.locate(sub, surface, x, y) {
+                            Some(slot) => place(x, y, slot),
+                            None => [NONE, NONE],
+                        });
                     }
                 }
             }
@@ -121,8 +138,6 @@ impl RayTables {
         words.extend(windows);
         words[8] = words.len() as u32;
         words.extend(cells);
-        words[9] = words.len() as u32;
-        words.extend(spec.totals.iter().flatten().flatten().map(|&c| c.to_bits()));
         RayTables { words, mirror_index }
     }
 }

@@ -30,6 +30,19 @@ pub struct Walk {
     /// Vertical field of view in degrees.
     pub fovy: f64,
     held: [bool; 6],
+    script: Option<Script>,
+}
+
+/// A walk fixed in advance, frame by frame (benchmarks, tests): the eye moves on a straight line
+/// while turning at a constant rate.
+#[derive(Clone, Debug)]
+struct Script {
+    from: DVec3,
+    to: DVec3,
+    yaw: f64,
+    turn: f64,
+    frames: u64,
+    frame: u64,
 }
 
 /// Radians of turn per pixel of mouse drag.
@@ -49,7 +62,28 @@ impl Walk {
             speed,
             fovy,
             held: [false; 6],
+            script: None,
         }
+    }
+
+    /// Replaces the keys by a script over `frames` frames: from where the eye is to `to`, turning
+    /// `turn_degrees` to the left (about +y) on the way; frame 0 is the start, the last frame the
+    /// end.
+    pub fn script(&mut self, to: DVec3, turn_degrees: f64, frames: u64) -> vlf_core::Result<()> {
+        if !(to.is_finite() && turn_degrees.is_finite()) || frames == 0 {
+            return Err(vlf_core::Error::Parameter(format!(
+                "a scripted walk needs a finite end point and turn and at least one frame, got {to}, {turn_degrees}°, {frames} frames"
+            )));
+        }
+        self.script = Some(Script {
+            from: self.eye,
+            to,
+            yaw: self.yaw,
+            turn: turn_degrees.to_radians(),
+            frames,
+            frame: 0,
+        });
+        Ok(())
     }
 
     /// The unit view direction.
@@ -76,7 +110,16 @@ impl Walk {
 
     /// Moves by what the held keys ask over `seconds`: forward and sideways in the horizontal
     /// plane (looking up does not make W climb), Q/E straight down and up.
+    ///
+    /// A scripted walk ignores the keys and the time: each call is the next frame.
     pub fn advance(&mut self, seconds: f64) {
+        if let Some(s) = &mut self.script {
+            let f = s.frame.min(s.frames - 1) as f64 / (s.frames - 1).max(1) as f64;
+            self.eye = s.from.lerp(s.to, f);
+            self.yaw = s.yaw + s.turn * f;
+            s.frame += 1;
+            return;
+        }
         let (sy, cy) = self.yaw.sin_cos();
         let ahead = DVec3::new(-sy, 0.0, -cy);
         let right = DVec3::new(cy, 0.0, -sy);
@@ -147,6 +190,27 @@ mod tests {
         w.look(0.0, -1e6);
         assert!((w.pitch - MAX_PITCH).abs() < 1e-12);
         assert!(w.camera(4, 3).is_ok(), "a valid camera even looking straight up");
+    }
+
+    #[test]
+    fn a_script_walks_and_turns_frame_by_frame() {
+        let mut w = Walk::new(DVec3::ZERO, DVec3::NEG_Z, 40.0, 1.0);
+        w.script(DVec3::new(0.0, 0.0, -4.0), 90.0, 5).unwrap();
+        w.set(Move::Right, true);
+        let mut eyes = Vec::new();
+        for _ in 0..6 {
+            w.advance(10.0);
+            eyes.push(w.eye);
+        }
+        // Frame 0 is the start, frame 4 the end; the keys and the time do nothing.
+        assert!(close(eyes[0], DVec3::ZERO));
+        assert!(close(eyes[2], DVec3::new(0.0, 0.0, -2.0)), "{}", eyes[2]);
+        assert!(close(eyes[4], DVec3::new(0.0, 0.0, -4.0)));
+        assert!(close(eyes[5], eyes[4]), "stays at the end");
+        // A quarter turn to the left: looking along −x.
+        assert!(close(w.forward(), DVec3::NEG_X), "{}", w.forward());
+        assert!(w.script(DVec3::NAN, 0.0, 3).is_err());
+        assert!(w.script(DVec3::ZERO, 0.0, 0).is_err());
     }
 
     #[test]

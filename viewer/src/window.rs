@@ -2,8 +2,11 @@
 //!
 //! Every frame draws the field into a linear [`Frame`] at the window's size (the same pipeline
 //! as `vlf render --gpu`, one sample per pixel) and tone-maps it onto the window's surface.
-//! A status line in the top-left corner (and the window's title) gives the frames per second,
-//! the size, the mirror mode, the exposure, the eye's speed and whether the field is complete.
+//! The radiance streams in ([`crate::stream`]): the window opens on the field's geometry, tells
+//! the [`Streamer`] where the camera is whenever it moves, and applies the parts that arrived
+//! before each frame. A status line in the top-left corner (and the window's title) gives the
+//! frames per second, the size, the mirror mode, the exposure, the eye's speed, the parts
+//! resident and in flight and the bytes streamed.
 //! Keys:
 //!
 //! | key | does |
@@ -18,13 +21,13 @@
 //! | [ / ] / L | the previous / next / latest snapshot (watch a running job converge) |
 //! | Esc | quit |
 //!
-//! Switching snapshots loads the other field on a thread of its own (through the caller's
-//! [`Loader`]); the walk goes on meanwhile and the new field replaces the old one when it is
-//! uploaded.
+//! Switching snapshots opens the other stage on a thread of its own (through the caller's
+//! [`Loader`]); the walk goes on meanwhile, and streaming starts again from the new source.
 
 use crate::field::MirrorMode;
 use crate::frame::Frame;
 use crate::overlay::Overlay;
+use crate::stream::{PartSource, StreamConfig, StreamStats, Streamer};
 use crate::tonemap::Tonemap;
 use crate::walk::{Move, Walk};
 use crate::{FieldRenderer, Gpu, ViewerError};
@@ -47,13 +50,14 @@ pub enum Switch {
     Latest,
 }
 
-/// Loads the field one [`Switch`] away from the one shown: `Ok(None)` when there is none (the
-/// first snapshot has no previous one), else the field and a title for the window. Called on a
-/// thread of its own, one call at a time.
-pub type Loader = Box<dyn FnMut(Switch) -> Result<Option<(LightField, String)>, String> + Send>;
+/// Opens the stage one [`Switch`] away from the one shown: `Ok(None)` when there is none (the
+/// first snapshot has no previous one), else where its parts come from and a title for the
+/// window. The stage must be of the same job (the same geometry). Called on a thread of its
+/// own, one call at a time.
+pub type Loader = Box<dyn FnMut(Switch) -> Loaded + Send>;
 
-/// What a [`Loader`] gives: another field and its title, none, or why it failed.
-pub type Loaded = Result<Option<(LightField, String)>, String>;
+/// What a [`Loader`] gives: another stage's parts and its title, none, or why it failed.
+pub type Loaded = Result<Option<(Box<dyn PartSource>, String)>, String>;
 
 /// How `vlf view` starts, and when it stops by itself.
 pub struct ViewOptions {
@@ -72,9 +76,12 @@ pub struct ViewOptions {
     pub screenshot_at_exit: Option<PathBuf>,
     /// Where other snapshots come from; without one, [ ] L do nothing.
     pub loader: Option<Loader>,
-    /// Loads the rest of the field shown when the window opens with part of it (what the first
-    /// view needs): run on a thread once the window is up; its field replaces the first one.
-    pub rest: Option<Box<dyn FnOnce() -> Loaded + Send>>,
+    /// Where the radiance comes from, and the cache it streams into.
+    pub source: Box<dyn PartSource>,
+    pub stream: StreamConfig,
+    /// Draw each frame only once what it needs is resident (or the cache is full): scripted
+    /// runs and screenshots then show the complete view.
+    pub settle: bool,
 }
 
 /// What a viewing session did.
@@ -86,10 +93,13 @@ pub struct ViewStats {
     pub first_frame_seconds: Option<f64>,
     pub adapter: String,
     pub screenshots: Vec<PathBuf>,
+    /// How streaming stood at the end.
+    pub stream: StreamStats,
 }
 
-/// Opens the window and runs until it is closed, Esc is pressed or `options.frames` are drawn.
-pub fn view(field: LightField, mut options: ViewOptions) -> Result<ViewStats, ViewerError> {
+/// Opens the window on `geometry` (a field whose radiance is not read: it streams from
+/// `options.source`) and runs until it is closed, Esc is pressed or `options.frames` are drawn.
+pub fn view(geometry: LightField, mut options: ViewOptions) -> Result<ViewStats, ViewerError> {
     let event_loop = EventLoop::new().map_err(|e| {
         ViewerError::NoDisplay(format!(
             "{e}; set DISPLAY (or WAYLAND_DISPLAY), or run under xvfb-run, or render without a window: vlf render --gpu"
@@ -102,7 +112,8 @@ pub fn view(field: LightField, mut options: ViewOptions) -> Result<ViewStats, Vi
         loading: false,
         sender,
         loaded,
-        field: Some(field),
+        geometry: Arc::new(geometry),
+        source: Some(std::mem::replace(&mut options.source, Box::new(NoParts))),
         options,
         started: Instant::now(),
         state: None,
@@ -124,8 +135,10 @@ struct App {
     loading: bool,
     sender: mpsc::Sender<Loaded>,
     loaded: mpsc::Receiver<Loaded>,
-    /// The field to upload when the window opens (it lives on the GPU from then on).
-    field: Option<LightField>,
+    /// The field's geometry (no radiance), shared with the streamer.
+    geometry: Arc<LightField>,
+    /// The source to stream from once the window is open.
+    source: Option<Box<dyn PartSource>>,
     options: ViewOptions,
     started: Instant,
     state: Option<State>,
@@ -140,6 +153,9 @@ struct State {
     config: wgpu::SurfaceConfiguration,
     gpu: Gpu,
     renderer: FieldRenderer,
+    streamer: Streamer,
+    /// The camera and mirror mode the streamer last planned for.
+    planned: Option<(vlf_core::render::Camera, MirrorMode)>,
     tonemap: Tonemap,
     status: Overlay,
     frame: Frame,
@@ -202,11 +218,11 @@ impl App {
             wgpu::PresentMode::AutoNoVsync
         };
         gpu.checked(|| surface.configure(&gpu.device, &config))?;
-        let field = self
-            .field
+        let source = self
+            .source
             .take()
             .ok_or_else(|| ViewerError::Unsupported("the window opened twice".into()))?;
-        let renderer = FieldRenderer::new(&gpu, &field)?;
+        let (renderer, streamer) = self.stream_from(&gpu, source)?;
         let frame = Frame::new(&gpu, config.width, config.height)?;
         let tonemap = Tonemap::new(&gpu, format, &frame);
         let status = Overlay::new(&gpu, format);
@@ -218,6 +234,8 @@ impl App {
             config,
             gpu,
             renderer,
+            streamer,
+            planned: None,
             tonemap,
             status,
             frame,
@@ -227,6 +245,13 @@ impl App {
             drag: None,
             buttons: 0,
         })
+    }
+
+    /// A renderer with an empty pool of the cache's size, and a streamer filling it from `source`.
+    fn stream_from(&self, gpu: &Gpu, source: Box<dyn PartSource>) -> Result<(FieldRenderer, Streamer), ViewerError> {
+        let renderer = FieldRenderer::streaming(gpu, &self.geometry, self.options.stream.capacity)?;
+        let streamer = Streamer::start(self.geometry.clone(), source, self.options.stream);
+        Ok((renderer, streamer))
     }
 
     /// Draws one frame; `Ok(false)` when the surface had none to give (try again next time).
@@ -244,6 +269,16 @@ impl App {
             .walk
             .camera(s.config.width, s.config.height)
             .map_err(|e| ViewerError::Unsupported(e.to_string()))?;
+        // The streamer plans for the camera when it moved; what arrived meanwhile is uploaded.
+        let view = (camera, self.options.mirrors);
+        if s.planned != Some(view) {
+            s.streamer.look(camera, self.options.mirrors);
+            s.planned = Some(view);
+        }
+        if self.options.settle {
+            s.streamer.wait_idle(std::time::Duration::from_secs(600));
+        }
+        s.streamer.apply(&s.gpu, &s.renderer)?;
         let texture = match s.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
             wgpu::CurrentSurfaceTexture::Timeout | wgpu::CurrentSurfaceTexture::Occluded => return Ok(false),
@@ -284,10 +319,14 @@ impl App {
                 MirrorMode::Trace { depth: 0 } => "mirrors without reflections".to_string(),
                 MirrorMode::Trace { depth } => format!("mirrors traced {depth} deep"),
             };
-            let field = if self.loading { "loading" } else { "complete" };
             let line = format!(
-                "{:.1} fps | {}x{} | {mode} | exposure {:+.1} | speed {:.3} | field {field}",
-                s.fps, s.config.width, s.config.height, self.options.exposure, self.options.walk.speed
+                "{:.1} fps | {}x{} | {mode} | exposure {:+.1} | speed {:.3} | {}",
+                s.fps,
+                s.config.width,
+                s.config.height,
+                self.options.exposure,
+                self.options.walk.speed,
+                stream_status(&s.streamer.stats(), self.loading)
             );
             s.status.set_text(&s.gpu, &line);
             s.window.set_title(&format!("{} | {line}", self.options.title));
@@ -336,11 +375,14 @@ impl App {
         };
         self.loading = false;
         match loaded {
-            Ok(Some((field, title))) => {
-                if let Some(s) = self.state.as_mut() {
-                    s.renderer = FieldRenderer::new(&s.gpu, &field)?;
+            Ok(Some((source, title))) => {
+                if let Some(s) = self.state.as_ref() {
+                    let (renderer, streamer) = self.stream_from(&s.gpu, source)?;
+                    if let Some(s) = self.state.as_mut() {
+                        (s.renderer, s.streamer, s.planned) = (renderer, streamer, None);
+                    }
                 }
-                tracing::info!(%title, "field replaced");
+                tracing::info!(%title, "stage switched");
                 self.options.title = title;
             }
             Ok(None) => tracing::info!("no snapshot that way"),
@@ -400,14 +442,7 @@ impl ApplicationHandler for App {
         }
         match self.start(event_loop) {
             Ok(state) => self.state = Some(state),
-            Err(e) => return self.fail(event_loop, e),
-        }
-        if let Some(rest) = self.options.rest.take() {
-            self.loading = true;
-            let sender = self.sender.clone();
-            std::thread::spawn(move || {
-                let _ = sender.send(rest());
-            });
+            Err(e) => self.fail(event_loop, e),
         }
     }
 
@@ -487,5 +522,43 @@ impl ApplicationHandler for App {
 
     fn exiting(&mut self, _: &ActiveEventLoop) {
         self.stats.seconds = self.started.elapsed().as_secs_f64();
+        if let Some(s) = &self.state {
+            self.stats.stream = s.streamer.stats();
+        }
+    }
+}
+
+/// The streaming part of the status line: parts resident (and their size) and in flight, bytes
+/// streamed, and what is wrong if anything is.
+fn stream_status(stats: &StreamStats, loading: bool) -> String {
+    let mut line = format!(
+        "parts {} ({:.1} MB) | in flight {} | streamed {:.1} MB",
+        stats.resident,
+        stats.resident_values as f64 * 12e-6,
+        stats.in_flight,
+        stats.bytes as f64 * 1e-6
+    );
+    if stats.missing > 0 && stats.cache_full {
+        line.push_str(&format!(" | cache full, {} missing", stats.missing));
+    }
+    if stats.error.is_some() {
+        line.push_str(&format!(" | retrying ({})", stats.retries));
+    }
+    if loading {
+        line.push_str(" | switching");
+    }
+    line
+}
+
+/// The source of a window that has handed its own to the streamer.
+struct NoParts;
+
+impl PartSource for NoParts {
+    fn fetch(&mut self, _: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String> {
+        Err("no source".into())
+    }
+
+    fn bytes(&self) -> u64 {
+        0
     }
 }

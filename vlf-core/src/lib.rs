@@ -19,6 +19,7 @@ pub mod error;
 pub mod field;
 pub mod lookup;
 pub mod maps;
+pub mod parts;
 pub mod propagate;
 pub mod psf;
 pub mod render;

@@ -1,8 +1,9 @@
 // Draws a light field: diffuse surfaces and emitters with their radiance maps, mirrors with
 // their diffuse part plus what ray tracing through the static scene finds.
 //
-// Radiance maps. Every surface owns a rectangular grid of texels in one global atlas (see
-// `vlf_core::maps`): texel (s, t) of surface i is `radiance[first_i + t·width_i + s]`. A point
+// Radiance maps. Every surface owns a rectangular grid of texels (see `vlf_core::maps`), one
+// *part* of the field (`vlf_core::parts`); a part lies in the pool from `parts[part]` on, or is
+// not resident (NONE, drawn black): texel (s, t) of surface i is `pool[parts[i] + t·width_i + s]`. A point
 // reads its outgoing radiance bilinearly between texel centres, clamping at the grid's border,
 // exactly as `LightField::radiance_at` does on the CPU. For the visible surface the texel
 // coordinates (shifted by ½ to texel centres) come per vertex, computed in f64 on the CPU: they
@@ -13,6 +14,10 @@
 // depth-first order, leaves listing surfaces); the diffuse radiance of what it meets is added,
 // weighted by the product of the mirrors' ρs, up to `view.depth` mirrors deep. A back face or a
 // miss ends the path with nothing.
+//
+// Mirrors from the rays (`SpecularMode::Rays`): see `mirror_from_rays`. While a tile they read is
+// not resident (a viewer streaming the field), the mirror is ray traced instead, FALLBACK_DEPTH
+// deep: the diffuse maps come first, so the reflection is right long before the tiles arrive.
 //
 // Back faces are drawn black: they still hide what lies behind them, as a back-face hit does for
 // the CPU renderer's rays.
@@ -39,7 +44,8 @@ struct Surface {
     grid_origin: vec3<f32>,
     inv_texel: f32,
     axis_u: vec3<f32>,
-    first: u32,
+    // The surface's part (its diffuse map).
+    part: u32,
     axis_v: vec3<f32>,
     width: u32,
     first_vertex: u32,
@@ -60,14 +66,16 @@ struct Node {
 
 @group(0) @binding(0) var<uniform> view: View;
 @group(0) @binding(1) var<storage, read> surfaces: array<Surface>;
-// Radiance of every atlas texel, RGB packed tightly (3 floats per texel).
-@group(0) @binding(2) var<storage, read> radiance: array<f32>;
+// Resident radiance, RGB packed tightly (3 floats per texel or mirror slot), part by part.
+@group(0) @binding(2) var<storage, read> pool: array<f32>;
 // Polygon vertices (xyz, w unused), surface by surface.
 @group(0) @binding(3) var<storage, read> vertices: array<vec4<f32>>;
 @group(0) @binding(4) var<storage, read> nodes: array<Node>;
 @group(0) @binding(5) var<storage, read> primitives: array<u32>;
-// The mirrors' directional radiance and its look-up tables (see `rays.rs` for the layout).
+// The look-up tables of the mirrors' directional radiance (see `rays.rs` for the layout).
 @group(0) @binding(6) var<storage, read> rays: array<u32>;
+// Per part: its first value in the pool, NONE while it is not resident.
+@group(0) @binding(7) var<storage, read> parts: array<u32>;
 
 // Secondary rays start this far off the mirror and ignore hits closer than it (VLF frame, where
 // the scene spans 2): f32 keeps about 10⁻⁷ there.
@@ -77,6 +85,8 @@ const EDGE_EPSILON: f32 = 1e-6;
 // Deeper than `vlf_core::render::bvh::MAX_DEPTH`: a traversal never overflows it.
 const STACK_SIZE: u32 = 64u;
 const NONE: u32 = 0xffffffffu;
+// How deep a mirror is traced while the tiles of its rays are not resident.
+const FALLBACK_DEPTH: u32 = 8u;
 
 struct VertexIn {
     @location(0) position: vec3<f32>,
@@ -101,22 +111,31 @@ fn vs_main(v: VertexIn) -> VertexOut {
     return out;
 }
 
-fn texel_radiance(s: Surface, x: u32, y: u32) -> vec3<f32> {
-    let i = (s.first + y * s.width + x) * 3u;
-    return vec3<f32>(radiance[i], radiance[i + 1u], radiance[i + 2u]);
+fn pool_rgb(value: u32) -> vec3<f32> {
+    let i = value * 3u;
+    return vec3<f32>(pool[i], pool[i + 1u], pool[i + 2u]);
 }
 
-// Bilinear between texel centres at texel coordinates `c` (already shifted by ½).
+fn texel_radiance(s: Surface, base: u32, x: u32, y: u32) -> vec3<f32> {
+    return pool_rgb(base + y * s.width + x);
+}
+
+// Bilinear between texel centres at texel coordinates `c` (already shifted by ½); black while
+// the surface's map is not resident.
 fn bilinear(s: Surface, c: vec2<f32>) -> vec3<f32> {
+    let base = parts[s.part];
+    if (base == NONE) {
+        return vec3<f32>(0.0);
+    }
     let c0 = floor(c);
     let f = c - c0;
     let hi = vec2<f32>(f32(s.width - 1u), f32(s.height - 1u));
     let a = vec2<u32>(clamp(c0, vec2<f32>(0.0), hi));
     let b = vec2<u32>(clamp(c0 + 1.0, vec2<f32>(0.0), hi));
-    return texel_radiance(s, a.x, a.y) * ((1.0 - f.x) * (1.0 - f.y))
-         + texel_radiance(s, b.x, a.y) * (f.x * (1.0 - f.y))
-         + texel_radiance(s, a.x, b.y) * ((1.0 - f.x) * f.y)
-         + texel_radiance(s, b.x, b.y) * (f.x * f.y);
+    return texel_radiance(s, base, a.x, a.y) * ((1.0 - f.x) * (1.0 - f.y))
+         + texel_radiance(s, base, b.x, a.y) * (f.x * (1.0 - f.y))
+         + texel_radiance(s, base, a.x, b.y) * ((1.0 - f.x) * f.y)
+         + texel_radiance(s, base, b.x, b.y) * (f.x * f.y);
 }
 
 // Diffuse radiance of surface `s` at point `p` (VLF frame).
@@ -262,21 +281,24 @@ fn lattice_point(i: i32, j: i32, n: i32) -> vec4<f32> {
     return vec4<f32>(v, bitcast<f32>(index));
 }
 
-// The mirror slot of ray cell (x, y) of direction d for mirror m, or NONE.
-fn mirror_slot(d: u32, m: u32, x: i32, y: i32) -> u32 {
+// Where the ray of cell (x, y) of direction d for mirror m is: its part and its index in the part,
+// or NONE when no such ray crosses the mirror.
+fn mirror_slot(d: u32, m: u32, x: i32, y: i32) -> vec2<u32> {
     let w = rays[7u] + 5u * (d * rays[2u] + m);
     let x0 = i32(rays[w]);
     let y0 = i32(rays[w + 1u]);
     let width = i32(rays[w + 2u]);
     let height = i32(rays[w + 3u]);
     if (x < x0 || y < y0 || x >= x0 + width || y >= y0 + height) {
-        return NONE;
+        return vec2<u32>(NONE);
     }
-    return rays[rays[8u] + rays[w + 4u] + u32((y - y0) * width + (x - x0))];
+    let c = rays[8u] + 2u * (rays[w + 4u] + u32((y - y0) * width + (x - x0)));
+    return vec2<u32>(rays[c], rays[c + 1u]);
 }
 
-// Radiance leaving mirror `s` at `p` towards unit direction `outgoing`, from the maps.
-fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec3<f32> {
+// Radiance leaving mirror `s` at `p` towards unit direction `outgoing`, from the maps; w is 1 when
+// a ray it reads lies in a part that is not resident (the value is then incomplete).
+fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec4<f32> {
     // The spherical triangle of line directions around `outgoing` (`DirectionSet::triangle`).
     let rotation = mat3x3<f32>(ray_vec3(16u), ray_vec3(19u), ray_vec3(22u));
     var local = transpose(rotation) * outgoing;
@@ -329,13 +351,14 @@ fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec3<f32> 
     let half_n = f32(rays[3u]) * 0.5;
     var out = vec3<f32>(0.0);
     var weight = 0.0;
+    var missing = 0.0;
     for (var t = 0; t < 3; t++) {
         let bt = weights[t];
         if (bt <= 0.0) {
             continue;
         }
         let d = index[t];
-        let dir = rays[6u] + 7u * d;
+        let dir = rays[6u] + 6u * d;
         let g = vec2<f32>((dot(p, ray_vec3(dir)) + 1.0) * half_n, (dot(p, ray_vec3(dir + 3u)) + 1.0) * half_n) - 0.5;
         let g0 = floor(g);
         let f = g - g0;
@@ -351,9 +374,14 @@ fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec3<f32> 
                 continue;
             }
             let slot = mirror_slot(d, s.mirror_index, x, y);
-            if (slot != NONE) {
-                value += ray_vec3(rays[9u] + 3u * (rays[dir + 6u] + slot)) * w;
-                w_sum += w;
+            if (slot.x != NONE) {
+                let base = parts[slot.x];
+                if (base == NONE) {
+                    missing = 1.0;
+                } else {
+                    value += pool_rgb(base + slot.y) * w;
+                    w_sum += w;
+                }
             }
         }
         if (w_sum > 0.0) {
@@ -364,7 +392,7 @@ fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec3<f32> 
     if (weight > 0.0) {
         out /= weight;
     }
-    return out;
+    return vec4<f32>(out, missing);
 }
 
 @fragment
@@ -377,17 +405,21 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) ve
     if (s.mirror == 0u) {
         return vec4<f32>(l, 1.0);
     }
+    var remaining = view.depth;
     if (view.mode == 1u) {
-        return vec4<f32>(l + mirror_from_rays(s, in.position, normalize(view.eye.xyz - in.position)), 1.0);
+        let m = mirror_from_rays(s, in.position, normalize(view.eye.xyz - in.position));
+        if (m.w == 0.0) {
+            return vec4<f32>(l + m.xyz, 1.0);
+        }
+        remaining = FALLBACK_DEPTH;
     }
-    if (view.depth == 0u) {
+    if (remaining == 0u) {
         return vec4<f32>(l, 1.0);
     }
     // Reflections: follow the eye ray from mirror to mirror.
     var weight = vec3<f32>(1.0);
     var p = in.position;
     var d = normalize(in.position - view.eye.xyz);
-    var remaining = view.depth;
     loop {
         weight *= s.specular;
         d = d - 2.0 * dot(d, s.normal) * s.normal;

@@ -265,11 +265,33 @@ mod tests {
     use super::*;
     use std::path::PathBuf;
 
-    /// A fresh path in the temporary directory, unique per test and process.
-    fn temp(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("vlf-render-image-{}", std::process::id()));
-        std::fs::create_dir_all(&dir).expect("temp dir");
-        dir.join(name)
+    /// A path that does not exist yet, inside a scratch directory removed when the guard
+    /// drops (so the tests leave nothing behind, pass or fail).
+    struct Temp {
+        _root: tempfile::TempDir,
+        path: PathBuf,
+    }
+
+    impl std::ops::Deref for Temp {
+        type Target = Path;
+        fn deref(&self) -> &Path {
+            &self.path
+        }
+    }
+
+    impl AsRef<Path> for Temp {
+        fn as_ref(&self) -> &Path {
+            &self.path
+        }
+    }
+
+    fn temp(name: &str) -> Temp {
+        let root = tempfile::Builder::new()
+            .prefix("vlf-render-image-")
+            .tempdir()
+            .expect("scratch directory");
+        let path = root.path().join(name);
+        Temp { _root: root, path }
     }
 
     /// 3 × 2, top row red, bottom row blue-ish, with awkward floats.

@@ -1,0 +1,423 @@
+//! Streaming a field's radiance to the GPU as the walk needs it.
+//!
+//! The viewer starts from the field's geometry alone (`StageParts::geometry` in `vlf-store`: no
+//! radiance read) and a pool the size of its cache ([`FieldRenderer::streaming`]). A
+//! [`Streamer`] thread then, for the latest camera the window gave it ([`Streamer::look`]):
+//!
+//! 1. lists the parts the view reads ([`LightField::view_needs`], on the CPU: the same look-ups
+//!    the shader does), diffuse maps first — they draw every surface, and while a mirror's tiles
+//!    are missing the shader traces it through the maps that are resident — then the mirror
+//!    tiles;
+//! 2. marks them used ([`Residency::touch`]), so the least recently used parts of *other* views
+//!    are what the cache evicts;
+//! 3. fetches the missing ones from its [`PartSource`] in batches, a place in the pool reserved
+//!    for each first, and hands [`Update`]s (evict, upload) to the window, which applies them in
+//!    order between frames ([`Streamer::apply`]). A part is resident only once all its values
+//!    are uploaded, so a failed or dropped fetch never leaves garbage behind: the batch is
+//!    retried with backoff, the error shown on the status line.
+//!
+//! A newer camera interrupts the work between batches: the walk never waits for the network,
+//! and parts of views already left are not fetched. The window only sends cameras and applies
+//! updates; it never blocks on the streamer.
+
+pub mod residency;
+
+use crate::{FieldRenderer, Gpu, MirrorMode, ViewerError};
+pub use residency::Residency;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard, mpsc};
+use std::time::Duration;
+use vlf_core::field::LightField;
+use vlf_core::lookup::SpecularMode;
+use vlf_core::parts::PartCatalog;
+use vlf_core::render::Camera;
+
+/// Where parts come from: a store, or a coordinator's tile stream. Called from the streamer's
+/// thread only.
+pub trait PartSource: Send {
+    /// The values of `parts` (numbers in the field's [`PartCatalog`]), in that order, in the
+    /// field's radiance units; all or an error.
+    fn fetch(&mut self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String>;
+    /// Bytes read so far (as stored: compressed).
+    fn bytes(&self) -> u64;
+}
+
+/// A change to the pool, applied by the window in the order sent.
+#[derive(Debug)]
+pub enum Update {
+    Evict(u32),
+    Upload {
+        part: u32,
+        base: usize,
+        values: Vec<[f32; 3]>,
+    },
+}
+
+/// How streaming stands, for the status line.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct StreamStats {
+    /// Parts resident, and the values they hold.
+    pub resident: usize,
+    pub resident_values: usize,
+    /// Parts being fetched.
+    pub in_flight: usize,
+    /// Parts the last view planned for needs, and how many of them are not resident yet.
+    pub needed: usize,
+    pub missing: usize,
+    /// Whether the last view needs more than the cache holds (some of it stays missing).
+    pub cache_full: bool,
+    /// Bytes read from the source.
+    pub bytes: u64,
+    /// Parts fetched (a part evicted and needed again counts again).
+    pub fetched: u64,
+    /// Cameras planned for.
+    pub views: u64,
+    /// Failed fetches retried, and the last error (cleared by the next success).
+    pub retries: u64,
+    pub error: Option<String>,
+}
+
+/// How a [`Streamer`] works.
+#[derive(Clone, Copy, Debug)]
+pub struct StreamConfig {
+    /// The pool, in RGB values (12 bytes each).
+    pub capacity: usize,
+    /// At most this many values per fetch.
+    pub batch_values: usize,
+    /// At most this many parts per fetch.
+    pub batch_parts: usize,
+    /// First wait after a failed fetch; doubled per failure up to 32 times this.
+    pub backoff: Duration,
+}
+
+impl StreamConfig {
+    /// A cache of `megabytes` MB (10⁶ bytes) of radiance.
+    pub fn with_megabytes(megabytes: f64) -> StreamConfig {
+        StreamConfig {
+            capacity: (megabytes.max(0.0) * 1e6 / 12.0) as usize,
+            batch_values: 1 << 19,
+            batch_parts: 256,
+            backoff: Duration::from_millis(100),
+        }
+    }
+}
+
+/// What the window asks of the streamer.
+struct Request {
+    /// The camera to plan for and how mirrors are drawn; `None` once taken.
+    view: Option<(Camera, MirrorMode)>,
+    /// Whether the streamer is planning for a camera it took.
+    busy: bool,
+    stop: bool,
+}
+
+struct Shared {
+    request: Mutex<Request>,
+    wake: Condvar,
+    stats: Mutex<StreamStats>,
+    /// Set when a newer view arrives: the work in progress gives way.
+    newer: AtomicBool,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+/// The streaming thread of one field (see the module docs).
+pub struct Streamer {
+    shared: Arc<Shared>,
+    updates: mpsc::Receiver<Update>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Streamer {
+    /// Starts streaming parts of `geometry` (a field whose radiance is not read) from `source`
+    /// into a pool of `config.capacity` values.
+    pub fn start(geometry: Arc<LightField>, source: Box<dyn PartSource>, config: StreamConfig) -> Streamer {
+        let shared = Arc::new(Shared {
+            request: Mutex::new(Request {
+                view: None,
+                busy: false,
+                stop: false,
+            }),
+            wake: Condvar::new(),
+            stats: Mutex::new(StreamStats::default()),
+            newer: AtomicBool::new(false),
+        });
+        let (sender, updates) = mpsc::channel();
+        let worker = Worker {
+            catalog: PartCatalog::new(&geometry),
+            geometry,
+            source,
+            config,
+            shared: shared.clone(),
+            sender,
+        };
+        let thread = std::thread::Builder::new()
+            .name("vlf-stream".into())
+            .spawn(move || worker.run())
+            .ok();
+        Streamer {
+            shared,
+            updates,
+            thread,
+        }
+    }
+
+    /// Asks for what `camera` sees, drawn with `mirrors`; replaces any camera not yet planned
+    /// for, and interrupts the fetching for an older one. Never blocks on the network.
+    pub fn look(&self, camera: Camera, mirrors: MirrorMode) {
+        lock(&self.shared.request).view = Some((camera, mirrors));
+        self.shared.newer.store(true, Ordering::Release);
+        self.shared.wake.notify_all();
+    }
+
+    /// Applies the updates received since the last call to `renderer` (at the next submission);
+    /// returns how many.
+    pub fn apply(&self, gpu: &Gpu, renderer: &FieldRenderer) -> Result<usize, ViewerError> {
+        let mut n = 0;
+        while let Ok(update) = self.updates.try_recv() {
+            match update {
+                Update::Evict(part) => renderer.evict(gpu, part),
+                Update::Upload { part, base, values } => renderer.upload(gpu, part, base, &values)?,
+            }
+            n += 1;
+        }
+        Ok(n)
+    }
+
+    /// Blocks until the streamer has nothing left to do for the last camera (every update sent)
+    /// or `timeout` passes; whether it went idle. For scripted runs and tests.
+    pub fn wait_idle(&self, timeout: Duration) -> bool {
+        let deadline = std::time::Instant::now() + timeout;
+        let mut request = lock(&self.shared.request);
+        loop {
+            let idle = request.view.is_none() && !request.busy && lock(&self.shared.stats).error.is_none();
+            if idle || request.stop {
+                return idle;
+            }
+            let now = std::time::Instant::now();
+            if now >= deadline {
+                return false;
+            }
+            // Short waits: statistics change without the request's lock held.
+            let slice = (deadline - now).min(Duration::from_millis(10));
+            request = self
+                .shared
+                .wake
+                .wait_timeout(request, slice)
+                .unwrap_or_else(|e| e.into_inner())
+                .0;
+        }
+    }
+
+    pub fn stats(&self) -> StreamStats {
+        lock(&self.shared.stats).clone()
+    }
+}
+
+impl Drop for Streamer {
+    fn drop(&mut self) {
+        lock(&self.shared.request).stop = true;
+        self.shared.newer.store(true, Ordering::Release);
+        self.shared.wake.notify_all();
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// The streamer's thread.
+struct Worker {
+    geometry: Arc<LightField>,
+    catalog: PartCatalog,
+    source: Box<dyn PartSource>,
+    config: StreamConfig,
+    shared: Arc<Shared>,
+    sender: mpsc::Sender<Update>,
+}
+
+impl Worker {
+    fn run(mut self) {
+        let sizes = (0..self.catalog.len() as u32).map(|i| self.catalog.values(i)).collect();
+        let mut residency = Residency::new(sizes, self.config.capacity);
+        while let Some((camera, mirrors)) = self.next_view() {
+            self.plan(&mut residency, &camera, mirrors);
+            lock(&self.shared.request).busy = false;
+            self.shared.wake.notify_all();
+        }
+    }
+
+    /// Waits for a camera not yet planned for; `None` when told to stop.
+    fn next_view(&self) -> Option<(Camera, MirrorMode)> {
+        let mut request = lock(&self.shared.request);
+        loop {
+            if request.stop {
+                return None;
+            }
+            if let Some(view) = request.view.take() {
+                request.busy = true;
+                self.shared.newer.store(false, Ordering::Release);
+                return Some(view);
+            }
+            request = self.shared.wake.wait(request).unwrap_or_else(|e| e.into_inner());
+        }
+    }
+
+    /// Makes what `camera` sees resident, as far as the cache allows (see the module docs).
+    fn plan(&mut self, residency: &mut Residency, camera: &Camera, mirrors: MirrorMode) {
+        let mode = match mirrors {
+            MirrorMode::Rays => SpecularMode::Rays,
+            MirrorMode::Trace { depth } => SpecularMode::Trace { depth },
+        };
+        let needs = self.geometry.view_needs(camera, 1, mode);
+        let needed = self.catalog.needed(&needs);
+        residency.touch(&needed);
+        let missing: Vec<u32> = needed.iter().copied().filter(|&p| !residency.is_resident(p)).collect();
+        self.update_stats(residency, |s| {
+            s.views += 1;
+            s.needed = needed.len();
+            s.missing = missing.len();
+            s.cache_full = false;
+        });
+        let mut rest = &missing[..];
+        let mut failures = 0u32;
+        while !rest.is_empty() {
+            if self.interrupted() {
+                return;
+            }
+            // The next batch, each part with a place reserved in the pool.
+            let mut batch = Vec::new();
+            let mut values = 0;
+            let mut evicted = Vec::new();
+            let mut full = false;
+            for &p in rest {
+                let size = self.catalog.values(p);
+                if !batch.is_empty()
+                    && (batch.len() >= self.config.batch_parts || values + size > self.config.batch_values)
+                {
+                    break;
+                }
+                match residency.place(p, &mut evicted) {
+                    Some(_) => {
+                        batch.push(p);
+                        values += size;
+                    }
+                    None => {
+                        full = true;
+                        break;
+                    }
+                }
+            }
+            for &e in &evicted {
+                let _ = self.sender.send(Update::Evict(e));
+            }
+            if batch.is_empty() {
+                self.update_stats(residency, |s| s.cache_full = full);
+                return;
+            }
+            self.update_stats(residency, |s| s.in_flight = batch.len());
+            match self.source.fetch(&batch) {
+                Ok(fetched) if fetched.len() == batch.len() => {
+                    for (&part, values) in batch.iter().zip(fetched) {
+                        let base = residency.base(part).unwrap_or(0);
+                        let _ = self.sender.send(Update::Upload { part, base, values });
+                    }
+                    failures = 0;
+                    let done = batch.len();
+                    rest = &rest[done..];
+                    self.update_stats(residency, |s| {
+                        s.in_flight = 0;
+                        s.fetched += done as u64;
+                        s.missing = s.missing.saturating_sub(done);
+                        s.error = None;
+                        s.cache_full = full;
+                    });
+                    if full {
+                        return;
+                    }
+                }
+                result => {
+                    // Nothing of the batch becomes resident; try again after a pause.
+                    for &p in &batch {
+                        residency.evict(p);
+                    }
+                    let error = match result {
+                        Err(e) => e,
+                        Ok(v) => format!("the source gave {} of {} parts", v.len(), batch.len()),
+                    };
+                    tracing::warn!("fetching {} parts failed (retrying): {error}", batch.len());
+                    self.update_stats(residency, |s| {
+                        s.in_flight = 0;
+                        s.retries += 1;
+                        s.error = Some(error);
+                    });
+                    let pause = self.config.backoff * 2u32.pow(failures.min(5));
+                    failures += 1;
+                    if self.pause(pause) {
+                        return;
+                    }
+                }
+            }
+        }
+    }
+
+    /// Whether a newer camera (or a stop) is waiting.
+    fn interrupted(&self) -> bool {
+        self.shared.newer.load(Ordering::Acquire)
+    }
+
+    /// Waits `pause` unless interrupted first; whether it was.
+    fn pause(&self, pause: Duration) -> bool {
+        let request = lock(&self.shared.request);
+        let (request, _) = self
+            .shared
+            .wake
+            .wait_timeout_while(request, pause, |r| r.view.is_none() && !r.stop)
+            .unwrap_or_else(|e| e.into_inner());
+        request.view.is_some() || request.stop
+    }
+
+    fn update_stats(&self, residency: &Residency, change: impl FnOnce(&mut StreamStats)) {
+        let mut stats = lock(&self.shared.stats);
+        change(&mut stats);
+        (stats.resident, stats.resident_values) = residency.resident();
+        stats.bytes = self.source.bytes();
+        drop(stats);
+        self.shared.wake.notify_all();
+    }
+}
+
+/// A field already in memory as a [`PartSource`]: its parts are copied out (nothing is read).
+pub struct FieldParts {
+    field: Arc<LightField>,
+    catalog: PartCatalog,
+}
+
+impl FieldParts {
+    pub fn new(field: Arc<LightField>) -> FieldParts {
+        FieldParts {
+            catalog: PartCatalog::new(&field),
+            field,
+        }
+    }
+}
+
+impl PartSource for FieldParts {
+    fn fetch(&mut self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String> {
+        parts
+            .iter()
+            .map(|&p| {
+                if (p as usize) < self.catalog.len() {
+                    Ok(self.field.part_values(&self.catalog, p).to_vec())
+                } else {
+                    Err(format!("the field has no part {p}"))
+                }
+            })
+            .collect()
+    }
+
+    fn bytes(&self) -> u64 {
+        0
+    }
+}
