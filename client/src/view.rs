@@ -116,11 +116,10 @@ pub fn run(args: ViewArgs) -> Result<()> {
         screenshot_dir: args.screenshot_dir,
         screenshot_at_exit: args.screenshot,
         loader: Some(loader),
-        source: source.into_part_source(),
         stream,
         settle: args.frames.is_some(),
     };
-    let stats = vlf_viewer::view(Arc::unwrap_or_clone(geometry), options)?;
+    let stats = vlf_viewer::view(geometry, source.into_part_source(), options)?;
     if stats.frames > 0 {
         println!(
             "{} frames in {:.2} s ({:.1} fps) on {}; first frame after {:.2} s",

@@ -295,7 +295,7 @@ impl Job {
         Ok(())
     }
 
-    fn check_committed(&self, stage: Stage) -> Result<(), StoreError> {
+    pub(crate) fn check_committed(&self, stage: Stage) -> Result<(), StoreError> {
         if self.is_committed(stage) {
             return Ok(());
         }

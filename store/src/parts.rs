@@ -35,12 +35,7 @@ pub struct StageParts {
 impl StageParts {
     /// Opens `stage` of `job`: reads its summary (the stage must be committed).
     pub fn open(job: FieldJob, stage: Stage) -> Result<StageParts, StoreError> {
-        if !job.job().is_committed(stage) {
-            return Err(job.field_error(vlf_core::Error::Parameter(format!(
-                "{stage:?} is not committed (finished snapshots: {:?})",
-                job.job().manifest().finished_iterations
-            ))));
-        }
+        job.job().check_committed(stage)?;
         let summary = job.summary(stage)?;
         let unit = summary.radiance_unit;
         if !(unit.is_finite() && unit > 0.0 && unit.log2().fract() == 0.0) {

@@ -76,8 +76,7 @@ pub struct ViewOptions {
     pub screenshot_at_exit: Option<PathBuf>,
     /// Where other snapshots come from; without one, [ ] L do nothing.
     pub loader: Option<Loader>,
-    /// Where the radiance comes from, and the cache it streams into.
-    pub source: Box<dyn PartSource>,
+    /// The cache the radiance streams into.
     pub stream: StreamConfig,
     /// Draw each frame only once what it needs is resident (or the cache is full): scripted
     /// runs and screenshots then show the complete view.
@@ -98,8 +97,12 @@ pub struct ViewStats {
 }
 
 /// Opens the window on `geometry` (a field whose radiance is not read: it streams from
-/// `options.source`) and runs until it is closed, Esc is pressed or `options.frames` are drawn.
-pub fn view(geometry: LightField, mut options: ViewOptions) -> Result<ViewStats, ViewerError> {
+/// `source`) and runs until it is closed, Esc is pressed or `options.frames` are drawn.
+pub fn view(
+    geometry: Arc<LightField>,
+    source: Box<dyn PartSource>,
+    mut options: ViewOptions,
+) -> Result<ViewStats, ViewerError> {
     let event_loop = EventLoop::new().map_err(|e| {
         ViewerError::NoDisplay(format!(
             "{e}; set DISPLAY (or WAYLAND_DISPLAY), or run under xvfb-run, or render without a window: vlf render --gpu"
@@ -112,8 +115,8 @@ pub fn view(geometry: LightField, mut options: ViewOptions) -> Result<ViewStats,
         loading: false,
         sender,
         loaded,
-        geometry: Arc::new(geometry),
-        source: Some(std::mem::replace(&mut options.source, Box::new(NoParts))),
+        geometry,
+        source: Some(source),
         options,
         started: Instant::now(),
         state: None,
@@ -548,17 +551,4 @@ fn stream_status(stats: &StreamStats, loading: bool) -> String {
         line.push_str(" | switching");
     }
     line
-}
-
-/// The source of a window that has handed its own to the streamer.
-struct NoParts;
-
-impl PartSource for NoParts {
-    fn fetch(&mut self, _: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String> {
-        Err("no source".into())
-    }
-
-    fn bytes(&self) -> u64 {
-        0
-    }
 }

@@ -47,12 +47,16 @@ pub struct RayRead {
 }
 
 /// What a view reads from a field ([`LightField::view_needs`]).
-#[derive(Clone, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct ViewNeeds {
     /// Surfaces whose diffuse map is read.
     pub surfaces: std::collections::BTreeSet<u32>,
     /// Mirror tiles read, as (line direction, tile index).
     pub mirror_tiles: std::collections::BTreeSet<(u32, u32)>,
+    /// How much each mirror tile makes of the image: the sum over the view's samples of the
+    /// weights (barycentric × bilinear) its rays get. A streaming viewer fetches the heaviest
+    /// first: the directions nearest to the visible mirrors' reflections.
+    pub tile_weight: std::collections::BTreeMap<(u32, u32), f64>,
 }
 
 /// Offset along the normal for secondary rays (VLF frame: the scene spans 2).
@@ -157,6 +161,9 @@ impl LightField {
             if let Ok(mut all) = needs.lock() {
                 all.surfaces.extend(local.surfaces);
                 all.mirror_tiles.extend(local.mirror_tiles);
+                for (tile, w) in local.tile_weight {
+                    *all.tile_weight.entry(tile).or_default() += w;
+                }
             }
             [0.0; 3]
         });
@@ -174,7 +181,9 @@ impl LightField {
         }
         match mode {
             SpecularMode::Rays => self.mirror_rays(hit.surface, hit.point, -dir, |r| {
-                needs.mirror_tiles.insert((r.direction as u32, r.tile));
+                let tile = (r.direction as u32, r.tile);
+                needs.mirror_tiles.insert(tile);
+                *needs.tile_weight.entry(tile).or_default() += r.barycentric * r.bilinear;
             }),
             SpecularMode::Trace { depth: 0 } => {}
             SpecularMode::Trace { depth } => {

@@ -103,14 +103,17 @@ impl PartCatalog {
         self.ranges.iter().map(|r| r.len()).sum()
     }
 
-    /// The numbers of the parts `needs` lists, diffuse maps first (they draw every surface and,
-    /// through traced reflections, the mirrors), then mirror tiles direction by direction.
+    /// The numbers of the parts `needs` lists, coarse first: diffuse maps (they draw every
+    /// surface and, through traced reflections, the mirrors), then mirror tiles by how much of
+    /// the image they make ([`ViewNeeds::tile_weight`], heaviest first; ties in tile order).
     pub fn needed(&self, needs: &ViewNeeds) -> Vec<u32> {
         let surfaces = needs.surfaces.iter().map(|&s| Part::Surface(s));
-        let tiles = needs
-            .mirror_tiles
-            .iter()
-            .map(|&(direction, tile)| Part::Tile { direction, tile });
+        let mut tiles: Vec<(u32, u32)> = needs.mirror_tiles.iter().copied().collect();
+        let weight = |t: &(u32, u32)| needs.tile_weight.get(t).copied().unwrap_or(0.0);
+        tiles.sort_by(|a, b| weight(b).total_cmp(&weight(a)).then(a.cmp(b)));
+        let tiles = tiles
+            .into_iter()
+            .map(|(direction, tile)| Part::Tile { direction, tile });
         surfaces.chain(tiles).filter_map(|p| self.index_of(p)).collect()
     }
 }
@@ -212,5 +215,32 @@ mod tests {
                 .copy_from_slice(field.part_values(&catalog, i));
         }
         assert_eq!(empty, field);
+    }
+
+    #[test]
+    fn a_view_needs_diffuse_maps_first_then_its_heaviest_tiles() {
+        let field = field();
+        let catalog = PartCatalog::new(&field);
+        let tiles: Vec<(u32, u32)> = catalog
+            .parts()
+            .iter()
+            .filter_map(|p| match *p {
+                Part::Tile { direction, tile } => Some((direction, tile)),
+                Part::Surface(_) => None,
+            })
+            .take(3)
+            .collect();
+        let mut needs = ViewNeeds::default();
+        needs.surfaces.insert(2);
+        for (&t, w) in tiles.iter().zip([0.5, 2.0, 1.0]) {
+            needs.mirror_tiles.insert(t);
+            needs.tile_weight.insert(t, w);
+        }
+        let tile = |(direction, tile)| Part::Tile { direction, tile };
+        let order: Vec<Part> = catalog.needed(&needs).iter().map(|&i| catalog.part(i)).collect();
+        assert_eq!(
+            order,
+            vec![Part::Surface(2), tile(tiles[1]), tile(tiles[2]), tile(tiles[0])]
+        );
     }
 }

@@ -263,35 +263,13 @@ fn parse_pfm(bytes: &[u8]) -> std::result::Result<Image, String> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::path::PathBuf;
 
-    /// A path that does not exist yet, inside a scratch directory removed when the guard
-    /// drops (so the tests leave nothing behind, pass or fail).
-    struct Temp {
-        _root: tempfile::TempDir,
-        path: PathBuf,
-    }
-
-    impl std::ops::Deref for Temp {
-        type Target = Path;
-        fn deref(&self) -> &Path {
-            &self.path
-        }
-    }
-
-    impl AsRef<Path> for Temp {
-        fn as_ref(&self) -> &Path {
-            &self.path
-        }
-    }
-
-    fn temp(name: &str) -> Temp {
-        let root = tempfile::Builder::new()
+    /// A scratch directory for one test, removed when dropped (pass or fail).
+    fn scratch() -> tempfile::TempDir {
+        tempfile::Builder::new()
             .prefix("vlf-render-image-")
             .tempdir()
-            .expect("scratch directory");
-        let path = root.path().join(name);
-        Temp { _root: root, path }
+            .expect("scratch directory")
     }
 
     /// 3 × 2, top row red, bottom row blue-ish, with awkward floats.
@@ -319,8 +297,9 @@ mod tests {
 
     #[test]
     fn pfm_round_trip_is_bit_exact_and_bottom_up() {
+        let dir = scratch();
         let image = sample();
-        let path = temp("roundtrip.PFM");
+        let path = dir.path().join("roundtrip.PFM");
         image.save(&path, 0.0).unwrap();
         let bytes = std::fs::read(&path).unwrap();
         let header = b"PF\n3 2\n-1.0\n";
@@ -341,12 +320,13 @@ mod tests {
 
     #[test]
     fn pfm_big_endian_and_grey() {
+        let dir = scratch();
         // Big-endian RGB, 1 × 2: bottom row first in the file.
         let mut bytes = b"PF\n1 2\n1.0\n".to_vec();
         for v in [0.0f32, 0.5, 1.0, 2.0, 3.0, 4.0] {
             bytes.extend_from_slice(&v.to_be_bytes());
         }
-        let path = temp("big.pfm");
+        let path = dir.path().join("big.pfm");
         std::fs::write(&path, &bytes).unwrap();
         let image = Image::load_pfm(&path).unwrap();
         assert_eq!(image.pixels, vec![[2.0, 3.0, 4.0], [0.0, 0.5, 1.0]]);
@@ -363,7 +343,8 @@ mod tests {
 
     #[test]
     fn bad_pfm_files_are_format_errors() {
-        let path = temp("good.pfm");
+        let dir = scratch();
+        let path = dir.path().join("good.pfm");
         sample().save(&path, 0.0).unwrap();
         let good = std::fs::read(&path).unwrap();
         let cases: Vec<(Vec<u8>, &str)> = vec![
@@ -389,12 +370,13 @@ mod tests {
             let message = format_message(Image::load_pfm(&path));
             assert!(message.contains(needle), "'{message}' lacks '{needle}'");
         }
-        let missing = Image::load_pfm(temp("does-not-exist.pfm"));
+        let missing = Image::load_pfm(dir.path().join("does-not-exist.pfm"));
         assert!(matches!(missing, Err(Error::Io { .. })), "{missing:?}");
     }
 
     #[test]
     fn png_tone_mapping() {
+        let dir = scratch();
         assert_eq!(tone_map(0.5, 0.0), 188);
         assert_eq!(tone_map(0.25, 1.0), 188, "exposure 1 doubles");
         assert_eq!(tone_map(1.0, -1.0), 188);
@@ -415,7 +397,7 @@ mod tests {
             height: 1,
             pixels: vec![[0.5, 0.25, 0.0], [1.0, 2.0, 0.125]],
         };
-        let path = temp("tone.Png");
+        let path = dir.path().join("tone.Png");
         image.save(&path, 0.0).unwrap();
         let png = ::image::open(&path).unwrap().to_rgb8();
         assert_eq!(png.dimensions(), (2, 1));
@@ -429,8 +411,9 @@ mod tests {
 
     #[test]
     fn exr_round_trip() {
+        let dir = scratch();
         let image = sample();
-        let path = temp("linear.exr");
+        let path = dir.path().join("linear.exr");
         image.save(&path, 0.0).unwrap();
         let back = ::image::open(&path).unwrap().to_rgb32f();
         assert_eq!(back.dimensions(), (3, 2));
@@ -447,20 +430,27 @@ mod tests {
 
     #[test]
     fn unsupported_extensions_and_bad_arguments() {
+        let dir = scratch();
         let image = sample();
         for name in ["out.jpg", "out", "out.pfm.txt"] {
-            match image.save(temp(name), 0.0) {
+            match image.save(dir.path().join(name), 0.0) {
                 Err(Error::Parameter(m)) => {
                     assert!(m.contains(".pfm") && m.contains(".exr") && m.contains(".png"), "{m}")
                 }
                 other => panic!("{name}: {other:?}"),
             }
         }
-        assert!(matches!(image.save(temp("x.png"), f64::NAN), Err(Error::Parameter(_))));
+        assert!(matches!(
+            image.save(dir.path().join("x.png"), f64::NAN),
+            Err(Error::Parameter(_))
+        ));
         let mut broken = sample();
         broken.pixels.pop();
-        assert!(matches!(broken.save(temp("x.pfm"), 0.0), Err(Error::Parameter(_))));
-        let unwritable = temp("no-such-dir").join("x.pfm");
+        assert!(matches!(
+            broken.save(dir.path().join("x.pfm"), 0.0),
+            Err(Error::Parameter(_))
+        ));
+        let unwritable = dir.path().join("no-such-dir").join("x.pfm");
         assert!(matches!(image.save(unwritable, 0.0), Err(Error::Io { .. })));
     }
 
