@@ -83,7 +83,7 @@ pub fn run(args: ViewArgs) -> Result<()> {
     let catalog = PartCatalog::new(&geometry);
     let (field_values, cache_values) = (catalog.total_values(), (args.cache_mb * 1e6 / 12.0) as usize);
     println!(
-        "streaming {} of job {id}: {} parts, {:.1} MB of radiance; cache {:.1} MB{}",
+        "streaming {} of job {id}: {} parts, {:.2} MB of radiance; cache {:.2} MB{}",
         crate::render::describe(stage),
         catalog.len(),
         field_values as f64 * 12e-6,
@@ -132,10 +132,11 @@ pub fn run(args: ViewArgs) -> Result<()> {
     }
     let s = &stats.stream;
     println!(
-        "streamed {:.2} MB: {} parts fetched for {} views, {} resident ({:.1} MB) at the end{}{}",
+        "streamed {:.2} MB: {} parts fetched for {} views ({:.0} ms each to find what it needs), {} resident ({:.2} MB) at the end{}{}",
         s.bytes as f64 * 1e-6,
         s.fetched,
         s.views,
+        1e3 * s.planning_seconds / s.views.max(1) as f64,
         s.resident,
         s.resident_values as f64 * 12e-6,
         if s.retries > 0 {
@@ -143,10 +144,14 @@ pub fn run(args: ViewArgs) -> Result<()> {
         } else {
             String::new()
         },
-        if s.cache_full {
-            ", the last view needs more than the cache"
+        if s.short_views > 0 {
+            format!(
+                ", {} views needed more than the cache (the largest {:.2} MB)",
+                s.short_views,
+                s.largest_view_values as f64 * 12e-6
+            )
         } else {
-            ""
+            String::new()
         }
     );
     for path in &stats.screenshots {

@@ -64,14 +64,19 @@ pub struct StreamStats {
     /// Parts the last view planned for needs, and how many of them are not resident yet.
     pub needed: usize,
     pub missing: usize,
-    /// Whether the last view needs more than the cache holds (some of it stays missing).
+    /// The most values a view needed so far: the cache a walk like this one wants.
+    pub largest_view_values: usize,
+    /// Whether the last view needs more than the cache holds (some of it stays missing), and
+    /// how many views so far did.
     pub cache_full: bool,
+    pub short_views: u64,
     /// Bytes read from the source.
     pub bytes: u64,
     /// Parts fetched (a part evicted and needed again counts again).
     pub fetched: u64,
-    /// Cameras planned for.
+    /// Cameras planned for, and the seconds spent finding what they need (CPU ray casting).
     pub views: u64,
+    pub planning_seconds: f64,
     /// Failed fetches retried, and the last error (cleared by the next success).
     pub retries: u64,
     pub error: Option<String>,
@@ -270,12 +275,17 @@ impl Worker {
             MirrorMode::Rays => SpecularMode::Rays,
             MirrorMode::Trace { depth } => SpecularMode::Trace { depth },
         };
+        let started = std::time::Instant::now();
         let needs = self.geometry.view_needs(camera, 1, mode);
         let needed = self.catalog.needed(&needs);
+        let planning = started.elapsed().as_secs_f64();
+        let needed_values: usize = needed.iter().map(|&p| self.catalog.values(p)).sum();
         residency.touch(&needed);
         let missing: Vec<u32> = needed.iter().copied().filter(|&p| !residency.is_resident(p)).collect();
         self.update_stats(residency, |s| {
             s.views += 1;
+            s.largest_view_values = s.largest_view_values.max(needed_values);
+            s.planning_seconds += planning;
             s.needed = needed.len();
             s.missing = missing.len();
             s.cache_full = false;
@@ -313,7 +323,10 @@ impl Worker {
                 let _ = self.sender.send(Update::Evict(e));
             }
             if batch.is_empty() {
-                self.update_stats(residency, |s| s.cache_full = full);
+                self.update_stats(residency, |s| {
+                    s.cache_full = full;
+                    s.short_views += full as u64;
+                });
                 return;
             }
             self.update_stats(residency, |s| s.in_flight = batch.len());
@@ -332,6 +345,7 @@ impl Worker {
                         s.missing = s.missing.saturating_sub(done);
                         s.error = None;
                         s.cache_full = full;
+                        s.short_views += full as u64;
                     });
                     if full {
                         return;

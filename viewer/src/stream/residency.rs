@@ -1,7 +1,8 @@
 //! Which parts of a field are resident in the renderer's pool, and where: a bounded LRU cache.
 //!
-//! The pool holds `capacity` RGB values. A part is placed in the first free run that fits it
-//! (first fit over free runs kept sorted and merged with their neighbours when freed). When none
+//! The pool holds `capacity` RGB values. A part is placed in the smallest free run that fits it
+//! (best fit, which leaves the large runs for the large diffuse maps; free runs are kept sorted
+//! and merged with their neighbours when freed). When none
 //! fits, resident parts are evicted least recently used first — but never one the current view
 //! uses (touched in the current round, see [`Residency::touch`]): a view that needs more than the
 //! pool gets as much of what it needs as fits, and the rest is reported, not thrashed.
@@ -79,7 +80,7 @@ impl Residency {
     pub fn place(&mut self, part: u32, evicted: &mut Vec<u32>) -> Option<usize> {
         debug_assert!(!self.is_resident(part));
         let size = self.sizes[part as usize];
-        let base = match self.first_fit(size) {
+        let base = match self.best_fit(size) {
             Some(base) => base,
             None => {
                 // Victims, least recently used first.
@@ -91,7 +92,7 @@ impl Residency {
                 for v in victims {
                     self.evict(v);
                     evicted.push(v);
-                    if let Some(base) = self.first_fit(size) {
+                    if let Some(base) = self.best_fit(size) {
                         found = Some(base);
                         break;
                     }
@@ -138,12 +139,16 @@ impl Residency {
         *self = Residency::new(std::mem::take(&mut self.sizes), self.capacity);
     }
 
-    /// The start of the first free run of at least `size` values.
-    fn first_fit(&self, size: usize) -> Option<usize> {
+    /// The start of the smallest free run of at least `size` values (the lowest of equals).
+    fn best_fit(&self, size: usize) -> Option<usize> {
         if size == 0 {
             return Some(0);
         }
-        self.free.iter().find(|&(_, &len)| len >= size).map(|(&s, _)| s)
+        self.free
+            .iter()
+            .filter(|&(_, &len)| len >= size)
+            .min_by_key(|&(&start, &len)| (len, start))
+            .map(|(&s, _)| s)
     }
 
     /// Marks `size` values from `base` (the start of a free run) as used.
@@ -240,6 +245,25 @@ mod tests {
         assert_eq!(r.resident(), (2, 8));
         r.clear();
         assert_eq!(r.resident(), (0, 0));
+        check(&r);
+    }
+
+    #[test]
+    fn a_part_goes_to_the_smallest_run_that_fits_it() {
+        let mut r = Residency::new(vec![3, 2, 3, 2, 1, 3], 10);
+        let mut evicted = Vec::new();
+        r.touch(&[0, 1, 2, 3]);
+        for p in 0..4 {
+            r.place(p, &mut evicted).unwrap();
+        }
+        r.evict(0);
+        r.evict(3);
+        // Free: [0, 3) and [8, 10). The small part takes the small run …
+        r.touch(&[1, 2, 4, 5]);
+        assert_eq!(r.place(4, &mut evicted), Some(8));
+        // … so the large one still fits.
+        assert_eq!(r.place(5, &mut evicted), Some(0));
+        assert!(evicted.is_empty());
         check(&r);
     }
 
