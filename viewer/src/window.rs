@@ -42,6 +42,9 @@ use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
 
+/// How long a scripted run waits for a frame's parts before it gives up waiting.
+const SETTLE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(120);
+
 /// A step between the snapshots of a job.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Switch {
@@ -79,7 +82,8 @@ pub struct ViewOptions {
     /// The cache the radiance streams into.
     pub stream: StreamConfig,
     /// Draw each frame only once what it needs is resident (or the cache is full): scripted
-    /// runs and screenshots then show the complete view.
+    /// runs and screenshots then show the complete view. Given up (with a warning) after a
+    /// frame waited two minutes.
     pub settle: bool,
 }
 
@@ -278,8 +282,12 @@ impl App {
             s.streamer.look(camera, self.options.mirrors);
             s.planned = Some(view);
         }
-        if self.options.settle {
-            s.streamer.wait_idle(std::time::Duration::from_secs(600));
+        if self.options.settle && !s.streamer.wait_idle(SETTLE_TIMEOUT) {
+            tracing::warn!(
+                "the view's parts did not arrive in {SETTLE_TIMEOUT:?} ({:?}); drawing on without waiting",
+                s.streamer.stats().error
+            );
+            self.options.settle = false;
         }
         s.streamer.apply(&s.gpu, &s.renderer)?;
         let texture = match s.surface.get_current_texture() {

@@ -132,7 +132,6 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 pub struct Streamer {
     shared: Arc<Shared>,
     updates: mpsc::Receiver<Update>,
-    thread: Option<std::thread::JoinHandle<()>>,
 }
 
 impl Streamer {
@@ -158,15 +157,14 @@ impl Streamer {
             shared: shared.clone(),
             sender,
         };
-        let thread = std::thread::Builder::new()
+        let spawned = std::thread::Builder::new()
             .name("vlf-stream".into())
-            .spawn(move || worker.run())
-            .ok();
-        Streamer {
-            shared,
-            updates,
-            thread,
+            .spawn(move || worker.run());
+        if let Err(e) = spawned {
+            // Nothing streams; the status line shows the error.
+            lock(&shared.stats).error = Some(format!("cannot start the streaming thread: {e}"));
         }
+        Streamer { shared, updates }
     }
 
     /// Asks for what `camera` sees, drawn with `mirrors`; replaces any camera not yet planned
@@ -222,13 +220,12 @@ impl Streamer {
 }
 
 impl Drop for Streamer {
+    /// Tells the thread to stop after the fetch in progress, without waiting for it: a source
+    /// stuck on a dead connection must not hold up the window (switching stages, quitting).
     fn drop(&mut self) {
         lock(&self.shared.request).stop = true;
         self.shared.newer.store(true, Ordering::Release);
         self.shared.wake.notify_all();
-        if let Some(thread) = self.thread.take() {
-            let _ = thread.join();
-        }
     }
 }
 
