@@ -59,6 +59,18 @@ pub struct ViewNeeds {
     pub tile_weight: std::collections::BTreeMap<(u32, u32), f64>,
 }
 
+impl ViewNeeds {
+    /// Both needs together.
+    fn merged(mut self, other: ViewNeeds) -> ViewNeeds {
+        self.surfaces.extend(other.surfaces);
+        self.mirror_tiles.extend(other.mirror_tiles);
+        for (tile, w) in other.tile_weight {
+            *self.tile_weight.entry(tile).or_default() += w;
+        }
+        self
+    }
+}
+
 /// Offset along the normal for secondary rays (VLF frame: the scene spans 2).
 const RAY_EPSILON: f64 = 1e-7;
 
@@ -153,21 +165,26 @@ impl LightField {
     /// and, from the rays, the mirror tiles. Everything else can stay unfetched: a field holding
     /// just these renders the view with the same bits.
     pub fn view_needs(&self, camera: &Camera, samples_per_axis: u32, mode: SpecularMode) -> ViewNeeds {
+        use rayon::prelude::*;
         let bvh = Bvh::build(&self.scene);
-        let needs = std::sync::Mutex::new(ViewNeeds::default());
-        render(&self.scene, &bvh, camera, samples_per_axis, |hit: &Hit, dir| {
-            let mut local = ViewNeeds::default();
-            self.needs_of(&bvh, hit, dir, mode, &mut local);
-            if let Ok(mut all) = needs.lock() {
-                all.surfaces.extend(local.surfaces);
-                all.mirror_tiles.extend(local.mirror_tiles);
-                for (tile, w) in local.tile_weight {
-                    *all.tile_weight.entry(tile).or_default() += w;
+        let n = samples_per_axis.max(1);
+        let normalisation = self.scene.normalisation;
+        // Row by row in parallel, each worker filling its own lists, merged at the end.
+        let mut needs = (0..camera.height)
+            .into_par_iter()
+            .fold(ViewNeeds::default, |mut needs, y| {
+                for x in 0..camera.width {
+                    crate::render::pixel_rays(camera, &normalisation, n, x, y, |origin, dir| {
+                        if let Some(hit) = bvh.intersect(&self.scene, origin, dir, 0.0, f64::INFINITY) {
+                            self.needs_of(&bvh, &hit, dir, mode, &mut needs);
+                        }
+                    });
                 }
-            }
-            [0.0; 3]
-        });
-        needs.into_inner().unwrap_or_default()
+                needs
+            })
+            .reduce(ViewNeeds::default, ViewNeeds::merged);
+        needs.mirror_tiles = needs.tile_weight.keys().copied().collect();
+        needs
     }
 
     /// What [`LightField::shade`] reads for `hit`.
@@ -180,10 +197,9 @@ impl LightField {
             return;
         }
         match mode {
+            // The tiles themselves are the weights' keys (filled in by `view_needs`).
             SpecularMode::Rays => self.mirror_rays(hit.surface, hit.point, -dir, |r| {
-                let tile = (r.direction as u32, r.tile);
-                needs.mirror_tiles.insert(tile);
-                *needs.tile_weight.entry(tile).or_default() += r.barycentric * r.bilinear;
+                *needs.tile_weight.entry((r.direction as u32, r.tile)).or_default() += r.barycentric * r.bilinear;
             }),
             SpecularMode::Trace { depth: 0 } => {}
             SpecularMode::Trace { depth } => {

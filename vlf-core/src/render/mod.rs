@@ -58,20 +58,14 @@ where
         .for_each(|(y, row)| {
             for (x, pixel) in row.iter_mut().enumerate() {
                 let mut sum = [0.0f64; 3];
-                for sy in 0..n {
-                    let py = y as f64 + (sy as f64 + 0.5) / n as f64;
-                    for sx in 0..n {
-                        let px = x as f64 + (sx as f64 + 0.5) / n as f64;
-                        let (origin, dir) = camera.ray(px, py);
-                        let origin = normalisation.to_vlf(origin);
-                        if let Some(hit) = bvh.intersect(scene, origin, dir, 0.0, f64::INFINITY) {
-                            let c = shade(&hit, dir);
-                            for k in 0..3 {
-                                sum[k] += c[k];
-                            }
+                pixel_rays(camera, &normalisation, n, x as u32, y as u32, |origin, dir| {
+                    if let Some(hit) = bvh.intersect(scene, origin, dir, 0.0, f64::INFINITY) {
+                        let c = shade(&hit, dir);
+                        for k in 0..3 {
+                            sum[k] += c[k];
                         }
                     }
-                }
+                });
                 *pixel = sum.map(|s| (s / samples) as f32);
             }
         });
@@ -83,6 +77,26 @@ where
         "rendered view"
     );
     image
+}
+
+/// Visits the `n × n` camera rays of pixel `(x, y)` in [`render`]'s order and positions, as
+/// (origin in the VLF frame, unit direction): what every per-sample loop over a view shares.
+pub fn pixel_rays(
+    camera: &Camera,
+    normalisation: &crate::scene::Normalisation,
+    n: u32,
+    x: u32,
+    y: u32,
+    mut visit: impl FnMut(DVec3, DVec3),
+) {
+    for sy in 0..n {
+        let py = y as f64 + (sy as f64 + 0.5) / n as f64;
+        for sx in 0..n {
+            let px = x as f64 + (sx as f64 + 0.5) / n as f64;
+            let (origin, dir) = camera.ray(px, py);
+            visit(normalisation.to_vlf(origin), dir);
+        }
+    }
 }
 
 #[cfg(test)]
