@@ -255,9 +255,24 @@ impl App {
     }
 
     /// A renderer with an empty pool of the cache's size, and a streamer filling it from `source`.
+    /// A cache larger than one storage binding of this adapter is cut down to one, with a warning.
     fn stream_from(&self, gpu: &Gpu, source: Box<dyn PartSource>) -> Result<(FieldRenderer, Streamer), ViewerError> {
-        let renderer = FieldRenderer::streaming(gpu, &self.geometry, self.options.stream.capacity)?;
-        let streamer = Streamer::start(self.geometry.clone(), source, self.options.stream);
+        let mut config = self.options.stream;
+        let limit = gpu
+            .limits
+            .max_storage_buffer_binding_size
+            .min(gpu.limits.max_buffer_size)
+            / 12;
+        if config.capacity as u64 > limit {
+            tracing::warn!(
+                "{} binds at most {:.1} MB at once: the cache is cut to that",
+                gpu.describe(),
+                limit as f64 * 12e-6
+            );
+            config.capacity = limit as usize;
+        }
+        let renderer = FieldRenderer::streaming(gpu, &self.geometry, config.capacity)?;
+        let streamer = Streamer::start(self.geometry.clone(), source, config);
         Ok((renderer, streamer))
     }
 

@@ -275,3 +275,28 @@ fn a_failing_source_is_retried_and_a_cache_too_small_for_a_view_draws_what_fits(
     );
     assert!(image.pixels.iter().flatten().all(|c| c.is_finite()));
 }
+
+#[test]
+fn a_camera_that_never_stops_still_gets_parts() {
+    // No GPU needed: the streamer alone. A new camera arrives every 0.1 ms, much faster than a
+    // view is planned; each view must still get its first batch.
+    let s = setup();
+    let [a, b, _] = views();
+    let streamer = Streamer::start(
+        s.geometry.clone(),
+        Box::new(FieldParts::new(s.field.clone())),
+        config(s.catalog.total_values()),
+    );
+    let until = std::time::Instant::now() + Duration::from_millis(300);
+    let mut turn = 0u64;
+    while std::time::Instant::now() < until {
+        streamer.look(if turn.is_multiple_of(2) { a } else { b }, MirrorMode::Rays);
+        turn += 1;
+        std::thread::sleep(Duration::from_micros(100));
+    }
+    let stats = streamer.stats();
+    assert!(stats.fetched > 0, "nothing fetched while the camera moved: {stats:?}");
+    // Once it stops, the last view is completed.
+    assert!(streamer.wait_idle(Duration::from_secs(60)));
+    assert_eq!(streamer.stats().missing, 0);
+}

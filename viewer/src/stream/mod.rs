@@ -16,8 +16,9 @@
 //!    are uploaded, so a failed or dropped fetch never leaves garbage behind: the batch is
 //!    retried with backoff, the error shown on the status line.
 //!
-//! A newer camera interrupts the work between batches: the walk never waits for the network,
-//! and parts of views already left are not fetched. The window only sends cameras and applies
+//! A newer camera interrupts the work between batches (after the first, so a walk that moves
+//! every frame still gets each view's most needed parts): the walk never waits for the network,
+//! and most parts of views already left are not fetched. The window only sends cameras and applies
 //! updates; it never blocks on the streamer.
 
 pub mod residency;
@@ -290,7 +291,10 @@ impl Worker {
         let mut rest = &missing[..];
         let mut failures = 0u32;
         while !rest.is_empty() {
-            if self.interrupted() {
+            // A newer camera takes over between batches — but only once this one has had a
+            // batch: while the walk moves every frame, each view still gets its most needed
+            // parts (planning alone takes longer than a frame).
+            if rest.len() < missing.len() && self.interrupted() {
                 return;
             }
             // The next batch, each part with a place reserved in the pool.
