@@ -190,6 +190,10 @@ fn a_small_cache_fetches_what_each_view_needs_evicts_and_draws_every_view_right(
         let distinct: BTreeSet<u32> = asked.iter().copied().collect();
         assert_eq!(distinct.len(), asked.len(), "no part fetched twice for one view");
         assert!(distinct.is_subset(need), "fetched parts the view does not need");
+        if fetched_before == asked.len() {
+            // The first view, into an empty cache: exactly what it touches.
+            assert_eq!(&distinct, need);
+        }
         let stats = streamer.stats();
         assert!(!stats.cache_full && stats.missing == 0, "{stats:?}");
         assert!(stats.resident_values <= capacity);
