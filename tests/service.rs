@@ -687,6 +687,11 @@ fn view_streams_through_a_coordinator_that_drops_connections() {
     let _worker = worker(dir, "w1", &url, &[]);
     let id = submit(&url, &[]);
     watch(&url, &id);
+    // An unknown job is a final answer: said once, not asked again.
+    let o = vlf(&["view", "--server", &url, "no-such-job"]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("not found"), "{}", text(&o));
+    assert!(!err.contains("trying again"), "{err}");
     let Some(display) = display::x_display() else { return };
     let proxy = flaky_proxy(&url, 1500);
     // The wall mirror close up, mirrors from the rays: diffuse maps and tiles stream.

@@ -28,17 +28,50 @@ pub async fn connect(target: &Target) -> Result<Clients> {
         .with_context(|| format!("is a coordinator running at {}? (vlf serve)", target.url))
 }
 
-/// A status error with its code in words.
+/// A call the coordinator refused, with its code in words.
+#[derive(Debug)]
+pub struct CallError {
+    pub code: tonic::Code,
+    pub message: String,
+}
+
+impl std::fmt::Display for CallError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let code = match self.code {
+            tonic::Code::NotFound => "not found",
+            tonic::Code::InvalidArgument => "invalid argument",
+            tonic::Code::Unauthenticated => "unauthenticated",
+            tonic::Code::ResourceExhausted => "too large",
+            tonic::Code::Unavailable => "coordinator unavailable",
+            _ => "error",
+        };
+        write!(f, "{code}: {}", self.message)
+    }
+}
+
+impl std::error::Error for CallError {}
+
+impl CallError {
+    /// Whether asking again cannot help (the job does not exist, the request or the token is
+    /// wrong), as opposed to a connection or a server that failed.
+    pub fn is_final(&self) -> bool {
+        matches!(
+            self.code,
+            tonic::Code::NotFound
+                | tonic::Code::InvalidArgument
+                | tonic::Code::Unauthenticated
+                | tonic::Code::PermissionDenied
+                | tonic::Code::ResourceExhausted
+        )
+    }
+}
+
 fn call_error(status: tonic::Status) -> anyhow::Error {
-    let code = match status.code() {
-        tonic::Code::NotFound => "not found",
-        tonic::Code::InvalidArgument => "invalid argument",
-        tonic::Code::Unauthenticated => "unauthenticated",
-        tonic::Code::ResourceExhausted => "too large",
-        tonic::Code::Unavailable => "coordinator unavailable",
-        _ => "error",
-    };
-    anyhow::anyhow!("{code}: {}", status.message())
+    CallError {
+        code: status.code(),
+        message: status.message().to_string(),
+    }
+    .into()
 }
 
 /// The OBJ and the MTL libraries its `mtllib` lines name (those that exist next to it; a missing

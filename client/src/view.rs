@@ -337,13 +337,20 @@ impl Remote {
 
     /// Runs `call` on the connection (connecting first if there is none). A failed call drops
     /// the connection (the server may have dropped it) and is tried again on a new one, up to
-    /// [`ATTEMPTS`] times in all.
+    /// [`ATTEMPTS`] times in all — unless the coordinator's answer is final (no such job, a bad
+    /// token).
     fn call<T>(&mut self, call: impl Fn(&Remote, &mut vlf_proto::Clients) -> Call<'static, T>) -> Result<T> {
         let mut attempt = 1;
         loop {
             match self.call_once(&call) {
                 Ok(value) => return Ok(value),
                 Err(e) if attempt >= ATTEMPTS => return Err(e),
+                Err(e)
+                    if e.downcast_ref::<crate::remote::CallError>()
+                        .is_some_and(|c| c.is_final()) =>
+                {
+                    return Err(e);
+                }
                 Err(e) => {
                     tracing::warn!("{e:#}; trying again on a new connection");
                     std::thread::sleep(Duration::from_millis(100 << attempt));
