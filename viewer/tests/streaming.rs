@@ -304,3 +304,44 @@ fn a_camera_that_never_stops_still_gets_parts() {
     assert!(streamer.wait_idle(Duration::from_secs(60)));
     assert_eq!(streamer.stats().missing, 0);
 }
+
+/// Gives the first batch with its parts cut short, then the right ones.
+struct ShortFirst {
+    inner: FieldParts,
+    calls: u32,
+}
+
+impl PartSource for ShortFirst {
+    fn fetch(&mut self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String> {
+        self.calls += 1;
+        let mut values = self.inner.fetch(parts)?;
+        if self.calls == 1 {
+            values.iter_mut().for_each(|v| {
+                v.pop();
+            });
+        }
+        Ok(values)
+    }
+
+    fn bytes(&self) -> u64 {
+        0
+    }
+}
+
+#[test]
+fn parts_of_the_wrong_size_are_refused_and_fetched_again() {
+    let s = setup();
+    let [a, _, _] = views();
+    let need = needed(&s.field, &s.catalog, &a);
+    let source = ShortFirst {
+        inner: FieldParts::new(s.field.clone()),
+        calls: 0,
+    };
+    let streamer = Streamer::start(s.geometry.clone(), Box::new(source), config(s.catalog.total_values()));
+    streamer.look(a, MirrorMode::Rays);
+    assert!(streamer.wait_idle(Duration::from_secs(60)));
+    let stats = streamer.stats();
+    assert_eq!(stats.retries, 1, "{stats:?}");
+    assert_eq!(stats.fetched as usize, need.len(), "{stats:?}");
+    assert_eq!((stats.missing, stats.resident), (0, need.len()), "{stats:?}");
+}

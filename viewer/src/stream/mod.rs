@@ -332,7 +332,13 @@ impl Worker {
             }
             self.update_stats(residency, |s| s.in_flight = batch.len());
             match self.source.fetch(&batch) {
-                Ok(fetched) if fetched.len() == batch.len() => {
+                Ok(fetched)
+                    if fetched.len() == batch.len()
+                        && batch
+                            .iter()
+                            .zip(&fetched)
+                            .all(|(&p, v)| v.len() == self.catalog.values(p)) =>
+                {
                     for (&part, values) in batch.iter().zip(fetched) {
                         let base = residency.base(part).unwrap_or(0);
                         let _ = self.sender.send(Update::Upload { part, base, values });
@@ -359,7 +365,11 @@ impl Worker {
                     }
                     let error = match result {
                         Err(e) => e,
-                        Ok(v) => format!("the source gave {} of {} parts", v.len(), batch.len()),
+                        Ok(v) => format!(
+                            "the source gave {} parts of {} asked for, or parts of the wrong size",
+                            v.len(),
+                            batch.len()
+                        ),
                     };
                     tracing::warn!("fetching {} parts failed (retrying): {error}", batch.len());
                     self.update_stats(residency, |s| {
