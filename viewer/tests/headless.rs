@@ -10,42 +10,17 @@
 //! CI installs Mesa's lavapipe and sets `VLF_REQUIRE_GPU=1`; elsewhere a machine without any
 //! adapter skips these tests with a message.
 
+mod common;
+
+use common::{bundled_field, gpu};
 use glam::DVec3;
-use std::path::Path;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
-use vlf_core::propagate::{Options, Propagation, Stop};
-use vlf_core::psf::GridSize;
 use vlf_core::render::{Camera, Image};
-use vlf_core::scene::{ImportOptions, load_obj};
 use vlf_viewer::{FieldRenderer, Gpu, ViewerError};
 
-fn gpu() -> Option<Gpu> {
-    match Gpu::new() {
-        Ok(gpu) => {
-            eprintln!("GPU: {}", gpu.describe());
-            Some(gpu)
-        }
-        Err(e) if std::env::var_os("VLF_REQUIRE_GPU").is_none() => {
-            eprintln!("skipped: {e}");
-            None
-        }
-        Err(e) => panic!("VLF_REQUIRE_GPU is set but {e}"),
-    }
-}
-
 fn field(scene: &str, iterations: u32) -> LightField {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(scene);
-    let (scene, _) = load_obj(&path, &ImportOptions::default()).expect("bundled scene");
-    let options = Options {
-        directions: 33,
-        grid: GridSize::new(32, 8).expect("grid"),
-        stop: Stop::Iterations(iterations),
-        ..Options::default()
-    };
-    let mut p = Propagation::new(scene, options).expect("propagation");
-    p.run(|_| {});
-    p.into_field()
+    bundled_field(scene, 33, iterations)
 }
 
 fn camera(width: u32, height: u32) -> Camera {

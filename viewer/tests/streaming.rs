@@ -8,45 +8,23 @@
 //! tile the CPU did not list and trace that pixel instead (see `shaders/field.wgsl`). The
 //! tolerance says so: at most 0.5 % of the pixels differ. Measured on lavapipe: none.
 
+mod common;
+
+use common::{bundled_field, gpu};
 use glam::DVec3;
 use std::collections::BTreeSet;
-use std::path::Path;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
 use vlf_core::parts::PartCatalog;
-use vlf_core::propagate::{Options, Propagation, Stop};
-use vlf_core::psf::GridSize;
 use vlf_core::render::{Camera, Image};
-use vlf_core::scene::{ImportOptions, load_obj};
 use vlf_viewer::stream::{FieldParts, StreamConfig, Streamer};
 use vlf_viewer::{FieldRenderer, Gpu, MirrorMode, PartSource};
 
-fn gpu() -> Option<Gpu> {
-    match Gpu::new() {
-        Ok(gpu) => Some(gpu),
-        Err(e) if std::env::var_os("VLF_REQUIRE_GPU").is_none() => {
-            eprintln!("skipped: {e}");
-            None
-        }
-        Err(e) => panic!("VLF_REQUIRE_GPU is set but {e}"),
-    }
-}
-
 /// The bundled mirror scene, coarse.
 fn field() -> LightField {
-    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/mirrors.obj");
-    let (scene, _) = load_obj(&path, &ImportOptions::default()).expect("bundled scene");
-    let options = Options {
-        directions: 129,
-        grid: GridSize::new(32, 8).expect("grid"),
-        stop: Stop::Iterations(3),
-        ..Options::default()
-    };
-    let mut p = Propagation::new(scene, options).expect("propagation");
-    p.run(|_| {});
-    p.into_field()
+    bundled_field("mirrors.obj", 129, 3)
 }
 
 /// The field with its radiance zero: what a viewer starts from.

@@ -60,10 +60,9 @@ pub struct ViewNeeds {
 }
 
 impl ViewNeeds {
-    /// Both needs together.
+    /// Both needs together (while `view_needs` gathers them: the tiles are the weights' keys).
     fn merged(mut self, other: ViewNeeds) -> ViewNeeds {
         self.surfaces.extend(other.surfaces);
-        self.mirror_tiles.extend(other.mirror_tiles);
         for (tile, w) in other.tile_weight {
             *self.tile_weight.entry(tile).or_default() += w;
         }

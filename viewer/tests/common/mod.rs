@@ -1,0 +1,40 @@
+//! What the viewer's GPU tests share: an adapter (or a skip) and a bundled scene's field.
+
+use std::path::Path;
+use vlf_core::field::LightField;
+use vlf_core::propagate::{Options, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::scene::{ImportOptions, load_obj};
+use vlf_viewer::Gpu;
+
+/// The adapter, or `None` (the test skips) where there is none and `VLF_REQUIRE_GPU` is unset;
+/// CI installs lavapipe and sets it, so there a missing adapter fails the test.
+pub fn gpu() -> Option<Gpu> {
+    match Gpu::new() {
+        Ok(gpu) => {
+            eprintln!("GPU: {}", gpu.describe());
+            Some(gpu)
+        }
+        Err(e) if std::env::var_os("VLF_REQUIRE_GPU").is_none() => {
+            eprintln!("skipped: {e}");
+            None
+        }
+        Err(e) => panic!("VLF_REQUIRE_GPU is set but {e}"),
+    }
+}
+
+/// A bundled scene propagated with `directions` on a 32 × 32 grid (tiles of 8) for
+/// `iterations`.
+pub fn bundled_field(scene: &str, directions: usize, iterations: u32) -> LightField {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(scene);
+    let (scene, _) = load_obj(&path, &ImportOptions::default()).expect("bundled scene");
+    let options = Options {
+        directions,
+        grid: GridSize::new(32, 8).expect("grid"),
+        stop: Stop::Iterations(iterations),
+        ..Options::default()
+    };
+    let mut p = Propagation::new(scene, options).expect("propagation");
+    p.run(|_| {});
+    p.into_field()
+}
