@@ -261,11 +261,9 @@ impl PartSource for RemoteParts {
             let names = keys.iter().map(|k| relative(&id, k)).collect();
             self.bytes += self.remote.fetch(names, store)?;
             let values = local.read(parts);
-            let state = match local.parts.stage() {
-                Stage::Iteration(k) => Some(vlf_store::layout::state(&id, k)?),
-                Stage::Field => None,
-            };
-            for key in keys.iter().filter(|k| Some(*k) != state.as_ref()) {
+            // A snapshot's mirror totals stay: every tile is cut from them.
+            let totals = local.parts.totals_key();
+            for key in keys.iter().filter(|k| Some(k.as_str()) != totals) {
                 store.delete(key)?;
             }
             values

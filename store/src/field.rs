@@ -6,7 +6,7 @@
 //! |---|---|---|
 //! | the normalised scene | `jobs/J/scene.blob` | `Scene::to_bytes`, exact |
 //! | the propagation options | the manifest's `parameters` | JSON of `Options` (floats round-trip exactly) |
-//! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` | `Checkpoint::to_bytes`: f64, exact |
+//! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (shooting half) and `totals.blob` | `Propagation::snapshot_bytes`: f64, exact (jobs written before the split: the whole `Checkpoint::to_bytes` in `state.blob`) |
 //! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
 //! | outgoing radiance of surface s | `S/diffuse/s.blob` | `[height, width, 3]` texels, job encoding |
 //! | radiance leaving mirrors along direction d in tile (s, t) | `field/dirs/d/tile-s-t.blob` | `[slots, 3]` in slot order, job encoding |
@@ -17,7 +17,10 @@
 //! written when the job is created, so every job can be rendered and resumed from the start. A
 //! snapshot holds an exact checkpoint (to resume with the same bits as an uninterrupted run), its
 //! summary, and the diffuse radiance in the job's encoding (what a viewer needs, including for
-//! ray-traced mirrors). Mirror radiance of a snapshot is read from its checkpoint: cutting it into
+//! ray-traced mirrors). The checkpoint is stored in two halves (see
+//! `vlf_core::propagate::checkpoint`): a worker starting the next iteration reads only the
+//! shooting half, a viewer only the totals. Mirror radiance of a snapshot is read from its
+//! checkpoint's totals: cutting it into
 //! tiles after every iteration would write thousands of blobs per iteration (6 000 for the bundled
 //! mirror scene at l = 513, N = 64, m = 8) for a state that is superseded by the next one. The
 //! final field (stage `field`) holds radiance only, mirrors per direction and tile, possibly
@@ -42,7 +45,7 @@ use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::propagate::specular::MirrorLayout;
-use vlf_core::propagate::{Checkpoint, IterationStats, Options, Propagation};
+use vlf_core::propagate::{Checkpoint, IterationStats, Options, Propagation, ShootingState, Totals};
 use vlf_core::psf::Subfield;
 use vlf_core::scene::{Rgb, Scene};
 
@@ -176,7 +179,9 @@ impl FieldJob {
                 stats: p.stats.clone(),
             },
         )?;
-        self.job.put_state(k, &p.checkpoint().to_bytes())?;
+        let halves = p.snapshot_bytes();
+        self.job.put_totals(k, &halves.totals)?;
+        self.job.put_state(k, &halves.state)?;
         self.job.commit_iteration(k)
     }
 
@@ -235,25 +240,48 @@ impl FieldJob {
         Ok(p)
     }
 
-    /// The exact checkpoint of finished snapshot `k`.
+    /// The exact checkpoint of finished snapshot `k`: its two halves joined (or the whole
+    /// checkpoint of a job written before the split).
     pub fn checkpoint(&self, k: u32) -> Result<Checkpoint, StoreError> {
-        self.decode_checkpoint(k, &self.job.get_state(k)?)
+        let state = self.job.get_state(k)?;
+        let checkpoint = if Checkpoint::is_split(&state) {
+            let totals = self.job.get_totals(k)?;
+            ShootingState::from_bytes(&state)
+                .and_then(|s| Ok((s, Totals::from_bytes(&totals)?)))
+                .and_then(|(s, t)| Checkpoint::join(s, t))
+        } else {
+            Checkpoint::from_bytes(&state)
+        }
+        .map_err(|e| self.field_error(e))?;
+        self.of_snapshot(k, checkpoint.iterations())?;
+        Ok(checkpoint)
     }
 
-    /// The checkpoint of snapshot `k` from its state blob's contents.
-    pub(crate) fn decode_checkpoint(&self, k: u32, state: &[u8]) -> Result<Checkpoint, StoreError> {
-        Checkpoint::from_bytes(state)
-            .and_then(|c| {
-                if c.iterations() == k {
-                    Ok(c)
-                } else {
-                    Err(vlf_core::Error::Decode(format!(
-                        "checkpoint of snapshot {k} holds {} iterations",
-                        c.iterations()
-                    )))
-                }
-            })
-            .map_err(|e| self.field_error(e))
+    /// What shooting the iteration after finished snapshot `k` reads: half of its checkpoint.
+    pub fn shooting_state(&self, k: u32) -> Result<ShootingState, StoreError> {
+        let state = ShootingState::from_bytes(&self.job.get_state(k)?).map_err(|e| self.field_error(e))?;
+        self.of_snapshot(k, state.iterations())?;
+        Ok(state)
+    }
+
+    /// The totals of snapshot `k` from the contents of the blob that holds them (its
+    /// `totals.blob`, or the whole checkpoint in `state.blob` of a job written before the
+    /// split).
+    pub(crate) fn decode_totals(&self, k: u32, bytes: &[u8]) -> Result<Totals, StoreError> {
+        let totals = Totals::from_bytes(bytes).map_err(|e| self.field_error(e))?;
+        self.of_snapshot(k, totals.iterations)?;
+        Ok(totals)
+    }
+
+    /// Refuses state of snapshot `k` that holds `iterations` iterations.
+    fn of_snapshot(&self, k: u32, iterations: u32) -> Result<(), StoreError> {
+        if iterations == k {
+            Ok(())
+        } else {
+            Err(self.field_error(vlf_core::Error::Decode(format!(
+                "checkpoint of snapshot {k} holds {iterations} iterations"
+            ))))
+        }
     }
 
     /// The summary of a committed stage.

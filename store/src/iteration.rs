@@ -183,8 +183,9 @@ impl Replica {
                 // The coordinator committed it after this replica last read the manifest.
                 self.job.reload()?;
             }
-            let checkpoint = self.job.checkpoint(k)?;
-            self.prop.restore(checkpoint).map_err(|e| self.job.field_error(e))?;
+            // Shooting reads half of the checkpoint: the unshot maps.
+            let state = self.job.shooting_state(k)?;
+            self.prop.restore_shooting(state).map_err(|e| self.job.field_error(e))?;
             self.current = Some((k, self.prop.iteration_work()));
         }
         let Some((_, work)) = self.current.as_mut() else {

@@ -132,6 +132,14 @@ impl Job {
         self.write(Stage::Iteration(k), &key, bytes)
     }
 
+    /// Writes the totals half of the resume state of iteration `k` (caller's serialisation;
+    /// optional: a job's resume state may be one blob).
+    pub fn put_totals(&self, k: u32, totals: &[u8]) -> Result<(), StoreError> {
+        let key = layout::totals(self.id(), k)?;
+        let bytes = blob::encode_bytes(BlobKind::Snapshot, totals).map_err(|e| self.blob_error(&key, e))?;
+        self.write(Stage::Iteration(k), &key, bytes)
+    }
+
     /// Writes the summary of `stage` (caller's JSON).
     pub fn put_summary(&self, stage: Stage, json: &[u8]) -> Result<(), StoreError> {
         let key = layout::summary(self.id(), stage)?;
@@ -224,6 +232,13 @@ impl Job {
         self.check_committed(Stage::Iteration(k))?;
         self.store
             .get_bytes_blob(&layout::state(self.id(), k)?, BlobKind::Snapshot)
+    }
+
+    /// The totals half of the resume state of finished iteration `k`.
+    pub fn get_totals(&self, k: u32) -> Result<Vec<u8>, StoreError> {
+        self.check_committed(Stage::Iteration(k))?;
+        self.store
+            .get_bytes_blob(&layout::totals(self.id(), k)?, BlobKind::Snapshot)
     }
 
     /// The summary of a committed stage.

@@ -2,8 +2,8 @@
 //! [`FieldJob::load_parts`] is built on.
 //!
 //! A final field stores one blob per part. A snapshot stores its diffuse maps the same way but
-//! its mirror radiance in its checkpoint (see [`crate::field`]): the first tile asked for reads
-//! the checkpoint, and the tiles are cut from it from then on.
+//! its mirror radiance in its checkpoint's totals (see [`crate::field`]): the first tile asked
+//! for reads them, and the tiles are cut from them from then on.
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;
@@ -26,7 +26,10 @@ pub struct StageParts {
     summary: Summary,
     /// Stored values are radiance in this unit (see [`Summary::radiance_unit`]).
     unit: f32,
-    /// A snapshot's mirror totals per direction, once read from its checkpoint.
+    /// A snapshot's blob that holds its mirror totals: its checkpoint's totals half, or the
+    /// whole checkpoint of a job written before the split. `None` for the final field.
+    totals_key: Option<String>,
+    /// A snapshot's mirror totals per direction, once read.
     snapshot_totals: Mutex<Option<Arc<MirrorTotals>>>,
     /// Bytes of radiance blobs read so far (as stored).
     bytes: AtomicU64,
@@ -43,10 +46,25 @@ impl StageParts {
                 "summary of {stage:?}: radiance unit {unit} is not a power of two"
             ))));
         }
+        let totals_key = match stage {
+            Stage::Iteration(k) => {
+                let (totals, whole) = (layout::totals(job.id(), k)?, layout::state(job.id(), k)?);
+                let store = job.job().store();
+                // A store that holds neither yet (a viewer's, filled as parts are fetched) is
+                // taken to be of the current layout.
+                Some(if !store.exists(&totals)? && store.exists(&whole)? {
+                    whole
+                } else {
+                    totals
+                })
+            }
+            Stage::Field => None,
+        };
         Ok(StageParts {
             job,
             stage,
             summary,
+            totals_key,
             unit: unit as f32,
             snapshot_totals: Mutex::new(None),
             bytes: AtomicU64::new(0),
@@ -63,6 +81,12 @@ impl StageParts {
 
     pub fn summary(&self) -> &Summary {
         &self.summary
+    }
+
+    /// A snapshot's blob that holds the radiance of all its mirror tiles (`None` for the final
+    /// field).
+    pub fn totals_key(&self) -> Option<&str> {
+        self.totals_key.as_deref()
     }
 
     /// Bytes of radiance blobs read so far, as stored (compressed).
@@ -84,13 +108,13 @@ impl StageParts {
         LightField::from_radiance(p, self.summary.stats.clone(), radiance, totals).map_err(|e| job.field_error(e))
     }
 
-    /// The key of the blob that holds `part` (a snapshot's tiles: its checkpoint).
+    /// The key of the blob that holds `part` (a snapshot's tiles: its checkpoint's totals).
     pub fn key(&self, catalog: &PartCatalog, part: u32) -> Result<String, StoreError> {
         let id = self.job.id();
-        match (catalog.part(part), self.stage) {
-            (Part::Surface(s), stage) => layout::diffuse(id, stage, s),
-            (Part::Tile { .. }, Stage::Iteration(k)) => layout::state(id, k),
-            (Part::Tile { direction, tile }, stage) => {
+        match (catalog.part(part), self.stage, &self.totals_key) {
+            (Part::Surface(s), stage, _) => layout::diffuse(id, stage, s),
+            (Part::Tile { .. }, Stage::Iteration(_), Some(key)) => Ok(key.clone()),
+            (Part::Tile { direction, tile }, stage, _) => {
                 let per_side = self.job.options().grid.tiles_per_side();
                 layout::tile(id, stage, direction, tile % per_side, tile / per_side)
             }
@@ -179,7 +203,7 @@ impl StageParts {
 
     /// A snapshot's mirror totals, read from its checkpoint the first time.
     fn snapshot_totals(&self) -> Result<Arc<MirrorTotals>, StoreError> {
-        let Stage::Iteration(k) = self.stage else {
+        let (Stage::Iteration(k), Some(key)) = (self.stage, &self.totals_key) else {
             return Err(self.job.field_error(vlf_core::Error::Decode(
                 "a final field keeps its mirror radiance in tiles".into(),
             )));
@@ -188,17 +212,16 @@ impl StageParts {
         if let Some(totals) = &*cached {
             return Ok(totals.clone());
         }
-        let key = layout::state(self.job.id(), k)?;
         let store = self.job.job().store();
-        let stored = store.get(&key)?;
+        let stored = store.get(key)?;
         self.bytes.fetch_add(stored.len() as u64, Ordering::Relaxed);
-        let state = store
+        let bytes = store
             .as_async()
-            .decode_with(&key, &stored, |b| blob::decode_bytes(b, BlobKind::Snapshot))?;
-        let maps = self.job.decode_checkpoint(k, &state)?.mirrors.unwrap_or_default();
+            .decode_with(key, &stored, |b| blob::decode_bytes(b, BlobKind::Snapshot))?;
+        let maps = self.job.decode_totals(k, &bytes)?.mirrors.unwrap_or_default();
         let totals: Arc<MirrorTotals> = Arc::new(
             maps.iter()
-                .map(|m| m.total.iter().map(|t| t.map(|c| c as f32)).collect())
+                .map(|m| m.iter().map(|t| t.map(|c| c as f32)).collect())
                 .collect(),
         );
         *cached = Some(totals.clone());

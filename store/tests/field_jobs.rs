@@ -238,3 +238,84 @@ per_backend! {
     encodings_and_snapshots_read_back => crate::encodings_and_snapshots,
     damaged_blobs_name_their_key => crate::damage_names_the_key,
 }
+
+/// A snapshot's checkpoint is stored in halves; jobs written before the split hold it whole in
+/// `state.blob`, and stay readable: resumed, shot from, and viewed.
+#[test]
+fn snapshots_with_a_whole_checkpoint_still_read() {
+    let store = Store::open("memory://").unwrap();
+    let (job, _) = run(&store, &bundled("mirrors.obj"), Encoding::F32);
+    let id = job.id().clone();
+    let (state_key, totals_key) = (layout::state(&id, 2).unwrap(), layout::totals(&id, 2).unwrap());
+    assert!(
+        store.exists(&totals_key).unwrap(),
+        "a snapshot's totals are a blob of their own"
+    );
+    let split = job.checkpoint(2).unwrap();
+    let shooting = job.shooting_state(2).unwrap();
+    assert!(shooting == split.clone().split().0);
+    let viewed = job.load(Stage::Iteration(2)).unwrap();
+    let parts = vlf_store::StageParts::open(FieldJob::open(&store, &id).unwrap(), Stage::Iteration(2)).unwrap();
+    assert_eq!(parts.totals_key(), Some(totals_key.as_str()));
+
+    // The layout before the split: the whole checkpoint in `state.blob`, no `totals.blob`.
+    store
+        .put(
+            &state_key,
+            blob::encode_bytes(BlobKind::Snapshot, &split.to_bytes()).unwrap(),
+        )
+        .unwrap();
+    store.delete(&totals_key).unwrap();
+    let old = FieldJob::open(&store, &id).unwrap();
+    assert!(old.checkpoint(2).unwrap() == split);
+    assert!(old.shooting_state(2).unwrap() == shooting);
+    let parts = vlf_store::StageParts::open(FieldJob::open(&store, &id).unwrap(), Stage::Iteration(2)).unwrap();
+    assert_eq!(parts.totals_key(), Some(state_key.as_str()));
+    let back = old.load(Stage::Iteration(2)).unwrap();
+    assert_eq!(back.radiance, viewed.radiance);
+    assert_eq!(
+        back.specular.as_ref().unwrap().totals,
+        viewed.specular.as_ref().unwrap().totals,
+        "mirror radiance of a whole checkpoint"
+    );
+}
+
+/// A split checkpoint whose totals are missing, damaged or of another snapshot is an error
+/// naming the job; shooting from it, which does not read the totals, still works.
+#[test]
+fn damaged_checkpoint_totals_are_errors() {
+    let store = Store::open("memory://").unwrap();
+    let (job, _) = run(&store, &bundled("mirrors.obj"), Encoding::F32);
+    let id = job.id().clone();
+    let totals = |k| layout::totals(&id, k).unwrap();
+    let good = store.get(&totals(3)).unwrap().to_vec();
+    // Another snapshot's totals.
+    store.put(&totals(3), store.get(&totals(2)).unwrap().to_vec()).unwrap();
+    let err = job.checkpoint(3).unwrap_err();
+    assert!(
+        matches!(err, StoreError::Field { .. }) && err.to_string().contains("iterations"),
+        "{err}"
+    );
+    // Sound blob, wrong content.
+    store
+        .put(
+            &totals(3),
+            blob::encode_bytes(BlobKind::Snapshot, b"not bincode").unwrap(),
+        )
+        .unwrap();
+    let err = job.checkpoint(3).unwrap_err();
+    assert!(matches!(err, StoreError::Field { .. }), "{err}");
+    // Flipped bits.
+    let mut flipped = good.clone();
+    flipped[good.len() / 2] ^= 0x40;
+    store.put(&totals(3), flipped).unwrap();
+    let err = job.checkpoint(3).unwrap_err();
+    assert!(err.to_string().contains(&totals(3)), "{err}");
+    // Missing.
+    store.delete(&totals(3)).unwrap();
+    let err = job.checkpoint(3).unwrap_err();
+    assert!(matches!(err, StoreError::NotFound { .. }), "{err}");
+    assert!(job.shooting_state(3).is_ok());
+    store.put(&totals(3), good).unwrap();
+    assert!(job.checkpoint(3).is_ok());
+}

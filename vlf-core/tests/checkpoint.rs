@@ -6,7 +6,7 @@ mod common;
 
 use common::*;
 use vlf_core::Error;
-use vlf_core::propagate::{Checkpoint, Options, Perturbation, Propagation, Stop};
+use vlf_core::propagate::{Checkpoint, Options, Perturbation, Propagation, ShootingState, Stop, Totals};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
@@ -53,9 +53,17 @@ fn resumes_bit_identically(scene: Scene, perturb: u32) {
             first.step(|_| {});
         }
         let bytes = first.checkpoint().to_bytes();
+        let halves = first.snapshot_bytes();
         drop(first);
         let restored = Checkpoint::from_bytes(&bytes).unwrap();
         assert_eq!(restored.iterations(), stop_after);
+        // The same state from its two halves, as a store keeps them.
+        let joined = Checkpoint::join(
+            ShootingState::from_bytes(&halves.state).unwrap(),
+            Totals::from_bytes(&halves.totals).unwrap(),
+        )
+        .unwrap();
+        assert!(joined == restored, "the halves of a checkpoint are not the whole");
         let mut resumed = Propagation::resume(scene.clone(), options(total, perturb), restored).unwrap();
         resumed.run(|_| {});
         assert!(
@@ -121,6 +129,89 @@ fn damaged_checkpoints_are_refused() {
     assert!(resume(other).is_err());
     // The good one is accepted.
     assert!(resume(good).is_ok());
+}
+
+#[test]
+fn halves_are_the_whole_split_and_old_whole_blobs_still_read() {
+    let scene = mirror_room();
+    let mut p = Propagation::new(scene, options(3, 0)).unwrap();
+    p.step(|_| {});
+    p.step(|_| {});
+    let whole = p.checkpoint();
+    let (state, totals) = whole.clone().split();
+    assert_eq!(state.iterations(), 2);
+    assert_eq!(totals.iterations, 2);
+    // Serialised straight from the propagation: the same bytes as the halves.
+    let bytes = p.snapshot_bytes();
+    assert_eq!(bytes.state, state.to_bytes());
+    assert_eq!(bytes.totals, totals.to_bytes());
+    assert!(Checkpoint::is_split(&bytes.state));
+    // The shooting half carries no totals: well under the whole.
+    let whole_bytes = whole.to_bytes();
+    assert!(!Checkpoint::is_split(&whole_bytes));
+    assert!(
+        bytes.state.len() < whole_bytes.len() * 6 / 10,
+        "{} of {}",
+        bytes.state.len(),
+        whole_bytes.len()
+    );
+    // A whole (version 1) checkpoint, as older stores hold, gives both halves.
+    assert_eq!(ShootingState::from_bytes(&whole_bytes).unwrap(), state);
+    assert_eq!(Totals::from_bytes(&whole_bytes).unwrap(), totals);
+    // A half is not a whole checkpoint.
+    match Checkpoint::from_bytes(&bytes.state) {
+        Err(Error::Decode(m)) => assert!(m.contains("split"), "{m}"),
+        other => panic!("read a shooting half as a whole checkpoint: {other:?}"),
+    }
+    assert!(Checkpoint::join(state.clone(), totals.clone()).unwrap() == whole);
+}
+
+#[test]
+fn mismatched_or_damaged_halves_are_refused() {
+    let scene = mirror_room();
+    let mut p = Propagation::new(scene.clone(), options(3, 0)).unwrap();
+    p.step(|_| {});
+    let (state1, _) = p.checkpoint().split();
+    p.step(|_| {});
+    let (state2, totals2) = p.checkpoint().split();
+    let refused = |joined: vlf_core::Result<Checkpoint>, needle: &str| match joined {
+        Err(Error::Decode(m)) => assert!(m.contains(needle), "{m}"),
+        other => panic!("joined mismatched halves ({needle}): {other:?}"),
+    };
+    // Halves of two snapshots.
+    refused(Checkpoint::join(state1.clone(), totals2.clone()), "iterations");
+    // One with mirror maps, one without; maps of different sizes.
+    let mut t = totals2.clone();
+    t.mirrors = None;
+    refused(Checkpoint::join(state2.clone(), t), "mirror");
+    let mut t = totals2.clone();
+    t.mirrors.as_mut().unwrap()[3].push([0.0; 3]);
+    refused(Checkpoint::join(state2.clone(), t), "direction 3");
+    let mut t = totals2.clone();
+    t.total.pop();
+    refused(Checkpoint::join(state2.clone(), t), "texel");
+    // Truncated halves.
+    let state_bytes = state2.to_bytes();
+    let totals_bytes = totals2.to_bytes();
+    assert!(ShootingState::from_bytes(&state_bytes[..state_bytes.len() / 2]).is_err());
+    assert!(Totals::from_bytes(&totals_bytes[..totals_bytes.len() - 1]).is_err());
+    assert!(Totals::from_bytes(&totals_bytes[..2]).is_err());
+    // A shooting state that does not fit the scene is refused, and leaves the
+    // propagation as it was.
+    let mut r = Propagation::new(scene, options(3, 0)).unwrap();
+    let before = r.checkpoint();
+    let mut s = state2.clone();
+    s.mirrors.as_mut().unwrap()[2][0][1] = f64::INFINITY;
+    match r.restore_shooting(s) {
+        Err(Error::Decode(m)) => assert!(m.contains("direction 2"), "{m}"),
+        other => panic!("restored a non-finite mirror map: {other:?}"),
+    }
+    assert!(r.checkpoint() == before);
+    let mut s = state2.clone();
+    s.current.push([0.0; 3]);
+    assert!(r.restore_shooting(s).is_err());
+    r.restore_shooting(state2.clone()).unwrap();
+    assert_eq!(r.iterations_done(), 2);
 }
 
 #[test]

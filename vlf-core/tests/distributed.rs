@@ -8,7 +8,9 @@ mod common;
 
 use common::*;
 use std::collections::HashMap;
-use vlf_core::propagate::{BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, Stop, reduce};
+use vlf_core::propagate::{
+    BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, ShootingState, Stop, reduce,
+};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
@@ -53,9 +55,12 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagat
         .collect();
     while !main.finished() {
         let started = std::time::Instant::now();
-        // Every worker starts the iteration from the coordinator's checkpoint.
+        // Every worker starts the iteration from the shooting half of the
+        // coordinator's checkpoint, as stored (its totals stay zero: shooting
+        // never reads them).
+        let state = main.snapshot_bytes().state;
         for r in &mut replicas {
-            r.restore(main.checkpoint()).unwrap();
+            r.restore_shooting(ShootingState::from_bytes(&state).unwrap()).unwrap();
         }
         let mut works: Vec<_> = replicas.iter().map(|r| r.iteration_work()).collect();
         let mut work = main.iteration_work();

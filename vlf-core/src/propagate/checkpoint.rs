@@ -14,17 +14,39 @@
 //! * the statistics of the iterations done, whose count is the next
 //!   iteration's index (which seeds the perturbation and the mirror plan).
 //!
-//! Serialised with bincode behind a version number; [`Checkpoint::from_bytes`]
-//! and [`Propagation::resume`] refuse anything that does not fit the rebuilt
-//! geometry, or that is not finite and non-negative, with an [`Error::Decode`].
+//! **Two halves.** Shooting the next iteration reads only the unshot maps;
+//! the totals are read only by whoever finishes iterations (the
+//! coordinator) and by a viewer of the snapshot (a snapshot's mirror
+//! radiance is its mirror totals). So a checkpoint is stored as two blobs:
+//! the [`ShootingState`] (statistics, Current, mirror unshot maps) and the
+//! [`Totals`] (Total, mirror totals). A worker reads half of the checkpoint
+//! and a viewer the other half; [`Checkpoint::join`] puts them back
+//! together. [`Propagation::snapshot_bytes`] serialises both halves straight
+//! from the propagation's maps, without copying them first.
+//!
+//! Serialised with bincode behind a version number: version 1 is the whole
+//! checkpoint in one blob (what stores written before the split hold: still
+//! read, by [`Checkpoint::from_bytes`], and by [`ShootingState::from_bytes`]
+//! and [`Totals::from_bytes`], which take their half of it), version 2 the
+//! halves. [`Checkpoint::from_bytes`] and [`Propagation::resume`] refuse
+//! anything that does not fit the rebuilt geometry, or that is not finite and
+//! non-negative, with an [`Error::Decode`].
 
 use super::{IterationStats, Options, Propagation};
 use crate::error::Error;
 use crate::scene::{Rgb, Scene};
 use serde::{Deserialize, Serialize};
 
-/// Version of the checkpoint's serialisation.
+/// Version of the whole checkpoint's serialisation (one blob).
 const CHECKPOINT_VERSION: u32 = 1;
+/// Version of the halves' serialisation ([`ShootingState`], [`Totals`]).
+const SPLIT_VERSION: u32 = 2;
+
+/// The serialisation version a checkpoint blob starts with (bincode writes
+/// the leading `u32` little-endian), if it is long enough to have one.
+fn version_of(bytes: &[u8]) -> Option<u32> {
+    bytes.get(..4).map(|v| u32::from_le_bytes([v[0], v[1], v[2], v[3]]))
+}
 
 /// The specular maps of one direction in a checkpoint.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -56,20 +78,222 @@ impl Checkpoint {
         bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
     }
 
+    /// Reads a whole checkpoint (version 1: one blob).
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<Checkpoint> {
-        let checkpoint: Checkpoint =
-            bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("checkpoint: {e}")))?;
-        if checkpoint.version != CHECKPOINT_VERSION {
-            return Err(Error::Decode(format!(
-                "checkpoint version {} (this build reads {CHECKPOINT_VERSION})",
-                checkpoint.version
-            )));
+        match version_of(bytes) {
+            Some(CHECKPOINT_VERSION) => {}
+            Some(SPLIT_VERSION) => {
+                return Err(Error::Decode(
+                    "checkpoint: this is the shooting half of a split checkpoint (read it with its totals)".into(),
+                ));
+            }
+            Some(v) => {
+                return Err(Error::Decode(format!(
+                    "checkpoint version {v} (this build reads {CHECKPOINT_VERSION} and {SPLIT_VERSION})"
+                )));
+            }
+            None => return Err(Error::Decode("checkpoint: truncated".into())),
         }
-        Ok(checkpoint)
+        bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("checkpoint: {e}")))
+    }
+
+    /// Whether `bytes` hold the shooting half of a split checkpoint (whose
+    /// totals are in another blob) rather than a whole one.
+    pub fn is_split(bytes: &[u8]) -> bool {
+        version_of(bytes) == Some(SPLIT_VERSION)
+    }
+
+    /// The two halves of this checkpoint.
+    pub fn split(self) -> (ShootingState, Totals) {
+        let (unshot, totals) = match self.mirrors {
+            Some(maps) => {
+                let (unshot, total) = maps.into_iter().map(|m| (m.unshot, m.total)).unzip();
+                (Some(unshot), Some(total))
+            }
+            None => (None, None),
+        };
+        let iterations = self.stats.len() as u32;
+        (
+            ShootingState {
+                version: SPLIT_VERSION,
+                stats: self.stats,
+                current: self.current,
+                mirrors: unshot,
+            },
+            Totals {
+                version: SPLIT_VERSION,
+                iterations,
+                total: self.total,
+                mirrors: totals,
+            },
+        )
+    }
+
+    /// Puts the halves of one checkpoint back together: they must be of the
+    /// same snapshot and have their mirror maps for the same directions and
+    /// slots. (Whether they fit a scene is [`Propagation::restore`]'s check.)
+    pub fn join(state: ShootingState, totals: Totals) -> crate::Result<Checkpoint> {
+        let bad = |m: String| Err(Error::Decode(format!("checkpoint halves do not match: {m}")));
+        if state.iterations() != totals.iterations {
+            return bad(format!(
+                "shooting state after {} iterations, totals after {}",
+                state.iterations(),
+                totals.iterations
+            ));
+        }
+        if state.current.len() != totals.total.len() {
+            return bad(format!(
+                "{} unshot and {} total texel values",
+                state.current.len(),
+                totals.total.len()
+            ));
+        }
+        let mirrors = match (state.mirrors, totals.mirrors) {
+            (None, None) => None,
+            (Some(unshot), Some(total)) => {
+                if unshot.len() != total.len() {
+                    return bad(format!(
+                        "unshot mirror maps of {} directions, totals of {}",
+                        unshot.len(),
+                        total.len()
+                    ));
+                }
+                if let Some(d) = unshot.iter().zip(&total).position(|(u, t)| u.len() != t.len()) {
+                    return bad(format!("direction {d}: unshot and total maps of different sizes"));
+                }
+                Some(
+                    unshot
+                        .into_iter()
+                        .zip(total)
+                        .map(|(unshot, total)| DirectionCheckpoint { unshot, total })
+                        .collect(),
+                )
+            }
+            _ => return bad("only one half has mirror maps".into()),
+        };
+        Ok(Checkpoint {
+            version: CHECKPOINT_VERSION,
+            stats: state.stats,
+            current: state.current,
+            total: totals.total,
+            mirrors,
+        })
     }
 }
 
+/// What shooting the next iteration reads of a checkpoint: the statistics of
+/// the iterations done (their count is the next one's index), the diffuse
+/// unshot power and every direction's unshot mirror map.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ShootingState {
+    version: u32,
+    pub stats: Vec<IterationStats>,
+    /// Unshot power per texel.
+    pub current: Vec<Rgb>,
+    /// Per direction, its unshot mirror map; `None` without specular machinery.
+    pub mirrors: Option<Vec<Vec<Rgb>>>,
+}
+
+impl ShootingState {
+    /// Iterations done when the checkpoint was taken.
+    pub fn iterations(&self) -> u32 {
+        self.stats.len() as u32
+    }
+
+    pub fn to_bytes(&self) -> Vec<u8> {
+        bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
+    }
+
+    /// Reads a shooting state, or takes it out of a whole (version 1)
+    /// checkpoint.
+    pub fn from_bytes(bytes: &[u8]) -> crate::Result<ShootingState> {
+        if version_of(bytes) == Some(SPLIT_VERSION) {
+            bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("shooting state: {e}")))
+        } else {
+            Checkpoint::from_bytes(bytes).map(|c| c.split().0)
+        }
+    }
+}
+
+/// The totals half of a checkpoint: the power that left every texel and
+/// every mirror slot so far (what a snapshot shows).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Totals {
+    version: u32,
+    /// Iterations done when the checkpoint was taken.
+    pub iterations: u32,
+    /// Power that left each texel so far.
+    pub total: Vec<Rgb>,
+    /// Per direction, its total mirror map; `None` without specular machinery.
+    pub mirrors: Option<Vec<Vec<Rgb>>>,
+}
+
+impl Totals {
+    pub fn to_bytes(&self) -> Vec<u8> {
+        bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
+    }
+
+    /// Reads totals, or takes them out of a whole (version 1) checkpoint.
+    pub fn from_bytes(bytes: &[u8]) -> crate::Result<Totals> {
+        if version_of(bytes) == Some(SPLIT_VERSION) {
+            bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("checkpoint totals: {e}")))
+        } else {
+            Checkpoint::from_bytes(bytes).map(|c| c.split().1)
+        }
+    }
+}
+
+/// A checkpoint's halves, serialised ([`Propagation::snapshot_bytes`]).
+pub struct SnapshotBytes {
+    /// [`ShootingState::to_bytes`].
+    pub state: Vec<u8>,
+    /// [`Totals::to_bytes`].
+    pub totals: Vec<u8>,
+}
+
+/// [`ShootingState`] over borrowed maps: the same bincode bytes (a slice
+/// serialises as a vector does), without copying megabytes of maps first.
+#[derive(Serialize)]
+struct ShootingStateRef<'a> {
+    version: u32,
+    stats: &'a [IterationStats],
+    current: &'a [Rgb],
+    mirrors: Option<Vec<&'a [Rgb]>>,
+}
+
+/// [`Totals`] over borrowed maps (see [`ShootingStateRef`]).
+#[derive(Serialize)]
+struct TotalsRef<'a> {
+    version: u32,
+    iterations: u32,
+    total: &'a [Rgb],
+    mirrors: Option<Vec<&'a [Rgb]>>,
+}
+
 impl Propagation {
+    /// The halves of [`Propagation::checkpoint`], serialised: equal to
+    /// `checkpoint().split()`'s `to_bytes`, without the copy.
+    pub fn snapshot_bytes(&self) -> SnapshotBytes {
+        let maps = self.specular.as_ref().map(|s| &s.maps);
+        let state = ShootingStateRef {
+            version: SPLIT_VERSION,
+            stats: &self.stats,
+            current: &self.current,
+            mirrors: maps.map(|m| m.iter().map(|m| m.unshot.as_slice()).collect()),
+        };
+        let totals = TotalsRef {
+            version: SPLIT_VERSION,
+            iterations: self.stats.len() as u32,
+            total: &self.total,
+            mirrors: maps.map(|m| m.iter().map(|m| m.total.as_slice()).collect()),
+        };
+        let expect = "bincode into memory cannot fail for plain numbers";
+        SnapshotBytes {
+            state: bincode::serialize(&state).expect(expect),
+            totals: bincode::serialize(&totals).expect(expect),
+        }
+    }
+
     /// The state to resume from after the iterations done so far.
     pub fn checkpoint(&self) -> Checkpoint {
         Checkpoint {
@@ -99,69 +323,113 @@ impl Propagation {
     }
 
     /// Replaces this propagation's state by `checkpoint` (of the same scene
-    /// and options), keeping the geometry: how a worker moves on to the next
-    /// iteration without rebuilding its subfields. On error the state is
-    /// unchanged.
+    /// and options), keeping the geometry. On error the state is unchanged.
     pub fn restore(&mut self, checkpoint: Checkpoint) -> crate::Result<()> {
-        let p = self;
-        let bad = |m: String| {
-            Err(Error::Decode(format!(
-                "checkpoint does not fit the scene and options: {m}"
-            )))
-        };
-        let texels = p.atlas.texels;
-        if checkpoint.current.len() != texels || checkpoint.total.len() != texels {
-            return bad(format!(
-                "{} / {} texel values for {texels} texels",
-                checkpoint.current.len(),
-                checkpoint.total.len()
+        let (state, totals) = checkpoint.split();
+        let texels = self.atlas.texels;
+        if totals.total.len() != texels {
+            return misfit(format!("{} total texel values for {texels} texels", totals.total.len()));
+        }
+        if !valid(&totals.total) {
+            return misfit("negative or non-finite power".into());
+        }
+        // A mismatch of mirrors and no mirrors is the shooting half's error.
+        if let (Some(spec), Some(maps)) = (&self.specular, &totals.mirrors) {
+            if maps.len() != spec.maps.len() {
+                return misfit(format!(
+                    "mirror maps for {} directions, expected {}",
+                    maps.len(),
+                    spec.maps.len()
+                ));
+            }
+            for (d, (own, saved)) in spec.maps.iter().zip(maps).enumerate() {
+                if saved.len() != own.total.len() {
+                    return misfit(format!(
+                        "direction {d}: mirror maps do not match its {} mirror slots",
+                        own.total.len()
+                    ));
+                }
+                if !valid(saved) {
+                    return misfit(format!("direction {d}: negative or non-finite mirror radiance"));
+                }
+            }
+        }
+        self.restore_shooting(state)?;
+        self.total = totals.total;
+        if let (Some(spec), Some(maps)) = (&mut self.specular, totals.mirrors) {
+            for (own, saved) in spec.maps.iter_mut().zip(maps) {
+                own.total = saved;
+                // Empty between iterations: the exchange consumed them.
+                own.incident.iter_mut().for_each(|v| *v = [0.0; 3]);
+            }
+        }
+        Ok(())
+    }
+
+    /// Replaces the state that shooting reads — the statistics, Current and
+    /// the unshot mirror maps — by `state`, keeping the geometry: how a
+    /// worker moves on to the next iteration from half of the checkpoint.
+    /// The totals and the incident maps are left as they were, so a
+    /// propagation restored this way computes blocks of the next iteration
+    /// ([`Propagation::compute_block`], which shoots into fresh incident
+    /// maps) with the same bits, but must not step, finish iterations or be
+    /// checkpointed (restore a whole checkpoint for that). On error the state
+    /// is unchanged.
+    pub fn restore_shooting(&mut self, state: ShootingState) -> crate::Result<()> {
+        let texels = self.atlas.texels;
+        if state.current.len() != texels {
+            return misfit(format!(
+                "{} unshot texel values for {texels} texels",
+                state.current.len()
             ));
         }
-        if let Some(i) = checkpoint
-            .stats
-            .iter()
-            .enumerate()
-            .position(|(i, s)| s.index != i as u32)
-        {
-            return bad(format!("iteration statistics out of order at {i}"));
+        if let Some(i) = state.stats.iter().enumerate().position(|(i, s)| s.index != i as u32) {
+            return misfit(format!("iteration statistics out of order at {i}"));
         }
-        let valid = |v: &[Rgb]| v.iter().flatten().all(|&c| c.is_finite() && c >= 0.0);
-        if !valid(&checkpoint.current) || !valid(&checkpoint.total) {
-            return bad("negative or non-finite power".into());
+        if !valid(&state.current) {
+            return misfit("negative or non-finite power".into());
         }
-        match (&mut p.specular, checkpoint.mirrors) {
+        match (&mut self.specular, state.mirrors) {
             (None, None) => {}
             (Some(spec), Some(maps)) => {
                 if maps.len() != spec.maps.len() {
-                    return bad(format!(
+                    return misfit(format!(
                         "mirror maps for {} directions, expected {}",
                         maps.len(),
                         spec.maps.len()
                     ));
                 }
                 for (d, (own, saved)) in spec.maps.iter().zip(&maps).enumerate() {
-                    let slots = own.total.len();
-                    if saved.unshot.len() != slots || saved.total.len() != slots {
-                        return bad(format!(
-                            "direction {d}: mirror maps do not match its {slots} mirror slots"
+                    if saved.len() != own.unshot.len() {
+                        return misfit(format!(
+                            "direction {d}: mirror maps do not match its {} mirror slots",
+                            own.unshot.len()
                         ));
                     }
-                    if !valid(&saved.unshot) || !valid(&saved.total) {
-                        return bad(format!("direction {d}: negative or non-finite mirror radiance"));
+                    if !valid(saved) {
+                        return misfit(format!("direction {d}: negative or non-finite mirror radiance"));
                     }
                 }
                 for (own, saved) in spec.maps.iter_mut().zip(maps) {
-                    own.unshot = saved.unshot;
-                    own.total = saved.total;
-                    own.incident.iter_mut().for_each(|v| *v = [0.0; 3]);
+                    own.unshot = saved;
                 }
             }
-            (Some(_), None) => return bad("the scene has mirrors, the checkpoint none".into()),
-            (None, Some(_)) => return bad("the checkpoint has mirror maps, the scene no mirror".into()),
+            (Some(_), None) => return misfit("the scene has mirrors, the checkpoint none".into()),
+            (None, Some(_)) => return misfit("the checkpoint has mirror maps, the scene no mirror".into()),
         }
-        p.current = checkpoint.current;
-        p.total = checkpoint.total;
-        p.stats = checkpoint.stats;
+        self.current = state.current;
+        self.stats = state.stats;
         Ok(())
     }
+}
+
+fn misfit<T>(m: String) -> crate::Result<T> {
+    Err(Error::Decode(format!(
+        "checkpoint does not fit the scene and options: {m}"
+    )))
+}
+
+/// Finite and non-negative, as power is.
+fn valid(v: &[Rgb]) -> bool {
+    v.iter().flatten().all(|&c| c.is_finite() && c >= 0.0)
 }

@@ -48,7 +48,7 @@ pub(crate) mod shoot;
 pub mod specular;
 pub mod work;
 
-pub use checkpoint::Checkpoint;
+pub use checkpoint::{Checkpoint, ShootingState, SnapshotBytes, Totals};
 pub use plan::Plan;
 pub use shoot::Flow;
 pub use specular::{Exchange, Specular};
@@ -438,9 +438,9 @@ impl Propagation {
         for (p, &pass) in passes.iter().enumerate() {
             for batch in 0..work.batches() {
                 let range = work.batch_range(batch, l);
-                let own = maps.as_mut().map(|m| &mut m[range.clone()]);
+                let mut own = maps.as_mut().map(|m| work::mirror_io(&mut m[range.clone()]));
                 let sum = self
-                    .run_batch_with(&work, pass, batch, own, &mut buffers)
+                    .run_batch_with(&work, pass, batch, own.as_deref_mut(), &mut buffers)
                     .expect("batches of this process's own work are well-formed");
                 work.absorb(pass, batch..batch + 1, sum)
                     .expect("this process absorbs its batches in order");

@@ -416,7 +416,8 @@ impl Propagation {
         batch: usize,
         maps: Option<&mut [DirectionMaps]>,
     ) -> crate::Result<BatchSum> {
-        self.run_batch_with(work, pass, batch, maps, &mut Vec::new())
+        let mut io = maps.map(mirror_io);
+        self.run_batch_with(work, pass, batch, io.as_deref_mut(), &mut Vec::new())
     }
 
     /// [`Propagation::run_batch`] with `buffers`, the per-direction texel
@@ -428,7 +429,7 @@ impl Propagation {
         work: &IterationWork,
         pass: Pass,
         batch: usize,
-        maps: Option<&mut [DirectionMaps]>,
+        maps: Option<&mut [MirrorIo]>,
         buffers: &mut Vec<Vec<Rgb>>,
     ) -> crate::Result<BatchSum> {
         let range = work.batch_range(batch, self.directions.len());
@@ -469,15 +470,12 @@ impl Propagation {
         // The batch's directions, CHUNK at a time: each chunk's directions in
         // parallel, each into its own buffer, then added to the sum in
         // direction order.
-        let compute = |range: Range<usize>,
-                       maps: Option<&mut [DirectionMaps]>,
-                       bufs: &mut [Vec<Rgb>]|
-         -> crate::Result<Vec<Flow>> {
-            Ok(match (pass, &work.mode) {
-                (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
-                    let layouts = self.specular.as_ref().map(|s| &s.layouts);
-                    let run =
-                        |d: usize, maps: Option<&mut DirectionMaps>, buf: &mut Vec<Rgb>, scratch: &mut Scratch| {
+        let compute =
+            |range: Range<usize>, maps: Option<&mut [MirrorIo]>, bufs: &mut [Vec<Rgb>]| -> crate::Result<Vec<Flow>> {
+                Ok(match (pass, &work.mode) {
+                    (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
+                        let layouts = self.specular.as_ref().map(|s| &s.layouts);
+                        let run = |d: usize, maps: Option<&mut MirrorIo>, buf: &mut Vec<Rgb>, scratch: &mut Scratch| {
                             let sub = &self.subfields[d];
                             let facing = facing(sub);
                             let beam = shoot::Beam {
@@ -488,65 +486,65 @@ impl Propagation {
                             clear(buf);
                             let io = maps.zip(layouts).map(|(m, layouts)| shoot::SpecularIo {
                                 mirror_base: &layouts[d].entry_base,
-                                unshot: &m.unshot,
-                                incident: &mut m.incident,
+                                unshot: m.unshot,
+                                incident: &mut *m.incident,
                             });
                             shoot::shoot(geometry, beam, radiance, buf, io, scratch)
                         };
-                    match (mirrors, maps) {
-                        (true, Some(maps)) => maps
-                            .par_iter_mut()
-                            .zip(bufs.par_iter_mut())
-                            .enumerate()
-                            .map_init(Scratch::default, |scratch, (i, (m, buf))| {
-                                run(range.start + i, Some(m), buf, scratch)
-                            })
-                            .collect(),
-                        (true, None) => {
-                            return Err(crate::Error::Parameter(format!(
-                                "batch {batch} needs the mirror maps of its directions"
-                            )));
+                        match (mirrors, maps) {
+                            (true, Some(maps)) => maps
+                                .par_iter_mut()
+                                .zip(bufs.par_iter_mut())
+                                .enumerate()
+                                .map_init(Scratch::default, |scratch, (i, (m, buf))| {
+                                    run(range.start + i, Some(m), buf, scratch)
+                                })
+                                .collect(),
+                            (true, None) => {
+                                return Err(crate::Error::Parameter(format!(
+                                    "batch {batch} needs the mirror maps of its directions"
+                                )));
+                            }
+                            (false, _) => range
+                                .clone()
+                                .into_par_iter()
+                                .zip(bufs.par_iter_mut())
+                                .map_init(Scratch::default, |scratch, (d, buf)| run(d, None, buf, scratch))
+                                .collect(),
                         }
-                        (false, _) => range
-                            .clone()
-                            .into_par_iter()
-                            .zip(bufs.par_iter_mut())
-                            .map_init(Scratch::default, |scratch, (d, buf)| run(d, None, buf, scratch))
-                            .collect(),
                     }
-                }
-                (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
-                    rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
-                        shoot::count(geometry, sub, weight, buf, scratch);
-                        Flow::default()
-                    })
-                }
-                (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. })
-                    if (copy as usize) < copies.len() =>
-                {
-                    let Some(radiance) = &radiance[copy as usize] else {
-                        return Err(crate::Error::Parameter(format!(
-                            "{pass:?} before the areas of copy {copy} are absorbed"
-                        )));
-                    };
-                    rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
-                        let facing = facing(sub);
-                        let beam = shoot::Beam {
-                            sub,
-                            weight,
-                            facing: &facing,
+                    (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
+                        rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
+                            shoot::count(geometry, sub, weight, buf, scratch);
+                            Flow::default()
+                        })
+                    }
+                    (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. })
+                        if (copy as usize) < copies.len() =>
+                    {
+                        let Some(radiance) = &radiance[copy as usize] else {
+                            return Err(crate::Error::Parameter(format!(
+                                "{pass:?} before the areas of copy {copy} are absorbed"
+                            )));
                         };
-                        shoot::shoot(geometry, beam, radiance, buf, None, scratch)
-                    })
-                }
-                _ => {
-                    return Err(crate::Error::Parameter(format!(
-                        "{pass:?} is not a pass of iteration {}",
-                        work.index
-                    )));
-                }
-            })
-        };
+                        rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
+                            let facing = facing(sub);
+                            let beam = shoot::Beam {
+                                sub,
+                                weight,
+                                facing: &facing,
+                            };
+                            shoot::shoot(geometry, beam, radiance, buf, None, scratch)
+                        })
+                    }
+                    _ => {
+                        return Err(crate::Error::Parameter(format!(
+                            "{pass:?} is not a pass of iteration {}",
+                            work.index
+                        )));
+                    }
+                })
+            };
         if let (Pass::Shoot, Mode::Direct { mirrors: true, .. }) = (pass, &work.mode)
             && maps.as_ref().is_none_or(|m| m.len() != range.len())
         {
@@ -598,10 +596,23 @@ impl Propagation {
     /// the block's mirror maps.
     pub fn compute_block(&self, work: &IterationWork, pass: Pass, batches: Range<usize>) -> crate::Result<BatchOutput> {
         let directions = self.block_directions(work, &batches)?;
-        let mut maps: Option<Vec<DirectionMaps>> = match (&self.specular, pass, work.uses_mirror_maps()) {
-            (Some(spec), Pass::Shoot, true) => Some(spec.maps[directions.clone()].to_vec()),
+        // The block's incident maps, from zero; shooting reads this replica's unshot maps in
+        // place (copying the directions' maps whole cost more than the rest of the output).
+        let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
+            (Some(spec), Pass::Shoot, true) => Some(&spec.maps[directions.clone()]),
             _ => None,
         };
+        let mut incident: Option<Vec<Vec<Rgb>>> =
+            spec.map(|maps| maps.iter().map(|m| vec![[0.0; 3]; m.unshot.len()]).collect());
+        let mut maps: Option<Vec<MirrorIo>> = spec.zip(incident.as_mut()).map(|(maps, incident)| {
+            maps.iter()
+                .zip(incident.iter_mut())
+                .map(|(m, incident)| MirrorIo {
+                    unshot: &m.unshot,
+                    incident,
+                })
+                .collect()
+        });
         let mut tree = TreeSum::new(batches.len());
         let mut buffers = Vec::new();
         for (i, batch) in batches.clone().enumerate() {
@@ -612,16 +623,13 @@ impl Propagation {
             let leaf = self.run_batch_with(work, pass, batch, own, &mut buffers)?;
             tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
         }
+        drop(maps);
         Ok(BatchOutput {
             iteration: work.index,
             pass,
             batches: batches.start as u32..batches.end as u32,
             sum: tree.finish().expect("every leaf of the block was pushed"),
-            mirrors: maps.map(|maps| {
-                maps.into_iter()
-                    .map(|m| MirrorUpdate { incident: m.incident })
-                    .collect()
-            }),
+            mirrors: incident.map(|maps| maps.into_iter().map(|incident| MirrorUpdate { incident }).collect()),
         })
     }
 
@@ -679,6 +687,25 @@ impl Propagation {
         }
         Ok(())
     }
+}
+
+/// What shooting one direction reads and writes of its mirror maps: the
+/// unshot radiance its mirror slots send, and the incident radiance they
+/// receive (added to). Borrowed separately so that a worker shoots from its
+/// unshot maps in place into fresh incident maps.
+pub(crate) struct MirrorIo<'a> {
+    pub unshot: &'a [Rgb],
+    pub incident: &'a mut [Rgb],
+}
+
+/// The shooting view of whole mirror maps (the in-process step's own).
+pub(crate) fn mirror_io(maps: &mut [DirectionMaps]) -> Vec<MirrorIo<'_>> {
+    maps.iter_mut()
+        .map(|m| MirrorIo {
+            unshot: &m.unshot,
+            incident: &mut m.incident,
+        })
+        .collect()
 }
 
 /// `acc += v`, texel by texel.
