@@ -17,7 +17,7 @@ use vlf_core::propagate::{Pass, Propagation};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{JobStatus, State as WireState};
-use vlf_store::{Coordinator, FieldJob, Job, JobId, JobState, Store, StoreError};
+use vlf_store::{Coordinator, FieldJob, Job, JobId, JobState, Store, StoreError, WorkTraffic};
 
 /// Why a job could not be created.
 #[derive(Debug, thiserror::Error)]
@@ -162,6 +162,7 @@ fn start(sched: &Arc<Scheduler>, coordinator: Coordinator) {
         wake,
         id: coordinator.job().id().clone(),
         coordinator: Some(coordinator),
+        committing: None,
     };
     tokio::spawn(driver.run(resample));
 }
@@ -172,6 +173,14 @@ struct Driver {
     id: JobId,
     /// Out while a blocking step has it.
     coordinator: Option<Coordinator>,
+    /// The last snapshot, being committed while the next iteration is computed.
+    committing: Option<Committing>,
+}
+
+/// A snapshot's commit running on a blocking thread ([`vlf_store::SnapshotCommit::commit`]).
+struct Committing {
+    snapshot: u32,
+    task: tokio::task::JoinHandle<Result<Result<Job, StoreError>, vlf_store::Panicked>>,
 }
 
 /// How a job's drive ended early.
@@ -213,13 +222,19 @@ impl Driver {
             ),
         };
         tracing::warn!(job = %self.id, ?state, "job ended");
+        // A snapshot being committed is committed first (or has failed): the end is the last
+        // manifest write.
+        let settled = self.settle().await.err().map(|stop| match stop {
+            Stop::Failed(m) => format!(" ({m})"),
+            Stop::Cancelled => String::new(),
+        });
         // Record the end in the store, so a restarted coordinator does not take the job up again.
         let recorded = self.blocking(move |c| c.end(state)).await;
         let message = match recorded {
             Ok(Ok(())) => message,
             Ok(Err(e)) => format!("{message} (and recording it in the store failed: {e})"),
             Err(e) => format!("{message} ({e})"),
-        };
+        } + settled.as_deref().unwrap_or("");
         self.sched.update(&self.id, |s| {
             s.state = wire as i32;
             s.message = message;
@@ -228,10 +243,11 @@ impl Driver {
 
     /// Iterates until the job's stop rule is met.
     async fn propagate(&mut self) -> Result<(), Stop> {
+        let mut driven = 0u32;
         loop {
             let c = self.coordinator.as_mut().ok_or_else(lost)?;
             if c.finished() {
-                return Ok(());
+                return self.settle().await;
             }
             let k = c.iteration();
             let (passes, batches) = c.passes();
@@ -241,12 +257,17 @@ impl Driver {
                 s.state = WireState::Propagating as i32;
                 s.iteration = k + 1;
             });
-            // Batches a previous coordinator's workers already wrote are not computed again.
-            let stored = self
-                .blocking(|c| c.blocks_in_store())
-                .await
-                .map_err(Stop::Failed)?
-                .map_err(|e| Stop::Failed(e.to_string()))?;
+            // Batches a previous coordinator's workers already wrote are not computed again. It
+            // can have released at most one iteration past its last commit, so only the first two
+            // iterations driven here can find any (a listing is a round trip to an object store).
+            let stored = if driven < 2 {
+                self.blocking(|c| c.blocks_in_store())
+                    .await
+                    .map_err(Stop::Failed)?
+                    .map_err(|e| Stop::Failed(e.to_string()))?
+            } else {
+                vec![Vec::new(); passes.len()]
+            };
             let mut opened = vec![false; passes.len()];
             let mut absorbed = Vec::new();
             self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
@@ -276,34 +297,63 @@ impl Driver {
                 self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
             }
             self.check_cancelled()?;
-            self.blocking(|c| c.finish_iteration())
+            // Snapshots are committed in order: the last one before this one is released.
+            self.settle().await?;
+            let (_, commit) = self
+                .blocking(|c| c.release_iteration())
                 .await
                 .map_err(Stop::Failed)?
-                .map_err(|e| Stop::Failed(format!("cannot commit snapshot {}: {e}", k + 1)))?;
-            let traffic = self
+                .map_err(|e| Stop::Failed(format!("cannot write snapshot {}: {e}", k + 1)))?;
+            let (traffic, unshot) = self
                 .coordinator
                 .as_ref()
-                .and_then(|c| c.traffic().last().copied())
-                .unwrap_or_default();
+                .map(|c| {
+                    (
+                        c.traffic().last().copied().unwrap_or_default(),
+                        c.propagation().unshot_fraction(),
+                    )
+                })
+                .unwrap_or((WorkTraffic::default(), f64::NAN));
             self.sched.end_iteration(&self.id, traffic);
-            let unshot = self
-                .coordinator
-                .as_ref()
-                .map(|c| c.propagation().unshot_fraction())
-                .unwrap_or(f64::NAN);
-            self.sched.update(&self.id, |s| {
-                s.snapshots.push(k + 1);
-                s.unshot_fraction = unshot;
+            self.sched.update(&self.id, |s| s.unshot_fraction = unshot);
+            // The next iteration's workers read only the shooting state, written by now: the
+            // rest of the snapshot and its commit go on while they compute.
+            // The snapshot is announced as soon as it is committed.
+            let snapshot = commit.iteration();
+            let (sched, id) = (self.sched.clone(), self.id.clone());
+            self.committing = Some(Committing {
+                snapshot,
+                task: tokio::spawn(async move {
+                    let committed = vlf_store::blocking(move || commit.commit()).await;
+                    if let Ok(Ok(_)) = &committed {
+                        sched.update(&id, |s| s.snapshots.push(snapshot));
+                        tracing::info!(
+                            job = %id,
+                            snapshot,
+                            work_blobs = traffic.blobs,
+                            work_mb = format!("{:.2}", traffic.bytes as f64 / 1e6),
+                            "iteration committed"
+                        );
+                    }
+                    committed
+                }),
             });
-            tracing::info!(
-                job = %self.id,
-                snapshot = k + 1,
-                unshot,
-                work_blobs = traffic.blobs,
-                work_mb = format!("{:.2}", traffic.bytes as f64 / 1e6),
-                "iteration committed"
-            );
+            driven = driven.saturating_add(1);
         }
+    }
+
+    /// Waits for the snapshot being committed, if any, and takes its manifest.
+    async fn settle(&mut self) -> Result<(), Stop> {
+        let Some(Committing { snapshot, task }) = self.committing.take() else {
+            return Ok(());
+        };
+        let committed = task
+            .await
+            .map_err(|e| Stop::Failed(format!("internal: {e}")))?
+            .map_err(|e| Stop::Failed(format!("internal: {e}")))?
+            .map_err(|e| Stop::Failed(format!("cannot commit snapshot {snapshot}: {e}")))?;
+        self.coordinator.as_mut().ok_or_else(lost)?.committed(committed);
+        Ok(())
     }
 
     /// Writes the final field and marks the job finished.

@@ -157,20 +157,32 @@ impl FieldJob {
         }
     }
 
-    /// Writes the snapshot after `p.iterations_done()` iterations and commits it: radiance blobs
-    /// and the summary first, then the exact checkpoint, then the manifest.
+    /// Writes the snapshot after `p.iterations_done()` iterations and commits it: the shooting
+    /// state first, then the totals, the diffuse maps and the summary, then the manifest.
     pub fn write_snapshot(&mut self, p: &Propagation) -> Result<(), StoreError> {
+        let committed = self.release_snapshot(p)?.commit()?;
+        self.adopt_commit(committed);
+        Ok(())
+    }
+
+    /// Writes the part of the snapshot after `p.iterations_done()` iterations that the next
+    /// iteration's workers read — its shooting state — and returns the rest to write and commit.
+    /// A coordinator hands out the next iteration's leases in between (see [`PendingSnapshot`]).
+    pub fn release_snapshot(&self, p: &Propagation) -> Result<PendingSnapshot, StoreError> {
         let k = p.iterations_done();
         if self.job.manifest().is_finished(k) {
             return Err(self.job_error(format!("snapshot {k} is already finished")));
         }
-        let stage = Stage::Iteration(k);
+        let halves = p.snapshot_bytes();
+        self.job.put_state(k, &halves.state)?;
         let unit = radiance_unit(&self.scene);
-        // Mirror radiance of a snapshot lives in its checkpoint (see the module docs).
-        self.write_radiance(stage, &p.atlas, &p.diffuse_radiance(), None, unit)?;
-        self.write_summary(
-            stage,
-            &Summary {
+        Ok(PendingSnapshot {
+            job: self.job.clone(),
+            k,
+            totals: halves.totals,
+            atlas: p.atlas.clone(),
+            diffuse: p.diffuse_radiance(),
+            summary: Summary {
                 iterations: k,
                 unshot_fraction: p.unshot_fraction(),
                 emitted: p.emitted,
@@ -178,11 +190,14 @@ impl FieldJob {
                 radiance_unit: unit,
                 stats: p.stats.clone(),
             },
-        )?;
-        let halves = p.snapshot_bytes();
-        self.job.put_totals(k, &halves.totals)?;
-        self.job.put_state(k, &halves.state)?;
-        self.job.commit_iteration(k)
+        })
+    }
+
+    /// Takes the manifest a [`PendingSnapshot::commit`] of this job wrote. Nothing else may write
+    /// this job's manifest while a snapshot is pending (the commit would be forgotten).
+    pub fn adopt_commit(&mut self, committed: Job) {
+        debug_assert_eq!(committed.id(), self.job.id(), "a commit of another job");
+        self.job = committed;
     }
 
     /// Writes `field` as the job's final field and marks the job finished.
@@ -259,7 +274,15 @@ impl FieldJob {
 
     /// What shooting the iteration after finished snapshot `k` reads: half of its checkpoint.
     pub fn shooting_state(&self, k: u32) -> Result<ShootingState, StoreError> {
-        let state = ShootingState::from_bytes(&self.job.get_state(k)?).map_err(|e| self.field_error(e))?;
+        self.job.check_committed(Stage::Iteration(k))?;
+        self.released_shooting_state(k)
+    }
+
+    /// The shooting state of snapshot `k` once the iteration after it is released, whether or
+    /// not the snapshot is committed yet: what a worker reads (see [`PendingSnapshot`]; any
+    /// shooting state stored for `k` is the one, as it is a pure function of the job).
+    pub fn released_shooting_state(&self, k: u32) -> Result<ShootingState, StoreError> {
+        let state = ShootingState::from_bytes(&self.job.get_released_state(k)?).map_err(|e| self.field_error(e))?;
         self.of_snapshot(k, state.iterations())?;
         Ok(state)
     }
@@ -323,19 +346,14 @@ impl FieldJob {
         mirrors: Option<Mirrors>,
         unit: f64,
     ) -> Result<(), StoreError> {
-        let scale = (1.0 / unit) as f32;
-        let scaled = |v: &[[f32; 3]]| -> Vec<f32> { v.as_flattened().iter().map(|&x| x * scale).collect() };
-        atlas.grids.par_iter().enumerate().try_for_each(|(s, g)| {
-            let values = scaled(&radiance[g.first..g.first + g.len()]);
-            self.job.put_diffuse(stage, s as u32, &[g.height, g.width, 3], &values)
-        })?;
+        write_diffuse(&self.job, stage, atlas, radiance, unit)?;
         let Some(m) = mirrors else {
             return Ok(());
         };
         let per_side = self.options.grid.tiles_per_side();
         let tiles = mirror_tiles(m.layouts, m.subfields);
         tiles.par_iter().try_for_each(|(d, k, range)| {
-            let values = scaled(&m.totals[*d][range.clone()]);
+            let values = scaled(&m.totals[*d][range.clone()], unit);
             let (s, t) = (k % per_side, k / per_side);
             self.job
                 .put_tile(stage, *d as u32, s, t, &[range.len() as u32, 3], &values)
@@ -372,6 +390,67 @@ impl FieldJob {
             job: self.id().to_string(),
             source,
         }
+    }
+}
+
+/// Radiance values divided by the stored unit, flattened.
+fn scaled(v: &[[f32; 3]], unit: f64) -> Vec<f32> {
+    let scale = (1.0 / unit) as f32;
+    v.as_flattened().iter().map(|&x| x * scale).collect()
+}
+
+/// Writes every surface's diffuse map of `stage`, in parallel.
+fn write_diffuse(
+    job: &Job,
+    stage: Stage,
+    atlas: &TexelAtlas,
+    radiance: &[[f32; 3]],
+    unit: f64,
+) -> Result<(), StoreError> {
+    atlas.grids.par_iter().enumerate().try_for_each(|(s, g)| {
+        let values = scaled(&radiance[g.first..g.first + g.len()], unit);
+        job.put_diffuse(stage, s as u32, &[g.height, g.width, 3], &values)
+    })
+}
+
+/// A snapshot released to the next iteration but not committed yet
+/// ([`FieldJob::release_snapshot`]): its shooting state — all that the next iteration's workers
+/// read — is written; its totals, diffuse maps and summary, and the commit, are still to be done.
+/// The coordinator of the distributed service hands out the next iteration's leases in between,
+/// so workers do not wait for what only resuming and viewing need (nor, on a disk, for the
+/// commit's syncs).
+///
+/// Until it is committed the snapshot is not listed: readers see the previous one, and a
+/// coordinator that stops resumes from the previous one and writes the same shooting state again
+/// (a pure function of the previous snapshot and the scene), so the blocks workers computed from
+/// the released state are the ones it would have them compute.
+pub struct PendingSnapshot {
+    job: Job,
+    k: u32,
+    totals: Vec<u8>,
+    atlas: TexelAtlas,
+    diffuse: Vec<[f32; 3]>,
+    summary: Summary,
+}
+
+impl PendingSnapshot {
+    /// The snapshot's number: iterations done.
+    pub fn iteration(&self) -> u32 {
+        self.k
+    }
+
+    /// Writes the rest of the snapshot and commits it; returns the job with the manifest that
+    /// lists it, for [`FieldJob::adopt_commit`].
+    pub fn commit(mut self) -> Result<Job, StoreError> {
+        let stage = Stage::Iteration(self.k);
+        self.job.put_totals(self.k, &self.totals)?;
+        // Mirror radiance of a snapshot lives in its checkpoint's totals (see the module docs).
+        write_diffuse(&self.job, stage, &self.atlas, &self.diffuse, self.summary.radiance_unit)?;
+        let json = serde_json::to_vec_pretty(&self.summary)
+            .map_err(|e| StoreError::Layout(format!("summary of snapshot {}: {e}", self.k)))?;
+        self.job.put_summary(stage, &json)?;
+        self.job.commit_iteration(self.k)?;
+        Ok(self.job)
     }
 }
 

@@ -26,8 +26,9 @@
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;
-use crate::field::FieldJob;
+use crate::field::{FieldJob, PendingSnapshot};
 use crate::id::JobId;
+use crate::job::Job;
 use crate::layout;
 use crate::manifest::JobState;
 use crate::store::PutOutcome;
@@ -179,12 +180,9 @@ impl Replica {
     /// store.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         if self.current.as_ref().map(|c| c.0) != Some(k) {
-            if !self.job.job().manifest().is_finished(k) {
-                // The coordinator committed it after this replica last read the manifest.
-                self.job.reload()?;
-            }
-            // Shooting reads half of the checkpoint: the unshot maps.
-            let state = self.job.shooting_state(k)?;
+            // Shooting reads half of the checkpoint, the unshot maps: written before the
+            // iteration is released, perhaps not committed yet (see `PendingSnapshot`).
+            let state = self.job.released_shooting_state(k)?;
             self.prop.restore_shooting(state).map_err(|e| self.job.field_error(e))?;
             self.current = Some((k, self.prop.iteration_work()));
         }
@@ -245,6 +243,32 @@ fn cover(stored: &[Range<usize>], span: Range<usize>) -> Result<Vec<Range<usize>
 pub struct WorkTraffic {
     pub blobs: u64,
     pub bytes: u64,
+}
+
+/// The rest of an iteration's end once the next iteration is released
+/// ([`Coordinator::release_iteration`]): the snapshot's commit, then the deletion of the
+/// iteration's batch outputs (only after the commit: a coordinator that stops before it resumes
+/// from the previous snapshot and uses them again).
+pub struct SnapshotCommit {
+    snapshot: PendingSnapshot,
+    work: Vec<String>,
+}
+
+impl SnapshotCommit {
+    /// The snapshot it commits.
+    pub fn iteration(&self) -> u32 {
+        self.snapshot.iteration()
+    }
+
+    /// Commits the snapshot and deletes the iteration's batch outputs; returns the job with the
+    /// manifest that lists the snapshot, for [`Coordinator::committed`].
+    pub fn commit(self) -> Result<Job, StoreError> {
+        let job = self.snapshot.commit()?;
+        for key in &self.work {
+            job.store().delete(key)?;
+        }
+        Ok(job)
+    }
 }
 
 /// The coordinator's side: absorbs the batches of each pass in order and commits snapshots.
@@ -378,6 +402,17 @@ impl Coordinator {
     /// Finishes the iteration once every pass is absorbed: commits the next snapshot and
     /// deletes the iteration's batch outputs.
     pub fn finish_iteration(&mut self) -> Result<IterationStats, StoreError> {
+        let (stats, commit) = self.release_iteration()?;
+        let committed = commit.commit()?;
+        self.committed(committed);
+        Ok(stats)
+    }
+
+    /// Finishes the iteration once every pass is absorbed and releases the next one: writes the
+    /// next snapshot's shooting state, which is all its workers read, and returns the rest of the
+    /// snapshot to commit ([`SnapshotCommit::commit`], then [`Coordinator::committed`]) while
+    /// they compute. Nothing may write the job's manifest in between.
+    pub fn release_iteration(&mut self) -> Result<(IterationStats, SnapshotCommit), StoreError> {
         let k = self.iteration();
         if self.pending_pass().is_some() {
             return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
@@ -388,17 +423,28 @@ impl Coordinator {
             unreachable!("pending_pass created it");
         };
         let stats = self.prop.finish_iteration(work, started);
-        self.job.write_snapshot(&self.prop)?;
-        let store = self.job.job().store();
-        let blobs = store.list_sizes(&layout::work_prefix(self.job.id(), k)?)?;
+        let snapshot = self.job.release_snapshot(&self.prop)?;
+        let blobs = self
+            .job
+            .job()
+            .store()
+            .list_sizes(&layout::work_prefix(self.job.id(), k)?)?;
         self.traffic.push(WorkTraffic {
             blobs: blobs.len() as u64,
             bytes: blobs.iter().map(|(_, size)| size).sum(),
         });
-        for (key, _) in blobs {
-            store.delete(&key)?;
-        }
-        Ok(stats)
+        Ok((
+            stats,
+            SnapshotCommit {
+                snapshot,
+                work: blobs.into_iter().map(|(key, _)| key).collect(),
+            },
+        ))
+    }
+
+    /// Takes the manifest a [`SnapshotCommit::commit`] of this job wrote.
+    pub fn committed(&mut self, committed: Job) {
+        self.job.adopt_commit(committed);
     }
 
     /// Writes the final field and marks the job finished.

@@ -234,6 +234,13 @@ impl Job {
             .get_bytes_blob(&layout::state(self.id(), k)?, BlobKind::Snapshot)
     }
 
+    /// The resume state of iteration `k` as written, committed or not (see
+    /// `FieldJob::released_shooting_state` for when that is safe).
+    pub fn get_released_state(&self, k: u32) -> Result<Vec<u8>, StoreError> {
+        self.store
+            .get_bytes_blob(&layout::state(self.id(), k)?, BlobKind::Snapshot)
+    }
+
     /// The totals half of the resume state of finished iteration `k`.
     pub fn get_totals(&self, k: u32) -> Result<Vec<u8>, StoreError> {
         self.check_committed(Stage::Iteration(k))?;

@@ -27,9 +27,9 @@ pub mod store;
 
 pub use blob::{BlobError, BlobKind, Data, Decoded, Encoding};
 pub use error::StoreError;
-pub use field::{FieldJob, Summary};
+pub use field::{FieldJob, PendingSnapshot, Summary};
 pub use id::JobId;
-pub use iteration::{Coordinator, Prototypes, Replica, WorkTraffic};
+pub use iteration::{Coordinator, Prototypes, Replica, SnapshotCommit, WorkTraffic};
 pub use job::Job;
 pub use layout::Stage;
 pub use manifest::{JobState, Manifest};

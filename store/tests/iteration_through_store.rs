@@ -180,7 +180,81 @@ fn conflicting_or_missing_batches(o: &Opener) {
     assert!(replica.compute(0, Pass::ShootCopy { copy: 0 }, 0..1).is_err());
 }
 
+/// Computes and absorbs every pending pass of the coordinator's iteration with one replica, one
+/// lease per pass.
+fn compute_iteration(coordinator: &mut Coordinator, replica: &mut Replica) {
+    let k = coordinator.iteration();
+    while let Some((pass, batches)) = coordinator.pending_pass() {
+        replica.compute(k, pass, 0..batches).unwrap();
+        coordinator.absorb_pass().unwrap();
+    }
+}
+
+/// The service's order: an iteration is released (its shooting state written) and computed while
+/// the previous snapshot is committed. A released snapshot stays invisible until committed; a
+/// coordinator that stops in between resumes from the snapshot before, reuses what workers
+/// computed from the released state, and ends with the bits of an uninterrupted run.
+fn released_before_committed(o: &Opener) {
+    let (scene, options) = (bundled("mirrors.obj"), options(0, 33));
+    let reference = in_process(&o.open(), &scene, &options);
+    let p = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let job = FieldJob::create(&o.open(), &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    let mut coordinator = Coordinator::resume(job).unwrap();
+    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    compute_iteration(&mut coordinator, &mut replica);
+    let (_, commit) = coordinator.release_iteration().unwrap();
+    assert_eq!(commit.iteration(), 1);
+    // Released, not committed: readers see nothing of snapshot 1; its workers read its state.
+    let reader = FieldJob::open(&o.open(), &id).unwrap();
+    assert!(reader.checkpoint(1).is_err());
+    assert!(reader.shooting_state(1).is_err());
+    assert!(reader.load(Stage::Iteration(1)).is_err());
+    assert_eq!(reader.released_shooting_state(1).unwrap().iterations(), 1);
+    // The next iteration is computed from it before the commit...
+    compute_iteration(&mut coordinator, &mut replica);
+    // ...and the coordinator stops: snapshot 1 is never committed, iteration 1's outputs stay.
+    drop((commit, coordinator));
+    let stopped = FieldJob::open(&o.open(), &id).unwrap();
+    assert_eq!(stopped.job().manifest().finished_iterations, vec![0]);
+    assert!(!stopped.stored_blocks(1, Pass::Shoot).unwrap().is_empty());
+
+    // A new coordinator resumes from snapshot 0 and commits each snapshot while the next
+    // iteration is computed; what the first one's workers wrote is used as it is.
+    let mut coordinator = Coordinator::resume(stopped).unwrap();
+    assert_eq!(coordinator.iteration(), 0);
+    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    let mut pending = None;
+    while !coordinator.finished() {
+        let k = coordinator.iteration();
+        let reused = coordinator.blocks_in_store().unwrap();
+        assert_eq!(
+            reused.iter().all(Vec::is_empty),
+            k > 1,
+            "iteration {}: {reused:?}",
+            k + 1
+        );
+        compute_iteration(&mut coordinator, &mut replica);
+        if let Some(commit) = pending.take() {
+            let committed = vlf_store::SnapshotCommit::commit(commit).unwrap();
+            coordinator.committed(committed);
+        }
+        pending = Some(coordinator.release_iteration().unwrap().1);
+    }
+    let last = pending.unwrap().commit().unwrap();
+    coordinator.committed(last);
+    let job = coordinator.finish(false).unwrap();
+    assert_eq!(job.job().manifest().finished_iterations, vec![0, 1, 2, 3]);
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+    assert!(
+        job.job().store().list(&format!("jobs/{id}/work/")).unwrap().is_empty(),
+        "every iteration's outputs are deleted once its snapshot is committed"
+    );
+}
+
 per_backend! {
+    released_iterations_resume_with_the_same_bits => crate::released_before_committed,
     replicas_give_the_same_bits_with_mirrors => crate::mirrors,
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,
     conflicting_or_missing_batches_are_errors => crate::conflicting_or_missing_batches,
