@@ -160,6 +160,14 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
+/// The median, smallest and largest of `way[i] / base[i]` over the rounds `i`.
+fn paired_ratio(base: &[f64], way: &[f64]) -> (f64, f64, f64) {
+    let ratios: Vec<f64> = base.iter().zip(way).map(|(b, w)| w / b).collect();
+    let low = ratios.iter().copied().fold(f64::INFINITY, f64::min);
+    let high = ratios.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    (median(ratios), low, high)
+}
+
 fn name(workers: Option<usize>) -> String {
     match workers {
         None => "in-process".into(),
@@ -186,14 +194,24 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Option<usize>], samples: &[V
          Every service run gave the in-process bits.\n",
         args.repeat
     );
-    let base = median(samples[0].iter().map(|s| s.seconds).collect());
-    let _ = writeln!(out, "| run | median s | fastest s | × in-process |");
-    let _ = writeln!(out, "|---|---:|---:|---:|");
+    let _ = writeln!(
+        out,
+        "`×` is the median over rounds of each round's ratio to its in-process run (a slow \
+         spell of the machine slows both runs of a round), with the smallest and largest.\n"
+    );
+    let base: Vec<f64> = samples[0].iter().map(|s| s.seconds).collect();
+    let _ = writeln!(out, "| run | median s | fastest s | × in-process | × range |");
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|");
     for (way, runs) in ways.iter().zip(samples) {
         let times: Vec<f64> = runs.iter().map(|s| s.seconds).collect();
         let fastest = times.iter().copied().fold(f64::INFINITY, f64::min);
+        let (ratio, low, high) = paired_ratio(&base, &times);
         let m = median(times);
-        let _ = writeln!(out, "| {} | {m:.3} | {fastest:.3} | {:.2} |", name(*way), m / base);
+        let _ = writeln!(
+            out,
+            "| {} | {m:.3} | {fastest:.3} | {ratio:.2} | {low:.2}–{high:.2} |",
+            name(*way)
+        );
     }
 
     let _ = writeln!(
@@ -236,4 +254,21 @@ fn cpu_name() -> Option<String> {
     let info = std::fs::read_to_string("/proc/cpuinfo").ok()?;
     let line = info.lines().find(|l| l.starts_with("model name"))?;
     Some(line.split_once(':')?.1.trim().to_string())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn paired_ratios_cancel_a_machine_that_slows_down_between_rounds() {
+        // The machine is 3× slower in the last round: each round's ratio is still 1.2.
+        let base = [1.0, 1.0, 3.0];
+        let service = [1.2, 1.2, 3.6];
+        let (ratio, low, high) = paired_ratio(&base, &service);
+        assert!((ratio - 1.2).abs() < 1e-12 && (low - 1.2).abs() < 1e-12 && (high - 1.2).abs() < 1e-12);
+        let (ratio, low, high) = paired_ratio(&[1.0, 2.0, 4.0], &[1.1, 2.6, 4.0]);
+        assert_eq!((ratio, low, high), (1.1, 1.0, 1.3));
+        assert_eq!(median(vec![3.0, 1.0, 2.0, 10.0]), 2.5);
+    }
 }

@@ -325,7 +325,8 @@ impl Scheduler {
     }
 
     /// The iterations this coordinator finished for `job`: how long each took, from its start to
-    /// its snapshot's commit, and what it moved through the store.
+    /// the start of the next (its snapshot released: the commit overlaps the next iteration), and
+    /// what it moved through the store.
     pub fn iterations(&self, job: &JobId) -> Result<Vec<(f64, WorkTraffic)>, Unknown> {
         let state = self.lock();
         let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;

@@ -85,7 +85,7 @@ impl RayTables {
         words.extend(vectors.iter().flat_map(|v| v.to_array().map(f)));
 
         words[6] = words.len() as u32;
-        for sub in &spec.subfields {
+        for sub in spec.subfields.iter() {
             words.extend(sub.frame.u.to_array().map(f));
             words.extend(sub.frame.v.to_array().map(f));
         }

@@ -20,6 +20,7 @@ use crate::psf::Subfield;
 use crate::scene::{Rgb, Scene};
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// A propagated virtual light field.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -48,7 +49,7 @@ pub struct LightField {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SpecularField {
     pub directions: DirectionSet,
-    pub subfields: Vec<Subfield>,
+    pub subfields: Arc<[Subfield]>,
     pub layouts: Vec<MirrorLayout>,
     /// `totals[d][slot]`: radiance leaving the mirror along direction `d`.
     pub totals: Vec<Vec<[f32; 3]>>,

@@ -49,7 +49,7 @@ impl PartCatalog {
             ranges.push(g.first..g.first + (g.width * g.height) as usize);
         }
         if let Some(spec) = &field.specular {
-            for (d, (layout, sub)) in spec.layouts.iter().zip(&spec.subfields).enumerate() {
+            for (d, (layout, sub)) in spec.layouts.iter().zip(spec.subfields.iter()).enumerate() {
                 for (k, range) in layout.tile_slots(sub) {
                     parts.push(Part::Tile {
                         direction: d as u32,

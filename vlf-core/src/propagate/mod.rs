@@ -60,6 +60,7 @@ use crate::psf::{GridSize, Subfield};
 use crate::scene::{Rgb, Scene};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 use std::time::Instant;
 
 /// When to stop iterating.
@@ -229,7 +230,8 @@ pub struct Propagation {
     pub options: Options,
     pub directions: DirectionSet,
     pub atlas: TexelAtlas,
-    pub subfields: Vec<Subfield>,
+    /// Shared: a clone of the propagation (a worker's replica) does not copy them.
+    pub subfields: Arc<[Subfield]>,
     /// Discrete projected area `T_t` of every texel (see module docs).
     pub projected_area: Vec<f64>,
     /// Unshot power per texel (the paper's Current map).
@@ -373,7 +375,7 @@ impl Propagation {
             options,
             directions,
             atlas,
-            subfields,
+            subfields: subfields.into(),
             projected_area,
             current,
             emitted,
