@@ -8,9 +8,10 @@
 //! out of the comparison; what is left is the service's own cost: leases, encoding and moving
 //! the batch outputs, the coordinator's absorbing, and each worker building its geometry.
 //!
-//! Reported per way: the median and fastest wall time, the ratio of the medians to the
-//! in-process run, the median time of every iteration, and the work each iteration moved through
-//! the store (blobs and MB). Every service run's last checkpoint is checked bit for bit against
+//! Reported per way: the median and fastest wall time, the median over rounds of each round's
+//! ratio to its in-process run (with the smallest and largest: a noisy machine's slow spells hit
+//! both runs of a round alike), the median time of every iteration, and the work each iteration
+//! moved through the store (blobs and MB). Every service run's last checkpoint is checked bit for bit against
 //! the in-process one.
 
 use crate::JobFlags;

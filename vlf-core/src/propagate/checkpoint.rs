@@ -42,6 +42,11 @@ const CHECKPOINT_VERSION: u32 = 1;
 /// Version of the halves' serialisation ([`ShootingState`], [`Totals`]).
 const SPLIT_VERSION: u32 = 2;
 
+/// The bincode bytes of `value`.
+fn encode(value: &impl Serialize) -> Vec<u8> {
+    bincode::serialize(value).expect("bincode into memory cannot fail for plain numbers")
+}
+
 /// The serialisation version a checkpoint blob starts with (bincode writes
 /// the leading `u32` little-endian), if it is long enough to have one.
 fn version_of(bytes: &[u8]) -> Option<u32> {
@@ -75,7 +80,7 @@ impl Checkpoint {
     }
 
     pub fn to_bytes(&self) -> Vec<u8> {
-        bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
+        encode(self)
     }
 
     /// Reads a whole checkpoint (version 1: one blob).
@@ -201,7 +206,7 @@ impl ShootingState {
     }
 
     pub fn to_bytes(&self) -> Vec<u8> {
-        bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
+        encode(self)
     }
 
     /// Reads a shooting state, or takes it out of a whole (version 1)
@@ -230,7 +235,7 @@ pub struct Totals {
 
 impl Totals {
     pub fn to_bytes(&self) -> Vec<u8> {
-        bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
+        encode(self)
     }
 
     /// Reads totals, or takes them out of a whole (version 1) checkpoint.
@@ -287,10 +292,9 @@ impl Propagation {
             total: &self.total,
             mirrors: maps.map(|m| m.iter().map(|m| m.total.as_slice()).collect()),
         };
-        let expect = "bincode into memory cannot fail for plain numbers";
         SnapshotBytes {
-            state: bincode::serialize(&state).expect(expect),
-            totals: bincode::serialize(&totals).expect(expect),
+            state: encode(&state),
+            totals: encode(&totals),
         }
     }
 
