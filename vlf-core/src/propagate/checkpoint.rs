@@ -277,7 +277,8 @@ struct TotalsRef<'a> {
 
 impl Propagation {
     /// The halves of [`Propagation::checkpoint`], serialised: equal to
-    /// `checkpoint().split()`'s `to_bytes`, without the copy.
+    /// `checkpoint().split()`'s `to_bytes`, without the copy, the two in
+    /// parallel.
     pub fn snapshot_bytes(&self) -> SnapshotBytes {
         let maps = self.specular.as_ref().map(|s| &s.maps);
         let state = ShootingStateRef {
@@ -292,10 +293,9 @@ impl Propagation {
             total: &self.total,
             mirrors: maps.map(|m| m.iter().map(|m| m.total.as_slice()).collect()),
         };
-        SnapshotBytes {
-            state: encode(&state),
-            totals: encode(&totals),
-        }
+        // Each half is one long serial write; side by side they take the time of one.
+        let (state, totals) = rayon::join(|| encode(&state), || encode(&totals));
+        SnapshotBytes { state, totals }
     }
 
     /// The state to resume from after the iterations done so far.
