@@ -8,7 +8,8 @@
 //! for passes and batches, `vlf_core::propagate::reduce` for blocks):
 //!
 //! 1. Every batch of a pass is computed by some [`Replica`] (a worker's copy of the
-//!    propagation, restored from the checkpoint of snapshot `k`) once the pass's prerequisites
+//!    propagation, restored from the shooting half of snapshot `k`'s checkpoint) once the pass's
+//!    prerequisites
 //!    are absorbed, as part of an aligned block whose node sum is written to
 //!    `jobs/J/work/KKKKK/PASS/SSSSS-EEEEE.blob`. Writes are create-only; a block computed twice
 //!    (a lease that expired and was handed out again, a late result) writes the same bytes,
@@ -18,7 +19,11 @@
 //!    it is written (the next ones are still being computed meanwhile); replicas read the
 //!    blocks of a pass's prerequisites to learn what it needs (a rotated copy's areas).
 //! 3. After the last pass the coordinator finishes the iteration (mirror exchange, diffuse
-//!    reflection), commits snapshot `k + 1`, and deletes the iteration's outputs.
+//!    reflection) and writes snapshot `k + 1`'s shooting state, which releases the next
+//!    iteration ([`Coordinator::release_iteration`]); it then writes the rest of the snapshot,
+//!    commits it and deletes the iteration's outputs ([`SnapshotCommit::commit`]) — in the
+//!    service, while workers compute the next iteration; [`Coordinator::finish_iteration`] does
+//!    both at once.
 //!
 //! The bits do not depend on which replica computed which block, how large the blocks were, or
 //! when: tested with several replicas in threads, blocks of 1, 2 and 4 batches assigned in a
