@@ -6,7 +6,7 @@
 //! |---|---|---|
 //! | the normalised scene | `jobs/J/scene.blob` | `Scene::to_bytes`, exact |
 //! | the propagation options | the manifest's `parameters` | JSON of `Options` (floats round-trip exactly) |
-//! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (shooting half) and `totals.blob` | `Propagation::snapshot_bytes`: f64, exact (jobs written before the split: the whole `Checkpoint::to_bytes` in `state.blob`) |
+//! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (the shooting state's head), `unshot/BBBBB.blob` (its unshot mirror maps per batch of directions) and `totals.blob` | `Propagation::snapshot_bytes`: f64, exact (jobs written before the split: the whole `Checkpoint::to_bytes` in `state.blob`) |
 //! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
 //! | outgoing radiance of surface s | `S/diffuse/s.blob` | `[height, width, 3]` texels, job encoding |
 //! | radiance leaving mirrors along direction d in tile (s, t) | `field/dirs/d/tile-s-t.blob` | `[slots, 3]` in slot order, job encoding |
@@ -17,9 +17,9 @@
 //! written when the job is created, so every job can be rendered and resumed from the start. A
 //! snapshot holds an exact checkpoint (to resume with the same bits as an uninterrupted run), its
 //! summary, and the diffuse radiance in the job's encoding (what a viewer needs, including for
-//! ray-traced mirrors). The checkpoint is stored in two halves (see
-//! `vlf_core::propagate::checkpoint`): a worker starting the next iteration reads only the
-//! shooting half, a viewer only the totals. Mirror radiance of a snapshot is read from its
+//! ray-traced mirrors). The checkpoint is stored in parts (see
+//! `vlf_core::propagate::snapshot`): a worker starting the next iteration reads the shooting
+//! state's head and the unshot maps of its lease's batches, a viewer only the totals. Mirror radiance of a snapshot is read from its
 //! checkpoint's totals: cutting it into
 //! tiles after every iteration would write thousands of blobs per iteration (6 000 for the bundled
 //! mirror scene at l = 513, N = 64, m = 8) for a state that is superseded by the next one. The
@@ -45,7 +45,9 @@ use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::propagate::specular::MirrorLayout;
-use vlf_core::propagate::{Checkpoint, IterationStats, Options, Propagation, ShootingState, Totals};
+use vlf_core::propagate::{
+    Checkpoint, IterationStats, Options, Propagation, ShootingState, StateHead, Totals, UnshotBatch,
+};
 use vlf_core::psf::Subfield;
 use vlf_core::scene::{Rgb, Scene};
 
@@ -173,13 +175,19 @@ impl FieldJob {
         if self.job.manifest().is_finished(k) {
             return Err(self.job_error(format!("snapshot {k} is already finished")));
         }
-        let halves = p.snapshot_bytes();
-        self.job.put_state(k, &halves.state)?;
+        let parts = p.snapshot_bytes();
+        // The head last: once it is there, the state is complete.
+        parts
+            .unshot
+            .par_iter()
+            .enumerate()
+            .try_for_each(|(b, bytes)| self.job.put_unshot(k, b as u32, bytes))?;
+        self.job.put_state(k, &parts.head)?;
         let unit = radiance_unit(&self.scene);
         Ok(PendingSnapshot {
             job: self.job.clone(),
             k,
-            totals: halves.totals,
+            totals: parts.totals,
             atlas: p.atlas.clone(),
             diffuse: p.diffuse_radiance(),
             summary: Summary {
@@ -255,19 +263,18 @@ impl FieldJob {
         Ok(p)
     }
 
-    /// The exact checkpoint of finished snapshot `k`: its two halves joined (or the whole
-    /// checkpoint of a job written before the split).
+    /// The exact checkpoint of finished snapshot `k`: its parts joined (or the whole checkpoint
+    /// of a job written before the split).
     pub fn checkpoint(&self, k: u32) -> Result<Checkpoint, StoreError> {
-        let state = self.job.get_state(k)?;
-        let checkpoint = if Checkpoint::is_split(&state) {
-            let totals = self.job.get_totals(k)?;
-            ShootingState::from_bytes(&state)
-                .and_then(|s| Ok((s, Totals::from_bytes(&totals)?)))
-                .and_then(|(s, t)| Checkpoint::join(s, t))
-        } else {
-            Checkpoint::from_bytes(&state)
-        }
-        .map_err(|e| self.field_error(e))?;
+        self.job.check_committed(Stage::Iteration(k))?;
+        let checkpoint = match self.released_state(k)? {
+            ReleasedState::Whole(bytes) => Checkpoint::from_bytes(&bytes).map_err(|e| self.field_error(e))?,
+            ReleasedState::Head(head) => {
+                let state = self.assemble(k, head)?;
+                let totals = Totals::from_bytes(&self.job.get_totals(k)?).map_err(|e| self.field_error(e))?;
+                Checkpoint::join(state, totals).map_err(|e| self.field_error(e))?
+            }
+        };
         self.of_snapshot(k, checkpoint.iterations())?;
         Ok(checkpoint)
     }
@@ -278,13 +285,56 @@ impl FieldJob {
         self.released_shooting_state(k)
     }
 
-    /// The shooting state of snapshot `k` once the iteration after it is released, whether or
-    /// not the snapshot is committed yet: what a worker reads (see [`PendingSnapshot`]; any
-    /// shooting state stored for `k` is the one, as it is a pure function of the job).
+    /// The whole shooting state of snapshot `k` once the iteration after it is released (see
+    /// [`FieldJob::released_state`]).
     pub fn released_shooting_state(&self, k: u32) -> Result<ShootingState, StoreError> {
-        let state = ShootingState::from_bytes(&self.job.get_released_state(k)?).map_err(|e| self.field_error(e))?;
+        let state = match self.released_state(k)? {
+            ReleasedState::Whole(bytes) => {
+                Checkpoint::from_bytes(&bytes)
+                    .map_err(|e| self.field_error(e))?
+                    .split()
+                    .0
+            }
+            ReleasedState::Head(head) => self.assemble(k, head)?,
+        };
         self.of_snapshot(k, state.iterations())?;
         Ok(state)
+    }
+
+    /// The head of snapshot `k`'s shooting state once the iteration after it is released,
+    /// whether or not the snapshot is committed yet: what every worker of that iteration reads
+    /// (see [`PendingSnapshot`]; any state stored for `k` is the one, as it is a pure function of
+    /// the job). A job written before the split has its whole checkpoint there instead.
+    pub fn released_state(&self, k: u32) -> Result<ReleasedState, StoreError> {
+        let bytes = self.job.get_released_state(k)?;
+        if !Checkpoint::is_split(&bytes) {
+            return Ok(ReleasedState::Whole(bytes));
+        }
+        let head = StateHead::from_bytes(&bytes).map_err(|e| self.field_error(e))?;
+        self.of_snapshot(k, head.iterations())?;
+        Ok(ReleasedState::Head(head))
+    }
+
+    /// The unshot mirror maps of `batches` of snapshot `k`'s directions, read in parallel, once
+    /// the iteration after it is released: what a lease that shoots those directions reads.
+    pub fn released_unshot(&self, k: u32, batches: &[usize]) -> Result<Vec<UnshotBatch>, StoreError> {
+        batches
+            .par_iter()
+            .copied()
+            .map(|b| {
+                let part = UnshotBatch::from_bytes(&self.job.get_released_unshot(k, b as u32)?)
+                    .map_err(|e| self.field_error(e))?;
+                self.of_snapshot(k, part.iterations)?;
+                Ok(part)
+            })
+            .collect()
+    }
+
+    /// A whole shooting state from its head and every batch of unshot maps.
+    fn assemble(&self, k: u32, head: StateHead) -> Result<ShootingState, StoreError> {
+        let all: Vec<usize> = (0..head.unshot_batches.unwrap_or(0) as usize).collect();
+        let batches = self.released_unshot(k, &all)?;
+        ShootingState::from_parts(head, batches).map_err(|e| self.field_error(e))
     }
 
     /// The totals of snapshot `k` from the contents of the blob that holds them (its
@@ -411,6 +461,14 @@ fn write_diffuse(
         let values = scaled(&radiance[g.first..g.first + g.len()], unit);
         job.put_diffuse(stage, s as u32, &[g.height, g.width, 3], &values)
     })
+}
+
+/// The shooting state of a released snapshot as stored ([`FieldJob::released_state`]).
+pub enum ReleasedState {
+    /// Its head; the unshot mirror maps are read by batch ([`FieldJob::released_unshot`]).
+    Head(StateHead),
+    /// The whole checkpoint's bytes (a job written before the split).
+    Whole(Vec<u8>),
 }
 
 /// A snapshot released to the next iteration but not committed yet

@@ -31,7 +31,7 @@
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;
-use crate::field::{FieldJob, PendingSnapshot};
+use crate::field::{FieldJob, PendingSnapshot, ReleasedState};
 use crate::id::JobId;
 use crate::job::Job;
 use crate::layout;
@@ -158,8 +158,9 @@ impl std::fmt::Debug for Prototypes {
 pub struct Replica {
     job: FieldJob,
     prop: Propagation,
-    /// The iteration being worked on and its work (with the prerequisites learnt so far).
-    current: Option<(u32, IterationWork)>,
+    /// The iteration being worked on, its work (with the prerequisites learnt so far) and which
+    /// batches' unshot mirror maps are restored (empty: all, from a whole checkpoint).
+    current: Option<(u32, IterationWork, Vec<bool>)>,
 }
 
 impl Replica {
@@ -185,15 +186,37 @@ impl Replica {
     /// store.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         if self.current.as_ref().map(|c| c.0) != Some(k) {
-            // Shooting reads half of the checkpoint, the unshot maps: written before the
-            // iteration is released, perhaps not committed yet (see `PendingSnapshot`).
-            let state = self.job.released_shooting_state(k)?;
-            self.prop.restore_shooting(state).map_err(|e| self.job.field_error(e))?;
-            self.current = Some((k, self.prop.iteration_work()));
+            // Every lease reads the head of the shooting state (statistics, Current): written
+            // before the iteration is released, perhaps not committed yet (see
+            // `PendingSnapshot`). The unshot mirror maps come by batch, below.
+            let loaded = match self.job.released_state(k)? {
+                ReleasedState::Head(head) => {
+                    let batches = head.unshot_batches.unwrap_or(0) as usize;
+                    self.prop.restore_head(head).map_err(|e| self.job.field_error(e))?;
+                    vec![false; batches]
+                }
+                ReleasedState::Whole(_) => {
+                    let state = self.job.released_shooting_state(k)?;
+                    self.prop.restore_shooting(state).map_err(|e| self.job.field_error(e))?;
+                    Vec::new()
+                }
+            };
+            self.current = Some((k, self.prop.iteration_work(), loaded));
         }
-        let Some((_, work)) = self.current.as_mut() else {
+        let Some((_, work, loaded)) = self.current.as_mut() else {
             unreachable!("set just above");
         };
+        // A shot through the true directions sends their unshot mirror maps: read those of the
+        // lease's batches that this replica does not hold yet.
+        if pass == Pass::Shoot && work.uses_mirror_maps() {
+            let missing: Vec<usize> = batches.clone().filter(|&b| loaded.get(b) == Some(&false)).collect();
+            for part in self.job.released_unshot(k, &missing)? {
+                self.prop.restore_unshot(part).map_err(|e| self.job.field_error(e))?;
+            }
+            for b in missing {
+                loaded[b] = true;
+            }
+        }
         let passes = work.passes();
         if !passes.contains(&pass) {
             return Err(self.job.field_error(vlf_core::Error::Parameter(format!(

@@ -132,6 +132,21 @@ impl Job {
         self.write(Stage::Iteration(k), &key, bytes)
     }
 
+    /// Writes part `batch` of the resume state of iteration `k` (caller's serialisation; a
+    /// job's resume state may have no parts).
+    pub fn put_unshot(&self, k: u32, batch: u32, bytes: &[u8]) -> Result<(), StoreError> {
+        let key = layout::unshot(self.id(), k, batch)?;
+        let bytes = blob::encode_bytes(BlobKind::Snapshot, bytes).map_err(|e| self.blob_error(&key, e))?;
+        self.write(Stage::Iteration(k), &key, bytes)
+    }
+
+    /// Part `batch` of the resume state of iteration `k` as written, committed or not (see
+    /// [`Job::get_released_state`]).
+    pub fn get_released_unshot(&self, k: u32, batch: u32) -> Result<Vec<u8>, StoreError> {
+        self.store
+            .get_bytes_blob(&layout::unshot(self.id(), k, batch)?, BlobKind::Snapshot)
+    }
+
     /// Writes the totals half of the resume state of iteration `k` (caller's serialisation;
     /// optional: a job's resume state may be one blob).
     pub fn put_totals(&self, k: u32, totals: &[u8]) -> Result<(), StoreError> {

@@ -6,7 +6,8 @@
 //! |---|---|---|
 //! | `jobs/J/manifest.blob` | Manifest | JSON [`crate::Manifest`]; written last, the commit point |
 //! | `jobs/J/scene.blob` | Scene | the normalised scene (caller's bytes) |
-//! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | what shooting the iteration after K reads (or, in jobs written before the split, all that resuming needs) |
+//! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | the head of what shooting the iteration after K reads (or, in jobs written before the split, all that resuming needs) |
+//! | `jobs/J/iters/KKKKK/unshot/BBBBB.blob` | Snapshot | the rest of it for batch B of the directions: their unshot mirror maps |
 //! | `jobs/J/iters/KKKKK/totals.blob` | Snapshot | the rest of what resuming after K iterations needs: the totals (absent in jobs written before the split) |
 //! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
 //! | `jobs/J/work/KKKKK/PASS/BBBBB.blob` | BatchOutput | a worker's output for one batch of the iteration after snapshot K (deleted once K+1 is committed) |
@@ -71,6 +72,16 @@ pub fn stage_prefix(job: &JobId, stage: Stage) -> Result<String, StoreError> {
 /// `jobs/J/iters/KKKKK/state.blob`: the resume state after `k` iterations.
 pub fn state(job: &JobId, k: u32) -> Result<String, StoreError> {
     Ok(format!("{}state.blob", stage_prefix(job, Stage::Iteration(k))?))
+}
+
+/// `jobs/J/iters/KKKKK/unshot/BBBBB.blob`: part `batch` of the resume state after `k`
+/// iterations (the unshot mirror maps of a batch of directions).
+pub fn unshot(job: &JobId, k: u32, batch: u32) -> Result<String, StoreError> {
+    Ok(format!(
+        "{}unshot/{:05}.blob",
+        stage_prefix(job, Stage::Iteration(k))?,
+        check("batch", batch, MAX_DIRECTION)?
+    ))
 }
 
 /// `jobs/J/iters/KKKKK/totals.blob`: the totals half of the resume state after `k` iterations.

@@ -253,7 +253,38 @@ fn released_before_committed(o: &Opener) {
     );
 }
 
+/// A lease reads the head of the shooting state and the unshot mirror maps of its own batches
+/// only: with another batch's maps gone from the store, it still computes, and a lease that
+/// needs them fails naming the missing blob.
+fn a_lease_reads_only_its_batches(o: &Opener) {
+    let p = Propagation::new(bundled("mirrors.obj"), options(0, 33)).unwrap();
+    let job = FieldJob::create(&o.open(), &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    let mut coordinator = Coordinator::resume(job).unwrap();
+    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    for _ in 0..2 {
+        compute_iteration(&mut coordinator, &mut replica);
+        coordinator.finish_iteration().unwrap();
+    }
+    let (pass, batches) = coordinator.pending_pass().unwrap();
+    assert_eq!((pass, batches), (Pass::Shoot, 2));
+    let store = o.open();
+    let second = layout::unshot(&id, 2, 1).unwrap();
+    let kept = store.get(&second).unwrap().to_vec();
+    store.delete(&second).unwrap();
+    let mut fresh = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    fresh.compute(2, pass, 0..1).unwrap();
+    let err = fresh.compute(2, pass, 1..2).unwrap_err();
+    assert!(err.to_string().contains(&second), "{err}");
+    // With the blob back, the lease computes, and the iteration ends as it would have.
+    store.put(&second, kept).unwrap();
+    fresh.compute(2, pass, 1..2).unwrap();
+    coordinator.absorb_pass().unwrap();
+    coordinator.finish_iteration().unwrap();
+}
+
 per_backend! {
+    a_lease_reads_only_its_batches_unshot_maps => crate::a_lease_reads_only_its_batches,
     released_iterations_resume_with_the_same_bits => crate::released_before_committed,
     replicas_give_the_same_bits_with_mirrors => crate::mirrors,
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,

@@ -6,7 +6,9 @@ mod common;
 
 use common::*;
 use vlf_core::Error;
-use vlf_core::propagate::{Checkpoint, Options, Perturbation, Propagation, ShootingState, Stop, Totals};
+use vlf_core::propagate::{
+    Checkpoint, Options, Perturbation, Propagation, ShootingState, SnapshotBytes, StateHead, Stop, Totals, UnshotBatch,
+};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
@@ -34,6 +36,16 @@ fn diffuse_box() -> Scene {
     )
 }
 
+/// The shooting state from its stored parts.
+fn shooting(parts: &SnapshotBytes) -> ShootingState {
+    let batches = parts
+        .unshot
+        .iter()
+        .map(|b| UnshotBatch::from_bytes(b).unwrap())
+        .collect();
+    ShootingState::from_parts(StateHead::from_bytes(&parts.head).unwrap(), batches).unwrap()
+}
+
 /// Everything of a propagation's state except the wall-clock times.
 fn state(p: &Propagation) -> Checkpoint {
     let mut c = p.checkpoint();
@@ -57,13 +69,9 @@ fn resumes_bit_identically(scene: Scene, perturb: u32) {
         drop(first);
         let restored = Checkpoint::from_bytes(&bytes).unwrap();
         assert_eq!(restored.iterations(), stop_after);
-        // The same state from its two halves, as a store keeps them.
-        let joined = Checkpoint::join(
-            ShootingState::from_bytes(&halves.state).unwrap(),
-            Totals::from_bytes(&halves.totals).unwrap(),
-        )
-        .unwrap();
-        assert!(joined == restored, "the halves of a checkpoint are not the whole");
+        // The same state from its parts, as a store keeps them.
+        let joined = Checkpoint::join(shooting(&halves), Totals::from_bytes(&halves.totals).unwrap()).unwrap();
+        assert!(joined == restored, "the parts of a checkpoint are not the whole");
         let mut resumed = Propagation::resume(scene.clone(), options(total, perturb), restored).unwrap();
         resumed.run(|_| {});
         assert!(
@@ -141,29 +149,54 @@ fn halves_are_the_whole_split_and_old_whole_blobs_still_read() {
     let (state, totals) = whole.clone().split();
     assert_eq!(state.iterations(), 2);
     assert_eq!(totals.iterations, 2);
-    // Serialised straight from the propagation: the same bytes as the halves.
+    // Serialised straight from the propagation: the same bytes as the parts.
     let bytes = p.snapshot_bytes();
-    assert_eq!(bytes.state, state.to_bytes());
+    let (head, batches) = state.clone().into_parts();
+    assert!(batches.len() > 1, "{} batches", batches.len());
+    assert_eq!(bytes.head, head.to_bytes());
+    assert_eq!(
+        bytes.unshot,
+        batches.iter().map(UnshotBatch::to_bytes).collect::<Vec<_>>()
+    );
     assert_eq!(bytes.totals, totals.to_bytes());
-    assert!(Checkpoint::is_split(&bytes.state));
+    assert!(Checkpoint::is_split(&bytes.head));
+    assert!(ShootingState::from_parts(head, batches).unwrap() == state);
     // The shooting half carries no totals: well under the whole.
     let whole_bytes = whole.to_bytes();
     assert!(!Checkpoint::is_split(&whole_bytes));
+    let shooting_len = bytes.head.len() + bytes.unshot.iter().map(Vec::len).sum::<usize>();
     assert!(
-        bytes.state.len() < whole_bytes.len() * 6 / 10,
-        "{} of {}",
-        bytes.state.len(),
+        shooting_len < whole_bytes.len() * 6 / 10,
+        "{shooting_len} of {}",
         whole_bytes.len()
     );
-    // A whole (version 1) checkpoint, as older stores hold, gives both halves.
-    assert_eq!(ShootingState::from_bytes(&whole_bytes).unwrap(), state);
+    // A whole (version 1) checkpoint, as older stores hold, gives the totals.
     assert_eq!(Totals::from_bytes(&whole_bytes).unwrap(), totals);
-    // A half is not a whole checkpoint.
-    match Checkpoint::from_bytes(&bytes.state) {
+    // A head is not a whole checkpoint.
+    match Checkpoint::from_bytes(&bytes.head) {
         Err(Error::Decode(m)) => assert!(m.contains("split"), "{m}"),
-        other => panic!("read a shooting half as a whole checkpoint: {other:?}"),
+        other => panic!("read a shooting state's head as a whole checkpoint: {other:?}"),
     }
     assert!(Checkpoint::join(state.clone(), totals.clone()).unwrap() == whole);
+    // A replica restores the head, then only the batches it shoots.
+    let mut r = Propagation::new(mirror_room(), options(3, 0)).unwrap();
+    r.restore_head(StateHead::from_bytes(&bytes.head).unwrap()).unwrap();
+    assert_eq!(r.iterations_done(), 2);
+    r.restore_unshot(UnshotBatch::from_bytes(&bytes.unshot[1]).unwrap())
+        .unwrap();
+    let restored = r.checkpoint().mirrors.unwrap();
+    let expected = whole.mirrors.as_ref().unwrap();
+    let batch1 = vlf_core::propagate::work::batch_range(1, expected.len());
+    for (d, (got, want)) in restored.iter().zip(expected).enumerate() {
+        if batch1.contains(&d) {
+            assert_eq!(got.unshot, want.unshot, "direction {d} of batch 1");
+        } else {
+            assert!(
+                got.unshot.iter().all(|v| *v == [0.0; 3]),
+                "direction {d} outside batch 1"
+            );
+        }
+    }
 }
 
 #[test]
@@ -190,12 +223,42 @@ fn mismatched_or_damaged_halves_are_refused() {
     let mut t = totals2.clone();
     t.total.pop();
     refused(Checkpoint::join(state2.clone(), t), "texel");
-    // Truncated halves.
-    let state_bytes = state2.to_bytes();
+    // Truncated parts.
+    let (head2, batches2) = state2.clone().into_parts();
+    let (head_bytes, batch_bytes) = (head2.to_bytes(), batches2[0].to_bytes());
     let totals_bytes = totals2.to_bytes();
-    assert!(ShootingState::from_bytes(&state_bytes[..state_bytes.len() / 2]).is_err());
+    assert!(StateHead::from_bytes(&head_bytes[..head_bytes.len() / 2]).is_err());
+    assert!(UnshotBatch::from_bytes(&batch_bytes[..batch_bytes.len() - 1]).is_err());
     assert!(Totals::from_bytes(&totals_bytes[..totals_bytes.len() - 1]).is_err());
     assert!(Totals::from_bytes(&totals_bytes[..2]).is_err());
+    // Parts missing, out of order, or of another snapshot.
+    let parts_refused =
+        |batches: Vec<UnshotBatch>, needle: &str| match ShootingState::from_parts(head2.clone(), batches) {
+            Err(Error::Decode(m)) => assert!(m.contains(needle), "{m}"),
+            other => panic!("assembled mismatched parts ({needle}): {other:?}"),
+        };
+    parts_refused(batches2[1..].to_vec(), "head says");
+    let mut swapped = batches2.clone();
+    swapped.swap(0, 1);
+    parts_refused(swapped, "belongs");
+    let mut foreign = batches2.clone();
+    foreign[0] = state1.clone().into_parts().1[0].clone();
+    parts_refused(foreign, "belongs");
+    // A batch that does not fit is refused by the replica, which stays as it was.
+    let mut r = Propagation::new(scene.clone(), options(3, 0)).unwrap();
+    r.restore_head(head2.clone()).unwrap();
+    let before = r.checkpoint();
+    let mut bad = batches2[1].clone();
+    bad.maps[0].push([0.0; 3]);
+    assert!(r.restore_unshot(bad).is_err());
+    let mut bad = batches2[1].clone();
+    bad.maps[0][0][2] = -1.0;
+    assert!(r.restore_unshot(bad).is_err());
+    assert!(r.restore_unshot(state1.clone().into_parts().1[1].clone()).is_err());
+    assert!(r.checkpoint() == before);
+    let mut bad_head = head2.clone();
+    bad_head.unshot_batches = bad_head.unshot_batches.map(|n| n + 1);
+    assert!(r.restore_head(bad_head).is_err());
     // A shooting state that does not fit the scene is refused, and leaves the
     // propagation as it was.
     let mut r = Propagation::new(scene, options(3, 0)).unwrap();

@@ -9,7 +9,7 @@ mod common;
 use common::*;
 use std::collections::HashMap;
 use vlf_core::propagate::{
-    BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, ShootingState, Stop, reduce,
+    BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, StateHead, Stop, UnshotBatch, reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -55,12 +55,13 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagat
         .collect();
     while !main.finished() {
         let started = std::time::Instant::now();
-        // Every worker starts the iteration from the shooting half of the
-        // coordinator's checkpoint, as stored (its totals stay zero: shooting
-        // never reads them).
-        let state = main.snapshot_bytes().state;
+        // Every worker starts the iteration from the head of the coordinator's
+        // shooting state, as stored, and reads the unshot mirror maps of the
+        // batches it shoots only (its totals stay zero: shooting never reads
+        // them).
+        let parts = main.snapshot_bytes();
         for r in &mut replicas {
-            r.restore_shooting(ShootingState::from_bytes(&state).unwrap()).unwrap();
+            r.restore_head(StateHead::from_bytes(&parts.head).unwrap()).unwrap();
         }
         let mut works: Vec<_> = replicas.iter().map(|r| r.iteration_work()).collect();
         let mut work = main.iteration_work();
@@ -85,6 +86,12 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagat
                     works[w].learn(earlier, sums).unwrap();
                 }
                 assert!(works[w].is_ready(pass));
+                if pass == Pass::Shoot && works[w].uses_mirror_maps() {
+                    for batch in blocks[b].clone() {
+                        let part = UnshotBatch::from_bytes(&parts.unshot[batch]).unwrap();
+                        replicas[w].restore_unshot(part).unwrap();
+                    }
+                }
                 let out = replicas[w].compute_block(&works[w], pass, blocks[b].clone()).unwrap();
                 stored.insert((pass, blocks[b].start), out.to_bytes());
             }

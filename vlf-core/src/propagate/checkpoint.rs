@@ -17,18 +17,16 @@
 //! **Two halves.** Shooting the next iteration reads only the unshot maps;
 //! the totals are read only by whoever finishes iterations (the
 //! coordinator) and by a viewer of the snapshot (a snapshot's mirror
-//! radiance is its mirror totals). So a checkpoint is stored as two blobs:
-//! the [`ShootingState`] (statistics, Current, mirror unshot maps) and the
-//! [`Totals`] (Total, mirror totals). A worker reads half of the checkpoint
-//! and a viewer the other half; [`Checkpoint::join`] puts them back
-//! together. [`Propagation::snapshot_bytes`] serialises both halves straight
-//! from the propagation's maps, without copying them first.
+//! radiance is its mirror totals). So a checkpoint splits into the
+//! [`ShootingState`] (statistics, Current, mirror unshot maps) and the
+//! [`Totals`] (Total, mirror totals); [`Checkpoint::join`] puts them back
+//! together. How they are stored — the shooting state cut further, by batch
+//! of directions — is [`super::snapshot`].
 //!
 //! Serialised with bincode behind a version number: version 1 is the whole
 //! checkpoint in one blob (what stores written before the split hold: still
-//! read, by [`Checkpoint::from_bytes`], and by [`ShootingState::from_bytes`]
-//! and [`Totals::from_bytes`], which take their half of it), version 2 the
-//! halves. [`Checkpoint::from_bytes`] and [`Propagation::resume`] refuse
+//! read, by [`Checkpoint::from_bytes`], and by [`Totals::from_bytes`], which
+//! takes its half of it), version 2 the parts. [`Checkpoint::from_bytes`] and [`Propagation::resume`] refuse
 //! anything that does not fit the rebuilt geometry, or that is not finite and
 //! non-negative, with an [`Error::Decode`].
 
@@ -39,17 +37,18 @@ use serde::{Deserialize, Serialize};
 
 /// Version of the whole checkpoint's serialisation (one blob).
 const CHECKPOINT_VERSION: u32 = 1;
-/// Version of the halves' serialisation ([`ShootingState`], [`Totals`]).
-const SPLIT_VERSION: u32 = 2;
+/// Version of the halves' serialisation ([`Totals`], and the shooting half's
+/// parts: see [`super::snapshot`]).
+pub(crate) const SPLIT_VERSION: u32 = 2;
 
 /// The bincode bytes of `value`.
-fn encode(value: &impl Serialize) -> Vec<u8> {
+pub(crate) fn encode(value: &impl Serialize) -> Vec<u8> {
     bincode::serialize(value).expect("bincode into memory cannot fail for plain numbers")
 }
 
 /// The serialisation version a checkpoint blob starts with (bincode writes
 /// the leading `u32` little-endian), if it is long enough to have one.
-fn version_of(bytes: &[u8]) -> Option<u32> {
+pub(crate) fn version_of(bytes: &[u8]) -> Option<u32> {
     bytes.get(..4).map(|v| u32::from_le_bytes([v[0], v[1], v[2], v[3]]))
 }
 
@@ -89,7 +88,7 @@ impl Checkpoint {
             Some(CHECKPOINT_VERSION) => {}
             Some(SPLIT_VERSION) => {
                 return Err(Error::Decode(
-                    "checkpoint: this is the shooting half of a split checkpoint (read it with its totals)".into(),
+                    "checkpoint: this is the head of a split checkpoint (read it with its other parts)".into(),
                 ));
             }
             Some(v) => {
@@ -102,8 +101,9 @@ impl Checkpoint {
         bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("checkpoint: {e}")))
     }
 
-    /// Whether `bytes` hold the shooting half of a split checkpoint (whose
-    /// totals are in another blob) rather than a whole one.
+    /// Whether `bytes` hold the head of a split checkpoint (whose unshot
+    /// maps and totals are in other blobs, see [`super::snapshot`]) rather
+    /// than a whole one.
     pub fn is_split(bytes: &[u8]) -> bool {
         version_of(bytes) == Some(SPLIT_VERSION)
     }
@@ -120,7 +120,6 @@ impl Checkpoint {
         let iterations = self.stats.len() as u32;
         (
             ShootingState {
-                version: SPLIT_VERSION,
                 stats: self.stats,
                 current: self.current,
                 mirrors: unshot,
@@ -189,9 +188,8 @@ impl Checkpoint {
 /// What shooting the next iteration reads of a checkpoint: the statistics of
 /// the iterations done (their count is the next one's index), the diffuse
 /// unshot power and every direction's unshot mirror map.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct ShootingState {
-    version: u32,
     pub stats: Vec<IterationStats>,
     /// Unshot power per texel.
     pub current: Vec<Rgb>,
@@ -203,20 +201,6 @@ impl ShootingState {
     /// Iterations done when the checkpoint was taken.
     pub fn iterations(&self) -> u32 {
         self.stats.len() as u32
-    }
-
-    pub fn to_bytes(&self) -> Vec<u8> {
-        encode(self)
-    }
-
-    /// Reads a shooting state, or takes it out of a whole (version 1)
-    /// checkpoint.
-    pub fn from_bytes(bytes: &[u8]) -> crate::Result<ShootingState> {
-        if version_of(bytes) == Some(SPLIT_VERSION) {
-            bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("shooting state: {e}")))
-        } else {
-            Checkpoint::from_bytes(bytes).map(|c| c.split().0)
-        }
     }
 }
 
@@ -248,56 +232,7 @@ impl Totals {
     }
 }
 
-/// A checkpoint's halves, serialised ([`Propagation::snapshot_bytes`]).
-pub struct SnapshotBytes {
-    /// [`ShootingState::to_bytes`].
-    pub state: Vec<u8>,
-    /// [`Totals::to_bytes`].
-    pub totals: Vec<u8>,
-}
-
-/// [`ShootingState`] over borrowed maps: the same bincode bytes (a slice
-/// serialises as a vector does), without copying megabytes of maps first.
-#[derive(Serialize)]
-struct ShootingStateRef<'a> {
-    version: u32,
-    stats: &'a [IterationStats],
-    current: &'a [Rgb],
-    mirrors: Option<Vec<&'a [Rgb]>>,
-}
-
-/// [`Totals`] over borrowed maps (see [`ShootingStateRef`]).
-#[derive(Serialize)]
-struct TotalsRef<'a> {
-    version: u32,
-    iterations: u32,
-    total: &'a [Rgb],
-    mirrors: Option<Vec<&'a [Rgb]>>,
-}
-
 impl Propagation {
-    /// The halves of [`Propagation::checkpoint`], serialised: equal to
-    /// `checkpoint().split()`'s `to_bytes`, without the copy, the two in
-    /// parallel.
-    pub fn snapshot_bytes(&self) -> SnapshotBytes {
-        let maps = self.specular.as_ref().map(|s| &s.maps);
-        let state = ShootingStateRef {
-            version: SPLIT_VERSION,
-            stats: &self.stats,
-            current: &self.current,
-            mirrors: maps.map(|m| m.iter().map(|m| m.unshot.as_slice()).collect()),
-        };
-        let totals = TotalsRef {
-            version: SPLIT_VERSION,
-            iterations: self.stats.len() as u32,
-            total: &self.total,
-            mirrors: maps.map(|m| m.iter().map(|m| m.total.as_slice()).collect()),
-        };
-        // Each half is one long serial write; side by side they take the time of one.
-        let (state, totals) = rayon::join(|| encode(&state), || encode(&totals));
-        SnapshotBytes { state, totals }
-    }
-
     /// The state to resume from after the iterations done so far.
     pub fn checkpoint(&self) -> Checkpoint {
         Checkpoint {
@@ -427,13 +362,13 @@ impl Propagation {
     }
 }
 
-fn misfit<T>(m: String) -> crate::Result<T> {
+pub(crate) fn misfit<T>(m: String) -> crate::Result<T> {
     Err(Error::Decode(format!(
         "checkpoint does not fit the scene and options: {m}"
     )))
 }
 
 /// Finite and non-negative, as power is.
-fn valid(v: &[Rgb]) -> bool {
+pub(crate) fn valid(v: &[Rgb]) -> bool {
     v.iter().flatten().all(|&c| c.is_finite() && c >= 0.0)
 }

@@ -45,12 +45,14 @@ mod perturb;
 pub mod plan;
 pub mod reduce;
 pub(crate) mod shoot;
+pub mod snapshot;
 pub mod specular;
 pub mod work;
 
-pub use checkpoint::{Checkpoint, ShootingState, SnapshotBytes, Totals};
+pub use checkpoint::{Checkpoint, ShootingState, Totals};
 pub use plan::Plan;
 pub use shoot::Flow;
+pub use snapshot::{SnapshotBytes, StateHead, UnshotBatch};
 pub use specular::{Exchange, Specular};
 pub use work::{BatchOutput, BatchSum, IterationWork, MirrorUpdate, Pass};
 
