@@ -288,7 +288,12 @@ impl FieldJob {
     /// The whole shooting state of snapshot `k` once the iteration after it is released (see
     /// [`FieldJob::released_state`]).
     pub fn released_shooting_state(&self, k: u32) -> Result<ShootingState, StoreError> {
-        let state = match self.released_state(k)? {
+        self.shooting_state_of(k, self.released_state(k)?)
+    }
+
+    /// The whole shooting state of snapshot `k` from what [`FieldJob::released_state`] read.
+    pub fn shooting_state_of(&self, k: u32, released: ReleasedState) -> Result<ShootingState, StoreError> {
+        let state = match released {
             ReleasedState::Whole(bytes) => {
                 Checkpoint::from_bytes(&bytes)
                     .map_err(|e| self.field_error(e))?

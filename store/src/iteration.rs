@@ -195,8 +195,8 @@ impl Replica {
                     self.prop.restore_head(head).map_err(|e| self.job.field_error(e))?;
                     vec![false; batches]
                 }
-                ReleasedState::Whole(_) => {
-                    let state = self.job.released_shooting_state(k)?;
+                whole @ ReleasedState::Whole(_) => {
+                    let state = self.job.shooting_state_of(k, whole)?;
                     self.prop.restore_shooting(state).map_err(|e| self.job.field_error(e))?;
                     Vec::new()
                 }

@@ -12,7 +12,7 @@ use vlf_core::propagate::{Checkpoint, Options, Pass, Perturbation, Propagation, 
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_store::blob::Encoding;
-use vlf_store::{Coordinator, FieldJob, Replica, Stage, Store, StoreError, layout};
+use vlf_store::{Coordinator, FieldJob, JobId, Replica, Stage, Store, StoreError, layout};
 
 fn bundled(name: &str) -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -153,12 +153,18 @@ fn perturbed(o: &Opener) {
     same_bits(o, bundled("cornell.obj"), options(2, 129));
 }
 
-fn conflicting_or_missing_batches(o: &Opener) {
-    let p = Propagation::new(bundled("cornell.obj"), options(0, 129)).unwrap();
-    let job = FieldJob::create(&o.open(), &p, Encoding::F16).unwrap();
+/// A new job of `scene`, its coordinator, and a replica with a store handle of its own.
+fn start(o: &Opener, scene: Scene, options: Options, encoding: Encoding) -> (JobId, Coordinator, Replica) {
+    let p = Propagation::new(scene, options).unwrap();
+    let job = FieldJob::create(&o.open(), &p, encoding).unwrap();
     let id = job.id().clone();
-    let mut coordinator = Coordinator::resume(job).unwrap();
-    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    let coordinator = Coordinator::resume(job).unwrap();
+    let replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    (id, coordinator, replica)
+}
+
+fn conflicting_or_missing_batches(o: &Opener) {
+    let (id, mut coordinator, mut replica) = start(o, bundled("cornell.obj"), options(0, 129), Encoding::F16);
     let (pass, batches) = coordinator.pending_pass().unwrap();
     assert_eq!((pass, batches), (Pass::Shoot, 8));
     replica.compute(0, pass, 0..4).unwrap();
@@ -197,11 +203,7 @@ fn compute_iteration(coordinator: &mut Coordinator, replica: &mut Replica) {
 fn released_before_committed(o: &Opener) {
     let (scene, options) = (bundled("mirrors.obj"), options(0, 33));
     let reference = in_process(&o.open(), &scene, &options);
-    let p = Propagation::new(scene.clone(), options.clone()).unwrap();
-    let job = FieldJob::create(&o.open(), &p, Encoding::F32).unwrap();
-    let id = job.id().clone();
-    let mut coordinator = Coordinator::resume(job).unwrap();
-    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    let (id, mut coordinator, mut replica) = start(o, scene.clone(), options.clone(), Encoding::F32);
     compute_iteration(&mut coordinator, &mut replica);
     let (_, commit) = coordinator.release_iteration().unwrap();
     assert_eq!(commit.iteration(), 1);
@@ -257,11 +259,7 @@ fn released_before_committed(o: &Opener) {
 /// only: with another batch's maps gone from the store, it still computes, and a lease that
 /// needs them fails naming the missing blob.
 fn a_lease_reads_only_its_batches(o: &Opener) {
-    let p = Propagation::new(bundled("mirrors.obj"), options(0, 33)).unwrap();
-    let job = FieldJob::create(&o.open(), &p, Encoding::F32).unwrap();
-    let id = job.id().clone();
-    let mut coordinator = Coordinator::resume(job).unwrap();
-    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    let (id, mut coordinator, mut replica) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
     for _ in 0..2 {
         compute_iteration(&mut coordinator, &mut replica);
         coordinator.finish_iteration().unwrap();

@@ -281,17 +281,7 @@ impl Propagation {
                     spec.maps.len()
                 ));
             }
-            for (d, (own, saved)) in spec.maps.iter().zip(maps).enumerate() {
-                if saved.len() != own.total.len() {
-                    return misfit(format!(
-                        "direction {d}: mirror maps do not match its {} mirror slots",
-                        own.total.len()
-                    ));
-                }
-                if !valid(saved) {
-                    return misfit(format!("direction {d}: negative or non-finite mirror radiance"));
-                }
-            }
+            self.check_mirror_maps(0, maps)?;
         }
         self.restore_shooting(state)?;
         self.total = totals.total;
@@ -315,19 +305,7 @@ impl Propagation {
     /// checkpointed (restore a whole checkpoint for that). On error the state
     /// is unchanged.
     pub fn restore_shooting(&mut self, state: ShootingState) -> crate::Result<()> {
-        let texels = self.atlas.texels;
-        if state.current.len() != texels {
-            return misfit(format!(
-                "{} unshot texel values for {texels} texels",
-                state.current.len()
-            ));
-        }
-        if let Some(i) = state.stats.iter().enumerate().position(|(i, s)| s.index != i as u32) {
-            return misfit(format!("iteration statistics out of order at {i}"));
-        }
-        if !valid(&state.current) {
-            return misfit("negative or non-finite power".into());
-        }
+        self.check_unshot_texels(&state.current, &state.stats)?;
         match (&mut self.specular, state.mirrors) {
             (None, None) => {}
             (Some(spec), Some(maps)) => {
@@ -338,17 +316,7 @@ impl Propagation {
                         spec.maps.len()
                     ));
                 }
-                for (d, (own, saved)) in spec.maps.iter().zip(&maps).enumerate() {
-                    if saved.len() != own.unshot.len() {
-                        return misfit(format!(
-                            "direction {d}: mirror maps do not match its {} mirror slots",
-                            own.unshot.len()
-                        ));
-                    }
-                    if !valid(saved) {
-                        return misfit(format!("direction {d}: negative or non-finite mirror radiance"));
-                    }
-                }
+                check_maps(spec, 0, &maps)?;
                 for (own, saved) in spec.maps.iter_mut().zip(maps) {
                     own.unshot = saved;
                 }
@@ -360,6 +328,49 @@ impl Propagation {
         self.stats = state.stats;
         Ok(())
     }
+
+    /// Refuses a Current map and iteration statistics that do not fit: the
+    /// wrong texel count, statistics out of order, negative or non-finite
+    /// power.
+    pub(crate) fn check_unshot_texels(&self, current: &[Rgb], stats: &[IterationStats]) -> crate::Result<()> {
+        let texels = self.atlas.texels;
+        if current.len() != texels {
+            return misfit(format!("{} unshot texel values for {texels} texels", current.len()));
+        }
+        if let Some(i) = stats.iter().enumerate().position(|(i, s)| s.index != i as u32) {
+            return misfit(format!("iteration statistics out of order at {i}"));
+        }
+        if !valid(current) {
+            return misfit("negative or non-finite power".into());
+        }
+        Ok(())
+    }
+
+    /// Refuses mirror maps of the directions from `first` on that do not fit
+    /// their mirror slots or hold negative or non-finite radiance.
+    pub(crate) fn check_mirror_maps(&self, first: usize, maps: &[Vec<Rgb>]) -> crate::Result<()> {
+        match &self.specular {
+            Some(spec) => check_maps(spec, first, maps),
+            None => misfit("mirror maps for a scene without mirrors".into()),
+        }
+    }
+}
+
+/// [`Propagation::check_mirror_maps`] on `spec` (borrowed apart from the
+/// rest of the propagation).
+fn check_maps(spec: &super::Specular, first: usize, maps: &[Vec<Rgb>]) -> crate::Result<()> {
+    for (d, saved) in (first..).zip(maps) {
+        let slots = spec.maps.get(d).map_or(0, |m| m.unshot.len());
+        if saved.len() != slots {
+            return misfit(format!(
+                "direction {d}: mirror maps do not match its {slots} mirror slots"
+            ));
+        }
+        if !valid(saved) {
+            return misfit(format!("direction {d}: negative or non-finite mirror radiance"));
+        }
+    }
+    Ok(())
 }
 
 pub(crate) fn misfit<T>(m: String) -> crate::Result<T> {

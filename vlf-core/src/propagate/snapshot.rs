@@ -19,7 +19,7 @@
 //! [`Propagation::restore_head`] and [`Propagation::restore_unshot`] restore
 //! one part at a time on a worker's replica.
 
-use super::checkpoint::{SPLIT_VERSION, ShootingState, encode, misfit, valid, version_of};
+use super::checkpoint::{SPLIT_VERSION, ShootingState, encode, misfit, version_of};
 use super::work::{batch_count, batch_range};
 use super::{IterationStats, Propagation};
 use crate::error::Error;
@@ -228,19 +228,7 @@ impl Propagation {
     /// [`Propagation::restore_shooting`], for a replica that computes blocks
     /// only. On error the state is unchanged.
     pub fn restore_head(&mut self, head: StateHead) -> crate::Result<()> {
-        let texels = self.atlas.texels;
-        if head.current.len() != texels {
-            return misfit(format!(
-                "{} unshot texel values for {texels} texels",
-                head.current.len()
-            ));
-        }
-        if let Some(i) = head.stats.iter().enumerate().position(|(i, s)| s.index != i as u32) {
-            return misfit(format!("iteration statistics out of order at {i}"));
-        }
-        if !valid(&head.current) {
-            return misfit("negative or non-finite power".into());
-        }
+        self.check_unshot_texels(&head.current, &head.stats)?;
         let expected = self
             .specular
             .as_ref()
@@ -262,9 +250,9 @@ impl Propagation {
     pub fn restore_unshot(&mut self, part: UnshotBatch) -> crate::Result<()> {
         let l = self.directions.len();
         let iterations = self.iterations_done();
-        let Some(spec) = self.specular.as_mut() else {
+        if self.specular.is_none() {
             return misfit("unshot mirror maps for a scene without mirrors".into());
-        };
+        }
         let b = part.batch as usize;
         if b >= batch_count(l) || part.iterations != iterations {
             return misfit(format!(
@@ -281,19 +269,11 @@ impl Propagation {
                 range.len()
             ));
         }
-        for (d, (own, saved)) in range.clone().zip(spec.maps[range.clone()].iter().zip(&part.maps)) {
-            if saved.len() != own.unshot.len() {
-                return misfit(format!(
-                    "direction {d}: mirror maps do not match its {} mirror slots",
-                    own.unshot.len()
-                ));
+        self.check_mirror_maps(range.start, &part.maps)?;
+        if let Some(spec) = self.specular.as_mut() {
+            for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
+                own.unshot = saved;
             }
-            if !valid(saved) {
-                return misfit(format!("direction {d}: negative or non-finite mirror radiance"));
-            }
-        }
-        for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
-            own.unshot = saved;
         }
         Ok(())
     }
