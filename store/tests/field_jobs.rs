@@ -257,6 +257,16 @@ fn snapshots_with_a_whole_checkpoint_still_read() {
     let viewed = job.load(Stage::Iteration(2)).unwrap();
     let parts = vlf_store::StageParts::open(FieldJob::open(&store, &id).unwrap(), Stage::Iteration(2)).unwrap();
     assert_eq!(parts.totals_key(), Some(totals_key.as_str()));
+    // A worker shoots the iteration after snapshot 2 from its parts.
+    let pass = vlf_core::propagate::Pass::Shoot;
+    let batches = vlf_core::propagate::work::batch_count(33);
+    let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    replica.compute(2, pass, 0..batches).unwrap();
+    let from_parts = job.get_batch(2, pass, 0..batches).unwrap();
+    assert!(from_parts.mirrors.is_some(), "the shot carries mirror maps");
+    store
+        .delete(&layout::work_block(&id, 2, "shoot", 0, batches as u32).unwrap())
+        .unwrap();
 
     // The layout before the split: the whole checkpoint in `state.blob`, no `totals.blob`.
     store
@@ -271,6 +281,10 @@ fn snapshots_with_a_whole_checkpoint_still_read() {
     assert!(old.shooting_state(2).unwrap() == shooting);
     let parts = vlf_store::StageParts::open(FieldJob::open(&store, &id).unwrap(), Stage::Iteration(2)).unwrap();
     assert_eq!(parts.totals_key(), Some(state_key.as_str()));
+    // A worker shoots the same block from the whole checkpoint, with the same bits.
+    let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    replica.compute(2, pass, 0..batches).unwrap();
+    assert!(old.get_batch(2, pass, 0..batches).unwrap() == from_parts);
     let back = old.load(Stage::Iteration(2)).unwrap();
     assert_eq!(back.radiance, viewed.radiance);
     assert_eq!(
