@@ -261,9 +261,8 @@ impl PartSource for RemoteParts {
             let names = keys.iter().map(|k| relative(&id, k)).collect();
             self.bytes += self.remote.fetch(names, store)?;
             let values = local.read(parts);
-            // A snapshot's mirror totals stay: every tile is cut from them.
-            let totals = local.parts.totals_key();
-            for key in keys.iter().filter(|k| Some(k.as_str()) != totals) {
+            // A snapshot's mirror totals stay: every tile of their directions is cut from them.
+            for key in keys.iter().filter(|k| !local.parts.is_shared(k)) {
                 store.delete(key)?;
             }
             values

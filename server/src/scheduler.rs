@@ -124,6 +124,10 @@ struct JobEntry {
     /// wake-up is lost while the driver is busy).
     driver: Arc<Notify>,
     clock: Clock,
+    /// Per batch of the shooting pass, the worker that computed it last: it keeps the batch's
+    /// mirror maps (`vlf_store::Replica`), so leasing it the same batches again saves reading
+    /// them back.
+    shooters: Vec<Option<String>>,
 }
 
 /// Timing of a job's current iteration, for throughput and ETA.
@@ -255,6 +259,7 @@ impl Scheduler {
                     traffic: Vec::new(),
                     batch_seconds: None,
                 },
+                shooters: Vec::new(),
             },
         );
         Ok(driver)
@@ -507,7 +512,7 @@ impl Scheduler {
                 return None;
             }
             entry.passes.iter().enumerate().find_map(|(p, run)| {
-                let b = run.batches.iter().position(|b| b.state == BatchState::Pending)?;
+                let b = run.first_pending(worker, &entry.shooters, &state.workers)?;
                 Some(((*id).clone(), p, b))
             })
         });
@@ -600,6 +605,14 @@ impl Scheduler {
         match result {
             Ok(()) => {
                 run.mark_done(batches.clone());
+                if pass == Pass::Shoot {
+                    if entry.shooters.len() < run.batches.len() {
+                        entry.shooters.resize(run.batches.len(), None);
+                    }
+                    for b in &mut entry.shooters[batches.clone()] {
+                        *b = Some(worker.to_string());
+                    }
+                }
                 if seconds.is_finite() && seconds > 0.0 {
                     entry.clock.batch_seconds = Some(seconds / batches.len() as f64);
                 }
@@ -719,6 +732,27 @@ pub fn block_len(batches: usize, workers: u32, batch_seconds: Option<f64>, lease
 }
 
 impl PassRun {
+    /// The pending batch `worker` should start a lease at: of a shooting pass, the first it
+    /// shot last time (it keeps their mirror maps), else the first no other registered worker
+    /// shot; else — rather than wait — the first pending batch.
+    fn first_pending(
+        &self,
+        worker: &str,
+        shooters: &[Option<String>],
+        workers: &HashMap<String, WorkerEntry>,
+    ) -> Option<usize> {
+        let pending = || (0..self.batches.len()).filter(|&b| self.batches[b].state == BatchState::Pending);
+        if self.pass == Pass::Shoot {
+            let shooter = |b: usize| shooters.get(b).and_then(Option::as_deref);
+            let own = pending().find(|&b| shooter(b) == Some(worker));
+            let free = || pending().find(|&b| shooter(b).is_none_or(|w| !workers.contains_key(w)));
+            if let Some(b) = own.or_else(free) {
+                return Some(b);
+            }
+        }
+        pending().next()
+    }
+
     /// The largest aligned block of at most `len` batches from `first` (a pending batch) whose
     /// batches are all pending.
     fn pending_block(&self, first: usize, len: usize) -> Range<usize> {
@@ -1012,6 +1046,41 @@ mod tests {
         let expected = vec![(shoot, 1..2), (shoot, 2..4), (shoot, 4..8), (shoot, 8..16)];
         assert_eq!(grants[..4], expected);
         assert_eq!(grants[4..], [(Pass::Areas { copy: 0 }, 0..16)]);
+    }
+
+    #[tokio::test]
+    async fn a_worker_shoots_the_batches_it_shot_last_time() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let (a, b) = (s.register("a"), s.register("b"));
+        let shoot = Pass::Shoot;
+        // Iteration 1: a takes the first half, b the second.
+        s.start_pass(&id, 0, shoot, 4, &[]);
+        let mut first = Vec::new();
+        for w in [&a, &a, &b, &b] {
+            let g = s.lease(w, Duration::ZERO).await.unwrap().unwrap();
+            first.push(g.batches.clone());
+            assert!(s.report(w, &g.lease_id, Ok(()), 0.0).unwrap());
+        }
+        assert_eq!(first, [0..1, 1..2, 2..3, 3..4]);
+        s.end_pass(&id, 0, shoot);
+        // Iteration 2: b asks first and is given its own batches, not batch 0; a pass of another
+        // kind keeps the plain order.
+        s.start_pass(&id, 1, shoot, 4, &[]);
+        let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches.start, 2, "b shot batches 2 and 3 last time");
+        let h = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(h.batches.start, 0);
+        assert!(s.report(&b, &g.lease_id, Ok(()), 0.0).unwrap());
+        assert!(s.report(&a, &h.lease_id, Ok(()), 0.0).unwrap());
+        let own = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(own.batches, 3..4);
+        // What is left of a's batches goes to b rather than nobody: no worker waits.
+        let rest = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(rest.batches, 1..2);
+        s.start_pass(&id, 1, Pass::Areas { copy: 0 }, 4, &[]);
+        let areas = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((areas.pass, areas.batches.start), (Pass::Areas { copy: 0 }, 0));
     }
 
     #[tokio::test]

@@ -6,7 +6,7 @@
 //! |---|---|---|
 //! | the normalised scene | `jobs/J/scene.blob` | `Scene::to_bytes`, exact |
 //! | the propagation options | the manifest's `parameters` | JSON of `Options` (floats round-trip exactly) |
-//! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (the shooting state's head), `unshot/BBBBB.blob` (its unshot mirror maps per batch of directions) and `totals.blob` | `Propagation::snapshot_bytes`: f64, exact (jobs written before the split: the whole `Checkpoint::to_bytes` in `state.blob`) |
+//! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (the shooting state's head), per batch B of directions `shooting/BBBBB.blob` and `mirror-totals/BBBBB.blob` (its mirror maps), and `totals.blob` (diffuse) | `Propagation::snapshot_bytes`: f64, exact (see below for jobs of earlier builds) |
 //! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
 //! | outgoing radiance of surface s | `S/diffuse/s.blob` | `[height, width, 3]` texels, job encoding |
 //! | radiance leaving mirrors along direction d in tile (s, t) | `field/dirs/d/tile-s-t.blob` | `[slots, 3]` in slot order, job encoding |
@@ -19,12 +19,18 @@
 //! summary, and the diffuse radiance in the job's encoding (what a viewer needs, including for
 //! ray-traced mirrors). The checkpoint is stored in parts (see
 //! `vlf_core::propagate::snapshot`): a worker starting the next iteration reads the shooting
-//! state's head and the unshot maps of its lease's batches, a viewer only the totals. Mirror radiance of a snapshot is read from its
-//! checkpoint's totals: cutting it into
-//! tiles after every iteration would write thousands of blobs per iteration (6 000 for the bundled
-//! mirror scene at l = 513, N = 64, m = 8) for a state that is superseded by the next one. The
-//! final field (stage `field`) holds radiance only, mirrors per direction and tile, possibly
-//! re-sampled (see `LightField::resample_mirrors`).
+//! state's head and the mirror maps of the batches its lease reads, a viewer the totals. In the
+//! distributed service the mirror maps of snapshot K+1 are written by the workers that shot
+//! them, the head and diffuse totals by the coordinator. Mirror radiance of a snapshot is read
+//! from its checkpoint's mirror totals, by batch of directions: cutting it into tiles after every
+//! iteration would write thousands of blobs per iteration (6 000 for the bundled mirror scene at
+//! l = 513, N = 64, m = 8) for a state that is superseded by the next one. The final field
+//! (stage `field`) holds radiance only, mirrors per direction and tile, possibly re-sampled (see
+//! `LightField::resample_mirrors`).
+//!
+//! **Jobs of earlier builds** still resume and render: their `state.blob` holds the whole
+//! checkpoint (the first builds) or a version 2 head whose unshot maps are in `unshot/BBBBB.blob`
+//! and whose mirror totals are in `totals.blob` whole.
 //!
 //! **Only what is stored is radiance.** Directions, subfields, texel grids and mirror layouts are
 //! a deterministic function of the scene and the options, so a reader rebuilds them
@@ -37,6 +43,7 @@ use crate::blob::Encoding;
 use crate::error::StoreError;
 use crate::id::JobId;
 use crate::job::Job;
+use crate::layout::MapPart;
 use crate::layout::{self, Stage};
 use crate::manifest::JobState;
 use crate::store::Store;
@@ -46,7 +53,7 @@ use vlf_core::field::LightField;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{
-    Checkpoint, IterationStats, Options, Propagation, ShootingState, StateHead, Totals, UnshotBatch,
+    Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Totals,
 };
 use vlf_core::psf::Subfield;
 use vlf_core::scene::{Rgb, Scene};
@@ -162,26 +169,36 @@ impl FieldJob {
     /// Writes the snapshot after `p.iterations_done()` iterations and commits it: the shooting
     /// state first, then the totals, the diffuse maps and the summary, then the manifest.
     pub fn write_snapshot(&mut self, p: &Propagation) -> Result<(), StoreError> {
-        let committed = self.release_snapshot(p)?.commit()?;
+        let committed = self.release_snapshot(p, true)?.commit()?;
         self.adopt_commit(committed);
         Ok(())
     }
 
     /// Writes the part of the snapshot after `p.iterations_done()` iterations that the next
-    /// iteration's workers read — its shooting state — and returns the rest to write and commit.
-    /// A coordinator hands out the next iteration's leases in between (see [`PendingSnapshot`]).
-    pub fn release_snapshot(&self, p: &Propagation) -> Result<PendingSnapshot, StoreError> {
+    /// iteration's workers read — its shooting state's head and, with `maps`, every mirror map —
+    /// and returns the rest to write and commit. A coordinator hands out the next iteration's
+    /// leases in between (see [`PendingSnapshot`]); its workers wrote the mirror maps already
+    /// (`Replica::compute`), unless the iteration left them as they were.
+    pub fn release_snapshot(&self, p: &Propagation, maps: bool) -> Result<PendingSnapshot, StoreError> {
         let k = p.iterations_done();
         if self.job.manifest().is_finished(k) {
             return Err(self.job_error(format!("snapshot {k} is already finished")));
         }
-        let parts = p.snapshot_bytes();
-        // The head last: once it is there, the state is complete.
-        parts
-            .unshot
+        let parts = p.snapshot_bytes(maps);
+        let writes: Vec<(MapPart, usize, &Vec<u8>)> = (parts.shooting.iter().enumerate())
+            .map(|(b, bytes)| (MapPart::Shooting, b, bytes))
+            .chain(
+                parts
+                    .mirror_totals
+                    .iter()
+                    .enumerate()
+                    .map(|(b, bytes)| (MapPart::Totals, b, bytes)),
+            )
+            .collect();
+        writes
             .par_iter()
-            .enumerate()
-            .try_for_each(|(b, bytes)| self.job.put_unshot(k, b as u32, bytes))?;
+            .try_for_each(|&(part, b, bytes)| self.job.put_map_part(k, part, b as u32, bytes).map(|_| ()))?;
+        // The head last: once it is there, the state is complete.
         self.job.put_state(k, &parts.head)?;
         let unit = radiance_unit(&self.scene);
         Ok(PendingSnapshot {
@@ -264,14 +281,26 @@ impl FieldJob {
     }
 
     /// The exact checkpoint of finished snapshot `k`: its parts joined (or the whole checkpoint
-    /// of a job written before the split).
+    /// of a job of the first builds).
     pub fn checkpoint(&self, k: u32) -> Result<Checkpoint, StoreError> {
         self.job.check_committed(Stage::Iteration(k))?;
-        let checkpoint = match self.released_state(k)? {
+        self.released_checkpoint(k, self.released_state(k)?)
+    }
+
+    /// The exact checkpoint of snapshot `k` from what [`FieldJob::released_state`] read, once
+    /// the iteration after it is released.
+    pub fn released_checkpoint(&self, k: u32, released: ReleasedState) -> Result<Checkpoint, StoreError> {
+        let checkpoint = match released {
             ReleasedState::Whole(bytes) => Checkpoint::from_bytes(&bytes).map_err(|e| self.field_error(e))?,
             ReleasedState::Head(head) => {
+                let by_batch = head.mirror_totals_by_batch();
+                let all: Vec<usize> = (0..head.mirror_batches.unwrap_or(0) as usize).collect();
                 let state = self.assemble(k, head)?;
-                let totals = Totals::from_bytes(&self.job.get_totals(k)?).map_err(|e| self.field_error(e))?;
+                let mut totals = self.decode_totals(k, &self.job.get_released_totals(k)?)?;
+                if by_batch {
+                    let batches = self.released_maps(k, MapPart::Totals, &all)?;
+                    totals = totals.with_mirror_batches(batches).map_err(|e| self.field_error(e))?;
+                }
                 Checkpoint::join(state, totals).map_err(|e| self.field_error(e))?
             }
         };
@@ -288,12 +317,7 @@ impl FieldJob {
     /// The whole shooting state of snapshot `k` once the iteration after it is released (see
     /// [`FieldJob::released_state`]).
     pub fn released_shooting_state(&self, k: u32) -> Result<ShootingState, StoreError> {
-        self.shooting_state_of(k, self.released_state(k)?)
-    }
-
-    /// The whole shooting state of snapshot `k` from what [`FieldJob::released_state`] read.
-    pub fn shooting_state_of(&self, k: u32, released: ReleasedState) -> Result<ShootingState, StoreError> {
-        let state = match released {
+        let state = match self.released_state(k)? {
             ReleasedState::Whole(bytes) => {
                 Checkpoint::from_bytes(&bytes)
                     .map_err(|e| self.field_error(e))?
@@ -309,7 +333,7 @@ impl FieldJob {
     /// The head of snapshot `k`'s shooting state once the iteration after it is released,
     /// whether or not the snapshot is committed yet: what every worker of that iteration reads
     /// (see [`PendingSnapshot`]; any state stored for `k` is the one, as it is a pure function of
-    /// the job). A job written before the split has its whole checkpoint there instead.
+    /// the job). A job of the first builds has its whole checkpoint there instead.
     pub fn released_state(&self, k: u32) -> Result<ReleasedState, StoreError> {
         let bytes = self.job.get_released_state(k)?;
         if !Checkpoint::is_split(&bytes) {
@@ -320,31 +344,47 @@ impl FieldJob {
         Ok(ReleasedState::Head(head))
     }
 
-    /// The unshot mirror maps of `batches` of snapshot `k`'s directions, read in parallel, once
-    /// the iteration after it is released: what a lease that shoots those directions reads.
-    pub fn released_unshot(&self, k: u32, batches: &[usize]) -> Result<Vec<UnshotBatch>, StoreError> {
+    /// Mirror maps `part` of `batches` of snapshot `k`'s directions, read in parallel, once the
+    /// iteration after it is released: what a lease that shoots or gathers from those directions
+    /// reads.
+    pub fn released_maps(&self, k: u32, part: MapPart, batches: &[usize]) -> Result<Vec<MapBatch>, StoreError> {
         batches
             .par_iter()
             .copied()
-            .map(|b| {
-                let part = UnshotBatch::from_bytes(&self.job.get_released_unshot(k, b as u32)?)
-                    .map_err(|e| self.field_error(e))?;
-                self.of_snapshot(k, part.iterations)?;
-                Ok(part)
-            })
+            .map(|b| self.decode_map_part(k, b, &self.job.get_released_map_part(k, part, b as u32)?))
             .collect()
     }
 
-    /// A whole shooting state from its head and every batch of unshot maps.
+    /// A batch of mirror maps of snapshot `k` from the contents of its blob, checked to be of
+    /// that snapshot and batch.
+    pub(crate) fn decode_map_part(&self, k: u32, batch: usize, bytes: &[u8]) -> Result<MapBatch, StoreError> {
+        let part = MapBatch::from_bytes(bytes).map_err(|e| self.field_error(e))?;
+        self.of_snapshot(k, part.iterations)?;
+        if part.batch as usize != batch {
+            return Err(self.field_error(vlf_core::Error::Decode(format!(
+                "mirror maps of batch {} stored as batch {batch} of snapshot {k}",
+                part.batch
+            ))));
+        }
+        Ok(part)
+    }
+
+    /// A whole shooting state from its head and every batch of shooting (or, in a job of an
+    /// earlier build, unshot) maps.
     fn assemble(&self, k: u32, head: StateHead) -> Result<ShootingState, StoreError> {
-        let all: Vec<usize> = (0..head.unshot_batches.unwrap_or(0) as usize).collect();
-        let batches = self.released_unshot(k, &all)?;
+        let all: Vec<usize> = (0..head.mirror_batches.unwrap_or(0) as usize).collect();
+        let part = if head.mirror_totals_by_batch() {
+            MapPart::Shooting
+        } else {
+            MapPart::Unshot
+        };
+        let batches = self.released_maps(k, part, &all)?;
         ShootingState::from_parts(head, batches).map_err(|e| self.field_error(e))
     }
 
     /// The totals of snapshot `k` from the contents of the blob that holds them (its
-    /// `totals.blob`, or the whole checkpoint in `state.blob` of a job written before the
-    /// split).
+    /// `totals.blob`, or the whole checkpoint in `state.blob` of a job of the first builds):
+    /// without the mirror totals where they are stored by batch.
     pub(crate) fn decode_totals(&self, k: u32, bytes: &[u8]) -> Result<Totals, StoreError> {
         let totals = Totals::from_bytes(bytes).map_err(|e| self.field_error(e))?;
         self.of_snapshot(k, totals.iterations)?;
@@ -470,9 +510,9 @@ fn write_diffuse(
 
 /// The shooting state of a released snapshot as stored ([`FieldJob::released_state`]).
 pub enum ReleasedState {
-    /// Its head; the unshot mirror maps are read by batch ([`FieldJob::released_unshot`]).
+    /// Its head; the mirror maps are read by batch ([`FieldJob::released_maps`]).
     Head(StateHead),
-    /// The whole checkpoint's bytes (a job written before the split).
+    /// The whole checkpoint's bytes (a job of the first builds).
     Whole(Vec<u8>),
 }
 

@@ -8,22 +8,29 @@
 //! for passes and batches, `vlf_core::propagate::reduce` for blocks):
 //!
 //! 1. Every batch of a pass is computed by some [`Replica`] (a worker's copy of the
-//!    propagation, restored from the shooting half of snapshot `k`'s checkpoint) once the pass's
-//!    prerequisites
-//!    are absorbed, as part of an aligned block whose node sum is written to
-//!    `jobs/J/work/KKKKK/PASS/SSSSS-EEEEE.blob`. Writes are create-only; a block computed twice
-//!    (a lease that expired and was handed out again, a late result) writes the same bytes,
-//!    which the store accepts as unchanged — and different bytes would be an error, never a
-//!    silent replacement.
+//!    propagation, restored from snapshot `k`'s head and the mirror maps the block reads) once
+//!    the pass's prerequisites are absorbed, as part of an aligned block. A shooting block
+//!    with mirrors first writes its directions' mirror maps as parts of snapshot `k + 1`
+//!    (`iters/K+1/{shooting,mirror-totals}/BBBBB.blob`: the arrivals to reflect next, the
+//!    totals); then its node sum and each direction's `Φ_in` (a few numbers) go to
+//!    `jobs/J/work/KKKKK/PASS/SSSSS-EEEEE.blob`. Writes are create-only; a block computed
+//!    twice (a lease that expired and was handed out again, a late result) writes the same
+//!    bytes, which the store accepts as unchanged — and different bytes would be an error,
+//!    never a silent replacement.
 //! 2. The [`Coordinator`] reads the blocks in pass and batch order and absorbs each as soon as
 //!    it is written (the next ones are still being computed meanwhile); replicas read the
 //!    blocks of a pass's prerequisites to learn what it needs (a rotated copy's areas).
-//! 3. After the last pass the coordinator finishes the iteration (mirror exchange, diffuse
-//!    reflection) and writes snapshot `k + 1`'s shooting state, which releases the next
-//!    iteration ([`Coordinator::release_iteration`]); it then writes the rest of the snapshot,
-//!    commits it and deletes the iteration's outputs ([`SnapshotCommit::commit`]) — in the
-//!    service, while workers compute the next iteration; [`Coordinator::finish_iteration`] does
-//!    both at once.
+//! 3. After the last pass the coordinator finishes the iteration (diffuse reflection; the
+//!    mirrors' power settled from `Φ_in`) and writes snapshot `k + 1`'s head, which releases
+//!    the next iteration ([`Coordinator::release_iteration`]); it then writes the rest of the
+//!    snapshot (diffuse totals and maps, summary), commits it and deletes the iteration's
+//!    outputs ([`SnapshotCommit::commit`]) — in the service, while workers compute the next
+//!    iteration; [`Coordinator::finish_iteration`] does both at once.
+//!
+//! So mirror maps go from worker to worker through the store and never through the
+//! coordinator, and a replica keeps the maps it wrote: one that shoots the same directions in
+//! the next iteration, and gathers from directions it shot, reads none back (a single worker
+//! reads no mirror map at all).
 //!
 //! The bits do not depend on which replica computed which block, how large the blocks were, or
 //! when: tested with several replicas in threads, blocks of 1, 2 and 4 batches assigned in a
@@ -35,14 +42,17 @@ use crate::field::{FieldJob, PendingSnapshot, ReleasedState};
 use crate::id::JobId;
 use crate::job::Job;
 use crate::layout;
+use crate::layout::MapPart;
 use crate::manifest::JobState;
 use crate::store::PutOutcome;
+use rayon::prelude::*;
 use std::collections::HashMap;
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use vlf_core::propagate::reduce::is_aligned_block;
-use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, Pass, Propagation};
+use vlf_core::propagate::work::batch_count;
+use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, MirrorBlock, Pass, Propagation};
 
 /// The key segment of a pass.
 fn pass_name(pass: Pass) -> String {
@@ -154,13 +164,24 @@ impl std::fmt::Debug for Prototypes {
 }
 
 /// A worker's copy of a job's propagation: the geometry is built once; each iteration restores
-/// the state from the store.
+/// the state from the store — except the mirror maps this replica computed itself, which it
+/// keeps (see [`Replica::compute`]).
 pub struct Replica {
     job: FieldJob,
     prop: Propagation,
     /// The iteration being worked on, its work (with the prerequisites learnt so far) and which
-    /// batches' unshot mirror maps are restored (empty: all, from a whole checkpoint).
-    current: Option<(u32, IterationWork, Vec<bool>)>,
+    /// batches' mirror maps of its snapshot are restored.
+    current: Option<Current>,
+    /// Mirror maps this replica computed: parts of the snapshot after the current iteration.
+    held: Vec<MirrorBlock>,
+}
+
+struct Current {
+    k: u32,
+    work: IterationWork,
+    /// Per batch: its shooting maps restored, its totals restored.
+    shooting: Vec<bool>,
+    totals: Vec<bool>,
 }
 
 impl Replica {
@@ -178,51 +199,59 @@ impl Replica {
             job,
             prop,
             current: None,
+            held: Vec::new(),
         }
     }
 
     /// Computes the aligned block `batches` of `pass` of the iteration starting from snapshot `k`
-    /// and writes its output into the store. The pass's prerequisites must be complete in the
-    /// store.
+    /// and writes its output into the store: the mirror maps of its directions (the next
+    /// snapshot's parts, create-only), then the block output that the coordinator absorbs. The
+    /// pass's prerequisites must be complete in the store.
+    ///
+    /// What it reads: the snapshot's head, and for a shooting pass with mirrors the maps
+    /// [`Propagation::mirror_batches_read`] names — but not those it computed itself in the
+    /// iteration before (kept in memory: the same bits as the store's). So a worker that shoots
+    /// the same directions every iteration, and gathers from directions it shoots, reads no
+    /// mirror map back; with one worker, none at all.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
-        if self.current.as_ref().map(|c| c.0) != Some(k) {
-            // Every lease reads the head of the shooting state (statistics, Current): written
-            // before the iteration is released, perhaps not committed yet (see
-            // `PendingSnapshot`). The unshot mirror maps come by batch, below.
-            let loaded = match self.job.released_state(k)? {
-                ReleasedState::Head(head) => {
-                    let batches = head.unshot_batches.unwrap_or(0) as usize;
-                    self.prop.restore_head(head).map_err(|e| self.job.field_error(e))?;
-                    vec![false; batches]
-                }
-                whole @ ReleasedState::Whole(_) => {
-                    let state = self.job.shooting_state_of(k, whole)?;
-                    self.prop.restore_shooting(state).map_err(|e| self.job.field_error(e))?;
-                    Vec::new()
-                }
-            };
-            self.current = Some((k, self.prop.iteration_work(), loaded));
+        if self.current.as_ref().map(|c| c.k) != Some(k) {
+            self.start(k)?;
         }
-        let Some((_, work, loaded)) = self.current.as_mut() else {
-            unreachable!("set just above");
+        let Some(current) = self.current.as_mut() else {
+            unreachable!("started just above");
         };
-        // A shot through the true directions sends their unshot mirror maps: read those of the
-        // lease's batches that this replica does not hold yet.
-        if pass == Pass::Shoot && work.uses_mirror_maps() {
-            let missing: Vec<usize> = batches.clone().filter(|&b| loaded.get(b) == Some(&false)).collect();
-            for part in self.job.released_unshot(k, &missing)? {
-                self.prop.restore_unshot(part).map_err(|e| self.job.field_error(e))?;
-            }
-            for b in missing {
-                loaded[b] = true;
-            }
-        }
+        let work = &mut current.work;
         let passes = work.passes();
         if !passes.contains(&pass) {
             return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
                 "{pass:?} is not a pass of iteration {k} (its passes: {passes:?})"
             ))));
         }
+        // The mirror maps the block reads that this replica does not hold yet.
+        let (shooting, totals) = self
+            .prop
+            .mirror_batches_read(work, pass, batches.clone())
+            .map_err(|e| self.job.field_error(e))?;
+        let missing = |wanted: Vec<usize>, have: &[bool]| -> Vec<usize> {
+            wanted.into_iter().filter(|&b| have.get(b) == Some(&false)).collect()
+        };
+        let (shooting, totals) = (missing(shooting, &current.shooting), missing(totals, &current.totals));
+        let (read_shooting, read_totals) = rayon::join(
+            || self.job.released_maps(k, MapPart::Shooting, &shooting),
+            || self.job.released_maps(k, MapPart::Totals, &totals),
+        );
+        for part in read_shooting? {
+            self.prop
+                .restore_shooting_batch(part)
+                .map_err(|e| self.job.field_error(e))?;
+        }
+        for part in read_totals? {
+            self.prop
+                .restore_totals_batch(part)
+                .map_err(|e| self.job.field_error(e))?;
+        }
+        shooting.into_iter().for_each(|b| current.shooting[b] = true);
+        totals.into_iter().for_each(|b| current.totals[b] = true);
         // Learn what the pass reads (a rotated copy's areas) from the store.
         if !work.is_ready(pass) {
             for earlier in work.prerequisites(pass) {
@@ -239,11 +268,58 @@ impl Replica {
                 work.learn(earlier, sums).map_err(|e| self.job.field_error(e))?;
             }
         }
-        let out = self
+        let (out, block) = self
             .prop
             .compute_block(work, pass, batches)
             .map_err(|e| self.job.field_error(e))?;
+        if let Some(block) = block {
+            let l = self.prop.directions.len();
+            block
+                .batch_bytes(l)
+                .par_iter()
+                .try_for_each(|(b, shooting, totals)| -> Result<(), StoreError> {
+                    self.job.job().put_map_part(k + 1, MapPart::Shooting, *b, shooting)?;
+                    self.job.job().put_map_part(k + 1, MapPart::Totals, *b, totals)?;
+                    Ok(())
+                })?;
+            self.held.push(block);
+        }
         self.job.put_batch(&out)?;
+        Ok(())
+    }
+
+    /// Moves on to the iteration that starts from snapshot `k`. Every lease reads the head of
+    /// the shooting state (statistics, Current, pending `Φ_in`): written before the iteration is
+    /// released, perhaps not committed yet (see `PendingSnapshot`). The mirror maps this
+    /// replica computed for `k` are taken from memory; the others come by batch, as leases need
+    /// them. A snapshot of an earlier build is restored whole.
+    fn start(&mut self, k: u32) -> Result<(), StoreError> {
+        self.current = None;
+        let held = std::mem::take(&mut self.held);
+        let batches = match self.job.released_state(k)? {
+            ReleasedState::Head(head) if head.mirror_totals_by_batch() => {
+                let batches = head.mirror_batches.unwrap_or(0) as usize;
+                self.prop.restore_head(head).map_err(|e| self.job.field_error(e))?;
+                let mut loaded = vec![false; batches];
+                for block in held.into_iter().filter(|b| b.iterations == k) {
+                    let range = block.batches.start as usize..block.batches.end as usize;
+                    self.prop.adopt_mirrors(block).map_err(|e| self.job.field_error(e))?;
+                    loaded.get_mut(range).into_iter().flatten().for_each(|b| *b = true);
+                }
+                loaded
+            }
+            earlier => {
+                let checkpoint = self.job.released_checkpoint(k, earlier)?;
+                self.prop.restore(checkpoint).map_err(|e| self.job.field_error(e))?;
+                vec![true; batch_count(self.prop.directions.len())]
+            }
+        };
+        self.current = Some(Current {
+            k,
+            work: self.prop.iteration_work(),
+            shooting: batches.clone(),
+            totals: batches,
+        });
         Ok(())
     }
 }
@@ -305,6 +381,9 @@ pub struct Coordinator {
     prop: Propagation,
     work: Option<(IterationWork, Instant)>,
     traffic: Vec<WorkTraffic>,
+    /// Whether `prop` holds the mirror maps of its snapshot: true from its restore until an
+    /// iteration shoots them (then they live in the store, written by the workers).
+    maps_held: bool,
 }
 
 impl Coordinator {
@@ -323,6 +402,7 @@ impl Coordinator {
             prop,
             work: None,
             traffic: Vec::new(),
+            maps_held: true,
         }
     }
 
@@ -450,8 +530,18 @@ impl Coordinator {
         let Some((work, started)) = self.work.take() else {
             unreachable!("pending_pass created it");
         };
+        // The workers wrote the next snapshot's mirror maps if the iteration shot them; else they
+        // are those of the snapshot it started from, written here.
+        let shot = work.uses_mirror_maps();
         let stats = self.prop.finish_iteration(work, started);
-        let snapshot = self.job.release_snapshot(&self.prop)?;
+        self.maps_held &= !shot;
+        let maps = self.prop.specular.is_some() && !shot;
+        if maps && !self.maps_held {
+            return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
+                "iteration {k} left the mirror maps as they were, and this coordinator no longer holds them"
+            ))));
+        }
+        let snapshot = self.job.release_snapshot(&self.prop, maps)?;
         let blobs = self
             .job
             .job()
@@ -475,8 +565,18 @@ impl Coordinator {
         self.job.adopt_commit(committed);
     }
 
-    /// Writes the final field and marks the job finished.
+    /// Writes the final field and marks the job finished: the mirror totals come from the last
+    /// snapshot's parts, where the workers wrote them.
     pub fn finish(mut self, resample: bool) -> Result<FieldJob, StoreError> {
+        if self.prop.specular.is_some() && !self.maps_held {
+            let k = self.iteration();
+            let all: Vec<usize> = (0..batch_count(self.prop.directions.len())).collect();
+            for part in self.job.released_maps(k, MapPart::Totals, &all)? {
+                self.prop
+                    .restore_totals_batch(part)
+                    .map_err(|e| self.job.field_error(e))?;
+            }
+        }
         let mut field = self.prop.into_field();
         if resample {
             field.resample_mirrors(8);

@@ -17,9 +17,9 @@
 use crate::blob::{self, BlobKind, Encoding};
 use crate::error::StoreError;
 use crate::id::JobId;
-use crate::layout::{self, Stage};
+use crate::layout::{self, MapPart, Stage};
 use crate::manifest::{JobState, Manifest};
-use crate::store::Store;
+use crate::store::{PutOutcome, Store};
 
 /// A job: its store and the manifest as last read or written.
 #[derive(Debug, Clone)]
@@ -132,19 +132,20 @@ impl Job {
         self.write(Stage::Iteration(k), &key, bytes)
     }
 
-    /// Writes part `batch` of the resume state of iteration `k` (caller's serialisation; a
-    /// job's resume state may have no parts).
-    pub fn put_unshot(&self, k: u32, batch: u32, bytes: &[u8]) -> Result<(), StoreError> {
-        let key = layout::unshot(self.id(), k, batch)?;
+    /// Writes mirror maps `part` of batch `batch` of the resume state of iteration `k` (caller's
+    /// serialisation). Create-only: they are a pure function of the job, so the same bytes again
+    /// (a block computed twice, a run resumed) are accepted and different bytes refused.
+    pub fn put_map_part(&self, k: u32, part: MapPart, batch: u32, bytes: &[u8]) -> Result<PutOutcome, StoreError> {
+        let key = layout::map_part(self.id(), k, part, batch)?;
         let bytes = blob::encode_bytes(BlobKind::Snapshot, bytes).map_err(|e| self.blob_error(&key, e))?;
-        self.write(Stage::Iteration(k), &key, bytes)
+        self.store.put_new(&key, bytes)
     }
 
-    /// Part `batch` of the resume state of iteration `k` as written, committed or not (see
-    /// [`Job::get_released_state`]).
-    pub fn get_released_unshot(&self, k: u32, batch: u32) -> Result<Vec<u8>, StoreError> {
+    /// Mirror maps `part` of batch `batch` of the resume state of iteration `k` as written,
+    /// committed or not (see [`Job::get_released_state`]).
+    pub fn get_released_map_part(&self, k: u32, part: MapPart, batch: u32) -> Result<Vec<u8>, StoreError> {
         self.store
-            .get_bytes_blob(&layout::unshot(self.id(), k, batch)?, BlobKind::Snapshot)
+            .get_bytes_blob(&layout::map_part(self.id(), k, part, batch)?, BlobKind::Snapshot)
     }
 
     /// Writes the totals half of the resume state of iteration `k` (caller's serialisation;
@@ -254,6 +255,12 @@ impl Job {
     pub fn get_released_state(&self, k: u32) -> Result<Vec<u8>, StoreError> {
         self.store
             .get_bytes_blob(&layout::state(self.id(), k)?, BlobKind::Snapshot)
+    }
+
+    /// The totals half of the resume state of iteration `k` as written, committed or not.
+    pub fn get_released_totals(&self, k: u32) -> Result<Vec<u8>, StoreError> {
+        self.store
+            .get_bytes_blob(&layout::totals(self.id(), k)?, BlobKind::Snapshot)
     }
 
     /// The totals half of the resume state of finished iteration `k`.

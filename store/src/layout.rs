@@ -7,8 +7,10 @@
 //! | `jobs/J/manifest.blob` | Manifest | JSON [`crate::Manifest`]; written last, the commit point |
 //! | `jobs/J/scene.blob` | Scene | the normalised scene (caller's bytes) |
 //! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | the head of what shooting the iteration after K reads (or, in jobs written before the split, all that resuming needs) |
-//! | `jobs/J/iters/KKKKK/unshot/BBBBB.blob` | Snapshot | the rest of it for batch B of the directions: their unshot mirror maps |
-//! | `jobs/J/iters/KKKKK/totals.blob` | Snapshot | the rest of what resuming after K iterations needs: the totals (absent in jobs written before the split) |
+//! | `jobs/J/iters/KKKKK/shooting/BBBBB.blob` | Snapshot | what batch B of the directions shoots next: the mirror arrivals to gather (or unshot maps) |
+//! | `jobs/J/iters/KKKKK/mirror-totals/BBBBB.blob` | Snapshot | the total mirror maps of batch B of the directions |
+//! | `jobs/J/iters/KKKKK/totals.blob` | Snapshot | the diffuse totals (absent in jobs written before the split; with the mirror totals in jobs written before they were stored by batch) |
+//! | `jobs/J/iters/KKKKK/unshot/BBBBB.blob` | Snapshot | in jobs written before the mirror totals were stored by batch: the unshot mirror maps of batch B |
 //! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
 //! | `jobs/J/work/KKKKK/PASS/BBBBB.blob` | BatchOutput | a worker's output for one batch of the iteration after snapshot K (deleted once K+1 is committed) |
 //! | `S/diffuse/SSSSSSS.blob` | DiffuseMaps | Total maps of diffuse surface S |
@@ -74,11 +76,28 @@ pub fn state(job: &JobId, k: u32) -> Result<String, StoreError> {
     Ok(format!("{}state.blob", stage_prefix(job, Stage::Iteration(k))?))
 }
 
-/// `jobs/J/iters/KKKKK/unshot/BBBBB.blob`: part `batch` of the resume state after `k`
-/// iterations (the unshot mirror maps of a batch of directions).
-pub fn unshot(job: &JobId, k: u32, batch: u32) -> Result<String, StoreError> {
+/// Which mirror maps of a batch of directions a part of a snapshot holds.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum MapPart {
+    /// What the batch's directions shoot next (`shooting/`).
+    Shooting,
+    /// Their total maps (`mirror-totals/`).
+    Totals,
+    /// Their unshot maps, in jobs written before the mirror totals were stored by batch
+    /// (`unshot/`).
+    Unshot,
+}
+
+/// `jobs/J/iters/KKKKK/{shooting,mirror-totals,unshot}/BBBBB.blob`: the mirror maps `part` of
+/// batch `batch` of the directions in the resume state after `k` iterations.
+pub fn map_part(job: &JobId, k: u32, part: MapPart, batch: u32) -> Result<String, StoreError> {
+    let folder = match part {
+        MapPart::Shooting => "shooting",
+        MapPart::Totals => "mirror-totals",
+        MapPart::Unshot => "unshot",
+    };
     Ok(format!(
-        "{}unshot/{:05}.blob",
+        "{}{folder}/{:05}.blob",
         stage_prefix(job, Stage::Iteration(k))?,
         check("batch", batch, MAX_DIRECTION)?
     ))

@@ -31,7 +31,7 @@ pub use field::{FieldJob, PendingSnapshot, Summary};
 pub use id::JobId;
 pub use iteration::{Coordinator, Prototypes, Replica, SnapshotCommit, WorkTraffic};
 pub use job::Job;
-pub use layout::Stage;
+pub use layout::{MapPart, Stage};
 pub use manifest::{JobState, Manifest};
 pub use parts::StageParts;
 pub use store::{AsyncStore, Panicked, PutOutcome, Store, blocking};

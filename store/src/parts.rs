@@ -2,22 +2,36 @@
 //! [`FieldJob::load_parts`] is built on.
 //!
 //! A final field stores one blob per part. A snapshot stores its diffuse maps the same way but
-//! its mirror radiance in its checkpoint's totals (see [`crate::field`]): the first tile asked
-//! for reads them, and the tiles are cut from them from then on.
+//! its mirror radiance in its checkpoint's mirror totals, one blob per batch of directions (see
+//! [`crate::field`]; in jobs of earlier builds, one blob for all): the first tile of a batch asked
+//! for reads them, and its tiles are cut from them from then on.
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;
 use crate::field::{FieldJob, Summary};
-use crate::layout::{self, Stage};
+use crate::layout::{self, MapPart, Stage};
 use rayon::prelude::*;
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use vlf_core::field::LightField;
 use vlf_core::parts::{Part, PartCatalog};
 use vlf_core::propagate::Propagation;
 
-/// Mirror radiance per direction and slot.
+/// Mirror radiance per direction (of a batch, or of all) and slot.
 type MirrorTotals = Vec<Vec<[f32; 3]>>;
+
+/// Where a stage keeps its mirror radiance.
+#[derive(Clone, Debug, PartialEq)]
+enum MirrorSource {
+    /// One blob per tile (the final field).
+    Tiles,
+    /// A snapshot's mirror totals, one blob per batch of directions.
+    Batches,
+    /// A snapshot of an earlier build: all its mirror totals in this one blob (its totals, or
+    /// its whole checkpoint).
+    Whole(String),
+}
 
 /// One committed stage of a job, read part by part.
 pub struct StageParts {
@@ -26,11 +40,9 @@ pub struct StageParts {
     summary: Summary,
     /// Stored values are radiance in this unit (see [`Summary::radiance_unit`]).
     unit: f32,
-    /// A snapshot's blob that holds its mirror totals: its checkpoint's totals half, or the
-    /// whole checkpoint of a job written before the split. `None` for the final field.
-    totals_key: Option<String>,
-    /// A snapshot's mirror totals per direction, once read.
-    snapshot_totals: Mutex<Option<Arc<MirrorTotals>>>,
+    mirrors: MirrorSource,
+    /// A snapshot's mirror totals, by the key read (per batch, or all), once read.
+    snapshot_totals: Mutex<HashMap<String, Arc<MirrorTotals>>>,
     /// Bytes of radiance blobs read so far (as stored).
     bytes: AtomicU64,
 }
@@ -46,27 +58,35 @@ impl StageParts {
                 "summary of {stage:?}: radiance unit {unit} is not a power of two"
             ))));
         }
-        let totals_key = match stage {
+        let mirrors = match stage {
             Stage::Iteration(k) => {
-                let (totals, whole) = (layout::totals(job.id(), k)?, layout::state(job.id(), k)?);
                 let store = job.job().store();
-                // A store that holds neither yet (a viewer's, filled as parts are fetched) is
-                // taken to be of the current layout.
-                Some(if !store.exists(&totals)? && store.exists(&whole)? {
-                    whole
+                let (first, totals, whole) = (
+                    layout::map_part(job.id(), k, MapPart::Totals, 0)?,
+                    layout::totals(job.id(), k)?,
+                    layout::state(job.id(), k)?,
+                );
+                // A store that holds none yet (a viewer's, filled as parts are fetched) is taken
+                // to be of the current layout.
+                if store.exists(&first)? {
+                    MirrorSource::Batches
+                } else if store.exists(&totals)? {
+                    MirrorSource::Whole(totals)
+                } else if store.exists(&whole)? {
+                    MirrorSource::Whole(whole)
                 } else {
-                    totals
-                })
+                    MirrorSource::Batches
+                }
             }
-            Stage::Field => None,
+            Stage::Field => MirrorSource::Tiles,
         };
         Ok(StageParts {
             job,
             stage,
             summary,
-            totals_key,
+            mirrors,
             unit: unit as f32,
-            snapshot_totals: Mutex::new(None),
+            snapshot_totals: Mutex::new(HashMap::new()),
             bytes: AtomicU64::new(0),
         })
     }
@@ -83,10 +103,15 @@ impl StageParts {
         &self.summary
     }
 
-    /// A snapshot's blob that holds the radiance of all its mirror tiles (`None` for the final
-    /// field).
-    pub fn totals_key(&self) -> Option<&str> {
-        self.totals_key.as_deref()
+    /// Whether `key` holds the radiance of many mirror tiles (a snapshot's mirror totals), so
+    /// that a reader keeps it once fetched.
+    pub fn is_shared(&self, key: &str) -> bool {
+        match (&self.mirrors, self.stage) {
+            (MirrorSource::Whole(whole), _) => key == whole,
+            (MirrorSource::Batches, Stage::Iteration(k)) => layout::map_part(self.job.id(), k, MapPart::Totals, 0)
+                .is_ok_and(|first| key.starts_with(first.trim_end_matches("00000.blob"))),
+            _ => false,
+        }
     }
 
     /// Bytes of radiance blobs read so far, as stored (compressed).
@@ -108,17 +133,28 @@ impl StageParts {
         LightField::from_radiance(p, self.summary.stats.clone(), radiance, totals).map_err(|e| job.field_error(e))
     }
 
-    /// The key of the blob that holds `part` (a snapshot's tiles: its checkpoint's totals).
+    /// The key of the blob that holds `part` (a snapshot's tiles: its checkpoint's mirror
+    /// totals of the direction's batch).
     pub fn key(&self, catalog: &PartCatalog, part: u32) -> Result<String, StoreError> {
         let id = self.job.id();
-        match (catalog.part(part), self.stage, &self.totals_key) {
+        match (catalog.part(part), self.stage, &self.mirrors) {
             (Part::Surface(s), stage, _) => layout::diffuse(id, stage, s),
-            (Part::Tile { .. }, Stage::Iteration(_), Some(key)) => Ok(key.clone()),
+            (Part::Tile { .. }, Stage::Iteration(_), MirrorSource::Whole(key)) => Ok(key.clone()),
+            (Part::Tile { direction, .. }, Stage::Iteration(k), MirrorSource::Batches) => {
+                layout::map_part(id, k, MapPart::Totals, self.batch_of(direction) as u32)
+            }
             (Part::Tile { direction, tile }, stage, _) => {
                 let per_side = self.job.options().grid.tiles_per_side();
                 layout::tile(id, stage, direction, tile % per_side, tile / per_side)
             }
         }
+    }
+
+    /// The batch of directions `direction` is in.
+    fn batch_of(&self, direction: u32) -> usize {
+        let l = self.job.options().directions;
+        let size = vlf_core::propagate::work::batch_size(l);
+        (direction as usize / size).min(vlf_core::propagate::work::batch_count(l) - 1)
     }
 
     /// The distinct keys holding `parts`, in first-needed order.
@@ -156,8 +192,8 @@ impl StageParts {
                     }
                     Part::Tile { direction, tile } => match self.stage {
                         Stage::Iteration(_) => {
-                            let totals = self.snapshot_totals()?;
-                            let d = totals.get(direction as usize).map_or(&[][..], |t| t.as_slice());
+                            let (totals, first) = self.snapshot_totals(&key()?, direction)?;
+                            let d = totals.get(direction as usize - first).map_or(&[][..], |t| t.as_slice());
                             d.get(catalog.range(i))
                                 .ok_or_else(|| {
                                     self.job.field_error(vlf_core::Error::Decode(format!(
@@ -201,16 +237,23 @@ impl StageParts {
         values.chunks_exact(3).map(|v| [v[0] * u, v[1] * u, v[2] * u]).collect()
     }
 
-    /// A snapshot's mirror totals, read from its checkpoint the first time.
-    fn snapshot_totals(&self) -> Result<Arc<MirrorTotals>, StoreError> {
-        let (Stage::Iteration(k), Some(key)) = (self.stage, &self.totals_key) else {
+    /// The snapshot's mirror totals held by `key` — of the batch of `direction`, or of every
+    /// direction in a job of an earlier build — read the first time, and the first direction
+    /// they hold.
+    fn snapshot_totals(&self, key: &str, direction: u32) -> Result<(Arc<MirrorTotals>, usize), StoreError> {
+        let Stage::Iteration(k) = self.stage else {
             return Err(self.job.field_error(vlf_core::Error::Decode(
                 "a final field keeps its mirror radiance in tiles".into(),
             )));
         };
+        let batch = self.batch_of(direction);
+        let first = match self.mirrors {
+            MirrorSource::Batches => vlf_core::propagate::work::batch_range(batch, self.job.options().directions).start,
+            _ => 0,
+        };
         let mut cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(totals) = &*cached {
-            return Ok(totals.clone());
+        if let Some(totals) = cached.get(key) {
+            return Ok((totals.clone(), first));
         }
         let store = self.job.job().store();
         let stored = store.get(key)?;
@@ -218,14 +261,17 @@ impl StageParts {
         let bytes = store
             .as_async()
             .decode_with(key, &stored, |b| blob::decode_bytes(b, BlobKind::Snapshot))?;
-        let maps = self.job.decode_totals(k, &bytes)?.mirrors.unwrap_or_default();
+        let maps = match self.mirrors {
+            MirrorSource::Batches => self.job.decode_map_part(k, batch, &bytes)?.maps,
+            _ => self.job.decode_totals(k, &bytes)?.mirrors.unwrap_or_default(),
+        };
         let totals: Arc<MirrorTotals> = Arc::new(
             maps.iter()
                 .map(|m| m.iter().map(|t| t.map(|c| c as f32)).collect())
                 .collect(),
         );
-        *cached = Some(totals.clone());
-        Ok(totals)
+        cached.insert(key.to_string(), totals.clone());
+        Ok((totals, first))
     }
 }
 
@@ -234,7 +280,7 @@ impl FieldJob {
     /// with `None`: the diffuse maps of the needed surfaces and the needed mirror tiles; the rest
     /// of the field stays zero. A field read this way draws that view with the same bits as the
     /// whole field. Also returns how many radiance blobs were read (a snapshot's mirror radiance
-    /// is one blob, its checkpoint, read when any mirror tile is needed).
+    /// is one blob per batch of directions, read when any of its tiles is needed).
     pub fn load_parts(
         &self,
         stage: Stage,

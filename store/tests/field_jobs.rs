@@ -9,11 +9,12 @@ mod suite;
 
 use suite::Opener;
 use vlf_core::field::LightField;
+use vlf_core::propagate::snapshot::earlier;
 use vlf_core::propagate::{Checkpoint, Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_store::blob::{self, BlobKind, Encoding};
-use vlf_store::{FieldJob, JobId, Stage, Store, StoreError, layout};
+use vlf_store::{FieldJob, JobId, MapPart, Stage, Store, StoreError, layout};
 
 fn bundled(name: &str) -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -239,59 +240,104 @@ per_backend! {
     damaged_blobs_name_their_key => crate::damage_names_the_key,
 }
 
-/// A snapshot's checkpoint is stored in halves; jobs written before the split hold it whole in
-/// `state.blob`, and stay readable: resumed, shot from, and viewed.
+/// Jobs of earlier builds hold a snapshot's checkpoint whole in `state.blob` (the first builds)
+/// or as a version 2 head whose unshot maps are in `unshot/BBBBB.blob` and whose mirror totals
+/// are in `totals.blob` whole; both hold the arrivals already reflected (unshot maps), none
+/// pending. They stay readable: checkpointed, shot from with the same bits, and viewed.
 #[test]
-fn snapshots_with_a_whole_checkpoint_still_read() {
+fn snapshots_of_earlier_builds_still_read() {
     let store = Store::open("memory://").unwrap();
-    let (job, _) = run(&store, &bundled("mirrors.obj"), Encoding::F32);
+    let scene = bundled("mirrors.obj");
+    let (job, _) = run(&store, &scene, Encoding::F32);
     let id = job.id().clone();
-    let (state_key, totals_key) = (layout::state(&id, 2).unwrap(), layout::totals(&id, 2).unwrap());
-    assert!(
-        store.exists(&totals_key).unwrap(),
-        "a snapshot's totals are a blob of their own"
-    );
-    let split = job.checkpoint(2).unwrap();
-    let shooting = job.shooting_state(2).unwrap();
-    assert!(shooting == split.clone().split().0);
+    let current = job.checkpoint(2).unwrap();
+    assert!(current.pending.is_some(), "arrivals wait to be reflected");
     let viewed = job.load(Stage::Iteration(2)).unwrap();
-    let parts = vlf_store::StageParts::open(FieldJob::open(&store, &id).unwrap(), Stage::Iteration(2)).unwrap();
-    assert_eq!(parts.totals_key(), Some(totals_key.as_str()));
-    // A worker shoots the iteration after snapshot 2 from its parts.
+    let open_parts = || vlf_store::StageParts::open(FieldJob::open(&store, &id).unwrap(), Stage::Iteration(2)).unwrap();
+    let parts = open_parts();
+    let geometry = parts.geometry().unwrap();
+    let catalog = vlf_core::parts::PartCatalog::new(&geometry);
+    let tile = (0..catalog.len() as u32)
+        .find(|&i| matches!(catalog.part(i), vlf_core::parts::Part::Tile { .. }))
+        .expect("the mirror scene has mirror tiles");
+    let batch_key = parts.key(&catalog, tile).unwrap();
+    assert!(
+        batch_key.contains("/mirror-totals/") && parts.is_shared(&batch_key),
+        "{batch_key}"
+    );
+
+    // A worker shoots the iteration after snapshot 2 from this build's parts.
     let pass = vlf_core::propagate::Pass::Shoot;
     let batches = vlf_core::propagate::work::batch_count(33);
-    let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
-    replica.compute(2, pass, 0..batches).unwrap();
-    let from_parts = job.get_batch(2, pass, 0..batches).unwrap();
-    assert!(from_parts.mirrors.is_some(), "the shot carries mirror maps");
-    store
-        .delete(&layout::work_block(&id, 2, "shoot", 0, batches as u32).unwrap())
-        .unwrap();
+    let shoot = || {
+        let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+        replica.compute(2, pass, 0..batches).unwrap();
+        let key = layout::work_block(&id, 2, "shoot", 0, batches as u32).unwrap();
+        let out = job.get_batch(2, pass, 0..batches).unwrap();
+        store.delete(&key).unwrap();
+        out
+    };
+    let from_parts = shoot();
+    assert!(from_parts.power_in.is_some(), "the shot reports its mirror power");
 
-    // The layout before the split: the whole checkpoint in `state.blob`, no `totals.blob`.
-    store
-        .put(
-            &state_key,
-            blob::encode_bytes(BlobKind::Snapshot, &split.to_bytes()).unwrap(),
-        )
-        .unwrap();
-    store.delete(&totals_key).unwrap();
-    let old = FieldJob::open(&store, &id).unwrap();
-    assert!(old.checkpoint(2).unwrap() == split);
-    assert!(old.shooting_state(2).unwrap() == shooting);
-    let parts = vlf_store::StageParts::open(FieldJob::open(&store, &id).unwrap(), Stage::Iteration(2)).unwrap();
-    assert_eq!(parts.totals_key(), Some(state_key.as_str()));
-    // A worker shoots the same block from the whole checkpoint, with the same bits.
-    let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
-    replica.compute(2, pass, 0..batches).unwrap();
-    assert!(old.get_batch(2, pass, 0..batches).unwrap() == from_parts);
-    let back = old.load(Stage::Iteration(2)).unwrap();
-    assert_eq!(back.radiance, viewed.radiance);
-    assert_eq!(
-        back.specular.as_ref().unwrap().totals,
-        viewed.specular.as_ref().unwrap().totals,
-        "mirror radiance of a whole checkpoint"
-    );
+    // What an earlier build stored for snapshot 2: the same state, arrivals reflected.
+    let mut p = Propagation::resume(scene, options(4), current).unwrap();
+    p.specular
+        .as_mut()
+        .unwrap()
+        .gather_all(&p.scene, &p.directions, &p.subfields);
+    let gathered = p.checkpoint();
+    let (shooting, totals) = gathered.clone().split();
+    let (head, unshot) = shooting.into_parts();
+    let put = |key: &str, bytes: &[u8]| {
+        store
+            .put(key, blob::encode_bytes(BlobKind::Snapshot, bytes).unwrap())
+            .unwrap()
+    };
+    let (state_key, totals_key) = (layout::state(&id, 2).unwrap(), layout::totals(&id, 2).unwrap());
+    for b in 0..batches as u32 {
+        for part in [MapPart::Shooting, MapPart::Totals] {
+            store.delete(&layout::map_part(&id, 2, part, b).unwrap()).unwrap();
+        }
+    }
+    let v2 = earlier::head_v2(&head).unwrap();
+    let v1 = earlier::whole_v1(&gathered).unwrap();
+    for (layout_name, whole) in [("version 2 head", false), ("whole checkpoint", true)] {
+        if whole {
+            put(&state_key, &v1);
+            store.delete(&totals_key).unwrap();
+            for b in 0..batches as u32 {
+                store
+                    .delete(&layout::map_part(&id, 2, MapPart::Unshot, b).unwrap())
+                    .unwrap();
+            }
+        } else {
+            put(&state_key, &v2);
+            put(&totals_key, &totals.to_bytes());
+            for part in &unshot {
+                put(
+                    &layout::map_part(&id, 2, MapPart::Unshot, part.batch).unwrap(),
+                    &part.to_bytes(),
+                );
+            }
+        }
+        let old = FieldJob::open(&store, &id).unwrap();
+        assert!(old.checkpoint(2).unwrap() == gathered, "{layout_name}");
+        let parts = open_parts();
+        let key = parts.key(&catalog, tile).unwrap();
+        assert_eq!(&key, if whole { &state_key } else { &totals_key }, "{layout_name}");
+        assert!(parts.is_shared(&key) && !parts.is_shared(&batch_key), "{layout_name}");
+        // A worker shoots the same block with the same bits, and writes the same maps for
+        // snapshot 3 (they are create-only: other bytes would be refused).
+        assert!(shoot() == from_parts, "{layout_name}");
+        let back = old.load(Stage::Iteration(2)).unwrap();
+        assert_eq!(back.radiance, viewed.radiance, "{layout_name}");
+        assert_eq!(
+            back.specular.as_ref().unwrap().totals,
+            viewed.specular.as_ref().unwrap().totals,
+            "mirror radiance of a {layout_name}"
+        );
+    }
 }
 
 /// A split checkpoint whose totals are missing, damaged or of another snapshot is an error

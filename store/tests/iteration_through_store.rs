@@ -12,7 +12,7 @@ use vlf_core::propagate::{Checkpoint, Options, Pass, Perturbation, Propagation, 
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_store::blob::Encoding;
-use vlf_store::{Coordinator, FieldJob, JobId, Replica, Stage, Store, StoreError, layout};
+use vlf_store::{Coordinator, FieldJob, JobId, MapPart, Replica, Stage, Store, StoreError, layout};
 
 fn bundled(name: &str) -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -255,10 +255,13 @@ fn released_before_committed(o: &Opener) {
     );
 }
 
-/// A lease reads the head of the shooting state and the unshot mirror maps of its own batches
-/// only: with another batch's maps gone from the store, it still computes, and a lease that
-/// needs them fails naming the missing blob.
-fn a_lease_reads_only_its_batches(o: &Opener) {
+/// A lease reads the head of the shooting state, the shooting maps of the directions it gathers
+/// from and the mirror totals of its own directions — and nothing it computed itself: a replica
+/// that shot every direction in the iteration before computes the next with all the snapshot's
+/// mirror maps gone from the store, where a fresh one fails naming a missing blob. With another
+/// batch's totals gone, a fresh lease still computes, and the one that needs them fails naming
+/// the blob.
+fn a_lease_reads_only_what_it_needs(o: &Opener) {
     let (id, mut coordinator, mut replica) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
     for _ in 0..2 {
         compute_iteration(&mut coordinator, &mut replica);
@@ -267,7 +270,24 @@ fn a_lease_reads_only_its_batches(o: &Opener) {
     let (pass, batches) = coordinator.pending_pass().unwrap();
     assert_eq!((pass, batches), (Pass::Shoot, 2));
     let store = o.open();
-    let second = layout::unshot(&id, 2, 1).unwrap();
+    let maps: Vec<(String, Vec<u8>)> = [MapPart::Shooting, MapPart::Totals]
+        .into_iter()
+        .flat_map(|part| (0..2).map(move |b| (part, b)))
+        .map(|(part, b)| {
+            let key = layout::map_part(&id, 2, part, b).unwrap();
+            let bytes = store.get(&key).unwrap().to_vec();
+            store.delete(&key).unwrap();
+            (key, bytes)
+        })
+        .collect();
+    replica.compute(2, pass, 0..2).unwrap();
+    let mut fresh = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    let err = fresh.compute(2, pass, 0..2).unwrap_err();
+    assert!(maps.iter().any(|(key, _)| err.to_string().contains(key)), "{err}");
+    for (key, bytes) in maps {
+        store.put(&key, bytes).unwrap();
+    }
+    let second = layout::map_part(&id, 2, MapPart::Totals, 1).unwrap();
     let kept = store.get(&second).unwrap().to_vec();
     store.delete(&second).unwrap();
     let mut fresh = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
@@ -282,7 +302,7 @@ fn a_lease_reads_only_its_batches(o: &Opener) {
 }
 
 per_backend! {
-    a_lease_reads_only_its_batches_unshot_maps => crate::a_lease_reads_only_its_batches,
+    a_lease_reads_only_what_it_needs => crate::a_lease_reads_only_what_it_needs,
     released_iterations_resume_with_the_same_bits => crate::released_before_committed,
     replicas_give_the_same_bits_with_mirrors => crate::mirrors,
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,

@@ -7,7 +7,7 @@ mod common;
 use common::*;
 use vlf_core::Error;
 use vlf_core::propagate::{
-    Checkpoint, Options, Perturbation, Propagation, ShootingState, SnapshotBytes, StateHead, Stop, Totals, UnshotBatch,
+    Checkpoint, MapBatch, Options, Perturbation, Propagation, ShootingState, SnapshotBytes, StateHead, Stop, Totals,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -36,14 +36,25 @@ fn diffuse_box() -> Scene {
     )
 }
 
+fn map_batches(bytes: &[Vec<u8>]) -> Vec<MapBatch> {
+    bytes.iter().map(|b| MapBatch::from_bytes(b).unwrap()).collect()
+}
+
 /// The shooting state from its stored parts.
 fn shooting(parts: &SnapshotBytes) -> ShootingState {
-    let batches = parts
-        .unshot
-        .iter()
-        .map(|b| UnshotBatch::from_bytes(b).unwrap())
-        .collect();
-    ShootingState::from_parts(StateHead::from_bytes(&parts.head).unwrap(), batches).unwrap()
+    ShootingState::from_parts(
+        StateHead::from_bytes(&parts.head).unwrap(),
+        map_batches(&parts.shooting),
+    )
+    .unwrap()
+}
+
+/// The totals from their stored parts.
+fn totals(parts: &SnapshotBytes) -> Totals {
+    Totals::from_bytes(&parts.totals)
+        .unwrap()
+        .with_mirror_batches(map_batches(&parts.mirror_totals))
+        .unwrap()
 }
 
 /// Everything of a propagation's state except the wall-clock times.
@@ -65,12 +76,12 @@ fn resumes_bit_identically(scene: Scene, perturb: u32) {
             first.step(|_| {});
         }
         let bytes = first.checkpoint().to_bytes();
-        let halves = first.snapshot_bytes();
+        let halves = first.snapshot_bytes(true);
         drop(first);
         let restored = Checkpoint::from_bytes(&bytes).unwrap();
         assert_eq!(restored.iterations(), stop_after);
         // The same state from its parts, as a store keeps them.
-        let joined = Checkpoint::join(shooting(&halves), Totals::from_bytes(&halves.totals).unwrap()).unwrap();
+        let joined = Checkpoint::join(shooting(&halves), totals(&halves)).unwrap();
         assert!(joined == restored, "the parts of a checkpoint are not the whole");
         let mut resumed = Propagation::resume(scene.clone(), options(total, perturb), restored).unwrap();
         resumed.run(|_| {});
@@ -124,8 +135,23 @@ fn damaged_checkpoints_are_refused() {
     c.current[0][0] = -1.0;
     expect_refused(c, "negative");
     let mut c = good.clone();
-    c.mirrors.as_mut().unwrap()[4].unshot.push([0.0; 3]);
+    c.mirrors.as_mut().unwrap()[4].shooting.push([0.0; 3]);
     expect_refused(c, "direction 4");
+    // The arrivals of the first iteration wait to be reflected: their power
+    // must fit every direction and mirror, and be power.
+    assert!(
+        good.pending.is_some(),
+        "the lamp lights a mirror in the first iteration"
+    );
+    let mut c = good.clone();
+    c.pending.as_mut().unwrap().power_in[3].pop();
+    expect_refused(c, "pending");
+    let mut c = good.clone();
+    c.pending.as_mut().unwrap().power_in.pop();
+    expect_refused(c, "pending");
+    let mut c = good.clone();
+    c.pending.as_mut().unwrap().power_in[3][0][0] = f64::NAN;
+    expect_refused(c, "pending");
     let mut c = good.clone();
     c.mirrors = None;
     expect_refused(c, "mirrors");
@@ -140,37 +166,46 @@ fn damaged_checkpoints_are_refused() {
 }
 
 #[test]
-fn halves_are_the_whole_split_and_old_whole_blobs_still_read() {
+fn halves_are_the_whole_split_into_parts() {
     let scene = mirror_room();
     let mut p = Propagation::new(scene, options(3, 0)).unwrap();
     p.step(|_| {});
     p.step(|_| {});
     let whole = p.checkpoint();
+    assert!(whole.pending.is_some(), "arrivals wait to be reflected");
     let (state, totals) = whole.clone().split();
     assert_eq!(state.iterations(), 2);
     assert_eq!(totals.iterations, 2);
     // Serialised straight from the propagation: the same bytes as the parts.
-    let bytes = p.snapshot_bytes();
+    let bytes = p.snapshot_bytes(true);
     let (head, batches) = state.clone().into_parts();
+    let (diffuse_totals, total_batches) = totals.clone().into_parts();
     assert!(batches.len() > 1, "{} batches", batches.len());
+    assert_eq!(total_batches.len(), batches.len());
+    assert!(diffuse_totals.mirrors.is_none());
     assert_eq!(bytes.head, head.to_bytes());
     assert_eq!(
-        bytes.unshot,
-        batches.iter().map(UnshotBatch::to_bytes).collect::<Vec<_>>()
+        bytes.shooting,
+        batches.iter().map(MapBatch::to_bytes).collect::<Vec<_>>()
     );
-    assert_eq!(bytes.totals, totals.to_bytes());
+    assert_eq!(bytes.totals, diffuse_totals.to_bytes());
+    assert_eq!(
+        bytes.mirror_totals,
+        total_batches.iter().map(MapBatch::to_bytes).collect::<Vec<_>>()
+    );
+    // Without the maps (the service's coordinator, whose workers write
+    // them): the same head and totals, no map.
+    let lean = p.snapshot_bytes(false);
+    assert_eq!(lean.head, bytes.head);
+    assert_eq!(lean.totals, bytes.totals);
+    assert!(lean.shooting.is_empty() && lean.mirror_totals.is_empty());
     assert!(Checkpoint::is_split(&bytes.head));
     assert!(ShootingState::from_parts(head, batches).unwrap() == state);
-    // The shooting half carries no totals: well under the whole.
+    assert!(diffuse_totals.with_mirror_batches(total_batches).unwrap() == totals);
+    // The whole checkpoint round-trips, and gives its totals.
     let whole_bytes = whole.to_bytes();
     assert!(!Checkpoint::is_split(&whole_bytes));
-    let shooting_len = bytes.head.len() + bytes.unshot.iter().map(Vec::len).sum::<usize>();
-    assert!(
-        shooting_len < whole_bytes.len() * 6 / 10,
-        "{shooting_len} of {}",
-        whole_bytes.len()
-    );
-    // A whole (version 1) checkpoint, as older stores hold, gives the totals.
+    assert!(Checkpoint::from_bytes(&whole_bytes).unwrap() == whole);
     assert_eq!(Totals::from_bytes(&whole_bytes).unwrap(), totals);
     // A head is not a whole checkpoint.
     match Checkpoint::from_bytes(&bytes.head) {
@@ -178,25 +213,113 @@ fn halves_are_the_whole_split_and_old_whole_blobs_still_read() {
         other => panic!("read a shooting state's head as a whole checkpoint: {other:?}"),
     }
     assert!(Checkpoint::join(state.clone(), totals.clone()).unwrap() == whole);
-    // A replica restores the head, then only the batches it shoots.
+    // A replica restores the head, then only the batches it needs.
     let mut r = Propagation::new(mirror_room(), options(3, 0)).unwrap();
     r.restore_head(StateHead::from_bytes(&bytes.head).unwrap()).unwrap();
     assert_eq!(r.iterations_done(), 2);
-    r.restore_unshot(UnshotBatch::from_bytes(&bytes.unshot[1]).unwrap())
+    r.restore_shooting_batch(MapBatch::from_bytes(&bytes.shooting[1]).unwrap())
         .unwrap();
-    let restored = r.checkpoint().mirrors.unwrap();
-    let expected = whole.mirrors.as_ref().unwrap();
-    let batch1 = vlf_core::propagate::work::batch_range(1, expected.len());
-    for (d, (got, want)) in restored.iter().zip(expected).enumerate() {
+    r.restore_totals_batch(MapBatch::from_bytes(&bytes.mirror_totals[1]).unwrap())
+        .unwrap();
+    let restored = r.checkpoint();
+    assert_eq!(restored.pending, whole.pending);
+    let (got, want) = (restored.mirrors.unwrap(), whole.mirrors.unwrap());
+    let batch1 = vlf_core::propagate::work::batch_range(1, want.len());
+    let mut lit = false;
+    for (d, (got, want)) in got.iter().zip(&want).enumerate() {
         if batch1.contains(&d) {
-            assert_eq!(got.unshot, want.unshot, "direction {d} of batch 1");
+            assert_eq!(got, want, "direction {d} of batch 1");
+            lit |= want.shooting.iter().any(|v| v[0] > 0.0);
         } else {
-            assert!(
-                got.unshot.iter().all(|v| *v == [0.0; 3]),
-                "direction {d} outside batch 1"
-            );
+            let zero = |m: &[[f64; 3]]| m.iter().all(|v| *v == [0.0; 3]);
+            assert!(zero(&got.shooting) && zero(&got.total), "direction {d} outside batch 1");
         }
     }
+    assert!(lit, "batch 1 holds no arrival: the test shows nothing");
+}
+
+/// A direction's maps in a version 1 checkpoint: unshot, total.
+type MapsV1<'a> = (&'a [[f64; 3]], &'a [[f64; 3]]);
+
+/// A whole checkpoint as builds before pending arrivals wrote it (version 1).
+#[derive(serde::Serialize)]
+struct WholeV1<'a> {
+    version: u32,
+    stats: &'a [vlf_core::propagate::IterationStats],
+    current: &'a [[f64; 3]],
+    total: &'a [[f64; 3]],
+    mirrors: Option<Vec<MapsV1<'a>>>,
+}
+
+/// A shooting state's head as those builds wrote it (version 2).
+#[derive(serde::Serialize)]
+struct HeadV2<'a> {
+    version: u32,
+    stats: &'a [vlf_core::propagate::IterationStats],
+    current: &'a [[f64; 3]],
+    unshot_batches: Option<u32>,
+}
+
+#[test]
+fn checkpoints_of_earlier_builds_still_read_and_resume_with_the_same_bits() {
+    let scene = mirror_room();
+    let mut straight = Propagation::new(scene.clone(), options(5, 0)).unwrap();
+    straight.run(|_| {});
+    // Earlier builds reflected the arrivals at the end of an iteration: their
+    // checkpoints hold the gathered unshot maps and nothing pending.
+    let mut p = Propagation::new(scene.clone(), options(5, 0)).unwrap();
+    p.step(|_| {});
+    p.step(|_| {});
+    p.specular
+        .as_mut()
+        .unwrap()
+        .gather_all(&p.scene, &p.directions, &p.subfields);
+    let gathered = p.checkpoint();
+    assert!(gathered.pending.is_none());
+    let mirrors = gathered.mirrors.as_ref().unwrap();
+    assert!(mirrors.iter().any(|m| m.shooting.iter().any(|v| v[0] > 0.0)));
+    let v1 = bincode::serialize(&WholeV1 {
+        version: 1,
+        stats: &gathered.stats,
+        current: &gathered.current,
+        total: &gathered.total,
+        mirrors: Some(mirrors.iter().map(|m| (&m.shooting[..], &m.total[..])).collect()),
+    })
+    .unwrap();
+    assert_eq!(
+        vlf_core::propagate::snapshot::earlier::whole_v1(&gathered),
+        Some(v1.clone()),
+        "the helper other tests use writes the same layout"
+    );
+    let read = Checkpoint::from_bytes(&v1).unwrap();
+    assert!(read == gathered);
+    assert_eq!(Totals::from_bytes(&v1).unwrap(), gathered.clone().split().1);
+    let mut resumed = Propagation::resume(scene, options(5, 0), read).unwrap();
+    resumed.run(|_| {});
+    assert!(
+        state(&resumed) == state(&straight),
+        "an earlier build's checkpoint resumed to other bits"
+    );
+    // Its head in parts (version 2), with the unshot maps by batch.
+    let (shooting, _) = gathered.split();
+    let (head, batches) = shooting.clone().into_parts();
+    let v2 = bincode::serialize(&HeadV2 {
+        version: 2,
+        stats: &head.stats,
+        current: &head.current,
+        unshot_batches: head.mirror_batches,
+    })
+    .unwrap();
+    assert_eq!(vlf_core::propagate::snapshot::earlier::head_v2(&head), Some(v2.clone()));
+    assert!(Checkpoint::is_split(&v2));
+    let old_head = StateHead::from_bytes(&v2).unwrap();
+    assert!(!old_head.mirror_totals_by_batch());
+    assert!(
+        StateHead::from_bytes(&head.to_bytes())
+            .unwrap()
+            .mirror_totals_by_batch()
+    );
+    assert!(ShootingState::from_parts(old_head, batches).unwrap() == shooting);
 }
 
 #[test]
@@ -228,15 +351,14 @@ fn mismatched_or_damaged_halves_are_refused() {
     let (head_bytes, batch_bytes) = (head2.to_bytes(), batches2[0].to_bytes());
     let totals_bytes = totals2.to_bytes();
     assert!(StateHead::from_bytes(&head_bytes[..head_bytes.len() / 2]).is_err());
-    assert!(UnshotBatch::from_bytes(&batch_bytes[..batch_bytes.len() - 1]).is_err());
+    assert!(MapBatch::from_bytes(&batch_bytes[..batch_bytes.len() - 1]).is_err());
     assert!(Totals::from_bytes(&totals_bytes[..totals_bytes.len() - 1]).is_err());
     assert!(Totals::from_bytes(&totals_bytes[..2]).is_err());
     // Parts missing, out of order, or of another snapshot.
-    let parts_refused =
-        |batches: Vec<UnshotBatch>, needle: &str| match ShootingState::from_parts(head2.clone(), batches) {
-            Err(Error::Decode(m)) => assert!(m.contains(needle), "{m}"),
-            other => panic!("assembled mismatched parts ({needle}): {other:?}"),
-        };
+    let parts_refused = |batches: Vec<MapBatch>, needle: &str| match ShootingState::from_parts(head2.clone(), batches) {
+        Err(Error::Decode(m)) => assert!(m.contains(needle), "{m}"),
+        other => panic!("assembled mismatched parts ({needle}): {other:?}"),
+    };
     parts_refused(batches2[1..].to_vec(), "head says");
     let mut swapped = batches2.clone();
     swapped.swap(0, 1);
@@ -250,15 +372,24 @@ fn mismatched_or_damaged_halves_are_refused() {
     let before = r.checkpoint();
     let mut bad = batches2[1].clone();
     bad.maps[0].push([0.0; 3]);
-    assert!(r.restore_unshot(bad).is_err());
+    assert!(r.restore_shooting_batch(bad.clone()).is_err());
+    assert!(r.restore_totals_batch(bad).is_err());
     let mut bad = batches2[1].clone();
     bad.maps[0][0][2] = -1.0;
-    assert!(r.restore_unshot(bad).is_err());
-    assert!(r.restore_unshot(state1.clone().into_parts().1[1].clone()).is_err());
+    assert!(r.restore_shooting_batch(bad.clone()).is_err());
+    assert!(r.restore_totals_batch(bad).is_err());
+    assert!(
+        r.restore_shooting_batch(state1.clone().into_parts().1[1].clone())
+            .is_err()
+    );
     assert!(r.checkpoint() == before);
     let mut bad_head = head2.clone();
-    bad_head.unshot_batches = bad_head.unshot_batches.map(|n| n + 1);
+    bad_head.mirror_batches = bad_head.mirror_batches.map(|n| n + 1);
     assert!(r.restore_head(bad_head).is_err());
+    let mut bad_head = head2.clone();
+    bad_head.pending.as_mut().unwrap().power_in[0].push([0.0; 3]);
+    assert!(r.restore_head(bad_head).is_err());
+    assert!(r.checkpoint() == before);
     // A shooting state that does not fit the scene is refused, and leaves the
     // propagation as it was.
     let mut r = Propagation::new(scene, options(3, 0)).unwrap();

@@ -9,7 +9,8 @@ mod common;
 use common::*;
 use std::collections::HashMap;
 use vlf_core::propagate::{
-    BatchOutput, Checkpoint, Options, Pass, Perturbation, Propagation, StateHead, Stop, UnshotBatch, reduce,
+    BatchOutput, Checkpoint, MapBatch, Options, Pass, Perturbation, Propagation, ShootingState, StateHead, Stop,
+    Totals, reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -45,33 +46,76 @@ fn shuffled(n: usize, seed: usize) -> Vec<usize> {
     v
 }
 
+/// The mirror maps of a snapshot as a store holds them: per batch, its
+/// shooting maps and its totals, serialised.
+#[derive(Default)]
+struct MapStore(HashMap<(u32, usize), (Vec<u8>, Vec<u8>)>);
+
+impl MapStore {
+    fn put(&mut self, k: u32, b: usize, shooting: Vec<u8>, total: Vec<u8>) {
+        // Written again (a block computed twice) they are the same bytes.
+        if let Some(old) = self.0.insert((k, b), (shooting.clone(), total.clone())) {
+            assert!(
+                old == (shooting, total),
+                "batch {b} of snapshot {k} written with other bytes"
+            );
+        }
+    }
+
+    fn get(&self, k: u32, b: usize) -> (MapBatch, MapBatch) {
+        let (s, t) = &self.0[&(k, b)];
+        (MapBatch::from_bytes(s).unwrap(), MapBatch::from_bytes(t).unwrap())
+    }
+}
+
 /// Runs the propagation with `workers` replicas computing the batches of
 /// every pass in a shuffled order, their outputs serialised as they would
-/// travel, the coordinator applying them in batch order.
-fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagation {
+/// travel, the coordinator applying them in batch order. The coordinator
+/// never sees a mirror map: workers write their directions' maps as the next
+/// snapshot's parts and read those they need. Returns the coordinator's
+/// propagation and its last snapshot assembled from the parts; with `adopt`,
+/// the coordinator also takes the maps in (`adopt_mirrors`).
+fn run_distributed(scene: &Scene, options: &Options, workers: usize, adopt: bool) -> (Propagation, Checkpoint) {
     let mut main = Propagation::new(scene.clone(), options.clone()).unwrap();
-    let mut replicas: Vec<Propagation> = (0..workers)
-        .map(|_| Propagation::new(scene.clone(), options.clone()).unwrap())
-        .collect();
-    while !main.finished() {
+    // Replicas start every iteration blank (a clone of a fresh propagation),
+    // so they hold only what they read of this iteration's snapshot: a map
+    // they should have read and did not would give other bits.
+    let blank = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let mut maps = MapStore::default();
+    let first = main.snapshot_bytes(true);
+    for (b, (s, t)) in first.shooting.into_iter().zip(first.mirror_totals).enumerate() {
+        maps.put(0, b, s, t);
+    }
+    loop {
+        let k = main.iterations_done();
+        let parts = main.snapshot_bytes(false);
+        if main.finished() {
+            let head = StateHead::from_bytes(&parts.head).unwrap();
+            let batches = head.mirror_batches.unwrap_or(0) as usize;
+            let (shooting, totals): (Vec<_>, Vec<_>) = (0..batches).map(|b| maps.get(k, b)).unzip();
+            let state = ShootingState::from_parts(head, shooting).unwrap();
+            let totals = Totals::from_bytes(&parts.totals)
+                .unwrap()
+                .with_mirror_batches(totals)
+                .unwrap();
+            return (main, Checkpoint::join(state, totals).unwrap());
+        }
         let started = std::time::Instant::now();
-        // Every worker starts the iteration from the head of the coordinator's
-        // shooting state, as stored, and reads the unshot mirror maps of the
-        // batches it shoots only (its totals stay zero: shooting never reads
-        // them).
-        let parts = main.snapshot_bytes();
+        let mut replicas: Vec<Propagation> = (0..workers).map(|_| blank.clone()).collect();
         for r in &mut replicas {
             r.restore_head(StateHead::from_bytes(&parts.head).unwrap()).unwrap();
         }
         let mut works: Vec<_> = replicas.iter().map(|r| r.iteration_work()).collect();
+        let mut read: Vec<(Vec<bool>, Vec<bool>)> = vec![(vec![false; 64], vec![false; 64]); workers];
         let mut work = main.iteration_work();
         // Every output of the iteration, as stored: workers read a pass's
         // prerequisites from here, never from the coordinator. Leases hold
         // blocks of 1, 2 or 4 batches with 1, 2 or 3 workers.
         let blocks = reduce::blocks(work.batches(), 1 << (workers - 1));
         let mut stored: HashMap<(Pass, usize), Vec<u8>> = HashMap::new();
+        let mut blocks_of_maps = Vec::new();
         for pass in work.passes() {
-            for (i, b) in shuffled(blocks.len(), work.index as usize).into_iter().enumerate() {
+            for (i, b) in shuffled(blocks.len(), k as usize).into_iter().enumerate() {
                 let w = i % workers;
                 for earlier in works[w].prerequisites(pass) {
                     let sums: Vec<_> = blocks
@@ -86,13 +130,26 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagat
                     works[w].learn(earlier, sums).unwrap();
                 }
                 assert!(works[w].is_ready(pass));
-                if pass == Pass::Shoot && works[w].uses_mirror_maps() {
-                    for batch in blocks[b].clone() {
-                        let part = UnshotBatch::from_bytes(&parts.unshot[batch]).unwrap();
-                        replicas[w].restore_unshot(part).unwrap();
+                let (shooting, totals) = replicas[w]
+                    .mirror_batches_read(&works[w], pass, blocks[b].clone())
+                    .unwrap();
+                for b in shooting {
+                    if !std::mem::replace(&mut read[w].0[b], true) {
+                        replicas[w].restore_shooting_batch(maps.get(k, b).0).unwrap();
                     }
                 }
-                let out = replicas[w].compute_block(&works[w], pass, blocks[b].clone()).unwrap();
+                for b in totals {
+                    if !std::mem::replace(&mut read[w].1[b], true) {
+                        replicas[w].restore_totals_batch(maps.get(k, b).1).unwrap();
+                    }
+                }
+                let (out, block) = replicas[w].compute_block(&works[w], pass, blocks[b].clone()).unwrap();
+                if let Some(block) = block {
+                    blocks_of_maps.push(block.clone());
+                    for (b, s, t) in block.batch_bytes(main.directions.len()) {
+                        maps.put(k + 1, b as usize, s, t);
+                    }
+                }
                 stored.insert((pass, blocks[b].start), out.to_bytes());
             }
             for b in &blocks {
@@ -101,20 +158,26 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize) -> Propagat
             }
         }
         main.finish_iteration(work, started);
+        if adopt {
+            for block in blocks_of_maps {
+                main.adopt_mirrors(block).unwrap();
+            }
+        }
     }
-    main
 }
 
 fn same_bits_as_in_process(scene: Scene, options: Options) {
     let mut straight = Propagation::new(scene.clone(), options.clone()).unwrap();
     straight.run(|_| {});
+    let want = without_times(straight.checkpoint());
     for workers in [1, 2, 3] {
-        let p = run_distributed(&scene, &options, workers);
-        assert!(
-            without_times(p.checkpoint()) == without_times(straight.checkpoint()),
-            "{workers} workers changed the bits"
-        );
+        let (_, stored) = run_distributed(&scene, &options, workers, false);
+        assert!(without_times(stored) == want, "{workers} workers changed the bits");
     }
+    // A coordinator that takes the workers' maps in holds the same state.
+    let (main, stored) = run_distributed(&scene, &options, 2, true);
+    assert!(without_times(main.checkpoint()) == want);
+    assert!(without_times(stored) == want);
 }
 
 #[test]
@@ -204,7 +267,7 @@ fn a_perturbed_iteration_lists_every_copys_areas_first_and_learns_only_areas() {
     assert!(work.learn(areas(7), sums.clone()).is_err(), "no such copy");
     // The areas learnt from single batches equal those from one block of all.
     let mut whole = p.iteration_work();
-    let all = p.compute_block(&whole, areas(1), 0..work.batches()).unwrap();
+    let (all, _) = p.compute_block(&whole, areas(1), 0..work.batches()).unwrap();
     whole.learn(areas(1), [(0..work.batches(), all.sum)]).unwrap();
     work.learn(areas(1), sums).unwrap();
     assert!(work.is_ready(shoot(1)) && !work.is_ready(shoot(0)));
@@ -243,13 +306,28 @@ fn out_of_order_and_foreign_batches_are_refused() {
     // Outputs of another iteration, or with maps that do not fit, are refused by the coordinator.
     let mut main = Propagation::new(mirror_room(), options(0)).unwrap();
     let mut work = main.iteration_work();
-    let mut out = main.compute_block(&work, Pass::Shoot, 0..2).unwrap();
+    let (mut out, block) = main.compute_block(&work, Pass::Shoot, 0..2).unwrap();
     out.iteration = 3;
     assert!(main.apply_batch(&mut work, out.clone()).is_err());
     out.iteration = 0;
-    if let Some(m) = out.mirrors.as_mut() {
-        m.pop();
-        assert!(main.apply_batch(&mut work, out.clone()).is_err());
-    }
+    assert!(work.uses_mirror_maps());
+    let mut short = out.clone();
+    short.power_in.as_mut().unwrap().pop();
+    assert!(main.apply_batch(&mut work, short).is_err());
+    let mut bad = out.clone();
+    bad.power_in.as_mut().unwrap()[0][0][1] = f64::NAN;
+    assert!(main.apply_batch(&mut work, bad).is_err());
+    let mut missing = out.clone();
+    missing.power_in = None;
+    assert!(main.apply_batch(&mut work, missing).is_err());
+    // Mirror maps of another snapshot, or that do not fit, are not adopted.
+    let block = block.unwrap();
+    assert!(
+        main.adopt_mirrors(block.clone()).is_err(),
+        "adopted before the iteration ended"
+    );
+    let mut short = block.clone();
+    short.total.pop();
+    assert!(main.adopt_mirrors(short).is_err());
     assert!(BatchOutput::from_bytes(b"garbage").is_err());
 }

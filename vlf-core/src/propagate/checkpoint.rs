@@ -8,38 +8,46 @@
 //! encoding):
 //!
 //! * the diffuse Current (unshot) and Total maps, per texel;
-//! * with mirrors, every direction's unshot and total maps over its mirror
-//!   slots (the incident maps are always empty between iterations: the
-//!   exchange consumes them);
+//! * with mirrors, every direction's total map over its mirror slots and
+//!   what the next iteration shoots from: the arrivals of the last iteration
+//!   with their power `Φ_in` when they wait to be reflected
+//!   ([`super::specular::Pending`], the usual case), else the unshot maps;
 //! * the statistics of the iterations done, whose count is the next
 //!   iteration's index (which seeds the perturbation and the mirror plan).
 //!
-//! **Two halves.** Shooting the next iteration reads only the unshot maps;
-//! the totals are read only by whoever finishes iterations (the
-//! coordinator) and by a viewer of the snapshot (a snapshot's mirror
-//! radiance is its mirror totals). So a checkpoint splits into the
-//! [`ShootingState`] (statistics, Current, mirror unshot maps) and the
-//! [`Totals`] (Total, mirror totals); [`Checkpoint::join`] puts them back
-//! together. How they are stored — the shooting state cut further, by batch
-//! of directions — is [`super::snapshot`].
+//! **Two halves.** Shooting the next iteration reads the shooting maps; the
+//! totals are read by whoever shoots a direction (its total grows by what it
+//! sends), by whoever finishes iterations (the diffuse Total) and by a viewer
+//! of the snapshot (a snapshot's mirror radiance is its mirror totals). So a
+//! checkpoint splits into the [`ShootingState`] (statistics, Current, pending
+//! `Φ_in`, shooting maps) and the [`Totals`] (Total, mirror totals);
+//! [`Checkpoint::join`] puts them back together. How they are stored — the
+//! mirror maps cut further, by batch of directions — is [`super::snapshot`].
 //!
-//! Serialised with bincode behind a version number: version 1 is the whole
-//! checkpoint in one blob (what stores written before the split hold: still
-//! read, by [`Checkpoint::from_bytes`], and by [`Totals::from_bytes`], which
-//! takes its half of it), version 2 the parts. [`Checkpoint::from_bytes`] and [`Propagation::resume`] refuse
-//! anything that does not fit the rebuilt geometry, or that is not finite and
+//! Serialised with bincode behind a version number, one per layout: 3 is the
+//! whole checkpoint in one blob, 4 the shooting state's head, 2 the other
+//! parts. Stores written by earlier builds hold version 1 (a whole
+//! checkpoint without pending arrivals: its shooting maps are unshot maps)
+//! or version 2 heads (the same, in parts): both are still read.
+//! [`Checkpoint::from_bytes`] and [`Propagation::resume`] refuse anything
+//! that does not fit the rebuilt geometry, or that is not finite and
 //! non-negative, with an [`Error::Decode`].
 
+use super::specular::Pending;
 use super::{IterationStats, Options, Propagation};
 use crate::error::Error;
 use crate::scene::{Rgb, Scene};
 use serde::{Deserialize, Serialize};
 
-/// Version of the whole checkpoint's serialisation (one blob).
-const CHECKPOINT_VERSION: u32 = 1;
-/// Version of the halves' serialisation ([`Totals`], and the shooting half's
-/// parts: see [`super::snapshot`]).
+/// The whole checkpoint of earlier builds, without pending arrivals.
+const WHOLE_V1: u32 = 1;
+/// The parts' serialisation ([`Totals`], [`super::MapBatch`]; and the head
+/// of earlier builds, without pending arrivals).
 pub(crate) const SPLIT_VERSION: u32 = 2;
+/// The whole checkpoint (one blob).
+const CHECKPOINT_VERSION: u32 = 3;
+/// The shooting state's head ([`super::StateHead`]).
+pub(crate) const HEAD_VERSION: u32 = 4;
 
 /// The bincode bytes of `value`.
 pub(crate) fn encode(value: &impl Serialize) -> Vec<u8> {
@@ -55,7 +63,10 @@ pub(crate) fn version_of(bytes: &[u8]) -> Option<u32> {
 /// The specular maps of one direction in a checkpoint.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DirectionCheckpoint {
-    pub unshot: Vec<Rgb>,
+    /// What the next iteration shoots from: the pending arrivals (incident
+    /// radiance) when the checkpoint has [`Checkpoint::pending`], else the
+    /// unshot radiance.
+    pub shooting: Vec<Rgb>,
     pub total: Vec<Rgb>,
 }
 
@@ -70,6 +81,19 @@ pub struct Checkpoint {
     pub total: Vec<Rgb>,
     /// Per direction, `None` without specular machinery.
     pub mirrors: Option<Vec<DirectionCheckpoint>>,
+    /// `Φ_in` of the arrivals the shooting maps hold, when they wait to be
+    /// reflected.
+    pub pending: Option<Pending>,
+}
+
+/// [`Checkpoint`] as earlier builds wrote it (version 1).
+#[derive(Deserialize)]
+struct CheckpointV1 {
+    version: u32,
+    stats: Vec<IterationStats>,
+    current: Vec<Rgb>,
+    total: Vec<Rgb>,
+    mirrors: Option<Vec<DirectionCheckpoint>>,
 }
 
 impl Checkpoint {
@@ -82,38 +106,46 @@ impl Checkpoint {
         encode(self)
     }
 
-    /// Reads a whole checkpoint (version 1: one blob).
+    /// Reads a whole checkpoint (one blob, of this build or an earlier one).
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<Checkpoint> {
+        let bad = |e: bincode::Error| Error::Decode(format!("checkpoint: {e}"));
         match version_of(bytes) {
-            Some(CHECKPOINT_VERSION) => {}
-            Some(SPLIT_VERSION) => {
-                return Err(Error::Decode(
-                    "checkpoint: this is the head of a split checkpoint (read it with its other parts)".into(),
-                ));
+            Some(CHECKPOINT_VERSION) => bincode::deserialize(bytes).map_err(bad),
+            Some(WHOLE_V1) => {
+                let old: CheckpointV1 = bincode::deserialize(bytes).map_err(bad)?;
+                debug_assert_eq!(old.version, WHOLE_V1);
+                Ok(Checkpoint {
+                    version: CHECKPOINT_VERSION,
+                    stats: old.stats,
+                    current: old.current,
+                    total: old.total,
+                    mirrors: old.mirrors,
+                    pending: None,
+                })
             }
-            Some(v) => {
-                return Err(Error::Decode(format!(
-                    "checkpoint version {v} (this build reads {CHECKPOINT_VERSION} and {SPLIT_VERSION})"
-                )));
-            }
-            None => return Err(Error::Decode("checkpoint: truncated".into())),
+            Some(SPLIT_VERSION | HEAD_VERSION) => Err(Error::Decode(
+                "checkpoint: this is the head of a split checkpoint (read it with its other parts)".into(),
+            )),
+            Some(v) => Err(Error::Decode(format!(
+                "checkpoint version {v} (this build reads {WHOLE_V1} and {CHECKPOINT_VERSION})"
+            ))),
+            None => Err(Error::Decode("checkpoint: truncated".into())),
         }
-        bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("checkpoint: {e}")))
     }
 
-    /// Whether `bytes` hold the head of a split checkpoint (whose unshot
+    /// Whether `bytes` hold the head of a split checkpoint (whose mirror
     /// maps and totals are in other blobs, see [`super::snapshot`]) rather
     /// than a whole one.
     pub fn is_split(bytes: &[u8]) -> bool {
-        version_of(bytes) == Some(SPLIT_VERSION)
+        matches!(version_of(bytes), Some(SPLIT_VERSION | HEAD_VERSION))
     }
 
     /// The two halves of this checkpoint.
     pub fn split(self) -> (ShootingState, Totals) {
-        let (unshot, totals) = match self.mirrors {
+        let (shooting, totals) = match self.mirrors {
             Some(maps) => {
-                let (unshot, total) = maps.into_iter().map(|m| (m.unshot, m.total)).unzip();
-                (Some(unshot), Some(total))
+                let (shooting, total) = maps.into_iter().map(|m| (m.shooting, m.total)).unzip();
+                (Some(shooting), Some(total))
             }
             None => (None, None),
         };
@@ -122,7 +154,8 @@ impl Checkpoint {
             ShootingState {
                 stats: self.stats,
                 current: self.current,
-                mirrors: unshot,
+                mirrors: shooting,
+                pending: self.pending,
             },
             Totals {
                 version: SPLIT_VERSION,
@@ -154,22 +187,22 @@ impl Checkpoint {
         }
         let mirrors = match (state.mirrors, totals.mirrors) {
             (None, None) => None,
-            (Some(unshot), Some(total)) => {
-                if unshot.len() != total.len() {
+            (Some(shooting), Some(total)) => {
+                if shooting.len() != total.len() {
                     return bad(format!(
-                        "unshot mirror maps of {} directions, totals of {}",
-                        unshot.len(),
+                        "shooting mirror maps of {} directions, totals of {}",
+                        shooting.len(),
                         total.len()
                     ));
                 }
-                if let Some(d) = unshot.iter().zip(&total).position(|(u, t)| u.len() != t.len()) {
-                    return bad(format!("direction {d}: unshot and total maps of different sizes"));
+                if let Some(d) = shooting.iter().zip(&total).position(|(u, t)| u.len() != t.len()) {
+                    return bad(format!("direction {d}: shooting and total maps of different sizes"));
                 }
                 Some(
-                    unshot
+                    shooting
                         .into_iter()
                         .zip(total)
-                        .map(|(unshot, total)| DirectionCheckpoint { unshot, total })
+                        .map(|(shooting, total)| DirectionCheckpoint { shooting, total })
                         .collect(),
                 )
             }
@@ -181,20 +214,25 @@ impl Checkpoint {
             current: state.current,
             total: totals.total,
             mirrors,
+            pending: state.pending,
         })
     }
 }
 
 /// What shooting the next iteration reads of a checkpoint: the statistics of
 /// the iterations done (their count is the next one's index), the diffuse
-/// unshot power and every direction's unshot mirror map.
+/// unshot power and every direction's shooting mirror map (see
+/// [`DirectionCheckpoint::shooting`]).
 #[derive(Clone, Debug, PartialEq)]
 pub struct ShootingState {
     pub stats: Vec<IterationStats>,
     /// Unshot power per texel.
     pub current: Vec<Rgb>,
-    /// Per direction, its unshot mirror map; `None` without specular machinery.
+    /// Per direction, its shooting mirror map; `None` without specular machinery.
     pub mirrors: Option<Vec<Vec<Rgb>>>,
+    /// `Φ_in` of the arrivals the shooting maps hold, when they wait to be
+    /// reflected.
+    pub pending: Option<Pending>,
 }
 
 impl ShootingState {
@@ -213,7 +251,9 @@ pub struct Totals {
     pub iterations: u32,
     /// Power that left each texel so far.
     pub total: Vec<Rgb>,
-    /// Per direction, its total mirror map; `None` without specular machinery.
+    /// Per direction, its total mirror map; `None` without specular
+    /// machinery, and in the totals blob of a snapshot whose mirror totals
+    /// are stored by batch ([`super::snapshot`]).
     pub mirrors: Option<Vec<Vec<Rgb>>>,
 }
 
@@ -244,11 +284,12 @@ impl Propagation {
                 s.maps
                     .iter()
                     .map(|m| DirectionCheckpoint {
-                        unshot: m.unshot.clone(),
+                        shooting: m.shooting(s.pending.is_some()).to_vec(),
                         total: m.total.clone(),
                     })
                     .collect()
             }),
+            pending: self.specular.as_ref().and_then(|s| s.pending.clone()),
         }
     }
 
@@ -288,24 +329,23 @@ impl Propagation {
         if let (Some(spec), Some(maps)) = (&mut self.specular, totals.mirrors) {
             for (own, saved) in spec.maps.iter_mut().zip(maps) {
                 own.total = saved;
-                // Empty between iterations: the exchange consumed them.
-                own.incident.iter_mut().for_each(|v| *v = [0.0; 3]);
             }
         }
         Ok(())
     }
 
-    /// Replaces the state that shooting reads — the statistics, Current and
-    /// the unshot mirror maps — by `state`, keeping the geometry: how a
-    /// worker moves on to the next iteration from half of the checkpoint.
-    /// The totals and the incident maps are left as they were, so a
-    /// propagation restored this way computes blocks of the next iteration
-    /// ([`Propagation::compute_block`], which shoots into fresh incident
-    /// maps) with the same bits, but must not step, finish iterations or be
-    /// checkpointed (restore a whole checkpoint for that). On error the state
-    /// is unchanged.
+    /// Replaces the state that shooting reads — the statistics, Current,
+    /// the pending `Φ_in` and the shooting mirror maps — by `state`, keeping
+    /// the geometry: how a worker moves on to the next iteration from half of
+    /// the checkpoint. The totals are left as they were, so a propagation
+    /// restored this way computes blocks of the next iteration
+    /// ([`Propagation::compute_block`]) with the same bits where it holds the
+    /// right totals of the block's directions, but must not step, finish
+    /// iterations or be checkpointed (restore a whole checkpoint for that).
+    /// On error the state is unchanged.
     pub fn restore_shooting(&mut self, state: ShootingState) -> crate::Result<()> {
         self.check_unshot_texels(&state.current, &state.stats)?;
+        self.check_pending(state.pending.as_ref())?;
         match (&mut self.specular, state.mirrors) {
             (None, None) => {}
             (Some(spec), Some(maps)) => {
@@ -317,15 +357,39 @@ impl Propagation {
                     ));
                 }
                 check_maps(spec, 0, &maps)?;
+                let pending = state.pending.is_some();
                 for (own, saved) in spec.maps.iter_mut().zip(maps) {
-                    own.unshot = saved;
+                    own.set_shooting(pending, saved);
                 }
+                spec.pending = state.pending;
             }
             (Some(_), None) => return misfit("the scene has mirrors, the checkpoint none".into()),
             (None, Some(_)) => return misfit("the checkpoint has mirror maps, the scene no mirror".into()),
         }
         self.current = state.current;
         self.stats = state.stats;
+        Ok(())
+    }
+
+    /// Refuses pending `Φ_in` that does not fit the directions and mirrors,
+    /// or is negative or not finite.
+    pub(crate) fn check_pending(&self, pending: Option<&Pending>) -> crate::Result<()> {
+        let Some(p) = pending else {
+            return Ok(());
+        };
+        let Some(spec) = &self.specular else {
+            return misfit("pending mirror arrivals for a scene without mirrors".into());
+        };
+        let l = self.directions.len();
+        if p.power_in.len() != l || p.power_in.iter().any(|v| v.len() != spec.mirrors.len()) {
+            return misfit(format!(
+                "pending mirror power does not fit {l} directions and {} mirrors",
+                spec.mirrors.len()
+            ));
+        }
+        if !p.power_in.iter().all(|v| valid(v)) {
+            return misfit("negative or non-finite pending mirror power".into());
+        }
         Ok(())
     }
 

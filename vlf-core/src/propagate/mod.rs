@@ -52,9 +52,9 @@ pub mod work;
 pub use checkpoint::{Checkpoint, ShootingState, Totals};
 pub use plan::Plan;
 pub use shoot::Flow;
-pub use snapshot::{SnapshotBytes, StateHead, UnshotBatch};
+pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
-pub use work::{BatchOutput, BatchSum, IterationWork, MirrorUpdate, Pass};
+pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
@@ -395,7 +395,7 @@ impl Propagation {
     pub fn unshot_power(&self) -> Rgb {
         let mut p = sum_rgb(&self.current);
         if let Some(s) = &self.specular {
-            let q = s.unshot_power(&self.directions);
+            let q = s.unshot_power(&self.scene, &self.directions, &self.subfields);
             for c in 0..3 {
                 p[c] += q[c];
             }
@@ -435,7 +435,11 @@ impl Propagation {
         let passes = work.passes();
         let l = self.directions.len();
         let mut maps = match (&mut self.specular, work.uses_mirror_maps()) {
-            (Some(spec), true) => Some(std::mem::take(&mut spec.maps)),
+            (Some(spec), true) => {
+                // The exchange of the last iteration's arrivals (see `specular::Pending`).
+                spec.gather_all(&self.scene, &self.directions, &self.subfields);
+                Some(std::mem::take(&mut spec.maps))
+            }
             _ => None,
         };
         let mut buffers = Vec::new();
@@ -457,36 +461,43 @@ impl Propagation {
         }
         if let (Some(spec), Some(maps)) = (&mut self.specular, maps) {
             spec.maps = maps;
+            // What a worker does for the directions it shoots (`compute_block`):
+            // every mirror slot sent its unshot radiance once along its direction
+            // (see `shoot::leaving`), so Total += Unshot; and Φ_in of the arrivals.
+            spec.maps
+                .par_iter_mut()
+                .for_each(|m| work::add_into(&mut m.total, &m.unshot));
+            let (directions, subfields) = (&self.directions, &self.subfields);
+            work.power_in = (0..l)
+                .into_par_iter()
+                .map(|d| spec.power_in_of(directions, subfields, d, &spec.maps[d].incident))
+                .collect();
         }
         self.finish_iteration(work, started)
     }
 
-    /// Ends an iteration whose passes are all absorbed: mirrors reflect what
-    /// arrived on them (the exchange), diffuse surfaces reflect what they
-    /// received (`Next = ρd · received`, filtered), `Total += Next`, and the
-    /// held-back power joins the new unshot power.
-    pub fn finish_iteration(&mut self, work: IterationWork, started: Instant) -> IterationStats {
+    /// Ends an iteration whose passes are all absorbed: what arrived on
+    /// mirrors waits to be reflected ([`specular::Pending`]: the exchange runs
+    /// when the next iteration shoots it, here only its power is settled),
+    /// diffuse surfaces reflect what they received (`Next = ρd · received`,
+    /// filtered), `Total += Next`, and the held-back power joins the new
+    /// unshot power. Reads no mirror map: a coordinator whose workers keep
+    /// them finishes iterations with this too.
+    pub fn finish_iteration(&mut self, mut work: IterationWork, started: Instant) -> IterationStats {
         debug_assert!(
             work.next_expected().is_none(),
             "an iteration finished before its passes"
         );
         let index = work.index;
         let scene = &self.scene;
-        // Every mirror slot sent its unshot radiance once along its direction
-        // (see `shoot::leaving`): Total += Unshot, before the exchange makes
-        // the next unshot maps.
-        if let (Some(spec), true) = (self.specular.as_mut(), work.uses_mirror_maps()) {
-            spec.maps.par_iter_mut().for_each(|m| {
-                for (t, u) in m.total.iter_mut().zip(&m.unshot) {
-                    for c in 0..3 {
-                        t[c] += u[c];
-                    }
-                }
-            });
-        }
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
         let exchange = match self.specular.as_mut() {
-            Some(spec) if index >= first_lit => spec.exchange(scene, &self.directions, &self.subfields),
+            Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
+                let power_in = std::mem::take(&mut work.power_in);
+                let exchange = spec.settle(scene, &self.subfields, &power_in);
+                spec.pending = Some(specular::Pending { power_in });
+                exchange
+            }
             _ => Exchange::default(),
         };
         let mut next: Vec<Rgb> = work
@@ -508,10 +519,9 @@ impl Propagation {
             }
         }
         self.current = next;
-        let specular_unshot = self
-            .specular
-            .as_ref()
-            .map_or([0.0; 3], |s| s.unshot_power(&self.directions));
+        let specular_unshot = self.specular.as_ref().map_or([0.0; 3], |s| {
+            s.unshot_power(&self.scene, &self.directions, &self.subfields)
+        });
         let stats = IterationStats {
             index,
             flow: work.flow.into(),

@@ -1,26 +1,37 @@
 //! How a snapshot's checkpoint is stored: in parts sized to who reads them.
 //!
-//! A checkpoint has two halves (see [`super::checkpoint`]): the shooting state,
-//! which the next iteration's workers read, and the totals, which only the
-//! coordinator (to resume) and viewers (a snapshot's mirror radiance) read.
-//! The shooting state is cut further, because a worker shoots only the
-//! directions of its lease:
+//! A checkpoint has two halves (see [`super::checkpoint`]): the shooting
+//! state, which the next iteration's workers read, and the totals. Both are
+//! cut further, because a worker shoots only the directions of its lease:
 //!
-//! * a [`StateHead`]: the iteration statistics and Current — what every lease
-//!   reads (a texel map, small);
-//! * one [`UnshotBatch`] per batch of directions (`work::batch_range`): the
-//!   unshot mirror maps of the batch's directions — read by the leases that
-//!   shoot those directions, and only when mirrors take part.
+//! * a [`StateHead`]: the iteration statistics, Current and the pending
+//!   `Φ_in` of every direction — what every lease reads (small);
+//! * per batch of directions (`work::batch_range`), two [`MapBatch`]es: the
+//!   directions' shooting maps (the arrivals to gather, or the unshot maps)
+//!   and their total maps — read by the leases that shoot those directions,
+//!   and the shooting maps also by leases that gather from them;
+//! * the diffuse [`Totals`] (the texels' Total), read by the coordinator and
+//!   by viewers, who read the mirror totals by batch as well.
 //!
-//! So w workers read the unshot maps once between them rather than w times,
-//! and the parts are written and read in parallel. [`Propagation::snapshot_bytes`]
-//! serialises every part straight from the propagation's maps;
-//! [`ShootingState::from_parts`] puts a shooting state back together, and
-//! [`Propagation::restore_head`] and [`Propagation::restore_unshot`] restore
-//! one part at a time on a worker's replica.
+//! The map batches are what a worker writes after shooting its directions
+//! ([`super::MirrorBlock::batch_bytes`]), so in the distributed service the
+//! mirror maps go from worker to worker and never through the coordinator,
+//! and a worker that shoots the same directions again reads nothing back.
+//! [`Propagation::snapshot_bytes`] serialises every part straight from the
+//! propagation's maps; [`ShootingState::from_parts`] and
+//! [`Totals::with_mirror_batches`] put the halves back together, and
+//! [`Propagation::restore_head`], [`Propagation::restore_shooting_batch`] and
+//! [`Propagation::restore_totals_batch`] restore one part at a time on a
+//! worker's replica.
+//!
+//! Earlier builds wrote version 2 heads, without pending arrivals, whose
+//! batches held unshot maps and whose totals blob held the mirror totals
+//! whole: [`StateHead::from_bytes`] still reads them, and
+//! [`StateHead::mirror_totals_by_batch`] tells the two apart.
 
-use super::checkpoint::{SPLIT_VERSION, ShootingState, encode, misfit, version_of};
-use super::work::{batch_count, batch_range};
+use super::checkpoint::{HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, misfit, version_of};
+use super::specular::Pending;
+use super::work::{MirrorBlock, batch_count, batch_range};
 use super::{IterationStats, Propagation};
 use crate::error::Error;
 use crate::scene::Rgb;
@@ -34,29 +45,33 @@ pub struct StateHead {
     pub stats: Vec<IterationStats>,
     /// Unshot power per texel.
     pub current: Vec<Rgb>,
-    /// The number of [`UnshotBatch`]es, `None` without specular machinery.
-    pub unshot_batches: Option<u32>,
+    /// The number of batches of mirror maps, `None` without specular
+    /// machinery.
+    pub mirror_batches: Option<u32>,
+    /// `Φ_in` of the arrivals the shooting maps hold, when they wait to be
+    /// reflected.
+    pub pending: Option<Pending>,
 }
 
-/// The unshot mirror maps of one batch of directions.
+/// A head as earlier builds wrote it (version 2).
+#[derive(Deserialize)]
+struct StateHeadV2 {
+    version: u32,
+    stats: Vec<IterationStats>,
+    current: Vec<Rgb>,
+    unshot_batches: Option<u32>,
+}
+
+/// Mirror maps of one batch of directions: their shooting maps or their
+/// totals, as the key that holds it says.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct UnshotBatch {
+pub struct MapBatch {
     version: u32,
     /// Iterations done when the checkpoint was taken.
     pub iterations: u32,
     pub batch: u32,
-    /// Per direction of the batch, in order, its unshot mirror map.
+    /// Per direction of the batch, in order, its map.
     pub maps: Vec<Vec<Rgb>>,
-}
-
-fn decode<T: serde::de::DeserializeOwned>(bytes: &[u8], what: &str) -> crate::Result<T> {
-    match version_of(bytes) {
-        Some(SPLIT_VERSION) => bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("{what}: {e}"))),
-        Some(v) => Err(Error::Decode(format!(
-            "{what}: version {v} (this build reads {SPLIT_VERSION})"
-        ))),
-        None => Err(Error::Decode(format!("{what}: truncated"))),
-    }
 }
 
 impl StateHead {
@@ -65,49 +80,98 @@ impl StateHead {
         self.stats.len() as u32
     }
 
+    /// Whether the snapshot's mirror totals are stored by batch (this
+    /// build) rather than whole in its totals blob, and its map batches
+    /// stored where this build puts them (earlier builds: version 2).
+    pub fn mirror_totals_by_batch(&self) -> bool {
+        self.version == HEAD_VERSION
+    }
+
     pub fn to_bytes(&self) -> Vec<u8> {
         encode(self)
     }
 
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<StateHead> {
-        decode(bytes, "shooting state head")
+        let bad = |e: bincode::Error| Error::Decode(format!("shooting state head: {e}"));
+        match version_of(bytes) {
+            Some(HEAD_VERSION) => bincode::deserialize(bytes).map_err(bad),
+            Some(SPLIT_VERSION) => {
+                let old: StateHeadV2 = bincode::deserialize(bytes).map_err(bad)?;
+                Ok(StateHead {
+                    version: old.version,
+                    stats: old.stats,
+                    current: old.current,
+                    mirror_batches: old.unshot_batches,
+                    pending: None,
+                })
+            }
+            Some(v) => Err(Error::Decode(format!(
+                "shooting state head: version {v} (this build reads {SPLIT_VERSION} and {HEAD_VERSION})"
+            ))),
+            None => Err(Error::Decode("shooting state head: truncated".into())),
+        }
     }
 }
 
-impl UnshotBatch {
+impl MapBatch {
     pub fn to_bytes(&self) -> Vec<u8> {
         encode(self)
     }
 
-    pub fn from_bytes(bytes: &[u8]) -> crate::Result<UnshotBatch> {
-        decode(bytes, "unshot mirror maps")
+    pub fn from_bytes(bytes: &[u8]) -> crate::Result<MapBatch> {
+        match version_of(bytes) {
+            Some(SPLIT_VERSION) => bincode::deserialize(bytes).map_err(|e| Error::Decode(format!("mirror maps: {e}"))),
+            Some(v) => Err(Error::Decode(format!(
+                "mirror maps: version {v} (this build reads {SPLIT_VERSION})"
+            ))),
+            None => Err(Error::Decode("mirror maps: truncated".into())),
+        }
     }
+}
+
+/// Cuts per-direction maps into one [`MapBatch`] per batch of directions.
+fn cut(iterations: u32, mut maps: Vec<Vec<Rgb>>) -> Vec<MapBatch> {
+    let l = maps.len();
+    let mut parts: Vec<MapBatch> = (0..batch_count(l))
+        .rev()
+        .map(|b| MapBatch {
+            version: SPLIT_VERSION,
+            iterations,
+            batch: b as u32,
+            maps: maps.split_off(batch_range(b, l).start),
+        })
+        .collect();
+    parts.reverse();
+    parts
+}
+
+/// Puts per-direction maps back together from all their batches, in order.
+fn uncut(iterations: u32, batches: Vec<MapBatch>, what: &str) -> crate::Result<Vec<Vec<Rgb>>> {
+    let mut maps = Vec::new();
+    for (b, part) in batches.into_iter().enumerate() {
+        if part.batch as usize != b || part.iterations != iterations {
+            return Err(Error::Decode(format!(
+                "{what} do not match: batch {} after {} iterations where batch {b} after {iterations} belongs",
+                part.batch, part.iterations
+            )));
+        }
+        maps.extend(part.maps);
+    }
+    Ok(maps)
 }
 
 impl ShootingState {
     /// Cuts the state into its head and one part per batch of its
     /// directions.
-    pub fn into_parts(self) -> (StateHead, Vec<UnshotBatch>) {
+    pub fn into_parts(self) -> (StateHead, Vec<MapBatch>) {
         let iterations = self.iterations();
-        let batches = self.mirrors.map(|mut maps| {
-            let l = maps.len();
-            let mut parts: Vec<UnshotBatch> = (0..batch_count(l))
-                .rev()
-                .map(|b| UnshotBatch {
-                    version: SPLIT_VERSION,
-                    iterations,
-                    batch: b as u32,
-                    maps: maps.split_off(batch_range(b, l).start),
-                })
-                .collect();
-            parts.reverse();
-            parts
-        });
+        let batches = self.mirrors.map(|maps| cut(iterations, maps));
         let head = StateHead {
-            version: SPLIT_VERSION,
+            version: HEAD_VERSION,
             stats: self.stats,
             current: self.current,
-            unshot_batches: batches.as_ref().map(|b| b.len() as u32),
+            mirror_batches: batches.as_ref().map(|b| b.len() as u32),
+            pending: self.pending,
         };
         (head, batches.unwrap_or_default())
     }
@@ -115,34 +179,74 @@ impl ShootingState {
     /// Puts a shooting state back together from its head and all its
     /// batches, in order; parts of another snapshot, missing or out of order
     /// are refused.
-    pub fn from_parts(head: StateHead, batches: Vec<UnshotBatch>) -> crate::Result<ShootingState> {
+    pub fn from_parts(head: StateHead, batches: Vec<MapBatch>) -> crate::Result<ShootingState> {
         let bad = |m: String| Err(Error::Decode(format!("shooting state parts do not match: {m}")));
         let iterations = head.iterations();
-        let mirrors = match head.unshot_batches {
+        let mirrors = match head.mirror_batches {
             None if batches.is_empty() => None,
-            None => return bad(format!("{} unshot batches for a state without mirrors", batches.len())),
+            None => return bad(format!("{} map batches for a state without mirrors", batches.len())),
             Some(n) if n as usize != batches.len() => {
-                return bad(format!("{} unshot batches, the head says {n}", batches.len()));
+                return bad(format!("{} map batches, the head says {n}", batches.len()));
             }
-            Some(_) => {
-                let mut maps = Vec::new();
-                for (b, part) in batches.into_iter().enumerate() {
-                    if part.batch as usize != b || part.iterations != iterations {
-                        return bad(format!(
-                            "batch {} after {} iterations where batch {b} after {iterations} belongs",
-                            part.batch, part.iterations
-                        ));
-                    }
-                    maps.extend(part.maps);
-                }
-                Some(maps)
-            }
+            Some(_) => Some(uncut(iterations, batches, "shooting state parts")?),
         };
         Ok(ShootingState {
             stats: head.stats,
             current: head.current,
             mirrors,
+            pending: head.pending,
         })
+    }
+}
+
+impl Totals {
+    /// Cuts the mirror totals out, one part per batch of directions (none
+    /// without mirrors).
+    pub fn into_parts(mut self) -> (Totals, Vec<MapBatch>) {
+        let batches = self
+            .mirrors
+            .take()
+            .map_or(Vec::new(), |maps| cut(self.iterations, maps));
+        (self, batches)
+    }
+
+    /// Puts the mirror totals back from all their batches, in order (none:
+    /// as they are).
+    pub fn with_mirror_batches(mut self, batches: Vec<MapBatch>) -> crate::Result<Totals> {
+        if batches.is_empty() {
+            return Ok(self);
+        }
+        if self.mirrors.is_some() {
+            return Err(Error::Decode("totals hold mirror maps twice".into()));
+        }
+        self.mirrors = Some(uncut(self.iterations, batches, "mirror totals")?);
+        Ok(self)
+    }
+}
+
+impl MirrorBlock {
+    /// The block's parts of the next snapshot, serialised in parallel: per
+    /// batch, its number and the [`MapBatch::to_bytes`] of its shooting maps
+    /// and of its totals (from the block's maps, without copying them).
+    pub fn batch_bytes(&self, directions: usize) -> Vec<(u32, Vec<u8>, Vec<u8>)> {
+        let first = batch_range(self.batches.start as usize, directions).start;
+        self.batches
+            .clone()
+            .into_par_iter()
+            .map(|b| {
+                let range = batch_range(b as usize, directions);
+                let range = range.start - first..range.end - first;
+                let part = |maps: &[Vec<Rgb>]| {
+                    encode(&MapBatchRef {
+                        version: SPLIT_VERSION,
+                        iterations: self.iterations,
+                        batch: b,
+                        maps: maps[range.clone()].iter().map(Vec::as_slice).collect(),
+                    })
+                };
+                (b, part(&self.shooting), part(&self.total))
+            })
+            .collect()
     }
 }
 
@@ -150,11 +254,14 @@ impl ShootingState {
 pub struct SnapshotBytes {
     /// [`StateHead::to_bytes`].
     pub head: Vec<u8>,
-    /// [`UnshotBatch::to_bytes`] of every batch, in order (none without
-    /// mirrors).
-    pub unshot: Vec<Vec<u8>>,
-    /// [`super::Totals::to_bytes`].
+    /// [`MapBatch::to_bytes`] of every batch's shooting maps, in order (none
+    /// without mirrors, or when left out).
+    pub shooting: Vec<Vec<u8>>,
+    /// [`Totals::to_bytes`], without the mirror totals.
     pub totals: Vec<u8>,
+    /// [`MapBatch::to_bytes`] of every batch's mirror totals, in order (none
+    /// without mirrors, or when left out).
+    pub mirror_totals: Vec<Vec<u8>>,
 }
 
 /// The parts over borrowed maps: the same bincode bytes (a slice serialises
@@ -164,11 +271,12 @@ struct StateHeadRef<'a> {
     version: u32,
     stats: &'a [IterationStats],
     current: &'a [Rgb],
-    unshot_batches: Option<u32>,
+    mirror_batches: Option<u32>,
+    pending: Option<&'a Pending>,
 }
 
 #[derive(Serialize)]
-struct UnshotBatchRef<'a> {
+struct MapBatchRef<'a> {
     version: u32,
     iterations: u32,
     batch: u32,
@@ -186,45 +294,63 @@ struct TotalsRef<'a> {
 impl Propagation {
     /// The parts of [`Propagation::checkpoint`], serialised in parallel:
     /// equal to `checkpoint().split()` with the shooting half
-    /// [`ShootingState::into_parts`], each `to_bytes`, without the copy.
-    pub fn snapshot_bytes(&self) -> SnapshotBytes {
-        let maps = self.specular.as_ref().map(|s| &s.maps);
+    /// [`ShootingState::into_parts`] and the totals [`Totals::into_parts`],
+    /// each `to_bytes`, without the copy. Without `maps`, the mirror maps
+    /// are left out: the service's coordinator, whose workers write them.
+    pub fn snapshot_bytes(&self, maps: bool) -> SnapshotBytes {
+        let spec = self.specular.as_ref();
+        let pending = spec.and_then(|s| s.pending.as_ref());
         let iterations = self.iterations_done();
         let l = self.directions.len();
         let head = StateHeadRef {
-            version: SPLIT_VERSION,
+            version: HEAD_VERSION,
             stats: &self.stats,
             current: &self.current,
-            unshot_batches: maps.map(|_| batch_count(l) as u32),
+            mirror_batches: spec.map(|_| batch_count(l) as u32),
+            pending,
         };
         let totals = TotalsRef {
             version: SPLIT_VERSION,
             iterations,
             total: &self.total,
-            mirrors: maps.map(|m| m.iter().map(|m| m.total.as_slice()).collect()),
+            mirrors: None,
         };
-        let unshot = |b: usize| {
-            let maps = maps.map_or(Vec::new(), |m| {
-                m[batch_range(b, l)].iter().map(|m| m.unshot.as_slice()).collect()
-            });
-            encode(&UnshotBatchRef {
+        let part = |b: usize, map: &(dyn Fn(&super::specular::DirectionMaps) -> &[Rgb] + Sync)| {
+            let maps = spec.map_or(Vec::new(), |s| s.maps[batch_range(b, l)].iter().map(map).collect());
+            encode(&MapBatchRef {
                 version: SPLIT_VERSION,
                 iterations,
                 batch: b as u32,
                 maps,
             })
         };
-        let batches = if maps.is_some() { batch_count(l) } else { 0 };
-        let ((head, totals), unshot) = rayon::join(
+        let batches = if maps && spec.is_some() { batch_count(l) } else { 0 };
+        let ((head, totals), (shooting, mirror_totals)) = rayon::join(
             || rayon::join(|| encode(&head), || encode(&totals)),
-            || (0..batches).into_par_iter().map(unshot).collect(),
+            || {
+                rayon::join(
+                    || {
+                        (0..batches)
+                            .into_par_iter()
+                            .map(|b| part(b, &|m| m.shooting(pending.is_some())))
+                            .collect()
+                    },
+                    || (0..batches).into_par_iter().map(|b| part(b, &|m| &m.total)).collect(),
+                )
+            },
         );
-        SnapshotBytes { head, unshot, totals }
+        SnapshotBytes {
+            head,
+            shooting,
+            totals,
+            mirror_totals,
+        }
     }
 
-    /// Restores the head of a shooting state: the statistics and Current. The
-    /// unshot mirror maps are left as they were until their batches are
-    /// restored ([`Propagation::restore_unshot`]); like
+    /// Restores the head of a shooting state: the statistics, Current and
+    /// pending `Φ_in`. The mirror maps are left as they were until their
+    /// batches are restored ([`Propagation::restore_shooting_batch`],
+    /// [`Propagation::restore_totals_batch`]); like
     /// [`Propagation::restore_shooting`], for a replica that computes blocks
     /// only. On error the state is unchanged.
     pub fn restore_head(&mut self, head: StateHead) -> crate::Result<()> {
@@ -233,30 +359,60 @@ impl Propagation {
             .specular
             .as_ref()
             .map(|_| batch_count(self.directions.len()) as u32);
-        if head.unshot_batches != expected {
+        if head.mirror_batches != expected {
             return misfit(format!(
-                "{:?} batches of unshot mirror maps, the scene has {expected:?}",
-                head.unshot_batches
+                "{:?} batches of mirror maps, the scene has {expected:?}",
+                head.mirror_batches
             ));
+        }
+        self.check_pending(head.pending.as_ref())?;
+        if let Some(spec) = self.specular.as_mut() {
+            spec.pending = head.pending;
         }
         self.current = head.current;
         self.stats = head.stats;
         Ok(())
     }
 
-    /// Restores the unshot mirror maps of one batch of directions, of the
+    /// Restores the shooting maps of one batch of directions, of the
+    /// snapshot whose head was restored last (arrivals or unshot maps, as
+    /// the head says). On error the state is unchanged.
+    pub fn restore_shooting_batch(&mut self, part: MapBatch) -> crate::Result<()> {
+        let range = self.check_batch(&part)?;
+        if let Some(spec) = self.specular.as_mut() {
+            let pending = spec.pending.is_some();
+            for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
+                own.set_shooting(pending, saved);
+            }
+        }
+        Ok(())
+    }
+
+    /// Restores the total mirror maps of one batch of directions, of the
     /// snapshot whose head was restored last. On error the state is
     /// unchanged.
-    pub fn restore_unshot(&mut self, part: UnshotBatch) -> crate::Result<()> {
+    pub fn restore_totals_batch(&mut self, part: MapBatch) -> crate::Result<()> {
+        let range = self.check_batch(&part)?;
+        if let Some(spec) = self.specular.as_mut() {
+            for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
+                own.total = saved;
+            }
+        }
+        Ok(())
+    }
+
+    /// The directions of a batch of mirror maps that fits this propagation's
+    /// state, or why it does not.
+    fn check_batch(&self, part: &MapBatch) -> crate::Result<std::ops::Range<usize>> {
         let l = self.directions.len();
         let iterations = self.iterations_done();
         if self.specular.is_none() {
-            return misfit("unshot mirror maps for a scene without mirrors".into());
+            return misfit("mirror maps for a scene without mirrors".into());
         }
         let b = part.batch as usize;
         if b >= batch_count(l) || part.iterations != iterations {
             return misfit(format!(
-                "unshot maps of batch {b} after {} iterations, for a state after {iterations} with {} batches",
+                "mirror maps of batch {b} after {} iterations, for a state after {iterations} with {} batches",
                 part.iterations,
                 batch_count(l)
             ));
@@ -264,17 +420,66 @@ impl Propagation {
         let range = batch_range(b, l);
         if part.maps.len() != range.len() {
             return misfit(format!(
-                "batch {b}: {} unshot maps for {} directions",
+                "batch {b}: {} mirror maps for {} directions",
                 part.maps.len(),
                 range.len()
             ));
         }
         self.check_mirror_maps(range.start, &part.maps)?;
-        if let Some(spec) = self.specular.as_mut() {
-            for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
-                own.unshot = saved;
-            }
-        }
-        Ok(())
+        Ok(range)
+    }
+}
+
+/// The bytes earlier builds wrote, for tests of the stores they left: a
+/// checkpoint or head without pending arrivals (their shooting maps are
+/// unshot maps) in the layouts of version 1 (whole) and 2 (head).
+#[doc(hidden)]
+pub mod earlier {
+    use super::*;
+    use crate::propagate::Checkpoint;
+
+    #[derive(Serialize)]
+    struct WholeV1<'a> {
+        version: u32,
+        stats: &'a [IterationStats],
+        current: &'a [Rgb],
+        total: &'a [Rgb],
+        mirrors: Option<Vec<(&'a [Rgb], &'a [Rgb])>>,
+    }
+
+    #[derive(Serialize)]
+    struct HeadV2<'a> {
+        version: u32,
+        stats: &'a [IterationStats],
+        current: &'a [Rgb],
+        unshot_batches: Option<u32>,
+    }
+
+    /// `checkpoint` as a version 1 blob; `None` with pending arrivals.
+    pub fn whole_v1(checkpoint: &Checkpoint) -> Option<Vec<u8>> {
+        checkpoint.pending.is_none().then(|| {
+            encode(&WholeV1 {
+                version: 1,
+                stats: &checkpoint.stats,
+                current: &checkpoint.current,
+                total: &checkpoint.total,
+                mirrors: checkpoint
+                    .mirrors
+                    .as_ref()
+                    .map(|m| m.iter().map(|d| (&d.shooting[..], &d.total[..])).collect()),
+            })
+        })
+    }
+
+    /// `head` as a version 2 blob; `None` with pending arrivals.
+    pub fn head_v2(head: &StateHead) -> Option<Vec<u8>> {
+        head.pending.is_none().then(|| {
+            encode(&HeadV2 {
+                version: SPLIT_VERSION,
+                stats: &head.stats,
+                current: &head.current,
+                unshot_batches: head.mirror_batches,
+            })
+        })
     }
 }

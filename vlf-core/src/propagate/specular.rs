@@ -13,7 +13,7 @@
 //! * `total` — every radiance that ever left the mirror along the ray: after
 //!   the last iteration, the tile radiance maps the walkthrough reads.
 //! * `incident` — radiance that arrived on the mirror along this direction
-//!   during the current iteration.
+//!   during the last shot, waiting to be reflected.
 //!
 //! ## Reflection between iterations (the exchange)
 //!
@@ -32,8 +32,17 @@
 //! nearest-direction approximation and the resampling between grids.
 //!
 //! Targets are computed independently (in parallel) from read-only incident
-//! maps, in a fixed route order, so the result does not depend on threads —
-//! and a distributed service can route the maps the same way.
+//! maps, in a fixed route order, so the result does not depend on threads.
+//!
+//! **When.** An iteration ends with its arrivals *pending* ([`Pending`]):
+//! only their power `Φ_in` per direction and mirror is settled
+//! ([`Specular::settle`]: what arrived, what will be reflected — exactly, as
+//! the routes carry it), and the gather runs when the next iteration shoots
+//! the target: [`Specular::gather_all`] in one process, or, in the
+//! distributed service, the worker that leases the target's batch, for its
+//! directions only ([`Specular::gather`]), reading the arrivals of the
+//! sources ([`Specular::sources`]) from the snapshot or from its own memory.
+//! The field's bits are the same either way.
 
 use super::shoot::NO_SLOT;
 use crate::directions::DirectionSet;
@@ -123,6 +132,26 @@ pub struct DirectionMaps {
     pub incident: Vec<Rgb>,
 }
 
+impl DirectionMaps {
+    /// What the next iteration shoots from, between iterations: the arrivals
+    /// when they are `pending` (see [`Pending`]), else the unshot map.
+    pub fn shooting(&self, pending: bool) -> &[Rgb] {
+        if pending { &self.incident } else { &self.unshot }
+    }
+
+    /// Sets what the next iteration shoots from (see [`Self::shooting`]) and
+    /// clears the other map.
+    pub fn set_shooting(&mut self, pending: bool, map: Vec<Rgb>) {
+        let (set, clear) = if pending {
+            (&mut self.incident, &mut self.unshot)
+        } else {
+            (&mut self.unshot, &mut self.incident)
+        };
+        *set = map;
+        clear.fill([0.0; 3]);
+    }
+}
+
 /// One feed of a target direction: light arriving on `mirror` along source
 /// line direction `source` reflects into the target with share `weight`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -137,7 +166,8 @@ pub struct Route {
 pub struct Exchange {
     /// Power that arrived on mirrors (front side).
     pub incident: Rgb,
-    /// Power reflected into the unshot maps: ρs × incident, exactly.
+    /// Power reflected into the next unshot maps: ρs × incident, exactly
+    /// (what the routes carry, see [`Specular::settle`]).
     pub reflected: Rgb,
 }
 
@@ -150,7 +180,27 @@ pub struct Specular {
     pub maps: Vec<DirectionMaps>,
     /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
     pub routes: Vec<Vec<Route>>,
+    /// Arrivals of the last iteration not reflected yet: then the incident
+    /// maps hold them and the unshot maps are stale (see [`Pending`]).
+    pub pending: Option<Pending>,
     ordinal: Vec<u32>,
+}
+
+/// The last iteration's arrivals on mirrors, waiting to be reflected.
+///
+/// The exchange runs at the start of the iteration that shoots its result,
+/// not at the end of the one that produced the arrivals: a snapshot holds
+/// the arrivals (the incident maps) and their power `Φ_in` per direction and
+/// mirror, and whoever shoots a direction gathers its unshot map then. In the
+/// distributed service that is the worker with the direction's lease, so
+/// the maps go from worker to worker (a worker that keeps its directions
+/// reads nothing back) and the coordinator handles only `Φ_in`, a few
+/// numbers per direction.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Pending {
+    /// `Φ_in(P, ω)`: per direction, per mirror (in the order of
+    /// [`Specular::mirrors`]), the power its incident map holds.
+    pub power_in: Vec<Vec<Rgb>>,
 }
 
 impl Specular {
@@ -202,12 +252,19 @@ impl Specular {
             layouts,
             maps,
             routes,
+            pending: None,
             ordinal,
         }
     }
 
-    /// Power still unshot in the mirror maps: `Σ_i Σ_slots U · Δω_i`.
-    pub fn unshot_power(&self, directions: &DirectionSet) -> Rgb {
+    /// Power still unshot in the mirror maps: `Σ_i Σ_slots U · Δω_i`, or,
+    /// while arrivals are [`Pending`], the power the exchange reflects into
+    /// them ([`Specular::settle`]: the gather scales each route to carry
+    /// exactly that).
+    pub fn unshot_power(&self, scene: &Scene, directions: &DirectionSet, subfields: &[Subfield]) -> Rgb {
+        if let Some(pending) = &self.pending {
+            return self.settle(scene, subfields, &pending.power_in).reflected;
+        }
         let mut p = [0.0; 3];
         for (d, maps) in self.maps.iter().enumerate() {
             let w = directions.get(d).weight;
@@ -220,16 +277,107 @@ impl Specular {
         p
     }
 
-    /// Whether any mirror slot holds unshot radiance.
+    /// Whether any mirror slot holds unshot radiance, or arrivals wait to be
+    /// reflected.
     pub fn has_unshot(&self) -> bool {
-        self.maps
-            .iter()
-            .any(|m| m.unshot.iter().any(|u| u.iter().any(|&c| c > 0.0)))
+        match &self.pending {
+            Some(p) => p.power_in.iter().flatten().any(|v| v.iter().any(|&c| c > 0.0)),
+            None => self
+                .maps
+                .iter()
+                .any(|m| m.unshot.iter().any(|u| u.iter().any(|&c| c > 0.0))),
+        }
     }
 
-    /// Reflects this iteration's incident radiance into new unshot maps
-    /// (replacing the old ones, which were shot) and clears the incident maps.
-    pub fn exchange(&mut self, scene: &Scene, directions: &DirectionSet, subfields: &[Subfield]) -> Exchange {
+    /// `Φ_in(P, ω)` of direction `d` for every mirror `P` (by ordinal): the
+    /// power its incident map `incident` holds, `Σ_slots I · Δω`.
+    pub fn power_in_of(
+        &self,
+        directions: &DirectionSet,
+        subfields: &[Subfield],
+        d: usize,
+        incident: &[Rgb],
+    ) -> Vec<Rgb> {
+        let mut p = vec![[0.0; 3]; self.mirrors.len()];
+        let w = directions.get(d).weight;
+        let sub = &subfields[d];
+        for &(s, _, e) in &self.layouts[d].entries {
+            let base = self.layouts[d].entry_base[e as usize] as usize;
+            let acc = &mut p[self.ordinal[s as usize] as usize];
+            for v in &incident[base..base + sub.entries[e as usize].rays as usize] {
+                for c in 0..3 {
+                    acc[c] += v[c] * w;
+                }
+            }
+        }
+        p
+    }
+
+    /// The exchange's bookkeeping from every direction's `Φ_in` alone:
+    /// what arrived, and what the gather reflects into the next unshot maps
+    /// (`b·ρs·Φ_in` per route that has slots to fill) — the same sums, in
+    /// the same order, as [`Specular::gather`] adds up, so a coordinator that
+    /// never sees a map knows the exchange's power exactly.
+    pub fn settle(&self, scene: &Scene, subfields: &[Subfield], power_in: &[Vec<Rgb>]) -> Exchange {
+        let mut exchange = Exchange::default();
+        for v in power_in.iter().flatten() {
+            add(&mut exchange.incident, v);
+        }
+        for (i, routes) in self.routes.iter().enumerate() {
+            let mut reflected = [0.0; 3];
+            for route in routes {
+                let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+                if pin.iter().all(|&p| p <= 0.0) || !self.has_slots(subfields, i, route.mirror) {
+                    continue;
+                }
+                let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
+                for c in 0..3 {
+                    let target = route.weight * rho[c] * pin[c];
+                    if target > 0.0 {
+                        reflected[c] += target;
+                    }
+                }
+            }
+            add(&mut exchange.reflected, &reflected);
+        }
+        exchange
+    }
+
+    /// Whether any ray of direction `i` crosses `mirror`.
+    fn has_slots(&self, subfields: &[Subfield], i: usize, mirror: u32) -> bool {
+        let entries = &subfields[i].entries;
+        self.layouts[i]
+            .entries_of(mirror)
+            .iter()
+            .any(|&(_, _, e)| entries[e as usize].rays > 0)
+    }
+
+    /// The source directions whose arrivals the gather of `targets` reads:
+    /// those of their routes that carry power, in order.
+    pub fn sources(&self, targets: std::ops::Range<usize>, power_in: &[Vec<Rgb>]) -> Vec<usize> {
+        let mut out: Vec<usize> = self.routes[targets]
+            .iter()
+            .flatten()
+            .filter(|r| {
+                power_in[r.source as usize][self.ordinal[r.mirror as usize] as usize]
+                    .iter()
+                    .any(|&p| p > 0.0)
+            })
+            .map(|r| r.source as usize)
+            .collect();
+        out.sort_unstable();
+        out.dedup();
+        out
+    }
+
+    /// Reflects the pending arrivals (the incident maps) of every direction
+    /// into new unshot maps and clears the incident maps: the exchange, as
+    /// one process does it at the start of the iteration that shoots them.
+    /// Nothing happens when no arrivals are pending.
+    pub fn gather_all(&mut self, scene: &Scene, directions: &DirectionSet, subfields: &[Subfield]) {
+        let Some(pending) = self.pending.take() else {
+            return;
+        };
         let incident: Vec<Vec<Rgb>> = self
             .maps
             .iter_mut()
@@ -238,56 +386,34 @@ impl Specular {
                 std::mem::replace(&mut m.incident, fresh)
             })
             .collect();
-        // Φ_in(P, ω) for every direction and mirror.
-        let power_in: Vec<Vec<Rgb>> = (0..directions.len())
+        let read = |d: usize| incident[d].as_slice();
+        let gathered: Vec<Vec<Rgb>> = (0..directions.len())
             .into_par_iter()
-            .map(|d| {
-                let mut p = vec![[0.0; 3]; self.mirrors.len()];
-                let w = directions.get(d).weight;
-                let sub = &subfields[d];
-                for &(s, _, e) in &self.layouts[d].entries {
-                    let base = self.layouts[d].entry_base[e as usize] as usize;
-                    let acc = &mut p[self.ordinal[s as usize] as usize];
-                    for v in &incident[d][base..base + sub.entries[e as usize].rays as usize] {
-                        for c in 0..3 {
-                            acc[c] += v[c] * w;
-                        }
-                    }
-                }
-                p
-            })
+            .map(|i| self.gather(scene, directions, subfields, &read, &pending.power_in, i))
             .collect();
-        let mut exchange = Exchange::default();
-        for v in power_in.iter().flatten() {
-            add(&mut exchange.incident, v);
-        }
-        let gathered: Vec<(Vec<Rgb>, Rgb)> = (0..directions.len())
-            .into_par_iter()
-            .map(|i| self.gather(scene, directions, subfields, &incident, &power_in, i))
-            .collect();
-        for (maps, (unshot, reflected)) in self.maps.iter_mut().zip(gathered) {
+        for (maps, unshot) in self.maps.iter_mut().zip(gathered) {
             maps.unshot = unshot;
-            add(&mut exchange.reflected, &reflected);
         }
-        exchange
     }
 
-    /// The new unshot map of target direction `i`, and the power it holds.
-    fn gather(
+    /// The new unshot map of target direction `i` from the pending arrivals
+    /// `incident(source)` of its routes' sources and every direction's
+    /// `Φ_in` (see the module docs): what a worker computes for the
+    /// directions it shoots.
+    pub fn gather<'a>(
         &self,
         scene: &Scene,
         directions: &DirectionSet,
         subfields: &[Subfield],
-        incident: &[Vec<Rgb>],
+        incident: &(dyn Fn(usize) -> &'a [Rgb] + Sync),
         power_in: &[Vec<Rgb>],
         i: usize,
-    ) -> (Vec<Rgb>, Rgb) {
+    ) -> Vec<Rgb> {
         let layout = &self.layouts[i];
         let sub = &subfields[i];
         let n = sub.grid.resolution;
         let weight_i = directions.get(i).weight;
         let mut out = vec![[0.0; 3]; layout.len as usize];
-        let mut reflected = [0.0; 3];
         let mut samples: Vec<(u32, Rgb)> = Vec::new();
         for route in &self.routes[i] {
             let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
@@ -299,7 +425,7 @@ impl Specular {
             let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
             let source = &subfields[route.source as usize];
             let source_layout = &self.layouts[route.source as usize];
-            let source_incident = &incident[route.source as usize];
+            let source_incident = incident(route.source as usize);
             // Backward mapping: every slot of P in i reads the incident
             // radiance of the source ray through the same point of P.
             samples.clear();
@@ -341,10 +467,9 @@ impl Specular {
                         out[*slot as usize][c] += each;
                     }
                 }
-                reflected[c] += target;
             }
         }
-        (out, reflected)
+        out
     }
 }
 

@@ -17,7 +17,7 @@
 //! a pure function of the iteration's inputs ([`IterationWork`], derived
 //! deterministically from the propagation's state), the pass results already
 //! absorbed, and — for [`Pass::Shoot`] — the mirror maps of its own
-//! directions, which it updates. Its output is a [`BatchSum`]: per-texel
+//! directions and the arrivals of those it gathers from. Its output is a [`BatchSum`]: per-texel
 //! power summed over the batch's directions **in direction order, starting
 //! from zero**, and the batch's flow. The batch sums of a pass are added up
 //! along a fixed binary tree ([`super::reduce`]), so a worker may compute a
@@ -29,9 +29,12 @@
 //! from any number of workers get the same field.
 //!
 //! Between iterations, what stays global is small: the texel maps (reduced
-//! here) and the mirror exchange ([`super::Specular::exchange`]), which reads
-//! the incident maps of all directions and writes each direction's new unshot
-//! map.
+//! here) and, with mirrors, each direction's `Φ_in` per mirror. The mirror
+//! maps stay with their directions: a shooting batch first gathers its
+//! directions' unshot maps from the last iteration's arrivals (the exchange,
+//! see [`super::specular::Pending`]), and its output carries its directions'
+//! new maps apart from what the coordinator absorbs ([`MirrorBlock`],
+//! [`BatchOutput`]).
 
 use super::reduce::{TreeSum, is_aligned_block};
 use super::shoot::{self, Flow, Scratch};
@@ -42,6 +45,7 @@ use crate::psf::Subfield;
 use crate::scene::Rgb;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
 use std::ops::Range;
 
 /// Directions computed at once inside a batch, in parallel: each needs a
@@ -99,15 +103,10 @@ pub struct BatchSum {
     pub flow: FlowRecord,
 }
 
-/// The mirror maps of one direction after its batch of [`Pass::Shoot`]: what
-/// arrived on its mirrors, for the exchange (the only map a shot changes).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct MirrorUpdate {
-    pub incident: Vec<Rgb>,
-}
-
-/// Everything one aligned block of batches produces, as it travels from a
-/// worker to the coordinator (through the store, in the distributed service).
+/// Everything one aligned block of batches produces for the coordinator, as
+/// it travels from a worker (through the store, in the distributed service).
+/// A block's mirror maps stay out of it: they are the next snapshot's parts
+/// ([`MirrorBlock`]), which go straight to the workers that shoot next.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BatchOutput {
     pub iteration: u32,
@@ -116,8 +115,27 @@ pub struct BatchOutput {
     pub batches: Range<u32>,
     /// The block's node sum.
     pub sum: BatchSum,
-    /// Mirror maps of the block's directions, in order, when the pass uses them.
-    pub mirrors: Option<Vec<MirrorUpdate>>,
+    /// When the pass uses mirror maps: per direction of the block, in order,
+    /// `Φ_in` of what arrived on each mirror ([`super::Specular::power_in_of`]).
+    pub power_in: Option<Vec<Vec<Rgb>>>,
+}
+
+/// The mirror maps of a block's directions after it shot them: their part of
+/// the next snapshot (cut by batch into [`super::MapBatch`]es,
+/// [`MirrorBlock::batch_bytes`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MirrorBlock {
+    /// The snapshot they belong to: iterations done after this one.
+    pub iterations: u32,
+    /// The block of batches.
+    pub batches: Range<u32>,
+    /// Whether `shooting` holds arrivals to gather (the iteration exchanged:
+    /// [`super::specular::Pending`]) rather than unshot maps.
+    pub pending: bool,
+    /// Per direction: what the next iteration shoots from.
+    pub shooting: Vec<Vec<Rgb>>,
+    /// Per direction: its total map, including what it just sent.
+    pub total: Vec<Vec<Rgb>>,
 }
 
 impl BatchOutput {
@@ -141,6 +159,8 @@ pub struct IterationWork {
     /// Received power, over the passes absorbed so far.
     pub(crate) received: Vec<Rgb>,
     pub(crate) flow: Flow,
+    /// With mirror maps: per direction, `Φ_in` of its arrivals, as absorbed.
+    pub(crate) power_in: Vec<Vec<Rgb>>,
     /// The pass being absorbed (its index) and its partial sums.
     cursor: usize,
     tree: TreeSum,
@@ -395,9 +415,13 @@ impl Propagation {
             index,
             carried,
             deferred_surfaces: deferred.iter().filter(|&&d| d).count(),
-            mode,
             received: vec![[0.0; 3]; texels],
             flow: Flow::default(),
+            power_in: match &mode {
+                Mode::Direct { mirrors: true, .. } => vec![Vec::new(); self.directions.len()],
+                _ => Vec::new(),
+            },
+            mode,
             cursor: 0,
             tree: TreeSum::new(batch_count(self.directions.len())),
             batches: batch_count(self.directions.len()),
@@ -590,27 +614,50 @@ impl Propagation {
 
 impl Propagation {
     /// Computes the aligned block `batches` of `pass` on a replica whose
-    /// state is the iteration's start (as restored from its checkpoint),
-    /// without changing it: what a worker does for a lease. The output holds
-    /// the block's node sum ([`super::reduce`]) and, when the pass uses them,
-    /// the block's mirror maps.
-    pub fn compute_block(&self, work: &IterationWork, pass: Pass, batches: Range<usize>) -> crate::Result<BatchOutput> {
+    /// state is the iteration's start (as restored from its checkpoint:
+    /// Current, and for [`Pass::Shoot`] with mirrors the block's directions'
+    /// maps and, while arrivals are pending, those of the directions the
+    /// block gathers from — [`super::Specular::sources`]), without changing
+    /// it: what a worker does for a lease. Returns the block's output for the
+    /// coordinator (its node sum, [`super::reduce`], and `Φ_in`) and, when
+    /// the pass uses them, its directions' mirror maps for the next snapshot.
+    pub fn compute_block(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+    ) -> crate::Result<(BatchOutput, Option<MirrorBlock>)> {
         let directions = self.block_directions(work, &batches)?;
-        // The block's incident maps, from zero; shooting reads this replica's unshot maps in
-        // place (copying the directions' maps whole cost more than the rest of the output).
         let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
-            (Some(spec), Pass::Shoot, true) => Some(&spec.maps[directions.clone()]),
+            (Some(spec), Pass::Shoot, true) => Some(spec),
             _ => None,
         };
-        let mut incident: Option<Vec<Vec<Rgb>>> =
-            spec.map(|maps| maps.iter().map(|m| vec![[0.0; 3]; m.unshot.len()]).collect());
-        let mut maps: Option<Vec<MirrorIo>> = spec.zip(incident.as_mut()).map(|(maps, incident)| {
-            maps.iter()
+        // What the block's directions send: gathered now from the pending
+        // arrivals (the exchange, see `specular::Pending`), or as restored.
+        let (scene, dirs, subfields) = (&self.scene, &self.directions, &self.subfields[..]);
+        let unshot: Option<Vec<Cow<[Rgb]>>> = spec.map(|spec| match &spec.pending {
+            Some(pending) => {
+                let read = |d: usize| spec.maps[d].incident.as_slice();
+                directions
+                    .clone()
+                    .into_par_iter()
+                    .map(|i| Cow::Owned(spec.gather(scene, dirs, subfields, &read, &pending.power_in, i)))
+                    .collect()
+            }
+            None => directions
+                .clone()
+                .map(|d| Cow::Borrowed(&spec.maps[d].unshot[..]))
+                .collect(),
+        });
+        // The block's incident maps, from zero.
+        let mut incident: Option<Vec<Vec<Rgb>>> = unshot
+            .as_ref()
+            .map(|maps| maps.iter().map(|m| vec![[0.0; 3]; m.len()]).collect());
+        let mut maps: Option<Vec<MirrorIo>> = unshot.as_ref().zip(incident.as_mut()).map(|(unshot, incident)| {
+            unshot
+                .iter()
                 .zip(incident.iter_mut())
-                .map(|(m, incident)| MirrorIo {
-                    unshot: &m.unshot,
-                    incident,
-                })
+                .map(|(unshot, incident)| MirrorIo { unshot, incident })
                 .collect()
         });
         let mut tree = TreeSum::new(batches.len());
@@ -624,13 +671,84 @@ impl Propagation {
             tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
         }
         drop(maps);
-        Ok(BatchOutput {
+        let power_in = spec.zip(incident.as_ref()).map(|(spec, incident)| {
+            directions
+                .clone()
+                .zip(incident)
+                .map(|(d, m)| spec.power_in_of(dirs, subfields, d, m))
+                .collect()
+        });
+        let output = BatchOutput {
             iteration: work.index,
             pass,
             batches: batches.start as u32..batches.end as u32,
             sum: tree.finish().expect("every leaf of the block was pushed"),
-            mirrors: incident.map(|maps| maps.into_iter().map(|incident| MirrorUpdate { incident }).collect()),
-        })
+            power_in,
+        };
+        let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
+        let block = spec.zip(unshot).zip(incident).map(|((spec, unshot), incident)| {
+            // Total += what was just sent (as `Propagation::step` does).
+            let total = directions
+                .clone()
+                .zip(&unshot)
+                .map(|(d, u)| {
+                    let mut t = spec.maps[d].total.clone();
+                    add_into(&mut t, u);
+                    t
+                })
+                .collect();
+            // The exchange of what arrived waits for the next iteration's
+            // shooting (`finish_iteration` decides alike); before light can
+            // reach a mirror, the unshot maps stay as they were.
+            let pending = work.index >= first_lit;
+            let shooting = if pending {
+                incident
+            } else {
+                unshot.into_iter().map(Cow::into_owned).collect()
+            };
+            MirrorBlock {
+                iterations: work.index + 1,
+                batches: output.batches.clone(),
+                pending,
+                shooting,
+                total,
+            }
+        });
+        Ok((output, block))
+    }
+
+    /// The batches of mirror maps that [`Propagation::compute_block`] reads
+    /// for `batches` of `pass`, of the snapshot the iteration starts from
+    /// (whose head this replica holds): the batches' shooting maps — while
+    /// arrivals are pending, those of every direction the block gathers from
+    /// ([`super::Specular::sources`]) — and the block's own totals. Nothing
+    /// unless the pass shoots mirror maps.
+    pub fn mirror_batches_read(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+    ) -> crate::Result<(Vec<usize>, Vec<usize>)> {
+        let directions = self.block_directions(work, &batches)?;
+        let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
+            (Some(spec), Pass::Shoot, true) => spec,
+            _ => return Ok((Vec::new(), Vec::new())),
+        };
+        let shooting = match &spec.pending {
+            Some(pending) => {
+                let size = batch_size(self.directions.len());
+                let last = work.batches() - 1;
+                let mut b: Vec<usize> = spec
+                    .sources(directions, &pending.power_in)
+                    .into_iter()
+                    .map(|d| (d / size).min(last))
+                    .collect();
+                b.dedup();
+                b
+            }
+            None => batches.clone().collect(),
+        };
+        Ok((shooting, batches.collect()))
     }
 
     /// The directions of an aligned block of batches, or why it is not one.
@@ -645,9 +763,9 @@ impl Propagation {
         Ok(work.batch_range(batches.start, l).start..work.batch_range(batches.end - 1, l).end)
     }
 
-    /// Absorbs a worker's block output into `work` and takes over its mirror
-    /// maps: what the coordinator does, in order. Outputs of another
-    /// iteration, out of order, or whose maps do not fit are refused.
+    /// Absorbs a worker's block output into `work`: what the coordinator
+    /// does, in order. Outputs of another iteration, out of order, or whose
+    /// `Φ_in` does not fit are refused.
     pub fn apply_batch(&mut self, work: &mut IterationWork, out: BatchOutput) -> crate::Result<()> {
         if out.iteration != work.index {
             return Err(crate::Error::Parameter(format!(
@@ -657,32 +775,92 @@ impl Propagation {
         }
         let batches = out.batches.start as usize..out.batches.end as usize;
         let range = self.block_directions(work, &batches)?;
-        let wants_maps = out.pass == Pass::Shoot && work.uses_mirror_maps();
-        let checked = match (&self.specular, &out.mirrors, wants_maps) {
-            (_, None, false) => Ok(()),
-            (Some(spec), Some(updates), true) => {
-                let fits = updates.len() == range.len()
-                    && updates.iter().zip(&spec.maps[range.clone()]).all(|(u, m)| {
-                        u.incident.len() == m.incident.len() && u.incident.iter().flatten().all(|v| v.is_finite())
-                    });
+        let wants_power = out.pass == Pass::Shoot && work.uses_mirror_maps();
+        let mirrors = self.specular.as_ref().map_or(0, |s| s.mirrors.len());
+        let checked = match (&out.power_in, wants_power) {
+            (None, false) => Ok(()),
+            (Some(power), true) => {
+                let fits = power.len() == range.len()
+                    && power
+                        .iter()
+                        .all(|p| p.len() == mirrors && p.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
                 if fits {
                     Ok(())
                 } else {
                     Err(format!(
-                        "mirror maps of batches {batches:?} do not fit their directions"
+                        "mirror power of batches {batches:?} does not fit their directions"
                     ))
                 }
             }
             _ => Err(format!(
-                "batches {batches:?} of {:?}: mirror maps missing or unexpected",
+                "batches {batches:?} of {:?}: mirror power missing or unexpected",
                 out.pass
             )),
         };
         checked.map_err(crate::Error::Decode)?;
         work.absorb(out.pass, batches, out.sum)?;
-        if let (Some(spec), Some(updates)) = (&mut self.specular, out.mirrors) {
-            for (m, u) in spec.maps[range].iter_mut().zip(updates) {
-                m.incident = u.incident;
+        if let Some(power) = out.power_in {
+            for (slot, p) in work.power_in[range].iter_mut().zip(power) {
+                *slot = p;
+            }
+        }
+        Ok(())
+    }
+
+    /// Takes a block's mirror maps into this propagation, as if it had
+    /// stepped them itself: for a coordinator that holds every map (the
+    /// service's coordinator does not: the maps go through the store from
+    /// worker to worker), and for a worker's replica that computed them and
+    /// now starts the next iteration (restore its head first). Call when the
+    /// propagation holds the snapshot they belong to. Maps for another
+    /// snapshot or of other sizes are refused; their values are trusted, as
+    /// [`Propagation::compute_block`] made them from checked inputs (maps
+    /// from bytes go through [`Propagation::restore_shooting_batch`]).
+    pub fn adopt_mirrors(&mut self, block: MirrorBlock) -> crate::Result<()> {
+        let l = self.directions.len();
+        let batches = block.batches.start as usize..block.batches.end as usize;
+        if batches.is_empty() || batches.end > batch_count(l) {
+            return Err(crate::Error::Parameter(format!("mirror maps of batches {batches:?}")));
+        }
+        let range = batch_range(batches.start, l).start..batch_range(batches.end - 1, l).end;
+        if block.iterations != self.iterations_done()
+            || block.shooting.len() != range.len()
+            || block.total.len() != range.len()
+        {
+            return Err(crate::Error::Parameter(format!(
+                "mirror maps of batches {batches:?} after {} iterations offered after {}",
+                block.iterations,
+                self.iterations_done()
+            )));
+        }
+        let Some(spec) = self.specular.as_mut() else {
+            return Err(crate::Error::Parameter(
+                "mirror maps for a scene without mirrors".into(),
+            ));
+        };
+        let fits = |maps: &[Vec<Rgb>]| {
+            maps.iter()
+                .zip(&spec.maps[range.clone()])
+                .all(|(a, m)| a.len() == m.total.len())
+        };
+        if !fits(&block.shooting) || !fits(&block.total) {
+            return Err(crate::Error::Parameter(format!(
+                "mirror maps of batches {batches:?} do not fit their directions"
+            )));
+        }
+        {
+            if spec.pending.is_some() != block.pending {
+                return Err(crate::Error::Parameter(
+                    "mirror maps of a block that did not exchange like the iteration".into(),
+                ));
+            }
+            for ((m, shooting), total) in spec.maps[range].iter_mut().zip(block.shooting).zip(block.total) {
+                m.total = total;
+                if block.pending {
+                    m.incident = shooting;
+                } else {
+                    m.unshot = shooting;
+                }
             }
         }
         Ok(())
