@@ -24,7 +24,7 @@ use std::time::Instant;
 use vlf_core::propagate::{Checkpoint, Propagation};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
-use vlf_store::{FieldJob, Store, WorkTraffic};
+use vlf_store::{FieldJob, Store, Traffic, WorkTraffic};
 
 #[derive(Args)]
 pub struct BenchArgs {
@@ -50,6 +50,8 @@ pub struct BenchArgs {
 struct Sample {
     seconds: f64,
     iterations: Vec<(f64, WorkTraffic)>,
+    /// Everything the run read and wrote through the store (snapshots, work, the final field).
+    traffic: Traffic,
 }
 
 pub fn run(args: BenchArgs) -> Result<()> {
@@ -125,7 +127,15 @@ fn in_process(scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
     let last = prop.checkpoint();
     job.finish(&prop.into_field(), false)?;
     let seconds = started.elapsed().as_secs_f64();
-    Ok((Sample { seconds, iterations }, last))
+    let traffic = store.traffic();
+    Ok((
+        Sample {
+            seconds,
+            iterations,
+            traffic,
+        },
+        last,
+    ))
 }
 
 /// The embedded service over a `memory://` store.
@@ -140,9 +150,17 @@ fn service(
     let job = EmbeddedJob::New(scene.clone(), spec.clone());
     let Embedded { id, store, iterations } = runtime.block_on(embedded(store, job, workers, Follow::Quiet))?;
     let seconds = started.elapsed().as_secs_f64();
+    let traffic = store.traffic();
     let job = FieldJob::open(&store, &id)?;
     let last = job.checkpoint(iterations.len() as u32)?;
-    Ok((Sample { seconds, iterations }, last))
+    Ok((
+        Sample {
+            seconds,
+            iterations,
+            traffic,
+        },
+        last,
+    ))
 }
 
 fn without_times(mut c: Checkpoint) -> Checkpoint {
@@ -212,6 +230,38 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Option<usize>], samples: &[V
             out,
             "| {} | {m:.3} | {fastest:.3} | {ratio:.2} | {low:.2}–{high:.2} |",
             name(*way)
+        );
+    }
+
+    // What each way moved through the store in its first run (the same every run), and what the
+    // service moves on top of the in-process run, per iteration.
+    let _ = writeln!(
+        out,
+        "\nThrough the store, per run (every object read and written, as stored: snapshots, work, \
+         the final field); `+ per iteration` is what the service moves on top of the in-process \
+         run, divided by the iterations:\n"
+    );
+    let _ = writeln!(
+        out,
+        "| run | written: objects / MB | read: objects / MB | + per iteration: written / read MB |"
+    );
+    let _ = writeln!(out, "|---|---:|---:|---:|");
+    let first = |runs: &[Sample]| runs.first().map_or(Traffic::default(), |s| s.traffic);
+    let base_traffic = first(&samples[0]);
+    let iterations = samples[0].first().map_or(0, |s| s.iterations.len()).max(1) as f64;
+    for (way, runs) in ways.iter().zip(samples) {
+        let t = first(runs);
+        let extra = |a: u64, b: u64| (a as f64 - b as f64) / 1e6 / iterations;
+        let _ = writeln!(
+            out,
+            "| {} | {} / {:.1} | {} / {:.1} | {:.2} / {:.2} |",
+            name(*way),
+            t.writes,
+            t.written_bytes as f64 / 1e6,
+            t.reads,
+            t.read_bytes as f64 / 1e6,
+            extra(t.written_bytes, base_traffic.written_bytes),
+            extra(t.read_bytes, base_traffic.read_bytes),
         );
     }
 

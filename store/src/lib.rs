@@ -34,4 +34,4 @@ pub use job::Job;
 pub use layout::{MapPart, Stage};
 pub use manifest::{JobState, Manifest};
 pub use parts::StageParts;
-pub use store::{AsyncStore, Panicked, PutOutcome, Store, blocking};
+pub use store::{AsyncStore, Panicked, PutOutcome, Store, Traffic, blocking};

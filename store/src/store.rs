@@ -12,6 +12,7 @@ use object_store::path::Path;
 use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
 use std::future::Future;
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
 
 /// What a create-only write did.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -22,6 +23,36 @@ pub enum PutOutcome {
     Unchanged,
 }
 
+/// What went through a store handle (and its clones) since it was opened: objects and bytes
+/// read and written, as stored (compressed). How `vlf bench` measures what a run moves.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Traffic {
+    pub reads: u64,
+    pub read_bytes: u64,
+    pub writes: u64,
+    pub written_bytes: u64,
+}
+
+#[derive(Debug, Default)]
+struct Counters {
+    reads: AtomicU64,
+    read_bytes: AtomicU64,
+    writes: AtomicU64,
+    written_bytes: AtomicU64,
+}
+
+impl Counters {
+    fn read(&self, bytes: usize) {
+        self.reads.fetch_add(1, Ordering::Relaxed);
+        self.read_bytes.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+
+    fn wrote(&self, bytes: usize) {
+        self.writes.fetch_add(1, Ordering::Relaxed);
+        self.written_bytes.fetch_add(bytes as u64, Ordering::Relaxed);
+    }
+}
+
 /// The async core of a store. Cheap to clone. Use it from inside a tokio runtime; elsewhere use
 /// [`Store`].
 #[derive(Debug, Clone)]
@@ -30,6 +61,7 @@ pub struct AsyncStore {
     url: Arc<str>,
     /// The directory of a local store whose writes [`AsyncStore::flush`] must sync.
     local_root: Option<Arc<std::path::Path>>,
+    counters: Arc<Counters>,
 }
 
 impl AsyncStore {
@@ -50,6 +82,7 @@ impl AsyncStore {
             backend: backend.store,
             url: url.trim().into(),
             local_root: backend.local_root.map(Arc::from),
+            counters: Arc::default(),
         })
     }
 
@@ -91,15 +124,29 @@ impl AsyncStore {
         &self.url
     }
 
+    /// What went through this handle and its clones so far (not through other handles of the
+    /// same store).
+    pub fn traffic(&self) -> Traffic {
+        let c = &self.counters;
+        Traffic {
+            reads: c.reads.load(Ordering::Relaxed),
+            read_bytes: c.read_bytes.load(Ordering::Relaxed),
+            writes: c.writes.load(Ordering::Relaxed),
+            written_bytes: c.written_bytes.load(Ordering::Relaxed),
+        }
+    }
+
     /// Writes `bytes` at `key`, replacing what was there. Atomic: readers see the old or the new
     /// object, never a mix (a staging file and a rename locally, a single PUT on S3).
     pub async fn put(&self, key: &str, bytes: impl Into<Bytes>) -> Result<(), StoreError> {
         let path = self.path(key)?;
-        let payload = PutPayload::from_bytes(bytes.into());
+        let bytes = bytes.into();
+        let len = bytes.len();
         self.backend
-            .put(&path, payload)
+            .put(&path, PutPayload::from_bytes(bytes))
             .await
             .map_err(|e| self.backend_error("put", key, e))?;
+        self.counters.wrote(len);
         Ok(())
     }
 
@@ -119,7 +166,10 @@ impl AsyncStore {
             .put_opts(&path, PutPayload::from_bytes(bytes.clone()), opts)
             .await
         {
-            Ok(_) => Ok(PutOutcome::Created),
+            Ok(_) => {
+                self.counters.wrote(bytes.len());
+                Ok(PutOutcome::Created)
+            }
             Err(object_store::Error::AlreadyExists { .. } | object_store::Error::Precondition { .. }) => {
                 if self.get(key).await? == bytes {
                     Ok(PutOutcome::Unchanged)
@@ -138,7 +188,9 @@ impl AsyncStore {
     pub async fn get(&self, key: &str) -> Result<Bytes, StoreError> {
         let path = self.path(key)?;
         let read = async { self.backend.get(&path).await?.bytes().await };
-        read.await.map_err(|e| self.backend_error("get", key, e))
+        let bytes = read.await.map_err(|e| self.backend_error("get", key, e))?;
+        self.counters.read(bytes.len());
+        Ok(bytes)
     }
 
     /// Whether an object exists at `key` (one HEAD request).
@@ -330,6 +382,11 @@ impl Store {
     /// The URL the store was opened with.
     pub fn url(&self) -> &str {
         self.inner.url()
+    }
+
+    /// See [`AsyncStore::traffic`].
+    pub fn traffic(&self) -> Traffic {
+        self.inner.traffic()
     }
 
     /// Blocking [`AsyncStore::put`].

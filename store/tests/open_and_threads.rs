@@ -76,3 +76,27 @@ fn async_core_and_blocking_calls_inside_a_runtime() {
     });
     assert_eq!(&store.get("x/y.bin").unwrap()[..], b"async");
 }
+
+#[test]
+fn a_handle_counts_what_goes_through_it_and_its_clones() {
+    let store = Store::open("memory://").unwrap();
+    let clone = store.clone();
+    store.put("a", vec![1u8; 100]).unwrap();
+    clone.put_new("b", vec![2u8; 30]).unwrap();
+    // The same bytes again: compared (one read), not written.
+    assert_eq!(
+        clone.put_new("b", vec![2u8; 30]).unwrap(),
+        vlf_store::PutOutcome::Unchanged
+    );
+    assert_eq!(store.get("a").unwrap().len(), 100);
+    assert!(store.get("missing").is_err());
+    let t = store.traffic();
+    assert_eq!(t, clone.traffic());
+    assert_eq!((t.writes, t.written_bytes), (2, 130));
+    assert_eq!((t.reads, t.read_bytes), (2, 130));
+    // Another handle of another store counts apart.
+    assert_eq!(
+        Store::open("memory://").unwrap().traffic(),
+        vlf_store::Traffic::default()
+    );
+}

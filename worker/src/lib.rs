@@ -4,8 +4,9 @@
 //! before it reports.
 //!
 //! Stateless: everything a lease needs is in the store (the job's scene, options and the
-//! checkpoint its iteration starts from); the geometry of the last jobs seen is kept only as a
-//! cache. Any worker can take any lease, and scaling out is starting more of them, on any machine
+//! checkpoint its iteration starts from); the geometry of the last jobs seen, and the mirror
+//! maps this worker wrote into the next snapshot, are kept only as a cache (`vlf_store::Replica`:
+//! a worker that shoots the same directions again reads them from memory, not the store). Any worker can take any lease, and scaling out is starting more of them, on any machine
 //! that reaches the coordinator and the store. A worker outlives its coordinator: when calls fail
 //! it retries with back-off and registers again with whoever answers.
 
