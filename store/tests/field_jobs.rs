@@ -240,6 +240,88 @@ per_backend! {
     damaged_blobs_name_their_key => crate::damage_names_the_key,
 }
 
+/// Rewrites snapshot `k` of job `id` as an earlier build left it — the whole checkpoint in
+/// `state.blob` (`whole`), or a version 2 head with unshot maps by batch and all the totals in
+/// `totals.blob` — and returns the checkpoint it holds: this build's, with the pending arrivals
+/// reflected (earlier builds reflected them at the end of an iteration).
+fn as_earlier_build(store: &Store, id: &JobId, k: u32, whole: bool) -> Checkpoint {
+    let job = FieldJob::open(store, id).unwrap();
+    let current = job.checkpoint(k).unwrap();
+    let mut p = Propagation::resume(job.scene().clone(), job.options().clone(), current).unwrap();
+    p.specular
+        .as_mut()
+        .unwrap()
+        .gather_all(&p.scene, &p.directions, &p.subfields);
+    let gathered = p.checkpoint();
+    let (shooting, totals) = gathered.clone().split();
+    let (head, unshot) = shooting.into_parts();
+    let put = |key: &str, bytes: &[u8]| {
+        store
+            .put(key, blob::encode_bytes(BlobKind::Snapshot, bytes).unwrap())
+            .unwrap()
+    };
+    let (state_key, totals_key) = (layout::state(id, k).unwrap(), layout::totals(id, k).unwrap());
+    for b in 0..unshot.len() as u32 {
+        for part in [MapPart::Shooting, MapPart::Totals, MapPart::Unshot] {
+            store.delete(&layout::map_part(id, k, part, b).unwrap()).unwrap();
+        }
+    }
+    if whole {
+        put(&state_key, &earlier::whole_v1(&gathered).unwrap());
+        store.delete(&totals_key).unwrap();
+    } else {
+        put(&state_key, &earlier::head_v2(&head).unwrap());
+        put(&totals_key, &totals.to_bytes());
+        for part in &unshot {
+            put(
+                &layout::map_part(id, k, MapPart::Unshot, part.batch).unwrap(),
+                &part.to_bytes(),
+            );
+        }
+    }
+    gathered
+}
+
+/// A job that an earlier build stopped after snapshot 2 is taken up by this build's coordinator
+/// and a worker, which write this build's snapshots from there on, and ends with the bits of a
+/// run that never stopped.
+#[test]
+fn jobs_stopped_by_earlier_builds_resume_with_the_same_bits() {
+    let store = Store::open("memory://").unwrap();
+    let scene = bundled("mirrors.obj");
+    let (reference, _) = run(&store, &scene, Encoding::F32);
+    for whole in [false, true] {
+        let mut p = Propagation::new(scene.clone(), options(4)).unwrap();
+        let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+        for _ in 0..2 {
+            p.step(|_| {});
+            job.write_snapshot(&p).unwrap();
+        }
+        let id = job.id().clone();
+        as_earlier_build(&store, &id, 2, whole);
+        let mut coordinator = vlf_store::Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
+        let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+        while !coordinator.finished() {
+            let k = coordinator.iteration();
+            while let Some((pass, batches)) = coordinator.pending_pass() {
+                replica.compute(k, pass, 0..batches).unwrap();
+                coordinator.absorb_pass().unwrap();
+            }
+            coordinator.finish_iteration().unwrap();
+        }
+        let done = coordinator.finish(false).unwrap();
+        assert!(
+            without_times(done.checkpoint(4).unwrap()) == without_times(reference.checkpoint(4).unwrap()),
+            "resumed from an earlier build's {} snapshot",
+            if whole { "whole" } else { "version 2" }
+        );
+        assert!(
+            done.load(Stage::Field).unwrap().specular.unwrap().totals
+                == reference.load(Stage::Field).unwrap().specular.unwrap().totals
+        );
+    }
+}
+
 /// Jobs of earlier builds hold a snapshot's checkpoint whole in `state.blob` (the first builds)
 /// or as a version 2 head whose unshot maps are in `unshot/BBBBB.blob` and whose mirror totals
 /// are in `totals.blob` whole; both hold the arrivals already reflected (unshot maps), none
@@ -280,47 +362,9 @@ fn snapshots_of_earlier_builds_still_read() {
     let from_parts = shoot();
     assert!(from_parts.power_in.is_some(), "the shot reports its mirror power");
 
-    // What an earlier build stored for snapshot 2: the same state, arrivals reflected.
-    let mut p = Propagation::resume(scene, options(4), current).unwrap();
-    p.specular
-        .as_mut()
-        .unwrap()
-        .gather_all(&p.scene, &p.directions, &p.subfields);
-    let gathered = p.checkpoint();
-    let (shooting, totals) = gathered.clone().split();
-    let (head, unshot) = shooting.into_parts();
-    let put = |key: &str, bytes: &[u8]| {
-        store
-            .put(key, blob::encode_bytes(BlobKind::Snapshot, bytes).unwrap())
-            .unwrap()
-    };
     let (state_key, totals_key) = (layout::state(&id, 2).unwrap(), layout::totals(&id, 2).unwrap());
-    for b in 0..batches as u32 {
-        for part in [MapPart::Shooting, MapPart::Totals] {
-            store.delete(&layout::map_part(&id, 2, part, b).unwrap()).unwrap();
-        }
-    }
-    let v2 = earlier::head_v2(&head).unwrap();
-    let v1 = earlier::whole_v1(&gathered).unwrap();
     for (layout_name, whole) in [("version 2 head", false), ("whole checkpoint", true)] {
-        if whole {
-            put(&state_key, &v1);
-            store.delete(&totals_key).unwrap();
-            for b in 0..batches as u32 {
-                store
-                    .delete(&layout::map_part(&id, 2, MapPart::Unshot, b).unwrap())
-                    .unwrap();
-            }
-        } else {
-            put(&state_key, &v2);
-            put(&totals_key, &totals.to_bytes());
-            for part in &unshot {
-                put(
-                    &layout::map_part(&id, 2, MapPart::Unshot, part.batch).unwrap(),
-                    &part.to_bytes(),
-                );
-            }
-        }
+        let gathered = as_earlier_build(&store, &id, 2, whole);
         let old = FieldJob::open(&store, &id).unwrap();
         assert!(old.checkpoint(2).unwrap() == gathered, "{layout_name}");
         let parts = open_parts();
