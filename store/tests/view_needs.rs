@@ -147,6 +147,13 @@ fn the_needed_keys_are_all_a_view_reads() {
             bits(&field.render(camera, 1, SpecularMode::Rays)) == bits(&expected),
             "{stage:?}"
         );
+        // A snapshot's mirror radiance is read by batch of directions: those the view sees.
+        if let Stage::Iteration(_) = stage {
+            let batches = keys.iter().filter(|k| k.contains("/mirror-totals/")).count();
+            let all = vlf_core::propagate::work::batch_count(129);
+            eprintln!("close-up of snapshot: {batches} of {all} batches of mirror totals");
+            assert!(batches > 0 && batches < all, "{batches} of {all}");
+        }
     }
 }
 
