@@ -535,6 +535,13 @@ impl Coordinator {
         let shot = work.uses_mirror_maps();
         let stats = self.prop.finish_iteration(work, started);
         self.maps_held &= !shot;
+        if !self.maps_held
+            && let Some(spec) = self.prop.specular.as_mut()
+        {
+            // The workers hold them: the coordinator's memory does not grow with the mirror
+            // slots.
+            spec.release_maps();
+        }
         let maps = self.prop.specular.is_some() && !shot;
         if maps && !self.maps_held {
             return Err(self.job.field_error(vlf_core::Error::Parameter(format!(

@@ -269,6 +269,14 @@ fn a_lease_reads_only_what_it_needs(o: &Opener) {
     }
     let (pass, batches) = coordinator.pending_pass().unwrap();
     assert_eq!((pass, batches), (Pass::Shoot, 2));
+    // The coordinator holds no mirror map: the workers do.
+    let spec = coordinator.propagation().specular.as_ref().unwrap();
+    assert!(spec.pending.is_some());
+    assert!(
+        spec.maps
+            .iter()
+            .all(|m| m.total.is_empty() && m.unshot.is_empty() && m.incident.is_empty())
+    );
     let store = o.open();
     let maps: Vec<(String, Vec<u8>)> = [MapPart::Shooting, MapPart::Totals]
         .into_iter()

@@ -277,6 +277,17 @@ impl Specular {
         p
     }
 
+    /// Frees every direction's maps, keeping the layouts and routes: for a
+    /// coordinator whose workers hold the maps (see [`Pending`]), which then
+    /// needs only `Φ_in`, whatever the number of mirror slots. Restoring a
+    /// batch ([`super::Propagation::restore_totals_batch`]) brings its maps
+    /// back.
+    pub fn release_maps(&mut self) {
+        for m in &mut self.maps {
+            *m = DirectionMaps::default();
+        }
+    }
+
     /// Whether any mirror slot holds unshot radiance, or arrivals wait to be
     /// reflected.
     pub fn has_unshot(&self) -> bool {

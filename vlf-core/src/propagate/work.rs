@@ -840,8 +840,8 @@ impl Propagation {
         };
         let fits = |maps: &[Vec<Rgb>]| {
             maps.iter()
-                .zip(&spec.maps[range.clone()])
-                .all(|(a, m)| a.len() == m.total.len())
+                .zip(&spec.layouts[range.clone()])
+                .all(|(a, l)| a.len() == l.len as usize)
         };
         if !fits(&block.shooting) || !fits(&block.total) {
             return Err(crate::Error::Parameter(format!(
