@@ -56,6 +56,47 @@ fn mirror_box_balances_energy_every_iteration() {
     }
 }
 
+/// Between iterations the arrivals wait to be reflected and the statistics
+/// count their reflected power from `Φ_in` alone (`Specular::settle`); the
+/// gather that later makes the unshot maps carries exactly that power, per
+/// channel, and gathering a direction alone gives the bits of gathering all.
+#[test]
+fn gathered_maps_carry_the_settled_power() {
+    let mut p = Propagation::new(mirror_room(), options(129, 32, 8, 3)).unwrap();
+    for _ in 0..2 {
+        p.step(|_| {});
+    }
+    let (scene, directions, subfields) = (p.scene.clone(), p.directions.clone(), p.subfields.clone());
+    let spec = p.specular.as_mut().unwrap();
+    let pending = spec.pending.clone().expect("arrivals wait to be reflected");
+    let settled = spec.unshot_power(&scene, &directions, &subfields);
+    assert!(lum(&settled) > 0.0);
+    assert_eq!(settled, p.stats[1].specular_unshot);
+    let read = |d: usize| spec.maps[d].incident.as_slice();
+    let one: Vec<_> = [0, 40, 128]
+        .into_iter()
+        .map(|i| spec.gather(&scene, &directions, &subfields, &read, &pending.power_in, i))
+        .collect();
+    assert!(
+        one.iter().flatten().any(|v| v[0] > 0.0),
+        "nothing reflected into these directions"
+    );
+    spec.gather_all(&scene, &directions, &subfields);
+    assert!(spec.pending.is_none());
+    let gathered = spec.unshot_power(&scene, &directions, &subfields);
+    for c in 0..3 {
+        assert!(
+            (gathered[c] - settled[c]).abs() <= 1e-9 * settled[c],
+            "channel {c}: gathered {} against settled {}",
+            gathered[c],
+            settled[c]
+        );
+    }
+    for (i, map) in [0, 40, 128].into_iter().zip(one) {
+        assert_eq!(map, spec.maps[i].unshot, "direction {i}");
+    }
+}
+
 /// Pure mirror box walls with ρs = 0.8 everywhere but a diffuse lamp: every
 /// bounce keeps exactly 0.8 of the power on the walls.
 #[test]
