@@ -128,9 +128,10 @@ impl FieldJob {
 }
 
 /// Propagations of jobs built in this process, for replicas to clone instead of building the
-/// geometry again — a coordinator and workers sharing a process (`vlf run`). The geometry is a
-/// pure function of the job's scene and options, and a replica restores its state from the store
-/// before every iteration, so a clone gives the same bits as a replica built from the store.
+/// geometry again — a coordinator and workers sharing a process (`vlf run`). Each is the job's
+/// whole state at the snapshot its coordinator took it up from ([`Replica::at_snapshot`]). The
+/// geometry is a pure function of the job's scene and options, and the state is that snapshot's,
+/// so a clone gives the same bits as a replica built from the store.
 #[derive(Clone, Default)]
 pub struct Prototypes(Arc<Mutex<HashMap<JobId, Propagation>>>);
 
@@ -140,7 +141,8 @@ impl Prototypes {
         self.0.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Offers `prop`, a propagation of job `id`, to the replicas of this process.
+    /// Offers `prop`, job `id`'s propagation at its last snapshot, to the replicas of this
+    /// process.
     pub fn insert(&self, id: JobId, prop: Propagation) {
         self.lock().insert(id, prop);
     }
@@ -174,6 +176,9 @@ pub struct Replica {
     current: Option<Current>,
     /// Mirror maps this replica computed: parts of the snapshot after the current iteration.
     held: Vec<MirrorBlock>,
+    /// The snapshot whose whole state `prop` holds, if any (a prototype's): nothing of it is
+    /// read from the store.
+    holds_snapshot: Option<u32>,
 }
 
 struct Current {
@@ -200,6 +205,19 @@ impl Replica {
             prop,
             current: None,
             held: Vec::new(),
+            holds_snapshot: None,
+        }
+    }
+
+    /// A replica of `job` over `prop`, the job's whole state at its snapshot
+    /// `prop.iterations_done()` — as a coordinator in this process holds it when it takes the job
+    /// up ([`Prototypes`]): the iteration from that snapshot reads nothing of it from the store
+    /// (the same bits: the snapshot was written from that state).
+    pub fn at_snapshot(job: FieldJob, prop: Propagation) -> Replica {
+        let k = prop.iterations_done();
+        Replica {
+            holds_snapshot: Some(k),
+            ..Replica::with_propagation(job, prop)
         }
     }
 
@@ -296,6 +314,16 @@ impl Replica {
     fn start(&mut self, k: u32) -> Result<(), StoreError> {
         self.current = None;
         let held = std::mem::take(&mut self.held);
+        if self.holds_snapshot.take() == Some(k) {
+            let all = vec![true; batch_count(self.prop.directions.len())];
+            self.current = Some(Current {
+                k,
+                work: self.prop.iteration_work(),
+                shooting: all.clone(),
+                totals: all,
+            });
+            return Ok(());
+        }
         let batches = match self.job.released_state(k)? {
             ReleasedState::Head(head) if head.mirror_totals_by_batch() => {
                 let batches = head.mirror_batches.unwrap_or(0) as usize;

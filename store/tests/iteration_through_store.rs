@@ -309,8 +309,45 @@ fn a_lease_reads_only_what_it_needs(o: &Opener) {
     coordinator.finish_iteration().unwrap();
 }
 
+/// A replica made from the coordinator's own propagation (what `vlf run`'s workers clone) reads
+/// nothing of the snapshot it starts from, and writes the bytes a replica built from the store
+/// writes (outputs are create-only: other bytes would be refused).
+fn a_prototype_replica_reads_nothing_of_its_snapshot(o: &Opener) {
+    let (id, mut coordinator, mut replica) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
+    let (pass, batches) = coordinator.pending_pass().unwrap();
+    let prototype = coordinator.propagation().clone();
+    let store = o.open();
+    let snapshot = layout::stage_prefix(&id, Stage::Iteration(0)).unwrap();
+    let state: Vec<(String, Vec<u8>)> = store
+        .list(&snapshot)
+        .unwrap()
+        .into_iter()
+        .filter(|k| k.ends_with("state.blob") || k.contains("/shooting/") || k.contains("/mirror-totals/"))
+        .map(|k| {
+            let bytes = store.get(&k).unwrap().to_vec();
+            store.delete(&k).unwrap();
+            (k, bytes)
+        })
+        .collect();
+    assert!(state.len() > 2, "{state:?}");
+    let mut from_prototype = Replica::at_snapshot(FieldJob::open(&o.open(), &id).unwrap(), prototype);
+    from_prototype.compute(0, pass, 0..batches).unwrap();
+    assert!(
+        replica.compute(0, pass, 0..batches).is_err(),
+        "the snapshot's state is gone"
+    );
+    for (key, bytes) in state {
+        store.put(&key, bytes).unwrap();
+    }
+    let mut replica = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    replica.compute(0, pass, 0..batches).unwrap();
+    coordinator.absorb_pass().unwrap();
+    coordinator.finish_iteration().unwrap();
+}
+
 per_backend! {
     a_lease_reads_only_what_it_needs => crate::a_lease_reads_only_what_it_needs,
+    a_prototype_replica_reads_nothing_of_its_snapshot => crate::a_prototype_replica_reads_nothing_of_its_snapshot,
     released_iterations_resume_with_the_same_bits => crate::released_before_committed,
     replicas_give_the_same_bits_with_mirrors => crate::mirrors,
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,

@@ -104,7 +104,7 @@ impl Replicas {
             None => {
                 let opened = FieldJob::open(store, job)?;
                 let replica = match self.prototypes.as_ref().and_then(|p| p.get(job)) {
-                    Some(prop) => Replica::with_propagation(opened, prop),
+                    Some(prop) => Replica::at_snapshot(opened, prop),
                     None => Replica::new(opened)?,
                 };
                 self.jobs.insert(0, (job.clone(), replica));
