@@ -54,6 +54,17 @@ struct Sample {
     traffic: Traffic,
 }
 
+impl Sample {
+    /// A run that started at `started` and has just ended over `store`.
+    fn ended(started: Instant, iterations: Vec<(f64, WorkTraffic)>, store: &Store) -> Sample {
+        Sample {
+            seconds: started.elapsed().as_secs_f64(),
+            iterations,
+            traffic: store.traffic(),
+        }
+    }
+}
+
 pub fn run(args: BenchArgs) -> Result<()> {
     if !(1..=100).contains(&args.repeat) {
         bail!("--repeat must be between 1 and 100, got {}", args.repeat);
@@ -126,16 +137,7 @@ fn in_process(scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
     }
     let last = prop.checkpoint();
     job.finish(&prop.into_field(), false)?;
-    let seconds = started.elapsed().as_secs_f64();
-    let traffic = store.traffic();
-    Ok((
-        Sample {
-            seconds,
-            iterations,
-            traffic,
-        },
-        last,
-    ))
+    Ok((Sample::ended(started, iterations, &store), last))
 }
 
 /// The embedded service over a `memory://` store.
@@ -149,18 +151,11 @@ fn service(
     let store = Store::open("memory://")?;
     let job = EmbeddedJob::New(scene.clone(), spec.clone());
     let Embedded { id, store, iterations } = runtime.block_on(embedded(store, job, workers, Follow::Quiet))?;
-    let seconds = started.elapsed().as_secs_f64();
-    let traffic = store.traffic();
-    let job = FieldJob::open(&store, &id)?;
-    let last = job.checkpoint(iterations.len() as u32)?;
-    Ok((
-        Sample {
-            seconds,
-            iterations,
-            traffic,
-        },
-        last,
-    ))
+    let count = iterations.len() as u32;
+    // Taken before the check below reads the store.
+    let sample = Sample::ended(started, iterations, &store);
+    let last = FieldJob::open(&store, &id)?.checkpoint(count)?;
+    Ok((sample, last))
 }
 
 fn without_times(mut c: Checkpoint) -> Checkpoint {
