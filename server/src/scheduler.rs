@@ -33,7 +33,7 @@ use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 use tokio::sync::{Notify, watch};
 use vlf_core::propagate::Pass;
-use vlf_core::propagate::reduce::is_aligned_block;
+use vlf_core::propagate::reduce::{self, is_aligned_block};
 use vlf_proto::v1::{JobStatus, State as WireState};
 use vlf_store::{JobId, Prototypes, Store, WorkTraffic};
 
@@ -58,8 +58,9 @@ impl Default for Timing {
     }
 }
 
-/// A lease handed to a worker: one block of batches of one pass of the iteration after
-/// `snapshot`.
+/// A lease handed to a worker: a run of batches of one pass of the iteration after `snapshot`,
+/// which the worker computes as the aligned blocks that cover it (`reduce::cover`; a single
+/// block for a worker that does not take runs).
 #[derive(Clone, Debug, PartialEq)]
 pub struct Grant {
     pub lease_id: String,
@@ -174,6 +175,8 @@ struct Batch {
 
 struct WorkerEntry {
     last_seen: Instant,
+    /// Whether it computes leases that are runs of several aligned blocks.
+    takes_runs: bool,
 }
 
 struct LeaseEntry {
@@ -453,7 +456,9 @@ impl Scheduler {
     // ------------------------------------------------------------ workers
 
     /// Registers a worker; returns its id.
-    pub fn register(&self, name: &str) -> String {
+    /// Registers a worker; `takes_runs`: it computes leases that are runs of aligned blocks (see
+    /// [`Grant`]), else it is leased one aligned block at a time.
+    pub fn register(&self, name: &str, takes_runs: bool) -> String {
         let mut state = self.lock();
         state.counter += 1;
         let id = format!("w{}-{}", state.counter, sanitize(name));
@@ -461,6 +466,7 @@ impl Scheduler {
             id.clone(),
             WorkerEntry {
                 last_seen: Instant::now(),
+                takes_runs,
             },
         );
         tracing::info!(worker = id, "worker registered");
@@ -523,6 +529,7 @@ impl Scheduler {
         let number = state.counter;
         let lease_id = format!("l{number}");
         let deadline = Instant::now() + self.timing.lease;
+        let takes_runs = state.workers.get(worker).is_some_and(|w| w.takes_runs);
         let Some(entry) = state.jobs.get_mut(&job) else {
             unreachable!("found above");
         };
@@ -534,7 +541,11 @@ impl Scheduler {
         )
         .min(self.timing.max_lease_batches.max(1));
         let run = &mut entry.passes[p];
-        let batches = run.pending_block(first, len);
+        let batches = if takes_runs {
+            run.pending_run(first, len)
+        } else {
+            run.pending_block(first, len)
+        };
         for b in &mut run.batches[batches.clone()] {
             b.state = BatchState::Leased(number);
         }
@@ -604,7 +615,9 @@ impl Scheduler {
         let mut requeued = false;
         match result {
             Ok(()) => {
-                run.mark_done(batches.clone());
+                for block in reduce::cover(batches.clone()) {
+                    run.mark_done(block);
+                }
                 if pass == Pass::Shoot {
                     if entry.shooters.len() < run.batches.len() {
                         entry.shooters.resize(run.batches.len(), None);
@@ -770,6 +783,22 @@ impl PassRun {
         first..first + size
     }
 
+    /// The run of pending batches from `first` (a pending batch) to the end of the aligned block
+    /// of `len` batches (rounded up to a power of two) that holds it, or to the first batch that
+    /// is not pending: what a worker that takes runs is leased. From an aligned `first` it is
+    /// [`PassRun::pending_block`]'s block or more; past one (after the first lease of a job, one
+    /// batch to learn its speed) it takes the rest of that block in one lease instead of one
+    /// lease per aligned piece.
+    fn pending_run(&self, first: usize, len: usize) -> Range<usize> {
+        let size = len.max(1).next_power_of_two();
+        let end = ((first / size + 1) * size).min(self.batches.len());
+        let pending = self.batches[first..end]
+            .iter()
+            .take_while(|b| b.state == BatchState::Pending)
+            .count();
+        first..first + pending.max(1)
+    }
+
     /// Records that the output of `block` is written.
     fn mark_done(&mut self, block: Range<usize>) {
         for b in &mut self.batches[block.clone()] {
@@ -910,7 +939,7 @@ mod tests {
         let s = scheduler(60_000);
         let id = job(&s);
         s.start_pass(&id, 0, Pass::Shoot, 3, &[1..2]);
-        let w = s.register("a");
+        let w = s.register("a", true);
         let a = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         let b = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!((a.batches, b.batches), (0..1, 2..3), "batch 1 was already in the store");
@@ -938,7 +967,7 @@ mod tests {
         let s = scheduler(20);
         let id = job(&s);
         s.start_pass(&id, 4, Pass::Areas { copy: 1 }, 1, &[]);
-        let (w1, w2) = (s.register("slow"), s.register("fast"));
+        let (w1, w2) = (s.register("slow", true), s.register("fast", true));
         let first = s.lease(&w1, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!((first.snapshot, first.pass), (4, Pass::Areas { copy: 1 }));
         assert_eq!(s.lease(&w2, Duration::ZERO).await.unwrap(), None);
@@ -963,7 +992,7 @@ mod tests {
         let (a0, a1) = (Pass::Areas { copy: 0 }, Pass::Areas { copy: 1 });
         s.start_pass(&id, 2, a0, 3, &[]);
         s.start_pass(&id, 2, a1, 3, &[1..2]);
-        let w = s.register("a");
+        let w = s.register("a", true);
         let mut grants = Vec::new();
         while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
             grants.push(g);
@@ -1009,7 +1038,7 @@ mod tests {
     async fn stored_blocks_are_kept_and_new_blocks_never_straddle_them() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let w = s.register("a");
+        let w = s.register("a", true);
         // The speed is known: one worker leases as much as it can.
         s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
@@ -1020,18 +1049,41 @@ mod tests {
         // ignored), 4..6 and 12..16.
         s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16]);
         assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(vec![0..4, 4..6]));
+        // With two workers, blocks of 4 batches at most: one that does not take runs gets an
+        // aligned block, one that does the rest of the next block.
+        let old = s.register("old", false);
+        let g = s.lease(&old, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 6..8);
         let mut grants = Vec::new();
         while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
             grants.push(g.batches);
         }
-        assert_eq!(grants, vec![6..8, 8..12]);
+        assert_eq!(grants, vec![8..12]);
+        // Alone, a worker that takes runs gets the gap in one lease.
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let w = s.register("a", true);
+        s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert!(s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
+        s.end_pass(&id, 0, Pass::Shoot);
+        s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16]);
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 6..12, "up to the stored block, not into it");
+        assert!(s.lease(&w, Duration::ZERO).await.unwrap().is_none());
+        // Its report marks every aligned block of the run written.
+        assert!(s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
+        assert_eq!(
+            s.pass_outcome(&id, areas, 0),
+            PassOutcome::Ready(vec![0..4, 4..6, 6..8, 8..12, 12..16])
+        );
     }
 
     #[tokio::test]
     async fn after_a_report_a_lone_worker_leases_whole_passes() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let w = s.register("a");
+        let w = s.register("a", true);
         s.start_pass(&id, 0, Pass::Shoot, 16, &[]);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.batches, 0..1, "speed unknown: one batch");
@@ -1041,18 +1093,30 @@ mod tests {
         while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
             grants.push((g.pass, g.batches));
         }
-        // The rest of the pass in the largest aligned blocks, then the next pass whole.
+        // The rest of the pass in one lease, then the next pass whole.
         let shoot = Pass::Shoot;
-        let expected = vec![(shoot, 1..2), (shoot, 2..4), (shoot, 4..8), (shoot, 8..16)];
-        assert_eq!(grants[..4], expected);
-        assert_eq!(grants[4..], [(Pass::Areas { copy: 0 }, 0..16)]);
+        assert_eq!(grants, [(shoot, 1..16), (Pass::Areas { copy: 0 }, 0..16)]);
+
+        // A worker that does not take runs gets the rest in the largest aligned blocks.
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let w = s.register("old", false);
+        s.start_pass(&id, 0, Pass::Shoot, 16, &[]);
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 0..1, "speed unknown: one batch");
+        assert!(s.report(&w, &g.lease_id, Ok(()), 0.05).unwrap());
+        let mut grants = Vec::new();
+        while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
+            grants.push(g.batches);
+        }
+        assert_eq!(grants, [1..2, 2..4, 4..8, 8..16]);
     }
 
     #[tokio::test]
     async fn a_worker_shoots_the_batches_it_shot_last_time() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let (a, b) = (s.register("a"), s.register("b"));
+        let (a, b) = (s.register("a", true), s.register("b", true));
         let shoot = Pass::Shoot;
         // Iteration 1: a takes the first half, b the second.
         s.start_pass(&id, 0, shoot, 4, &[]);
@@ -1087,7 +1151,7 @@ mod tests {
     async fn a_waiting_lease_is_served_when_a_pass_opens() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let w = s.register("a");
+        let w = s.register("a", true);
         let waiter = {
             let (s, w) = (s.clone(), w.clone());
             tokio::spawn(async move { s.lease(&w, Duration::from_secs(30)).await })
@@ -1107,7 +1171,7 @@ mod tests {
         let s = scheduler(60_000);
         let id = job(&s);
         s.start_pass(&id, 0, Pass::Shoot, 2, &[]);
-        let w = s.register("a");
+        let w = s.register("a", true);
         for attempt in 1..=MAX_BATCH_FAILURES {
             let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
             assert_eq!(g.batches, 0..1, "a failed block is handed out again first");
@@ -1146,7 +1210,7 @@ mod tests {
         let mut rx = s.subscribe(&id).unwrap();
         let first = rx.borrow_and_update().seq;
         s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
-        let w = s.register("a");
+        let w = s.register("a", true);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap();
         let last = rx.borrow_and_update().clone();

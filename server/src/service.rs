@@ -41,6 +41,26 @@ impl Api {
             }
         }
     }
+
+    /// Leases `worker` its next run of batches, waiting up to `wait_ms` for one: a long poll, bounded so
+    /// that a connection is never held for long.
+    async fn next_lease(&self, worker: &str, wait_ms: u32) -> Result<Option<v1::Lease>, Status> {
+        let wait = Duration::from_millis(u64::from(wait_ms.min(10_000)));
+        let grant = self.sched.lease(worker, wait).await.map_err(unknown)?;
+        Ok(grant.map(|g| {
+            let (pass_kind, pass_copy) = pass_to_wire(g.pass);
+            v1::Lease {
+                lease_id: g.lease_id,
+                job_id: g.job.to_string(),
+                snapshot: g.snapshot,
+                pass_kind,
+                pass_copy,
+                batch: g.batches.start as u32,
+                batch_count: g.batches.len() as u32,
+                deadline_ms: g.deadline.as_millis() as u32,
+            }
+        }))
+    }
 }
 
 fn job_id(id: &str) -> Result<JobId, Status> {
@@ -170,7 +190,7 @@ impl jobs_server::Jobs for Api {
 impl workers_server::Workers for Api {
     async fn register(&self, request: Request<v1::RegisterRequest>) -> Result<Response<v1::RegisterReply>, Status> {
         let request = request.into_inner();
-        let worker_id = self.sched.register(&request.name);
+        let worker_id = self.sched.register(&request.name, request.takes_runs);
         Ok(Response::new(v1::RegisterReply {
             worker_id,
             store_url: self.sched.store().url().to_string(),
@@ -185,24 +205,8 @@ impl workers_server::Workers for Api {
 
     async fn lease(&self, request: Request<v1::LeaseRequest>) -> Result<Response<v1::LeaseReply>, Status> {
         let request = request.into_inner();
-        // A long poll, bounded so that a connection is never held for long.
-        let wait = Duration::from_millis(u64::from(request.wait_ms.min(10_000)));
-        let grant = self.sched.lease(&request.worker_id, wait).await.map_err(unknown)?;
-        Ok(Response::new(v1::LeaseReply {
-            lease: grant.map(|g| {
-                let (pass_kind, pass_copy) = pass_to_wire(g.pass);
-                v1::Lease {
-                    lease_id: g.lease_id,
-                    job_id: g.job.to_string(),
-                    snapshot: g.snapshot,
-                    pass_kind,
-                    pass_copy,
-                    batch: g.batches.start as u32,
-                    batch_count: g.batches.len() as u32,
-                    deadline_ms: g.deadline.as_millis() as u32,
-                }
-            }),
-        }))
+        let lease = self.next_lease(&request.worker_id, request.wait_ms).await?;
+        Ok(Response::new(v1::LeaseReply { lease }))
     }
 
     async fn report(&self, request: Request<v1::ReportRequest>) -> Result<Response<v1::ReportReply>, Status> {
@@ -216,7 +220,12 @@ impl workers_server::Workers for Api {
             .sched
             .report(&request.worker_id, &request.lease_id, result, request.seconds)
             .map_err(unknown)?;
-        Ok(Response::new(v1::ReportReply { accepted }))
+        // The next lease in the same round trip, if asked for.
+        let next = match request.next_wait_ms {
+            0 => None,
+            wait => self.next_lease(&request.worker_id, wait).await?,
+        };
+        Ok(Response::new(v1::ReportReply { accepted, next }))
     }
 }
 
@@ -302,4 +311,72 @@ where
     let (tx, rx) = tokio::sync::mpsc::channel(4);
     tokio::spawn(produce(tx));
     Box::pin(tokio_stream::wrappers::ReceiverStream::new(rx))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scheduler::Timing;
+    use vlf_core::propagate::Pass;
+    use vlf_proto::v1::workers_server::Workers;
+
+    fn report(worker: &str, lease: &v1::Lease, next_wait_ms: u32) -> Request<v1::ReportRequest> {
+        Request::new(v1::ReportRequest {
+            worker_id: worker.into(),
+            lease_id: lease.lease_id.clone(),
+            error: String::new(),
+            seconds: 0.01,
+            next_wait_ms,
+        })
+    }
+
+    #[tokio::test]
+    async fn a_report_brings_the_next_lease_when_asked_for() {
+        let store = vlf_store::Store::open("memory://").unwrap();
+        let sched = Scheduler::new(store, Timing::default(), None);
+        let id = JobId::generate();
+        sched
+            .add_job(v1::JobStatus {
+                job_id: id.to_string(),
+                state: v1::State::Propagating as i32,
+                ..Default::default()
+            })
+            .unwrap();
+        sched.start_iteration(&id, 1, 16, 513);
+        sched.start_pass(&id, 0, Pass::Shoot, 16, &[]);
+        let api = Api::new(sched, 0);
+        let worker = api
+            .register(Request::new(v1::RegisterRequest {
+                name: "w".into(),
+                threads: 2,
+                takes_runs: true,
+            }))
+            .await
+            .unwrap()
+            .into_inner()
+            .worker_id;
+        let lease = |wait_ms| {
+            api.lease(Request::new(v1::LeaseRequest {
+                worker_id: worker.clone(),
+                wait_ms,
+            }))
+        };
+        let first = lease(0).await.unwrap().into_inner().lease.unwrap();
+        assert_eq!((first.batch, first.batch_count), (0, 1), "speed unknown: one batch");
+        // The report takes the next lease along: the rest of the pass, one run.
+        let reply = api.report(report(&worker, &first, 50)).await.unwrap().into_inner();
+        assert!(reply.accepted);
+        let next = reply.next.expect("a next lease");
+        assert_eq!((next.batch, next.batch_count), (1, 15));
+        // Nothing is left to lease: the wait runs out and the reply has none; a report that does
+        // not ask gets none either.
+        let reply = api.report(report(&worker, &next, 20)).await.unwrap().into_inner();
+        assert!(reply.accepted && reply.next.is_none());
+        assert!(lease(0).await.unwrap().into_inner().lease.is_none());
+        let stale = api.report(report(&worker, &next, 0)).await.unwrap().into_inner();
+        assert!(!stale.accepted && stale.next.is_none(), "reported twice");
+        // An unknown worker is told so.
+        let err = api.report(report("w99-nobody", &first, 10)).await.unwrap_err();
+        assert_eq!(err.code(), tonic::Code::NotFound);
+    }
 }

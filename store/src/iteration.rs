@@ -288,9 +288,11 @@ impl Replica {
         }
         let (out, block) = self
             .prop
-            .compute_block(work, pass, batches)
+            .compute_block(work, pass, batches.clone())
             .map_err(|e| self.job.field_error(e))?;
         if let Some(block) = block {
+            // The block took its directions' totals with it: computing it again reads them.
+            batches.for_each(|b| current.totals[b] = false);
             let l = self.prop.directions.len();
             block
                 .batch_bytes(l)

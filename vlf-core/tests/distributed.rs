@@ -247,7 +247,7 @@ fn a_perturbed_iteration_lists_every_copys_areas_first_and_learns_only_areas() {
         &[3],
         vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
     );
-    let p = Propagation::new(scene, options(1)).unwrap();
+    let mut p = Propagation::new(scene, options(1)).unwrap();
     let mut work = p.iteration_work();
     let areas = |copy| Pass::Areas { copy };
     let shoot = |copy| Pass::ShootCopy { copy };
@@ -330,4 +330,67 @@ fn out_of_order_and_foreign_batches_are_refused() {
     short.total.pop();
     assert!(main.adopt_mirrors(short).is_err());
     assert!(BatchOutput::from_bytes(b"garbage").is_err());
+}
+
+#[test]
+fn a_block_takes_its_totals_along_and_is_computed_again_only_once_they_are_restored() {
+    let mut p = Propagation::new(mirror_room(), options(0)).unwrap();
+    // Past the first iterations: light reaches the mirrors, arrivals are pending.
+    for _ in 0..3 {
+        p.step(|_| {});
+    }
+    assert!(p.specular.as_ref().unwrap().pending.is_some());
+    let saved = p.snapshot_bytes(true);
+    let mut again = p.clone();
+    let work = p.iteration_work();
+    let (out, block) = p.compute_block(&work, Pass::Shoot, 0..1).unwrap();
+    let block = block.unwrap();
+    let spec = p.specular.as_ref().unwrap();
+    let first = work.batch_range(0, p.directions.len());
+    let slots: usize = first.clone().map(|d| spec.layouts[d].len as usize).sum();
+    assert!(slots > 0, "the batch has mirror slots");
+    assert!(
+        first.clone().all(|d| spec.maps[d].total.is_empty()),
+        "the totals moved into the block"
+    );
+    // Its other directions keep theirs.
+    let next = work.batch_range(1, p.directions.len());
+    assert!(
+        next.clone()
+            .all(|d| spec.maps[d].total.len() == spec.layouts[d].len as usize)
+    );
+    // The block's totals are the old ones plus what the directions sent
+    // (gathered from the pending arrivals).
+    let before = again.specular.as_ref().unwrap();
+    let pending = before.pending.as_ref().unwrap();
+    let read = |d: usize| before.maps[d].incident.as_slice();
+    for (i, d) in first.clone().enumerate() {
+        let sent = before.gather(
+            &again.scene,
+            &again.directions,
+            &again.subfields,
+            &read,
+            &pending.power_in,
+            d,
+        );
+        let want: Vec<[f64; 3]> = before.maps[d]
+            .total
+            .iter()
+            .zip(&sent)
+            .map(|(t, s)| [t[0] + s[0], t[1] + s[1], t[2] + s[2]])
+            .collect();
+        assert_eq!(block.total[i], want, "direction {d}");
+    }
+    let (_, copied) = again.compute_block(&work, Pass::Shoot, 0..1).unwrap();
+    assert_eq!(copied.unwrap(), block);
+
+    // Again without the totals: refused, naming them.
+    let err = p.compute_block(&work, Pass::Shoot, 0..1).unwrap_err().to_string();
+    assert!(err.contains("totals"), "{err}");
+    // Restored from the snapshot: the same output and maps, bit for bit.
+    p.restore_totals_batch(MapBatch::from_bytes(&saved.mirror_totals[0]).unwrap())
+        .unwrap();
+    let (out2, block2) = p.compute_block(&work, Pass::Shoot, 0..1).unwrap();
+    assert_eq!(out2.to_bytes(), out.to_bytes());
+    assert_eq!(block2.unwrap(), block);
 }

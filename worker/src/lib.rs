@@ -15,6 +15,7 @@ pub mod cli;
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use tonic::Code;
+use vlf_core::propagate::reduce;
 use vlf_proto::v1;
 use vlf_proto::{ConnectError, Target, pass_from_wire};
 use vlf_store::{FieldJob, JobId, Replica, Store, StoreError};
@@ -151,6 +152,7 @@ pub async fn run(
             r = workers.register(v1::RegisterRequest {
                 name: config.name.clone(),
                 threads: pool.current_num_threads() as u32,
+                takes_runs: true,
             }) => r,
         };
         let reply = match registered {
@@ -217,22 +219,29 @@ async fn lease_loop(
     stats: &mut WorkerStats,
     stop: &mut std::pin::Pin<&mut impl std::future::Future<Output = ()>>,
 ) -> Loop {
+    // The next lease, when the last report brought it.
+    let mut next: Option<v1::Lease> = None;
     loop {
-        let leased = tokio::select! {
-            _ = stop.as_mut() => return Loop::Stop,
-            r = workers.lease(v1::LeaseRequest { worker_id: id.to_string(), wait_ms: 2000 }) => r,
-        };
-        let lease = match leased {
-            Ok(reply) => match reply.into_inner().lease {
-                Some(lease) => lease,
-                None => continue,
-            },
-            Err(status) if status.code() == Code::NotFound || transient(&status) => {
-                tracing::info!("lost the coordinator ({}); registering again", status.message());
-                tokio::time::sleep(Duration::from_millis(100)).await;
-                return Loop::Register;
+        let lease = match next.take() {
+            Some(lease) => lease,
+            None => {
+                let leased = tokio::select! {
+                    _ = stop.as_mut() => return Loop::Stop,
+                    r = workers.lease(v1::LeaseRequest { worker_id: id.to_string(), wait_ms: LEASE_WAIT_MS }) => r,
+                };
+                match leased {
+                    Ok(reply) => match reply.into_inner().lease {
+                        Some(lease) => lease,
+                        None => continue,
+                    },
+                    Err(status) if status.code() == Code::NotFound || transient(&status) => {
+                        tracing::info!("lost the coordinator ({}); registering again", status.message());
+                        tokio::time::sleep(Duration::from_millis(100)).await;
+                        return Loop::Register;
+                    }
+                    Err(status) => return Loop::Refused(status),
+                }
             }
-            Err(status) => return Loop::Refused(status),
         };
         if config.hang_after.is_some_and(|n| stats.batches >= n) {
             tracing::warn!(lease = lease.lease_id, "test hook: stalling with a lease");
@@ -268,12 +277,21 @@ async fn lease_loop(
             lease_id: lease.lease_id.clone(),
             error: result.err().unwrap_or_default(),
             seconds,
+            next_wait_ms: LEASE_WAIT_MS,
         };
-        match workers.report(report).await {
+        // The report also asks for the next lease (one round trip instead of two); stopping
+        // meanwhile is fine: an unanswered report only lets the lease expire.
+        let reported = tokio::select! {
+            _ = stop.as_mut() => return Loop::Stop,
+            r = workers.report(report) => r,
+        };
+        match reported {
             Ok(reply) => {
-                if !reply.into_inner().accepted {
+                let reply = reply.into_inner();
+                if !reply.accepted {
                     tracing::debug!(lease = lease.lease_id, "report ignored (lease expired or job ended)");
                 }
+                next = reply.next;
             }
             Err(status) if status.code() == Code::NotFound || transient(&status) => return Loop::Register,
             Err(status) => return Loop::Refused(status),
@@ -281,7 +299,10 @@ async fn lease_loop(
     }
 }
 
-/// Computes a lease's batch into the store.
+/// How long a lease request waits for work at the coordinator (a long poll).
+const LEASE_WAIT_MS: u32 = 2000;
+
+/// Computes a lease's batches into the store: the aligned blocks that cover them, in order.
 async fn compute(
     store: &Store,
     pool: &Arc<rayon::ThreadPool>,
@@ -293,11 +314,14 @@ async fn compute(
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
     let (store, pool, replicas) = (store.clone(), pool.clone(), replicas.clone());
     let (k, b) = (lease.snapshot, lease.batch as usize);
-    let batches = b..b + (lease.batch_count as usize).max(1);
+    let run = b..b + (lease.batch_count as usize).max(1);
     vlf_store::blocking(move || {
         pool.install(|| -> Result<(), StoreError> {
             let mut replicas = lock(&replicas);
-            replicas.replica(&store, &job)?.compute(k, pass, batches)
+            let replica = replicas.replica(&store, &job)?;
+            reduce::cover(run)
+                .into_iter()
+                .try_for_each(|block| replica.compute(k, pass, block))
         })
     })
     .await

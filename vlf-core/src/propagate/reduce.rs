@@ -50,6 +50,25 @@ pub fn blocks(batches: usize, len: usize) -> Vec<Range<usize>> {
     out
 }
 
+/// The fewest aligned blocks that cover the run of batches `run`, in order:
+/// from the left, each the largest aligned block that starts there and stays
+/// inside the run (`1..8` is `1..2`, `2..4`, `4..8`). A lease may hold such a
+/// run, which costs one round trip instead of one per block; its outputs are
+/// still these nodes of the tree, so the bits stay the same.
+pub fn cover(run: Range<usize>) -> Vec<Range<usize>> {
+    let mut out = Vec::new();
+    let mut start = run.start;
+    while start < run.end {
+        let mut size = 1;
+        while start.is_multiple_of(2 * size) && start + 2 * size <= run.end {
+            size *= 2;
+        }
+        out.push(start..start + size);
+        start += size;
+    }
+    out
+}
+
 /// Partial sums of one pass, taken in order as aligned blocks.
 #[derive(Debug)]
 pub struct TreeSum {
@@ -229,6 +248,35 @@ mod tests {
         assert_eq!(blocks(1, 0), vec![0..1]);
         for b in blocks(6, 4) {
             assert!(is_aligned_block(&b, 6));
+        }
+    }
+
+    #[test]
+    fn a_run_is_cut_into_the_fewest_aligned_blocks() {
+        assert_eq!(cover(1..16), vec![1..2, 2..4, 4..8, 8..16]);
+        assert_eq!(cover(0..16), vec![0..16]);
+        assert_eq!(cover(3..9), vec![3..4, 4..8, 8..9]);
+        assert_eq!(cover(5..6), vec![5..6]);
+        assert_eq!(cover(4..4), Vec::<Range<usize>>::new());
+        // Every run of a 16-batch pass: aligned pieces, in order, covering
+        // it exactly, never two that could merge into one node.
+        for start in 0..16 {
+            for end in start + 1..=16 {
+                let pieces = cover(start..end);
+                assert_eq!(pieces.first().unwrap().start, start);
+                assert_eq!(pieces.last().unwrap().end, end);
+                for w in pieces.windows(2) {
+                    assert_eq!(w[0].end, w[1].start);
+                    let merged = w[0].start..w[1].end;
+                    assert!(
+                        w[0].len() != w[1].len() || !is_aligned_block(&merged, 16),
+                        "{:?} and {:?} are one node",
+                        w[0],
+                        w[1]
+                    );
+                }
+                assert!(pieces.iter().all(|b| is_aligned_block(b, 16)));
+            }
         }
     }
 }

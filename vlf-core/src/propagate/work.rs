@@ -617,23 +617,84 @@ impl Propagation {
     /// state is the iteration's start (as restored from its checkpoint:
     /// Current, and for [`Pass::Shoot`] with mirrors the block's directions'
     /// maps and, while arrivals are pending, those of the directions the
-    /// block gathers from — [`super::Specular::sources`]), without changing
-    /// it: what a worker does for a lease. Returns the block's output for the
-    /// coordinator (its node sum, [`super::reduce`], and `Φ_in`) and, when
-    /// the pass uses them, its directions' mirror maps for the next snapshot.
+    /// block gathers from — [`super::Specular::sources`]): what a worker does
+    /// for a lease. Returns the block's output for the coordinator (its node
+    /// sum, [`super::reduce`], and `Φ_in`) and, when the pass uses them, its
+    /// directions' mirror maps for the next snapshot.
+    ///
+    /// The block's total maps *move* into the returned [`MirrorBlock`] (each
+    /// gets what its direction just sent, in place, as
+    /// [`Propagation::step`] adds it): copying them would cost a worker a
+    /// few megabytes per iteration that the in-process loop does not pay.
+    /// This propagation then lacks them: computing the block again needs them
+    /// restored first ([`Propagation::restore_totals_batch`]), else it is
+    /// refused; [`Propagation::adopt_mirrors`] puts the block's maps back for
+    /// the next iteration. Nothing else changes.
     pub fn compute_block(
-        &self,
+        &mut self,
         work: &IterationWork,
         pass: Pass,
         batches: Range<usize>,
     ) -> crate::Result<(BatchOutput, Option<MirrorBlock>)> {
         let directions = self.block_directions(work, &batches)?;
+        let (output, sent) = self.shoot_block(work, pass, batches, directions.clone())?;
+        let Some((unshot, incident)) = sent else {
+            return Ok((output, None));
+        };
+        let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
+        let Some(spec) = self.specular.as_mut() else {
+            unreachable!("shoot_block sends mirror maps only with mirrors");
+        };
+        // Total += what was just sent (as `Propagation::step` does), moved
+        // out of the replica rather than copied.
+        let total = directions
+            .zip(&unshot)
+            .map(|(d, u)| {
+                let mut t = std::mem::take(&mut spec.maps[d].total);
+                add_into(&mut t, u);
+                t
+            })
+            .collect();
+        // The exchange of what arrived waits for the next iteration's
+        // shooting (`finish_iteration` decides alike); before light can reach
+        // a mirror, the unshot maps stay as they were.
+        let pending = work.index >= first_lit;
+        let block = MirrorBlock {
+            iterations: work.index + 1,
+            batches: output.batches.clone(),
+            pending,
+            shooting: if pending { incident } else { unshot },
+            total,
+        };
+        Ok((output, Some(block)))
+    }
+
+    /// The shooting of [`Propagation::compute_block`], which reads the state
+    /// and changes nothing: the block's output and, when the pass shoots
+    /// mirror maps, what each of its directions sent (gathered now from the
+    /// pending arrivals — the exchange, see `specular::Pending` — or as
+    /// restored) and the incident maps it received.
+    #[allow(clippy::type_complexity)]
+    fn shoot_block(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+        directions: Range<usize>,
+    ) -> crate::Result<(BatchOutput, Option<(Vec<Vec<Rgb>>, Vec<Vec<Rgb>>)>)> {
         let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
             (Some(spec), Pass::Shoot, true) => Some(spec),
             _ => None,
         };
-        // What the block's directions send: gathered now from the pending
-        // arrivals (the exchange, see `specular::Pending`), or as restored.
+        if let Some(spec) = spec
+            && let Some(d) = directions
+                .clone()
+                .find(|&d| spec.maps[d].total.len() != spec.layouts[d].len as usize)
+        {
+            return Err(crate::Error::Parameter(format!(
+                "the mirror totals of direction {d} are not restored (a block computed before took them)"
+            )));
+        }
         let (scene, dirs, subfields) = (&self.scene, &self.directions, &self.subfields[..]);
         let unshot: Option<Vec<Cow<[Rgb]>>> = spec.map(|spec| match &spec.pending {
             Some(pending) => {
@@ -685,36 +746,12 @@ impl Propagation {
             sum: tree.finish().expect("every leaf of the block was pushed"),
             power_in,
         };
-        let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
-        let block = spec.zip(unshot).zip(incident).map(|((spec, unshot), incident)| {
-            // Total += what was just sent (as `Propagation::step` does).
-            let total = directions
-                .clone()
-                .zip(&unshot)
-                .map(|(d, u)| {
-                    let mut t = spec.maps[d].total.clone();
-                    add_into(&mut t, u);
-                    t
-                })
-                .collect();
-            // The exchange of what arrived waits for the next iteration's
-            // shooting (`finish_iteration` decides alike); before light can
-            // reach a mirror, the unshot maps stay as they were.
-            let pending = work.index >= first_lit;
-            let shooting = if pending {
-                incident
-            } else {
-                unshot.into_iter().map(Cow::into_owned).collect()
-            };
-            MirrorBlock {
-                iterations: work.index + 1,
-                batches: output.batches.clone(),
-                pending,
-                shooting,
-                total,
-            }
-        });
-        Ok((output, block))
+        // Gathered maps are the block's own; restored ones are copied (only
+        // before light reaches a mirror: the iteration then keeps them).
+        let sent = unshot
+            .zip(incident)
+            .map(|(unshot, incident)| (unshot.into_iter().map(Cow::into_owned).collect(), incident));
+        Ok((output, sent))
     }
 
     /// The batches of mirror maps that [`Propagation::compute_block`] reads
