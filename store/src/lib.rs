@@ -14,6 +14,7 @@
 
 pub mod backend;
 pub mod blob;
+mod blocking;
 mod codec;
 pub mod error;
 pub mod field;
@@ -26,6 +27,7 @@ pub mod parts;
 pub mod store;
 
 pub use blob::{BlobError, BlobKind, Data, Decoded, Encoding};
+pub use blocking::{Panicked, blocking};
 pub use error::StoreError;
 pub use field::{FieldJob, PendingSnapshot, Summary};
 pub use id::JobId;
@@ -34,4 +36,4 @@ pub use job::Job;
 pub use layout::{MapPart, Stage};
 pub use manifest::{JobState, Manifest};
 pub use parts::StageParts;
-pub use store::{AsyncStore, Panicked, PutOutcome, Store, Traffic, blocking};
+pub use store::{AsyncStore, PutOutcome, Store, Traffic};

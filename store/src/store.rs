@@ -474,28 +474,6 @@ impl Store {
     }
 }
 
-/// Runs `work` — blocking [`Store`] calls, or computing with them — on a thread of its own and
-/// awaits its result: how async code (the coordinator, workers) uses the blocking API. Tokio's
-/// `spawn_blocking` will not do: its threads are inside the runtime, where the blocking API
-/// refuses to run.
-pub async fn blocking<T: Send + 'static>(work: impl FnOnce() -> T + Send + 'static) -> Result<T, Panicked> {
-    let (tx, rx) = tokio::sync::oneshot::channel();
-    let spawned = std::thread::Builder::new()
-        .name("vlf-store-blocking".into())
-        .spawn(move || {
-            let _ = tx.send(work());
-        });
-    match spawned {
-        Ok(_) => rx.await.map_err(|_| Panicked),
-        Err(_) => Err(Panicked),
-    }
-}
-
-/// A [`blocking`] task that panicked (or whose thread could not start).
-#[derive(Debug, thiserror::Error)]
-#[error("a blocking task panicked or could not start")]
-pub struct Panicked;
-
 /// The internal runtime, shut down without blocking when the last clone of the store goes, so
 /// that dropping a [`Store`] is fine anywhere, even inside another runtime.
 #[derive(Debug)]
