@@ -48,7 +48,7 @@ pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Resu
     .map_err(|e| SubmitError::Internal(e.to_string()))??;
     let id = created.job().id().clone();
     tracing::info!(job = %id, "job submitted");
-    start(sched, created);
+    start(sched, created, Origin::Submitted);
     sched.status(&id).map_err(|e| SubmitError::Internal(e.to_string()))
 }
 
@@ -81,7 +81,7 @@ pub async fn recover(sched: &Arc<Scheduler>) -> Result<usize, StoreError> {
         match opened {
             Ok(Ok(coordinator)) => {
                 tracing::info!(job = %id, snapshot = coordinator.iteration(), "resuming job");
-                start(sched, coordinator);
+                start(sched, coordinator, Origin::Recovered);
                 resumed += 1;
             }
             Ok(Err(status)) => {
@@ -142,8 +142,18 @@ fn planned(job: &FieldJob) -> u32 {
     }
 }
 
+/// Where a driver's job comes from.
+#[derive(Clone, Copy, PartialEq)]
+enum Origin {
+    /// Submitted to this coordinator: nothing of its iterations is in the store yet.
+    Submitted,
+    /// Taken up from the store (a restarted coordinator): workers of the previous one may have
+    /// written batches of the iterations after its last snapshot.
+    Recovered,
+}
+
 /// Registers the job with the scheduler and spawns its driver.
-fn start(sched: &Arc<Scheduler>, coordinator: Coordinator) {
+fn start(sched: &Arc<Scheduler>, coordinator: Coordinator, origin: Origin) {
     let mut status = stored_status(coordinator.job());
     status.unshot_fraction = coordinator.propagation().unshot_fraction();
     let wake = match sched.add_job(status) {
@@ -163,6 +173,7 @@ fn start(sched: &Arc<Scheduler>, coordinator: Coordinator) {
         id: coordinator.job().id().clone(),
         coordinator: Some(coordinator),
         committing: None,
+        origin,
     };
     tokio::spawn(driver.run(resample));
 }
@@ -175,6 +186,7 @@ struct Driver {
     coordinator: Option<Coordinator>,
     /// The last snapshot, being committed while the next iteration is computed.
     committing: Option<Committing>,
+    origin: Origin,
 }
 
 /// A snapshot's commit running on a blocking thread ([`vlf_store::SnapshotCommit::commit`]).
@@ -259,8 +271,9 @@ impl Driver {
             });
             // Batches a previous coordinator's workers already wrote are not computed again. It
             // can have released at most one iteration past its last commit, so only the first two
-            // iterations driven here can find any (a listing is a round trip to an object store).
-            let stored = if driven < 2 {
+            // iterations driven here can find any, and only in a job taken up from the store (a
+            // listing is a round trip to an object store).
+            let stored = if driven < 2 && self.origin == Origin::Recovered {
                 self.blocking(|c| c.blocks_in_store())
                     .await
                     .map_err(Stop::Failed)?
