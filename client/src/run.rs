@@ -108,7 +108,7 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
     let url = store.url().to_string();
     let loopback = "127.0.0.1:0".parse().context("loopback address")?;
     // The coordinator offers every job's geometry to the workers: built once per process.
-    let prototypes = Prototypes::default();
+    let prototypes = Prototypes::new(workers.count);
     let config = ServeConfig {
         prototypes: Some(prototypes.clone()),
         ..ServeConfig::new(url.clone(), loopback)

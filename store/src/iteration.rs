@@ -127,29 +127,60 @@ impl FieldJob {
     }
 }
 
-/// Propagations of jobs built in this process, for replicas to clone instead of building the
-/// geometry again — a coordinator and workers sharing a process (`vlf run`). Each is the job's
-/// whole state at the snapshot its coordinator took it up from ([`Replica::at_snapshot`]). The
-/// geometry is a pure function of the job's scene and options, and the state is that snapshot's,
-/// so a clone gives the same bits as a replica built from the store.
-#[derive(Clone, Default)]
-pub struct Prototypes(Arc<Mutex<HashMap<JobId, Propagation>>>);
+/// Propagations of jobs built in this process, for replicas to start from instead of building
+/// the geometry again — a coordinator and workers sharing a process (`vlf run`). Each is the
+/// job's whole state at the snapshot its coordinator took it up from ([`Replica::at_snapshot`]).
+/// The geometry is a pure function of the job's scene and options, and the state is that
+/// snapshot's, so it gives the same bits as a replica built from the store.
+///
+/// Each of the process's workers takes a job's propagation once: all but the last get a copy,
+/// the last the one offered (a copy of the mirror scene's is 13 MB of maps, which cost its first
+/// iteration 2–4 ms of fresh memory). A worker that asks again (its replica was dropped) finds
+/// none and builds one from the store.
+#[derive(Clone)]
+pub struct Prototypes {
+    offers: Arc<Mutex<HashMap<JobId, Offer>>>,
+    workers: usize,
+}
+
+struct Offer {
+    prop: Propagation,
+    /// Workers that have not taken it yet.
+    left: usize,
+}
 
 impl Prototypes {
-    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<JobId, Propagation>> {
-        // Plain data: a panic elsewhere cannot leave it half-changed.
-        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    /// Prototypes for the `workers` workers of this process.
+    pub fn new(workers: usize) -> Prototypes {
+        Prototypes {
+            offers: Arc::default(),
+            workers: workers.max(1),
+        }
     }
 
-    /// Offers `prop`, job `id`'s propagation at its last snapshot, to the replicas of this
+    fn lock(&self) -> std::sync::MutexGuard<'_, HashMap<JobId, Offer>> {
+        // Plain data: a panic elsewhere cannot leave it half-changed.
+        self.offers.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Offers `prop`, job `id`'s propagation at its last snapshot, to the workers of this
     /// process.
     pub fn insert(&self, id: JobId, prop: Propagation) {
-        self.lock().insert(id, prop);
+        let left = self.workers;
+        self.lock().insert(id, Offer { prop, left });
     }
 
-    /// A copy of job `id`'s propagation, if one was offered.
-    pub fn get(&self, id: &JobId) -> Option<Propagation> {
-        self.lock().get(id).cloned()
+    /// Job `id`'s propagation for one worker, if one is offered: a copy, or for the last worker
+    /// the one offered.
+    pub fn take(&self, id: &JobId) -> Option<Propagation> {
+        let mut offers = self.lock();
+        let offer = offers.get_mut(id)?;
+        offer.left -= 1;
+        if offer.left == 0 {
+            offers.remove(id).map(|o| o.prop)
+        } else {
+            Some(offer.prop.clone())
+        }
     }
 
     /// Withdraws job `id`'s propagation (the job ended).
@@ -161,7 +192,10 @@ impl Prototypes {
 impl std::fmt::Debug for Prototypes {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         let jobs: Vec<String> = self.lock().keys().map(|id| id.to_string()).collect();
-        f.debug_tuple("Prototypes").field(&jobs).finish()
+        f.debug_struct("Prototypes")
+            .field("jobs", &jobs)
+            .field("workers", &self.workers)
+            .finish()
     }
 }
 

@@ -353,3 +353,30 @@ per_backend! {
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,
     conflicting_or_missing_batches_are_errors => crate::conflicting_or_missing_batches,
 }
+
+#[test]
+fn each_worker_takes_a_prototype_once_and_the_last_takes_the_original() {
+    let prop = Propagation::new(bundled("mirrors.obj"), options(0, 33)).unwrap();
+    let bits = without_times(prop.checkpoint());
+    let maps = |p: &Propagation| p.specular.as_ref().unwrap().maps.as_ptr();
+    let original = maps(&prop);
+    let id = JobId::generate();
+    let prototypes = vlf_store::Prototypes::new(2);
+    prototypes.insert(id.clone(), prop);
+    let first = prototypes.take(&id).expect("offered");
+    let second = prototypes.take(&id).expect("one left");
+    assert!(prototypes.take(&id).is_none(), "both workers took theirs");
+    // The first is a copy, the second the original, both with the same state.
+    assert_ne!(maps(&first), original);
+    assert_eq!(maps(&second), original);
+    assert!(without_times(first.checkpoint()) == bits);
+    assert!(without_times(second.checkpoint()) == bits);
+    // A lone worker takes the original at once; a withdrawn offer is gone.
+    let alone = vlf_store::Prototypes::new(1);
+    alone.insert(id.clone(), second);
+    assert_eq!(alone.take(&id).map(|p| maps(&p)), Some(original));
+    assert!(alone.take(&id).is_none());
+    alone.insert(id.clone(), first);
+    alone.remove(&id);
+    assert!(alone.take(&id).is_none());
+}

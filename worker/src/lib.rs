@@ -104,7 +104,7 @@ impl Replicas {
             }
             None => {
                 let opened = FieldJob::open(store, job)?;
-                let replica = match self.prototypes.as_ref().and_then(|p| p.get(job)) {
+                let replica = match self.prototypes.as_ref().and_then(|p| p.take(job)) {
                     Some(prop) => Replica::at_snapshot(opened, prop),
                     None => Replica::new(opened)?,
                 };
