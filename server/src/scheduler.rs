@@ -174,6 +174,8 @@ struct Batch {
 }
 
 struct WorkerEntry {
+    /// Registration order (the number in its id).
+    number: u64,
     last_seen: Instant,
     /// Whether it computes leases that are runs of several aligned blocks.
     takes_runs: bool,
@@ -455,16 +457,17 @@ impl Scheduler {
 
     // ------------------------------------------------------------ workers
 
-    /// Registers a worker; returns its id.
-    /// Registers a worker; `takes_runs`: it computes leases that are runs of aligned blocks (see
+    /// Registers a worker and returns its id; `takes_runs`: it computes leases that are runs of aligned blocks (see
     /// [`Grant`]), else it is leased one aligned block at a time.
     pub fn register(&self, name: &str, takes_runs: bool) -> String {
         let mut state = self.lock();
         state.counter += 1;
-        let id = format!("w{}-{}", state.counter, sanitize(name));
+        let number = state.counter;
+        let id = format!("w{number}-{}", sanitize(name));
         state.workers.insert(
             id.clone(),
             WorkerEntry {
+                number,
                 last_seen: Instant::now(),
                 takes_runs,
             },
@@ -745,9 +748,16 @@ pub fn block_len(batches: usize, workers: u32, batch_seconds: Option<f64>, lease
 }
 
 impl PassRun {
-    /// The pending batch `worker` should start a lease at: of a shooting pass, the first it
-    /// shot last time (it keeps their mirror maps), else the first no other registered worker
-    /// shot; else — rather than wait — the first pending batch.
+    /// The pending batch `worker` should start a lease at. Of a shooting pass: the first it shot
+    /// last time (it keeps their mirror maps); else the first of its [`home`] that no other
+    /// registered worker shot; else the first that no other registered worker shot. Else — rather
+    /// than wait — the first pending batch.
+    ///
+    /// Homes matter for mirrors: a direction gathers what arrived from the directions that
+    /// reflect into it, which are near it in direction order (the bundled mirror scene's 16
+    /// batches read from at most their neighbours' neighbours). Two workers that shoot the halves
+    /// of the pass read 4 batches of each other's arrivals; leased blocks in the order asked,
+    /// they interleave and read nearly everything.
     fn first_pending(
         &self,
         worker: &str,
@@ -757,9 +767,12 @@ impl PassRun {
         let pending = || (0..self.batches.len()).filter(|&b| self.batches[b].state == BatchState::Pending);
         if self.pass == Pass::Shoot {
             let shooter = |b: usize| shooters.get(b).and_then(Option::as_deref);
+            let unclaimed = |b: usize| shooter(b).is_none_or(|w| !workers.contains_key(w));
             let own = pending().find(|&b| shooter(b) == Some(worker));
-            let free = || pending().find(|&b| shooter(b).is_none_or(|w| !workers.contains_key(w)));
-            if let Some(b) = own.or_else(free) {
+            let home = home(worker, workers, self.batches.len());
+            let at_home = || pending().find(|&b| home.contains(&b) && unclaimed(b));
+            let free = || pending().find(|&b| unclaimed(b));
+            if let Some(b) = own.or_else(at_home).or_else(free) {
                 return Some(b);
             }
         }
@@ -811,6 +824,17 @@ impl PassRun {
 }
 
 /// The open pass a lease belongs to.
+/// `worker`'s home in a pass of `batches` batches: the registered workers, in registration
+/// order, split the pass into equal runs of consecutive batches (all of it for a lone worker).
+fn home(worker: &str, workers: &HashMap<String, WorkerEntry>, batches: usize) -> Range<usize> {
+    let mut order: Vec<(u64, &str)> = workers.iter().map(|(id, w)| (w.number, id.as_str())).collect();
+    order.sort_unstable();
+    match order.iter().position(|(_, id)| *id == worker) {
+        Some(rank) => rank * batches / order.len()..(rank + 1) * batches / order.len(),
+        None => 0..batches,
+    }
+}
+
 fn find_run<'a>(passes: &'a mut [PassRun], lease: &LeaseEntry) -> Option<&'a mut PassRun> {
     passes
         .iter_mut()
@@ -1145,6 +1169,36 @@ mod tests {
         s.start_pass(&id, 1, Pass::Areas { copy: 0 }, 4, &[]);
         let areas = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!((areas.pass, areas.batches.start), (Pass::Areas { copy: 0 }, 0));
+    }
+
+    #[tokio::test]
+    async fn two_workers_shoot_the_halves_of_the_pass_whatever_order_they_ask_in() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let (a, b) = (s.register("a", true), s.register("b", true));
+        let shoot = Pass::Shoot;
+        s.start_pass(&id, 0, shoot, 16, &[]);
+        // Speed unknown: one batch each, a at the start of its home, b at the start of its own.
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((ga.batches.clone(), gb.batches.clone()), (0..1, 8..9));
+        assert!(s.report(&a, &ga.lease_id, Ok(()), 0.01).unwrap());
+        assert!(s.report(&b, &gb.lease_id, Ok(()), 0.01).unwrap());
+        // Then blocks of 4 batches at most, asked for in turn.
+        let mut got: HashMap<String, Vec<Range<usize>>> = HashMap::new();
+        for w in [&a, &b, &a, &b, &a, &b] {
+            if let Some(g) = s.lease(w, Duration::ZERO).await.unwrap() {
+                got.entry(w.clone()).or_default().push(g.batches.clone());
+                assert!(s.report(w, &g.lease_id, Ok(()), 0.01).unwrap());
+            }
+        }
+        assert_eq!(got[&a], [1..4, 4..8]);
+        assert_eq!(got[&b], [9..12, 12..16]);
+        s.end_pass(&id, 0, shoot);
+        // The next iteration keeps them: b, asking first, gets its half.
+        s.start_pass(&id, 1, shoot, 16, &[]);
+        let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 8..12);
     }
 
     #[tokio::test]
