@@ -35,6 +35,7 @@
 
 use crate::codec::{self, Unrepresentable};
 use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
 use std::io::Read;
 
 /// The four bytes every blob starts with.
@@ -520,7 +521,7 @@ fn shape_product(shape: &[u32]) -> Option<u64> {
 /// Compresses `raw` and prepends the header.
 fn assemble(kind: BlobKind, encoding: Encoding, shape: &[u32], raw: &[u8]) -> Result<Vec<u8>, BlobError> {
     // Only an allocation failure inside zstd can make this fail.
-    let stored = zstd::bulk::compress(raw, kind.zstd_level()).map_err(|e| BlobError::Compress(e.to_string()))?;
+    let stored = compress(raw, kind.zstd_level()).map_err(|e| BlobError::Compress(e.to_string()))?;
     let mut out = Vec::with_capacity(HEADER_LEN + stored.len());
     out.extend_from_slice(&MAGIC);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
@@ -538,6 +539,29 @@ fn assemble(kind: BlobKind, encoding: Encoding, shape: &[u32], raw: &[u8]) -> Re
     out.extend_from_slice(&header_crc.to_le_bytes());
     out.extend_from_slice(&stored);
     Ok(out)
+}
+
+thread_local! {
+    /// This thread's zstd compression contexts, one per level it used. A context per blob
+    /// (thousands per job: every tile of every snapshot) spent more time setting up its tables
+    /// than compressing the smaller blobs. A context's state does not carry from one frame to the
+    /// next: the bytes are those of a fresh one.
+    static COMPRESSORS: RefCell<Vec<(i32, zstd::bulk::Compressor<'static>)>> = const { RefCell::new(Vec::new()) };
+}
+
+/// `raw` as one zstd frame at `level`, with this thread's context for that level.
+fn compress(raw: &[u8], level: i32) -> std::io::Result<Vec<u8>> {
+    COMPRESSORS.with(|compressors| {
+        let mut compressors = compressors.borrow_mut();
+        let at = match compressors.iter().position(|(l, _)| *l == level) {
+            Some(at) => at,
+            None => {
+                compressors.push((level, zstd::bulk::Compressor::new(level)?));
+                compressors.len() - 1
+            }
+        };
+        compressors[at].1.compress(raw)
+    })
 }
 
 /// Decompresses one zstd frame that must expand to exactly `raw_len` bytes.

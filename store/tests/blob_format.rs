@@ -473,3 +473,25 @@ fn decoded_data_variant_matches_encoding() {
         Data::Values(_)
     ));
 }
+
+#[test]
+fn a_blob_has_the_same_bytes_whatever_its_thread_compressed_before() {
+    // Compression contexts are kept per thread and level: what they did before must not show.
+    let mut rng = Rng(7);
+    let data: Vec<u8> = (0..300_000)
+        .map(|i| if i % 7 == 0 { rng.next() as u8 } else { 0 })
+        .collect();
+    let first = blob::encode_bytes(BlobKind::Snapshot, &data).unwrap();
+    let big: Vec<u8> = (0..2_000_000).map(|_| rng.next() as u8 >> 4).collect();
+    blob::encode_bytes(BlobKind::Raw, &big).unwrap();
+    blob::encode_bytes(BlobKind::Snapshot, &big[..1000]).unwrap();
+    blob::encode_bytes(BlobKind::Snapshot, &[]).unwrap();
+    let again = blob::encode_bytes(BlobKind::Snapshot, &data).unwrap();
+    assert_eq!(first, again);
+    // A thread that compressed nothing before (fresh contexts) writes the same bytes.
+    let fresh = std::thread::spawn(move || blob::encode_bytes(BlobKind::Snapshot, &data).unwrap())
+        .join()
+        .unwrap();
+    assert_eq!(first, fresh);
+    assert_eq!(blob::decode_bytes(&first, BlobKind::Snapshot).unwrap().len(), 300_000);
+}
