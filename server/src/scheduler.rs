@@ -1,21 +1,25 @@
 //! Jobs, leases and workers: the coordinator's state machine, with no networking.
 //!
-//! **Leases.** Each pass a job has open is a row of **blocks** of batches, each `Pending`,
-//! `Leased` or `Done`; several passes of an iteration can be open at once (a perturbed iteration
-//! opens every rotated copy's areas together). A block is an aligned run of batches (a node of the
-//! pass's reduction tree, `vlf_core::propagate::reduce`), so its size changes nothing in the
-//! result, only the cost: one lease, one output and one absorb per block. Blocks are cut when a
-//! worker asks, at most [`block_len`] batches — the whole pass for one worker, a quarter of a
-//! pass per worker beyond, and never so large that a block would take more than a quarter of the
-//! lease's lifetime at the job's measured speed — so the sizes follow the workers alive and the
-//! speed as they change. [`Scheduler::lease`] hands the largest such block of pending batches
-//! from the first pending batch of the first open pass of the oldest job to a worker for
-//! [`Timing::lease`]; the worker computes it, writes the output into the store and
-//! [`Scheduler::report`]s. A lease that is not reported in time (a dead or stalled worker)
-//! expires and its batch is pending again; a worker that misses three heartbeats loses its leases
-//! at once. A report on a lease that is gone (expired, job cancelled) is ignored: the batch's
-//! output is a pure function of the job and the batch, written create-only, so a late or
-//! duplicated result can only write the bytes that are already there.
+//! **Leases.** Each pass a job has open is a row of batches, each `Pending`, `Leased` or `Done`;
+//! several passes of an iteration can be open at once (a perturbed iteration opens every rotated
+//! copy's areas together). Outputs are written per **block**, an aligned run of batches (a node
+//! of the pass's reduction tree, `vlf_core::propagate::reduce`), so how the batches are grouped
+//! changes nothing in the result, only the cost: one output and one absorb per block, one round
+//! trip per lease. A lease is cut when a worker asks: a run of pending batches, up to the end of
+//! the aligned block of at most [`block_len`] batches that holds its first — the whole pass for
+//! one worker, a quarter of a pass per worker beyond, and never so large that it would take more
+//! than a quarter of the lease's lifetime at the job's measured speed — so the sizes follow the
+//! workers alive and the speed as they change. The worker computes the run as the fewest aligned
+//! blocks that cover it (`reduce::cover`); a worker that does not take runs (an earlier build) is
+//! leased single aligned blocks. [`Scheduler::lease`] hands a run from the batch
+//! `PassRun::first_pending` picks (the worker's own shooting batches first, then its home) in
+//! the first open pass of the oldest job to a worker for [`Timing::lease`]; the worker computes
+//! it, writes the outputs into the store and [`Scheduler::report`]s, which may take its next
+//! lease along. A lease that is not reported in time (a dead or stalled worker) expires and its
+//! batches are pending again; a worker that misses three heartbeats loses its leases at once. A
+//! report on a lease that is gone (expired, job cancelled) is ignored: a block's output is a pure
+//! function of the job and the block, written create-only, so a late or duplicated result can
+//! only write the bytes that are already there.
 //!
 //! **Absorbing.** Every block reported done wakes the job's driver (see [`crate::driver`]), which
 //! absorbs the batches from the store in order as they come, opens the passes whose
