@@ -1062,16 +1062,23 @@ mod tests {
         assert_eq!(block_len(2, 1, Some(0.01), minute), 2);
     }
 
+    /// A job whose speed `w` has measured (a one-batch pass reported), so leases are sized by
+    /// the workers.
+    async fn job_of_known_speed(s: &Scheduler, w: &str) -> JobId {
+        let id = job(s);
+        s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+        let g = s.lease(w, Duration::ZERO).await.unwrap().unwrap();
+        assert!(s.report(w, &g.lease_id, Ok(()), 0.01).unwrap());
+        s.end_pass(&id, 0, Pass::Shoot);
+        id
+    }
+
     #[tokio::test]
     async fn stored_blocks_are_kept_and_new_blocks_never_straddle_them() {
         let s = scheduler(60_000);
-        let id = job(&s);
         let w = s.register("a", true);
         // The speed is known: one worker leases as much as it can.
-        s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
-        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
-        assert!(s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
-        s.end_pass(&id, 0, Pass::Shoot);
+        let id = job_of_known_speed(&s, &w).await;
         let areas = Pass::Areas { copy: 0 };
         // In the store: 0..2 and 0..4 (the larger is taken), 1..3 (not a node of the tree:
         // ignored), 4..6 and 12..16.
@@ -1089,12 +1096,8 @@ mod tests {
         assert_eq!(grants, vec![8..12]);
         // Alone, a worker that takes runs gets the gap in one lease.
         let s = scheduler(60_000);
-        let id = job(&s);
         let w = s.register("a", true);
-        s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
-        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
-        assert!(s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
-        s.end_pass(&id, 0, Pass::Shoot);
+        let id = job_of_known_speed(&s, &w).await;
         s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16]);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.batches, 6..12, "up to the stored block, not into it");
