@@ -495,3 +495,22 @@ fn a_blob_has_the_same_bytes_whatever_its_thread_compressed_before() {
     assert_eq!(first, fresh);
     assert_eq!(blob::decode_bytes(&first, BlobKind::Snapshot).unwrap().len(), 300_000);
 }
+
+#[test]
+fn a_frame_cut_short_leaves_the_threads_decoder_fit_for_the_next_blob() {
+    // Decompression contexts are kept per thread too: one left mid-frame must not show.
+    let data: Vec<u8> = (0..200_000u32).map(|i| (i % 13 * (i % 7)) as u8).collect();
+    let good = blob::encode_bytes(BlobKind::Snapshot, &data).unwrap();
+    let mut cut = good[..HEADER_LEN + (good.len() - HEADER_LEN) / 2].to_vec();
+    let stored = cut[HEADER_LEN..].to_vec();
+    cut[32..40].copy_from_slice(&(stored.len() as u64).to_le_bytes());
+    cut[40..44].copy_from_slice(&crc32c::crc32c(&stored).to_le_bytes());
+    fix_header_crc(&mut cut);
+    for _ in 0..3 {
+        assert!(matches!(
+            blob::decode_bytes(&cut, BlobKind::Snapshot),
+            Err(BlobError::Decompress(_))
+        ));
+        assert_eq!(blob::decode_bytes(&good, BlobKind::Snapshot).unwrap(), data);
+    }
+}
