@@ -129,10 +129,36 @@ struct JobEntry {
     /// wake-up is lost while the driver is busy).
     driver: Arc<Notify>,
     clock: Clock,
-    /// Per batch of the shooting pass, the worker that computed it last: it keeps the batch's
-    /// mirror maps (`vlf_store::Replica`), so leasing it the same batches again saves reading
-    /// them back.
+    /// Who shot each batch last, and what it cost.
+    shooting: Shooting,
+}
+
+/// What the scheduler remembers of a job's shooting passes, per batch.
+#[derive(Default)]
+struct Shooting {
+    /// The worker that computed it last: it keeps the batch's mirror maps (`vlf_store::Replica`),
+    /// so leasing it the same batches again saves reading them back.
     shooters: Vec<Option<String>>,
+    /// Compute seconds of its last lease, shared equally among that lease's batches: what
+    /// [`home`] splits the pass by.
+    seconds: Vec<f64>,
+}
+
+impl Shooting {
+    /// Records that `worker` shot `batches` of a pass of `len` batches in `seconds`.
+    fn record(&mut self, worker: &str, batches: Range<usize>, len: usize, seconds: f64) {
+        if self.shooters.len() < len {
+            self.shooters.resize(len, None);
+            self.seconds.resize(len, 0.0);
+        }
+        let share = seconds / batches.len().max(1) as f64;
+        for b in batches {
+            self.shooters[b] = Some(worker.to_string());
+            if share.is_finite() && share > 0.0 {
+                self.seconds[b] = share;
+            }
+        }
+    }
 }
 
 /// Timing of a job's current iteration, for throughput and ETA.
@@ -177,6 +203,7 @@ struct Batch {
     failures: u32,
 }
 
+#[derive(Clone)]
 struct WorkerEntry {
     /// Registration order (the number in its id).
     number: u64,
@@ -268,7 +295,7 @@ impl Scheduler {
                     traffic: Vec::new(),
                     batch_seconds: None,
                 },
-                shooters: Vec::new(),
+                shooting: Shooting::default(),
             },
         );
         Ok(driver)
@@ -525,7 +552,7 @@ impl Scheduler {
                 return None;
             }
             entry.passes.iter().enumerate().find_map(|(p, run)| {
-                let b = run.first_pending(worker, &entry.shooters, &state.workers)?;
+                let b = run.first_pending(worker, &entry.shooting, &state.workers)?;
                 Some(((*id).clone(), p, b))
             })
         });
@@ -626,12 +653,9 @@ impl Scheduler {
                     run.mark_done(block);
                 }
                 if pass == Pass::Shoot {
-                    if entry.shooters.len() < run.batches.len() {
-                        entry.shooters.resize(run.batches.len(), None);
-                    }
-                    for b in &mut entry.shooters[batches.clone()] {
-                        *b = Some(worker.to_string());
-                    }
+                    entry
+                        .shooting
+                        .record(worker, batches.clone(), run.batches.len(), seconds);
                 }
                 if seconds.is_finite() && seconds > 0.0 {
                     entry.clock.batch_seconds = Some(seconds / batches.len() as f64);
@@ -752,31 +776,30 @@ pub fn block_len(batches: usize, workers: u32, batch_seconds: Option<f64>, lease
 }
 
 impl PassRun {
-    /// The pending batch `worker` should start a lease at. Of a shooting pass: the first it shot
-    /// last time (it keeps their mirror maps); else the first of its [`home`] that no other
-    /// registered worker shot; else the first that no other registered worker shot. Else — rather
-    /// than wait — the first pending batch.
+    /// The pending batch `worker` should start a lease at. Of a shooting pass: the first of its
+    /// [`home`]; else the first it shot last time (it keeps their mirror maps); else the first
+    /// that no other registered worker shot. Else — rather than wait — the first pending batch.
     ///
     /// Homes matter for mirrors: a direction gathers what arrived from the directions that
     /// reflect into it, which are near it in direction order (the bundled mirror scene's 16
     /// batches read from at most their neighbours' neighbours). Two workers that shoot the halves
     /// of the pass read 4 batches of each other's arrivals; leased blocks in the order asked,
-    /// they interleave and read nearly everything.
+    /// they interleave and read nearly everything. As homes stay put while the workers do, a
+    /// worker shoots the same batches from iteration to iteration and keeps their maps.
     fn first_pending(
         &self,
         worker: &str,
-        shooters: &[Option<String>],
+        shooting: &Shooting,
         workers: &HashMap<String, WorkerEntry>,
     ) -> Option<usize> {
         let pending = || (0..self.batches.len()).filter(|&b| self.batches[b].state == BatchState::Pending);
         if self.pass == Pass::Shoot {
-            let shooter = |b: usize| shooters.get(b).and_then(Option::as_deref);
-            let unclaimed = |b: usize| shooter(b).is_none_or(|w| !workers.contains_key(w));
-            let own = pending().find(|&b| shooter(b) == Some(worker));
-            let home = home(worker, workers, self.batches.len());
-            let at_home = || pending().find(|&b| home.contains(&b) && unclaimed(b));
-            let free = || pending().find(|&b| unclaimed(b));
-            if let Some(b) = own.or_else(at_home).or_else(free) {
+            let shooter = |b: usize| shooting.shooters.get(b).and_then(Option::as_deref);
+            let home = home(worker, workers, self.batches.len(), &shooting.seconds);
+            let at_home = pending().find(|&b| home.contains(&b));
+            let own = || pending().find(|&b| shooter(b) == Some(worker));
+            let free = || pending().find(|&b| shooter(b).is_none_or(|w| !workers.contains_key(w)));
+            if let Some(b) = at_home.or_else(own).or_else(free) {
                 return Some(b);
             }
         }
@@ -829,14 +852,35 @@ impl PassRun {
 
 /// The open pass a lease belongs to.
 /// `worker`'s home in a pass of `batches` batches: the registered workers, in registration
-/// order, split the pass into equal runs of consecutive batches (all of it for a lone worker).
-fn home(worker: &str, workers: &HashMap<String, WorkerEntry>, batches: usize) -> Range<usize> {
+/// order, split the pass into runs of consecutive batches of equal cost (all of it for a lone
+/// worker). A batch costs the `seconds` its last lease measured, or the mean of those measured
+/// (all alike before any): batches differ — the mirror scene's first quarter shoots in half the
+/// time of its last — and equal runs had one of two workers wait for the other every iteration.
+fn home(worker: &str, workers: &HashMap<String, WorkerEntry>, batches: usize, seconds: &[f64]) -> Range<usize> {
     let mut order: Vec<(u64, &str)> = workers.iter().map(|(id, w)| (w.number, id.as_str())).collect();
     order.sort_unstable();
-    match order.iter().position(|(_, id)| *id == worker) {
-        Some(rank) => rank * batches / order.len()..(rank + 1) * batches / order.len(),
-        None => 0..batches,
+    let Some(rank) = order.iter().position(|(_, id)| *id == worker) else {
+        return 0..batches;
+    };
+    let measured: Vec<f64> = seconds.iter().copied().filter(|s| *s > 0.0).collect();
+    let mean = match measured.len() {
+        0 => 1.0,
+        n => measured.iter().sum::<f64>() / n as f64,
+    };
+    // Cost before each batch boundary: before[b] is the cost of batches 0..b.
+    let mut before = vec![0.0; batches + 1];
+    for b in 0..batches {
+        let cost = seconds.get(b).copied().filter(|s| *s > 0.0).unwrap_or(mean);
+        before[b + 1] = before[b] + cost;
     }
+    // Worker r's home starts at the boundary nearest to r/w of the total.
+    let start = |r: usize| -> usize {
+        let target = before[batches] * r as f64 / order.len() as f64;
+        (0..=batches)
+            .min_by(|&a, &b| (before[a] - target).abs().total_cmp(&(before[b] - target).abs()))
+            .unwrap_or(0)
+    };
+    start(rank)..start(rank + 1)
 }
 
 fn find_run<'a>(passes: &'a mut [PassRun], lease: &LeaseEntry) -> Option<&'a mut PassRun> {
@@ -1206,6 +1250,71 @@ mod tests {
         s.start_pass(&id, 1, shoot, 16, &[]);
         let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.batches, 8..12);
+    }
+
+    #[test]
+    fn homes_split_the_pass_by_what_its_batches_cost() {
+        let workers: HashMap<String, WorkerEntry> = ["w2-b", "w1-a", "w3-c"]
+            .iter()
+            .map(|id| {
+                let number = id[1..2].parse().unwrap();
+                let entry = WorkerEntry {
+                    number,
+                    last_seen: Instant::now(),
+                    takes_runs: true,
+                };
+                (id.to_string(), entry)
+            })
+            .collect();
+        let two: HashMap<_, _> = workers
+            .iter()
+            .filter(|(id, _)| *id != "w3-c")
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        // Nothing measured: equal runs, in registration order (not the map's).
+        assert_eq!(home("w1-a", &two, 16, &[]), 0..8);
+        assert_eq!(home("w2-b", &two, 16, &[]), 8..16);
+        assert_eq!(home("w1-a", &workers, 16, &[]), 0..5, "16/3 = 5.33, nearest 5");
+        assert_eq!(home("w2-b", &workers, 16, &[]), 5..11);
+        assert_eq!(home("w3-c", &workers, 16, &[]), 11..16);
+        assert_eq!(home("w9-gone", &two, 16, &[]), 0..16);
+        // The first half ten times cheaper: the first worker takes 12 batches.
+        let costs: Vec<f64> = (0..16).map(|b| if b < 8 { 0.001 } else { 0.01 }).collect();
+        assert_eq!(home("w1-a", &two, 16, &costs), 0..12);
+        assert_eq!(home("w2-b", &two, 16, &costs), 12..16);
+        // Unmeasured batches cost the mean of the measured ones.
+        let partial = [0.0, 0.0, 0.0, 0.0, 3.0, 3.0, 3.0, 3.0];
+        assert_eq!(home("w1-a", &two, 8, &partial), 0..4);
+    }
+
+    #[tokio::test]
+    async fn a_worker_whose_batches_were_cheap_gets_more_of_the_next_pass() {
+        let s = scheduler(60_000);
+        let id = job(&s);
+        let (a, b) = (s.register("a", true), s.register("b", true));
+        let shoot = Pass::Shoot;
+        // Iteration 1: batch by batch (speed unknown until a report, then blocks of 4); a's
+        // half takes a tenth of the time of b's.
+        s.start_pass(&id, 0, shoot, 16, &[]);
+        let cost = |batches: &Range<usize>| batches.len() as f64 * if batches.start < 8 { 0.001 } else { 0.01 };
+        while let Some(g) = s.lease(&a, Duration::ZERO).await.unwrap() {
+            assert!(s.report(&a, &g.lease_id, Ok(()), cost(&g.batches)).unwrap());
+            if let Some(g) = s.lease(&b, Duration::ZERO).await.unwrap() {
+                assert!(s.report(&b, &g.lease_id, Ok(()), cost(&g.batches)).unwrap());
+            }
+        }
+        s.end_pass(&id, 0, shoot);
+        // Iteration 2: a's home is 0..12; b, asking first, starts at 12.
+        s.start_pass(&id, 1, shoot, 16, &[]);
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(gb.batches.start, 12);
+        let mut got = Vec::new();
+        while let Some(g) = s.lease(&a, Duration::ZERO).await.unwrap() {
+            got.push(g.batches.clone());
+            assert!(s.report(&a, &g.lease_id, Ok(()), cost(&g.batches)).unwrap());
+        }
+        assert_eq!(got.first().map(|r| r.start), Some(0));
+        assert!(got.iter().all(|r| r.end <= 12), "a stayed home: {got:?}");
     }
 
     #[tokio::test]
