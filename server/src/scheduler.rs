@@ -9,10 +9,13 @@
 //! the aligned block of at most [`block_len`] batches that holds its first — the whole pass for
 //! one worker, a quarter of a pass per worker beyond, and never so large that it would take more
 //! than a quarter of the lease's lifetime at the job's measured speed — so the sizes follow the
-//! workers alive and the speed as they change. The worker computes the run as the fewest aligned
-//! blocks that cover it (`reduce::cover`); a worker that does not take runs (an earlier build) is
-//! leased single aligned blocks. [`Scheduler::lease`] hands a run from the batch
-//! `PassRun::first_pending` picks (the worker's own shooting batches first, then its home) in
+//! workers alive and the speed as they change. A shooting pass with several workers is split into
+//! their homes, runs of equal measured cost (`home`), and a worker takes what is left of its
+//! home in one lease (within the same lifetime bound), then helps the others a quarter at a time.
+//! The worker computes the run as the fewest aligned blocks that cover it (`reduce::cover`); a
+//! worker that does not take runs (an earlier build) is leased single aligned blocks.
+//! [`Scheduler::lease`] hands a run from the batch `PassRun::first_pending` picks (its home's
+//! first, then the batches it shot last time) in
 //! the first open pass of the oldest job to a worker for [`Timing::lease`]; the worker computes
 //! it, writes the outputs into the store and [`Scheduler::report`]s, which may take its next
 //! lease along. A lease that is not reported in time (a dead or stalled worker) expires and its
@@ -564,21 +567,33 @@ impl Scheduler {
         let lease_id = format!("l{number}");
         let deadline = Instant::now() + self.timing.lease;
         let takes_runs = state.workers.get(worker).is_some_and(|w| w.takes_runs);
+        let entry = &state.jobs[&job];
+        let n = entry.passes[p].batches.len();
+        let home = (entry.passes[p].pass == Pass::Shoot && alive > 1)
+            .then(|| home(worker, &state.workers, n, &entry.shooting.seconds))
+            .filter(|home| home.contains(&first));
         let Some(entry) = state.jobs.get_mut(&job) else {
             unreachable!("found above");
         };
-        let len = block_len(
-            entry.passes[p].batches.len(),
-            alive,
-            entry.clock.batch_seconds,
-            self.timing.lease,
-        )
-        .min(self.timing.max_lease_batches.max(1));
+        let most = self.timing.max_lease_batches.max(1);
+        let speed = entry.clock.batch_seconds;
         let run = &mut entry.passes[p];
-        let batches = if takes_runs {
-            run.pending_run(first, len)
-        } else {
-            run.pending_block(first, len)
+        let batches = match home {
+            // What is left of its home in one lease, as far as the lease's lifetime allows:
+            // homes are split by what the batches cost on the workers that shot them, so they
+            // balance the workers, and follow one that slows down, without a lease per quarter.
+            Some(home) if takes_runs => {
+                let len = block_len(n, 1, speed, self.timing.lease).min(most);
+                run.pending_run_within(first, home.end.min(first + len))
+            }
+            _ => {
+                let len = block_len(n, alive, speed, self.timing.lease).min(most);
+                if takes_runs {
+                    run.pending_run(first, len)
+                } else {
+                    run.pending_block(first, len)
+                }
+            }
         };
         for b in &mut run.batches[batches.clone()] {
             b.state = BatchState::Leased(number);
@@ -832,6 +847,17 @@ impl PassRun {
     fn pending_run(&self, first: usize, len: usize) -> Range<usize> {
         let size = len.max(1).next_power_of_two();
         let end = ((first / size + 1) * size).min(self.batches.len());
+        let pending = self.batches[first..end]
+            .iter()
+            .take_while(|b| b.state == BatchState::Pending)
+            .count();
+        first..first + pending.max(1)
+    }
+
+    /// The run of pending batches from `first` (a pending batch) up to `end` or to the first batch
+    /// that is not pending.
+    fn pending_run_within(&self, first: usize, end: usize) -> Range<usize> {
+        let end = end.clamp(first + 1, self.batches.len());
         let pending = self.batches[first..end]
             .iter()
             .take_while(|b| b.state == BatchState::Pending)
@@ -1235,21 +1261,27 @@ mod tests {
         assert_eq!((ga.batches.clone(), gb.batches.clone()), (0..1, 8..9));
         assert!(s.report(&a, &ga.lease_id, Ok(()), 0.01).unwrap());
         assert!(s.report(&b, &gb.lease_id, Ok(()), 0.01).unwrap());
-        // Then blocks of 4 batches at most, asked for in turn.
+        // Then each the rest of its home in one lease, asked for in turn.
         let mut got: HashMap<String, Vec<Range<usize>>> = HashMap::new();
-        for w in [&a, &b, &a, &b, &a, &b] {
+        for w in [&a, &b, &a, &b] {
             if let Some(g) = s.lease(w, Duration::ZERO).await.unwrap() {
                 got.entry(w.clone()).or_default().push(g.batches.clone());
-                assert!(s.report(w, &g.lease_id, Ok(()), 0.01).unwrap());
+                assert!(s.report(w, &g.lease_id, Ok(()), 0.01 * g.batches.len() as f64).unwrap());
             }
         }
-        assert_eq!(got[&a], [1..4, 4..8]);
-        assert_eq!(got[&b], [9..12, 12..16]);
+        assert_eq!(got[&a], [1..8]);
+        assert_eq!(got[&b], [9..16]);
         s.end_pass(&id, 0, shoot);
         // The next iteration keeps them: b, asking first, gets its half.
         s.start_pass(&id, 1, shoot, 16, &[]);
         let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
-        assert_eq!(g.batches, 8..12);
+        assert_eq!(g.batches, 8..16);
+        // Done with its home, b helps with a's, a quarter of the pass at a time, from the start.
+        let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 0..4);
+        // a then takes what is left of its home.
+        let g = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 4..8);
     }
 
     #[test]
@@ -1304,17 +1336,12 @@ mod tests {
             }
         }
         s.end_pass(&id, 0, shoot);
-        // Iteration 2: a's home is 0..12; b, asking first, starts at 12.
+        // Iteration 2: a's home is 0..12 and b's 12..16, each in one lease, b asking first.
         s.start_pass(&id, 1, shoot, 16, &[]);
         let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
-        assert_eq!(gb.batches.start, 12);
-        let mut got = Vec::new();
-        while let Some(g) = s.lease(&a, Duration::ZERO).await.unwrap() {
-            got.push(g.batches.clone());
-            assert!(s.report(&a, &g.lease_id, Ok(()), cost(&g.batches)).unwrap());
-        }
-        assert_eq!(got.first().map(|r| r.start), Some(0));
-        assert!(got.iter().all(|r| r.end <= 12), "a stayed home: {got:?}");
+        assert_eq!(gb.batches, 12..16);
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(ga.batches, 0..12);
     }
 
     #[tokio::test]
