@@ -555,11 +555,11 @@ impl Scheduler {
                 return None;
             }
             entry.passes.iter().enumerate().find_map(|(p, run)| {
-                let b = run.first_pending(worker, &entry.shooting, &state.workers)?;
-                Some(((*id).clone(), p, b))
+                let (b, home) = run.first_pending(worker, &entry.shooting, &state.workers)?;
+                Some(((*id).clone(), p, b, home))
             })
         });
-        let Some((job, p, first)) = found else {
+        let Some((job, p, first, home)) = found else {
             return Ok(None);
         };
         state.counter += 1;
@@ -567,17 +567,14 @@ impl Scheduler {
         let lease_id = format!("l{number}");
         let deadline = Instant::now() + self.timing.lease;
         let takes_runs = state.workers.get(worker).is_some_and(|w| w.takes_runs);
-        let entry = &state.jobs[&job];
-        let n = entry.passes[p].batches.len();
-        let home = (entry.passes[p].pass == Pass::Shoot && alive > 1)
-            .then(|| home(worker, &state.workers, n, &entry.shooting.seconds))
-            .filter(|home| home.contains(&first));
+        let home = home.filter(|home| alive > 1 && home.contains(&first));
         let Some(entry) = state.jobs.get_mut(&job) else {
             unreachable!("found above");
         };
         let most = self.timing.max_lease_batches.max(1);
         let speed = entry.clock.batch_seconds;
         let run = &mut entry.passes[p];
+        let n = run.batches.len();
         let batches = match home {
             // What is left of its home in one lease, as far as the lease's lifetime allows:
             // homes are split by what the batches cost on the workers that shot them, so they
@@ -791,8 +788,8 @@ pub fn block_len(batches: usize, workers: u32, batch_seconds: Option<f64>, lease
 }
 
 impl PassRun {
-    /// The pending batch `worker` should start a lease at. Of a shooting pass: the first of its
-    /// [`home`]; else the first it shot last time (it keeps their mirror maps); else the first
+    /// The pending batch `worker` should start a lease at, and for a shooting pass its [`home`].
+    /// Of a shooting pass: the first of its home; else the first it shot last time (it keeps their mirror maps); else the first
     /// that no other registered worker shot. Else — rather than wait — the first pending batch.
     ///
     /// Homes matter for mirrors: a direction gathers what arrived from the directions that
@@ -806,19 +803,18 @@ impl PassRun {
         worker: &str,
         shooting: &Shooting,
         workers: &HashMap<String, WorkerEntry>,
-    ) -> Option<usize> {
+    ) -> Option<(usize, Option<Range<usize>>)> {
         let pending = || (0..self.batches.len()).filter(|&b| self.batches[b].state == BatchState::Pending);
-        if self.pass == Pass::Shoot {
-            let shooter = |b: usize| shooting.shooters.get(b).and_then(Option::as_deref);
-            let home = home(worker, workers, self.batches.len(), &shooting.seconds);
-            let at_home = pending().find(|&b| home.contains(&b));
-            let own = || pending().find(|&b| shooter(b) == Some(worker));
-            let free = || pending().find(|&b| shooter(b).is_none_or(|w| !workers.contains_key(w)));
-            if let Some(b) = at_home.or_else(own).or_else(free) {
-                return Some(b);
-            }
+        if self.pass != Pass::Shoot {
+            return pending().next().map(|b| (b, None));
         }
-        pending().next()
+        let shooter = |b: usize| shooting.shooters.get(b).and_then(Option::as_deref);
+        let home = home(worker, workers, self.batches.len(), &shooting.seconds);
+        let at_home = pending().find(|&b| home.contains(&b));
+        let own = || pending().find(|&b| shooter(b) == Some(worker));
+        let free = || pending().find(|&b| shooter(b).is_none_or(|w| !workers.contains_key(w)));
+        let first = at_home.or_else(own).or_else(free).or_else(|| pending().next())?;
+        Some((first, Some(home)))
     }
 
     /// The largest aligned block of at most `len` batches from `first` (a pending batch) whose
