@@ -44,6 +44,52 @@ pub struct BenchArgs {
     /// Also write the report (Markdown) to this file.
     #[arg(long)]
     out: Option<PathBuf>,
+    /// Share the machine with another program, as a cluster's workers often do: a thread that
+    /// computes for 30 ms of every 60 while every run goes, both ways alike. What the service
+    /// then costs shows how its workers cope with cores that are not their own.
+    #[arg(long)]
+    cotenant: bool,
+}
+
+/// A thread that computes for 30 ms of every 60 until dropped (`--cotenant`).
+struct Cotenant {
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Cotenant {
+    fn start() -> Result<Cotenant> {
+        use std::sync::atomic::Ordering;
+        use std::time::Duration;
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let flag = stop.clone();
+        let thread = std::thread::Builder::new()
+            .name("cotenant".into())
+            .spawn(move || {
+                let mut x = 1u64;
+                while !flag.load(Ordering::Relaxed) {
+                    let busy = Instant::now();
+                    while busy.elapsed() < Duration::from_millis(30) {
+                        x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+                    }
+                    std::thread::sleep(Duration::from_millis(30));
+                }
+            })
+            .context("cannot start the co-tenant thread")?;
+        Ok(Cotenant {
+            stop,
+            thread: Some(thread),
+        })
+    }
+}
+
+impl Drop for Cotenant {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
 }
 
 /// One run of one way.
@@ -93,6 +139,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         .collect();
     let mut samples: Vec<Vec<Sample>> = ways.iter().map(|_| Vec::new()).collect();
     let mut reference: Option<Checkpoint> = None;
+    let cotenant = if args.cotenant { Some(Cotenant::start()?) } else { None };
     let bar = indicatif::ProgressBar::new((args.repeat * ways.len()) as u64);
     for _ in 0..args.repeat {
         for (way, workers) in ways.iter().enumerate() {
@@ -113,6 +160,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
         }
     }
     bar.finish_and_clear();
+    drop(cotenant);
 
     let report = report(&args, threads, &ways, &samples);
     print!("{report}");
@@ -205,8 +253,13 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Option<usize>], samples: &[V
     let _ = writeln!(
         out,
         "{threads} threads on {cpu}; `memory://` store; median of {} runs each, interleaved. \
-         Every service run gave the in-process bits.\n",
-        args.repeat
+         Every service run gave the in-process bits.{}\n",
+        args.repeat,
+        if args.cotenant {
+            " With a co-tenant: a thread computing 30 ms of every 60 throughout (`--cotenant`)."
+        } else {
+            ""
+        }
     );
     let _ = writeln!(
         out,

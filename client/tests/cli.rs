@@ -563,6 +563,17 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     assert_eq!(rows.len(), 3, "{printed}");
     assert!(!printed.contains("| 4 |"));
     assert!(rows[0].ends_with("MB |") || rows[0].contains(" / "), "{}", rows[0]);
+    assert!(!printed.contains("co-tenant"));
+    // With a co-tenant: the same bits, and the report says so.
+    let mut shared = args[..10].to_vec();
+    shared.extend(["--repeat", "1", "--workers", "2", "--cotenant"]);
+    let o = vlf(&shared);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let printed = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        printed.contains("Every service run gave the in-process bits. With a co-tenant"),
+        "{printed}"
+    );
     for bad in [["--repeat", "0"], ["--workers", "0"], ["--threads", "0"]] {
         let mut a = args[..2].to_vec();
         a.extend(bad);

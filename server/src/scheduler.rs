@@ -12,6 +12,10 @@
 //! workers alive and the speed as they change. A shooting pass with several workers is split into
 //! their homes, runs of equal measured cost (`home`), and a worker takes what is left of its
 //! home in one lease (within the same lifetime bound), then helps the others a quarter at a time.
+//! A home lease commits all but its last quarter to a worker that claims ([`Abilities::claims`]);
+//! the worker claims the tail when it gets there ([`Scheduler::extend`]), and a worker with nothing
+//! left to do is given it meanwhile (`Scheduler::steal`): the workers even out at the end of
+//! the pass what the cost split did not foresee.
 //! The worker computes the run as the fewest aligned blocks that cover it (`reduce::cover`); a
 //! worker that does not take runs (an earlier build) is leased single aligned blocks.
 //! [`Scheduler::lease`] hands a run from the batch `PassRun::first_pending` picks (its home's
@@ -75,7 +79,39 @@ pub struct Grant {
     pub snapshot: u32,
     pub pass: Pass,
     pub batches: Range<usize>,
+    /// The batches before this one are the worker's; the rest of the run it claims with
+    /// [`Scheduler::extend`] (all of them for a worker that does not claim).
+    pub committed: usize,
     pub deadline: Duration,
+}
+
+/// What a worker's build can do; earlier builds lack the later abilities and are served as
+/// they expect.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Abilities {
+    /// It computes a lease that is a run of aligned blocks (see [`Grant`]).
+    pub runs: bool,
+    /// It computes only a lease's committed batches unasked and claims the others with
+    /// [`Scheduler::extend`], so another worker can be given them meanwhile.
+    pub claims: bool,
+}
+
+impl Abilities {
+    /// This build's.
+    pub const ALL: Abilities = Abilities {
+        runs: true,
+        claims: true,
+    };
+    /// A worker that computes runs but claims nothing.
+    pub const RUNS: Abilities = Abilities {
+        runs: true,
+        claims: false,
+    };
+    /// A worker that computes single aligned blocks.
+    pub const BLOCKS: Abilities = Abilities {
+        runs: false,
+        claims: false,
+    };
 }
 
 /// What a driver finds when it wakes, waiting for a batch.
@@ -211,8 +247,7 @@ struct WorkerEntry {
     /// Registration order (the number in its id).
     number: u64,
     last_seen: Instant,
-    /// Whether it computes leases that are runs of several aligned blocks.
-    takes_runs: bool,
+    abilities: Abilities,
 }
 
 struct LeaseEntry {
@@ -222,7 +257,10 @@ struct LeaseEntry {
     snapshot: u32,
     pass: Pass,
     worker: String,
+    /// The run as it stands: its end moves earlier when another worker is given its tail.
     batches: Range<usize>,
+    /// The batches before this one are the worker's (see [`Grant::committed`]).
+    committed: usize,
     deadline: Instant,
 }
 
@@ -491,9 +529,8 @@ impl Scheduler {
 
     // ------------------------------------------------------------ workers
 
-    /// Registers a worker and returns its id; `takes_runs`: it computes leases that are runs of aligned blocks (see
-    /// [`Grant`]), else it is leased one aligned block at a time.
-    pub fn register(&self, name: &str, takes_runs: bool) -> String {
+    /// Registers a worker with what its build can do and returns its id.
+    pub fn register(&self, name: &str, abilities: Abilities) -> String {
         let mut state = self.lock();
         state.counter += 1;
         let number = state.counter;
@@ -503,7 +540,7 @@ impl Scheduler {
             WorkerEntry {
                 number,
                 last_seen: Instant::now(),
-                takes_runs,
+                abilities,
             },
         );
         tracing::info!(worker = id, "worker registered");
@@ -560,13 +597,14 @@ impl Scheduler {
             })
         });
         let Some((job, p, first, home)) = found else {
-            return Ok(None);
+            return Ok(self.steal(&mut state, worker, alive));
         };
         state.counter += 1;
         let number = state.counter;
         let lease_id = format!("l{number}");
         let deadline = Instant::now() + self.timing.lease;
-        let takes_runs = state.workers.get(worker).is_some_and(|w| w.takes_runs);
+        let abilities = state.workers.get(worker).map(|w| w.abilities).unwrap_or_default();
+        let takes_runs = abilities.runs;
         let home = home.filter(|home| alive > 1 && home.contains(&first));
         let Some(entry) = state.jobs.get_mut(&job) else {
             unreachable!("found above");
@@ -575,21 +613,30 @@ impl Scheduler {
         let speed = entry.clock.batch_seconds;
         let run = &mut entry.passes[p];
         let n = run.batches.len();
-        let batches = match home {
+        let (batches, committed) = match home {
             // What is left of its home in one lease, as far as the lease's lifetime allows:
             // homes are split by what the batches cost on the workers that shot them, so they
             // balance the workers, and follow one that slows down, without a lease per quarter.
+            // What the cost split mispredicts, the workers even out at the end of the pass: the
+            // worker claims the last quarter of its run when it gets there, and one with
+            // nothing left to do can be given it meanwhile (`Scheduler::steal`).
             Some(home) if takes_runs => {
                 let len = block_len(n, 1, speed, self.timing.lease).min(most);
-                run.pending_run_within(first, home.end.min(first + len))
+                let batches = run.pending_run_within(first, home.end.min(first + len));
+                let committed = match abilities.claims {
+                    true => first_claim(&batches),
+                    false => batches.end,
+                };
+                (batches, committed)
             }
             _ => {
                 let len = block_len(n, alive, speed, self.timing.lease).min(most);
-                if takes_runs {
+                let batches = if takes_runs {
                     run.pending_run(first, len)
                 } else {
                     run.pending_block(first, len)
-                }
+                };
+                (batches.clone(), batches.end)
             }
         };
         for b in &mut run.batches[batches.clone()] {
@@ -601,6 +648,7 @@ impl Scheduler {
             snapshot: run.snapshot,
             pass: run.pass,
             batches,
+            committed,
             deadline: self.timing.lease,
         };
         let status = entry.status.borrow().clone();
@@ -614,10 +662,93 @@ impl Scheduler {
                 pass: grant.pass,
                 worker: worker.to_string(),
                 batches: grant.batches.clone(),
+                committed,
                 deadline,
             },
         );
         Ok(Some(grant))
+    }
+
+    /// With nothing pending, gives `worker` the tail of another worker's lease that this one has
+    /// not claimed yet: half of it (rounded up), from its end. Of the leases of open passes with
+    /// unclaimed batches, the one with the most (the oldest among equals). This is how the
+    /// workers share the end of a pass as threads steal work from one another: the cost split
+    /// of the homes (`home`) predicts what a worker's batches cost from the last iteration, and
+    /// a worker that shares its machine, or meets other arrivals, takes longer than predicted.
+    fn steal(&self, state: &mut State, worker: &str, alive: u32) -> Option<Grant> {
+        let abilities = state.workers.get(worker)?.abilities;
+        if !abilities.runs {
+            return None;
+        }
+        let open = |job: &JobId| {
+            state
+                .jobs
+                .get(job)
+                .is_some_and(|e| !e.cancel_requested && e.failure.is_none())
+        };
+        let (victim, _) = state
+            .leases
+            .iter()
+            .filter(|(_, l)| l.worker != worker && l.committed < l.batches.end && open(&l.job))
+            .map(|(id, l)| (id.clone(), (l.batches.end - l.committed, std::cmp::Reverse(l.number))))
+            .max_by_key(|(_, key)| *key)?;
+        state.counter += 1;
+        let number = state.counter;
+        let lease = state.leases.get_mut(&victim)?;
+        let batches = lease.committed..lease.batches.end;
+        lease.batches.end = batches.start;
+        let (job, snapshot, pass) = (lease.job.clone(), lease.snapshot, lease.pass);
+        let entry = state.jobs.get_mut(&job)?;
+        let run = entry
+            .passes
+            .iter_mut()
+            .find(|r| (r.snapshot, r.pass) == (snapshot, pass))?;
+        for b in &mut run.batches[batches.clone()] {
+            b.state = BatchState::Leased(number);
+        }
+        let committed = match abilities.claims {
+            true => first_claim(&batches),
+            false => batches.end,
+        };
+        tracing::debug!(job = %job, ?batches, from = victim, worker, "tail of a lease given to an idle worker");
+        let grant = Grant {
+            lease_id: format!("l{number}"),
+            job: job.clone(),
+            snapshot,
+            pass,
+            batches,
+            committed,
+            deadline: self.timing.lease,
+        };
+        let status = entry.status.borrow().clone();
+        publish(entry, status, alive);
+        state.leases.insert(
+            grant.lease_id.clone(),
+            LeaseEntry {
+                number,
+                job,
+                snapshot,
+                pass,
+                worker: worker.to_string(),
+                batches: grant.batches.clone(),
+                committed,
+                deadline: Instant::now() + self.timing.lease,
+            },
+        );
+        Some(grant)
+    }
+
+    /// `worker` claims the rest of its lease. Returns the lease as it stands, `(committed, end)`
+    /// — `end` earlier than granted when its tail went to another worker — or `None` when the
+    /// lease is gone (expired, its job ended).
+    pub fn extend(&self, worker: &str, lease_id: &str) -> Result<Option<(usize, usize)>, Unknown> {
+        let mut state = self.lock();
+        touch(&mut state, worker)?;
+        let Some(lease) = state.leases.get_mut(lease_id).filter(|l| l.worker == worker) else {
+            return Ok(None);
+        };
+        lease.committed = lease.batches.end;
+        Ok(Some((lease.committed, lease.batches.end)))
     }
 
     /// Records a worker's result for a lease: `Ok(())` when the block's output is in the store,
@@ -631,13 +762,27 @@ impl Scheduler {
         result: Result<(), String>,
         seconds: f64,
     ) -> Result<bool, Unknown> {
+        self.report_run(worker, lease_id, result, seconds, None)
+    }
+
+    /// [`Scheduler::report`] of a lease computed up to `end` (`None`: to its end): a worker
+    /// that could not claim the rest (the coordinator did not answer) reports what it has, and
+    /// the batches after `end` are pending again. An `end` outside the lease is not taken.
+    pub fn report_run(
+        &self,
+        worker: &str,
+        lease_id: &str,
+        result: Result<(), String>,
+        seconds: f64,
+        end: Option<usize>,
+    ) -> Result<bool, Unknown> {
         let mut state = self.lock();
         touch(&mut state, worker)?;
         let alive = alive_workers(&state, self.timing);
         let Some(lease) = state.leases.get(lease_id) else {
             return Ok(false);
         };
-        if lease.worker != worker {
+        if lease.worker != worker || end.is_some_and(|e| e <= lease.batches.start || e > lease.batches.end) {
             return Ok(false);
         }
         let Some(lease) = state.leases.remove(lease_id) else {
@@ -651,14 +796,21 @@ impl Scheduler {
             return Ok(false);
         };
         let pass = run.pass;
-        let batches = lease.batches.clone();
-        if !run.batches[batches.clone()]
+        let full = lease.batches.clone();
+        if !run.batches[full.clone()]
             .iter()
             .all(|b| b.state == BatchState::Leased(number))
         {
             return Ok(false);
         }
+        let batches = full.start..end.unwrap_or(full.end);
         let mut requeued = false;
+        if batches.end < full.end {
+            for b in &mut run.batches[batches.end..full.end] {
+                b.state = BatchState::Pending;
+            }
+            requeued = true;
+        }
         match result {
             Ok(()) => {
                 for block in reduce::cover(batches.clone()) {
@@ -764,6 +916,16 @@ pub fn is_terminal(state: i32) -> bool {
         WireState::try_from(state),
         Ok(WireState::Finished | WireState::Failed | WireState::Cancelled)
     )
+}
+
+/// The part of a run a worker that claims is committed when it is leased: all but its last
+/// quarter (rounded down: a run of fewer than 4 batches is committed whole). The worker claims
+/// that tail as it starts the batch before it ([`Scheduler::extend`]); until then the tail can
+/// go to an idle worker. One claim per lease, and the batches computed in single steps are
+/// the few around it: each claim costs a round trip, each step some setup, and a quarter of a
+/// worker's home is more than the cost split mispredicts in the iterations measured.
+fn first_claim(run: &Range<usize>) -> usize {
+    run.end - run.len() / 4
 }
 
 /// Batches per block for a pass of `batches` batches: all of them for one worker (a lease per
@@ -1033,7 +1195,7 @@ mod tests {
         let s = scheduler(60_000);
         let id = job(&s);
         s.start_pass(&id, 0, Pass::Shoot, 3, &[1..2]);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         let a = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         let b = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!((a.batches, b.batches), (0..1, 2..3), "batch 1 was already in the store");
@@ -1061,7 +1223,7 @@ mod tests {
         let s = scheduler(20);
         let id = job(&s);
         s.start_pass(&id, 4, Pass::Areas { copy: 1 }, 1, &[]);
-        let (w1, w2) = (s.register("slow", true), s.register("fast", true));
+        let (w1, w2) = (s.register("slow", Abilities::ALL), s.register("fast", Abilities::ALL));
         let first = s.lease(&w1, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!((first.snapshot, first.pass), (4, Pass::Areas { copy: 1 }));
         assert_eq!(s.lease(&w2, Duration::ZERO).await.unwrap(), None);
@@ -1086,7 +1248,7 @@ mod tests {
         let (a0, a1) = (Pass::Areas { copy: 0 }, Pass::Areas { copy: 1 });
         s.start_pass(&id, 2, a0, 3, &[]);
         s.start_pass(&id, 2, a1, 3, &[1..2]);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         let mut grants = Vec::new();
         while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
             grants.push(g);
@@ -1142,7 +1304,7 @@ mod tests {
     #[tokio::test]
     async fn stored_blocks_are_kept_and_new_blocks_never_straddle_them() {
         let s = scheduler(60_000);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         // The speed is known: one worker leases as much as it can.
         let id = job_of_known_speed(&s, &w).await;
         let areas = Pass::Areas { copy: 0 };
@@ -1152,7 +1314,7 @@ mod tests {
         assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(vec![0..4, 4..6]));
         // With two workers, blocks of 4 batches at most: one that does not take runs gets an
         // aligned block, one that does the rest of the next block.
-        let old = s.register("old", false);
+        let old = s.register("old", Abilities::BLOCKS);
         let g = s.lease(&old, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.batches, 6..8);
         let mut grants = Vec::new();
@@ -1162,7 +1324,7 @@ mod tests {
         assert_eq!(grants, vec![8..12]);
         // Alone, a worker that takes runs gets the gap in one lease.
         let s = scheduler(60_000);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         let id = job_of_known_speed(&s, &w).await;
         s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16]);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
@@ -1180,7 +1342,7 @@ mod tests {
     async fn after_a_report_a_lone_worker_leases_whole_passes() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         s.start_pass(&id, 0, Pass::Shoot, 16, &[]);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.batches, 0..1, "speed unknown: one batch");
@@ -1197,7 +1359,7 @@ mod tests {
         // A worker that does not take runs gets the rest in the largest aligned blocks.
         let s = scheduler(60_000);
         let id = job(&s);
-        let w = s.register("old", false);
+        let w = s.register("old", Abilities::BLOCKS);
         s.start_pass(&id, 0, Pass::Shoot, 16, &[]);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         assert_eq!(g.batches, 0..1, "speed unknown: one batch");
@@ -1213,7 +1375,7 @@ mod tests {
     async fn a_worker_shoots_the_batches_it_shot_last_time() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let (a, b) = (s.register("a", true), s.register("b", true));
+        let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
         let shoot = Pass::Shoot;
         // Iteration 1: a takes the first half, b the second.
         s.start_pass(&id, 0, shoot, 4, &[]);
@@ -1248,7 +1410,7 @@ mod tests {
     async fn two_workers_shoot_the_halves_of_the_pass_whatever_order_they_ask_in() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let (a, b) = (s.register("a", true), s.register("b", true));
+        let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
         let shoot = Pass::Shoot;
         s.start_pass(&id, 0, shoot, 16, &[]);
         // Speed unknown: one batch each, a at the start of its home, b at the start of its own.
@@ -1280,6 +1442,128 @@ mod tests {
         assert_eq!(g.batches, 4..8);
     }
 
+    /// A job whose speed is known, and its shooting pass of 16 batches open, with workers `a`
+    /// and `b` registered with `abilities`.
+    async fn two_workers_and_a_pass(s: &Scheduler, abilities: Abilities) -> (JobId, String, String) {
+        let (a, b) = (s.register("a", abilities), s.register("b", abilities));
+        let id = job_of_known_speed(s, &a).await;
+        s.start_pass(&id, 1, Pass::Shoot, 16, &[]);
+        (id, a, b)
+    }
+
+    #[tokio::test]
+    async fn an_idle_worker_is_given_the_tail_a_busy_one_has_not_claimed() {
+        let s = scheduler(60_000);
+        let (id, a, b) = two_workers_and_a_pass(&s, Abilities::ALL).await;
+        // Each worker's home in one lease, its last quarter not committed.
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((ga.batches.clone(), ga.committed), (0..8, 6));
+        assert_eq!((gb.batches.clone(), gb.committed), (8..16, 14));
+        // b is done first (it claimed its tail, then reported); a has not claimed its tail: b
+        // is given it, committed whole (too short to share again).
+        assert_eq!(s.extend(&b, &gb.lease_id).unwrap(), Some((16, 16)));
+        assert!(s.report(&b, &gb.lease_id, Ok(()), 0.08).unwrap());
+        let tail = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((tail.batches.clone(), tail.committed), (6..8, 8));
+        assert_eq!(s.status(&id).unwrap().leases_out, 2);
+        // a learns it when it claims: its run now ends at 6, all of it committed.
+        assert_eq!(s.extend(&a, &ga.lease_id).unwrap(), Some((6, 6)));
+        // Nothing is left to give: a committed run is never taken.
+        assert_eq!(s.lease(&b, Duration::from_millis(5)).await.unwrap(), None);
+        // A report past the run's new end is not taken; one at its end is.
+        assert!(!s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(8)).unwrap());
+        assert!(s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(6)).unwrap());
+        assert!(s.report(&b, &tail.lease_id, Ok(()), 0.02).unwrap());
+        assert_eq!(
+            s.pass_outcome(&id, Pass::Shoot, 0),
+            PassOutcome::Ready(vec![0..4, 4..6, 6..8, 8..16]),
+            "the outputs of what each computed: the cover of its run"
+        );
+        // The tail counts as b's work: b shot it.
+        let state = s.lock();
+        let shooters = &state.jobs[&id].shooting.shooters;
+        assert_eq!(shooters[5].as_deref(), Some(a.as_str()));
+        assert_eq!(shooters[6].as_deref(), Some(b.as_str()));
+    }
+
+    #[tokio::test]
+    async fn a_claimed_run_is_kept_and_a_claim_on_a_lease_that_is_gone_is_refused() {
+        let s = scheduler(60_000);
+        let (id, a, b) = two_workers_and_a_pass(&s, Abilities::ALL).await;
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(s.extend(&a, &ga.lease_id).unwrap(), Some((8, 8)));
+        assert_eq!(
+            s.extend(&a, &ga.lease_id).unwrap(),
+            Some((8, 8)),
+            "claiming again changes nothing"
+        );
+        assert_eq!(s.extend(&b, &ga.lease_id).unwrap(), None, "another worker's lease");
+        assert_eq!(s.extend(&a, "l999").unwrap(), None, "no such lease");
+        assert!(s.extend("w99-nobody", &ga.lease_id).is_err(), "an unknown worker");
+        // b takes its home; with a's run claimed, there is nothing to take from a.
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(gb.batches, 8..16);
+        assert!(s.report(&b, &gb.lease_id, Ok(()), 0.08).unwrap());
+        assert_eq!(s.lease(&b, Duration::from_millis(5)).await.unwrap(), None);
+        s.cancel(&id).unwrap();
+        assert_eq!(s.extend(&a, &ga.lease_id).unwrap(), None, "the job was cancelled");
+    }
+
+    #[tokio::test]
+    async fn a_report_of_part_of_a_run_puts_the_rest_back() {
+        let s = scheduler(60_000);
+        let (id, a, b) = two_workers_and_a_pass(&s, Abilities::ALL).await;
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(ga.batches, 0..8);
+        // a could not claim its tail (the coordinator did not answer): it reports 0..6.
+        assert!(
+            !s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(0)).unwrap(),
+            "an empty run"
+        );
+        assert!(s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(6)).unwrap());
+        assert_eq!(
+            s.pass_outcome(&id, Pass::Shoot, 0),
+            PassOutcome::Ready(vec![0..4, 4..6])
+        );
+        // The rest is pending again: b's home first, then what a left.
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(gb.batches, 8..16);
+        let rest = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(rest.batches, 6..8);
+    }
+
+    #[tokio::test]
+    async fn leases_of_workers_that_do_not_claim_are_committed_and_never_shared() {
+        let s = scheduler(60_000);
+        let (_, a, b) = two_workers_and_a_pass(&s, Abilities::RUNS).await;
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((ga.batches.clone(), ga.committed), (0..8, 8));
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert!(s.report(&b, &gb.lease_id, Ok(()), 0.08).unwrap());
+        assert_eq!(s.lease(&b, Duration::from_millis(5)).await.unwrap(), None);
+        // A worker of an earlier build, leased single blocks, takes no one's tail either.
+        let s = scheduler(60_000);
+        let (_, a, _) = two_workers_and_a_pass(&s, Abilities::ALL).await;
+        let old = s.register("old", Abilities::BLOCKS);
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        assert!(ga.committed < ga.batches.end);
+        while let Some(g) = s.lease(&old, Duration::ZERO).await.unwrap() {
+            assert!(s.report(&old, &g.lease_id, Ok(()), 0.01).unwrap());
+        }
+        assert_eq!(
+            s.extend(&a, &ga.lease_id).unwrap(),
+            Some((ga.batches.end, ga.batches.end))
+        );
+        // And a lone worker's lease is committed whole: no one could take a part of it.
+        let s = scheduler(60_000);
+        let w = s.register("a", Abilities::ALL);
+        let id = job_of_known_speed(&s, &w).await;
+        s.start_pass(&id, 1, Pass::Shoot, 16, &[]);
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((g.batches.clone(), g.committed), (0..16, 16));
+    }
+
     #[test]
     fn homes_split_the_pass_by_what_its_batches_cost() {
         let workers: HashMap<String, WorkerEntry> = ["w2-b", "w1-a", "w3-c"]
@@ -1289,7 +1573,7 @@ mod tests {
                 let entry = WorkerEntry {
                     number,
                     last_seen: Instant::now(),
-                    takes_runs: true,
+                    abilities: Abilities::ALL,
                 };
                 (id.to_string(), entry)
             })
@@ -1319,7 +1603,7 @@ mod tests {
     async fn a_worker_whose_batches_were_cheap_gets_more_of_the_next_pass() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let (a, b) = (s.register("a", true), s.register("b", true));
+        let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
         let shoot = Pass::Shoot;
         // Iteration 1: batch by batch (speed unknown until a report, then blocks of 4); a's
         // half takes a tenth of the time of b's.
@@ -1344,7 +1628,7 @@ mod tests {
     async fn a_waiting_lease_is_served_when_a_pass_opens() {
         let s = scheduler(60_000);
         let id = job(&s);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         let waiter = {
             let (s, w) = (s.clone(), w.clone());
             tokio::spawn(async move { s.lease(&w, Duration::from_secs(30)).await })
@@ -1364,7 +1648,7 @@ mod tests {
         let s = scheduler(60_000);
         let id = job(&s);
         s.start_pass(&id, 0, Pass::Shoot, 2, &[]);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         for attempt in 1..=MAX_BATCH_FAILURES {
             let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
             assert_eq!(g.batches, 0..1, "a failed block is handed out again first");
@@ -1403,7 +1687,7 @@ mod tests {
         let mut rx = s.subscribe(&id).unwrap();
         let first = rx.borrow_and_update().seq;
         s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
-        let w = s.register("a", true);
+        let w = s.register("a", Abilities::ALL);
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
         s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap();
         let last = rx.borrow_and_update().clone();

@@ -4,7 +4,7 @@
 //! parameters (with the importer's message), `RESOURCE_EXHAUSTED` for uploads over the limit.
 
 use crate::driver::{self, SubmitError};
-use crate::scheduler::{Scheduler, Unknown, is_terminal};
+use crate::scheduler::{Abilities, Scheduler, Unknown, is_terminal};
 use crate::upload::{self, UploadError};
 use futures::Stream;
 use std::pin::Pin;
@@ -57,6 +57,7 @@ impl Api {
                 pass_copy,
                 batch: g.batches.start as u32,
                 batch_count: g.batches.len() as u32,
+                committed_count: (g.committed - g.batches.start) as u32,
                 deadline_ms: g.deadline.as_millis() as u32,
             }
         }))
@@ -190,7 +191,11 @@ impl jobs_server::Jobs for Api {
 impl workers_server::Workers for Api {
     async fn register(&self, request: Request<v1::RegisterRequest>) -> Result<Response<v1::RegisterReply>, Status> {
         let request = request.into_inner();
-        let worker_id = self.sched.register(&request.name, request.takes_runs);
+        let abilities = Abilities {
+            runs: request.takes_runs,
+            claims: request.takes_claims,
+        };
+        let worker_id = self.sched.register(&request.name, abilities);
         Ok(Response::new(v1::RegisterReply {
             worker_id,
             store_url: self.sched.store().url().to_string(),
@@ -216,9 +221,10 @@ impl workers_server::Workers for Api {
         } else {
             Err(request.error)
         };
+        let end = (request.batch_end > 0).then_some(request.batch_end as usize);
         let accepted = self
             .sched
-            .report(&request.worker_id, &request.lease_id, result, request.seconds)
+            .report_run(&request.worker_id, &request.lease_id, result, request.seconds, end)
             .map_err(unknown)?;
         // The next lease in the same round trip, if asked for.
         let next = match request.next_wait_ms {
@@ -226,6 +232,24 @@ impl workers_server::Workers for Api {
             wait => self.next_lease(&request.worker_id, wait).await?,
         };
         Ok(Response::new(v1::ReportReply { accepted, next }))
+    }
+
+    async fn extend(&self, request: Request<v1::ExtendRequest>) -> Result<Response<v1::ExtendReply>, Status> {
+        let request = request.into_inner();
+        match self
+            .sched
+            .extend(&request.worker_id, &request.lease_id)
+            .map_err(unknown)?
+        {
+            Some((committed, end)) => Ok(Response::new(v1::ExtendReply {
+                committed_end: committed as u32,
+                end: end as u32,
+            })),
+            None => Err(Status::not_found(format!(
+                "lease `{}` is gone (expired, or its job ended)",
+                request.lease_id
+            ))),
+        }
     }
 }
 
@@ -327,6 +351,7 @@ mod tests {
             error: String::new(),
             seconds: 0.01,
             next_wait_ms,
+            batch_end: 0,
         })
     }
 
@@ -350,6 +375,7 @@ mod tests {
                 name: "w".into(),
                 threads: 2,
                 takes_runs: true,
+                takes_claims: true,
             }))
             .await
             .unwrap()
@@ -378,5 +404,86 @@ mod tests {
         // An unknown worker is told so.
         let err = api.report(report("w99-nobody", &first, 10)).await.unwrap_err();
         assert_eq!(err.code(), tonic::Code::NotFound);
+    }
+
+    #[tokio::test]
+    async fn a_lease_says_what_is_committed_and_extend_claims_the_rest() {
+        let store = vlf_store::Store::open("memory://").unwrap();
+        let sched = Scheduler::new(store, Timing::default(), None);
+        let id = JobId::generate();
+        sched
+            .add_job(v1::JobStatus {
+                job_id: id.to_string(),
+                state: v1::State::Propagating as i32,
+                ..Default::default()
+            })
+            .unwrap();
+        sched.start_iteration(&id, 1, 16, 513);
+        let api = Api::new(sched.clone(), 0);
+        let mut workers = Vec::new();
+        for (name, takes_claims) in [("a", true), ("b", true), ("old", false)] {
+            let request = v1::RegisterRequest {
+                name: name.into(),
+                threads: 1,
+                takes_runs: true,
+                takes_claims,
+            };
+            workers.push(
+                api.register(Request::new(request))
+                    .await
+                    .unwrap()
+                    .into_inner()
+                    .worker_id,
+            );
+        }
+        let lease = |w: &String| {
+            api.lease(Request::new(v1::LeaseRequest {
+                worker_id: w.clone(),
+                wait_ms: 0,
+            }))
+        };
+        // The speed is learnt from one batch; then each worker's home (a third of the pass).
+        sched.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+        let first = lease(&workers[0]).await.unwrap().into_inner().lease.unwrap();
+        assert!(
+            api.report(report(&workers[0], &first, 0))
+                .await
+                .unwrap()
+                .into_inner()
+                .accepted
+        );
+        sched.end_pass(&id, 0, Pass::Shoot);
+        sched.start_pass(&id, 1, Pass::Shoot, 16, &[]);
+        let a = lease(&workers[0]).await.unwrap().into_inner().lease.unwrap();
+        assert_eq!((a.batch, a.batch_count, a.committed_count), (0, 5, 4));
+        let old = lease(&workers[2]).await.unwrap().into_inner().lease.unwrap();
+        assert_eq!(
+            (old.batch_count, old.committed_count),
+            (5, 5),
+            "a worker that does not claim"
+        );
+        let extend = |w: &String, lease: &str| {
+            api.extend(Request::new(v1::ExtendRequest {
+                worker_id: w.clone(),
+                lease_id: lease.into(),
+            }))
+        };
+        let claimed = extend(&workers[0], &a.lease_id).await.unwrap().into_inner();
+        assert_eq!((claimed.committed_end, claimed.end), (5, 5));
+        let gone = extend(&workers[1], &a.lease_id).await.unwrap_err();
+        assert_eq!(gone.code(), tonic::Code::NotFound, "not b's lease");
+        // A report names where the run ended.
+        let mut done = report(&workers[0], &a, 0).into_inner();
+        done.batch_end = 6;
+        assert!(
+            !api.report(Request::new(done.clone()))
+                .await
+                .unwrap()
+                .into_inner()
+                .accepted,
+            "past its end"
+        );
+        done.batch_end = 5;
+        assert!(api.report(Request::new(done)).await.unwrap().into_inner().accepted);
     }
 }

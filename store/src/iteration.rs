@@ -50,7 +50,7 @@ use std::collections::HashMap;
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
-use vlf_core::propagate::reduce::is_aligned_block;
+use vlf_core::propagate::reduce::{RunOutputs, is_aligned_block};
 use vlf_core::propagate::work::batch_count;
 use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, MirrorBlock, Pass, Propagation};
 
@@ -266,6 +266,46 @@ impl Replica {
     /// the same directions every iteration, and gathers from directions it shoots, reads no
     /// mirror map back; with one worker, none at all.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
+        let out = self.shoot(k, pass, batches)?;
+        self.job.put_batch(&out)?;
+        Ok(())
+    }
+
+    /// Computes a run of `pass` from batch `start`, one aligned block at a time, as `next` hands
+    /// them out — `next(done)` is the block that starts at `done`, or `None` to stop there — and
+    /// writes the run's outputs, merged into the blocks of
+    /// [`vlf_core::propagate::reduce::cover`] (the same outputs as
+    /// [`Replica::compute`] of those blocks). Returns the run computed. A worker computes a lease
+    /// so when it must claim the lease's batches as it goes (see `vlf_worker`).
+    pub fn compute_run(
+        &mut self,
+        k: u32,
+        pass: Pass,
+        start: usize,
+        mut next: impl FnMut(usize) -> Option<Range<usize>>,
+    ) -> Result<Range<usize>, StoreError> {
+        let mut outputs = RunOutputs::new();
+        let mut done = start;
+        while let Some(block) = next(done) {
+            if block.start != done || block.is_empty() {
+                return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
+                    "block {block:?} does not continue the run at batch {done}"
+                ))));
+            }
+            done = block.end;
+            let out = self.shoot(k, pass, block)?;
+            outputs
+                .push(out)
+                .map_err(|e| self.job.field_error(vlf_core::Error::Parameter(e)))?;
+        }
+        for out in outputs.finish() {
+            self.job.put_batch(&out)?;
+        }
+        Ok(start..done)
+    }
+
+    /// [`Replica::compute`] but for writing the block's output: returns it.
+    fn shoot(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<BatchOutput, StoreError> {
         if self.current.as_ref().map(|c| c.k) != Some(k) {
             self.start(k)?;
         }
@@ -338,8 +378,7 @@ impl Replica {
                 })?;
             self.held.push(block);
         }
-        self.job.put_batch(&out)?;
-        Ok(())
+        Ok(out)
     }
 
     /// Moves on to the iteration that starts from snapshot `k`. Every lease reads the head of

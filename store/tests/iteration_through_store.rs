@@ -345,7 +345,52 @@ fn a_prototype_replica_reads_nothing_of_its_snapshot(o: &Opener) {
     coordinator.finish_iteration().unwrap();
 }
 
+/// Leases computed as workers that claim as they go compute them: in single batches and small
+/// blocks, some runs cut short (their tail given to another worker), each written as the
+/// outputs of its cover. The job ends with the bits of the in-process run.
+fn runs_computed_in_steps(o: &Opener) {
+    let (scene, options) = (bundled("mirrors.obj"), options(0, 129));
+    let reference = in_process(&o.open(), &scene, &options);
+    let (_, mut coordinator, mut replica) = start(o, scene, options, Encoding::F32);
+    let mut other = Replica::new(FieldJob::open(&o.open(), coordinator.job().id()).unwrap()).unwrap();
+    let id = coordinator.job().id().clone();
+    while !coordinator.finished() {
+        let k = coordinator.iteration();
+        while let Some((pass, batches)) = coordinator.pending_pass() {
+            assert_eq!(batches, 8);
+            // One worker: batches 0..3 one at a time, then 3..4, and it stops at 6 (4..6 one
+            // block); the other takes 6..8 in single batches.
+            let steps = |stop: usize| {
+                move |done: usize| match done {
+                    d if d >= stop => None,
+                    d if d < 4 => Some(d..d + 1),
+                    d => Some(vlf_core::propagate::reduce::cover(d..stop)[0].clone()),
+                }
+            };
+            let ones = |stop: usize| move |done: usize| (done < stop).then_some(done..done + 1);
+            assert_eq!(replica.compute_run(k, pass, 0, steps(6)).unwrap(), 0..6);
+            assert_eq!(other.compute_run(k, pass, 6, ones(8)).unwrap(), 6..8);
+            // The outputs are those of the runs' covers, nothing else.
+            let work = coordinator
+                .job()
+                .job()
+                .store()
+                .list(&layout::work_prefix(&id, k).unwrap())
+                .unwrap();
+            assert_eq!(work.len(), 3, "0..4, 4..6 and 6..8: {work:?}");
+            // A run that does not continue where it stands is refused.
+            assert!(replica.compute_run(k, pass, 0, |_| Some(2..3)).is_err());
+            coordinator.absorb_pass().unwrap();
+        }
+        coordinator.finish_iteration().unwrap();
+    }
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+}
+
 per_backend! {
+    runs_computed_in_steps_give_the_same_bits => crate::runs_computed_in_steps,
     a_lease_reads_only_what_it_needs => crate::a_lease_reads_only_what_it_needs,
     a_prototype_replica_reads_nothing_of_its_snapshot => crate::a_prototype_replica_reads_nothing_of_its_snapshot,
     released_iterations_resume_with_the_same_bits => crate::released_before_committed,

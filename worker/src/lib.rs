@@ -1,7 +1,9 @@
-//! A VLF worker: registers with a coordinator, heartbeats, and loops over leases — each one
-//! aligned block of batches of directions of one pass of one iteration of one job — computing the
-//! block from the store with all its cores (rayon) and writing its output back into the store
-//! before it reports.
+//! A VLF worker: registers with a coordinator, heartbeats, and loops over leases — each a run of
+//! batches of directions of one pass of one iteration of one job — computing the run from the
+//! store with all its cores (rayon), one aligned block at a time, and writing its outputs back
+//! into the store before it reports. A lease may leave its last batches uncommitted: the worker
+//! claims them when it gets there (`Claim`), and if the coordinator has given them to an idle
+//! worker meanwhile, its run ends where the claim's answer says.
 //!
 //! Stateless: everything a lease needs is in the store (the job's scene, options and the
 //! checkpoint its iteration starts from); the geometry of the last jobs seen, and the mirror
@@ -12,7 +14,8 @@
 
 pub mod cli;
 
-use std::sync::{Arc, Mutex};
+use std::ops::Range;
+use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tonic::Code;
 use vlf_core::propagate::reduce;
@@ -132,10 +135,9 @@ pub async fn run(
     tokio::pin!(stop);
     let clients = config.target.connect_lazy()?;
     let mut workers = clients.workers;
-    let threads = config.threads.unwrap_or(0);
     let pool = Arc::new(
         rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
+            .num_threads(config.threads.unwrap_or(0))
             .build()
             .map_err(|e| WorkerError::Threads(e.to_string()))?,
     );
@@ -153,6 +155,7 @@ pub async fn run(
                 name: config.name.clone(),
                 threads: pool.current_num_threads() as u32,
                 takes_runs: true,
+                takes_claims: true,
             }) => r,
         };
         let reply = match registered {
@@ -250,7 +253,7 @@ async fn lease_loop(
             return Loop::Stop;
         }
         let started = Instant::now();
-        let result = compute(store, pool, replicas, &lease).await;
+        let result = compute(store, pool, replicas, &lease, &workers.clone(), id).await;
         let seconds = started.elapsed().as_secs_f64();
         tracing::debug!(
             lease = lease.lease_id,
@@ -263,7 +266,7 @@ async fn lease_loop(
             "lease computed"
         );
         match &result {
-            Ok(()) => {
+            Ok(_) => {
                 stats.batches += 1;
                 stats.compute_seconds += seconds;
             }
@@ -272,12 +275,17 @@ async fn lease_loop(
                 tracing::error!(job = lease.job_id, batch = lease.batch, "batch failed: {e}");
             }
         }
+        let (batch_end, error) = match result {
+            Ok(run) => (run.end as u32, String::new()),
+            Err(e) => (0, e),
+        };
         let report = v1::ReportRequest {
             worker_id: id.to_string(),
             lease_id: lease.lease_id.clone(),
-            error: result.err().unwrap_or_default(),
+            error,
             seconds,
             next_wait_ms: LEASE_WAIT_MS,
+            batch_end,
         };
         // The report also asks for the next lease (one round trip instead of two); stopping
         // meanwhile is fine: an unanswered report only lets the lease expire.
@@ -302,31 +310,176 @@ async fn lease_loop(
 /// How long a lease request waits for work at the coordinator (a long poll).
 const LEASE_WAIT_MS: u32 = 2000;
 
-/// Computes a lease's batches into the store: the aligned blocks that cover them, in order.
+/// Computes a lease's batches into the store, left to right, one aligned block at a time; the
+/// outputs are those of the fewest aligned blocks that cover what was computed. Batches past the
+/// lease's committed part are claimed first (`Claim`). Returns the run computed: the lease's,
+/// ending earlier when the coordinator gave its tail to another worker.
 async fn compute(
     store: &Store,
     pool: &Arc<rayon::ThreadPool>,
     replicas: &Arc<Mutex<Replicas>>,
     lease: &v1::Lease,
-) -> Result<(), String> {
+    workers: &v1::workers_client::WorkersClient<vlf_proto::Authed>,
+    worker_id: &str,
+) -> Result<Range<usize>, String> {
     let job = JobId::parse(&lease.job_id).map_err(|e| format!("lease names job `{}`: {e}", lease.job_id))?;
     let pass = pass_from_wire(lease.pass_kind, lease.pass_copy)
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
     let (store, pool, replicas) = (store.clone(), pool.clone(), replicas.clone());
-    let (k, b) = (lease.snapshot, lease.batch as usize);
-    let run = b..b + (lease.batch_count as usize).max(1);
-    vlf_store::blocking(move || {
-        pool.install(|| -> Result<(), StoreError> {
+    let (k, start) = (lease.snapshot, lease.batch as usize);
+    let end = start + (lease.batch_count as usize).max(1);
+    let committed = match lease.committed_count {
+        0 => end,
+        n => (start + n as usize).min(end),
+    };
+    let claim = Arc::new(Claim::new(committed, end));
+    // The computing thread holds the only sender: the claimer stops when it is done.
+    let (asks, asked) = tokio::sync::mpsc::unbounded_channel();
+    let claimer = claimer(
+        workers.clone(),
+        worker_id.to_string(),
+        lease.lease_id.clone(),
+        claim.clone(),
+        asked,
+    );
+    let computing = vlf_store::blocking(move || {
+        pool.install(|| -> Result<Range<usize>, StoreError> {
             let mut replicas = lock(&replicas);
             let replica = replicas.replica(&store, &job)?;
-            reduce::cover(run)
-                .into_iter()
-                .try_for_each(|block| replica.compute(k, pass, block))
+            replica.compute_run(k, pass, start, |done| claim.next_block(done, &asks))
         })
-    })
-    .await
-    .map_err(|e| format!("internal: {e}"))?
-    .map_err(|e| e.to_string())
+    });
+    let (computed, ()) = tokio::join!(computing, claimer);
+    computed
+        .map_err(|e| format!("internal: {e}"))?
+        .map_err(|e| e.to_string())
+}
+
+/// What a worker may compute of its lease: the batches before `committed` are its own; those
+/// from there to `end` it claims with `Extend` as it goes, and meanwhile the coordinator may
+/// give them to a worker with nothing to do (the reply then says where the run ends). The
+/// computing thread asks for more as it starts the last committed batch, so the answer comes
+/// while it computes: a claim costs no waiting.
+struct Claim {
+    state: Mutex<ClaimState>,
+    changed: Condvar,
+}
+
+struct ClaimState {
+    committed: usize,
+    end: usize,
+    /// An `Extend` is on its way.
+    asking: bool,
+}
+
+impl Claim {
+    fn new(committed: usize, end: usize) -> Claim {
+        let state = ClaimState {
+            committed,
+            end,
+            asking: false,
+        };
+        Claim {
+            state: Mutex::new(state),
+            changed: Condvar::new(),
+        }
+    }
+
+    /// The block to compute from batch `done` on, waiting for a claim if need be; `None` when
+    /// the run ends there. Blocks are the aligned pieces of the committed part, its last batch
+    /// alone while more is to be claimed (the claim is asked as it starts).
+    fn next_block(&self, done: usize, asks: &Asks) -> Option<Range<usize>> {
+        let mut state = lock(&self.state);
+        loop {
+            if state.end <= done {
+                return None;
+            }
+            if state.committed > done {
+                break;
+            }
+            ask(&mut state, asks);
+            state = self.changed.wait(state).unwrap_or_else(|p| p.into_inner());
+        }
+        let (committed, end) = (state.committed, state.end);
+        let upto = if committed < end && committed - done > 1 {
+            committed - 1
+        } else {
+            committed
+        };
+        let block = reduce::cover(done..upto).first()?.clone();
+        if block.end == committed {
+            ask(&mut state, asks);
+        }
+        Some(block)
+    }
+}
+
+/// Where the computing thread asks the claimer for more of the lease.
+type Asks = tokio::sync::mpsc::UnboundedSender<()>;
+
+fn ask(state: &mut ClaimState, asks: &Asks) {
+    if state.asking || state.committed >= state.end {
+        return;
+    }
+    state.asking = true;
+    if asks.send(()).is_err() {
+        // No one to ask: keep what is committed.
+        state.end = state.committed;
+        state.asking = false;
+    }
+}
+
+/// Answers the computing thread's asks with `Extend` calls until it is done. A lease that is
+/// gone, or a coordinator that does not answer (after a few tries), ends the run at what is
+/// committed: the report then says so, and the rest goes back to the pool.
+async fn claimer(
+    mut workers: v1::workers_client::WorkersClient<vlf_proto::Authed>,
+    worker_id: String,
+    lease_id: String,
+    claim: Arc<Claim>,
+    mut asks: tokio::sync::mpsc::UnboundedReceiver<()>,
+) {
+    while asks.recv().await.is_some() {
+        let mut reply = None;
+        for attempt in 0..3 {
+            let request = v1::ExtendRequest {
+                worker_id: worker_id.clone(),
+                lease_id: lease_id.clone(),
+            };
+            match workers.extend(request).await {
+                Ok(r) => {
+                    reply = Some(r.into_inner());
+                    break;
+                }
+                Err(status) if transient(&status) && attempt < 2 => {
+                    tokio::time::sleep(Duration::from_millis(50 << attempt)).await;
+                }
+                Err(status) => {
+                    tracing::debug!(lease = lease_id, "cannot claim more of the lease: {}", status.message());
+                    break;
+                }
+            }
+        }
+        let mut state = lock(&claim.state);
+        let (committed, end) = (state.committed, state.end);
+        match reply.map(|r| (r.committed_end as usize, r.end as usize)) {
+            // The coordinator never takes back what is committed, nor lengthens a run.
+            Some((c, e)) if committed <= c && c <= e && committed <= e && e <= end => {
+                state.committed = c;
+                state.end = e;
+            }
+            Some((c, e)) => {
+                tracing::warn!(
+                    lease = lease_id,
+                    "Extend answered {c}..{e} for a lease committed to {committed} of {end}; stopping there"
+                );
+                state.end = committed;
+            }
+            None => state.end = committed,
+        }
+        state.asking = false;
+        claim.changed.notify_all();
+    }
 }
 
 fn lock<T>(m: &Mutex<T>) -> std::sync::MutexGuard<'_, T> {
@@ -348,4 +501,86 @@ fn spawn_heartbeat(
             }
         }
     })
+}
+
+#[cfg(test)]
+// Blocks of one range are what these tests mean.
+#[allow(clippy::single_range_in_vec_init)]
+mod tests {
+    use super::*;
+
+    /// The blocks `claim` hands out from `start` until it says stop (or `limit` blocks).
+    fn blocks(claim: &Claim, start: usize, asks: &Asks, limit: usize) -> Vec<Range<usize>> {
+        let mut out = Vec::new();
+        let mut done = start;
+        while let Some(block) = claim.next_block(done, asks) {
+            done = block.end;
+            out.push(block);
+            if out.len() == limit {
+                break;
+            }
+        }
+        out
+    }
+
+    fn answer(claim: &Claim, committed: usize, end: usize) {
+        let mut state = lock(&claim.state);
+        (state.committed, state.end, state.asking) = (committed, end, false);
+        claim.changed.notify_all();
+    }
+
+    #[test]
+    fn a_committed_run_is_its_cover_and_asks_nothing() {
+        let claim = Claim::new(16, 16);
+        let (asks, mut asked) = tokio::sync::mpsc::unbounded_channel();
+        assert_eq!(blocks(&claim, 1, &asks, 99), [1..2, 2..4, 4..8, 8..16]);
+        assert!(asked.try_recv().is_err());
+    }
+
+    #[test]
+    fn the_tail_is_claimed_while_the_last_committed_batch_is_computed() {
+        let claim = Claim::new(6, 8);
+        let (asks, mut asked) = tokio::sync::mpsc::unbounded_channel();
+        // The committed part, its last batch alone: the claim goes out as it is handed out.
+        assert_eq!(blocks(&claim, 0, &asks, 2), [0..4, 4..5]);
+        assert!(asked.try_recv().is_err(), "not yet");
+        assert_eq!(blocks(&claim, 5, &asks, 1), [5..6]);
+        assert!(asked.try_recv().is_ok());
+        // Granted: the rest in one block, and the run ends there.
+        answer(&claim, 8, 8);
+        assert_eq!(blocks(&claim, 6, &asks, 99), [6..8]);
+        assert!(asked.try_recv().is_err(), "one claim");
+    }
+
+    #[test]
+    fn a_tail_given_to_another_worker_ends_the_run() {
+        let claim = Claim::new(6, 8);
+        let (asks, _asked) = tokio::sync::mpsc::unbounded_channel();
+        assert_eq!(blocks(&claim, 0, &asks, 3), [0..4, 4..5, 5..6]);
+        answer(&claim, 6, 6);
+        assert_eq!(claim.next_block(6, &asks), None);
+    }
+
+    #[test]
+    fn a_worker_that_reaches_its_claim_waits_for_the_answer() {
+        let claim = Arc::new(Claim::new(2, 4));
+        let (asks, mut asked) = tokio::sync::mpsc::unbounded_channel();
+        let claimer = {
+            let claim = claim.clone();
+            std::thread::spawn(move || {
+                asked.blocking_recv().expect("an ask");
+                answer(&claim, 4, 4);
+            })
+        };
+        assert_eq!(blocks(&claim, 2, &asks, 99), [2..4]);
+        claimer.join().unwrap();
+    }
+
+    #[test]
+    fn with_no_one_to_ask_the_run_ends_at_what_is_committed() {
+        let claim = Claim::new(3, 8);
+        let (asks, asked) = tokio::sync::mpsc::unbounded_channel();
+        drop(asked);
+        assert_eq!(blocks(&claim, 0, &asks, 99), [0..2, 2..3]);
+    }
 }

@@ -249,6 +249,8 @@ pub struct Propagation {
     pub plan: Plan,
     stacking: Vec<u32>,
     owners: Vec<u32>,
+    /// A chunk's per-direction texel buffers, kept from one block or step to the next.
+    buffers: work::KeptBuffers,
 }
 
 fn sum_rgb(v: &[Rgb]) -> Rgb {
@@ -383,6 +385,7 @@ impl Propagation {
             emitted,
             stats: Vec::new(),
             owners,
+            buffers: work::KeptBuffers::default(),
         })
     }
 
@@ -442,7 +445,7 @@ impl Propagation {
             }
             _ => None,
         };
-        let mut buffers = Vec::new();
+        let mut buffers = self.buffers.take();
         for (p, &pass) in passes.iter().enumerate() {
             for batch in 0..work.batches() {
                 let range = work.batch_range(batch, l);
@@ -459,6 +462,7 @@ impl Propagation {
                 });
             }
         }
+        self.buffers.keep(buffers);
         if let (Some(spec), Some(maps)) = (&mut self.specular, maps) {
             spec.maps = maps;
             // What a worker does for the directions it shoots (`compute_block`):

@@ -22,7 +22,7 @@
 //! counter: it keeps at most `log2(n) + 1` partial sums.
 
 use super::FlowRecord;
-use super::work::{BatchSum, add_into};
+use super::work::{BatchOutput, BatchSum, add_into};
 use std::ops::Range;
 
 /// Whether `block` is a node of the reduction tree over `batches` leaves.
@@ -67,6 +67,70 @@ pub fn cover(run: Range<usize>) -> Vec<Range<usize>> {
         start += size;
     }
     out
+}
+
+/// The outputs of a run of batches computed piece by piece, left to right,
+/// merged into those of [`cover`]: two neighbours of the same length that
+/// form a node of the tree become that node (`left + right`, as [`TreeSum`]
+/// adds them). A worker that computes its lease in steps — to learn between
+/// them whether it still holds the rest — writes the same outputs, to the bit,
+/// as one that computes the run at once.
+#[derive(Debug, Default)]
+pub struct RunOutputs {
+    /// Nodes not yet merged, left to right (their lengths strictly decrease
+    /// wherever a merge could apply).
+    nodes: Vec<BatchOutput>,
+}
+
+impl RunOutputs {
+    pub fn new() -> RunOutputs {
+        RunOutputs::default()
+    }
+
+    /// One past the last batch taken, if any.
+    pub fn end(&self) -> Option<usize> {
+        self.nodes.last().map(|n| n.batches.end as usize)
+    }
+
+    /// Takes the output of the next aligned block of the run: it must start
+    /// where the last one ended, of the same iteration and pass.
+    pub fn push(&mut self, output: BatchOutput) -> Result<(), String> {
+        let block = output.batches.start as usize..output.batches.end as usize;
+        let aligned = !block.is_empty() && block.len().is_power_of_two() && block.start.is_multiple_of(block.len());
+        if !aligned {
+            return Err(format!("batches {block:?} are not an aligned block"));
+        }
+        if let Some(last) = self.nodes.last()
+            && (last.batches.end != output.batches.start
+                || last.iteration != output.iteration
+                || last.pass != output.pass
+                || last.power_in.is_some() != output.power_in.is_some())
+        {
+            return Err(format!(
+                "batches {block:?} of {:?} (iteration {}) do not follow {:?} of {:?} (iteration {})",
+                output.pass, output.iteration, last.batches, last.pass, last.iteration
+            ));
+        }
+        self.nodes.push(output);
+        while let [.., left, right] = &self.nodes[..]
+            && left.batches.len() == right.batches.len()
+            && left.batches.start.is_multiple_of(2 * left.batches.len() as u32)
+        {
+            let right = self.nodes.pop().expect("two nodes");
+            let left = self.nodes.last_mut().expect("two nodes");
+            merge(&mut left.sum, &right.sum);
+            left.batches.end = right.batches.end;
+            if let (Some(l), Some(r)) = (left.power_in.as_mut(), right.power_in) {
+                l.extend(r);
+            }
+        }
+        Ok(())
+    }
+
+    /// The outputs: one per block of [`cover`] of the run taken, in order.
+    pub fn finish(self) -> Vec<BatchOutput> {
+        self.nodes
+    }
 }
 
 /// Partial sums of one pass, taken in order as aligned blocks.
@@ -219,6 +283,94 @@ mod tests {
             tree.to_bits(),
             fold.to_bits(),
             "the test values must tell the orders apart"
+        );
+    }
+
+    /// The output of `block`, summed over its own subtree of `leaves`, with
+    /// one `power_in` entry per batch holding the batch number.
+    fn block_output(block: Range<usize>, leaves: &[f64]) -> BatchOutput {
+        let mut sub = TreeSum::new(block.len());
+        for i in 0..block.len() {
+            sub.push(i..i + 1, leaf(leaves[block.start + i])).unwrap();
+        }
+        BatchOutput {
+            iteration: 3,
+            pass: super::super::Pass::Shoot,
+            batches: block.start as u32..block.end as u32,
+            sum: sub.finish().unwrap(),
+            power_in: Some(block.clone().map(|b| vec![[b as f64, 0.0, 0.0]]).collect()),
+        }
+    }
+
+    #[test]
+    fn a_run_computed_in_steps_gives_the_outputs_of_its_cover() {
+        let leaves: Vec<f64> = (0..16)
+            .map(|i| match i % 3 {
+                0 => 1e16,
+                1 => -1e16,
+                _ => 1.0 + i as f64 * 0.37,
+            })
+            .collect();
+        // Every run, cut at every set of points (steps), each step computed as
+        // its own cover: what a worker claiming its lease piece by piece does.
+        for start in 0..16usize {
+            for end in start + 1..=16usize {
+                let inner = end - start - 1;
+                for cuts in 0u32..(1 << inner.min(6)) {
+                    let mut steps = Vec::new();
+                    let mut at = start;
+                    for i in 0..inner.min(6) {
+                        if cuts & (1 << i) != 0 {
+                            steps.push(at..start + i + 1);
+                            at = start + i + 1;
+                        }
+                    }
+                    steps.push(at..end);
+                    let mut run = RunOutputs::new();
+                    for step in &steps {
+                        for block in cover(step.clone()) {
+                            run.push(block_output(block, &leaves)).unwrap();
+                        }
+                    }
+                    assert_eq!(run.end(), Some(end));
+                    let got = run.finish();
+                    let want: Vec<BatchOutput> = cover(start..end)
+                        .into_iter()
+                        .map(|b| block_output(b, &leaves))
+                        .collect();
+                    let bits = |o: &[BatchOutput]| -> Vec<(Range<u32>, u64, u64)> {
+                        o.iter()
+                            .map(|o| {
+                                (
+                                    o.batches.clone(),
+                                    o.sum.texels[0][0].to_bits(),
+                                    o.sum.flow.shot[0].to_bits(),
+                                )
+                            })
+                            .collect()
+                    };
+                    assert_eq!(bits(&got), bits(&want), "{start}..{end} in steps {steps:?}");
+                    assert_eq!(got, want, "power_in in order");
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn a_run_refuses_a_piece_out_of_place() {
+        let leaves = vec![1.0; 16];
+        let mut run = RunOutputs::new();
+        assert!(run.push(block_output(1..3, &leaves)).is_err(), "not aligned");
+        run.push(block_output(2..4, &leaves)).unwrap();
+        assert!(run.push(block_output(5..6, &leaves)).is_err(), "a gap");
+        assert!(run.push(block_output(2..3, &leaves)).is_err(), "overlaps");
+        let mut other = block_output(4..5, &leaves);
+        other.iteration = 4;
+        assert!(run.push(other).is_err(), "another iteration");
+        run.push(block_output(4..8, &leaves)).unwrap();
+        assert_eq!(
+            run.finish().iter().map(|o| o.batches.clone()).collect::<Vec<_>>(),
+            vec![2..4, 4..8]
         );
     }
 
