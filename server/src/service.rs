@@ -355,8 +355,8 @@ mod tests {
         })
     }
 
-    #[tokio::test]
-    async fn a_report_brings_the_next_lease_when_asked_for() {
+    /// A scheduler over a `memory://` store with one propagating job, its iteration started.
+    fn scheduler_with_a_job() -> (Arc<Scheduler>, JobId) {
         let store = vlf_store::Store::open("memory://").unwrap();
         let sched = Scheduler::new(store, Timing::default(), None);
         let id = JobId::generate();
@@ -368,6 +368,12 @@ mod tests {
             })
             .unwrap();
         sched.start_iteration(&id, 1, 16, 513);
+        (sched, id)
+    }
+
+    #[tokio::test]
+    async fn a_report_brings_the_next_lease_when_asked_for() {
+        let (sched, id) = scheduler_with_a_job();
         sched.start_pass(&id, 0, Pass::Shoot, 16, &[]);
         let api = Api::new(sched, 0);
         let worker = api
@@ -408,17 +414,7 @@ mod tests {
 
     #[tokio::test]
     async fn a_lease_says_what_is_committed_and_extend_claims_the_rest() {
-        let store = vlf_store::Store::open("memory://").unwrap();
-        let sched = Scheduler::new(store, Timing::default(), None);
-        let id = JobId::generate();
-        sched
-            .add_job(v1::JobStatus {
-                job_id: id.to_string(),
-                state: v1::State::Propagating as i32,
-                ..Default::default()
-            })
-            .unwrap();
-        sched.start_iteration(&id, 1, 16, 513);
+        let (sched, id) = scheduler_with_a_job();
         let api = Api::new(sched.clone(), 0);
         let mut workers = Vec::new();
         for (name, takes_claims) in [("a", true), ("b", true), ("old", false)] {
