@@ -125,10 +125,6 @@ pub fn run(args: BenchArgs) -> Result<()> {
     };
     let spec = args.job.spec()?;
     let scene = crate::propagate::import(&args.scene)?;
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()
-        .context("cannot start the compute threads")?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -144,7 +140,14 @@ pub fn run(args: BenchArgs) -> Result<()> {
     for _ in 0..args.repeat {
         for (way, workers) in ways.iter().enumerate() {
             let (sample, last) = match workers {
-                None => pool.install(|| in_process(&scene, &spec))?,
+                // Threads of its own, as `vlf propagate` starts them, and as the service's
+                // workers start theirs: threads kept from the last round would have their
+                // allocator's memory at hand, where fresh ones fault their pages in.
+                None => rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .build()
+                    .context("cannot start the compute threads")?
+                    .install(|| in_process(&scene, &spec))?,
                 Some(count) => service(&runtime, &scene, &spec, Workers { count: *count, threads })?,
             };
             let last = without_times(last);
