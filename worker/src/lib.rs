@@ -253,7 +253,7 @@ async fn lease_loop(
             return Loop::Stop;
         }
         let started = Instant::now();
-        let result = compute(store, pool, replicas, &lease, &workers.clone(), id).await;
+        let result = compute(store, pool, replicas, &lease, workers, id).await;
         let seconds = started.elapsed().as_secs_f64();
         tracing::debug!(
             lease = lease.lease_id,
@@ -464,7 +464,7 @@ async fn claimer(
         let (committed, end) = (state.committed, state.end);
         match reply.map(|r| (r.committed_end as usize, r.end as usize)) {
             // The coordinator never takes back what is committed, nor lengthens a run.
-            Some((c, e)) if committed <= c && c <= e && committed <= e && e <= end => {
+            Some((c, e)) if committed <= c && c <= e && e <= end => {
                 state.committed = c;
                 state.end = e;
             }
