@@ -165,7 +165,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
     bar.finish_and_clear();
     drop(cotenant);
 
-    let report = report(&args, threads, &ways, &samples);
+    // The first iteration learns the job's speed (a one-batch lease), perturbed ones shoot
+    // rotated copies: the plain iterations after them are the propagation's throughput.
+    let plain = spec.options.perturbation.iterations.max(1) as usize;
+    let report = report(&args, threads, &ways, &samples, plain);
     print!("{report}");
     if let Some(path) = &args.out {
         std::fs::write(path, &report).with_context(|| format!("cannot write {}", path.display()))?;
@@ -242,7 +245,13 @@ fn name(workers: Option<usize>) -> String {
 }
 
 /// The Markdown report.
-fn report(args: &BenchArgs, threads: usize, ways: &[Option<usize>], samples: &[Vec<Sample>]) -> String {
+fn report(
+    args: &BenchArgs,
+    threads: usize,
+    ways: &[Option<usize>],
+    samples: &[Vec<Sample>],
+    plain_after: usize,
+) -> String {
     let mut out = String::new();
     let cpu = cpu_name().unwrap_or_else(|| "unknown CPU".into());
     let _ = writeln!(
@@ -282,6 +291,30 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Option<usize>], samples: &[V
             "| {} | {m:.3} | {fastest:.3} | {ratio:.2} | {low:.2}–{high:.2} |",
             name(*way)
         );
+    }
+
+    // The plain iterations, summed per run and paired by round like the whole runs.
+    let count = samples[0].first().map_or(0, |s| s.iterations.len());
+    if count > plain_after {
+        let plain = |s: &Sample| -> f64 { s.iterations.iter().skip(plain_after).map(|i| i.0).sum() };
+        let which = match plain_after + 1 {
+            k if k == count => format!("Iteration {k}"),
+            k => format!("Iterations {k}–{count}"),
+        };
+        let _ = writeln!(
+            out,
+            "\n{which} (the propagation's throughput: the first{} left out), summed per run:\n",
+            if plain_after > 1 { " and the perturbed ones" } else { "" }
+        );
+        let _ = writeln!(out, "| run | median s | × in-process | × range |");
+        let _ = writeln!(out, "|---|---:|---:|---:|");
+        let base: Vec<f64> = samples[0].iter().map(plain).collect();
+        for (way, runs) in ways.iter().zip(samples) {
+            let times: Vec<f64> = runs.iter().map(plain).collect();
+            let (ratio, low, high) = paired_ratio(&base, &times);
+            let m = median(times);
+            let _ = writeln!(out, "| {} | {m:.3} | {ratio:.2} | {low:.2}–{high:.2} |", name(*way));
+        }
     }
 
     // What each way moved through the store in its first run (the same every run), and what the
@@ -331,7 +364,6 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Option<usize>], samples: &[V
         rule.push_str("---:|");
     }
     let _ = writeln!(out, "{header}\n{rule}");
-    let count = samples[0].first().map_or(0, |s| s.iterations.len());
     for k in 0..count {
         let mut row = format!("| {} |", k + 1);
         for runs in samples {

@@ -564,6 +564,18 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     assert!(!printed.contains("| 4 |"));
     assert!(rows[0].ends_with("MB |") || rows[0].contains(" / "), "{}", rows[0]);
     assert!(!printed.contains("co-tenant"));
+    // The plain iterations' sums, paired by round: a row per way.
+    let plain = printed
+        .split("(the propagation's throughput")
+        .nth(1)
+        .and_then(|rest| rest.split("Through the store").next())
+        .unwrap_or_else(|| panic!("no plain iterations:\n{printed}"));
+    for way in ["| in-process | ", "| service, 1 worker | ", "| service, 2 workers | "] {
+        assert!(
+            plain.contains(way),
+            "{way} missing from the plain iterations:\n{printed}"
+        );
+    }
     // With a co-tenant: the same bits, and the report says so.
     let mut shared = args[..10].to_vec();
     shared.extend(["--repeat", "1", "--workers", "2", "--cotenant"]);
