@@ -177,6 +177,13 @@ struct JobEntry {
     shooting: Shooting,
 }
 
+impl JobEntry {
+    /// Whether its work may be leased: neither cancelled nor failed.
+    fn is_open(&self) -> bool {
+        !self.cancel_requested && self.failure.is_none()
+    }
+}
+
 /// Timing of a job's current iteration, for throughput and ETA.
 struct Clock {
     created: Instant,
@@ -551,7 +558,7 @@ impl Scheduler {
         let mut jobs: Vec<(&JobId, &JobEntry)> = state.jobs.iter().collect();
         jobs.sort_by_key(|(_, j)| j.order);
         let found = jobs.iter().find_map(|(id, entry)| {
-            if entry.cancel_requested || entry.failure.is_some() {
+            if !entry.is_open() {
                 return None;
             }
             entry.passes.iter().enumerate().find_map(|(p, run)| {
@@ -584,10 +591,7 @@ impl Scheduler {
             Some(home) if takes_runs => {
                 let len = block_len(n, 1, speed, self.timing.lease).min(most);
                 let batches = run.pending_run_within(first, home.end.min(first + len));
-                let committed = match abilities.claims {
-                    true => first_claim(&batches),
-                    false => batches.end,
-                };
+                let committed = first_claim(&batches, abilities.claims);
                 (batches, committed)
             }
             _ => {
@@ -662,12 +666,7 @@ impl Scheduler {
         if !abilities.runs {
             return None;
         }
-        let open = |job: &JobId| {
-            state
-                .jobs
-                .get(job)
-                .is_some_and(|e| !e.cancel_requested && e.failure.is_none())
-        };
+        let open = |job: &JobId| state.jobs.get(job).is_some_and(JobEntry::is_open);
         let (victim, _) = state
             .leases
             .iter()
@@ -685,10 +684,7 @@ impl Scheduler {
             .passes
             .iter()
             .position(|r| (r.snapshot, r.pass) == (snapshot, pass))?;
-        let committed = match abilities.claims {
-            true => first_claim(&batches),
-            false => batches.end,
-        };
+        let committed = first_claim(&batches, abilities.claims);
         tracing::debug!(job = %job, ?batches, from = victim, worker, "tail of a lease given to an idle worker");
         let lease = Lease {
             number,

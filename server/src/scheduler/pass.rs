@@ -60,14 +60,18 @@ pub(super) struct Batch {
     pub(super) failures: u32,
 }
 
-/// The part of a run a worker that claims is committed when it is leased: all but its last
-/// quarter (rounded down: a run of fewer than 4 batches is committed whole). The worker claims
+/// The part of a home run committed to a worker when it is leased: all of it for a worker that
+/// does not claim (`claims`), else all but its last quarter (rounded down: a run of fewer than 4
+/// batches is committed whole). The worker claims
 /// that tail as it starts the batch before it ([`super::Scheduler::extend`]); until then the tail can
 /// go to an idle worker. One claim per lease, and the batches computed in single steps are
 /// the few around it: each claim costs a round trip, each step some setup, and a quarter of a
 /// worker's home is more than the cost split mispredicts in the iterations measured.
-pub(super) fn first_claim(run: &Range<usize>) -> usize {
-    run.end - run.len() / 4
+pub(super) fn first_claim(run: &Range<usize>, claims: bool) -> usize {
+    match claims {
+        true => run.end - run.len() / 4,
+        false => run.end,
+    }
 }
 
 /// Batches per block for a pass of `batches` batches: all of them for one worker (a lease per

@@ -96,8 +96,8 @@ impl RunOutputs {
     /// where the last one ended, of the same iteration and pass.
     pub fn push(&mut self, output: BatchOutput) -> Result<(), String> {
         let block = output.batches.start as usize..output.batches.end as usize;
-        let aligned = !block.is_empty() && block.len().is_power_of_two() && block.start.is_multiple_of(block.len());
-        if !aligned {
+        // A node of the tree whatever the pass's length (the run's end bounds it).
+        if !is_aligned_block(&block, usize::MAX) {
             return Err(format!("batches {block:?} are not an aligned block"));
         }
         if let Some(last) = self.nodes.last()
