@@ -495,14 +495,16 @@ impl Propagation {
         let index = work.index;
         let scene = &self.scene;
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
-        let exchange = match self.specular.as_mut() {
+        // Settled here, the arrivals' reflected power is also what the mirrors hold unshot (see
+        // `Specular::unshot_power`): computed once, as settling walks every route.
+        let (exchange, settled) = match self.specular.as_mut() {
             Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
                 let power_in = std::mem::take(&mut work.power_in);
                 let exchange = spec.settle(scene, &self.subfields, &power_in);
                 spec.pending = Some(specular::Pending { power_in });
-                exchange
+                (exchange, true)
             }
-            _ => Exchange::default(),
+            _ => (Exchange::default(), false),
         };
         let mut next: Vec<Rgb> = work
             .received
@@ -523,9 +525,11 @@ impl Propagation {
             }
         }
         self.current = next;
-        let specular_unshot = self.specular.as_ref().map_or([0.0; 3], |s| {
-            s.unshot_power(&self.scene, &self.directions, &self.subfields)
-        });
+        let specular_unshot = match &self.specular {
+            Some(_) if settled => exchange.reflected,
+            Some(s) => s.unshot_power(&self.scene, &self.directions, &self.subfields),
+            None => [0.0; 3],
+        };
         let stats = IterationStats {
             index,
             flow: work.flow.into(),
