@@ -257,8 +257,23 @@ fn one_two_and_four_worker_processes_give_propagates_bits() {
             .map(|w| worker(dir, &format!("worker-{workers}-{w}"), &url, &[]))
             .collect();
         let id = submit(&url, &["--iterations", "3"]);
-        watch(&url, &id);
+        let watched = watch(&url, &id);
         assert_same_field(&expected, &field(&store, &id), &format!("{workers} workers"));
+        // How the last iteration used the workers: some of them computed, never more than the
+        // span in which they did holds, and `vlf watch` says so.
+        let status = wait_status(&url, &id, "the finished status", |s| s.last_iteration.is_some());
+        let used = status.last_iteration.unwrap_or_default();
+        assert!((1..=workers).contains(&used.workers), "{used:?}");
+        assert!(used.span_seconds > 0.0 && used.span_seconds <= used.seconds, "{used:?}");
+        let capacity = f64::from(used.workers) * used.span_seconds;
+        assert!(
+            used.busy_seconds > 0.0 && used.busy_seconds <= capacity + 1e-3,
+            "{used:?}"
+        );
+        assert!(
+            watched.contains("last iteration") && watched.contains("% busy"),
+            "{watched}"
+        );
         // The iteration's work blobs are gone once its snapshot is committed.
         let work = store.join("jobs").join(&id).join("work");
         let left = std::fs::read_dir(&work).map(|d| d.count()).unwrap_or(0);

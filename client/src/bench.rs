@@ -24,7 +24,8 @@ use std::time::Instant;
 use vlf_core::propagate::{Checkpoint, Propagation};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
-use vlf_store::{FieldJob, Store, Traffic, WorkTraffic};
+use vlf_server::scheduler::{IterationRecord, IterationUse};
+use vlf_store::{FieldJob, Store, Traffic};
 
 #[derive(Args)]
 pub struct BenchArgs {
@@ -95,14 +96,14 @@ impl Drop for Cotenant {
 /// One run of one way.
 struct Sample {
     seconds: f64,
-    iterations: Vec<(f64, WorkTraffic)>,
+    iterations: Vec<IterationRecord>,
     /// Everything the run read and wrote through the store (snapshots, work, the final field).
     traffic: Traffic,
 }
 
 impl Sample {
     /// A run that started at `started` and has just ended over `store`.
-    fn ended(started: Instant, iterations: Vec<(f64, WorkTraffic)>, store: &Store) -> Sample {
+    fn ended(started: Instant, iterations: Vec<IterationRecord>, store: &Store) -> Sample {
         Sample {
             seconds: started.elapsed().as_secs_f64(),
             iterations,
@@ -187,7 +188,10 @@ fn in_process(scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
         let t = Instant::now();
         prop.step(|_| {});
         job.write_snapshot(&prop)?;
-        iterations.push((t.elapsed().as_secs_f64(), WorkTraffic::default()));
+        iterations.push(IterationRecord {
+            seconds: t.elapsed().as_secs_f64(),
+            ..IterationRecord::default()
+        });
     }
     let last = prop.checkpoint();
     job.finish(&prop.into_field(), false)?;
@@ -296,7 +300,7 @@ fn report(
     // The plain iterations, summed per run and paired by round like the whole runs.
     let count = samples[0].first().map_or(0, |s| s.iterations.len());
     if count > plain_after {
-        let plain = |s: &Sample| -> f64 { s.iterations.iter().skip(plain_after).map(|i| i.0).sum() };
+        let plain = |s: &Sample| -> f64 { s.iterations.iter().skip(plain_after).map(|i| i.seconds).sum() };
         let which = match plain_after + 1 {
             k if k == count => format!("Iteration {k}"),
             k => format!("Iterations {k}–{count}"),
@@ -315,6 +319,7 @@ fn report(
             let m = median(times);
             let _ = writeln!(out, "| {} | {m:.3} | {ratio:.2} | {low:.2}–{high:.2} |", name(*way));
         }
+        workers_table(&mut out, ways, samples, plain_after);
     }
 
     // What each way moved through the store in its first run (the same every run), and what the
@@ -367,20 +372,63 @@ fn report(
     for k in 0..count {
         let mut row = format!("| {} |", k + 1);
         for runs in samples {
-            let t = median(runs.iter().filter_map(|s| s.iterations.get(k).map(|i| i.0)).collect());
+            let t = median(
+                runs.iter()
+                    .filter_map(|s| s.iterations.get(k).map(|i| i.seconds))
+                    .collect(),
+            );
             let _ = write!(row, " {t:.3} |");
         }
         for runs in &samples[1..] {
             let traffic = runs
                 .first()
                 .and_then(|s| s.iterations.get(k))
-                .map(|i| i.1)
+                .map(|i| i.traffic)
                 .unwrap_or_default();
             let _ = write!(row, " {} / {:.2} |", traffic.blobs, traffic.bytes as f64 / 1e6);
         }
         let _ = writeln!(out, "{row}");
     }
     out
+}
+
+/// How the service's workers spent the plain iterations (see `IterationUse`): medians over
+/// every plain iteration of every run of a way.
+fn workers_table(out: &mut String, ways: &[Option<usize>], samples: &[Vec<Sample>], plain_after: usize) {
+    let _ = writeln!(
+        out,
+        "\nHow the service spent those iterations (medians per iteration): the workers computed \
+         in a `span` from its first lease to its last report, `busy` of it all in all (`balance` \
+         = busy / (workers × span): 1 when no worker waited for another; `waiting` = workers × \
+         span − busy); `between` is the rest, the serial part between iterations (the last \
+         block's absorb, the diffuse reflection, the next head, the next leases):\n"
+    );
+    let _ = writeln!(
+        out,
+        "| run | iteration ms | between ms | span ms | balance | waiting ms |"
+    );
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
+    for (way, runs) in ways.iter().zip(samples).skip(1) {
+        let used: Vec<IterationUse> = runs
+            .iter()
+            .flat_map(|s| s.iterations.iter().skip(plain_after).map(|i| i.workers))
+            .filter(|u| u.workers > 0)
+            .collect();
+        if used.is_empty() {
+            continue;
+        }
+        let ms = |f: &dyn Fn(&IterationUse) -> f64| median(used.iter().map(f).collect()) * 1e3;
+        let balance = median(used.iter().filter_map(IterationUse::balance).collect());
+        let _ = writeln!(
+            out,
+            "| {} | {:.1} | {:.1} | {:.1} | {balance:.2} | {:.1} |",
+            name(*way),
+            ms(&|u| u.seconds),
+            ms(&|u| u.between_seconds()),
+            ms(&|u| u.span_seconds),
+            ms(&|u| f64::from(u.workers) * u.span_seconds - u.busy_seconds),
+        );
+    }
 }
 
 /// The CPU's model name (Linux).

@@ -218,7 +218,29 @@ pub fn describe(s: &JobStatus) -> String {
             line += &format!("  iteration ETA {:.1} s", s.eta_iteration_seconds);
         }
     }
+    if let Some(used) = &s.last_iteration {
+        line += &format!("  last iteration {}", describe_use(used));
+    }
     line
+}
+
+/// How an iteration used its workers, in words: whether more workers would help (they computed
+/// all along), or their balance or the serial part between iterations is what limits the job.
+pub fn describe_use(u: &v1::IterationUse) -> String {
+    let ms = |s: f64| format!("{:.1} ms", s * 1e3);
+    let between = ms((u.seconds - u.span_seconds).max(0.0));
+    let capacity = f64::from(u.workers) * u.span_seconds;
+    if u.workers == 0 || capacity <= 0.0 {
+        return format!("{}: no work reported", ms(u.seconds));
+    }
+    format!(
+        "{}: {} worker{} {:.0}% busy over {}, {between} between iterations",
+        ms(u.seconds),
+        u.workers,
+        if u.workers == 1 { "" } else { "s" },
+        100.0 * u.busy_seconds / capacity,
+        ms(u.span_seconds),
+    )
 }
 
 /// Follows a job's status stream with a progress bar per iteration until it ends; returns the
@@ -399,4 +421,39 @@ pub async fn job_status(clients: &mut Clients, job: &str) -> Result<JobStatus> {
 /// Whether the job has finished (its final field is stored).
 pub fn is_finished(status: &JobStatus) -> bool {
     status.state == State::Finished as i32
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_iteration_use_reads_as_busy_share_and_serial_part() {
+        let used = v1::IterationUse {
+            seconds: 0.040,
+            busy_seconds: 0.060,
+            span_seconds: 0.036,
+            workers: 2,
+        };
+        // 60 ms of compute in 2 × 36 ms: 83 % busy; 4 ms outside the span.
+        assert_eq!(
+            describe_use(&used),
+            "40.0 ms: 2 workers 83% busy over 36.0 ms, 4.0 ms between iterations"
+        );
+        let idle = v1::IterationUse {
+            seconds: 0.010,
+            ..Default::default()
+        };
+        assert_eq!(describe_use(&idle), "10.0 ms: no work reported");
+        let status = JobStatus {
+            job_id: "j".into(),
+            state: State::Finished as i32,
+            last_iteration: Some(used),
+            ..Default::default()
+        };
+        assert!(
+            describe(&status)
+                .ends_with("last iteration 40.0 ms: 2 workers 83% busy over 36.0 ms, 4.0 ms between iterations")
+        );
+    }
 }

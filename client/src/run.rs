@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use vlf_core::scene::Scene;
 use vlf_proto::{JobSpec, Target};
 use vlf_server::{ServeConfig, Server};
-use vlf_store::{FieldJob, JobId, Prototypes, Stage, Store, WorkTraffic};
+use vlf_store::{FieldJob, JobId, Prototypes, Stage, Store};
 use vlf_worker::{StoreChoice, WorkerConfig};
 
 pub fn run(args: RunArgs) -> Result<()> {
@@ -91,7 +91,7 @@ pub struct Embedded {
     pub store: Store,
     /// Per iteration: seconds from its start to its snapshot's commit, and the work it moved
     /// through the store.
-    pub iterations: Vec<(f64, WorkTraffic)>,
+    pub iterations: Vec<vlf_server::scheduler::IterationRecord>,
 }
 
 /// Runs `job` to its end on a coordinator and `workers` in this process, over `store`, talking

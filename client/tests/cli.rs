@@ -576,6 +576,25 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
             "{way} missing from the plain iterations:\n{printed}"
         );
     }
+    // How the service's workers spent them: a row per service way, none for the in-process
+    // run; the workers' compute never exceeds what the span holds (balance in (0, 1]).
+    let spent = plain
+        .split("How the service spent those iterations")
+        .nth(1)
+        .unwrap_or_else(|| panic!("no table of how the workers were used:\n{printed}"));
+    assert!(!spent.contains("| in-process | "), "{printed}");
+    for way in ["| service, 1 worker | ", "| service, 2 workers | "] {
+        let row = spent
+            .lines()
+            .find(|l| l.starts_with(way))
+            .unwrap_or_else(|| panic!("{way} missing from how the workers were used:\n{printed}"));
+        let cells: Vec<f64> = row.split('|').filter_map(|c| c.trim().parse().ok()).collect();
+        let [iteration, between, span, balance, waiting] = cells[..] else {
+            panic!("{row}");
+        };
+        assert!(span > 0.0 && span <= iteration && between >= 0.0, "{row}");
+        assert!(balance > 0.0 && balance <= 1.0 && waiting >= 0.0, "{row}");
+    }
     // With a co-tenant: the same bits, and the report says so.
     let mut shared = args[..10].to_vec();
     shared.extend(["--repeat", "1", "--workers", "2", "--cotenant"]);

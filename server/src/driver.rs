@@ -214,11 +214,22 @@ impl Driver {
             let iterations = self.sched.iterations(&self.id).unwrap_or_default();
             let (blobs, bytes) = iterations
                 .iter()
-                .fold((0, 0), |(n, b), (_, t)| (n + t.blobs, b + t.bytes));
+                .fold((0, 0), |(n, b), r| (n + r.traffic.blobs, b + r.traffic.bytes));
+            // How the workers were used over the job (see `IterationUse`).
+            let (busy, capacity, between) = iterations.iter().fold((0.0, 0.0, 0.0), |(b, c, s), r| {
+                let w = &r.workers;
+                (
+                    b + w.busy_seconds,
+                    c + f64::from(w.workers) * w.span_seconds,
+                    s + w.between_seconds(),
+                )
+            });
             tracing::info!(
                 job = %self.id,
                 work_blobs = blobs,
                 work_mb = format!("{:.2}", bytes as f64 / 1e6),
+                workers_busy = format!("{:.0}%", 100.0 * busy / capacity.max(f64::MIN_POSITIVE)),
+                between_iterations_s = format!("{between:.3}"),
                 "job finished"
             );
             return;

@@ -49,8 +49,23 @@ use vlf_proto::v1::{JobStatus, State as WireState};
 use vlf_store::{JobId, Prototypes, Store, WorkTraffic};
 
 mod pass;
+mod usage;
 
 pub use pass::block_len;
+pub use usage::IterationUse;
+use usage::UseClock;
+
+/// A finished iteration, as the scheduler saw it ([`Scheduler::iterations`]).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct IterationRecord {
+    /// From its start to the next one's (its snapshot released: the commit overlaps the next
+    /// iteration).
+    pub seconds: f64,
+    /// What it moved through the store.
+    pub traffic: WorkTraffic,
+    /// How it used the workers.
+    pub workers: IterationUse,
+}
 use pass::{Batch, BatchState, PassRun, Shooting, find_run, first_claim};
 
 /// How long leases last and how often workers must be heard from.
@@ -196,9 +211,13 @@ struct Clock {
     directions: usize,
     /// Batches per pass.
     batches_per_pass: usize,
-    /// Durations of the iterations this coordinator finished, and their work traffic.
+    /// Durations of the iterations this coordinator finished, their work traffic and how they
+    /// used the workers.
     iteration_seconds: Vec<f64>,
     traffic: Vec<WorkTraffic>,
+    usage: Vec<IterationUse>,
+    /// The current iteration's leases and reports so far.
+    use_clock: UseClock,
     /// Compute seconds per batch of the last block reported (sizes the next passes' blocks).
     batch_seconds: Option<f64>,
 }
@@ -302,6 +321,8 @@ impl Scheduler {
                     directions: 0,
                     batches_per_pass: 0,
                     iteration_seconds: Vec::new(),
+                    usage: Vec::new(),
+                    use_clock: UseClock::default(),
                     traffic: Vec::new(),
                     batch_seconds: None,
                 },
@@ -356,6 +377,7 @@ impl Scheduler {
         if let Some(entry) = state.jobs.get_mut(job) {
             let clock = &mut entry.clock;
             clock.iteration_started = Instant::now();
+            clock.use_clock = UseClock::default();
             clock.batches_before_pass = 0;
             clock.batches_total = passes * batches;
             clock.directions = directions;
@@ -363,30 +385,42 @@ impl Scheduler {
         }
     }
 
-    /// Records that the current iteration ended (for the job's ETA).
-    /// `traffic` is what the iteration moved through the store.
+    /// Records that the current iteration ended (for the job's ETA and its status's
+    /// [`IterationUse`]). `traffic` is what the iteration moved through the store.
     pub fn end_iteration(&self, job: &JobId, traffic: WorkTraffic) {
         let mut state = self.lock();
+        let alive = alive_workers(&state, self.timing);
         if let Some(entry) = state.jobs.get_mut(job) {
-            let seconds = entry.clock.iteration_started.elapsed().as_secs_f64();
-            entry.clock.iteration_seconds.push(seconds);
-            entry.clock.traffic.push(traffic);
+            let clock = &mut entry.clock;
+            let seconds = clock.iteration_started.elapsed().as_secs_f64();
+            let used = clock.use_clock.end(seconds);
+            clock.iteration_seconds.push(seconds);
+            clock.traffic.push(traffic);
+            clock.usage.push(used);
             entry.passes.clear();
+            let mut status = entry.status.borrow().clone();
+            status.last_iteration = Some(used.to_wire());
+            publish(entry, status, alive);
         }
     }
 
     /// The iterations this coordinator finished for `job`: how long each took, from its start to
-    /// the start of the next (its snapshot released: the commit overlaps the next iteration), and
-    /// what it moved through the store.
-    pub fn iterations(&self, job: &JobId) -> Result<Vec<(f64, WorkTraffic)>, Unknown> {
+    /// the start of the next (its snapshot released: the commit overlaps the next iteration),
+    /// what it moved through the store and how it used the workers.
+    pub fn iterations(&self, job: &JobId) -> Result<Vec<IterationRecord>, Unknown> {
         let state = self.lock();
         let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
         let clock = &entry.clock;
         Ok(clock
             .iteration_seconds
             .iter()
-            .copied()
-            .zip(clock.traffic.iter().copied())
+            .zip(&clock.traffic)
+            .zip(&clock.usage)
+            .map(|((&seconds, &traffic), &workers)| IterationRecord {
+                seconds,
+                traffic,
+                workers,
+            })
             .collect())
     }
 
@@ -624,6 +658,7 @@ impl Scheduler {
         lease: Lease,
         alive: u32,
     ) -> Grant {
+        entry.clock.use_clock.leased();
         let run = &mut entry.passes[p];
         for b in &mut run.batches[lease.batches.clone()] {
             b.state = BatchState::Leased(lease.number);
@@ -781,6 +816,7 @@ impl Scheduler {
                 if seconds.is_finite() && seconds > 0.0 {
                     entry.clock.batch_seconds = Some(seconds / batches.len() as f64);
                 }
+                entry.clock.use_clock.reported(worker, seconds);
                 entry.driver.notify_one();
             }
             Err(message) => {

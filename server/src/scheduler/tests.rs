@@ -535,3 +535,34 @@ async fn status_sequence_increases_with_every_change() {
     assert_eq!(last.batches_done, 1);
     assert_eq!(last.batches_total, 3);
 }
+
+#[tokio::test]
+async fn an_iteration_records_what_its_workers_computed_and_publishes_it() {
+    let s = scheduler(60_000);
+    let id = job(&s);
+    assert_eq!(s.status(&id).unwrap().last_iteration, None, "none before the first");
+    s.start_pass(&id, 0, Pass::Areas { copy: 0 }, 3, &[]);
+    let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
+    let first = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+    let second = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+    let third = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+    assert!(s.report(&a, &first.lease_id, Ok(()), 0.25).unwrap());
+    // A failure is not work done, and a report of a lease that is gone is not taken.
+    assert!(s.report(&b, &second.lease_id, Err("disk full".into()), 5.0).unwrap());
+    assert!(!s.report(&b, &second.lease_id, Ok(()), 7.0).unwrap());
+    let again = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+    assert!(s.report(&b, &again.lease_id, Ok(()), 0.5).unwrap());
+    assert!(s.report(&a, &third.lease_id, Ok(()), 0.125).unwrap());
+    s.end_iteration(&id, WorkTraffic::default());
+    let records = s.iterations(&id).unwrap();
+    assert_eq!(records.len(), 1);
+    let used = records[0].workers;
+    assert_eq!((used.workers, used.busy_seconds), (2, 0.875));
+    assert!(used.span_seconds <= used.seconds && used.seconds == records[0].seconds);
+    assert_eq!(s.status(&id).unwrap().last_iteration, Some(used.to_wire()));
+    // The next iteration starts counting afresh.
+    s.start_iteration(&id, 1, 1, 40);
+    s.end_iteration(&id, WorkTraffic::default());
+    let next = s.iterations(&id).unwrap()[1].workers;
+    assert_eq!((next.workers, next.busy_seconds, next.span_seconds), (0, 0.0, 0.0));
+}
