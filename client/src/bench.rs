@@ -426,7 +426,7 @@ fn workers_table(out: &mut String, ways: &[Option<usize>], samples: &[Vec<Sample
             ms(&|u| u.seconds),
             ms(&|u| u.between_seconds()),
             ms(&|u| u.span_seconds),
-            ms(&|u| f64::from(u.workers) * u.span_seconds - u.busy_seconds),
+            ms(&|u| u.waiting_seconds()),
         );
     }
 }

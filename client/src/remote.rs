@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use vlf_proto::v1::{self, JobStatus, State};
 use vlf_proto::{Clients, Target};
+use vlf_server::scheduler::IterationUse;
 use vlf_store::{JobId, Stage, Store, layout};
 
 impl ServerFlags {
@@ -227,19 +228,19 @@ pub fn describe(s: &JobStatus) -> String {
 /// How an iteration used its workers, in words: whether more workers would help (they computed
 /// all along), or their balance or the serial part between iterations is what limits the job.
 pub fn describe_use(u: &v1::IterationUse) -> String {
+    let u = IterationUse::from_wire(u);
     let ms = |s: f64| format!("{:.1} ms", s * 1e3);
-    let between = ms((u.seconds - u.span_seconds).max(0.0));
-    let capacity = f64::from(u.workers) * u.span_seconds;
-    if u.workers == 0 || capacity <= 0.0 {
+    let Some(balance) = u.balance() else {
         return format!("{}: no work reported", ms(u.seconds));
-    }
+    };
     format!(
-        "{}: {} worker{} {:.0}% busy over {}, {between} between iterations",
+        "{}: {} worker{} {:.0}% busy over {}, {} between iterations",
         ms(u.seconds),
         u.workers,
         if u.workers == 1 { "" } else { "s" },
-        100.0 * u.busy_seconds / capacity,
+        100.0 * balance,
         ms(u.span_seconds),
+        ms(u.between_seconds()),
     )
 }
 

@@ -211,11 +211,9 @@ struct Clock {
     directions: usize,
     /// Batches per pass.
     batches_per_pass: usize,
-    /// Durations of the iterations this coordinator finished, their work traffic and how they
+    /// The iterations this coordinator finished: their durations, work traffic and how they
     /// used the workers.
-    iteration_seconds: Vec<f64>,
-    traffic: Vec<WorkTraffic>,
-    usage: Vec<IterationUse>,
+    finished: Vec<IterationRecord>,
     /// The current iteration's leases and reports so far.
     use_clock: UseClock,
     /// Compute seconds per batch of the last block reported (sizes the next passes' blocks).
@@ -320,10 +318,8 @@ impl Scheduler {
                     batches_total: 0,
                     directions: 0,
                     batches_per_pass: 0,
-                    iteration_seconds: Vec::new(),
-                    usage: Vec::new(),
+                    finished: Vec::new(),
                     use_clock: UseClock::default(),
-                    traffic: Vec::new(),
                     batch_seconds: None,
                 },
                 shooting: Shooting::default(),
@@ -394,9 +390,11 @@ impl Scheduler {
             let clock = &mut entry.clock;
             let seconds = clock.iteration_started.elapsed().as_secs_f64();
             let used = clock.use_clock.end(seconds);
-            clock.iteration_seconds.push(seconds);
-            clock.traffic.push(traffic);
-            clock.usage.push(used);
+            clock.finished.push(IterationRecord {
+                seconds,
+                traffic,
+                workers: used,
+            });
             entry.passes.clear();
             let mut status = entry.status.borrow().clone();
             status.last_iteration = Some(used.to_wire());
@@ -411,17 +409,7 @@ impl Scheduler {
         let state = self.lock();
         let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
         let clock = &entry.clock;
-        Ok(clock
-            .iteration_seconds
-            .iter()
-            .zip(&clock.traffic)
-            .zip(&clock.usage)
-            .map(|((&seconds, &traffic), &workers)| IterationRecord {
-                seconds,
-                traffic,
-                workers,
-            })
-            .collect())
+        Ok(clock.finished.clone())
     }
 
     /// Opens `pass` of the iteration after `snapshot`, `batches` batches, for leasing after the
@@ -978,10 +966,10 @@ fn publish(entry: &mut JobEntry, mut status: JobStatus, workers_alive: u32) {
         status.eta_iteration_seconds = if rate > 0.0 { left / rate } else { -1.0 };
         status.eta_job_seconds = -1.0;
         if status.iterations_planned > 0 && status.eta_iteration_seconds >= 0.0 {
-            let per_iteration = if clock.iteration_seconds.is_empty() {
+            let per_iteration = if clock.finished.is_empty() {
                 elapsed + status.eta_iteration_seconds
             } else {
-                clock.iteration_seconds.iter().sum::<f64>() / clock.iteration_seconds.len() as f64
+                clock.finished.iter().map(|r| r.seconds).sum::<f64>() / clock.finished.len() as f64
             };
             let after = status.iterations_planned.saturating_sub(status.iteration.max(1)) as f64;
             status.eta_job_seconds = status.eta_iteration_seconds + after * per_iteration;

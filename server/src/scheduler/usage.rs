@@ -37,6 +37,20 @@ impl IterationUse {
         (self.seconds - self.span_seconds).max(0.0)
     }
 
+    /// Worker time spent waiting in the span: `workers · span − busy`.
+    pub fn waiting_seconds(&self) -> f64 {
+        f64::from(self.workers) * self.span_seconds - self.busy_seconds
+    }
+
+    pub fn from_wire(u: &v1::IterationUse) -> IterationUse {
+        IterationUse {
+            seconds: u.seconds,
+            busy_seconds: u.busy_seconds,
+            span_seconds: u.span_seconds,
+            workers: u.workers,
+        }
+    }
+
     pub fn to_wire(self) -> v1::IterationUse {
         v1::IterationUse {
             seconds: self.seconds,
@@ -119,6 +133,8 @@ mod tests {
         assert!((used.between_seconds() - (10.0 - used.span_seconds)).abs() < 1e-12);
         let balance = used.balance().unwrap();
         assert!((balance - 0.012 / (2.0 * used.span_seconds)).abs() < 1e-12);
+        assert!((used.waiting_seconds() - (2.0 * used.span_seconds - 0.012)).abs() < 1e-12);
+        assert_eq!(IterationUse::from_wire(&used.to_wire()), used);
         // Started over.
         assert_eq!(clock.end(1.0).workers, 0);
     }
