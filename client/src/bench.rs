@@ -50,6 +50,19 @@ pub struct BenchArgs {
     /// then costs shows how its workers cope with cores that are not their own.
     #[arg(long)]
     cotenant: bool,
+    /// Make every call to the store wait this many milliseconds first (`memory://?latency=`), as
+    /// a round trip to a remote object store would, both ways alike: what the service's store
+    /// calls cost on a cluster's S3-compatible store, without one.
+    #[arg(long, value_name = "MS")]
+    latency: Option<f64>,
+}
+
+/// The store every run of the bench writes into: `memory://`, with `--latency`'s wait.
+fn store_url(args: &BenchArgs) -> String {
+    match args.latency {
+        Some(ms) => format!("memory://?latency={ms}ms"),
+        None => "memory://".into(),
+    }
 }
 
 /// A thread that computes for 30 ms of every 60 until dropped (`--cotenant`).
@@ -136,6 +149,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
         .collect();
     let mut samples: Vec<Vec<Sample>> = ways.iter().map(|_| Vec::new()).collect();
     let mut reference: Option<Checkpoint> = None;
+    let url = store_url(&args);
+    Store::open(&url).context("--latency")?;
     let cotenant = if args.cotenant { Some(Cotenant::start()?) } else { None };
     let bar = indicatif::ProgressBar::new((args.repeat * ways.len()) as u64);
     for _ in 0..args.repeat {
@@ -148,8 +163,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
                     .num_threads(threads)
                     .build()
                     .context("cannot start the compute threads")?
-                    .install(|| in_process(&scene, &spec))?,
-                Some(count) => service(&runtime, &scene, &spec, Workers { count: *count, threads })?,
+                    .install(|| in_process(&url, &scene, &spec))?,
+                Some(count) => service(&runtime, &url, &scene, &spec, Workers { count: *count, threads })?,
             };
             let last = without_times(last);
             match &reference {
@@ -178,9 +193,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
 }
 
 /// `vlf propagate`'s loop into a `memory://` store.
-fn in_process(scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
+fn in_process(url: &str, scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
     let started = Instant::now();
-    let store = Store::open("memory://")?;
+    let store = Store::open(url)?;
     let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
     let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
     let mut iterations = Vec::new();
@@ -201,12 +216,13 @@ fn in_process(scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
 /// The embedded service over a `memory://` store.
 fn service(
     runtime: &tokio::runtime::Runtime,
+    url: &str,
     scene: &Scene,
     spec: &JobSpec,
     workers: Workers,
 ) -> Result<(Sample, Checkpoint)> {
     let started = Instant::now();
-    let store = Store::open("memory://")?;
+    let store = Store::open(url)?;
     let job = EmbeddedJob::New(scene.clone(), spec.clone());
     let Embedded { id, store, iterations } = runtime.block_on(embedded(store, job, workers, Follow::Quiet))?;
     let count = iterations.len() as u32;
@@ -232,12 +248,62 @@ fn median(mut v: Vec<f64>) -> f64 {
     }
 }
 
-/// The median, smallest and largest of `way[i] / base[i]` over the rounds `i`.
-fn paired_ratio(base: &[f64], way: &[f64]) -> (f64, f64, f64) {
-    let ratios: Vec<f64> = base.iter().zip(way).map(|(b, w)| w / b).collect();
-    let low = ratios.iter().copied().fold(f64::INFINITY, f64::min);
-    let high = ratios.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    (median(ratios), low, high)
+/// How `way` compares with `base` over the rounds: the ratios `way[i] / base[i]`, one per round.
+struct Ratios {
+    median: f64,
+    /// A 95 % confidence interval of the median ratio ([`median_interval`]); `None` with fewer
+    /// than 6 rounds, which cannot give one.
+    interval: Option<(f64, f64)>,
+    smallest: f64,
+    largest: f64,
+}
+
+impl Ratios {
+    fn paired(base: &[f64], way: &[f64]) -> Ratios {
+        let mut ratios: Vec<f64> = base.iter().zip(way).map(|(b, w)| w / b).collect();
+        ratios.sort_by(f64::total_cmp);
+        Ratios {
+            median: median(ratios.clone()),
+            interval: median_interval(ratios.len()).map(|(lo, hi)| (ratios[lo], ratios[hi])),
+            smallest: ratios.first().copied().unwrap_or(f64::NAN),
+            largest: ratios.last().copied().unwrap_or(f64::NAN),
+        }
+    }
+
+    /// The table cells: median, interval, smallest–largest.
+    fn cells(&self) -> String {
+        let interval = match self.interval {
+            Some((lo, hi)) => format!("{lo:.2}–{hi:.2}"),
+            None => "–".into(),
+        };
+        format!(
+            "{:.2} | {interval} | {:.2}–{:.2}",
+            self.median, self.smallest, self.largest
+        )
+    }
+}
+
+/// The order statistics (0-based, of `n` sorted samples) that bound a distribution-free 95 %
+/// confidence interval of the median: `[x(i), x(n−1−i)]` misses the median only when `i + 1` or
+/// more samples fall on one side of it, which happens with probability `2·P(B ≤ i)` for `B ~
+/// Binomial(n, ½)`, whatever the distribution, if the rounds are independent (the pairing takes
+/// out the machine's slow spells, which rounds would otherwise share).
+/// The largest `i` with `2·P(B ≤ i) ≤ 5 %`: the narrowest such interval. `None` for `n < 6`,
+/// where even the whole range misses with more than 5 % (`2 / 2⁵ = 6.25 %` for `n = 5`).
+fn median_interval(n: usize) -> Option<(usize, usize)> {
+    // P(B = k) for k = 0, 1, …: C(n, k) / 2ⁿ, by the ratio of successive terms.
+    let mut term = 0.5f64.powi(n as i32);
+    let mut below = 0.0;
+    let mut found = None;
+    for i in 0..n / 2 {
+        below += term;
+        if 2.0 * below > 0.05 {
+            break;
+        }
+        found = Some((i, n - 1 - i));
+        term *= (n - i) as f64 / (i + 1) as f64;
+    }
+    found
 }
 
 fn name(workers: Option<usize>) -> String {
@@ -268,8 +334,9 @@ fn report(
     );
     let _ = writeln!(
         out,
-        "{threads} threads on {cpu}; `memory://` store; median of {} runs each, interleaved. \
+        "{threads} threads on {cpu}; `{}` store; median of {} runs each, interleaved. \
          Every service run gave the in-process bits.{}\n",
+        store_url(args),
         args.repeat,
         if args.cotenant {
             " With a co-tenant: a thread computing 30 ms of every 60 throughout (`--cotenant`)."
@@ -280,21 +347,19 @@ fn report(
     let _ = writeln!(
         out,
         "`×` is the median over rounds of each round's ratio to its in-process run (a slow \
-         spell of the machine slows both runs of a round), with the smallest and largest.\n"
+         spell of the machine slows both runs of a round); `95 %` is a confidence interval of \
+         that median (distribution-free: order statistics of the rounds' ratios; none below 6 \
+         rounds), `range` the smallest and largest ratio.\n"
     );
     let base: Vec<f64> = samples[0].iter().map(|s| s.seconds).collect();
-    let _ = writeln!(out, "| run | median s | fastest s | × in-process | × range |");
-    let _ = writeln!(out, "|---|---:|---:|---:|---:|");
+    let _ = writeln!(out, "| run | median s | fastest s | × in-process | × 95 % | × range |");
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
     for (way, runs) in ways.iter().zip(samples) {
         let times: Vec<f64> = runs.iter().map(|s| s.seconds).collect();
         let fastest = times.iter().copied().fold(f64::INFINITY, f64::min);
-        let (ratio, low, high) = paired_ratio(&base, &times);
+        let ratios = Ratios::paired(&base, &times);
         let m = median(times);
-        let _ = writeln!(
-            out,
-            "| {} | {m:.3} | {fastest:.3} | {ratio:.2} | {low:.2}–{high:.2} |",
-            name(*way)
-        );
+        let _ = writeln!(out, "| {} | {m:.3} | {fastest:.3} | {} |", name(*way), ratios.cells());
     }
 
     // The plain iterations, summed per run and paired by round like the whole runs.
@@ -310,14 +375,14 @@ fn report(
             "\n{which} (the propagation's throughput: the first{} left out), summed per run:\n",
             if plain_after > 1 { " and the perturbed ones" } else { "" }
         );
-        let _ = writeln!(out, "| run | median s | × in-process | × range |");
-        let _ = writeln!(out, "|---|---:|---:|---:|");
+        let _ = writeln!(out, "| run | median s | × in-process | × 95 % | × range |");
+        let _ = writeln!(out, "|---|---:|---:|---:|---:|");
         let base: Vec<f64> = samples[0].iter().map(plain).collect();
         for (way, runs) in ways.iter().zip(samples) {
             let times: Vec<f64> = runs.iter().map(plain).collect();
-            let (ratio, low, high) = paired_ratio(&base, &times);
+            let ratios = Ratios::paired(&base, &times);
             let m = median(times);
-            let _ = writeln!(out, "| {} | {m:.3} | {ratio:.2} | {low:.2}–{high:.2} |", name(*way));
+            let _ = writeln!(out, "| {} | {m:.3} | {} |", name(*way), ratios.cells());
         }
         workers_table(&mut out, ways, samples, plain_after);
     }
@@ -445,12 +510,61 @@ mod tests {
     #[test]
     fn paired_ratios_cancel_a_machine_that_slows_down_between_rounds() {
         // The machine is 3× slower in the last round: each round's ratio is still 1.2.
-        let base = [1.0, 1.0, 3.0];
-        let service = [1.2, 1.2, 3.6];
-        let (ratio, low, high) = paired_ratio(&base, &service);
-        assert!((ratio - 1.2).abs() < 1e-12 && (low - 1.2).abs() < 1e-12 && (high - 1.2).abs() < 1e-12);
-        let (ratio, low, high) = paired_ratio(&[1.0, 2.0, 4.0], &[1.1, 2.6, 4.0]);
-        assert_eq!((ratio, low, high), (1.1, 1.0, 1.3));
+        let r = Ratios::paired(&[1.0, 1.0, 3.0], &[1.2, 1.2, 3.6]);
+        for v in [r.median, r.smallest, r.largest] {
+            assert!((v - 1.2).abs() < 1e-12, "{v}");
+        }
+        assert!(r.interval.is_none(), "three rounds give no interval");
+        let r = Ratios::paired(&[1.0, 2.0, 4.0], &[1.1, 2.6, 4.0]);
+        assert_eq!((r.median, r.smallest, r.largest), (1.1, 1.0, 1.3));
+        assert_eq!(r.cells(), "1.10 | – | 1.00–1.30");
         assert_eq!(median(vec![3.0, 1.0, 2.0, 10.0]), 2.5);
+    }
+
+    /// P(B ≤ i) for B ~ Binomial(n, ½), from binomial coefficients built by Pascal's rule (not
+    /// the ratio of terms the code uses).
+    fn binomial_cdf(n: usize, i: usize) -> f64 {
+        let mut row = vec![1.0f64];
+        for _ in 0..n {
+            let mut next = vec![1.0; row.len() + 1];
+            for k in 1..row.len() {
+                next[k] = row[k - 1] + row[k];
+            }
+            row = next;
+        }
+        row[..=i].iter().sum::<f64>() / 2f64.powi(n as i32)
+    }
+
+    #[test]
+    fn the_median_interval_covers_95_percent_and_is_the_narrowest_that_does() {
+        // The textbook values: 6th to 16th of 21 (97.3 %), 14th to 28th of 41.
+        assert_eq!(median_interval(21), Some((5, 15)));
+        assert_eq!(median_interval(41), Some((13, 27)));
+        assert_eq!(median_interval(5), None);
+        assert_eq!(median_interval(6), Some((0, 5)));
+        for n in 6..=100 {
+            let (lo, hi) = median_interval(n).unwrap_or_else(|| panic!("n = {n}"));
+            assert_eq!(hi, n - 1 - lo, "symmetric, n = {n}");
+            let coverage = |i: usize| 1.0 - 2.0 * binomial_cdf(n, i);
+            assert!(coverage(lo) >= 0.95, "n = {n}: {}", coverage(lo));
+            assert!(coverage(lo + 1) < 0.95, "n = {n}: a narrower one covers too");
+            assert!(lo < hi && lo <= (n - 1) / 2 && hi >= n / 2, "holds the median, n = {n}");
+        }
+        for n in 0..6 {
+            assert_eq!(median_interval(n), None, "n = {n}");
+        }
+    }
+
+    #[test]
+    fn the_interval_is_read_from_the_sorted_ratios() {
+        // Rounds in any order; ratios 1.00, 1.01, …, 1.20 shuffled by a fixed permutation.
+        let n = 21;
+        let base = vec![2.0; n];
+        let way: Vec<f64> = (0..n).map(|i| 2.0 * (1.0 + ((i * 8) % n) as f64 / 100.0)).collect();
+        let r = Ratios::paired(&base, &way);
+        let (lo, hi) = r.interval.expect("21 rounds");
+        assert!((lo - 1.05).abs() < 1e-12 && (hi - 1.15).abs() < 1e-12, "{lo} {hi}");
+        assert!((r.median - 1.10).abs() < 1e-12);
+        assert_eq!(r.cells(), "1.10 | 1.05–1.15 | 1.00–1.20");
     }
 }

@@ -5,6 +5,7 @@
 //! | `PATH` (no `scheme://`) or `file://PATH` | [`LocalFileSystem`] rooted at `PATH`, created if missing: the embedded default, no set-up |
 //! | `s3://BUCKET` or `s3://BUCKET/PREFIX` | [`AmazonS3`](object_store::aws::AmazonS3) configured from the environment (below), keys under `PREFIX/` |
 //! | `memory://` | [`InMemory`], for tests: lives as long as the `Store` and its clones |
+//! | `memory://?latency=20ms` | the same, every call (get, put, list, delete) first waiting that long: what a round trip to a remote object store costs, for measuring it (`vlf bench --latency`) without one |
 //!
 //! # S3 environment
 //!
@@ -38,7 +39,9 @@ use object_store::aws::AmazonS3Builder;
 use object_store::local::LocalFileSystem;
 use object_store::memory::InMemory;
 use object_store::prefix::PrefixStore;
+use object_store::throttle::{ThrottleConfig, ThrottledStore};
 use std::sync::Arc;
+use std::time::Duration;
 
 /// A backend, and the directory it lives in when it is local (what [`crate::AsyncStore::flush`]
 /// syncs).
@@ -61,7 +64,7 @@ pub(crate) fn open(url: &str, create: bool) -> Result<Backend, StoreError> {
         None => local(trimmed, create).map_err(fail),
         Some(("file", path)) => local(path, create).map_err(fail),
         Some(("memory", "")) => Ok(remote(Arc::new(InMemory::new()))),
-        Some(("memory", _)) => Err(fail("memory:// takes no path".into())),
+        Some(("memory", rest)) => memory_with_latency(rest).map(remote).map_err(fail),
         Some(("s3", rest)) => s3(rest).map(remote).map_err(fail),
         Some((scheme, _)) if scheme.chars().all(|c| c.is_ascii_alphanumeric() || "+-.".contains(c)) => {
             Err(fail(format!("unsupported scheme `{scheme}://`")))
@@ -69,6 +72,34 @@ pub(crate) fn open(url: &str, create: bool) -> Result<Backend, StoreError> {
         // Something like `./odd://name`: a path with `://` in it.
         Some(_) => local(trimmed, create).map_err(fail),
     }
+}
+
+/// `memory://?latency=MSms`: an in-memory store whose every call waits `MS` milliseconds
+/// first ([`ThrottledStore`]), as a call to a remote object store waits for its round trip (an S3
+/// request in the same region takes some 10–30 ms to its first byte). Only a round trip: the
+/// bytes themselves move at memory speed.
+fn memory_with_latency(rest: &str) -> Result<Arc<dyn ObjectStore>, String> {
+    const FORM: &str = "memory:// takes no path, only a simulated latency: `memory://?latency=20ms`";
+    let ms = rest
+        .strip_prefix("?latency=")
+        .and_then(|v| v.strip_suffix("ms"))
+        .ok_or_else(|| FORM.to_string())?;
+    let ms: f64 = ms
+        .parse()
+        .map_err(|_| format!("latency `{ms}`: not a number of milliseconds ({FORM})"))?;
+    if !(0.0..=10_000.0).contains(&ms) {
+        return Err(format!("latency {ms} ms: must be between 0 and 10000 ms"));
+    }
+    let wait = Duration::from_secs_f64(ms / 1e3);
+    let config = ThrottleConfig {
+        wait_get_per_call: wait,
+        wait_put_per_call: wait,
+        wait_list_per_call: wait,
+        wait_list_with_delimiter_per_call: wait,
+        wait_delete_per_call: wait,
+        ..ThrottleConfig::default()
+    };
+    Ok(Arc::new(ThrottledStore::new(InMemory::new(), config)))
 }
 
 fn remote(store: Arc<dyn ObjectStore>) -> Backend {

@@ -46,11 +46,11 @@ use crate::job::Job;
 use crate::layout::MapPart;
 use crate::layout::{self, Stage};
 use crate::manifest::JobState;
-use crate::store::Store;
+use crate::store::{Put, Store};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
-use vlf_core::maps::TexelAtlas;
+use vlf_core::maps::{TexelAtlas, TexelGrid};
 use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{
     Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Totals,
@@ -195,9 +195,9 @@ impl FieldJob {
                     .map(|(b, bytes)| (MapPart::Totals, b, bytes)),
             )
             .collect();
-        writes
-            .par_iter()
-            .try_for_each(|&(part, b, bytes)| self.job.put_map_part(k, part, b as u32, bytes).map(|_| ()))?;
+        self.job.put_encoded(&writes, |&(part, b, bytes)| {
+            self.job.map_part_put(k, part, b as u32, bytes)
+        })?;
         // The head last: once it is there, the state is complete.
         self.job.put_state(k, &parts.head)?;
         let unit = radiance_unit(&self.scene);
@@ -348,10 +348,9 @@ impl FieldJob {
     /// iteration after it is released: what a lease that shoots or gathers from those directions
     /// reads.
     pub fn released_maps(&self, k: u32, part: MapPart, batches: &[usize]) -> Result<Vec<MapBatch>, StoreError> {
-        batches
-            .par_iter()
-            .copied()
-            .map(|b| self.decode_map_part(k, b, &self.job.get_released_map_part(k, part, b as u32)?))
+        let parts = self.job.get_released_map_parts(k, part, batches)?;
+        (batches.par_iter().zip(&parts))
+            .map(|(&b, bytes)| self.decode_map_part(k, b, bytes))
             .collect()
     }
 
@@ -447,11 +446,11 @@ impl FieldJob {
         };
         let per_side = self.options.grid.tiles_per_side();
         let tiles = mirror_tiles(m.layouts, m.subfields);
-        tiles.par_iter().try_for_each(|(d, k, range)| {
+        self.job.put_encoded(&tiles, |(d, k, range)| {
             let values = scaled(&m.totals[*d][range.clone()], unit);
             let (s, t) = (k % per_side, k / per_side);
             self.job
-                .put_tile(stage, *d as u32, s, t, &[range.len() as u32, 3], &values)
+                .tile_put(stage, *d as u32, s, t, &[range.len() as u32, 3], &values)
         })
     }
 
@@ -502,10 +501,21 @@ fn write_diffuse(
     radiance: &[[f32; 3]],
     unit: f64,
 ) -> Result<(), StoreError> {
-    atlas.grids.par_iter().enumerate().try_for_each(|(s, g)| {
-        let values = scaled(&radiance[g.first..g.first + g.len()], unit);
-        job.put_diffuse(stage, s as u32, &[g.height, g.width, 3], &values)
-    })
+    let surfaces: Vec<_> = atlas.grids.iter().enumerate().collect();
+    job.put_encoded(&surfaces, |&(s, g)| diffuse_put(job, stage, s, g, radiance, unit))
+}
+
+/// The blob of surface `s`'s diffuse map, whose texels `g` are in `radiance`.
+fn diffuse_put(
+    job: &Job,
+    stage: Stage,
+    s: usize,
+    g: &TexelGrid,
+    radiance: &[[f32; 3]],
+    unit: f64,
+) -> Result<Put, StoreError> {
+    let values = scaled(&radiance[g.first..g.first + g.len()], unit);
+    job.diffuse_put(stage, s as u32, &[g.height, g.width, 3], &values)
 }
 
 /// The shooting state of a released snapshot as stored ([`FieldJob::released_state`]).
@@ -544,14 +554,28 @@ impl PendingSnapshot {
 
     /// Writes the rest of the snapshot and commits it; returns the job with the manifest that
     /// lists it, for [`FieldJob::adopt_commit`].
+    /// Its blobs go in one bulk write (their requests overlapping), the manifest that lists
+    /// them after.
     pub fn commit(mut self) -> Result<Job, StoreError> {
         let stage = Stage::Iteration(self.k);
-        self.job.put_totals(self.k, &self.totals)?;
-        // Mirror radiance of a snapshot lives in its checkpoint's totals (see the module docs).
-        write_diffuse(&self.job, stage, &self.atlas, &self.diffuse, self.summary.radiance_unit)?;
         let json = serde_json::to_vec_pretty(&self.summary)
             .map_err(|e| StoreError::Layout(format!("summary of snapshot {}: {e}", self.k)))?;
-        self.job.put_summary(stage, &json)?;
+        // Mirror radiance of a snapshot lives in its checkpoint's totals (see the module docs).
+        enum Blob<'a> {
+            Totals,
+            Summary,
+            Surface(usize, &'a TexelGrid),
+        }
+        let blobs: Vec<Blob> = [Blob::Totals, Blob::Summary]
+            .into_iter()
+            .chain(self.atlas.grids.iter().enumerate().map(|(s, g)| Blob::Surface(s, g)))
+            .collect();
+        let unit = self.summary.radiance_unit;
+        self.job.put_encoded(&blobs, |blob| match blob {
+            Blob::Totals => self.job.totals_put(self.k, &self.totals),
+            Blob::Summary => self.job.summary_put(stage, &json),
+            Blob::Surface(s, g) => diffuse_put(&self.job, stage, *s, g, &self.diffuse, unit),
+        })?;
         self.job.commit_iteration(self.k)?;
         Ok(self.job)
     }

@@ -44,7 +44,7 @@ use crate::job::Job;
 use crate::layout;
 use crate::layout::MapPart;
 use crate::manifest::JobState;
-use crate::store::PutOutcome;
+use crate::store::{Put, PutOutcome, Writing};
 use rayon::prelude::*;
 use std::collections::HashMap;
 use std::ops::Range;
@@ -67,6 +67,12 @@ impl FieldJob {
     /// Writes a block output of the iteration starting from snapshot `output.iteration`
     /// (create-only: the same bytes again are accepted, different bytes refused).
     pub fn put_batch(&self, output: &BatchOutput) -> Result<PutOutcome, StoreError> {
+        let put = self.batch_put(output)?;
+        self.job().store().put_new(&put.key, put.bytes)
+    }
+
+    /// [`FieldJob::put_batch`]'s blob, encoded, for [`crate::Store::put_all`].
+    pub fn batch_put(&self, output: &BatchOutput) -> Result<Put, StoreError> {
         let key = layout::work_block(
             self.id(),
             output.iteration,
@@ -80,26 +86,64 @@ impl FieldJob {
                 key: key.clone(),
                 source,
             })?;
-        self.job().store().put_new(&key, bytes)
+        Ok(Put {
+            key,
+            bytes: bytes.into(),
+            create_only: true,
+        })
     }
 
     /// Reads the output of batches `batches` of `pass` of the iteration starting from snapshot
     /// `k`.
     pub fn get_batch(&self, k: u32, pass: Pass, batches: Range<usize>) -> Result<BatchOutput, StoreError> {
-        let key = layout::work_block(self.id(), k, &pass_name(pass), batches.start as u32, batches.end as u32)?;
-        let bytes = self.job().store().get_bytes_blob(&key, BlobKind::BatchOutput)?;
-        let output = BatchOutput::from_bytes(&bytes).map_err(|e| self.decode_error(&key, e.to_string()))?;
-        let held = output.batches.start as usize..output.batches.end as usize;
-        if (output.iteration, output.pass, &held) != (k, pass, &batches) {
-            return Err(self.decode_error(
-                &key,
-                format!(
-                    "holds batches {held:?} of {:?} of iteration {}",
-                    output.pass, output.iteration
-                ),
-            ));
-        }
-        Ok(output)
+        let mut outputs = self.get_batches(k, pass, std::slice::from_ref(&batches))?;
+        Ok(outputs.remove(0))
+    }
+
+    /// [`FieldJob::get_batch`] of several blocks, their requests overlapping (see
+    /// [`crate::Store::get_all`]), decoded in parallel, in the order of `blocks`.
+    pub fn get_batches(&self, k: u32, pass: Pass, blocks: &[Range<usize>]) -> Result<Vec<BatchOutput>, StoreError> {
+        Ok(self.read_batches(k, pass, blocks)?.0)
+    }
+
+    /// [`FieldJob::get_batches`], and what the blobs read weigh as stored.
+    fn read_batches(
+        &self,
+        k: u32,
+        pass: Pass,
+        blocks: &[Range<usize>],
+    ) -> Result<(Vec<BatchOutput>, WorkTraffic), StoreError> {
+        let keys = blocks
+            .iter()
+            .map(|b| layout::work_block(self.id(), k, &pass_name(pass), b.start as u32, b.end as u32))
+            .collect::<Result<Vec<_>, _>>()?;
+        let blobs = self.job().store().get_all(&keys)?;
+        let read = WorkTraffic {
+            blobs: blobs.len() as u64,
+            bytes: blobs.iter().map(|b| b.len() as u64).sum(),
+        };
+        let outputs = (keys.par_iter().zip(&blobs).zip(blocks))
+            .map(|((key, blob), batches)| {
+                let bytes = self
+                    .job()
+                    .store()
+                    .as_async()
+                    .decode_with(key, blob, |b| blob::decode_bytes(b, BlobKind::BatchOutput))?;
+                let output = BatchOutput::from_bytes(&bytes).map_err(|e| self.decode_error(key, e.to_string()))?;
+                let held = output.batches.start as usize..output.batches.end as usize;
+                if (output.iteration, output.pass, &held) != (k, pass, batches) {
+                    return Err(self.decode_error(
+                        key,
+                        format!(
+                            "holds batches {held:?} of {:?} of iteration {}",
+                            output.pass, output.iteration
+                        ),
+                    ));
+                }
+                Ok(output)
+            })
+            .collect::<Result<_, _>>()?;
+        Ok((outputs, read))
     }
 
     /// The blocks of `pass` of the iteration starting from snapshot `k` whose outputs are in the
@@ -210,6 +254,9 @@ pub struct Replica {
     current: Option<Current>,
     /// Mirror maps this replica computed: parts of the snapshot after the current iteration.
     held: Vec<MirrorBlock>,
+    /// Their blobs on their way into the store: a block's are written while the next block
+    /// computes, and waited for before the outputs that tell the coordinator they are there.
+    writing: Vec<Writing>,
     /// The snapshot whose whole state `prop` holds, if any (a prototype's): nothing of it is
     /// read from the store.
     holds_snapshot: Option<u32>,
@@ -239,6 +286,7 @@ impl Replica {
             prop,
             current: None,
             held: Vec::new(),
+            writing: Vec::new(),
             holds_snapshot: None,
         }
     }
@@ -266,7 +314,9 @@ impl Replica {
     /// the same directions every iteration, and gathers from directions it shoots, reads no
     /// mirror map back; with one worker, none at all.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
+        self.settle_failed();
         let out = self.shoot(k, pass, batches)?;
+        self.written()?;
         self.job.put_batch(&out)?;
         Ok(())
     }
@@ -284,6 +334,7 @@ impl Replica {
         start: usize,
         mut next: impl FnMut(usize) -> Option<Range<usize>>,
     ) -> Result<Range<usize>, StoreError> {
+        self.settle_failed();
         let mut outputs = RunOutputs::new();
         let mut done = start;
         while let Some(block) = next(done) {
@@ -298,10 +349,24 @@ impl Replica {
                 .push(out)
                 .map_err(|e| self.job.field_error(vlf_core::Error::Parameter(e)))?;
         }
-        for out in outputs.finish() {
-            self.job.put_batch(&out)?;
-        }
+        self.written()?;
+        self.job
+            .job()
+            .put_encoded(&outputs.finish(), |out| self.job.batch_put(out))?;
         Ok(start..done)
+    }
+
+    /// Waits for the mirror maps on their way into the store.
+    fn written(&mut self) -> Result<(), StoreError> {
+        self.writing.drain(..).try_for_each(Writing::wait)
+    }
+
+    /// Lets the writes of a lease that failed before its wait finish: a successful lease waits
+    /// for its own, so what is left failed already, and its error was reported with it.
+    fn settle_failed(&mut self) {
+        for writing in self.writing.drain(..) {
+            let _ = writing.wait();
+        }
     }
 
     /// [`Replica::compute`] but for writing the block's output: returns it.
@@ -368,14 +433,18 @@ impl Replica {
             // The block took its directions' totals with it: computing it again reads them.
             batches.for_each(|b| current.totals[b] = false);
             let l = self.prop.directions.len();
-            block
+            let job = self.job.job();
+            let puts = block
                 .batch_bytes(l)
                 .par_iter()
-                .try_for_each(|(b, shooting, totals)| -> Result<(), StoreError> {
-                    self.job.job().put_map_part(k + 1, MapPart::Shooting, *b, shooting)?;
-                    self.job.job().put_map_part(k + 1, MapPart::Totals, *b, totals)?;
-                    Ok(())
-                })?;
+                .flat_map_iter(|(b, shooting, totals)| {
+                    [
+                        job.map_part_put(k + 1, MapPart::Shooting, *b, shooting),
+                        job.map_part_put(k + 1, MapPart::Totals, *b, totals),
+                    ]
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            self.writing.push(job.store().put_all_behind(puts)?);
             self.held.push(block);
         }
         Ok(out)
@@ -458,7 +527,8 @@ pub struct WorkTraffic {
 /// from the previous snapshot and uses them again).
 pub struct SnapshotCommit {
     snapshot: PendingSnapshot,
-    work: Vec<String>,
+    /// Where the iteration's batch outputs are (`layout::work_prefix`).
+    work: String,
 }
 
 impl SnapshotCommit {
@@ -467,13 +537,13 @@ impl SnapshotCommit {
         self.snapshot.iteration()
     }
 
-    /// Commits the snapshot and deletes the iteration's batch outputs; returns the job with the
+    /// Commits the snapshot and deletes the iteration's batch outputs — every one under its
+    /// prefix, those of leases that expired after writing theirs too; returns the job with the
     /// manifest that lists the snapshot, for [`Coordinator::committed`].
     pub fn commit(self) -> Result<Job, StoreError> {
         let job = self.snapshot.commit()?;
-        for key in &self.work {
-            job.store().delete(key)?;
-        }
+        let work = job.store().list(&self.work)?;
+        job.store().delete_all(&work)?;
         Ok(job)
     }
 }
@@ -484,6 +554,8 @@ pub struct Coordinator {
     prop: Propagation,
     work: Option<(IterationWork, Instant)>,
     traffic: Vec<WorkTraffic>,
+    /// The batch outputs read back so far in the current iteration.
+    absorbed: WorkTraffic,
     /// Whether `prop` holds the mirror maps of its snapshot: true from its restore until an
     /// iteration shoots them (then they live in the store, written by the workers).
     maps_held: bool,
@@ -505,6 +577,7 @@ impl Coordinator {
             prop,
             work: None,
             traffic: Vec::new(),
+            absorbed: WorkTraffic::default(),
             maps_held: true,
         }
     }
@@ -595,13 +668,16 @@ impl Coordinator {
     }
 
     /// Absorbs the outputs of `blocks` of `pass` (the next ones expected, in order) from the
-    /// store: the coordinator takes each block in as soon as it is written. A block that cannot
-    /// be read stops it there; what was absorbed stays absorbed.
+    /// store: the coordinator takes each block in as soon as it is written. They are read
+    /// together (their requests overlap), then absorbed in order; if one cannot be read, none is
+    /// absorbed.
     pub fn absorb_blocks(&mut self, pass: Pass, blocks: &[Range<usize>]) -> Result<(), StoreError> {
         let k = self.iteration();
         self.work();
-        for block in blocks {
-            let out = self.job.get_batch(k, pass, block.clone())?;
+        let (outputs, read) = self.job.read_batches(k, pass, blocks)?;
+        self.absorbed.blobs += read.blobs;
+        self.absorbed.bytes += read.bytes;
+        for out in outputs {
             let Some((work, _)) = self.work.as_mut() else {
                 unreachable!("passes() created it");
             };
@@ -652,20 +728,14 @@ impl Coordinator {
             ))));
         }
         let snapshot = self.job.release_snapshot(&self.prop, maps)?;
-        let blobs = self
-            .job
-            .job()
-            .store()
-            .list_sizes(&layout::work_prefix(self.job.id(), k)?)?;
-        self.traffic.push(WorkTraffic {
-            blobs: blobs.len() as u64,
-            bytes: blobs.iter().map(|(_, size)| size).sum(),
-        });
+        // What the outputs weighed is known from reading them: no listing (a round trip to an
+        // object store) before the next iteration starts.
+        self.traffic.push(std::mem::take(&mut self.absorbed));
         Ok((
             stats,
             SnapshotCommit {
                 snapshot,
-                work: blobs.into_iter().map(|(key, _)| key).collect(),
+                work: layout::work_prefix(self.job.id(), k)?,
             },
         ))
     }

@@ -19,7 +19,8 @@ use crate::error::StoreError;
 use crate::id::JobId;
 use crate::layout::{self, MapPart, Stage};
 use crate::manifest::{JobState, Manifest};
-use crate::store::{PutOutcome, Store};
+use crate::store::{IN_FLIGHT, Put, PutOutcome, Store};
+use rayon::prelude::*;
 
 /// A job: its store and the manifest as last read or written.
 #[derive(Debug, Clone)]
@@ -125,6 +126,22 @@ impl Job {
         }
     }
 
+    /// Encodes `items` into blobs with `encode` on the compute threads (rayon) and writes them
+    /// with [`Store::put_all`], whose requests overlap their round trips: the way to write many
+    /// blobs (see [`crate::store`]). A slice of `4 · IN_FLIGHT` items at a time, so that only a
+    /// slice's encoded blobs are held at once.
+    pub fn put_encoded<T: Sync>(
+        &self,
+        items: &[T],
+        encode: impl Fn(&T) -> Result<Put, StoreError> + Sync,
+    ) -> Result<(), StoreError> {
+        for slice in items.chunks(4 * IN_FLIGHT) {
+            let puts = slice.par_iter().map(&encode).collect::<Result<Vec<_>, _>>()?;
+            self.store.put_all(puts)?;
+        }
+        Ok(())
+    }
+
     /// Writes the resume state of iteration `k` (caller's serialisation).
     pub fn put_state(&self, k: u32, state: &[u8]) -> Result<(), StoreError> {
         let key = layout::state(self.id(), k)?;
@@ -136,9 +153,19 @@ impl Job {
     /// serialisation). Create-only: they are a pure function of the job, so the same bytes again
     /// (a block computed twice, a run resumed) are accepted and different bytes refused.
     pub fn put_map_part(&self, k: u32, part: MapPart, batch: u32, bytes: &[u8]) -> Result<PutOutcome, StoreError> {
+        let put = self.map_part_put(k, part, batch, bytes)?;
+        self.store.put_new(&put.key, put.bytes)
+    }
+
+    /// [`Job::put_map_part`]'s blob, encoded, for [`Store::put_all`].
+    pub fn map_part_put(&self, k: u32, part: MapPart, batch: u32, bytes: &[u8]) -> Result<Put, StoreError> {
         let key = layout::map_part(self.id(), k, part, batch)?;
         let bytes = blob::encode_bytes(BlobKind::Snapshot, bytes).map_err(|e| self.blob_error(&key, e))?;
-        self.store.put_new(&key, bytes)
+        Ok(Put {
+            key,
+            bytes: bytes.into(),
+            create_only: true,
+        })
     }
 
     /// Mirror maps `part` of batch `batch` of the resume state of iteration `k` as written,
@@ -148,32 +175,71 @@ impl Job {
             .get_bytes_blob(&layout::map_part(self.id(), k, part, batch)?, BlobKind::Snapshot)
     }
 
+    /// [`Job::get_released_map_part`] of several batches, their requests overlapping (see
+    /// [`Store::get_all`]), in the order of `batches`.
+    pub fn get_released_map_parts(&self, k: u32, part: MapPart, batches: &[usize]) -> Result<Vec<Vec<u8>>, StoreError> {
+        let keys = batches
+            .iter()
+            .map(|&b| layout::map_part(self.id(), k, part, b as u32))
+            .collect::<Result<Vec<_>, _>>()?;
+        let blobs = self.store.get_all(&keys)?;
+        (keys.par_iter().zip(&blobs))
+            .map(|(key, bytes)| {
+                self.store
+                    .as_async()
+                    .decode_with(key, bytes, |b| blob::decode_bytes(b, BlobKind::Snapshot))
+            })
+            .collect()
+    }
+
     /// Writes the totals half of the resume state of iteration `k` (caller's serialisation;
     /// optional: a job's resume state may be one blob).
     pub fn put_totals(&self, k: u32, totals: &[u8]) -> Result<(), StoreError> {
+        self.store.put_all(vec![self.totals_put(k, totals)?])
+    }
+
+    /// [`Job::put_totals`]'s blob, encoded, for [`Store::put_all`].
+    pub fn totals_put(&self, k: u32, totals: &[u8]) -> Result<Put, StoreError> {
         let key = layout::totals(self.id(), k)?;
         let bytes = blob::encode_bytes(BlobKind::Snapshot, totals).map_err(|e| self.blob_error(&key, e))?;
-        self.write(Stage::Iteration(k), &key, bytes)
+        Ok(self.put_into(Stage::Iteration(k), key, bytes))
     }
 
     /// Writes the summary of `stage` (caller's JSON).
     pub fn put_summary(&self, stage: Stage, json: &[u8]) -> Result<(), StoreError> {
+        self.store.put_all(vec![self.summary_put(stage, json)?])
+    }
+
+    /// [`Job::put_summary`]'s blob, encoded, for [`Store::put_all`].
+    pub fn summary_put(&self, stage: Stage, json: &[u8]) -> Result<Put, StoreError> {
         let key = layout::summary(self.id(), stage)?;
         let bytes = blob::encode_bytes(BlobKind::Summary, json).map_err(|e| self.blob_error(&key, e))?;
-        self.write(stage, &key, bytes)
+        Ok(self.put_into(stage, key, bytes))
     }
 
     /// Writes the Total maps of diffuse surface `surface` (`values` in row-major `shape`, e.g.
     /// `[rows, cols, 3]`), in the job's encoding.
     pub fn put_diffuse(&self, stage: Stage, surface: u32, shape: &[u32], values: &[f32]) -> Result<(), StoreError> {
+        self.store
+            .put_all(vec![self.diffuse_put(stage, surface, shape, values)?])
+    }
+
+    /// [`Job::put_diffuse`]'s blob, encoded, for [`Store::put_all`].
+    pub fn diffuse_put(&self, stage: Stage, surface: u32, shape: &[u32], values: &[f32]) -> Result<Put, StoreError> {
         let key = layout::diffuse(self.id(), stage, surface)?;
-        self.put_values(stage, &key, BlobKind::DiffuseMaps, shape, values)
+        self.values_put(stage, key, BlobKind::DiffuseMaps, shape, values)
     }
 
     /// Writes the directional maps of mirror `surface`, in the job's encoding.
     pub fn put_mirror(&self, stage: Stage, surface: u32, shape: &[u32], values: &[f32]) -> Result<(), StoreError> {
         let key = layout::mirror(self.id(), stage, surface)?;
-        self.put_values(stage, &key, BlobKind::MirrorMaps, shape, values)
+        self.store.put_all(vec![self.values_put(
+            stage,
+            key,
+            BlobKind::MirrorMaps,
+            shape,
+            values,
+        )?])
     }
 
     /// Writes tile (`s`, `t`) of direction `dir`, in the job's encoding.
@@ -186,8 +252,22 @@ impl Job {
         shape: &[u32],
         values: &[f32],
     ) -> Result<(), StoreError> {
+        self.store
+            .put_all(vec![self.tile_put(stage, dir, s, t, shape, values)?])
+    }
+
+    /// [`Job::put_tile`]'s blob, encoded, for [`Store::put_all`].
+    pub fn tile_put(
+        &self,
+        stage: Stage,
+        dir: u32,
+        s: u32,
+        t: u32,
+        shape: &[u32],
+        values: &[f32],
+    ) -> Result<Put, StoreError> {
         let key = layout::tile(self.id(), stage, dir, s, t)?;
-        self.put_values(stage, &key, BlobKind::TileRadiance, shape, values)
+        self.values_put(stage, key, BlobKind::TileRadiance, shape, values)
     }
 
     /// Marks iteration `k` finished: its snapshot blobs (at least the resume state) must be
@@ -305,26 +385,32 @@ impl Job {
         Ok(keys.iter().filter_map(|k| layout::parse_tile(k)).collect())
     }
 
-    fn put_values(
+    /// `values` (row-major `shape`) encoded in the job's encoding as a blob of `kind` for `key`.
+    fn values_put(
         &self,
         stage: Stage,
-        key: &str,
+        key: String,
         kind: BlobKind,
         shape: &[u32],
         values: &[f32],
-    ) -> Result<(), StoreError> {
+    ) -> Result<Put, StoreError> {
         let bytes =
-            blob::encode_values(kind, self.manifest.encoding, shape, values).map_err(|e| self.blob_error(key, e))?;
-        self.write(stage, key, bytes)
+            blob::encode_values(kind, self.manifest.encoding, shape, values).map_err(|e| self.blob_error(&key, e))?;
+        Ok(self.put_into(stage, key, bytes))
     }
 
-    /// Create-only into a committed stage, replacing into an uncommitted one.
-    fn write(&self, stage: Stage, key: &str, bytes: Vec<u8>) -> Result<(), StoreError> {
-        if self.is_committed(stage) {
-            self.store.put_new(key, bytes).map(|_| ())
-        } else {
-            self.store.put(key, bytes)
+    /// A write into `stage`: create-only into a committed stage, replacing into an uncommitted
+    /// one.
+    fn put_into(&self, stage: Stage, key: String, bytes: Vec<u8>) -> Put {
+        Put {
+            key,
+            bytes: bytes.into(),
+            create_only: self.is_committed(stage),
         }
+    }
+
+    fn write(&self, stage: Stage, key: &str, bytes: Vec<u8>) -> Result<(), StoreError> {
+        self.store.put_all(vec![self.put_into(stage, key.to_string(), bytes)])
     }
 
     fn write_manifest(&mut self, mut manifest: Manifest) -> Result<(), StoreError> {

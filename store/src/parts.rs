@@ -170,29 +170,57 @@ impl StageParts {
         Ok(keys)
     }
 
-    /// Reads `parts` (numbers in `catalog`, the catalog of `geometry`), in parallel: each one's
-    /// radiance, in the field's units, checked against the shape the geometry gives it and for
-    /// finite, non-negative values. A blob that fails either is an error naming its key.
+    /// Reads `parts` (numbers in `catalog`, the catalog of `geometry`): each one's radiance, in
+    /// the field's units, checked against the shape the geometry gives it and for finite,
+    /// non-negative values. A blob that fails either is an error naming its key. The blobs not
+    /// at hand are fetched together, their requests overlapping (see [`vlf_store`'s bulk
+    /// calls](crate::store)), and decoded in parallel.
     pub fn read(
         &self,
         geometry: &LightField,
         catalog: &PartCatalog,
         parts: &[u32],
     ) -> Result<Vec<Vec<[f32; 3]>>, StoreError> {
+        let store = self.job.job().store();
+        let missing: Vec<String> = {
+            let cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
+            let keys = self.keys(catalog, parts)?;
+            keys.into_iter().filter(|k| !cached.contains_key(k)).collect()
+        };
+        let blobs = store.get_all(&missing)?;
+        let read: usize = blobs.iter().map(|b| b.len()).sum();
+        self.bytes.fetch_add(read as u64, Ordering::Relaxed);
+        let fetched: HashMap<&str, &[u8]> = missing
+            .iter()
+            .map(String::as_str)
+            .zip(blobs.iter().map(|b| &b[..]))
+            .collect();
+        // A snapshot's mirror totals hold many tiles: decoded once, before the tiles are cut.
+        missing
+            .par_iter()
+            .filter(|key| self.is_shared(key))
+            .try_for_each(|key| self.cache_snapshot_totals(key, fetched[key.as_str()]))?;
+        let blob = |key: &str| {
+            fetched.get(key).copied().ok_or_else(|| StoreError::NotFound {
+                url: store.url().to_string(),
+                key: key.to_string(),
+            })
+        };
         parts
             .par_iter()
             .map(|&i| {
-                let key = || self.key(catalog, i);
+                let key = self.key(catalog, i)?;
                 let values = match catalog.part(i) {
                     Part::Surface(s) => {
                         let g = &geometry.atlas.grids[s as usize];
-                        let (shape, values) = self.values(&key()?, BlobKind::DiffuseMaps)?;
-                        self.job.check_shape(&shape, &[g.height, g.width, 3], key)?;
+                        let (shape, values) = self.values(&key, blob(&key)?, BlobKind::DiffuseMaps)?;
+                        self.job
+                            .check_shape(&shape, &[g.height, g.width, 3], || Ok(key.clone()))?;
                         self.scaled(&values)
                     }
                     Part::Tile { direction, tile } => match self.stage {
                         Stage::Iteration(_) => {
-                            let (totals, first) = self.snapshot_totals(&key()?, direction)?;
+                            let (totals, first) = self.snapshot_totals(&key, direction)?;
                             let d = totals.get(direction as usize - first).map_or(&[][..], |t| t.as_slice());
                             d.get(catalog.range(i))
                                 .ok_or_else(|| {
@@ -204,16 +232,16 @@ impl StageParts {
                                 .to_vec()
                         }
                         Stage::Field => {
-                            let (shape, values) = self.values(&key()?, BlobKind::TileRadiance)?;
-                            self.job.check_shape(&shape, &[catalog.values(i) as u32, 3], key)?;
+                            let (shape, values) = self.values(&key, blob(&key)?, BlobKind::TileRadiance)?;
+                            self.job
+                                .check_shape(&shape, &[catalog.values(i) as u32, 3], || Ok(key.clone()))?;
                             self.scaled(&values)
                         }
                     },
                 };
                 if !values.iter().flatten().all(|c| c.is_finite() && *c >= 0.0) {
                     return Err(self.job.field_error(vlf_core::Error::Decode(format!(
-                        "{}: negative or non-finite radiance",
-                        key()?
+                        "{key}: negative or non-finite radiance"
                     ))));
                 }
                 Ok(values)
@@ -221,14 +249,13 @@ impl StageParts {
             .collect()
     }
 
-    /// Reads and decodes the blob of values at `key`, counting its bytes.
-    fn values(&self, key: &str, kind: BlobKind) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
-        let store = self.job.job().store();
-        let bytes = store.get(key)?;
-        self.bytes.fetch_add(bytes.len() as u64, Ordering::Relaxed);
-        store
+    /// Decodes the blob of values `bytes` read from `key`.
+    fn values(&self, key: &str, bytes: &[u8], kind: BlobKind) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
+        self.job
+            .job()
+            .store()
             .as_async()
-            .decode_with(key, &bytes, |b| blob::decode_values(b, kind))
+            .decode_with(key, bytes, |b| blob::decode_values(b, kind))
     }
 
     /// Stored values (`[.., 3]`, in the stage's unit) as radiance.
@@ -238,31 +265,56 @@ impl StageParts {
     }
 
     /// The snapshot's mirror totals held by `key` — of the batch of `direction`, or of every
-    /// direction in a job of an earlier build — read the first time, and the first direction
-    /// they hold.
+    /// direction in a job of an earlier build — as [`StageParts::read`] cached them, and the
+    /// first direction they hold.
     fn snapshot_totals(&self, key: &str, direction: u32) -> Result<(Arc<MirrorTotals>, usize), StoreError> {
+        let first = match self.mirrors {
+            MirrorSource::Batches => {
+                let batch = self.batch_of(direction);
+                vlf_core::propagate::work::batch_range(batch, self.job.options().directions).start
+            }
+            _ => 0,
+        };
+        let cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
+        match cached.get(key) {
+            Some(totals) => Ok((totals.clone(), first)),
+            None => Err(StoreError::NotFound {
+                url: self.job.job().store().url().to_string(),
+                key: key.to_string(),
+            }),
+        }
+    }
+
+    /// Decodes the snapshot's mirror totals `stored`, read from `key` (see
+    /// [`StageParts::snapshot_totals`]), and keeps them.
+    fn cache_snapshot_totals(&self, key: &str, stored: &[u8]) -> Result<(), StoreError> {
         let Stage::Iteration(k) = self.stage else {
             return Err(self.job.field_error(vlf_core::Error::Decode(
                 "a final field keeps its mirror radiance in tiles".into(),
             )));
         };
-        let batch = self.batch_of(direction);
-        let first = match self.mirrors {
-            MirrorSource::Batches => vlf_core::propagate::work::batch_range(batch, self.job.options().directions).start,
-            _ => 0,
-        };
-        let mut cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some(totals) = cached.get(key) {
-            return Ok((totals.clone(), first));
-        }
-        let store = self.job.job().store();
-        let stored = store.get(key)?;
-        self.bytes.fetch_add(stored.len() as u64, Ordering::Relaxed);
-        let bytes = store
+        let bytes = self
+            .job
+            .job()
+            .store()
             .as_async()
-            .decode_with(key, &stored, |b| blob::decode_bytes(b, BlobKind::Snapshot))?;
+            .decode_with(key, stored, |b| blob::decode_bytes(b, BlobKind::Snapshot))?;
         let maps = match self.mirrors {
-            MirrorSource::Batches => self.job.decode_map_part(k, batch, &bytes)?.maps,
+            MirrorSource::Batches => {
+                // `…/mirror-totals/BBBBB.blob`, as `layout::map_part` names batch B's.
+                let batch = key
+                    .rsplit('/')
+                    .next()
+                    .and_then(|name| name.strip_suffix(".blob"))
+                    .and_then(|b| b.parse::<u32>().ok())
+                    .filter(|&b| layout::map_part(self.job.id(), k, MapPart::Totals, b).is_ok_and(|named| named == key))
+                    .ok_or_else(|| {
+                        self.job.field_error(vlf_core::Error::Decode(format!(
+                            "`{key}` is not a batch of mirror totals"
+                        )))
+                    })?;
+                self.job.decode_map_part(k, batch as usize, &bytes)?.maps
+            }
             _ => self.job.decode_totals(k, &bytes)?.mirrors.unwrap_or_default(),
         };
         let totals: Arc<MirrorTotals> = Arc::new(
@@ -270,8 +322,9 @@ impl StageParts {
                 .map(|m| m.iter().map(|t| t.map(|c| c as f32)).collect())
                 .collect(),
         );
-        cached.insert(key.to_string(), totals.clone());
-        Ok((totals, first))
+        let mut cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
+        cached.insert(key.to_string(), totals);
+        Ok(())
     }
 }
 

@@ -2,12 +2,22 @@
 //! blocking facade for the rest of VLF (rayon workers, the CLI) and an async core for servers.
 //!
 //! Every method is one backend request (or, for [`AsyncStore::put_new`] on a conflict, two), and
-//! every error names the key and the store URL.
+//! every error names the key and the store URL — but for the bulk ones ([`AsyncStore::put_all`],
+//! [`AsyncStore::get_all`], [`AsyncStore::delete_all`]), which keep up to [`IN_FLIGHT`] requests
+//! going at once.
+//!
+//! **Why bulk calls.** A request to an object store waits a round trip (an S3 request in the same
+//! region: some 10–30 ms to its first byte) in which it uses no CPU. A snapshot is hundreds of
+//! blobs (one per surface); written one request per compute thread, as a `par_iter` of blocking
+//! puts does, a 2-core machine kept two requests in flight, and the bundled mirror scene, whose
+//! propagation takes 0.4 s, took 38 s over a store 10 ms away (`memory://?latency=10ms`). Callers
+//! encode with their threads and hand the encoded blobs over in one call: the requests then
+//! overlap each other's round trips, whatever the number of cores.
 
 use crate::blob::{self, BlobError, BlobKind, Decoded};
 use crate::error::StoreError;
 use bytes::Bytes;
-use futures::TryStreamExt;
+use futures::{StreamExt, TryStreamExt};
 use object_store::path::Path;
 use object_store::{ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload};
 use std::future::Future;
@@ -31,6 +41,41 @@ pub struct Traffic {
     pub read_bytes: u64,
     pub writes: u64,
     pub written_bytes: u64,
+    /// The most gets, puts and deletes that were waiting for the backend at once: how much of
+    /// their round trips overlapped (see the module docs).
+    pub most_in_flight: u64,
+}
+
+/// A get, put or delete waiting for the backend, counted in [`Traffic::most_in_flight`] while it
+/// lives.
+struct InFlight<'a>(&'a Counters);
+
+impl<'a> InFlight<'a> {
+    fn new(counters: &'a Counters) -> InFlight<'a> {
+        let now = counters.in_flight.fetch_add(1, Ordering::Relaxed) + 1;
+        counters.most_in_flight.fetch_max(now, Ordering::Relaxed);
+        InFlight(counters)
+    }
+}
+
+impl Drop for InFlight<'_> {
+    fn drop(&mut self) {
+        self.0.in_flight.fetch_sub(1, Ordering::Relaxed);
+    }
+}
+
+/// Most requests a bulk call keeps in flight at once. An object store serves many more; this
+/// bounds the memory of the blobs in flight and the connections one process opens.
+pub const IN_FLIGHT: usize = 256;
+
+/// One object for [`AsyncStore::put_all`] to write.
+#[derive(Debug, Clone)]
+pub struct Put {
+    pub key: String,
+    pub bytes: Bytes,
+    /// Written with [`AsyncStore::put_new`] (create-only: the same bytes again are accepted,
+    /// different ones refused) rather than [`AsyncStore::put`] (replacing).
+    pub create_only: bool,
 }
 
 #[derive(Debug, Default)]
@@ -39,6 +84,8 @@ struct Counters {
     read_bytes: AtomicU64,
     writes: AtomicU64,
     written_bytes: AtomicU64,
+    in_flight: AtomicU64,
+    most_in_flight: AtomicU64,
 }
 
 impl Counters {
@@ -133,6 +180,7 @@ impl AsyncStore {
             read_bytes: c.read_bytes.load(Ordering::Relaxed),
             writes: c.writes.load(Ordering::Relaxed),
             written_bytes: c.written_bytes.load(Ordering::Relaxed),
+            most_in_flight: c.most_in_flight.load(Ordering::Relaxed),
         }
     }
 
@@ -142,6 +190,7 @@ impl AsyncStore {
         let path = self.path(key)?;
         let bytes = bytes.into();
         let len = bytes.len();
+        let _waiting = InFlight::new(&self.counters);
         self.backend
             .put(&path, PutPayload::from_bytes(bytes))
             .await
@@ -161,11 +210,13 @@ impl AsyncStore {
             mode: PutMode::Create,
             ..Default::default()
         };
-        match self
-            .backend
-            .put_opts(&path, PutPayload::from_bytes(bytes.clone()), opts)
-            .await
-        {
+        let created = {
+            let _waiting = InFlight::new(&self.counters);
+            self.backend
+                .put_opts(&path, PutPayload::from_bytes(bytes.clone()), opts)
+                .await
+        };
+        match created {
             Ok(_) => {
                 self.counters.wrote(bytes.len());
                 Ok(PutOutcome::Created)
@@ -187,7 +238,10 @@ impl AsyncStore {
     /// Reads the object at `key`; [`StoreError::NotFound`] if there is none.
     pub async fn get(&self, key: &str) -> Result<Bytes, StoreError> {
         let path = self.path(key)?;
-        let read = async { self.backend.get(&path).await?.bytes().await };
+        let read = async {
+            let _waiting = InFlight::new(&self.counters);
+            self.backend.get(&path).await?.bytes().await
+        };
         let bytes = read.await.map_err(|e| self.backend_error("get", key, e))?;
         self.counters.read(bytes.len());
         Ok(bytes)
@@ -244,10 +298,48 @@ impl AsyncStore {
     /// Deletes the object at `key`; deleting a missing key succeeds (on every backend alike).
     pub async fn delete(&self, key: &str) -> Result<(), StoreError> {
         let path = self.path(key)?;
+        let _waiting = InFlight::new(&self.counters);
         match self.backend.delete(&path).await {
             Ok(()) | Err(object_store::Error::NotFound { .. }) => Ok(()),
             Err(e) => Err(self.backend_error("delete", key, e)),
         }
+    }
+
+    /// Writes every object of `puts`, up to [`IN_FLIGHT`] requests at once, in no particular
+    /// order (see the module docs). Stops at the first error, which it returns; of the others,
+    /// some may be written — each object is written whole or not at all, as by
+    /// [`AsyncStore::put`] and [`AsyncStore::put_new`].
+    pub async fn put_all(&self, puts: Vec<Put>) -> Result<(), StoreError> {
+        futures::stream::iter(puts)
+            .map(|put| async move {
+                match put.create_only {
+                    true => self.put_new(&put.key, put.bytes).await.map(|_| ()),
+                    false => self.put(&put.key, put.bytes).await,
+                }
+            })
+            .buffer_unordered(IN_FLIGHT)
+            .try_collect()
+            .await
+    }
+
+    /// Reads the objects at `keys`, up to [`IN_FLIGHT`] requests at once, and returns their
+    /// contents in the order of `keys`. The first error is returned.
+    pub async fn get_all(&self, keys: &[String]) -> Result<Vec<Bytes>, StoreError> {
+        futures::stream::iter(keys)
+            .map(|key| self.get(key))
+            .buffered(IN_FLIGHT)
+            .try_collect()
+            .await
+    }
+
+    /// Deletes the objects at `keys` (missing ones included, as [`AsyncStore::delete`]), up to
+    /// [`IN_FLIGHT`] requests at once.
+    pub async fn delete_all(&self, keys: &[String]) -> Result<(), StoreError> {
+        futures::stream::iter(keys)
+            .map(|key| self.delete(key))
+            .buffer_unordered(IN_FLIGHT)
+            .try_collect()
+            .await
     }
 
     /// Reads and decodes the blob at `key`, which must be of `kind`.
@@ -404,6 +496,38 @@ impl Store {
         self.block_on(self.inner.get(key))?
     }
 
+    /// Blocking [`AsyncStore::put_all`].
+    pub fn put_all(&self, puts: Vec<Put>) -> Result<(), StoreError> {
+        self.block_on(self.inner.put_all(puts))?
+    }
+
+    /// Starts [`AsyncStore::put_all`] and returns at once: the caller goes on computing while
+    /// the requests wait for their round trips, and [`Writing::wait`]s before it relies on the
+    /// objects being there. Dropped without a wait, the writes still complete.
+    pub fn put_all_behind(&self, puts: Vec<Put>) -> Result<Writing, StoreError> {
+        let Some(runtime) = &self.runtime.0 else {
+            return Err(StoreError::Runtime {
+                url: self.url().to_string(),
+                reason: "runtime shut down".into(),
+            });
+        };
+        let inner = self.inner.clone();
+        Ok(Writing {
+            task: runtime.spawn(async move { inner.put_all(puts).await }),
+            store: self.clone(),
+        })
+    }
+
+    /// Blocking [`AsyncStore::get_all`].
+    pub fn get_all(&self, keys: &[String]) -> Result<Vec<Bytes>, StoreError> {
+        self.block_on(self.inner.get_all(keys))?
+    }
+
+    /// Blocking [`AsyncStore::delete_all`].
+    pub fn delete_all(&self, keys: &[String]) -> Result<(), StoreError> {
+        self.block_on(self.inner.delete_all(keys))?
+    }
+
     /// Blocking [`AsyncStore::exists`].
     pub fn exists(&self, key: &str) -> Result<bool, StoreError> {
         self.block_on(self.inner.exists(key))?
@@ -471,6 +595,24 @@ impl Store {
                 reason: "runtime shut down".into(),
             }),
         }
+    }
+}
+
+/// Writes started by [`Store::put_all_behind`].
+#[must_use = "wait for the writes before relying on them"]
+pub struct Writing {
+    task: tokio::task::JoinHandle<Result<(), StoreError>>,
+    store: Store,
+}
+
+impl Writing {
+    /// Waits until every write is done; the first error if one failed.
+    pub fn wait(self) -> Result<(), StoreError> {
+        let url = self.store.url().to_string();
+        self.store.block_on(self.task)?.map_err(|e| StoreError::Runtime {
+            url,
+            reason: format!("a bulk write stopped: {e}"),
+        })?
     }
 }
 

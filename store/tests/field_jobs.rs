@@ -423,3 +423,32 @@ fn damaged_checkpoint_totals_are_errors() {
     store.put(&totals(3), good).unwrap();
     assert!(job.checkpoint(3).is_ok());
 }
+
+#[test]
+fn snapshots_and_fields_are_written_with_their_requests_overlapping() {
+    // Over a store 10 ms away, a job's blobs go out many at a time, not one per compute thread,
+    // and read back the same as over a store without latency.
+    let scene = bundled("mirrors.obj");
+    let far = Store::open("memory://?latency=10ms").unwrap();
+    let near = Store::open("memory://").unwrap();
+    let (far_job, _) = run(&far, &scene, Encoding::F32);
+    let (near_job, _) = run(&near, &scene, Encoding::F32);
+    let traffic = far.traffic();
+    let surfaces = scene.surfaces.len() as u64;
+    assert!(
+        traffic.most_in_flight >= surfaces.min(64),
+        "{traffic:?} for {surfaces} surfaces"
+    );
+    assert_eq!(traffic.writes, near.traffic().writes);
+    let (a, b) = (far_job.checkpoint(4).unwrap(), near_job.checkpoint(4).unwrap());
+    assert_eq!(without_times(a), without_times(b));
+    for s in 0..scene.surfaces.len() as u32 {
+        let stage = Stage::Field;
+        if scene.material(s as usize).is_diffuse() {
+            assert_eq!(
+                far_job.job().get_diffuse(stage, s).unwrap(),
+                near_job.job().get_diffuse(stage, s).unwrap()
+            );
+        }
+    }
+}

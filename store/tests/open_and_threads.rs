@@ -19,6 +19,13 @@ fn bad_urls_give_clear_errors() {
         ("ftp://host/dir", "unsupported scheme `ftp://`"),
         ("gs://bucket/x", "unsupported scheme `gs://`"),
         ("memory://name", "memory:// takes no path"),
+        (
+            "memory://?latency=20",
+            "memory:// takes no path, only a simulated latency",
+        ),
+        ("memory://?latency=fast ms", "not a number of milliseconds"),
+        ("memory://?latency=-5ms", "must be between 0 and 10000 ms"),
+        ("memory://?latency=NaNms", "must be between 0 and 10000 ms"),
         ("s3://", "s3:// needs a bucket"),
         ("s3:///prefix", "s3:// needs a bucket"),
         ("file://", "file:// needs a path"),
@@ -34,6 +41,23 @@ fn bad_urls_give_clear_errors() {
     let below = file.join("store");
     let msg = url_error(below.to_str().unwrap());
     assert!(msg.contains("cannot create directory"), "{msg}");
+}
+
+#[test]
+fn a_memory_store_with_latency_waits_on_every_call_and_keeps_what_it_is_given() {
+    let store = Store::open("memory://?latency=25ms").unwrap();
+    assert_eq!(store.url(), "memory://?latency=25ms");
+    let started = std::time::Instant::now();
+    store.put("a/b.bin", b"value".to_vec()).unwrap();
+    assert_eq!(&store.get("a/b.bin").unwrap()[..], b"value");
+    assert_eq!(store.list("a/").unwrap(), ["a/b.bin"]);
+    // Three calls, each waiting at least its latency (a sleep never ends early).
+    assert!(
+        started.elapsed() >= std::time::Duration::from_millis(75),
+        "{:?}",
+        started.elapsed()
+    );
+    assert!(Store::open("memory://?latency=0ms").is_ok());
 }
 
 #[test]
