@@ -6,7 +6,7 @@
 use crate::driver::{self, SubmitError};
 use crate::scheduler::{Abilities, Scheduler, Unknown, is_terminal};
 use crate::upload::{self, UploadError};
-use futures::Stream;
+use futures::{Stream, StreamExt};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::time::Duration;
@@ -283,14 +283,22 @@ impl tiles_server::Tiles for Api {
             .collect::<Result<Vec<_>, _>>()?;
         let store = self.sched.store().as_async().clone();
         let stream = async_stream(move |tx| async move {
-            for (name, key) in keys {
-                let item = match store.get(&key).await {
-                    Ok(bytes) => Ok(v1::StoredBlob {
-                        name,
-                        data: bytes.to_vec(),
-                    }),
-                    Err(e) => Err(store_status(e)),
-                };
+            // In the order asked, the reads overlapping their round trips to the store.
+            let mut blobs = futures::stream::iter(keys)
+                .map(|(name, key)| {
+                    let store = store.clone();
+                    async move {
+                        match store.get(&key).await {
+                            Ok(bytes) => Ok(v1::StoredBlob {
+                                name,
+                                data: bytes.to_vec(),
+                            }),
+                            Err(e) => Err(store_status(e)),
+                        }
+                    }
+                })
+                .buffered(vlf_store::IN_FLIGHT);
+            while let Some(item) = blobs.next().await {
                 let failed = item.is_err();
                 if tx.send(item).await.is_err() || failed {
                     return;

@@ -336,6 +336,26 @@ impl FieldJob {
     /// the job). A job of the first builds has its whole checkpoint there instead.
     pub fn released_state(&self, k: u32) -> Result<ReleasedState, StoreError> {
         let bytes = self.job.get_released_state(k)?;
+        self.state_of(k, bytes)
+    }
+
+    /// [`FieldJob::released_state`], and in the same round trip the mirror maps `parts` that
+    /// may be wanted next ([`Job::get_released_state_and_parts`]): those that could be read and
+    /// decoded, with their part and batch.
+    pub fn released_state_and_maps(
+        &self,
+        k: u32,
+        parts: &[(MapPart, usize)],
+    ) -> Result<(ReleasedState, Vec<(MapPart, MapBatch)>), StoreError> {
+        let (state, stored) = self.job.get_released_state_and_parts(k, parts)?;
+        let maps = (parts.par_iter().zip(stored))
+            .filter_map(|(&(part, b), bytes)| Some((part, self.decode_map_part(k, b, &bytes?).ok()?)))
+            .collect();
+        Ok((self.state_of(k, state)?, maps))
+    }
+
+    /// The released state of snapshot `k` from its stored bytes.
+    fn state_of(&self, k: u32, bytes: Vec<u8>) -> Result<ReleasedState, StoreError> {
         if !Checkpoint::is_split(&bytes) {
             return Ok(ReleasedState::Whole(bytes));
         }
@@ -348,9 +368,16 @@ impl FieldJob {
     /// iteration after it is released: what a lease that shoots or gathers from those directions
     /// reads.
     pub fn released_maps(&self, k: u32, part: MapPart, batches: &[usize]) -> Result<Vec<MapBatch>, StoreError> {
-        let parts = self.job.get_released_map_parts(k, part, batches)?;
-        (batches.par_iter().zip(&parts))
-            .map(|(&b, bytes)| self.decode_map_part(k, b, bytes))
+        let parts: Vec<(MapPart, usize)> = batches.iter().map(|&b| (part, b)).collect();
+        self.released_map_parts(k, &parts)
+    }
+
+    /// [`FieldJob::released_maps`] of several parts at once: one bulk read (see
+    /// [`Store::get_all`]), in the order of `parts`.
+    pub fn released_map_parts(&self, k: u32, parts: &[(MapPart, usize)]) -> Result<Vec<MapBatch>, StoreError> {
+        let stored = self.job.get_released_map_parts(k, parts)?;
+        (parts.par_iter().zip(&stored))
+            .map(|(&(_, b), bytes)| self.decode_map_part(k, b, bytes))
             .collect()
     }
 

@@ -46,7 +46,7 @@ use crate::layout::MapPart;
 use crate::manifest::JobState;
 use crate::store::{Put, PutOutcome, Writing};
 use rayon::prelude::*;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
 use std::time::Instant;
@@ -268,6 +268,10 @@ struct Current {
     /// Per batch: its shooting maps restored, its totals restored.
     shooting: Vec<bool>,
     totals: Vec<bool>,
+    /// The mirror-map parts its leases read from the store so far, and those fetched with the
+    /// head (a guess) that no lease asked for yet.
+    read: Vec<(MapPart, usize)>,
+    prefetched: HashSet<(MapPart, usize)>,
 }
 
 impl Replica {
@@ -392,20 +396,27 @@ impl Replica {
         let missing = |wanted: Vec<usize>, have: &[bool]| -> Vec<usize> {
             wanted.into_iter().filter(|&b| have.get(b) == Some(&false)).collect()
         };
-        let (shooting, totals) = (missing(shooting, &current.shooting), missing(totals, &current.totals));
-        let (read_shooting, read_totals) = rayon::join(
-            || self.job.released_maps(k, MapPart::Shooting, &shooting),
-            || self.job.released_maps(k, MapPart::Totals, &totals),
-        );
-        for part in read_shooting? {
-            self.prop
-                .restore_shooting_batch(part)
-                .map_err(|e| self.job.field_error(e))?;
+        // Parts fetched with the head that this block wanted: the guess was right, keep it.
+        let guessed =
+            (shooting.iter().map(|&b| (MapPart::Shooting, b))).chain(totals.iter().map(|&b| (MapPart::Totals, b)));
+        for part in guessed {
+            if current.prefetched.remove(&part) {
+                current.read.push(part);
+            }
         }
-        for part in read_totals? {
-            self.prop
-                .restore_totals_batch(part)
-                .map_err(|e| self.job.field_error(e))?;
+        let (shooting, totals) = (missing(shooting, &current.shooting), missing(totals, &current.totals));
+        // One bulk read for both kinds: their round trips overlap, however few threads compute.
+        let wanted: Vec<(MapPart, usize)> = (shooting.iter().map(|&b| (MapPart::Shooting, b)))
+            .chain(totals.iter().map(|&b| (MapPart::Totals, b)))
+            .collect();
+        let read = self.job.released_map_parts(k, &wanted)?;
+        current.read.extend(&wanted);
+        for ((part, _), maps) in wanted.iter().zip(read) {
+            let restored = match part {
+                MapPart::Totals => self.prop.restore_totals_batch(maps),
+                _ => self.prop.restore_shooting_batch(maps),
+            };
+            restored.map_err(|e| self.job.field_error(e))?;
         }
         shooting.into_iter().for_each(|b| current.shooting[b] = true);
         totals.into_iter().for_each(|b| current.totals[b] = true);
@@ -455,8 +466,13 @@ impl Replica {
     /// released, perhaps not committed yet (see `PendingSnapshot`). The mirror maps this
     /// replica computed for `k` are taken from memory; the others come by batch, as leases need
     /// them. A snapshot of an earlier build is restored whole.
+    ///
+    /// A worker's homes stay put from one iteration to the next, so its leases read the same
+    /// parts of the other workers' maps each time (the arrivals that cross the edges of its
+    /// home): what the last iteration read comes along with the head, in the same round trip,
+    /// instead of one more when the first block that gathers them starts.
     fn start(&mut self, k: u32) -> Result<(), StoreError> {
-        self.current = None;
+        let guess = self.current.take().map(|c| c.read).unwrap_or_default();
         let held = std::mem::take(&mut self.held);
         if self.holds_snapshot.take() == Some(k) {
             let all = vec![true; batch_count(self.prop.directions.len())];
@@ -465,10 +481,14 @@ impl Replica {
                 work: self.prop.iteration_work(),
                 shooting: all.clone(),
                 totals: all,
+                read: Vec::new(),
+                prefetched: HashSet::new(),
             });
             return Ok(());
         }
-        let batches = match self.job.released_state(k)? {
+        let (state, prefetched) = self.job.released_state_and_maps(k, &guess)?;
+        let mut fetched = HashSet::new();
+        let (shooting, totals) = match state {
             ReleasedState::Head(head) if head.mirror_totals_by_batch() => {
                 let batches = head.mirror_batches.unwrap_or(0) as usize;
                 self.prop.restore_head(head).map_err(|e| self.job.field_error(e))?;
@@ -478,19 +498,41 @@ impl Replica {
                     self.prop.adopt_mirrors(block).map_err(|e| self.job.field_error(e))?;
                     loaded.get_mut(range).into_iter().flatten().for_each(|b| *b = true);
                 }
-                loaded
+                let (mut shooting, mut totals) = (loaded.clone(), loaded);
+                for (part, maps) in prefetched {
+                    let b = maps.batch as usize;
+                    let have = match part {
+                        MapPart::Totals => &mut totals,
+                        _ => &mut shooting,
+                    };
+                    // Not over maps of its own, which it holds already.
+                    if have.get(b) != Some(&false) {
+                        continue;
+                    }
+                    let restored = match part {
+                        MapPart::Totals => self.prop.restore_totals_batch(maps),
+                        _ => self.prop.restore_shooting_batch(maps),
+                    };
+                    restored.map_err(|e| self.job.field_error(e))?;
+                    have[b] = true;
+                    fetched.insert((part, b));
+                }
+                (shooting, totals)
             }
             earlier => {
                 let checkpoint = self.job.released_checkpoint(k, earlier)?;
                 self.prop.restore(checkpoint).map_err(|e| self.job.field_error(e))?;
-                vec![true; batch_count(self.prop.directions.len())]
+                let all = vec![true; batch_count(self.prop.directions.len())];
+                (all.clone(), all)
             }
         };
         self.current = Some(Current {
             k,
             work: self.prop.iteration_work(),
-            shooting: batches.clone(),
-            totals: batches,
+            shooting,
+            totals,
+            read: Vec::new(),
+            prefetched: fetched,
         });
         Ok(())
     }

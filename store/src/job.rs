@@ -22,6 +22,10 @@ use crate::manifest::{JobState, Manifest};
 use crate::store::{IN_FLIGHT, Put, PutOutcome, Store};
 use rayon::prelude::*;
 
+/// A released state's bytes and, for each part asked along, its bytes if they could be read
+/// ([`Job::get_released_state_and_parts`]).
+pub type StateAndParts = (Vec<u8>, Vec<Option<Vec<u8>>>);
+
 /// A job: its store and the manifest as last read or written.
 #[derive(Debug, Clone)]
 pub struct Job {
@@ -175,12 +179,12 @@ impl Job {
             .get_bytes_blob(&layout::map_part(self.id(), k, part, batch)?, BlobKind::Snapshot)
     }
 
-    /// [`Job::get_released_map_part`] of several batches, their requests overlapping (see
-    /// [`Store::get_all`]), in the order of `batches`.
-    pub fn get_released_map_parts(&self, k: u32, part: MapPart, batches: &[usize]) -> Result<Vec<Vec<u8>>, StoreError> {
-        let keys = batches
+    /// [`Job::get_released_map_part`] of several parts and batches, their requests overlapping
+    /// (see [`Store::get_all`]), in the order of `parts`.
+    pub fn get_released_map_parts(&self, k: u32, parts: &[(MapPart, usize)]) -> Result<Vec<Vec<u8>>, StoreError> {
+        let keys = parts
             .iter()
-            .map(|&b| layout::map_part(self.id(), k, part, b as u32))
+            .map(|&(part, b)| layout::map_part(self.id(), k, part, b as u32))
             .collect::<Result<Vec<_>, _>>()?;
         let blobs = self.store.get_all(&keys)?;
         (keys.par_iter().zip(&blobs))
@@ -335,6 +339,34 @@ impl Job {
     pub fn get_released_state(&self, k: u32) -> Result<Vec<u8>, StoreError> {
         self.store
             .get_bytes_blob(&layout::state(self.id(), k)?, BlobKind::Snapshot)
+    }
+
+    /// [`Job::get_released_state`], and along with it, in the same round trip, the mirror-map
+    /// `parts` that may be wanted next: each one's bytes, or `None` where it cannot be read (it
+    /// is then read again when it is wanted, and fails there if it must).
+    pub fn get_released_state_and_parts(
+        &self,
+        k: u32,
+        parts: &[(MapPart, usize)],
+    ) -> Result<StateAndParts, StoreError> {
+        let mut keys = vec![layout::state(self.id(), k)?];
+        for &(part, b) in parts {
+            keys.push(layout::map_part(self.id(), k, part, b as u32)?);
+        }
+        let mut read = self.store.get_each(&keys)?.into_iter();
+        let decode = |key: &str, bytes: &[u8]| {
+            self.store
+                .as_async()
+                .decode_with(key, bytes, |b| blob::decode_bytes(b, BlobKind::Snapshot))
+        };
+        let state = match read.next() {
+            Some(state) => decode(&keys[0], &state?)?,
+            None => unreachable!("the state's key is the first"),
+        };
+        let parts = (keys[1..].par_iter().zip(read.collect::<Vec<_>>()))
+            .map(|(key, bytes)| bytes.ok().and_then(|b| decode(key, &b).ok()))
+            .collect();
+        Ok((state, parts))
     }
 
     /// The totals half of the resume state of iteration `k` as written, committed or not.

@@ -44,6 +44,9 @@ pub struct Traffic {
     /// The most gets, puts and deletes that were waiting for the backend at once: how much of
     /// their round trips overlapped (see the module docs).
     pub most_in_flight: u64,
+    /// Calls of the blocking [`Store`], a bulk call counting once: the round trips to the
+    /// backend its callers waited through one after another.
+    pub round_trips: u64,
 }
 
 /// A get, put or delete waiting for the backend, counted in [`Traffic::most_in_flight`] while it
@@ -86,6 +89,7 @@ struct Counters {
     written_bytes: AtomicU64,
     in_flight: AtomicU64,
     most_in_flight: AtomicU64,
+    round_trips: AtomicU64,
 }
 
 impl Counters {
@@ -181,6 +185,7 @@ impl AsyncStore {
             writes: c.writes.load(Ordering::Relaxed),
             written_bytes: c.written_bytes.load(Ordering::Relaxed),
             most_in_flight: c.most_in_flight.load(Ordering::Relaxed),
+            round_trips: c.round_trips.load(Ordering::Relaxed),
         }
     }
 
@@ -329,6 +334,16 @@ impl AsyncStore {
             .map(|key| self.get(key))
             .buffered(IN_FLIGHT)
             .try_collect()
+            .await
+    }
+
+    /// Reads the objects at `keys` as [`AsyncStore::get_all`] does, but each on its own: one
+    /// that is missing or cannot be read is an error in its place, and the others are read.
+    pub async fn get_each(&self, keys: &[String]) -> Vec<Result<Bytes, StoreError>> {
+        futures::stream::iter(keys)
+            .map(|key| self.get(key))
+            .buffered(IN_FLIGHT)
+            .collect()
             .await
     }
 
@@ -498,6 +513,9 @@ impl Store {
 
     /// Blocking [`AsyncStore::put_all`].
     pub fn put_all(&self, puts: Vec<Put>) -> Result<(), StoreError> {
+        if puts.is_empty() {
+            return Ok(());
+        }
         self.block_on(self.inner.put_all(puts))?
     }
 
@@ -520,11 +538,22 @@ impl Store {
 
     /// Blocking [`AsyncStore::get_all`].
     pub fn get_all(&self, keys: &[String]) -> Result<Vec<Bytes>, StoreError> {
+        if keys.is_empty() {
+            return Ok(Vec::new());
+        }
         self.block_on(self.inner.get_all(keys))?
+    }
+
+    /// Blocking [`AsyncStore::get_each`].
+    pub fn get_each(&self, keys: &[String]) -> Result<Vec<Result<Bytes, StoreError>>, StoreError> {
+        self.block_on(self.inner.get_each(keys))
     }
 
     /// Blocking [`AsyncStore::delete_all`].
     pub fn delete_all(&self, keys: &[String]) -> Result<(), StoreError> {
+        if keys.is_empty() {
+            return Ok(());
+        }
         self.block_on(self.inner.delete_all(keys))?
     }
 
@@ -589,7 +618,10 @@ impl Store {
             });
         }
         match &self.runtime.0 {
-            Some(runtime) => Ok(runtime.block_on(future)),
+            Some(runtime) => {
+                self.inner.counters.round_trips.fetch_add(1, Ordering::Relaxed);
+                Ok(runtime.block_on(future))
+            }
             None => Err(StoreError::Runtime {
                 url: self.url().to_string(),
                 reason: "runtime shut down".into(),

@@ -309,6 +309,42 @@ fn a_lease_reads_only_what_it_needs(o: &Opener) {
     coordinator.finish_iteration().unwrap();
 }
 
+/// Two workers, each on its own half of the pass: from the second time a worker computes its
+/// half, the arrivals it reads from the other's half come with the head, in one round trip,
+/// where a worker new to the half waits for two — and the bits are the same (the new worker's
+/// output and maps, written create-only over the first's, must be the same bytes).
+fn arrivals_come_with_the_head(o: &Opener) {
+    let (id, mut coordinator, _) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
+    // Each replica with a store handle of its own, whose round trips it counts (handles of the
+    // memory backend share one store, and its count: the replicas take turns).
+    let replica = || {
+        let store = o.open();
+        (Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap(), store)
+    };
+    let round_trips = |(replica, store): &mut (Replica, Store), k: u32, block: std::ops::Range<usize>| {
+        let before = store.traffic().round_trips;
+        replica.compute(k, Pass::Shoot, block).unwrap();
+        store.traffic().round_trips - before
+    };
+    let (mut a, mut b) = (replica(), replica());
+    let mut trips = Vec::new();
+    for k in 0..4 {
+        assert_eq!(coordinator.pending_pass(), Some((Pass::Shoot, 2)));
+        trips.push(round_trips(&mut a, k, 0..1));
+        round_trips(&mut b, k, 1..2);
+        if k == 3 {
+            // A worker new to the first half (a store handle of its own, nothing held).
+            let fresh = round_trips(&mut replica(), k, 0..1);
+            assert_eq!(fresh, trips[3] + 1, "{trips:?} against {fresh}");
+        }
+        coordinator.absorb_pass().unwrap();
+        coordinator.finish_iteration().unwrap();
+    }
+    // Once arrivals cross between the halves, the worker's iterations take the same round trips:
+    // the head with the arrivals, its maps written behind, its output.
+    assert_eq!(trips[3], 3, "{trips:?}");
+}
+
 /// A replica made from the coordinator's own propagation (what `vlf run`'s workers clone) reads
 /// nothing of the snapshot it starts from, and writes the bytes a replica built from the store
 /// writes (outputs are create-only: other bytes would be refused).
@@ -397,6 +433,7 @@ per_backend! {
     replicas_give_the_same_bits_with_mirrors => crate::mirrors,
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,
     conflicting_or_missing_batches_are_errors => crate::conflicting_or_missing_batches,
+    arrivals_come_with_the_head => crate::arrivals_come_with_the_head,
 }
 
 #[test]
