@@ -19,7 +19,7 @@ use crate::error::StoreError;
 use crate::id::JobId;
 use crate::layout::{self, MapPart, Stage};
 use crate::manifest::{JobState, Manifest};
-use crate::store::{IN_FLIGHT, Put, PutOutcome, Store};
+use crate::store::{IN_FLIGHT, Put, Store};
 use rayon::prelude::*;
 
 /// A released state's bytes and, for each part asked along, its bytes if they could be read
@@ -153,15 +153,10 @@ impl Job {
         self.write(Stage::Iteration(k), &key, bytes)
     }
 
-    /// Writes mirror maps `part` of batch `batch` of the resume state of iteration `k` (caller's
-    /// serialisation). Create-only: they are a pure function of the job, so the same bytes again
-    /// (a block computed twice, a run resumed) are accepted and different bytes refused.
-    pub fn put_map_part(&self, k: u32, part: MapPart, batch: u32, bytes: &[u8]) -> Result<PutOutcome, StoreError> {
-        let put = self.map_part_put(k, part, batch, bytes)?;
-        self.store.put_new(&put.key, put.bytes)
-    }
-
-    /// [`Job::put_map_part`]'s blob, encoded, for [`Store::put_all`].
+    /// Mirror maps `part` of batch `batch` of the resume state of iteration `k` (caller's
+    /// serialisation), encoded, for [`Store::put_all`]. Create-only: they are a pure function of
+    /// the job, so the same bytes again (a block computed twice, a run resumed) are accepted and
+    /// different bytes refused.
     pub fn map_part_put(&self, k: u32, part: MapPart, batch: u32, bytes: &[u8]) -> Result<Put, StoreError> {
         let key = layout::map_part(self.id(), k, part, batch)?;
         let bytes = blob::encode_bytes(BlobKind::Snapshot, bytes).map_err(|e| self.blob_error(&key, e))?;
@@ -172,15 +167,9 @@ impl Job {
         })
     }
 
-    /// Mirror maps `part` of batch `batch` of the resume state of iteration `k` as written,
-    /// committed or not (see [`Job::get_released_state`]).
-    pub fn get_released_map_part(&self, k: u32, part: MapPart, batch: u32) -> Result<Vec<u8>, StoreError> {
-        self.store
-            .get_bytes_blob(&layout::map_part(self.id(), k, part, batch)?, BlobKind::Snapshot)
-    }
-
-    /// [`Job::get_released_map_part`] of several parts and batches, their requests overlapping
-    /// (see [`Store::get_all`]), in the order of `parts`.
+    /// Mirror maps `part` of batch `b` of the resume state of iteration `k` as written,
+    /// committed or not (see [`Job::get_released_state`]), for every `(part, b)` of `parts`,
+    /// their requests overlapping (see [`Store::get_all`]), in the order of `parts`.
     pub fn get_released_map_parts(&self, k: u32, parts: &[(MapPart, usize)]) -> Result<Vec<Vec<u8>>, StoreError> {
         let keys = parts
             .iter()
@@ -196,13 +185,8 @@ impl Job {
             .collect()
     }
 
-    /// Writes the totals half of the resume state of iteration `k` (caller's serialisation;
-    /// optional: a job's resume state may be one blob).
-    pub fn put_totals(&self, k: u32, totals: &[u8]) -> Result<(), StoreError> {
-        self.store.put_all(vec![self.totals_put(k, totals)?])
-    }
-
-    /// [`Job::put_totals`]'s blob, encoded, for [`Store::put_all`].
+    /// The totals half of the resume state of iteration `k` (caller's serialisation; optional: a
+    /// job's resume state may be one blob), encoded, for [`Store::put_all`].
     pub fn totals_put(&self, k: u32, totals: &[u8]) -> Result<Put, StoreError> {
         let key = layout::totals(self.id(), k)?;
         let bytes = blob::encode_bytes(BlobKind::Snapshot, totals).map_err(|e| self.blob_error(&key, e))?;
