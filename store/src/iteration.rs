@@ -320,9 +320,7 @@ impl Replica {
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         self.settle_failed();
         let out = self.shoot(k, pass, batches)?;
-        self.written()?;
-        self.job.put_batch(&out)?;
-        Ok(())
+        self.write_outputs(&[out])
     }
 
     /// Computes a run of `pass` from batch `start`, one aligned block at a time, as `next` hands
@@ -353,24 +351,32 @@ impl Replica {
                 .push(out)
                 .map_err(|e| self.job.field_error(vlf_core::Error::Parameter(e)))?;
         }
-        self.written()?;
-        self.job
-            .job()
-            .put_encoded(&outputs.finish(), |out| self.job.batch_put(out))?;
+        self.write_outputs(&outputs.finish())?;
         Ok(start..done)
+    }
+
+    /// Writes `outputs` along with the mirror maps still on their way, and waits for both: one
+    /// round trip. An output in the store does not say its maps are (a worker may stop between
+    /// the two); the report that follows does, and a coordinator that finds outputs no report
+    /// told it of checks their maps first ([`Coordinator::blocks_in_store`]).
+    fn write_outputs(&mut self, outputs: &[BatchOutput]) -> Result<(), StoreError> {
+        let puts = outputs
+            .par_iter()
+            .map(|out| self.job.batch_put(out))
+            .collect::<Result<Vec<_>, _>>()?;
+        self.writing.push(self.job.job().store().put_all_behind(puts)?);
+        self.written()
     }
 
     /// Waits for the mirror maps on their way into the store.
     fn written(&mut self) -> Result<(), StoreError> {
-        self.writing.drain(..).try_for_each(Writing::wait)
+        Writing::wait_all(std::mem::take(&mut self.writing))
     }
 
     /// Lets the writes of a lease that failed before its wait finish: a successful lease waits
     /// for its own, so what is left failed already, and its error was reported with it.
     fn settle_failed(&mut self) {
-        for writing in self.writing.drain(..) {
-            let _ = writing.wait();
-        }
+        let _ = self.written();
     }
 
     /// [`Replica::compute`] but for writing the block's output: returns it.
@@ -677,12 +683,35 @@ impl Coordinator {
     /// [`Coordinator::passes`] order (a restarted coordinator reuses what workers wrote before it
     /// stopped: the bytes are the same).
     pub fn blocks_in_store(&mut self) -> Result<Vec<Vec<Range<usize>>>, StoreError> {
-        let k = self.iteration();
         let (passes, _) = self.passes();
-        passes
-            .iter()
-            .map(|(pass, _)| self.job.stored_blocks(k, *pass))
-            .collect()
+        passes.iter().map(|(pass, _)| self.complete_blocks(*pass)).collect()
+    }
+
+    /// The blocks of `pass` of the current iteration whose outputs are in the store, and whose
+    /// mirror maps are too when the pass shoots them: a worker writes a block's output and its
+    /// maps together and reports once both are there, so a block found in the store without a
+    /// report may lack its maps (its worker stopped in between). Such a block is computed again.
+    fn complete_blocks(&mut self, pass: Pass) -> Result<Vec<Range<usize>>, StoreError> {
+        let k = self.iteration();
+        let stored = self.job.stored_blocks(k, pass)?;
+        if pass != Pass::Shoot || !self.work().uses_mirror_maps() || stored.is_empty() {
+            return Ok(stored);
+        }
+        let store = self.job.job().store();
+        let held = |part| -> Result<HashSet<usize>, StoreError> {
+            let prefix = layout::map_parts(self.job.id(), k + 1, part)?;
+            Ok(store
+                .list(&prefix)?
+                .iter()
+                .filter_map(|key| layout::parse_map_part(&prefix, key))
+                .map(|b| b as usize)
+                .collect())
+        };
+        let (shooting, totals) = (held(MapPart::Shooting)?, held(MapPart::Totals)?);
+        Ok(stored
+            .into_iter()
+            .filter(|block| block.clone().all(|b| shooting.contains(&b) && totals.contains(&b)))
+            .collect())
     }
 
     /// Ends the job in `state` (failed or cancelled): the snapshots written so far stay
@@ -700,7 +729,7 @@ impl Coordinator {
             )));
         };
         let batches = self.work().batches();
-        let stored = self.job.stored_blocks(self.iteration(), pass)?;
+        let stored = self.complete_blocks(pass)?;
         let blocks = cover(&stored, next..batches).map_err(|at| StoreError::NotFound {
             url: self.job.job().store().url().to_string(),
             key: format!("batch {at} of {pass:?} of iteration {}", self.iteration() + 1),

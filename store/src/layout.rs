@@ -91,16 +91,28 @@ pub enum MapPart {
 /// `jobs/J/iters/KKKKK/{shooting,mirror-totals,unshot}/BBBBB.blob`: the mirror maps `part` of
 /// batch `batch` of the directions in the resume state after `k` iterations.
 pub fn map_part(job: &JobId, k: u32, part: MapPart, batch: u32) -> Result<String, StoreError> {
+    Ok(format!(
+        "{}{:05}.blob",
+        map_parts(job, k, part)?,
+        check("batch", batch, MAX_DIRECTION)?
+    ))
+}
+
+/// `jobs/J/iters/KKKKK/{shooting,mirror-totals,unshot}/`: where the [`map_part`]s `part` of the
+/// resume state after `k` iterations are.
+pub fn map_parts(job: &JobId, k: u32, part: MapPart) -> Result<String, StoreError> {
     let folder = match part {
         MapPart::Shooting => "shooting",
         MapPart::Totals => "mirror-totals",
         MapPart::Unshot => "unshot",
     };
-    Ok(format!(
-        "{}{folder}/{:05}.blob",
-        stage_prefix(job, Stage::Iteration(k))?,
-        check("batch", batch, MAX_DIRECTION)?
-    ))
+    Ok(format!("{}{folder}/", stage_prefix(job, Stage::Iteration(k))?))
+}
+
+/// The batch a [`map_part`] key names, if `key` is one under `prefix` (its [`map_parts`]).
+pub fn parse_map_part(prefix: &str, key: &str) -> Option<u32> {
+    let name = key.strip_prefix(prefix)?.strip_suffix(".blob")?;
+    (name.len() == 5 && name.bytes().all(|b| b.is_ascii_digit())).then(|| name.parse().ok())?
 }
 
 /// `jobs/J/iters/KKKKK/totals.blob`: the totals half of the resume state after `k` iterations.

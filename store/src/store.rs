@@ -640,11 +640,23 @@ pub struct Writing {
 impl Writing {
     /// Waits until every write is done; the first error if one failed.
     pub fn wait(self) -> Result<(), StoreError> {
-        let url = self.store.url().to_string();
-        self.store.block_on(self.task)?.map_err(|e| StoreError::Runtime {
-            url,
-            reason: format!("a bulk write stopped: {e}"),
-        })?
+        Writing::wait_all(vec![self])
+    }
+
+    /// Waits for all of `writings` (started on one store) at once: one round trip, however many
+    /// bulk writes overlap in it.
+    pub fn wait_all(writings: Vec<Writing>) -> Result<(), StoreError> {
+        let Some(store) = writings.first().map(|w| w.store.clone()) else {
+            return Ok(());
+        };
+        let tasks = writings.into_iter().map(|w| w.task);
+        for done in store.block_on(futures::future::join_all(tasks))? {
+            done.map_err(|e| StoreError::Runtime {
+                url: store.url().to_string(),
+                reason: format!("a bulk write stopped: {e}"),
+            })??;
+        }
+        Ok(())
     }
 }
 

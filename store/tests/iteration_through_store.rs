@@ -340,9 +340,33 @@ fn arrivals_come_with_the_head(o: &Opener) {
         coordinator.absorb_pass().unwrap();
         coordinator.finish_iteration().unwrap();
     }
-    // Once arrivals cross between the halves, the worker's iterations take the same round trips:
-    // the head with the arrivals, its maps written behind, its output.
-    assert_eq!(trips[3], 3, "{trips:?}");
+    // Once arrivals cross between the halves, a worker's iteration takes two round trips: the
+    // head with the arrivals, then the output with the maps.
+    assert_eq!(trips[3], 2, "{trips:?}");
+}
+
+/// A worker writes a block's output and its mirror maps together; one that stops in between can
+/// leave the output alone. A coordinator that finds the output without a report of it takes it
+/// only with its maps, and computed again, the block gives the same bytes and its maps back.
+fn an_output_without_its_maps_is_computed_again(o: &Opener) {
+    let (id, mut coordinator, mut replica) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
+    for _ in 0..2 {
+        compute_iteration(&mut coordinator, &mut replica);
+        coordinator.finish_iteration().unwrap();
+    }
+    replica.compute(2, Pass::Shoot, 0..1).unwrap();
+    replica.compute(2, Pass::Shoot, 1..2).unwrap();
+    let store = o.open();
+    let lost = layout::map_part(&id, 3, MapPart::Totals, 1).unwrap();
+    store.delete(&lost).unwrap();
+    let mut restarted = Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
+    assert_eq!(restarted.blocks_in_store().unwrap(), vec![vec![0..1]]);
+    let mut again = Replica::new(FieldJob::open(&o.open(), &id).unwrap()).unwrap();
+    again.compute(2, Pass::Shoot, 1..2).unwrap();
+    assert!(store.exists(&lost).unwrap());
+    assert_eq!(restarted.blocks_in_store().unwrap(), vec![vec![0..1, 1..2]]);
+    restarted.absorb_pass().unwrap();
+    restarted.finish_iteration().unwrap();
 }
 
 /// A replica made from the coordinator's own propagation (what `vlf run`'s workers clone) reads
@@ -434,6 +458,7 @@ per_backend! {
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,
     conflicting_or_missing_batches_are_errors => crate::conflicting_or_missing_batches,
     arrivals_come_with_the_head => crate::arrivals_come_with_the_head,
+    an_output_without_its_maps_is_computed_again => crate::an_output_without_its_maps_is_computed_again,
 }
 
 #[test]
