@@ -254,8 +254,10 @@ pub struct Replica {
     current: Option<Current>,
     /// Mirror maps this replica computed: parts of the snapshot after the current iteration.
     held: Vec<MirrorBlock>,
-    /// Their blobs on their way into the store: a block's are written while the next block
-    /// computes, and waited for before the outputs that tell the coordinator they are there.
+    /// Their blobs, encoded: the last block's, not started yet (they go out when the next block
+    /// starts computing, or with the run's outputs); and those on their way into the store while
+    /// a later block computes, waited for with the outputs.
+    unwritten: Vec<Put>,
     writing: Vec<Writing>,
     /// The snapshot whose whole state `prop` holds, if any (a prototype's): nothing of it is
     /// read from the store.
@@ -290,6 +292,7 @@ impl Replica {
             prop,
             current: None,
             held: Vec::new(),
+            unwritten: Vec::new(),
             writing: Vec::new(),
             holds_snapshot: None,
         }
@@ -360,27 +363,34 @@ impl Replica {
     /// the two); the report that follows does, and a coordinator that finds outputs no report
     /// told it of checks their maps first ([`Coordinator::blocks_in_store`]).
     fn write_outputs(&mut self, outputs: &[BatchOutput]) -> Result<(), StoreError> {
-        let puts = outputs
+        let mut puts = outputs
             .par_iter()
             .map(|out| self.job.batch_put(out))
             .collect::<Result<Vec<_>, _>>()?;
-        self.writing.push(self.job.job().store().put_all_behind(puts)?);
-        self.written()
+        puts.append(&mut self.unwritten);
+        let store = self.job.job().store();
+        store.put_all_waiting(puts, std::mem::take(&mut self.writing))
     }
 
-    /// Waits for the mirror maps on their way into the store.
-    fn written(&mut self) -> Result<(), StoreError> {
-        Writing::wait_all(std::mem::take(&mut self.writing))
+    /// Starts writing the last block's mirror maps, to go on while the next block computes.
+    fn write_behind(&mut self) -> Result<(), StoreError> {
+        if !self.unwritten.is_empty() {
+            let puts = std::mem::take(&mut self.unwritten);
+            self.writing.push(self.job.job().store().put_all_behind(puts)?);
+        }
+        Ok(())
     }
 
-    /// Lets the writes of a lease that failed before its wait finish: a successful lease waits
-    /// for its own, so what is left failed already, and its error was reported with it.
+    /// Forgets what a lease that failed before its outputs left unwritten, and lets what it
+    /// started finish: its error was reported with it.
     fn settle_failed(&mut self) {
-        let _ = self.written();
+        self.unwritten.clear();
+        let _ = Writing::wait_all(std::mem::take(&mut self.writing));
     }
 
     /// [`Replica::compute`] but for writing the block's output: returns it.
     fn shoot(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<BatchOutput, StoreError> {
+        self.write_behind()?;
         if self.current.as_ref().map(|c| c.k) != Some(k) {
             self.start(k)?;
         }
@@ -461,7 +471,7 @@ impl Replica {
                     ]
                 })
                 .collect::<Result<Vec<_>, _>>()?;
-            self.writing.push(job.store().put_all_behind(puts)?);
+            self.unwritten = puts;
             self.held.push(block);
         }
         Ok(out)

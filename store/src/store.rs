@@ -646,17 +646,30 @@ impl Writing {
     /// Waits for all of `writings` (started on one store) at once: one round trip, however many
     /// bulk writes overlap in it.
     pub fn wait_all(writings: Vec<Writing>) -> Result<(), StoreError> {
-        let Some(store) = writings.first().map(|w| w.store.clone()) else {
+        match writings.first().map(|w| w.store.clone()) {
+            Some(store) => store.put_all_waiting(Vec::new(), writings),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Store {
+    /// [`Store::put_all`] of `puts`, and waits for `writings` (started on this store) in the
+    /// same round trip. The puts run on the calling thread, as a blocking call's do; only
+    /// writes that overlap some computing need to be started behind it.
+    pub fn put_all_waiting(&self, puts: Vec<Put>, writings: Vec<Writing>) -> Result<(), StoreError> {
+        if puts.is_empty() && writings.is_empty() {
             return Ok(());
-        };
-        let tasks = writings.into_iter().map(|w| w.task);
-        for done in store.block_on(futures::future::join_all(tasks))? {
+        }
+        let tasks = futures::future::join_all(writings.into_iter().map(|w| w.task));
+        let (put, waited) = self.block_on(futures::future::join(self.inner.put_all(puts), tasks))?;
+        for done in waited {
             done.map_err(|e| StoreError::Runtime {
-                url: store.url().to_string(),
+                url: self.url().to_string(),
                 reason: format!("a bulk write stopped: {e}"),
             })??;
         }
-        Ok(())
+        put
     }
 }
 
