@@ -445,10 +445,8 @@ impl Replica {
                         "{pass:?} of iteration {k} needs {earlier:?}, whose batch {at} is not in the store"
                     )))
                 })?;
-                let sums = cover
-                    .into_iter()
-                    .map(|b| self.job.get_batch(k, earlier, b.clone()).map(|out| (b, out.sum)))
-                    .collect::<Result<Vec<_>, _>>()?;
+                let outputs = self.job.get_batches(k, earlier, &cover)?;
+                let sums: Vec<_> = cover.into_iter().zip(outputs).map(|(b, out)| (b, out.sum)).collect();
                 work.learn(earlier, sums).map_err(|e| self.job.field_error(e))?;
             }
         }
