@@ -83,17 +83,21 @@ impl Job {
     }
 
     /// The ids of the jobs in `store` that have a manifest, sorted (by creation time for
-    /// generated ids). One delimiter listing, then one existence check per job.
+    /// generated ids). One delimiter listing, then the existence checks of every job's manifest,
+    /// their requests overlapping (see [`Store::exist_all`]).
     pub fn list(store: &Store) -> Result<Vec<JobId>, StoreError> {
-        let mut ids = Vec::new();
-        for name in store.list_children(layout::JOBS_PREFIX)? {
-            if let Ok(id) = JobId::parse(&name)
-                && store.exists(&layout::manifest(&id))?
-            {
-                ids.push(id);
-            }
-        }
-        Ok(ids)
+        let ids: Vec<JobId> = store
+            .list_children(layout::JOBS_PREFIX)?
+            .iter()
+            .filter_map(|name| JobId::parse(name).ok())
+            .collect();
+        let manifests = ids.iter().map(layout::manifest).collect::<Vec<_>>();
+        let present = store.exist_all(&manifests)?;
+        Ok(ids
+            .into_iter()
+            .zip(present)
+            .filter_map(|(id, there)| there.then_some(id))
+            .collect())
     }
 
     /// Reads the manifest again (to see another process's progress).

@@ -41,16 +41,16 @@ pub struct Traffic {
     pub read_bytes: u64,
     pub writes: u64,
     pub written_bytes: u64,
-    /// The most gets, puts and deletes that were waiting for the backend at once: how much of
-    /// their round trips overlapped (see the module docs).
+    /// The most gets, puts, existence checks and deletes that were waiting for the backend at
+    /// once: how much of their round trips overlapped (see the module docs).
     pub most_in_flight: u64,
     /// Calls of the blocking [`Store`], a bulk call counting once: the round trips to the
     /// backend its callers waited through one after another.
     pub round_trips: u64,
 }
 
-/// A get, put or delete waiting for the backend, counted in [`Traffic::most_in_flight`] while it
-/// lives.
+/// A get, put, existence check or delete waiting for the backend, counted in
+/// [`Traffic::most_in_flight`] while it lives.
 struct InFlight<'a>(&'a Counters);
 
 impl<'a> InFlight<'a> {
@@ -255,6 +255,7 @@ impl AsyncStore {
     /// Whether an object exists at `key` (one HEAD request).
     pub async fn exists(&self, key: &str) -> Result<bool, StoreError> {
         let path = self.path(key)?;
+        let _waiting = InFlight::new(&self.counters);
         match self.backend.head(&path).await {
             Ok(_) => Ok(true),
             Err(object_store::Error::NotFound { .. }) => Ok(false),
@@ -344,6 +345,16 @@ impl AsyncStore {
             .map(|key| self.get(key))
             .buffered(IN_FLIGHT)
             .collect()
+            .await
+    }
+
+    /// Whether an object exists at each of `keys`, in their order, up to [`IN_FLIGHT`] requests
+    /// at once.
+    pub async fn exist_all(&self, keys: &[String]) -> Result<Vec<bool>, StoreError> {
+        futures::stream::iter(keys)
+            .map(|key| self.exists(key))
+            .buffered(IN_FLIGHT)
+            .try_collect()
             .await
     }
 
@@ -547,6 +558,14 @@ impl Store {
     /// Blocking [`AsyncStore::get_each`].
     pub fn get_each(&self, keys: &[String]) -> Result<Vec<Result<Bytes, StoreError>>, StoreError> {
         self.block_on(self.inner.get_each(keys))
+    }
+
+    /// Blocking [`AsyncStore::exist_all`].
+    pub fn exist_all(&self, keys: &[String]) -> Result<Vec<bool>, StoreError> {
+        if keys.is_empty() {
+            return Ok(Vec::new());
+        }
+        self.block_on(self.inner.exist_all(keys))?
     }
 
     /// Blocking [`AsyncStore::delete_all`].

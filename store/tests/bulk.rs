@@ -99,3 +99,25 @@ fn writes_behind_are_there_once_waited_for_and_report_their_errors() {
     }
     assert_eq!(&store.get("bulk/000.bin").unwrap()[..], b"object 0");
 }
+
+#[test]
+fn listing_jobs_checks_their_manifests_together() {
+    use vlf_store::Job;
+    use vlf_store::blob::Encoding;
+    let store = Store::open("memory://?latency=20ms").unwrap();
+    let made: Vec<_> = (0..12)
+        .map(|i| {
+            let scene = format!("scene {i}");
+            let job = Job::create(&store, scene.as_bytes(), "ab", serde_json::json!({}), Encoding::F32);
+            job.unwrap().id().clone()
+        })
+        .collect();
+    // Creating a job is calls one after another.
+    assert_eq!(store.traffic().most_in_flight, 1);
+    let mut listed = Job::list(&store).unwrap();
+    listed.sort();
+    let mut made = made;
+    made.sort();
+    assert_eq!(listed, made);
+    assert!(store.traffic().most_in_flight >= 6, "{:?}", store.traffic());
+}
