@@ -181,12 +181,15 @@ impl Job {
             .collect::<Result<Vec<_>, _>>()?;
         let blobs = self.store.get_all(&keys)?;
         (keys.par_iter().zip(&blobs))
-            .map(|(key, bytes)| {
-                self.store
-                    .as_async()
-                    .decode_with(key, bytes, |b| blob::decode_bytes(b, BlobKind::Snapshot))
-            })
+            .map(|(key, bytes)| self.decode_snapshot(key, bytes))
             .collect()
+    }
+
+    /// The caller's serialisation in a snapshot blob read from `key`, checked.
+    pub(crate) fn decode_snapshot(&self, key: &str, bytes: &[u8]) -> Result<Vec<u8>, StoreError> {
+        self.store
+            .as_async()
+            .decode_with(key, bytes, |b| blob::decode_bytes(b, BlobKind::Snapshot))
     }
 
     /// The totals half of the resume state of iteration `k` (caller's serialisation; optional: a
@@ -342,17 +345,12 @@ impl Job {
             keys.push(layout::map_part(self.id(), k, part, b as u32)?);
         }
         let mut read = self.store.get_each(&keys)?.into_iter();
-        let decode = |key: &str, bytes: &[u8]| {
-            self.store
-                .as_async()
-                .decode_with(key, bytes, |b| blob::decode_bytes(b, BlobKind::Snapshot))
-        };
         let state = match read.next() {
-            Some(state) => decode(&keys[0], &state?)?,
+            Some(state) => self.decode_snapshot(&keys[0], &state?)?,
             None => unreachable!("the state's key is the first"),
         };
         let parts = (keys[1..].par_iter().zip(read.collect::<Vec<_>>()))
-            .map(|(key, bytes)| bytes.ok().and_then(|b| decode(key, &b).ok()))
+            .map(|(key, bytes)| bytes.ok().and_then(|b| self.decode_snapshot(key, &b).ok()))
             .collect();
         Ok((state, parts))
     }

@@ -293,12 +293,7 @@ impl StageParts {
                 "a final field keeps its mirror radiance in tiles".into(),
             )));
         };
-        let bytes = self
-            .job
-            .job()
-            .store()
-            .as_async()
-            .decode_with(key, stored, |b| blob::decode_bytes(b, BlobKind::Snapshot))?;
+        let bytes = self.job.job().decode_snapshot(key, stored)?;
         let maps = match self.mirrors {
             MirrorSource::Batches => {
                 // `…/mirror-totals/BBBBB.blob`, as `layout::map_part` names batch B's.
