@@ -89,6 +89,38 @@ pub fn pass_to_wire(pass: Pass) -> (u32, u32) {
     }
 }
 
+/// Blocks of `pass` as a [`v1::PassBlocks`].
+pub fn pass_blocks_to_wire(pass: Pass, blocks: &[std::ops::Range<usize>]) -> v1::PassBlocks {
+    let (pass_kind, pass_copy) = pass_to_wire(pass);
+    v1::PassBlocks {
+        pass_kind,
+        pass_copy,
+        starts: blocks.iter().map(|b| b.start as u32).collect(),
+        ends: blocks.iter().map(|b| b.end as u32).collect(),
+    }
+}
+
+/// The pass and blocks of a [`v1::PassBlocks`], or why they are not any: an unknown pass,
+/// starts and ends of different lengths, an empty or reversed block.
+pub fn pass_blocks_from_wire(wire: &v1::PassBlocks) -> Result<(Pass, Vec<std::ops::Range<usize>>), String> {
+    let pass = pass_from_wire(wire.pass_kind, wire.pass_copy)
+        .ok_or_else(|| format!("blocks of pass ({}, {})", wire.pass_kind, wire.pass_copy))?;
+    if wire.starts.len() != wire.ends.len() {
+        return Err(format!(
+            "blocks of {pass:?}: {} starts and {} ends",
+            wire.starts.len(),
+            wire.ends.len()
+        ));
+    }
+    let blocks = (wire.starts.iter().zip(&wire.ends))
+        .map(|(&s, &e)| match s < e {
+            true => Ok(s as usize..e as usize),
+            false => Err(format!("blocks of {pass:?}: {s}..{e} is empty")),
+        })
+        .collect::<Result<_, _>>()?;
+    Ok((pass, blocks))
+}
+
 /// The pass of a [`v1::Lease`], if its numbers name one.
 pub fn pass_from_wire(kind: u32, copy: u32) -> Option<Pass> {
     match kind {
@@ -178,6 +210,26 @@ mod tests {
             assert_eq!(pass_from_wire(k, c), Some(pass));
         }
         assert_eq!(pass_from_wire(0, 1), None);
+        let blocks = vec![0..8, 8..12, 12..13];
+        let wire = pass_blocks_to_wire(Pass::Areas { copy: 3 }, &blocks);
+        assert_eq!(pass_blocks_from_wire(&wire), Ok((Pass::Areas { copy: 3 }, blocks)));
+        let uneven = v1::PassBlocks {
+            ends: vec![8],
+            ..wire.clone()
+        };
+        assert!(
+            pass_blocks_from_wire(&uneven)
+                .unwrap_err()
+                .contains("3 starts and 1 ends")
+        );
+        let empty = v1::PassBlocks {
+            starts: vec![4],
+            ends: vec![4],
+            ..wire.clone()
+        };
+        assert!(pass_blocks_from_wire(&empty).unwrap_err().contains("4..4 is empty"));
+        let unknown = v1::PassBlocks { pass_kind: 7, ..wire };
+        assert!(pass_blocks_from_wire(&unknown).is_err());
         assert_eq!(pass_from_wire(3, 0), None);
     }
 }

@@ -11,7 +11,7 @@ mod connect;
 mod convert;
 
 pub use connect::{Authed, BearerToken, Clients, ConnectError, Target};
-pub use convert::{JobSpec, pass_from_wire, pass_to_wire};
+pub use convert::{JobSpec, pass_blocks_from_wire, pass_blocks_to_wire, pass_from_wire, pass_to_wire};
 
 /// The metadata key of the bearer token.
 pub const AUTHORIZATION: &str = "authorization";

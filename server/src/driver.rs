@@ -293,13 +293,15 @@ impl Driver {
                 vec![Vec::new(); passes.len()]
             };
             let mut opened = vec![false; passes.len()];
-            let mut absorbed = Vec::new();
+            // The passes absorbed so far, with the blocks they were absorbed as.
+            let mut absorbed: Vec<(Pass, Vec<std::ops::Range<usize>>)> = Vec::new();
             self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
             for (pass, _) in &passes {
                 let pass = *pass;
                 // Take each block in as soon as it is written, in order, while the rest are
                 // computed.
                 let mut next = 0;
+                let mut blocks = Vec::new();
                 while next < batches {
                     let ready = loop {
                         let notified = self.wake.notified();
@@ -311,13 +313,14 @@ impl Driver {
                         }
                     };
                     next = ready.last().map_or(next, |b| b.end);
+                    blocks.extend(ready.iter().cloned());
                     self.blocking(move |c| c.absorb_blocks(pass, &ready))
                         .await
                         .map_err(Stop::Failed)?
                         .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
                 }
                 self.sched.end_pass(&self.id, k, pass);
-                absorbed.push(pass);
+                absorbed.push((pass, blocks));
                 self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
             }
             self.check_cancelled()?;
@@ -400,19 +403,22 @@ impl Driver {
     }
 
     /// Opens for leasing every pass of the iteration after snapshot `k` that is not open yet and
-    /// whose prerequisites are all absorbed.
+    /// whose prerequisites are all absorbed; its leases name the blocks they were absorbed as.
     fn open_ready(
         &self,
         k: u32,
         passes: &[(Pass, Vec<Pass>)],
         batches: usize,
         stored: &[Vec<std::ops::Range<usize>>],
-        absorbed: &[Pass],
+        absorbed: &[(Pass, Vec<std::ops::Range<usize>>)],
         opened: &mut [bool],
     ) {
         for (i, (pass, needs)) in passes.iter().enumerate() {
-            if !opened[i] && needs.iter().all(|p| absorbed.contains(p)) {
-                self.sched.start_pass(&self.id, k, *pass, batches, &stored[i]);
+            let reads: Option<Vec<_>> = (needs.iter())
+                .map(|p| absorbed.iter().find(|(done, _)| done == p).cloned())
+                .collect();
+            if let Some(reads) = reads.filter(|_| !opened[i]) {
+                self.sched.start_pass(&self.id, k, *pass, batches, &stored[i], &reads);
                 opened[i] = true;
             }
         }

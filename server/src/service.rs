@@ -12,7 +12,7 @@ use std::sync::Arc;
 use std::time::Duration;
 use tonic::{Request, Response, Status};
 use vlf_proto::v1::{self, jobs_server, tiles_server, workers_server};
-use vlf_proto::{JobSpec, pass_to_wire};
+use vlf_proto::{JobSpec, pass_blocks_to_wire, pass_to_wire};
 use vlf_store::{JobId, StoreError, layout};
 
 /// The three services over one scheduler.
@@ -59,6 +59,11 @@ impl Api {
                 batch_count: g.batches.len() as u32,
                 committed_count: (g.committed - g.batches.start) as u32,
                 deadline_ms: g.deadline.as_millis() as u32,
+                reads: g
+                    .reads
+                    .iter()
+                    .map(|(pass, blocks)| pass_blocks_to_wire(*pass, blocks))
+                    .collect(),
             }
         }))
     }
@@ -382,8 +387,8 @@ mod tests {
     #[tokio::test]
     async fn a_report_brings_the_next_lease_when_asked_for() {
         let (sched, id) = scheduler_with_a_job();
-        sched.start_pass(&id, 0, Pass::Shoot, 16, &[]);
-        let api = Api::new(sched, 0);
+        sched.start_pass(&id, 0, Pass::Shoot, 16, &[], &[]);
+        let api = Api::new(sched.clone(), 0);
         let worker = api
             .register(Request::new(v1::RegisterRequest {
                 name: "w".into(),
@@ -418,6 +423,23 @@ mod tests {
         // An unknown worker is told so.
         let err = api.report(report("w99-nobody", &first, 10)).await.unwrap_err();
         assert_eq!(err.code(), tonic::Code::NotFound);
+        assert!(
+            first.reads.is_empty() && next.reads.is_empty(),
+            "a shooting pass reads no pass"
+        );
+        // A rotated copy's shooting: its lease names the blocks of the copy's areas.
+        let areas = Pass::Areas { copy: 1 };
+        sched.start_pass(
+            &id,
+            0,
+            Pass::ShootCopy { copy: 1 },
+            16,
+            &[],
+            &[(areas, vec![0..8, 8..16])],
+        );
+        let copy = lease(0).await.unwrap().into_inner().lease.unwrap();
+        assert_eq!((copy.pass_kind, copy.pass_copy), (2, 1));
+        assert_eq!(copy.reads, vec![pass_blocks_to_wire(areas, &[0..8, 8..16])]);
     }
 
     #[tokio::test]
@@ -447,7 +469,7 @@ mod tests {
             }))
         };
         // The speed is learnt from one batch; then each worker's home (a third of the pass).
-        sched.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+        sched.start_pass(&id, 0, Pass::Shoot, 1, &[], &[]);
         let first = lease(&workers[0]).await.unwrap().into_inner().lease.unwrap();
         assert!(
             api.report(report(&workers[0], &first, 0))
@@ -457,7 +479,7 @@ mod tests {
                 .accepted
         );
         sched.end_pass(&id, 0, Pass::Shoot);
-        sched.start_pass(&id, 1, Pass::Shoot, 16, &[]);
+        sched.start_pass(&id, 1, Pass::Shoot, 16, &[], &[]);
         let a = lease(&workers[0]).await.unwrap().into_inner().lease.unwrap();
         assert_eq!((a.batch, a.batch_count, a.committed_count), (0, 5, 4));
         let old = lease(&workers[2]).await.unwrap().into_inner().lease.unwrap();

@@ -262,6 +262,9 @@ pub struct Replica {
     /// The snapshot whose whole state `prop` holds, if any (a prototype's): nothing of it is
     /// read from the store.
     holds_snapshot: Option<u32>,
+    /// Blocks of passes of an iteration that the coordinator absorbed, as a lease names them
+    /// ([`Replica::absorbed`]): `(k, pass, blocks)`.
+    absorbed: Vec<(u32, Pass, Vec<Range<usize>>)>,
 }
 
 struct Current {
@@ -274,6 +277,10 @@ struct Current {
     /// head (a guess) that no lease asked for yet.
     read: Vec<(MapPart, usize)>,
     prefetched: HashSet<(MapPart, usize)>,
+    /// The outputs this replica computed of passes that later passes of the iteration read (a
+    /// rotated copy's areas, which its shooting needs whole): those learn them from here, and
+    /// read from the store only what other workers computed.
+    own: Vec<BatchOutput>,
 }
 
 impl Replica {
@@ -295,6 +302,7 @@ impl Replica {
             unwritten: Vec::new(),
             writing: Vec::new(),
             holds_snapshot: None,
+            absorbed: Vec::new(),
         }
     }
 
@@ -323,7 +331,18 @@ impl Replica {
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         self.settle_failed();
         let out = self.shoot(k, pass, batches)?;
-        self.write_outputs(&[out])
+        let outputs = [out];
+        self.write_outputs(&outputs)?;
+        self.keep_for_later_passes(outputs);
+        Ok(())
+    }
+
+    /// Tells the replica which blocks of `pass` of the iteration from snapshot `k` the
+    /// coordinator absorbed (a lease names those of the passes it reads): a pass that needs them
+    /// then reads the ones it did not compute itself without listing the store first.
+    pub fn absorbed(&mut self, k: u32, pass: Pass, blocks: Vec<Range<usize>>) {
+        self.absorbed.retain(|(at, p, _)| *at == k && *p != pass);
+        self.absorbed.push((k, pass, blocks));
     }
 
     /// Computes a run of `pass` from batch `start`, one aligned block at a time, as `next` hands
@@ -354,7 +373,9 @@ impl Replica {
                 .push(out)
                 .map_err(|e| self.job.field_error(vlf_core::Error::Parameter(e)))?;
         }
-        self.write_outputs(&outputs.finish())?;
+        let outputs = outputs.finish();
+        self.write_outputs(&outputs)?;
+        self.keep_for_later_passes(outputs);
         Ok(start..done)
     }
 
@@ -370,6 +391,21 @@ impl Replica {
         puts.append(&mut self.unwritten);
         let store = self.job.job().store();
         store.put_all_waiting(puts, std::mem::take(&mut self.writing))
+    }
+
+    /// Keeps the outputs just written that a later pass of the iteration reads (see
+    /// [`Current::own`]).
+    fn keep_for_later_passes(&mut self, outputs: impl IntoIterator<Item = BatchOutput>) {
+        let Some(current) = self.current.as_mut() else {
+            return;
+        };
+        let passes = current.work.passes();
+        let read_later = |pass: Pass| passes.iter().any(|&p| current.work.prerequisites(p).contains(&pass));
+        let kept: Vec<BatchOutput> = outputs
+            .into_iter()
+            .filter(|out| out.iteration == current.k && read_later(out.pass))
+            .collect();
+        current.own.extend(kept);
     }
 
     /// Starts writing the last block's mirror maps, to go on while the next block computes.
@@ -436,17 +472,56 @@ impl Replica {
         }
         shooting.into_iter().for_each(|b| current.shooting[b] = true);
         totals.into_iter().for_each(|b| current.totals[b] = true);
-        // Learn what the pass reads (a rotated copy's areas) from the store.
+        // Learn what the pass reads (a rotated copy's areas): the blocks this replica computed
+        // from memory, the others from the store — those the lease named, or else those listed.
         if !work.is_ready(pass) {
             for earlier in work.prerequisites(pass) {
-                let stored = self.job.stored_blocks(k, earlier)?;
-                let cover = cover(&stored, 0..work.batches()).map_err(|at| {
-                    self.job.field_error(vlf_core::Error::Parameter(format!(
-                        "{pass:?} of iteration {k} needs {earlier:?}, whose batch {at} is not in the store"
-                    )))
-                })?;
-                let outputs = self.job.get_batches(k, earlier, &cover)?;
-                let sums: Vec<_> = cover.into_iter().zip(outputs).map(|(b, out)| (b, out.sum)).collect();
+                let n = work.batches();
+                let own: Vec<Range<usize>> = (current.own.iter())
+                    .filter(|o| o.pass == earlier)
+                    .map(|o| o.batches.start as usize..o.batches.end as usize)
+                    .collect();
+                let plan = match cheapest_cover(&own, &[], n) {
+                    Some(plan) => plan,
+                    None => {
+                        let named = (self.absorbed.iter()).find(|(at, p, _)| (*at, *p) == (k, earlier));
+                        let stored = match named {
+                            Some((_, _, blocks)) => blocks.clone(),
+                            None => self.job.stored_blocks(k, earlier)?,
+                        };
+                        cheapest_cover(&own, &stored, n).ok_or_else(|| {
+                            self.job.field_error(vlf_core::Error::Parameter(format!(
+                                "{pass:?} of iteration {k} needs {earlier:?}, whose blocks in the store ({stored:?}) \
+                                 and here ({own:?}) do not cover its {n} batches"
+                            )))
+                        })?
+                    }
+                };
+                let to_read: Vec<Range<usize>> = (plan.iter())
+                    .filter(|(_, held)| !held)
+                    .map(|(b, _)| b.clone())
+                    .collect();
+                let mut read = self.job.get_batches(k, earlier, &to_read)?.into_iter();
+                // Learnt once: the pass needs them no more.
+                let (mut held, others): (Vec<BatchOutput>, Vec<BatchOutput>) = std::mem::take(&mut current.own)
+                    .into_iter()
+                    .partition(|o| o.pass == earlier);
+                current.own = others;
+                let mut sums = Vec::with_capacity(plan.len());
+                for (block, from_here) in plan {
+                    let out = if from_here {
+                        let at = held
+                            .iter()
+                            .position(|o| o.batches == (block.start as u32..block.end as u32));
+                        at.map(|i| held.swap_remove(i))
+                    } else {
+                        read.next()
+                    };
+                    let Some(out) = out else {
+                        unreachable!("the plan takes its blocks from those held and read");
+                    };
+                    sums.push((block, out.sum));
+                }
                 work.learn(earlier, sums).map_err(|e| self.job.field_error(e))?;
             }
         }
@@ -497,6 +572,7 @@ impl Replica {
                 totals: all,
                 read: Vec::new(),
                 prefetched: HashSet::new(),
+                own: Vec::new(),
             });
             return Ok(());
         }
@@ -547,9 +623,46 @@ impl Replica {
             totals,
             read: Vec::new(),
             prefetched: fetched,
+            own: Vec::new(),
         });
+        self.absorbed.retain(|(at, _, _)| *at == k);
         Ok(())
     }
+}
+
+/// The aligned blocks of a pass of `n` batches that cover it with the fewest reads from the
+/// store, in order, each with whether it is held here: blocks in `held` cost nothing, those in
+/// `stored` one read each. `None` when together they leave a gap. Any cover gives the same sum:
+/// its blocks are nodes of the pass's reduction tree (`vlf_core::propagate::reduce`).
+fn cheapest_cover(held: &[Range<usize>], stored: &[Range<usize>], n: usize) -> Option<Vec<(Range<usize>, bool)>> {
+    // reads[i]: the fewest reads that cover batches i..n; take[i]: the block to take at i.
+    let mut reads: Vec<Option<usize>> = vec![None; n + 1];
+    let mut take: Vec<Option<(Range<usize>, bool)>> = vec![None; n + 1];
+    reads[n] = Some(0);
+    for i in (0..n).rev() {
+        let candidates = (held.iter().map(|b| (b, true))).chain(stored.iter().map(|b| (b, false)));
+        for (block, from_here) in candidates {
+            if block.start != i || !is_aligned_block(block, n) {
+                continue;
+            }
+            let Some(after) = reads[block.end] else {
+                continue;
+            };
+            let total = after + usize::from(!from_here);
+            if reads[i].is_none_or(|r| total < r) {
+                reads[i] = Some(total);
+                take[i] = Some((block.clone(), from_here));
+            }
+        }
+    }
+    let mut plan = Vec::new();
+    let mut i = 0;
+    while i < n {
+        let (block, from_here) = take[i].clone()?;
+        i = block.end;
+        plan.push((block, from_here));
+    }
+    Some(plan)
 }
 
 /// Aligned blocks among `stored` (sorted as [`FieldJob::stored_blocks`] sorts them) that cover
@@ -842,5 +955,33 @@ impl Coordinator {
         }
         self.job.finish(&field, resample)?;
         Ok(self.job)
+    }
+}
+
+#[cfg(test)]
+// Single blocks are what these tests mean.
+#[allow(clippy::single_range_in_vec_init)]
+mod tests {
+    use super::cheapest_cover;
+
+    #[test]
+    fn a_cover_takes_what_is_held_and_reads_the_fewest_blocks() {
+        // What is held covers the pass: nothing to read.
+        let held = [0..4, 4..6, 6..8];
+        let plan = cheapest_cover(&held, &[0..8], 8).unwrap();
+        assert_eq!(plan, vec![(0..4, true), (4..6, true), (6..8, true)]);
+        // Held blocks fill what they can, stored ones the rest.
+        let plan = cheapest_cover(&[0..4], &[0..8, 4..8], 8).unwrap();
+        assert_eq!(plan, vec![(0..4, true), (4..8, false)]);
+        // The fewest reads, not the most held: one stored block over two.
+        let plan = cheapest_cover(&[0..4, 4..6], &[0..8, 6..7, 7..8], 8).unwrap();
+        assert_eq!(plan, vec![(0..8, false)]);
+        // A held block that leads to a gap is not taken.
+        let plan = cheapest_cover(&[0..2], &[0..4, 4..8], 8).unwrap();
+        assert_eq!(plan, vec![(0..4, false), (4..8, false)]);
+        // Blocks that are not nodes of the reduction tree are never taken.
+        assert_eq!(cheapest_cover(&[0..2, 2..6, 6..8], &[], 8), None);
+        assert_eq!(cheapest_cover(&[0..4], &[4..6], 8), None, "a gap");
+        assert_eq!(cheapest_cover(&[], &[], 0), Some(Vec::new()));
     }
 }

@@ -345,6 +345,76 @@ fn arrivals_come_with_the_head(o: &Opener) {
     assert_eq!(trips[3], 2, "{trips:?}");
 }
 
+/// A rotated copy's shooting needs the copy's areas whole: a replica learns the blocks it
+/// computed itself from memory and reads only the others' from the store — those the lease
+/// names without listing the store first. The job ends with the bits of the in-process run.
+fn a_copys_shooting_reads_only_the_areas_others_computed(o: &Opener) {
+    let (scene, options) = (bundled("cornell.obj"), options(2, 129));
+    let reference = in_process(&o.open(), &scene, &options);
+    let (id, mut coordinator, _) = start(o, scene, options, Encoding::F32);
+    // Each replica with a store handle of its own, whose round trips it counts.
+    let replica = || {
+        let store = o.open();
+        (Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap(), store)
+    };
+    let round_trips = |(replica, store): &mut (Replica, Store), pass: Pass, block: std::ops::Range<usize>| {
+        let before = store.traffic().round_trips;
+        replica.compute(0, pass, block).unwrap();
+        store.traffic().round_trips - before
+    };
+    let (areas, shoot) = (|copy| Pass::Areas { copy }, |copy| Pass::ShootCopy { copy });
+    let (mut a, mut b) = (replica(), replica());
+    // a computes copy 0's areas whole and the first half of copy 1's; b the second half.
+    round_trips(&mut a, areas(0), 0..8);
+    round_trips(&mut a, areas(1), 0..4);
+    round_trips(&mut b, areas(1), 4..8);
+    assert_eq!(coordinator.absorb_pass().unwrap(), areas(0));
+    assert_eq!(coordinator.absorb_pass().unwrap(), areas(1));
+    // Copy 0's shooting reads none of the areas: one round trip, its output.
+    assert_eq!(round_trips(&mut a, shoot(0), 0..8), 1);
+    // Copy 1's reads the other worker's half: named by the lease, two round trips (the read,
+    // the output)...
+    a.0.absorbed(0, areas(1), vec![0..4, 4..8]);
+    assert_eq!(round_trips(&mut a, shoot(1), 0..4), 2);
+    // ...and without the names, a listing first: three.
+    assert_eq!(round_trips(&mut b, shoot(1), 4..8), 3);
+    assert_eq!(coordinator.absorb_pass().unwrap(), shoot(0));
+    assert_eq!(coordinator.absorb_pass().unwrap(), shoot(1));
+    coordinator.finish_iteration().unwrap();
+    // Named blocks that are not in the store are an error that names the blob.
+    let k = coordinator.iteration();
+    compute_iteration_but(&mut coordinator, &mut a.0, shoot(0));
+    let mut c = replica();
+    c.0.absorbed(k, areas(0), vec![0..2, 2..4, 4..8]);
+    let err = c.0.compute(k, shoot(0), 0..8).unwrap_err();
+    assert!(err.to_string().contains("00000-00002"), "{err}");
+    a.0.compute(k, shoot(0), 0..8).unwrap();
+    coordinator.absorb_pass().unwrap();
+    coordinator.absorb_pass().unwrap();
+    coordinator.finish_iteration().unwrap();
+    while !coordinator.finished() {
+        compute_iteration(&mut coordinator, &mut a.0);
+        coordinator.finish_iteration().unwrap();
+    }
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+}
+
+/// [`compute_iteration`] of every pass but `skip`, which is left for the caller to compute; only
+/// the passes before it are absorbed.
+fn compute_iteration_but(coordinator: &mut Coordinator, replica: &mut Replica, skip: Pass) {
+    let k = coordinator.iteration();
+    let passes: Vec<Pass> = coordinator.passes().0.into_iter().map(|(p, _)| p).collect();
+    let batches = coordinator.passes().1;
+    for pass in passes.iter().filter(|&&p| p != skip) {
+        replica.compute(k, *pass, 0..batches).unwrap();
+    }
+    while coordinator.pending_pass().is_some_and(|(p, _)| p != skip) {
+        coordinator.absorb_pass().unwrap();
+    }
+}
+
 /// A worker writes a block's output and its mirror maps together; one that stops in between can
 /// leave the output alone. A coordinator that finds the output without a report of it takes it
 /// only with its maps, and computed again, the block gives the same bytes and its maps back.
@@ -459,6 +529,7 @@ per_backend! {
     conflicting_or_missing_batches_are_errors => crate::conflicting_or_missing_batches,
     arrivals_come_with_the_head => crate::arrivals_come_with_the_head,
     an_output_without_its_maps_is_computed_again => crate::an_output_without_its_maps_is_computed_again,
+    a_copys_shooting_reads_only_the_areas_others_computed => crate::a_copys_shooting_reads_only_the_areas_others_computed,
 }
 
 #[test]

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use tonic::Code;
 use vlf_core::propagate::reduce;
 use vlf_proto::v1;
-use vlf_proto::{ConnectError, Target, pass_from_wire};
+use vlf_proto::{ConnectError, Target, pass_blocks_from_wire, pass_from_wire};
 use vlf_store::{FieldJob, JobId, Replica, Store, StoreError};
 
 /// Where the worker finds the store.
@@ -325,6 +325,10 @@ async fn compute(
     let job = JobId::parse(&lease.job_id).map_err(|e| format!("lease names job `{}`: {e}", lease.job_id))?;
     let pass = pass_from_wire(lease.pass_kind, lease.pass_copy)
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
+    let reads = (lease.reads.iter())
+        .map(pass_blocks_from_wire)
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e| format!("lease names {e}"))?;
     let (store, pool, replicas) = (store.clone(), pool.clone(), replicas.clone());
     let (k, start) = (lease.snapshot, lease.batch as usize);
     let end = start + (lease.batch_count as usize).max(1);
@@ -346,6 +350,9 @@ async fn compute(
         pool.install(|| -> Result<Range<usize>, StoreError> {
             let mut replicas = lock(&replicas);
             let replica = replicas.replica(&store, &job)?;
+            for (earlier, blocks) in reads {
+                replica.absorbed(k, earlier, blocks);
+            }
             replica.compute_run(k, pass, start, |done| claim.next_block(done, &asks))
         })
     });

@@ -103,6 +103,9 @@ pub struct Grant {
     /// [`Scheduler::extend`] (all of them for a worker that does not claim).
     pub committed: usize,
     pub deadline: Duration,
+    /// The blocks of the earlier passes this pass reads, as the coordinator absorbed them (see
+    /// [`Scheduler::start_pass`]).
+    pub reads: Vec<(Pass, Vec<Range<usize>>)>,
 }
 
 /// What a worker's build can do; earlier builds lack the later abilities and are served as
@@ -414,8 +417,17 @@ impl Scheduler {
 
     /// Opens `pass` of the iteration after `snapshot`, `batches` batches, for leasing after the
     /// passes already open. Blocks whose output is already in the store (`stored`, such as
-    /// [`vlf_store::FieldJob::stored_blocks`] lists) are used as they are.
-    pub fn start_pass(&self, job: &JobId, snapshot: u32, pass: Pass, batches: usize, stored: &[Range<usize>]) {
+    /// [`vlf_store::FieldJob::stored_blocks`] lists) are used as they are. `reads` are the blocks
+    /// of the earlier passes it reads, as absorbed: its leases name them ([`Grant::reads`]).
+    pub fn start_pass(
+        &self,
+        job: &JobId,
+        snapshot: u32,
+        pass: Pass,
+        batches: usize,
+        stored: &[Range<usize>],
+        reads: &[(Pass, Vec<Range<usize>>)],
+    ) {
         let mut state = self.lock();
         let alive = alive_workers(&state, self.timing);
         let Some(entry) = state.jobs.get_mut(job) else {
@@ -432,6 +444,7 @@ impl Scheduler {
                 .collect(),
             done_blocks: Vec::new(),
             done: 0,
+            reads: reads.to_vec(),
         };
         // Where two stored blocks start together, the larger.
         let mut stored = stored.to_vec();
@@ -601,6 +614,7 @@ impl Scheduler {
         };
         let most = self.timing.max_lease_batches.max(1);
         let speed = entry.clock.batch_seconds;
+        let open: usize = entry.passes.iter().map(|r| r.batches.len() - r.done).sum();
         let run = &mut entry.passes[p];
         let n = run.batches.len();
         let (batches, committed) = match home {
@@ -611,13 +625,13 @@ impl Scheduler {
             // worker claims the last quarter of its run when it gets there, and one with
             // nothing left to do can be given it meanwhile (`Scheduler::steal`).
             Some(home) if takes_runs => {
-                let len = block_len(n, 1, speed, self.timing.lease).min(most);
+                let len = block_len(n, n, 1, speed, self.timing.lease).min(most);
                 let batches = run.pending_run_within(first, home.end.min(first + len));
                 let committed = first_claim(&batches, abilities.claims);
                 (batches, committed)
             }
             _ => {
-                let len = block_len(n, alive, speed, self.timing.lease).min(most);
+                let len = block_len(n, open, alive, speed, self.timing.lease).min(most);
                 let batches = if takes_runs {
                     run.pending_run(first, len)
                 } else {
@@ -659,6 +673,7 @@ impl Scheduler {
             batches: lease.batches.clone(),
             committed: lease.committed,
             deadline: self.timing.lease,
+            reads: run.reads.clone(),
         };
         let status = entry.status.borrow().clone();
         publish(entry, status, alive);

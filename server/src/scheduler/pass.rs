@@ -45,6 +45,8 @@ pub(super) struct PassRun {
     pub(super) done_blocks: Vec<Range<usize>>,
     /// How many batches are done.
     pub(super) done: usize,
+    /// The blocks of the earlier passes it reads, as absorbed (see [`super::Grant::reads`]).
+    pub(super) reads: Vec<(Pass, Vec<Range<usize>>)>,
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -74,18 +76,25 @@ pub(super) fn first_claim(run: &Range<usize>, claims: bool) -> usize {
     }
 }
 
-/// Batches per block for a pass of `batches` batches: all of them for one worker (a lease per
-/// pass), a quarter of a pass per worker beyond (`batches / 2·workers`, rounded to a power of
-/// two, so that a slow worker holds back little), and small enough that a block takes at most a
-/// quarter of the lease's lifetime at `batch_seconds` per batch. Before the job's first report
-/// nothing is known of its speed: blocks of one batch.
-pub fn block_len(batches: usize, workers: u32, batch_seconds: Option<f64>, lease: Duration) -> usize {
+/// Batches per block for a pass of `batches` batches while `open` batches of the job's open
+/// passes are not done yet (the pass's own among them): all of the pass for one worker (a lease
+/// per pass), and beyond, a quarter of the open work per worker (`open / 2·workers`, rounded to
+/// a power of two, so that a slow worker holds back little) up to the whole pass; and small
+/// enough that a block takes at most a quarter of the lease's lifetime at `batch_seconds` per
+/// batch. Before the job's first report nothing is known of its speed: blocks of one batch.
+///
+/// With one pass open, that is a quarter of a pass per worker. A perturbed iteration opens
+/// every rotated copy's areas at once, then each copy's shooting as its areas are in: with
+/// that much work open, two workers take whole passes — one round trip through the store per
+/// pass instead of one per quarter, and a worker that shoots a copy whose areas it computed
+/// reads none of them back — and the leases shrink as the open work runs out.
+pub fn block_len(batches: usize, open: usize, workers: u32, batch_seconds: Option<f64>, lease: Duration) -> usize {
     let Some(per_batch) = batch_seconds else {
         return 1;
     };
     let by_workers = match workers {
         0 | 1 => batches,
-        w => batches / (2 * w as usize).next_power_of_two(),
+        w => open.max(batches) / (2 * w as usize).next_power_of_two(),
     };
     let budget = lease.as_secs_f64() / 4.0;
     let mut len = by_workers.max(1).next_power_of_two();

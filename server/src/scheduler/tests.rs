@@ -34,7 +34,7 @@ fn job(s: &Scheduler) -> JobId {
 async fn batches_are_leased_once_and_a_pass_completes_when_all_are_reported() {
     let s = scheduler(60_000);
     let id = job(&s);
-    s.start_pass(&id, 0, Pass::Shoot, 3, &[1..2]);
+    s.start_pass(&id, 0, Pass::Shoot, 3, &[1..2], &[]);
     let w = s.register("a", Abilities::ALL);
     let a = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
     let b = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
@@ -62,7 +62,7 @@ async fn batches_are_leased_once_and_a_pass_completes_when_all_are_reported() {
 async fn an_expired_lease_goes_to_another_worker_and_its_late_report_is_ignored() {
     let s = scheduler(20);
     let id = job(&s);
-    s.start_pass(&id, 4, Pass::Areas { copy: 1 }, 1, &[]);
+    s.start_pass(&id, 4, Pass::Areas { copy: 1 }, 1, &[], &[]);
     let (w1, w2) = (s.register("slow", Abilities::ALL), s.register("fast", Abilities::ALL));
     let first = s.lease(&w1, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!((first.snapshot, first.pass), (4, Pass::Areas { copy: 1 }));
@@ -86,8 +86,8 @@ async fn several_open_passes_are_leased_in_order_and_closed_as_absorbed() {
     let s = scheduler(60_000);
     let id = job(&s);
     let (a0, a1) = (Pass::Areas { copy: 0 }, Pass::Areas { copy: 1 });
-    s.start_pass(&id, 2, a0, 3, &[]);
-    s.start_pass(&id, 2, a1, 3, &[1..2]);
+    s.start_pass(&id, 2, a0, 3, &[], &[]);
+    s.start_pass(&id, 2, a1, 3, &[1..2], &[]);
     let w = s.register("a", Abilities::ALL);
     let mut grants = Vec::new();
     while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
@@ -114,27 +114,52 @@ async fn several_open_passes_are_leased_in_order_and_closed_as_absorbed() {
     assert_eq!(s.pass_outcome(&id, a0, 0), PassOutcome::Running, "closed");
     assert!(s.report(&w, &grants[4].lease_id, Ok(()), 0.01).unwrap());
     assert_eq!(s.pass_outcome(&id, a1, 2), PassOutcome::Ready(vec![2..3]));
+    assert!(grants.iter().all(|g| g.reads.is_empty()), "the areas read nothing");
+    // The copy's shooting, opened with the blocks its areas were absorbed as: its leases name
+    // them, so that a worker reads those it lacks without listing the store.
+    let absorbed = vec![(a0, vec![0..1, 1..2, 2..3])];
+    s.start_pass(&id, 2, Pass::ShootCopy { copy: 0 }, 3, &[], &absorbed);
+    let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+    assert_eq!((g.pass, g.reads), (Pass::ShootCopy { copy: 0 }, absorbed));
 }
 
 #[test]
 fn blocks_grow_with_fewer_workers_and_shrink_for_slow_batches() {
     let minute = Duration::from_secs(60);
-    assert_eq!(block_len(16, 1, None, minute), 1, "speed unknown");
-    assert_eq!(block_len(16, 1, Some(0.01), minute), 16, "one worker: the whole pass");
-    assert_eq!(block_len(16, 0, Some(0.01), minute), 16);
-    assert_eq!(block_len(16, 2, Some(0.01), minute), 4);
-    assert_eq!(block_len(16, 3, Some(0.01), minute), 2);
-    assert_eq!(block_len(16, 64, Some(0.01), minute), 1);
-    assert_eq!(block_len(8, 1, Some(2.0), minute), 4, "4 × 2 s ≤ 15 s < 8 × 2 s");
-    assert_eq!(block_len(8, 1, Some(100.0), minute), 1);
-    assert_eq!(block_len(2, 1, Some(0.01), minute), 2);
+    assert_eq!(block_len(16, 16, 1, None, minute), 1, "speed unknown");
+    assert_eq!(
+        block_len(16, 16, 1, Some(0.01), minute),
+        16,
+        "one worker: the whole pass"
+    );
+    assert_eq!(block_len(16, 16, 0, Some(0.01), minute), 16);
+    assert_eq!(block_len(16, 16, 2, Some(0.01), minute), 4);
+    assert_eq!(block_len(16, 16, 3, Some(0.01), minute), 2);
+    assert_eq!(block_len(16, 16, 64, Some(0.01), minute), 1);
+    assert_eq!(block_len(8, 8, 1, Some(2.0), minute), 4, "4 × 2 s ≤ 15 s < 8 × 2 s");
+    assert_eq!(block_len(8, 8, 1, Some(100.0), minute), 1);
+    assert_eq!(block_len(2, 2, 1, Some(0.01), minute), 2);
+    // Four passes open (a perturbed iteration's areas): two workers take whole passes, and
+    // leases shrink as the open work runs out.
+    assert_eq!(block_len(16, 64, 2, Some(0.01), minute), 16);
+    assert_eq!(block_len(16, 24, 2, Some(0.01), minute), 8);
+    assert_eq!(
+        block_len(16, 6, 2, Some(0.01), minute),
+        4,
+        "never below a quarter of the pass"
+    );
+    assert_eq!(
+        block_len(16, 64, 2, Some(2.0), minute),
+        4,
+        "the lease's lifetime still bounds it"
+    );
 }
 
 /// A job whose speed `w` has measured (a one-batch pass reported), so leases are sized by
 /// the workers.
 async fn job_of_known_speed(s: &Scheduler, w: &str) -> JobId {
     let id = job(s);
-    s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+    s.start_pass(&id, 0, Pass::Shoot, 1, &[], &[]);
     let g = s.lease(w, Duration::ZERO).await.unwrap().unwrap();
     assert!(s.report(w, &g.lease_id, Ok(()), 0.01).unwrap());
     s.end_pass(&id, 0, Pass::Shoot);
@@ -150,7 +175,7 @@ async fn stored_blocks_are_kept_and_new_blocks_never_straddle_them() {
     let areas = Pass::Areas { copy: 0 };
     // In the store: 0..2 and 0..4 (the larger is taken), 1..3 (not a node of the tree:
     // ignored), 4..6 and 12..16.
-    s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16]);
+    s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16], &[]);
     assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(vec![0..4, 4..6]));
     // With two workers, blocks of 4 batches at most: one that does not take runs gets an
     // aligned block, one that does the rest of the next block.
@@ -166,7 +191,7 @@ async fn stored_blocks_are_kept_and_new_blocks_never_straddle_them() {
     let s = scheduler(60_000);
     let w = s.register("a", Abilities::ALL);
     let id = job_of_known_speed(&s, &w).await;
-    s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16]);
+    s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16], &[]);
     let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(g.batches, 6..12, "up to the stored block, not into it");
     assert!(s.lease(&w, Duration::ZERO).await.unwrap().is_none());
@@ -183,11 +208,11 @@ async fn after_a_report_a_lone_worker_leases_whole_passes() {
     let s = scheduler(60_000);
     let id = job(&s);
     let w = s.register("a", Abilities::ALL);
-    s.start_pass(&id, 0, Pass::Shoot, 16, &[]);
+    s.start_pass(&id, 0, Pass::Shoot, 16, &[], &[]);
     let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(g.batches, 0..1, "speed unknown: one batch");
     assert!(s.report(&w, &g.lease_id, Ok(()), 0.05).unwrap());
-    s.start_pass(&id, 0, Pass::Areas { copy: 0 }, 16, &[]);
+    s.start_pass(&id, 0, Pass::Areas { copy: 0 }, 16, &[], &[]);
     let mut grants = Vec::new();
     while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
         grants.push((g.pass, g.batches));
@@ -200,7 +225,7 @@ async fn after_a_report_a_lone_worker_leases_whole_passes() {
     let s = scheduler(60_000);
     let id = job(&s);
     let w = s.register("old", Abilities::BLOCKS);
-    s.start_pass(&id, 0, Pass::Shoot, 16, &[]);
+    s.start_pass(&id, 0, Pass::Shoot, 16, &[], &[]);
     let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(g.batches, 0..1, "speed unknown: one batch");
     assert!(s.report(&w, &g.lease_id, Ok(()), 0.05).unwrap());
@@ -218,7 +243,7 @@ async fn a_worker_shoots_the_batches_it_shot_last_time() {
     let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
     let shoot = Pass::Shoot;
     // Iteration 1: a takes the first half, b the second.
-    s.start_pass(&id, 0, shoot, 4, &[]);
+    s.start_pass(&id, 0, shoot, 4, &[], &[]);
     let mut first = Vec::new();
     for w in [&a, &a, &b, &b] {
         let g = s.lease(w, Duration::ZERO).await.unwrap().unwrap();
@@ -229,7 +254,7 @@ async fn a_worker_shoots_the_batches_it_shot_last_time() {
     s.end_pass(&id, 0, shoot);
     // Iteration 2: b asks first and is given its own batches, not batch 0; a pass of another
     // kind keeps the plain order.
-    s.start_pass(&id, 1, shoot, 4, &[]);
+    s.start_pass(&id, 1, shoot, 4, &[], &[]);
     let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(g.batches.start, 2, "b shot batches 2 and 3 last time");
     let h = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
@@ -241,7 +266,7 @@ async fn a_worker_shoots_the_batches_it_shot_last_time() {
     // What is left of a's batches goes to b rather than nobody: no worker waits.
     let rest = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(rest.batches, 1..2);
-    s.start_pass(&id, 1, Pass::Areas { copy: 0 }, 4, &[]);
+    s.start_pass(&id, 1, Pass::Areas { copy: 0 }, 4, &[], &[]);
     let areas = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!((areas.pass, areas.batches.start), (Pass::Areas { copy: 0 }, 0));
 }
@@ -252,7 +277,7 @@ async fn two_workers_shoot_the_halves_of_the_pass_whatever_order_they_ask_in() {
     let id = job(&s);
     let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
     let shoot = Pass::Shoot;
-    s.start_pass(&id, 0, shoot, 16, &[]);
+    s.start_pass(&id, 0, shoot, 16, &[], &[]);
     // Speed unknown: one batch each, a at the start of its home, b at the start of its own.
     let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
     let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
@@ -271,7 +296,7 @@ async fn two_workers_shoot_the_halves_of_the_pass_whatever_order_they_ask_in() {
     assert_eq!(got[&b], [9..16]);
     s.end_pass(&id, 0, shoot);
     // The next iteration keeps them: b, asking first, gets its half.
-    s.start_pass(&id, 1, shoot, 16, &[]);
+    s.start_pass(&id, 1, shoot, 16, &[], &[]);
     let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(g.batches, 8..16);
     // Done with its home, b helps with a's, a quarter of the pass at a time, from the start.
@@ -287,7 +312,7 @@ async fn two_workers_shoot_the_halves_of_the_pass_whatever_order_they_ask_in() {
 async fn two_workers_and_a_pass(s: &Scheduler, abilities: Abilities) -> (JobId, String, String) {
     let (a, b) = (s.register("a", abilities), s.register("b", abilities));
     let id = job_of_known_speed(s, &a).await;
-    s.start_pass(&id, 1, Pass::Shoot, 16, &[]);
+    s.start_pass(&id, 1, Pass::Shoot, 16, &[], &[]);
     (id, a, b)
 }
 
@@ -399,7 +424,7 @@ async fn leases_of_workers_that_do_not_claim_are_committed_and_never_shared() {
     let s = scheduler(60_000);
     let w = s.register("a", Abilities::ALL);
     let id = job_of_known_speed(&s, &w).await;
-    s.start_pass(&id, 1, Pass::Shoot, 16, &[]);
+    s.start_pass(&id, 1, Pass::Shoot, 16, &[], &[]);
     let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!((g.batches.clone(), g.committed), (0..16, 16));
 }
@@ -447,7 +472,7 @@ async fn a_worker_whose_batches_were_cheap_gets_more_of_the_next_pass() {
     let shoot = Pass::Shoot;
     // Iteration 1: batch by batch (speed unknown until a report, then blocks of 4); a's
     // half takes a tenth of the time of b's.
-    s.start_pass(&id, 0, shoot, 16, &[]);
+    s.start_pass(&id, 0, shoot, 16, &[], &[]);
     let cost = |batches: &Range<usize>| batches.len() as f64 * if batches.start < 8 { 0.001 } else { 0.01 };
     while let Some(g) = s.lease(&a, Duration::ZERO).await.unwrap() {
         assert!(s.report(&a, &g.lease_id, Ok(()), cost(&g.batches)).unwrap());
@@ -457,7 +482,7 @@ async fn a_worker_whose_batches_were_cheap_gets_more_of_the_next_pass() {
     }
     s.end_pass(&id, 0, shoot);
     // Iteration 2: a's home is 0..12 and b's 12..16, each in one lease, b asking first.
-    s.start_pass(&id, 1, shoot, 16, &[]);
+    s.start_pass(&id, 1, shoot, 16, &[], &[]);
     let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(gb.batches, 12..16);
     let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
@@ -474,7 +499,7 @@ async fn a_waiting_lease_is_served_when_a_pass_opens() {
         tokio::spawn(async move { s.lease(&w, Duration::from_secs(30)).await })
     };
     tokio::time::sleep(Duration::from_millis(20)).await;
-    s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+    s.start_pass(&id, 0, Pass::Shoot, 1, &[], &[]);
     let grant = tokio::time::timeout(Duration::from_secs(5), waiter)
         .await
         .expect("woken")
@@ -487,7 +512,7 @@ async fn a_waiting_lease_is_served_when_a_pass_opens() {
 async fn repeated_failures_fail_the_job_and_cancel_withdraws_work() {
     let s = scheduler(60_000);
     let id = job(&s);
-    s.start_pass(&id, 0, Pass::Shoot, 2, &[]);
+    s.start_pass(&id, 0, Pass::Shoot, 2, &[], &[]);
     let w = s.register("a", Abilities::ALL);
     for attempt in 1..=MAX_BATCH_FAILURES {
         let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
@@ -507,7 +532,7 @@ async fn repeated_failures_fail_the_job_and_cancel_withdraws_work() {
     );
 
     let other = job(&s);
-    s.start_pass(&other, 0, Pass::Shoot, 2, &[]);
+    s.start_pass(&other, 0, Pass::Shoot, 2, &[], &[]);
     let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(g.job, other);
     s.cancel(&other).unwrap();
@@ -526,7 +551,7 @@ async fn status_sequence_increases_with_every_change() {
     let id = job(&s);
     let mut rx = s.subscribe(&id).unwrap();
     let first = rx.borrow_and_update().seq;
-    s.start_pass(&id, 0, Pass::Shoot, 1, &[]);
+    s.start_pass(&id, 0, Pass::Shoot, 1, &[], &[]);
     let w = s.register("a", Abilities::ALL);
     let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
     s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap();
@@ -541,7 +566,7 @@ async fn an_iteration_records_what_its_workers_computed_and_publishes_it() {
     let s = scheduler(60_000);
     let id = job(&s);
     assert_eq!(s.status(&id).unwrap().last_iteration, None, "none before the first");
-    s.start_pass(&id, 0, Pass::Areas { copy: 0 }, 3, &[]);
+    s.start_pass(&id, 0, Pass::Areas { copy: 0 }, 3, &[], &[]);
     let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
     let first = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
     let second = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
