@@ -356,8 +356,24 @@ impl Replica {
         k: u32,
         pass: Pass,
         start: usize,
-        mut next: impl FnMut(usize) -> Option<Range<usize>>,
+        next: impl FnMut(usize) -> Option<Range<usize>>,
     ) -> Result<Range<usize>, StoreError> {
+        let (run, writes) = self.compute_run_behind(k, pass, start, next)?;
+        writes.wait()?;
+        Ok(run)
+    }
+
+    /// [`Replica::compute_run`], returning as soon as the run is computed: its outputs and
+    /// mirror maps are still on their way into the store, until the [`Writing`] returned is
+    /// done. A worker whose store is a round trip away computes its next lease meanwhile, and
+    /// reports this one once the writes are done (the report says the outputs are there).
+    pub fn compute_run_behind(
+        &mut self,
+        k: u32,
+        pass: Pass,
+        start: usize,
+        mut next: impl FnMut(usize) -> Option<Range<usize>>,
+    ) -> Result<(Range<usize>, Writing), StoreError> {
         self.settle_failed();
         let mut outputs = RunOutputs::new();
         let mut done = start;
@@ -374,9 +390,9 @@ impl Replica {
                 .map_err(|e| self.job.field_error(vlf_core::Error::Parameter(e)))?;
         }
         let outputs = outputs.finish();
-        self.write_outputs(&outputs)?;
+        let writes = self.write_outputs_behind(&outputs)?;
         self.keep_for_later_passes(outputs);
-        Ok(start..done)
+        Ok((start..done, writes))
     }
 
     /// Writes `outputs` along with the mirror maps still on their way, and waits for both: one
@@ -384,13 +400,21 @@ impl Replica {
     /// the two); the report that follows does, and a coordinator that finds outputs no report
     /// told it of checks their maps first ([`Coordinator::blocks_in_store`]).
     fn write_outputs(&mut self, outputs: &[BatchOutput]) -> Result<(), StoreError> {
+        self.write_outputs_behind(outputs)?.wait()
+    }
+
+    /// [`Replica::write_outputs`] without the wait: the writes of `outputs` and of every mirror
+    /// map still on its way, as one [`Writing`].
+    fn write_outputs_behind(&mut self, outputs: &[BatchOutput]) -> Result<Writing, StoreError> {
         let mut puts = outputs
             .par_iter()
             .map(|out| self.job.batch_put(out))
             .collect::<Result<Vec<_>, _>>()?;
         puts.append(&mut self.unwritten);
         let store = self.job.job().store();
-        store.put_all_waiting(puts, std::mem::take(&mut self.writing))
+        let mut writes = std::mem::take(&mut self.writing);
+        writes.push(store.put_all_behind(puts)?);
+        Writing::all(store, writes)
     }
 
     /// Keeps the outputs just written that a later pass of the iteration reads (see

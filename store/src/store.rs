@@ -534,15 +534,23 @@ impl Store {
     /// the requests wait for their round trips, and [`Writing::wait`]s before it relies on the
     /// objects being there. Dropped without a wait, the writes still complete.
     pub fn put_all_behind(&self, puts: Vec<Put>) -> Result<Writing, StoreError> {
+        let inner = self.inner.clone();
+        self.behind(async move { inner.put_all(puts).await })
+    }
+
+    /// `task` on the store's runtime, as a [`Writing`].
+    fn behind(
+        &self,
+        task: impl Future<Output = Result<(), StoreError>> + Send + 'static,
+    ) -> Result<Writing, StoreError> {
         let Some(runtime) = &self.runtime.0 else {
             return Err(StoreError::Runtime {
                 url: self.url().to_string(),
                 reason: "runtime shut down".into(),
             });
         };
-        let inner = self.inner.clone();
         Ok(Writing {
-            task: runtime.spawn(async move { inner.put_all(puts).await }),
+            task: runtime.spawn(task),
             store: self.clone(),
         })
     }
@@ -660,6 +668,32 @@ impl Writing {
     /// Waits until every write is done; the first error if one failed.
     pub fn wait(self) -> Result<(), StoreError> {
         Writing::wait_all(vec![self])
+    }
+
+    /// The writes of all of `writings`, started on `store`, as one.
+    pub fn all(store: &Store, writings: Vec<Writing>) -> Result<Writing, StoreError> {
+        let url = store.url().to_string();
+        let task = async move {
+            let tasks = futures::future::join_all(writings.into_iter().map(|w| w.task)).await;
+            for done in tasks {
+                done.map_err(|e| StoreError::Runtime {
+                    url: url.clone(),
+                    reason: format!("a bulk write stopped: {e}"),
+                })??;
+            }
+            Ok(())
+        };
+        store.behind(task)
+    }
+
+    /// Waits, without blocking a thread, until every write is done; the first error if one
+    /// failed. For a caller in an async context (a worker that reports once its outputs are in).
+    pub async fn finished(self) -> Result<(), StoreError> {
+        let url = self.store.url().to_string();
+        self.task.await.map_err(|e| StoreError::Runtime {
+            url,
+            reason: format!("a bulk write stopped: {e}"),
+        })?
     }
 
     /// Waits for all of `writings` (started on one store) at once: one round trip, however many

@@ -415,6 +415,32 @@ fn compute_iteration_but(coordinator: &mut Coordinator, replica: &mut Replica, s
     }
 }
 
+/// A run computed "behind" returns with its outputs and mirror maps still on their way: one
+/// round trip fewer than a run that waits for them, which a worker over a store a round trip
+/// away spends computing its next lease. Once the writes are done, the outputs are there for
+/// the coordinator, the same bytes as a waiting run's.
+fn a_run_computed_behind_returns_before_its_writes(o: &Opener) {
+    let (id, mut coordinator, _) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
+    let replica = || {
+        let store = o.open();
+        (Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap(), store)
+    };
+    let (mut a, mut b) = (replica(), replica());
+    let one = |stop: usize| move |done: usize| (done < stop).then_some(done..done + 1);
+    let before = a.1.traffic().round_trips;
+    let (run, writes) = a.0.compute_run_behind(0, Pass::Shoot, 0, one(1)).unwrap();
+    let behind = a.1.traffic().round_trips - before;
+    assert_eq!(run, 0..1);
+    let before = b.1.traffic().round_trips;
+    assert_eq!(b.0.compute_run(0, Pass::Shoot, 1, one(2)).unwrap(), 1..2);
+    let waiting = b.1.traffic().round_trips - before;
+    assert_eq!(behind + 1, waiting, "the same reads, and no wait for the writes");
+    let runtime = tokio::runtime::Builder::new_current_thread().build().unwrap();
+    runtime.block_on(writes.finished()).unwrap();
+    coordinator.absorb_pass().unwrap();
+    coordinator.finish_iteration().unwrap();
+}
+
 /// A worker writes a block's output and its mirror maps together; one that stops in between can
 /// leave the output alone. A coordinator that finds the output without a report of it takes it
 /// only with its maps, and computed again, the block gives the same bytes and its maps back.
@@ -530,6 +556,7 @@ per_backend! {
     arrivals_come_with_the_head => crate::arrivals_come_with_the_head,
     an_output_without_its_maps_is_computed_again => crate::an_output_without_its_maps_is_computed_again,
     a_copys_shooting_reads_only_the_areas_others_computed => crate::a_copys_shooting_reads_only_the_areas_others_computed,
+    a_run_computed_behind_returns_before_its_writes => crate::a_run_computed_behind_returns_before_its_writes,
 }
 
 #[test]

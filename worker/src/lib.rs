@@ -21,7 +21,7 @@ use tonic::Code;
 use vlf_core::propagate::reduce;
 use vlf_proto::v1;
 use vlf_proto::{ConnectError, Target, pass_blocks_from_wire, pass_from_wire};
-use vlf_store::{FieldJob, JobId, Replica, Store, StoreError};
+use vlf_store::{FieldJob, JobId, Replica, Store, StoreError, Writing};
 
 /// Where the worker finds the store.
 #[derive(Clone, Debug)]
@@ -253,8 +253,27 @@ async fn lease_loop(
             return Loop::Stop;
         }
         let started = Instant::now();
-        let result = compute(store, pool, replicas, &lease, workers, id).await;
+        let computed = compute(store, pool, replicas, &lease, workers, id).await;
         let seconds = started.elapsed().as_secs_f64();
+        // The outputs are on their way into the store. A local store has them in at once: the
+        // report goes now and brings the next lease. One a round trip away is still writing:
+        // the report goes once they are in, in the background, and the next lease is computed
+        // meanwhile (a perturbed iteration's eight passes each paid a round trip otherwise).
+        let (result, seconds) = match computed {
+            Ok((run, writes)) => {
+                let mut writes = tokio::spawn(writes.finished());
+                match tokio::time::timeout(WRITE_OVERLAP, &mut writes).await {
+                    Ok(written) => (written_or_error(written).map(|()| run), started.elapsed().as_secs_f64()),
+                    Err(_) => {
+                        stats.batches += 1;
+                        stats.compute_seconds += seconds;
+                        report_when_written(workers.clone(), id, &lease, run, seconds, writes);
+                        continue;
+                    }
+                }
+            }
+            Err(e) => (Err(e), seconds),
+        };
         tracing::debug!(
             lease = lease.lease_id,
             snapshot = lease.snapshot,
@@ -310,6 +329,58 @@ async fn lease_loop(
 /// How long a lease request waits for work at the coordinator (a long poll).
 const LEASE_WAIT_MS: u32 = 2000;
 
+/// How long a worker waits for a lease's outputs to be in the store before it reports the lease
+/// in the background and goes on: longer than a local store takes, shorter than a round trip to
+/// an object store.
+const WRITE_OVERLAP: Duration = Duration::from_millis(2);
+
+/// What writing a lease's outputs came to, as a report's error.
+fn written_or_error(written: Result<Result<(), StoreError>, tokio::task::JoinError>) -> Result<(), String> {
+    match written {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(e)) => Err(e.to_string()),
+        Err(e) => Err(format!("internal: {e}")),
+    }
+}
+
+/// Reports `lease`, computed up to the end of `run` in `seconds`, once `writes` are done (an
+/// error if they failed), without asking for the next lease: the worker has asked for it already.
+/// A report that does not arrive only lets the lease expire.
+fn report_when_written(
+    mut workers: v1::workers_client::WorkersClient<vlf_proto::Authed>,
+    worker_id: &str,
+    lease: &v1::Lease,
+    run: Range<usize>,
+    seconds: f64,
+    writes: tokio::task::JoinHandle<Result<(), StoreError>>,
+) {
+    let (worker_id, lease_id) = (worker_id.to_string(), lease.lease_id.clone());
+    tokio::spawn(async move {
+        let (batch_end, error) = match written_or_error(writes.await) {
+            Ok(()) => (run.end as u32, String::new()),
+            Err(e) => {
+                tracing::error!(lease = lease_id, "writing the outputs failed: {e}");
+                (0, e)
+            }
+        };
+        let report = v1::ReportRequest {
+            worker_id,
+            lease_id: lease_id.clone(),
+            error,
+            seconds,
+            next_wait_ms: 0,
+            batch_end,
+        };
+        match workers.report(report).await {
+            Ok(reply) if !reply.get_ref().accepted => {
+                tracing::debug!(lease = lease_id, "report ignored (lease expired or job ended)")
+            }
+            Ok(_) => {}
+            Err(status) => tracing::debug!(lease = lease_id, "report failed: {}", status.message()),
+        }
+    });
+}
+
 /// Computes a lease's batches into the store, left to right, one aligned block at a time; the
 /// outputs are those of the fewest aligned blocks that cover what was computed. Batches past the
 /// lease's committed part are claimed first (`Claim`). Returns the run computed: the lease's,
@@ -321,7 +392,7 @@ async fn compute(
     lease: &v1::Lease,
     workers: &v1::workers_client::WorkersClient<vlf_proto::Authed>,
     worker_id: &str,
-) -> Result<Range<usize>, String> {
+) -> Result<(Range<usize>, Writing), String> {
     let job = JobId::parse(&lease.job_id).map_err(|e| format!("lease names job `{}`: {e}", lease.job_id))?;
     let pass = pass_from_wire(lease.pass_kind, lease.pass_copy)
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
@@ -347,13 +418,13 @@ async fn compute(
         asked,
     );
     let computing = vlf_store::blocking(move || {
-        pool.install(|| -> Result<Range<usize>, StoreError> {
+        pool.install(|| -> Result<(Range<usize>, Writing), StoreError> {
             let mut replicas = lock(&replicas);
             let replica = replicas.replica(&store, &job)?;
             for (earlier, blocks) in reads {
                 replica.absorbed(k, earlier, blocks);
             }
-            replica.compute_run(k, pass, start, |done| claim.next_block(done, &asks))
+            replica.compute_run_behind(k, pass, start, |done| claim.next_block(done, &asks))
         })
     });
     let (computed, ()) = tokio::join!(computing, claimer);
