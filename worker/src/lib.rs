@@ -211,6 +211,9 @@ enum Loop {
     Refused(tonic::Status),
 }
 
+/// Leases, computes and reports until told to stop or the coordinator is lost. A worker told to
+/// stop lets the reports still waiting for their outputs' writes go out first (for
+/// [`REPORTS_AT_STOP`] at most), rather than leave the leases it computed to expire.
 #[allow(clippy::too_many_arguments)]
 async fn lease_loop(
     config: &WorkerConfig,
@@ -222,9 +225,37 @@ async fn lease_loop(
     stats: &mut WorkerStats,
     stop: &mut std::pin::Pin<&mut impl std::future::Future<Output = ()>>,
 ) -> Loop {
+    let mut reports = tokio::task::JoinSet::new();
+    let outcome = leases(config, workers, id, store, pool, replicas, stats, stop, &mut reports).await;
+    if matches!(outcome, Loop::Stop) {
+        let sent = async { while reports.join_next().await.is_some() {} };
+        if tokio::time::timeout(REPORTS_AT_STOP, sent).await.is_err() {
+            tracing::warn!("stopping with reports unsent: their leases will expire");
+        }
+    }
+    outcome
+}
+
+/// How long a stopping worker waits for its reports still on their way.
+const REPORTS_AT_STOP: Duration = Duration::from_secs(5);
+
+#[allow(clippy::too_many_arguments)]
+async fn leases(
+    config: &WorkerConfig,
+    workers: &mut v1::workers_client::WorkersClient<vlf_proto::Authed>,
+    id: &str,
+    store: &Store,
+    pool: &Arc<rayon::ThreadPool>,
+    replicas: &Arc<Mutex<Replicas>>,
+    stats: &mut WorkerStats,
+    stop: &mut std::pin::Pin<&mut impl std::future::Future<Output = ()>>,
+    reports: &mut tokio::task::JoinSet<()>,
+) -> Loop {
     // The next lease, when the last report brought it.
     let mut next: Option<v1::Lease> = None;
     loop {
+        // Reports sent in the background since: forget them.
+        while reports.try_join_next().is_some() {}
         let lease = match next.take() {
             Some(lease) => lease,
             None => {
@@ -267,7 +298,7 @@ async fn lease_loop(
                     Err(_) => {
                         stats.batches += 1;
                         stats.compute_seconds += seconds;
-                        report_when_written(workers.clone(), id, &lease, run, seconds, writes);
+                        report_when_written(reports, workers.clone(), id, &lease, run, seconds, writes);
                         continue;
                     }
                 }
@@ -347,6 +378,7 @@ fn written_or_error(written: Result<Result<(), StoreError>, tokio::task::JoinErr
 /// error if they failed), without asking for the next lease: the worker has asked for it already.
 /// A report that does not arrive only lets the lease expire.
 fn report_when_written(
+    reports: &mut tokio::task::JoinSet<()>,
     mut workers: v1::workers_client::WorkersClient<vlf_proto::Authed>,
     worker_id: &str,
     lease: &v1::Lease,
@@ -355,7 +387,7 @@ fn report_when_written(
     writes: tokio::task::JoinHandle<Result<(), StoreError>>,
 ) {
     let (worker_id, lease_id) = (worker_id.to_string(), lease.lease_id.clone());
-    tokio::spawn(async move {
+    reports.spawn(async move {
         let (batch_end, error) = match written_or_error(writes.await) {
             Ok(()) => (run.end as u32, String::new()),
             Err(e) => {
