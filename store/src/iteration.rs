@@ -49,7 +49,7 @@ use rayon::prelude::*;
 use std::collections::{HashMap, HashSet};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 use vlf_core::propagate::reduce::{RunOutputs, is_aligned_block};
 use vlf_core::propagate::work::batch_count;
 use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, MirrorBlock, Pass, Propagation};
@@ -265,6 +265,8 @@ pub struct Replica {
     /// Blocks of passes of an iteration that the coordinator absorbed, as a lease names them
     /// ([`Replica::absorbed`]): `(k, pass, blocks)`.
     absorbed: Vec<(u32, Pass, Vec<Range<usize>>)>,
+    /// What the last computation spent computing (see [`Replica::compute_seconds`]).
+    computing: Duration,
 }
 
 struct Current {
@@ -303,6 +305,7 @@ impl Replica {
             writing: Vec::new(),
             holds_snapshot: None,
             absorbed: Vec::new(),
+            computing: Duration::ZERO,
         }
     }
 
@@ -330,11 +333,22 @@ impl Replica {
     /// mirror map back; with one worker, none at all.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         self.settle_failed();
+        self.computing = Duration::ZERO;
         let out = self.shoot(k, pass, batches)?;
         let outputs = [out];
         self.write_outputs(&outputs)?;
         self.keep_for_later_passes(outputs);
         Ok(())
+    }
+
+    /// Seconds the last [`Replica::compute`] or run spent computing its blocks — shooting and
+    /// encoding their mirror maps — without the waits for the store (the head, the maps and
+    /// areas read, the outputs written) or decoding what it read. What a lease reports: the
+    /// coordinator splits the next pass among workers by what their batches cost, and a wait of
+    /// a round trip per lease, spread over its batches, would make the batches of a worker with
+    /// fewer of them look dearer, and its next share smaller still.
+    pub fn compute_seconds(&self) -> f64 {
+        self.computing.as_secs_f64()
     }
 
     /// Tells the replica which blocks of `pass` of the iteration from snapshot `k` the
@@ -375,6 +389,7 @@ impl Replica {
         mut next: impl FnMut(usize) -> Option<Range<usize>>,
     ) -> Result<(Range<usize>, Writing), StoreError> {
         self.settle_failed();
+        self.computing = Duration::ZERO;
         let mut outputs = RunOutputs::new();
         let mut done = start;
         while let Some(block) = next(done) {
@@ -549,6 +564,7 @@ impl Replica {
                 work.learn(earlier, sums).map_err(|e| self.job.field_error(e))?;
             }
         }
+        let computing = Instant::now();
         let (out, block) = self
             .prop
             .compute_block(work, pass, batches.clone())
@@ -571,6 +587,7 @@ impl Replica {
             self.unwritten = puts;
             self.held.push(block);
         }
+        self.computing += computing.elapsed();
         Ok(out)
     }
 

@@ -285,16 +285,17 @@ async fn leases(
         }
         let started = Instant::now();
         let computed = compute(store, pool, replicas, &lease, workers, id).await;
-        let seconds = started.elapsed().as_secs_f64();
         // The outputs are on their way into the store. A local store has them in at once: the
         // report goes now and brings the next lease. One a round trip away is still writing:
         // the report goes once they are in, in the background, and the next lease is computed
         // meanwhile (a perturbed iteration's eight passes each paid a round trip otherwise).
+        // What the report says the lease took is its computing alone, without the waits for the
+        // store (`Replica::compute_seconds`); a failed lease reports the time until it failed.
         let (result, seconds) = match computed {
-            Ok((run, writes)) => {
+            Ok((run, writes, seconds)) => {
                 let mut writes = tokio::spawn(writes.finished());
                 match tokio::time::timeout(WRITE_OVERLAP, &mut writes).await {
-                    Ok(written) => (written_or_error(written).map(|()| run), started.elapsed().as_secs_f64()),
+                    Ok(written) => (written_or_error(written).map(|()| run), seconds),
                     Err(_) => {
                         stats.batches += 1;
                         stats.compute_seconds += seconds;
@@ -303,7 +304,7 @@ async fn leases(
                     }
                 }
             }
-            Err(e) => (Err(e), seconds),
+            Err(e) => (Err(e), started.elapsed().as_secs_f64()),
         };
         tracing::debug!(
             lease = lease.lease_id,
@@ -424,7 +425,7 @@ async fn compute(
     lease: &v1::Lease,
     workers: &v1::workers_client::WorkersClient<vlf_proto::Authed>,
     worker_id: &str,
-) -> Result<(Range<usize>, Writing), String> {
+) -> Result<(Range<usize>, Writing, f64), String> {
     let job = JobId::parse(&lease.job_id).map_err(|e| format!("lease names job `{}`: {e}", lease.job_id))?;
     let pass = pass_from_wire(lease.pass_kind, lease.pass_copy)
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
@@ -450,13 +451,14 @@ async fn compute(
         asked,
     );
     let computing = vlf_store::blocking(move || {
-        pool.install(|| -> Result<(Range<usize>, Writing), StoreError> {
+        pool.install(|| -> Result<(Range<usize>, Writing, f64), StoreError> {
             let mut replicas = lock(&replicas);
             let replica = replicas.replica(&store, &job)?;
             for (earlier, blocks) in reads {
                 replica.absorbed(k, earlier, blocks);
             }
-            replica.compute_run_behind(k, pass, start, |done| claim.next_block(done, &asks))
+            let (run, writes) = replica.compute_run_behind(k, pass, start, |done| claim.next_block(done, &asks))?;
+            Ok((run, writes, replica.compute_seconds()))
         })
     });
     let (computed, ()) = tokio::join!(computing, claimer);
