@@ -229,7 +229,14 @@ impl workers_server::Workers for Api {
         let end = (request.batch_end > 0).then_some(request.batch_end as usize);
         let accepted = self
             .sched
-            .report_run(&request.worker_id, &request.lease_id, result, request.seconds, end)
+            .report_run(
+                &request.worker_id,
+                &request.lease_id,
+                result,
+                request.seconds,
+                end,
+                &request.batch_seconds,
+            )
             .map_err(unknown)?;
         // The next lease in the same round trip, if asked for.
         let next = match request.next_wait_ms {
@@ -365,6 +372,7 @@ mod tests {
             seconds: 0.01,
             next_wait_ms,
             batch_end: 0,
+            batch_seconds: Vec::new(),
         })
     }
 

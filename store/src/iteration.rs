@@ -49,7 +49,7 @@ use rayon::prelude::*;
 use std::collections::{HashMap, HashSet};
 use std::ops::Range;
 use std::sync::{Arc, Mutex};
-use std::time::{Duration, Instant};
+use std::time::Instant;
 use vlf_core::propagate::reduce::{RunOutputs, is_aligned_block};
 use vlf_core::propagate::work::batch_count;
 use vlf_core::propagate::{BatchOutput, IterationStats, IterationWork, MirrorBlock, Pass, Propagation};
@@ -265,8 +265,8 @@ pub struct Replica {
     /// Blocks of passes of an iteration that the coordinator absorbed, as a lease names them
     /// ([`Replica::absorbed`]): `(k, pass, blocks)`.
     absorbed: Vec<(u32, Pass, Vec<Range<usize>>)>,
-    /// What the last computation spent computing (see [`Replica::compute_seconds`]).
-    computing: Duration,
+    /// What each batch of the last computation cost (see [`Replica::batch_costs`]).
+    costs: Vec<f64>,
 }
 
 struct Current {
@@ -305,7 +305,7 @@ impl Replica {
             writing: Vec::new(),
             holds_snapshot: None,
             absorbed: Vec::new(),
-            computing: Duration::ZERO,
+            costs: Vec::new(),
         }
     }
 
@@ -333,7 +333,7 @@ impl Replica {
     /// mirror map back; with one worker, none at all.
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         self.settle_failed();
-        self.computing = Duration::ZERO;
+        self.costs.clear();
         let out = self.shoot(k, pass, batches)?;
         let outputs = [out];
         self.write_outputs(&outputs)?;
@@ -348,7 +348,15 @@ impl Replica {
     /// a round trip per lease, spread over its batches, would make the batches of a worker with
     /// fewer of them look dearer, and its next share smaller still.
     pub fn compute_seconds(&self) -> f64 {
-        self.computing.as_secs_f64()
+        self.costs.iter().sum()
+    }
+
+    /// What each batch of the last [`Replica::compute`] or run cost to compute, in order, in
+    /// seconds (see [`Replica::compute_seconds`]): a block's batches are timed one by one, and
+    /// what the block does besides (gathering its arrivals, encoding its mirror maps) is shared
+    /// evenly among them.
+    pub fn batch_costs(&self) -> &[f64] {
+        &self.costs
     }
 
     /// Tells the replica which blocks of `pass` of the iteration from snapshot `k` the
@@ -389,7 +397,7 @@ impl Replica {
         mut next: impl FnMut(usize) -> Option<Range<usize>>,
     ) -> Result<(Range<usize>, Writing), StoreError> {
         self.settle_failed();
-        self.computing = Duration::ZERO;
+        self.costs.clear();
         let mut outputs = RunOutputs::new();
         let mut done = start;
         while let Some(block) = next(done) {
@@ -564,11 +572,11 @@ impl Replica {
                 work.learn(earlier, sums).map_err(|e| self.job.field_error(e))?;
             }
         }
-        let computing = Instant::now();
-        let (out, block) = self
+        let (out, block, mut costs) = self
             .prop
-            .compute_block(work, pass, batches.clone())
+            .compute_block_costed(work, pass, batches.clone())
             .map_err(|e| self.job.field_error(e))?;
+        let encoding = Instant::now();
         if let Some(block) = block {
             // The block took its directions' totals with it: computing it again reads them.
             batches.for_each(|b| current.totals[b] = false);
@@ -587,7 +595,9 @@ impl Replica {
             self.unwritten = puts;
             self.held.push(block);
         }
-        self.computing += computing.elapsed();
+        let share = encoding.elapsed().as_secs_f64() / costs.len().max(1) as f64;
+        costs.iter_mut().for_each(|c| *c += share);
+        self.costs.extend(costs);
         Ok(out)
     }
 

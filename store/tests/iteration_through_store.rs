@@ -561,7 +561,7 @@ per_backend! {
 
 /// What a replica says it spent computing leaves out its waits for the store: over a store 300 ms
 /// away, a block of the smallest mirror job reads the head and maps and writes its output (three
-/// round trips, 0.9 s), and computes in a few milliseconds.
+/// round trips, 0.9 s), and computes its two batches in a few milliseconds.
 #[test]
 fn compute_seconds_leave_out_the_waits_for_the_store() {
     let store = Store::open("memory://?latency=300ms").unwrap();
@@ -569,10 +569,14 @@ fn compute_seconds_leave_out_the_waits_for_the_store() {
     let id = FieldJob::create(&store, &p, Encoding::F32).unwrap().id().clone();
     let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
     let before = store.traffic().round_trips;
-    replica.compute(0, Pass::Shoot, 0..1).unwrap();
+    replica.compute(0, Pass::Shoot, 0..2).unwrap();
     assert!(store.traffic().round_trips - before >= 3);
     let seconds = replica.compute_seconds();
     assert!(seconds > 0.0 && seconds < 0.3, "{seconds} s");
+    // Batch by batch, adding up to it.
+    let costs = replica.batch_costs();
+    assert_eq!(costs.len(), 2);
+    assert!(costs.iter().all(|&c| c > 0.0) && (costs.iter().sum::<f64>() - seconds).abs() < 1e-12);
 }
 
 #[test]

@@ -289,23 +289,25 @@ async fn leases(
         // report goes now and brings the next lease. One a round trip away is still writing:
         // the report goes once they are in, in the background, and the next lease is computed
         // meanwhile (a perturbed iteration's eight passes each paid a round trip otherwise).
-        // What the report says the lease took is its computing alone, without the waits for the
-        // store (`Replica::compute_seconds`); a failed lease reports the time until it failed.
-        let (result, seconds) = match computed {
-            Ok((run, writes, seconds)) => {
+        // What the report says the lease took is its computing alone, batch by batch, without
+        // the waits for the store (`Replica::batch_costs`); a failed lease reports the time
+        // until it failed.
+        let (result, costs) = match computed {
+            Ok((run, writes, costs)) => {
                 let mut writes = tokio::spawn(writes.finished());
                 match tokio::time::timeout(WRITE_OVERLAP, &mut writes).await {
-                    Ok(written) => (written_or_error(written).map(|()| run), seconds),
+                    Ok(written) => (written_or_error(written).map(|()| run), costs),
                     Err(_) => {
                         stats.batches += 1;
-                        stats.compute_seconds += seconds;
-                        report_when_written(reports, workers.clone(), id, &lease, run, seconds, writes);
+                        stats.compute_seconds += costs.iter().sum::<f64>();
+                        report_when_written(reports, workers.clone(), id, &lease, run, costs, writes);
                         continue;
                     }
                 }
             }
-            Err(e) => (Err(e), started.elapsed().as_secs_f64()),
+            Err(e) => (Err(e), vec![started.elapsed().as_secs_f64()]),
         };
+        let seconds: f64 = costs.iter().sum();
         tracing::debug!(
             lease = lease.lease_id,
             snapshot = lease.snapshot,
@@ -326,9 +328,9 @@ async fn leases(
                 tracing::error!(job = lease.job_id, batch = lease.batch, "batch failed: {e}");
             }
         }
-        let (batch_end, error) = match result {
-            Ok(run) => (run.end as u32, String::new()),
-            Err(e) => (0, e),
+        let (batch_end, error, batch_seconds) = match result {
+            Ok(run) => (run.end as u32, String::new(), costs),
+            Err(e) => (0, e, Vec::new()),
         };
         let report = v1::ReportRequest {
             worker_id: id.to_string(),
@@ -337,6 +339,7 @@ async fn leases(
             seconds,
             next_wait_ms: LEASE_WAIT_MS,
             batch_end,
+            batch_seconds,
         };
         // The report also asks for the next lease (one round trip instead of two); stopping
         // meanwhile is fine: an unanswered report only lets the lease expire.
@@ -375,7 +378,7 @@ fn written_or_error(written: Result<Result<(), StoreError>, tokio::task::JoinErr
     }
 }
 
-/// Reports `lease`, computed up to the end of `run` in `seconds`, once `writes` are done (an
+/// Reports `lease`, computed up to the end of `run` at `costs` per batch, once `writes` are done (an
 /// error if they failed), without asking for the next lease: the worker has asked for it already.
 /// A report that does not arrive only lets the lease expire.
 fn report_when_written(
@@ -384,16 +387,17 @@ fn report_when_written(
     worker_id: &str,
     lease: &v1::Lease,
     run: Range<usize>,
-    seconds: f64,
+    costs: Vec<f64>,
     writes: tokio::task::JoinHandle<Result<(), StoreError>>,
 ) {
+    let seconds = costs.iter().sum();
     let (worker_id, lease_id) = (worker_id.to_string(), lease.lease_id.clone());
     reports.spawn(async move {
-        let (batch_end, error) = match written_or_error(writes.await) {
-            Ok(()) => (run.end as u32, String::new()),
+        let (batch_end, error, batch_seconds) = match written_or_error(writes.await) {
+            Ok(()) => (run.end as u32, String::new(), costs),
             Err(e) => {
                 tracing::error!(lease = lease_id, "writing the outputs failed: {e}");
-                (0, e)
+                (0, e, Vec::new())
             }
         };
         let report = v1::ReportRequest {
@@ -403,6 +407,7 @@ fn report_when_written(
             seconds,
             next_wait_ms: 0,
             batch_end,
+            batch_seconds,
         };
         match workers.report(report).await {
             Ok(reply) if !reply.get_ref().accepted => {
@@ -425,7 +430,7 @@ async fn compute(
     lease: &v1::Lease,
     workers: &v1::workers_client::WorkersClient<vlf_proto::Authed>,
     worker_id: &str,
-) -> Result<(Range<usize>, Writing, f64), String> {
+) -> Result<(Range<usize>, Writing, Vec<f64>), String> {
     let job = JobId::parse(&lease.job_id).map_err(|e| format!("lease names job `{}`: {e}", lease.job_id))?;
     let pass = pass_from_wire(lease.pass_kind, lease.pass_copy)
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
@@ -451,14 +456,14 @@ async fn compute(
         asked,
     );
     let computing = vlf_store::blocking(move || {
-        pool.install(|| -> Result<(Range<usize>, Writing, f64), StoreError> {
+        pool.install(|| -> Result<(Range<usize>, Writing, Vec<f64>), StoreError> {
             let mut replicas = lock(&replicas);
             let replica = replicas.replica(&store, &job)?;
             for (earlier, blocks) in reads {
                 replica.absorbed(k, earlier, blocks);
             }
             let (run, writes) = replica.compute_run_behind(k, pass, start, |done| claim.next_block(done, &asks))?;
-            Ok((run, writes, replica.compute_seconds()))
+            Ok((run, writes, replica.batch_costs().to_vec()))
         })
     });
     let (computed, ()) = tokio::join!(computing, claimer);

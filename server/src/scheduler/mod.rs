@@ -757,12 +757,13 @@ impl Scheduler {
         result: Result<(), String>,
         seconds: f64,
     ) -> Result<bool, Unknown> {
-        self.report_run(worker, lease_id, result, seconds, None)
+        self.report_run(worker, lease_id, result, seconds, None, &[])
     }
 
     /// [`Scheduler::report`] of a lease computed up to `end` (`None`: to its end): a worker
     /// that could not claim the rest (the coordinator did not answer) reports what it has, and
     /// the batches after `end` are pending again. An `end` outside the lease is not taken.
+    /// `costs` are what each batch computed cost, in order (empty: `seconds` shared evenly).
     pub fn report_run(
         &self,
         worker: &str,
@@ -770,6 +771,7 @@ impl Scheduler {
         result: Result<(), String>,
         seconds: f64,
         end: Option<usize>,
+        costs: &[f64],
     ) -> Result<bool, Unknown> {
         let mut state = self.lock();
         touch(&mut state, worker)?;
@@ -814,7 +816,7 @@ impl Scheduler {
                 if pass == Pass::Shoot {
                     entry
                         .shooting
-                        .record(worker, batches.clone(), run.batches.len(), seconds);
+                        .record(worker, batches.clone(), run.batches.len(), seconds, costs);
                 }
                 if seconds.is_finite() && seconds > 0.0 {
                     entry.clock.batch_seconds = Some(seconds / batches.len() as f64);

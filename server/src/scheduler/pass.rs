@@ -21,17 +21,20 @@ pub(super) struct Shooting {
 }
 
 impl Shooting {
-    /// Records that `worker` shot `batches` of a pass of `len` batches in `seconds`.
-    pub(super) fn record(&mut self, worker: &str, batches: Range<usize>, len: usize, seconds: f64) {
+    /// Records that `worker` shot `batches` of a pass of `len` batches in `seconds`, each batch
+    /// what `costs` says (when it has one cost per batch), else an even share.
+    pub(super) fn record(&mut self, worker: &str, batches: Range<usize>, len: usize, seconds: f64, costs: &[f64]) {
         if self.shooters.len() < len {
             self.shooters.resize(len, None);
             self.seconds.resize(len, 0.0);
         }
         let share = seconds / batches.len().max(1) as f64;
-        for b in batches {
+        let per_batch = costs.len() == batches.len();
+        for (i, b) in batches.enumerate() {
             self.shooters[b] = Some(worker.to_string());
-            if share.is_finite() && share > 0.0 {
-                self.seconds[b] = share;
+            let cost = if per_batch { costs[i] } else { share };
+            if cost.is_finite() && cost > 0.0 {
+                self.seconds[b] = cost;
             }
         }
     }

@@ -337,8 +337,8 @@ async fn an_idle_worker_is_given_the_tail_a_busy_one_has_not_claimed() {
     // Nothing is left to give: a committed run is never taken.
     assert_eq!(s.lease(&b, Duration::from_millis(5)).await.unwrap(), None);
     // A report past the run's new end is not taken; one at its end is.
-    assert!(!s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(8)).unwrap());
-    assert!(s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(6)).unwrap());
+    assert!(!s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(8), &[]).unwrap());
+    assert!(s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(6), &[]).unwrap());
     assert!(s.report(&b, &tail.lease_id, Ok(()), 0.02).unwrap());
     assert_eq!(
         s.pass_outcome(&id, Pass::Shoot, 0),
@@ -383,10 +383,10 @@ async fn a_report_of_part_of_a_run_puts_the_rest_back() {
     assert_eq!(ga.batches, 0..8);
     // a could not claim its tail (the coordinator did not answer): it reports 0..6.
     assert!(
-        !s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(0)).unwrap(),
+        !s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(0), &[]).unwrap(),
         "an empty run"
     );
-    assert!(s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(6)).unwrap());
+    assert!(s.report_run(&a, &ga.lease_id, Ok(()), 0.06, Some(6), &[]).unwrap());
     assert_eq!(
         s.pass_outcome(&id, Pass::Shoot, 0),
         PassOutcome::Ready(vec![0..4, 4..6])
@@ -487,6 +487,30 @@ async fn a_worker_whose_batches_were_cheap_gets_more_of_the_next_pass() {
     assert_eq!(gb.batches, 12..16);
     let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(ga.batches, 0..12);
+}
+
+/// Within a lease the batches' costs come from the report, batch by batch, rather than an even
+/// share of its seconds: where the cost lies inside a worker's half decides where the next split
+/// falls.
+#[tokio::test]
+async fn a_report_gives_each_batch_its_own_cost() {
+    // a's half costs 12 ms, b's 20 ms: the next split is where 16 ms are behind. Shared evenly,
+    // b's batches cost 2.5 ms each and 16 ms lie between batches 9 and 10 (14.5 and 17 ms,
+    // the nearer 10); costed one by one, b's first two cost 4 ms and 16 ms lie at batch 9.
+    let costed = [0.004, 0.004, 0.002, 0.002, 0.002, 0.002, 0.002, 0.002];
+    for (costs, b_home) in [(&[][..], 10..16), (&costed[..], 9..16)] {
+        let s = scheduler(60_000);
+        let (id, a, b) = two_workers_and_a_pass(&s, Abilities::ALL).await;
+        let ga = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((ga.batches.clone(), gb.batches.clone()), (0..8, 8..16));
+        assert!(s.report_run(&a, &ga.lease_id, Ok(()), 0.012, None, &[]).unwrap());
+        assert!(s.report_run(&b, &gb.lease_id, Ok(()), 0.020, None, costs).unwrap());
+        s.end_pass(&id, 1, Pass::Shoot);
+        s.start_pass(&id, 2, Pass::Shoot, 16, &[], &[]);
+        let gb = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(gb.batches, b_home, "costs {costs:?}");
+    }
 }
 
 #[tokio::test]

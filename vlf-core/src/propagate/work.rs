@@ -662,10 +662,25 @@ impl Propagation {
         pass: Pass,
         batches: Range<usize>,
     ) -> crate::Result<(BatchOutput, Option<MirrorBlock>)> {
+        self.compute_block_costed(work, pass, batches)
+            .map(|(output, block, _)| (output, block))
+    }
+
+    /// [`Propagation::compute_block`], and what each of the block's batches cost to compute,
+    /// in seconds (the gathering of the block's arrivals shared evenly among them): a
+    /// coordinator splits the next pass among workers by what its batches cost, and a block's
+    /// time spread evenly over its batches would blur the costs that differ most (the mirror
+    /// scene's last batches cost twice its first).
+    pub fn compute_block_costed(
+        &mut self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+    ) -> crate::Result<(BatchOutput, Option<MirrorBlock>, Vec<f64>)> {
         let directions = self.block_directions(work, &batches)?;
-        let (output, sent) = self.shoot_block(work, pass, batches, directions.clone())?;
+        let (output, sent, costs) = self.shoot_block(work, pass, batches, directions.clone())?;
         let Some((unshot, incident)) = sent else {
-            return Ok((output, None));
+            return Ok((output, None, costs));
         };
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
         let Some(spec) = self.specular.as_mut() else {
@@ -692,14 +707,15 @@ impl Propagation {
             shooting: if pending { incident } else { unshot },
             total,
         };
-        Ok((output, Some(block)))
+        Ok((output, Some(block), costs))
     }
 
     /// The shooting of [`Propagation::compute_block`], which reads the state
     /// and changes nothing: the block's output and, when the pass shoots
     /// mirror maps, what each of its directions sent (gathered now from the
     /// pending arrivals — the exchange, see `specular::Pending` — or as
-    /// restored) and the incident maps it received.
+    /// restored) and the incident maps it received; and what each batch
+    /// cost, in seconds.
     #[allow(clippy::type_complexity)]
     fn shoot_block(
         &self,
@@ -707,7 +723,8 @@ impl Propagation {
         pass: Pass,
         batches: Range<usize>,
         directions: Range<usize>,
-    ) -> crate::Result<(BatchOutput, Option<(Vec<Vec<Rgb>>, Vec<Vec<Rgb>>)>)> {
+    ) -> crate::Result<(BatchOutput, Option<(Vec<Vec<Rgb>>, Vec<Vec<Rgb>>)>, Vec<f64>)> {
+        let gathering = std::time::Instant::now();
         let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
             (Some(spec), Pass::Shoot, true) => Some(spec),
             _ => None,
@@ -747,15 +764,19 @@ impl Propagation {
                 .map(|(unshot, incident)| MirrorIo { unshot, incident })
                 .collect()
         });
+        let gathered = gathering.elapsed().as_secs_f64() / batches.len() as f64;
         let mut tree = TreeSum::new(batches.len());
         let mut buffers = self.buffers.take();
+        let mut costs = Vec::with_capacity(batches.len());
         for (i, batch) in batches.clone().enumerate() {
+            let started = std::time::Instant::now();
             let range = work.batch_range(batch, self.directions.len());
             let own = maps
                 .as_deref_mut()
                 .map(|m| &mut m[range.start - directions.start..range.end - directions.start]);
             let leaf = self.run_batch_with(work, pass, batch, own, &mut buffers)?;
             tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
+            costs.push(gathered + started.elapsed().as_secs_f64());
         }
         drop(maps);
         self.buffers.keep(buffers);
@@ -778,7 +799,7 @@ impl Propagation {
         let sent = unshot
             .zip(incident)
             .map(|(unshot, incident)| (unshot.into_iter().map(Cow::into_owned).collect(), incident));
-        Ok((output, sent))
+        Ok((output, sent, costs))
     }
 
     /// The batches of mirror maps that [`Propagation::compute_block`] reads
