@@ -185,6 +185,7 @@ pub async fn run(
             id.clone(),
             Duration::from_millis(u64::from(reply.heartbeat_ms.max(10))),
         );
+        let mut reports = tokio::task::JoinSet::new();
         let outcome = lease_loop(
             &config,
             &mut workers,
@@ -194,11 +195,20 @@ pub async fn run(
             &replicas,
             &mut stats,
             &mut stop,
+            &mut reports,
         )
         .await;
         heartbeat.abort();
         match outcome {
-            Loop::Stop => return Ok(stats),
+            Loop::Stop => {
+                // Reports still waiting for their outputs' writes go out first, rather than
+                // leave the leases computed to expire.
+                let sent = async { while reports.join_next().await.is_some() {} };
+                if tokio::time::timeout(REPORTS_AT_STOP, sent).await.is_err() {
+                    tracing::warn!("stopping with reports unsent: their leases will expire");
+                }
+                return Ok(stats);
+            }
             Loop::Refused(status) => return Err(WorkerError::Refused(status)),
             Loop::Register => continue 'register,
         }
@@ -211,36 +221,13 @@ enum Loop {
     Refused(tonic::Status),
 }
 
-/// Leases, computes and reports until told to stop or the coordinator is lost. A worker told to
-/// stop lets the reports still waiting for their outputs' writes go out first (for
-/// [`REPORTS_AT_STOP`] at most), rather than leave the leases it computed to expire.
-#[allow(clippy::too_many_arguments)]
-async fn lease_loop(
-    config: &WorkerConfig,
-    workers: &mut v1::workers_client::WorkersClient<vlf_proto::Authed>,
-    id: &str,
-    store: &Store,
-    pool: &Arc<rayon::ThreadPool>,
-    replicas: &Arc<Mutex<Replicas>>,
-    stats: &mut WorkerStats,
-    stop: &mut std::pin::Pin<&mut impl std::future::Future<Output = ()>>,
-) -> Loop {
-    let mut reports = tokio::task::JoinSet::new();
-    let outcome = leases(config, workers, id, store, pool, replicas, stats, stop, &mut reports).await;
-    if matches!(outcome, Loop::Stop) {
-        let sent = async { while reports.join_next().await.is_some() {} };
-        if tokio::time::timeout(REPORTS_AT_STOP, sent).await.is_err() {
-            tracing::warn!("stopping with reports unsent: their leases will expire");
-        }
-    }
-    outcome
-}
-
 /// How long a stopping worker waits for its reports still on their way.
 const REPORTS_AT_STOP: Duration = Duration::from_secs(5);
 
+/// Leases, computes and reports until told to stop or the coordinator is lost; reports sent in
+/// the background go into `reports`.
 #[allow(clippy::too_many_arguments)]
-async fn leases(
+async fn lease_loop(
     config: &WorkerConfig,
     workers: &mut v1::workers_client::WorkersClient<vlf_proto::Authed>,
     id: &str,
