@@ -664,6 +664,14 @@ pub struct Writing {
     store: Store,
 }
 
+/// A bulk write's task that ended without finishing (it panicked or its runtime shut down).
+fn write_stopped(url: &str, e: tokio::task::JoinError) -> StoreError {
+    StoreError::Runtime {
+        url: url.to_string(),
+        reason: format!("a bulk write stopped: {e}"),
+    }
+}
+
 impl Writing {
     /// Waits until every write is done; the first error if one failed.
     pub fn wait(self) -> Result<(), StoreError> {
@@ -676,10 +684,7 @@ impl Writing {
         let task = async move {
             let tasks = futures::future::join_all(writings.into_iter().map(|w| w.task)).await;
             for done in tasks {
-                done.map_err(|e| StoreError::Runtime {
-                    url: url.clone(),
-                    reason: format!("a bulk write stopped: {e}"),
-                })??;
+                done.map_err(|e| write_stopped(&url, e))??;
             }
             Ok(())
         };
@@ -690,10 +695,7 @@ impl Writing {
     /// failed. For a caller in an async context (a worker that reports once its outputs are in).
     pub async fn finished(self) -> Result<(), StoreError> {
         let url = self.store.url().to_string();
-        self.task.await.map_err(|e| StoreError::Runtime {
-            url,
-            reason: format!("a bulk write stopped: {e}"),
-        })?
+        self.task.await.map_err(|e| write_stopped(&url, e))?
     }
 
     /// Waits for all of `writings` (started on one store) at once: one round trip, however many
@@ -717,10 +719,7 @@ impl Store {
         let tasks = futures::future::join_all(writings.into_iter().map(|w| w.task));
         let (put, waited) = self.block_on(futures::future::join(self.inner.put_all(puts), tasks))?;
         for done in waited {
-            done.map_err(|e| StoreError::Runtime {
-                url: self.url().to_string(),
-                reason: format!("a bulk write stopped: {e}"),
-            })??;
+            done.map_err(|e| write_stopped(self.url(), e))??;
         }
         put
     }

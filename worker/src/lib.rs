@@ -315,19 +315,7 @@ async fn lease_loop(
                 tracing::error!(job = lease.job_id, batch = lease.batch, "batch failed: {e}");
             }
         }
-        let (batch_end, error, batch_seconds) = match result {
-            Ok(run) => (run.end as u32, String::new(), costs),
-            Err(e) => (0, e, Vec::new()),
-        };
-        let report = v1::ReportRequest {
-            worker_id: id.to_string(),
-            lease_id: lease.lease_id.clone(),
-            error,
-            seconds,
-            next_wait_ms: LEASE_WAIT_MS,
-            batch_end,
-            batch_seconds,
-        };
+        let report = report_request(id, &lease.lease_id, result, costs, LEASE_WAIT_MS);
         // The report also asks for the next lease (one round trip instead of two); stopping
         // meanwhile is fine: an unanswered report only lets the lease expire.
         let reported = tokio::select! {
@@ -356,6 +344,31 @@ const LEASE_WAIT_MS: u32 = 2000;
 /// an object store.
 const WRITE_OVERLAP: Duration = Duration::from_millis(2);
 
+/// The report of a lease: computed up to the end of the run at `costs` per batch, or failed;
+/// asking for the next lease with a wait of `next_wait_ms` (0: not asking).
+fn report_request(
+    worker_id: &str,
+    lease_id: &str,
+    outcome: Result<Range<usize>, String>,
+    costs: Vec<f64>,
+    next_wait_ms: u32,
+) -> v1::ReportRequest {
+    let seconds = costs.iter().sum();
+    let (batch_end, error, batch_seconds) = match outcome {
+        Ok(run) => (run.end as u32, String::new(), costs),
+        Err(e) => (0, e, Vec::new()),
+    };
+    v1::ReportRequest {
+        worker_id: worker_id.to_string(),
+        lease_id: lease_id.to_string(),
+        error,
+        seconds,
+        next_wait_ms,
+        batch_end,
+        batch_seconds,
+    }
+}
+
 /// What writing a lease's outputs came to, as a report's error.
 fn written_or_error(written: Result<Result<(), StoreError>, tokio::task::JoinError>) -> Result<(), String> {
     match written {
@@ -377,25 +390,13 @@ fn report_when_written(
     costs: Vec<f64>,
     writes: tokio::task::JoinHandle<Result<(), StoreError>>,
 ) {
-    let seconds = costs.iter().sum();
     let (worker_id, lease_id) = (worker_id.to_string(), lease.lease_id.clone());
     reports.spawn(async move {
-        let (batch_end, error, batch_seconds) = match written_or_error(writes.await) {
-            Ok(()) => (run.end as u32, String::new(), costs),
-            Err(e) => {
-                tracing::error!(lease = lease_id, "writing the outputs failed: {e}");
-                (0, e, Vec::new())
-            }
-        };
-        let report = v1::ReportRequest {
-            worker_id,
-            lease_id: lease_id.clone(),
-            error,
-            seconds,
-            next_wait_ms: 0,
-            batch_end,
-            batch_seconds,
-        };
+        let written = written_or_error(writes.await).map(|()| run);
+        if let Err(e) = &written {
+            tracing::error!(lease = lease_id, "writing the outputs failed: {e}");
+        }
+        let report = report_request(&worker_id, &lease_id, written, costs, 0);
         match workers.report(report).await {
             Ok(reply) if !reply.get_ref().accepted => {
                 tracing::debug!(lease = lease_id, "report ignored (lease expired or job ended)")
