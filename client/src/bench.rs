@@ -8,6 +8,13 @@
 //! out of the comparison; what is left is the service's own cost: leases, encoding and moving
 //! the batch outputs, the coordinator's absorbing, and each worker building its geometry.
 //!
+//! With two workers or more, a third way runs too: the in-process loop cut the way the workers
+//! cut it (`Propagation::step_split`: the batches split into contiguous homes by what they cost
+//! in the iteration before, as the coordinator splits them, each home on its own share of the
+//! threads, nothing between them). Where a worker's threads cannot help another worker, the
+//! iteration waits for the slowest home whatever the service does: that way's ratio is what the
+//! cut costs, and the service's ratio to it what the service adds.
+//!
 //! Reported per way: the median and fastest wall time, the median over rounds of each round's
 //! ratio to its in-process run (with the smallest and largest: a noisy machine's slow spells hit
 //! both runs of a round alike), the median time of every iteration, and the work each iteration
@@ -21,10 +28,10 @@ use clap::Args;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
-use vlf_core::propagate::{Checkpoint, Propagation};
+use vlf_core::propagate::{Checkpoint, HomeThreads, Propagation};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
-use vlf_server::scheduler::{IterationRecord, IterationUse};
+use vlf_server::scheduler::{IterationRecord, IterationUse, split_by_cost};
 use vlf_store::{FieldJob, Store, Traffic};
 
 #[derive(Args)]
@@ -144,8 +151,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
         .build()
         .context("cannot start the async runtime")?;
 
-    let ways: Vec<Option<usize>> = std::iter::once(None)
-        .chain(args.workers.iter().copied().map(Some))
+    let ways: Vec<Way> = std::iter::once(Way::InProcess)
+        .chain(args.workers.iter().filter(|&&w| w > 1).map(|&w| Way::Split(w)))
+        .chain(args.workers.iter().map(|&w| Way::Service(w)))
         .collect();
     let mut samples: Vec<Vec<Sample>> = ways.iter().map(|_| Vec::new()).collect();
     let mut reference: Option<Checkpoint> = None;
@@ -154,23 +162,24 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let cotenant = if args.cotenant { Some(Cotenant::start()?) } else { None };
     let bar = indicatif::ProgressBar::new((args.repeat * ways.len()) as u64);
     for _ in 0..args.repeat {
-        for (way, workers) in ways.iter().enumerate() {
-            let (sample, last) = match workers {
-                // Threads of its own, as `vlf propagate` starts them, and as the service's
-                // workers start theirs: threads kept from the last round would have their
-                // allocator's memory at hand, where fresh ones fault their pages in.
-                None => rayon::ThreadPoolBuilder::new()
+        for (way, kind) in ways.iter().enumerate() {
+            // Threads of its own each run, as `vlf propagate` starts them, and as the service's
+            // workers start theirs: threads kept from the last round would have their
+            // allocator's memory at hand, where fresh ones fault their pages in.
+            let (sample, last) = match *kind {
+                Way::InProcess => rayon::ThreadPoolBuilder::new()
                     .num_threads(threads)
                     .build()
                     .context("cannot start the compute threads")?
                     .install(|| in_process(&url, &scene, &spec))?,
-                Some(count) => service(&runtime, &url, &scene, &spec, Workers { count: *count, threads })?,
+                Way::Split(count) => in_process_split(&url, &scene, &spec, Workers { count, threads })?,
+                Way::Service(count) => service(&runtime, &url, &scene, &spec, Workers { count, threads })?,
             };
             let last = without_times(last);
             match &reference {
                 None => reference = Some(last),
                 Some(r) if *r != last => {
-                    bail!("the service with {workers:?} workers changed the bits of the field")
+                    bail!("the run `{}` changed the bits of the field", kind.name())
                 }
                 Some(_) => {}
             }
@@ -202,6 +211,34 @@ fn in_process(url: &str, scene: &Scene, spec: &JobSpec) -> Result<(Sample, Check
     while !prop.finished() {
         let t = Instant::now();
         prop.step(|_| {});
+        job.write_snapshot(&prop)?;
+        iterations.push(IterationRecord {
+            seconds: t.elapsed().as_secs_f64(),
+            ..IterationRecord::default()
+        });
+    }
+    let last = prop.checkpoint();
+    job.finish(&prop.into_field(), false)?;
+    Ok((Sample::ended(started, iterations, &store), last))
+}
+
+/// The in-process loop cut into `workers.count` homes of `workers.count`-th of the threads, as
+/// the service's workers split a pass (`Propagation::step_split`): the homes of an iteration
+/// are cut by what the batches cost in the one before, as the coordinator cuts them
+/// (`split_by_cost`); the first iteration's are even.
+fn in_process_split(url: &str, scene: &Scene, spec: &JobSpec, workers: Workers) -> Result<(Sample, Checkpoint)> {
+    let started = Instant::now();
+    let store = Store::open(url)?;
+    let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
+    let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
+    let per_home = (workers.threads / workers.count).max(1);
+    let mut threads = HomeThreads::new(workers.count, per_home)?;
+    let mut costs = Vec::new();
+    let mut iterations = Vec::new();
+    while !prop.finished() {
+        let t = Instant::now();
+        let homes = split_by_cost(&costs, prop.iteration_work().batches(), workers.count);
+        costs = prop.step_split(&homes, &mut threads)?.1;
         job.write_snapshot(&prop)?;
         iterations.push(IterationRecord {
             seconds: t.elapsed().as_secs_f64(),
@@ -306,22 +343,30 @@ fn median_interval(n: usize) -> Option<(usize, usize)> {
     found
 }
 
-fn name(workers: Option<usize>) -> String {
-    match workers {
-        None => "in-process".into(),
-        Some(1) => "service, 1 worker".into(),
-        Some(w) => format!("service, {w} workers"),
+/// One way of running the bench's job.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Way {
+    /// `vlf propagate`'s loop: every batch's directions shared among all the threads.
+    InProcess,
+    /// The same loop cut into this many homes, as that many workers cut it.
+    Split(usize),
+    /// The embedded service with this many workers.
+    Service(usize),
+}
+
+impl Way {
+    fn name(self) -> String {
+        match self {
+            Way::InProcess => "in-process".into(),
+            Way::Split(w) => format!("in-process, cut in {w} homes"),
+            Way::Service(1) => "service, 1 worker".into(),
+            Way::Service(w) => format!("service, {w} workers"),
+        }
     }
 }
 
 /// The Markdown report.
-fn report(
-    args: &BenchArgs,
-    threads: usize,
-    ways: &[Option<usize>],
-    samples: &[Vec<Sample>],
-    plain_after: usize,
-) -> String {
+fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>], plain_after: usize) -> String {
     let mut out = String::new();
     let cpu = cpu_name().unwrap_or_else(|| "unknown CPU".into());
     let _ = writeln!(
@@ -335,7 +380,7 @@ fn report(
     let _ = writeln!(
         out,
         "{threads} threads on {cpu}; `{}` store; median of {} runs each, interleaved. \
-         Every service run gave the in-process bits.{}\n",
+         Every run gave the in-process bits.{}\n",
         store_url(args),
         args.repeat,
         if args.cotenant {
@@ -359,7 +404,7 @@ fn report(
         let fastest = times.iter().copied().fold(f64::INFINITY, f64::min);
         let ratios = Ratios::paired(&base, &times);
         let m = median(times);
-        let _ = writeln!(out, "| {} | {m:.3} | {fastest:.3} | {} |", name(*way), ratios.cells());
+        let _ = writeln!(out, "| {} | {m:.3} | {fastest:.3} | {} |", way.name(), ratios.cells());
     }
 
     // The plain iterations, summed per run and paired by round like the whole runs.
@@ -382,8 +427,9 @@ fn report(
             let times: Vec<f64> = runs.iter().map(plain).collect();
             let ratios = Ratios::paired(&base, &times);
             let m = median(times);
-            let _ = writeln!(out, "| {} | {m:.3} | {} |", name(*way), ratios.cells());
+            let _ = writeln!(out, "| {} | {m:.3} | {} |", way.name(), ratios.cells());
         }
+        cut_table(&mut out, ways, samples, &plain);
         workers_table(&mut out, ways, samples, plain_after);
     }
 
@@ -409,7 +455,7 @@ fn report(
         let _ = writeln!(
             out,
             "| {} | {} / {:.1} | {} / {:.1} | {:.2} / {:.2} |",
-            name(*way),
+            way.name(),
             t.writes,
             t.written_bytes as f64 / 1e6,
             t.reads,
@@ -426,11 +472,12 @@ fn report(
     let mut header = "| iteration |".to_string();
     let mut rule = "|---:|".to_string();
     for way in ways {
-        let _ = write!(header, " {} s |", name(*way));
+        let _ = write!(header, " {} s |", way.name());
         rule.push_str("---:|");
     }
-    for way in &ways[1..] {
-        let _ = write!(header, " {} blobs / MB |", name(*way));
+    let services = || (ways.iter().zip(samples)).filter(|(w, _)| matches!(w, Way::Service(_)));
+    for (way, _) in services() {
+        let _ = write!(header, " {} blobs / MB |", way.name());
         rule.push_str("---:|");
     }
     let _ = writeln!(out, "{header}\n{rule}");
@@ -444,7 +491,7 @@ fn report(
             );
             let _ = write!(row, " {t:.3} |");
         }
-        for runs in &samples[1..] {
+        for (_, runs) in services() {
             let traffic = runs
                 .first()
                 .and_then(|s| s.iterations.get(k))
@@ -457,9 +504,46 @@ fn report(
     out
 }
 
+/// What the service adds to the cut: each service run of two workers or more over its round's
+/// in-process run cut into as many homes, whole and over the plain iterations (`plain`).
+fn cut_table(out: &mut String, ways: &[Way], samples: &[Vec<Sample>], plain: &dyn Fn(&Sample) -> f64) {
+    let cut_of = |w: usize| ways.iter().position(|&way| way == Way::Split(w));
+    let pairs: Vec<(Way, usize, usize)> = (ways.iter().enumerate())
+        .filter_map(|(i, &way)| match way {
+            Way::Service(w) => cut_of(w).map(|c| (way, c, i)),
+            _ => None,
+        })
+        .collect();
+    if pairs.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "\nWhat the service adds to the cut: each service run over its round's in-process run cut \
+         into as many homes (`in-process, cut in w homes`: the same split of the batches, nothing \
+         between the homes), whole runs and the iterations above:\n"
+    );
+    let _ = writeln!(
+        out,
+        "| run | whole × cut | × 95 % | × range | iterations × cut | × 95 % | × range |"
+    );
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|---:|");
+    for (way, cut, service) in pairs {
+        let whole = |i: usize| samples[i].iter().map(|s| s.seconds).collect::<Vec<f64>>();
+        let iterations = |i: usize| samples[i].iter().map(plain).collect::<Vec<f64>>();
+        let _ = writeln!(
+            out,
+            "| {} | {} | {} |",
+            way.name(),
+            Ratios::paired(&whole(cut), &whole(service)).cells(),
+            Ratios::paired(&iterations(cut), &iterations(service)).cells(),
+        );
+    }
+}
+
 /// How the service's workers spent the plain iterations (see `IterationUse`): medians over
 /// every plain iteration of every run of a way.
-fn workers_table(out: &mut String, ways: &[Option<usize>], samples: &[Vec<Sample>], plain_after: usize) {
+fn workers_table(out: &mut String, ways: &[Way], samples: &[Vec<Sample>], plain_after: usize) {
     let _ = writeln!(
         out,
         "\nHow the service spent those iterations (medians per iteration): the workers computed \
@@ -473,7 +557,7 @@ fn workers_table(out: &mut String, ways: &[Option<usize>], samples: &[Vec<Sample
         "| run | iteration ms | between ms | span ms | balance | waiting ms |"
     );
     let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
-    for (way, runs) in ways.iter().zip(samples).skip(1) {
+    for (way, runs) in ways.iter().zip(samples).filter(|(w, _)| matches!(w, Way::Service(_))) {
         let used: Vec<IterationUse> = runs
             .iter()
             .flat_map(|s| s.iterations.iter().skip(plain_after).map(|i| i.workers))
@@ -487,7 +571,7 @@ fn workers_table(out: &mut String, ways: &[Option<usize>], samples: &[Vec<Sample
         let _ = writeln!(
             out,
             "| {} | {:.1} | {:.1} | {:.1} | {balance:.2} | {:.1} |",
-            name(*way),
+            way.name(),
             ms(&|u| u.seconds),
             ms(&|u| u.between_seconds()),
             ms(&|u| u.span_seconds),

@@ -548,13 +548,19 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     assert!(o.status.success(), "{}", stderr(&o));
     let printed = String::from_utf8_lossy(&o.stdout).into_owned();
     assert_eq!(std::fs::read_to_string(&report).unwrap(), printed);
-    assert!(
-        printed.contains("Every service run gave the in-process bits"),
-        "{printed}"
-    );
-    for way in ["| in-process | ", "| service, 1 worker | ", "| service, 2 workers | "] {
+    assert!(printed.contains("Every run gave the in-process bits"), "{printed}");
+    for way in [
+        "| in-process | ",
+        "| in-process, cut in 2 homes | ",
+        "| service, 1 worker | ",
+        "| service, 2 workers | ",
+    ] {
         assert!(printed.contains(way), "{way} missing:\n{printed}");
     }
+    assert!(
+        !printed.contains("cut in 1 home"),
+        "one worker needs no cut:\n{printed}"
+    );
     // Two rounds are too few for a confidence interval of the median ratio: the column says so.
     assert!(printed.contains("| × in-process | × 95 % | × range |"), "{printed}");
     let row = printed
@@ -583,13 +589,28 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
             "{way} missing from the plain iterations:\n{printed}"
         );
     }
+    // What the service adds to the cut: a row for two workers, with a ratio in every column
+    // that has one (two rounds give no interval).
+    let added = plain
+        .split("What the service adds to the cut")
+        .nth(1)
+        .and_then(|rest| rest.split("How the service spent").next())
+        .unwrap_or_else(|| panic!("no table of what the service adds to the cut:\n{printed}"));
+    let row = added
+        .lines()
+        .find(|l| l.starts_with("| service, 2 workers | "))
+        .unwrap_or_else(|| panic!("{printed}"));
+    let ratios: Vec<f64> = row.split('|').filter_map(|c| c.trim().parse().ok()).collect();
+    assert_eq!(ratios.len(), 2, "{row}");
+    assert!(ratios.iter().all(|r| r.is_finite() && *r > 0.0), "{row}");
+    assert!(!added.contains("| service, 1 worker | "), "{printed}");
     // How the service's workers spent them: a row per service way, none for the in-process
-    // run; the workers' compute never exceeds what the span holds (balance in (0, 1]).
+    // runs; the workers' compute never exceeds what the span holds (balance in (0, 1]).
     let spent = plain
         .split("How the service spent those iterations")
         .nth(1)
         .unwrap_or_else(|| panic!("no table of how the workers were used:\n{printed}"));
-    assert!(!spent.contains("| in-process | "), "{printed}");
+    assert!(!spent.contains("| in-process"), "{printed}");
     for way in ["| service, 1 worker | ", "| service, 2 workers | "] {
         let row = spent
             .lines()
@@ -609,7 +630,7 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     assert!(o.status.success(), "{}", stderr(&o));
     let printed = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(
-        printed.contains("Every service run gave the in-process bits. With a co-tenant"),
+        printed.contains("Every run gave the in-process bits. With a co-tenant"),
         "{printed}"
     );
     // Over a store with a round trip: the mirror scene, whose workers write their mirror maps
@@ -623,8 +644,7 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     assert!(o.status.success(), "{}", stderr(&o));
     let printed = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(
-        printed.contains("`memory://?latency=2ms` store")
-            && printed.contains("Every service run gave the in-process bits"),
+        printed.contains("`memory://?latency=2ms` store") && printed.contains("Every run gave the in-process bits"),
         "{printed}"
     );
     // The Cornell box's perturbed iterations over a store 20 ms away: every pass's outputs take
@@ -635,10 +655,7 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     let o = vlf(&far);
     assert!(o.status.success(), "{}", stderr(&o));
     let printed = String::from_utf8_lossy(&o.stdout).into_owned();
-    assert!(
-        printed.contains("Every service run gave the in-process bits"),
-        "{printed}"
-    );
+    assert!(printed.contains("Every run gave the in-process bits"), "{printed}");
     for bad in [
         ["--repeat", "0"],
         ["--workers", "0"],

@@ -9,8 +9,8 @@ mod common;
 use common::*;
 use std::collections::HashMap;
 use vlf_core::propagate::{
-    BatchOutput, Checkpoint, MapBatch, Options, Pass, Perturbation, Propagation, ShootingState, StateHead, Stop,
-    Totals, reduce,
+    BatchOutput, Checkpoint, HomeThreads, MapBatch, Options, Pass, Perturbation, Propagation, ShootingState, StateHead,
+    Stop, Totals, reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -214,6 +214,81 @@ fn perturbed_passes_split_across_workers_give_the_same_bits() {
         vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
     );
     same_bits_as_in_process(scene, options(2));
+}
+
+/// The in-process run with every pass's batches cut into homes (at the batches `cuts` name, each
+/// home on `threads` threads of its own) gives the same bits as the step, whatever the cut.
+fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts: &[&[usize]]) {
+    let mut straight = Propagation::new(scene.clone(), options.clone()).unwrap();
+    straight.run(|_| {});
+    let want = without_times(straight.checkpoint());
+    for cut in cuts {
+        let mut split = Propagation::new(scene.clone(), options.clone()).unwrap();
+        let n = split.iteration_work().batches();
+        assert!(n >= 4, "a cut needs batches to move: {n}");
+        let mut bounds = vec![0];
+        bounds.extend(cut.iter().map(|&c| c.min(n)));
+        bounds.push(n);
+        let homes: Vec<_> = bounds.windows(2).map(|w| w[0]..w[1]).collect();
+        let mut threads = HomeThreads::new(homes.len(), threads).unwrap();
+        while !split.finished() {
+            let (_, costs) = split.step_split(&homes, &mut threads).unwrap();
+            assert_eq!(costs.len(), n);
+            assert!(
+                costs.iter().all(|&c| c > 0.0),
+                "every batch was shot and timed: {costs:?}"
+            );
+        }
+        assert!(
+            without_times(split.checkpoint()) == want,
+            "homes {homes:?} changed the bits"
+        );
+    }
+}
+
+#[test]
+fn homes_on_threads_of_their_own_give_the_same_bits_with_mirrors() {
+    let options = Options {
+        directions: 513,
+        stop: Stop::Iterations(3),
+        ..options(0)
+    };
+    // Uneven halves, a lone batch, three homes one of which is empty.
+    homes_give_the_same_bits(mirror_room(), options, 1, &[&[7], &[1], &[15], &[5, 5, 11]]);
+}
+
+#[test]
+fn homes_on_threads_of_their_own_give_the_same_bits_with_perturbation() {
+    let scene = closed_box(
+        0.6,
+        2,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
+    );
+    homes_give_the_same_bits(scene, options(2), 2, &[&[1], &[2, 3]]);
+}
+
+#[test]
+// Homes of one range are what some of these cases mean.
+#[allow(clippy::single_range_in_vec_init)]
+fn homes_that_do_not_cover_the_pass_in_order_are_refused() {
+    let mut p = Propagation::new(mirror_room(), options(0)).unwrap();
+    let n = p.iteration_work().batches();
+    let before = without_times(p.checkpoint());
+    let mut two = HomeThreads::new(2, 1).unwrap();
+    for homes in [
+        vec![0..1, 2..n],
+        vec![0..2, 1..n],
+        vec![0..n - 1],
+        vec![1..n],
+        vec![0..1, 1..2, 2..n],
+    ] {
+        let e = p.step_split(&homes, &mut two).unwrap_err().to_string();
+        assert!(e.contains("homes"), "{homes:?}: {e}");
+    }
+    assert!(HomeThreads::new(0, 1).is_err() && HomeThreads::new(2, 0).is_err());
+    // Nothing was computed: the propagation is where it was.
+    assert!(without_times(p.checkpoint()) == before);
 }
 
 #[test]

@@ -193,10 +193,7 @@ impl PassRun {
 }
 
 /// `worker`'s home in a pass of `batches` batches: the registered workers, in registration
-/// order, split the pass into runs of consecutive batches of equal cost (all of it for a lone
-/// worker). A batch costs the `seconds` its last lease measured, or the mean of those measured
-/// (all alike before any): batches differ — the mirror scene's first quarter shoots in half the
-/// time of its last — and equal runs had one of two workers wait for the other every iteration.
+/// order, split the pass by [`split_by_cost`] (all of it for a lone worker).
 pub(super) fn home(
     worker: &str,
     workers: &HashMap<String, WorkerEntry>,
@@ -208,6 +205,17 @@ pub(super) fn home(
     let Some(rank) = order.iter().position(|(_, id)| *id == worker) else {
         return 0..batches;
     };
+    split_by_cost(seconds, batches, order.len()).swap_remove(rank)
+}
+
+/// A pass of `batches` batches split into `parts` runs of consecutive batches of equal cost, in
+/// order (some empty when there are more parts than batches). A batch costs the `seconds` its
+/// last lease measured, or the mean of those measured (all alike before any): batches differ —
+/// the mirror scene's first quarter shoots in half the time of its last — and equal runs had one
+/// of two workers wait for the other every iteration. Part `r` starts at the batch boundary
+/// nearest to `r / parts` of the total cost. Public so that `vlf bench` cuts its in-process
+/// model of the workers (`Propagation::step_split`) by the same rule.
+pub fn split_by_cost(seconds: &[f64], batches: usize, parts: usize) -> Vec<Range<usize>> {
     let measured: Vec<f64> = seconds.iter().copied().filter(|s| *s > 0.0).collect();
     let mean = match measured.len() {
         0 => 1.0,
@@ -219,14 +227,14 @@ pub(super) fn home(
         let cost = seconds.get(b).copied().filter(|s| *s > 0.0).unwrap_or(mean);
         before[b + 1] = before[b] + cost;
     }
-    // Worker r's home starts at the boundary nearest to r/w of the total.
+    let parts = parts.max(1);
     let start = |r: usize| -> usize {
-        let target = before[batches] * r as f64 / order.len() as f64;
+        let target = before[batches] * r as f64 / parts as f64;
         (0..=batches)
             .min_by(|&a, &b| (before[a] - target).abs().total_cmp(&(before[b] - target).abs()))
             .unwrap_or(0)
     };
-    start(rank)..start(rank + 1)
+    (0..parts).map(|r| start(r)..start(r + 1)).collect()
 }
 
 /// The open pass a lease belongs to.

@@ -39,6 +39,7 @@
 //! through randomly rotated copies of the direction set) and power-preserving
 //! Gaussian filtering of the Next maps.
 
+mod block;
 pub mod checkpoint;
 mod filter;
 mod perturb;
@@ -47,6 +48,7 @@ pub mod reduce;
 pub(crate) mod shoot;
 pub mod snapshot;
 pub mod specular;
+mod split;
 pub mod work;
 
 pub use checkpoint::{Checkpoint, ShootingState, Totals};
@@ -54,6 +56,7 @@ pub use plan::Plan;
 pub use shoot::Flow;
 pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
+pub use split::HomeThreads;
 pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
@@ -437,14 +440,7 @@ impl Propagation {
         let mut work = self.iteration_work();
         let passes = work.passes();
         let l = self.directions.len();
-        let mut maps = match (&mut self.specular, work.uses_mirror_maps()) {
-            (Some(spec), true) => {
-                // The exchange of the last iteration's arrivals (see `specular::Pending`).
-                spec.gather_all(&self.scene, &self.directions, &self.subfields);
-                Some(std::mem::take(&mut spec.maps))
-            }
-            _ => None,
-        };
+        let mut maps = self.gathered_maps(&work);
         let mut buffers = self.buffers.take();
         for (p, &pass) in passes.iter().enumerate() {
             for batch in 0..work.batches() {
@@ -463,6 +459,31 @@ impl Propagation {
             }
         }
         self.buffers.keep(buffers);
+        self.end_step(work, maps, started)
+    }
+
+    /// The mirror maps an iteration's shooting reads and writes, taken out of the propagation,
+    /// when `work` uses them: the last iteration's arrivals gathered first (the exchange, see
+    /// `specular::Pending`).
+    fn gathered_maps(&mut self, work: &IterationWork) -> Option<Vec<specular::DirectionMaps>> {
+        match (&mut self.specular, work.uses_mirror_maps()) {
+            (Some(spec), true) => {
+                spec.gather_all(&self.scene, &self.directions, &self.subfields);
+                Some(std::mem::take(&mut spec.maps))
+            }
+            _ => None,
+        }
+    }
+
+    /// Ends an iteration of this process whose passes are all absorbed: the mirror maps back
+    /// in, then [`Propagation::finish_iteration`].
+    fn end_step(
+        &mut self,
+        mut work: IterationWork,
+        maps: Option<Vec<specular::DirectionMaps>>,
+        started: Instant,
+    ) -> IterationStats {
+        let l = self.directions.len();
         if let (Some(spec), Some(maps)) = (&mut self.specular, maps) {
             spec.maps = maps;
             // What a worker does for the directions it shoots (`compute_block`):

@@ -1,0 +1,293 @@
+//! The coordinator's side of an iteration: a [`Coordinator`] absorbs the blocks of each pass in
+//! order, releases the next iteration and commits the snapshot ([`SnapshotCommit`]). Apart from
+//! the replica because the two meet only through the store's keys; the coordinator holds the one
+//! propagation whose snapshots the job lists.
+
+use super::cover::cover;
+use crate::error::StoreError;
+use crate::field::{FieldJob, PendingSnapshot};
+use crate::job::Job;
+use crate::layout;
+use crate::layout::MapPart;
+use crate::manifest::JobState;
+use std::collections::HashSet;
+use std::ops::Range;
+use std::time::Instant;
+use vlf_core::propagate::work::batch_count;
+use vlf_core::propagate::{IterationStats, IterationWork, Pass, Propagation};
+
+/// What an iteration moved through the store: the batch outputs workers wrote and the
+/// coordinator read back (compressed, as stored). Snapshots come on top.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct WorkTraffic {
+    pub blobs: u64,
+    pub bytes: u64,
+}
+
+/// The rest of an iteration's end once the next iteration is released
+/// ([`Coordinator::release_iteration`]): the snapshot's commit, then the deletion of the
+/// iteration's batch outputs (only after the commit: a coordinator that stops before it resumes
+/// from the previous snapshot and uses them again).
+pub struct SnapshotCommit {
+    snapshot: PendingSnapshot,
+    /// Where the iteration's batch outputs are (`layout::work_prefix`).
+    work: String,
+}
+
+impl SnapshotCommit {
+    /// The snapshot it commits.
+    pub fn iteration(&self) -> u32 {
+        self.snapshot.iteration()
+    }
+
+    /// Commits the snapshot and deletes the iteration's batch outputs — every one under its
+    /// prefix, those of leases that expired after writing theirs too; returns the job with the
+    /// manifest that lists the snapshot, for [`Coordinator::committed`].
+    pub fn commit(self) -> Result<Job, StoreError> {
+        let job = self.snapshot.commit()?;
+        let work = job.store().list(&self.work)?;
+        job.store().delete_all(&work)?;
+        Ok(job)
+    }
+}
+
+/// The coordinator's side: absorbs the batches of each pass in order and commits snapshots.
+pub struct Coordinator {
+    job: FieldJob,
+    prop: Propagation,
+    work: Option<(IterationWork, Instant)>,
+    traffic: Vec<WorkTraffic>,
+    /// The batch outputs read back so far in the current iteration.
+    absorbed: WorkTraffic,
+    /// Whether `prop` holds the mirror maps of its snapshot: true from its restore until an
+    /// iteration shoots them (then they live in the store, written by the workers).
+    maps_held: bool,
+}
+
+impl Coordinator {
+    /// Takes over a job from its last finished snapshot.
+    pub fn resume(mut job: FieldJob) -> Result<Coordinator, StoreError> {
+        let prop = job.resume()?;
+        Ok(Coordinator::new(job, prop))
+    }
+
+    /// Coordinates `job` from `prop`, which must be the job's propagation at its last finished
+    /// snapshot — as [`FieldJob::create`]'s input or [`FieldJob::resume`]'s output is — so the
+    /// geometry is not built twice.
+    pub fn new(job: FieldJob, prop: Propagation) -> Coordinator {
+        Coordinator {
+            job,
+            prop,
+            work: None,
+            traffic: Vec::new(),
+            absorbed: WorkTraffic::default(),
+            maps_held: true,
+        }
+    }
+
+    /// Work blobs and bytes of every iteration this coordinator finished, in order.
+    pub fn traffic(&self) -> &[WorkTraffic] {
+        &self.traffic
+    }
+
+    pub fn job(&self) -> &FieldJob {
+        &self.job
+    }
+
+    pub fn propagation(&self) -> &Propagation {
+        &self.prop
+    }
+
+    /// The snapshot the current iteration starts from.
+    pub fn iteration(&self) -> u32 {
+        self.prop.iterations_done()
+    }
+
+    /// Whether the stop rule says the job is done.
+    pub fn finished(&self) -> bool {
+        self.prop.finished()
+    }
+
+    fn work(&mut self) -> &mut IterationWork {
+        &mut self
+            .work
+            .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()))
+            .0
+    }
+
+    /// The next pass whose batches are needed, with its batch count, or `None` when the
+    /// iteration's passes are all absorbed.
+    pub fn pending_pass(&mut self) -> Option<(Pass, usize)> {
+        self.next_batch().map(|(pass, _)| (pass, self.work().batches()))
+    }
+
+    /// The batch the iteration absorbs next, or `None` when its passes are all absorbed.
+    pub fn next_batch(&mut self) -> Option<(Pass, usize)> {
+        self.work().next_expected()
+    }
+
+    /// Every pass of the current iteration, in absorbing order, with its prerequisites, and the
+    /// batch count of each.
+    pub fn passes(&mut self) -> (Vec<(Pass, Vec<Pass>)>, usize) {
+        let work = self.work();
+        let passes = work.passes().into_iter().map(|p| (p, work.prerequisites(p))).collect();
+        (passes, work.batches())
+    }
+
+    /// The blocks of every pass of the current iteration already in the store, in
+    /// [`Coordinator::passes`] order (a restarted coordinator reuses what workers wrote before it
+    /// stopped: the bytes are the same).
+    pub fn blocks_in_store(&mut self) -> Result<Vec<Vec<Range<usize>>>, StoreError> {
+        let (passes, _) = self.passes();
+        passes.iter().map(|(pass, _)| self.complete_blocks(*pass)).collect()
+    }
+
+    /// The blocks of `pass` of the current iteration whose outputs are in the store, and whose
+    /// mirror maps are too when the pass shoots them: a worker writes a block's output and its
+    /// maps together and reports once both are there, so a block found in the store without a
+    /// report may lack its maps (its worker stopped in between). Such a block is computed again.
+    fn complete_blocks(&mut self, pass: Pass) -> Result<Vec<Range<usize>>, StoreError> {
+        let k = self.iteration();
+        let stored = self.job.stored_blocks(k, pass)?;
+        if pass != Pass::Shoot || !self.work().uses_mirror_maps() || stored.is_empty() {
+            return Ok(stored);
+        }
+        let store = self.job.job().store();
+        let held = |part| -> Result<HashSet<usize>, StoreError> {
+            let prefix = layout::map_parts(self.job.id(), k + 1, part)?;
+            Ok(store
+                .list(&prefix)?
+                .iter()
+                .filter_map(|key| layout::parse_map_part(&prefix, key))
+                .map(|b| b as usize)
+                .collect())
+        };
+        let (shooting, totals) = (held(MapPart::Shooting)?, held(MapPart::Totals)?);
+        Ok(stored
+            .into_iter()
+            .filter(|block| block.clone().all(|b| shooting.contains(&b) && totals.contains(&b)))
+            .collect())
+    }
+
+    /// Ends the job in `state` (failed or cancelled): the snapshots written so far stay
+    /// readable, and the job is not resumed.
+    pub fn end(&mut self, state: JobState) -> Result<(), StoreError> {
+        self.job.set_state(state)
+    }
+
+    /// Absorbs the rest of the pending pass from the store: the blocks written that cover it, in
+    /// order (the largest where several start at the same batch).
+    pub fn absorb_pass(&mut self) -> Result<Pass, StoreError> {
+        let Some((pass, next)) = self.next_batch() else {
+            return Err(self.job.field_error(vlf_core::Error::Parameter(
+                "no pass is pending: finish the iteration".into(),
+            )));
+        };
+        let batches = self.work().batches();
+        let stored = self.complete_blocks(pass)?;
+        let blocks = cover(&stored, next..batches).map_err(|at| StoreError::NotFound {
+            url: self.job.job().store().url().to_string(),
+            key: format!("batch {at} of {pass:?} of iteration {}", self.iteration() + 1),
+        })?;
+        self.absorb_blocks(pass, &blocks)?;
+        Ok(pass)
+    }
+
+    /// Absorbs the outputs of `blocks` of `pass` (the next ones expected, in order) from the
+    /// store: the coordinator takes each block in as soon as it is written. They are read
+    /// together (their requests overlap), then absorbed in order; if one cannot be read, none is
+    /// absorbed.
+    pub fn absorb_blocks(&mut self, pass: Pass, blocks: &[Range<usize>]) -> Result<(), StoreError> {
+        let k = self.iteration();
+        self.work();
+        let (outputs, read) = self.job.read_batches(k, pass, blocks)?;
+        self.absorbed.blobs += read.blobs;
+        self.absorbed.bytes += read.bytes;
+        for out in outputs {
+            let Some((work, _)) = self.work.as_mut() else {
+                unreachable!("passes() created it");
+            };
+            self.prop.apply_batch(work, out).map_err(|e| self.job.field_error(e))?;
+        }
+        Ok(())
+    }
+
+    /// Finishes the iteration once every pass is absorbed: commits the next snapshot and
+    /// deletes the iteration's batch outputs.
+    pub fn finish_iteration(&mut self) -> Result<IterationStats, StoreError> {
+        let (stats, commit) = self.release_iteration()?;
+        let committed = commit.commit()?;
+        self.committed(committed);
+        Ok(stats)
+    }
+
+    /// Finishes the iteration once every pass is absorbed and releases the next one: writes the
+    /// next snapshot's shooting state, which is all its workers read, and returns the rest of the
+    /// snapshot to commit ([`SnapshotCommit::commit`], then [`Coordinator::committed`]) while
+    /// they compute. Nothing may write the job's manifest in between.
+    pub fn release_iteration(&mut self) -> Result<(IterationStats, SnapshotCommit), StoreError> {
+        let k = self.iteration();
+        if self.pending_pass().is_some() {
+            return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
+                "iteration {k} has passes left to absorb"
+            ))));
+        }
+        let Some((work, started)) = self.work.take() else {
+            unreachable!("pending_pass created it");
+        };
+        // The workers wrote the next snapshot's mirror maps if the iteration shot them; else they
+        // are those of the snapshot it started from, written here.
+        let shot = work.uses_mirror_maps();
+        let stats = self.prop.finish_iteration(work, started);
+        self.maps_held &= !shot;
+        if !self.maps_held
+            && let Some(spec) = self.prop.specular.as_mut()
+        {
+            // The workers hold them: the coordinator's memory does not grow with the mirror
+            // slots.
+            spec.release_maps();
+        }
+        let maps = self.prop.specular.is_some() && !shot;
+        if maps && !self.maps_held {
+            return Err(self.job.field_error(vlf_core::Error::Parameter(format!(
+                "iteration {k} left the mirror maps as they were, and this coordinator no longer holds them"
+            ))));
+        }
+        let snapshot = self.job.release_snapshot(&self.prop, maps)?;
+        // What the outputs weighed is known from reading them: no listing (a round trip to an
+        // object store) before the next iteration starts.
+        self.traffic.push(std::mem::take(&mut self.absorbed));
+        Ok((
+            stats,
+            SnapshotCommit {
+                snapshot,
+                work: layout::work_prefix(self.job.id(), k)?,
+            },
+        ))
+    }
+
+    /// Takes the manifest a [`SnapshotCommit::commit`] of this job wrote.
+    pub fn committed(&mut self, committed: Job) {
+        self.job.adopt_commit(committed);
+    }
+
+    /// Writes the final field and marks the job finished: the mirror totals come from the last
+    /// snapshot's parts, where the workers wrote them.
+    pub fn finish(mut self, resample: bool) -> Result<FieldJob, StoreError> {
+        if self.prop.specular.is_some() && !self.maps_held {
+            let k = self.iteration();
+            let all: Vec<usize> = (0..batch_count(self.prop.directions.len())).collect();
+            for part in self.job.released_maps(k, MapPart::Totals, &all)? {
+                self.prop
+                    .restore_totals_batch(part)
+                    .map_err(|e| self.job.field_error(e))?;
+            }
+        }
+        let mut field = self.prop.into_field();
+        if resample {
+            field.resample_mirrors(8);
+        }
+        self.job.finish(&field, resample)?;
+        Ok(self.job)
+    }
+}

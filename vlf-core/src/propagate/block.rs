@@ -1,0 +1,335 @@
+//! What becomes of an aligned block of batches: a worker computes it on a
+//! replica of the iteration's start ([`Propagation::compute_block`]), and a
+//! propagation takes its output and mirror maps in
+//! ([`Propagation::apply_batch`], [`Propagation::adopt_mirrors`]).
+//!
+//! Apart from [`super::work`] because a block is the distributed run's unit,
+//! not the iteration's: [`super::work`] fixes what a batch is and computes
+//! one, bit for bit the same wherever it runs; this is the bookkeeping around
+//! many of them on a worker (the block's directions, its mirror maps gathered,
+//! moved and sent on, what each batch cost) and on the coordinator (checking
+//! and absorbing what comes back). The in-process loop needs none of it.
+
+use super::Propagation;
+use super::reduce::{TreeSum, is_aligned_block};
+use super::work::{
+    BatchOutput, IterationWork, MirrorBlock, MirrorIo, Pass, add_into, batch_count, batch_range, batch_size,
+};
+use crate::scene::Rgb;
+use rayon::prelude::*;
+use std::borrow::Cow;
+use std::ops::Range;
+
+impl Propagation {
+    /// Computes the aligned block `batches` of `pass` on a replica whose
+    /// state is the iteration's start (as restored from its checkpoint:
+    /// Current, and for [`Pass::Shoot`] with mirrors the block's directions'
+    /// maps and, while arrivals are pending, those of the directions the
+    /// block gathers from — [`super::Specular::sources`]): what a worker does
+    /// for a lease. Returns the block's output for the coordinator (its node
+    /// sum, [`super::reduce`], and `Φ_in`) and, when the pass uses them, its
+    /// directions' mirror maps for the next snapshot.
+    ///
+    /// The block's total maps *move* into the returned [`MirrorBlock`] (each
+    /// gets what its direction just sent, in place, as
+    /// [`Propagation::step`] adds it): copying them would cost a worker a
+    /// few megabytes per iteration that the in-process loop does not pay.
+    /// This propagation then lacks them: computing the block again needs them
+    /// restored first ([`Propagation::restore_totals_batch`]), else it is
+    /// refused; [`Propagation::adopt_mirrors`] puts the block's maps back for
+    /// the next iteration. Nothing else changes.
+    pub fn compute_block(
+        &mut self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+    ) -> crate::Result<(BatchOutput, Option<MirrorBlock>)> {
+        self.compute_block_costed(work, pass, batches)
+            .map(|(output, block, _)| (output, block))
+    }
+
+    /// [`Propagation::compute_block`], and what each of the block's batches cost to compute,
+    /// in seconds (the gathering of the block's arrivals shared evenly among them): a
+    /// coordinator splits the next pass among workers by what its batches cost, and a block's
+    /// time spread evenly over its batches would blur the costs that differ most (the mirror
+    /// scene's last batches cost twice its first).
+    pub fn compute_block_costed(
+        &mut self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+    ) -> crate::Result<(BatchOutput, Option<MirrorBlock>, Vec<f64>)> {
+        let directions = self.block_directions(work, &batches)?;
+        let (output, sent, costs) = self.shoot_block(work, pass, batches, directions.clone())?;
+        let Some((unshot, incident)) = sent else {
+            return Ok((output, None, costs));
+        };
+        let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
+        let Some(spec) = self.specular.as_mut() else {
+            unreachable!("shoot_block sends mirror maps only with mirrors");
+        };
+        // Total += what was just sent (as `Propagation::step` does), moved
+        // out of the replica rather than copied.
+        let total = directions
+            .zip(&unshot)
+            .map(|(d, u)| {
+                let mut t = std::mem::take(&mut spec.maps[d].total);
+                add_into(&mut t, u);
+                t
+            })
+            .collect();
+        // The exchange of what arrived waits for the next iteration's
+        // shooting (`finish_iteration` decides alike); before light can reach
+        // a mirror, the unshot maps stay as they were.
+        let pending = work.index >= first_lit;
+        let block = MirrorBlock {
+            iterations: work.index + 1,
+            batches: output.batches.clone(),
+            pending,
+            shooting: if pending { incident } else { unshot },
+            total,
+        };
+        Ok((output, Some(block), costs))
+    }
+
+    /// The shooting of [`Propagation::compute_block`], which reads the state
+    /// and changes nothing: the block's output and, when the pass shoots
+    /// mirror maps, what each of its directions sent (gathered now from the
+    /// pending arrivals — the exchange, see `specular::Pending` — or as
+    /// restored) and the incident maps it received; and what each batch
+    /// cost, in seconds.
+    #[allow(clippy::type_complexity)]
+    fn shoot_block(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+        directions: Range<usize>,
+    ) -> crate::Result<(BatchOutput, Option<(Vec<Vec<Rgb>>, Vec<Vec<Rgb>>)>, Vec<f64>)> {
+        let gathering = std::time::Instant::now();
+        let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
+            (Some(spec), Pass::Shoot, true) => Some(spec),
+            _ => None,
+        };
+        if let Some(spec) = spec
+            && let Some(d) = directions
+                .clone()
+                .find(|&d| spec.maps[d].total.len() != spec.layouts[d].len as usize)
+        {
+            return Err(crate::Error::Parameter(format!(
+                "the mirror totals of direction {d} are not restored (a block computed before took them)"
+            )));
+        }
+        let (scene, dirs, subfields) = (&self.scene, &self.directions, &self.subfields[..]);
+        let unshot: Option<Vec<Cow<[Rgb]>>> = spec.map(|spec| match &spec.pending {
+            Some(pending) => {
+                let read = |d: usize| spec.maps[d].incident.as_slice();
+                directions
+                    .clone()
+                    .into_par_iter()
+                    .map(|i| Cow::Owned(spec.gather(scene, dirs, subfields, &read, &pending.power_in, i)))
+                    .collect()
+            }
+            None => directions
+                .clone()
+                .map(|d| Cow::Borrowed(&spec.maps[d].unshot[..]))
+                .collect(),
+        });
+        // The block's incident maps, from zero.
+        let mut incident: Option<Vec<Vec<Rgb>>> = unshot
+            .as_ref()
+            .map(|maps| maps.iter().map(|m| vec![[0.0; 3]; m.len()]).collect());
+        let mut maps: Option<Vec<MirrorIo>> = unshot.as_ref().zip(incident.as_mut()).map(|(unshot, incident)| {
+            unshot
+                .iter()
+                .zip(incident.iter_mut())
+                .map(|(unshot, incident)| MirrorIo { unshot, incident })
+                .collect()
+        });
+        let gathered = gathering.elapsed().as_secs_f64() / batches.len() as f64;
+        let mut tree = TreeSum::new(batches.len());
+        let mut buffers = self.buffers.take();
+        let mut costs = Vec::with_capacity(batches.len());
+        for (i, batch) in batches.clone().enumerate() {
+            let started = std::time::Instant::now();
+            let range = work.batch_range(batch, self.directions.len());
+            let own = maps
+                .as_deref_mut()
+                .map(|m| &mut m[range.start - directions.start..range.end - directions.start]);
+            let leaf = self.run_batch_with(work, pass, batch, own, &mut buffers)?;
+            tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
+            costs.push(gathered + started.elapsed().as_secs_f64());
+        }
+        drop(maps);
+        self.buffers.keep(buffers);
+        let power_in = spec.zip(incident.as_ref()).map(|(spec, incident)| {
+            directions
+                .clone()
+                .zip(incident)
+                .map(|(d, m)| spec.power_in_of(dirs, subfields, d, m))
+                .collect()
+        });
+        let output = BatchOutput {
+            iteration: work.index,
+            pass,
+            batches: batches.start as u32..batches.end as u32,
+            sum: tree.finish().expect("every leaf of the block was pushed"),
+            power_in,
+        };
+        // Gathered maps are the block's own; restored ones are copied (only
+        // before light reaches a mirror: the iteration then keeps them).
+        let sent = unshot
+            .zip(incident)
+            .map(|(unshot, incident)| (unshot.into_iter().map(Cow::into_owned).collect(), incident));
+        Ok((output, sent, costs))
+    }
+
+    /// The batches of mirror maps that [`Propagation::compute_block`] reads
+    /// for `batches` of `pass`, of the snapshot the iteration starts from
+    /// (whose head this replica holds): the batches' shooting maps — while
+    /// arrivals are pending, those of every direction the block gathers from
+    /// ([`super::Specular::sources`]) — and the block's own totals. Nothing
+    /// unless the pass shoots mirror maps.
+    pub fn mirror_batches_read(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+    ) -> crate::Result<(Vec<usize>, Vec<usize>)> {
+        let directions = self.block_directions(work, &batches)?;
+        let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
+            (Some(spec), Pass::Shoot, true) => spec,
+            _ => return Ok((Vec::new(), Vec::new())),
+        };
+        let shooting = match &spec.pending {
+            Some(pending) => {
+                let size = batch_size(self.directions.len());
+                let last = work.batches() - 1;
+                let mut b: Vec<usize> = spec
+                    .sources(directions, &pending.power_in)
+                    .into_iter()
+                    .map(|d| (d / size).min(last))
+                    .collect();
+                b.dedup();
+                b
+            }
+            None => batches.clone().collect(),
+        };
+        Ok((shooting, batches.collect()))
+    }
+
+    /// The directions of an aligned block of batches, or why it is not one.
+    fn block_directions(&self, work: &IterationWork, batches: &Range<usize>) -> crate::Result<Range<usize>> {
+        if !is_aligned_block(batches, work.batches()) {
+            return Err(crate::Error::Parameter(format!(
+                "batches {batches:?} are not an aligned block of the {} batches",
+                work.batches()
+            )));
+        }
+        let l = self.directions.len();
+        Ok(work.batch_range(batches.start, l).start..work.batch_range(batches.end - 1, l).end)
+    }
+
+    /// Absorbs a worker's block output into `work`: what the coordinator
+    /// does, in order. Outputs of another iteration, out of order, or whose
+    /// `Φ_in` does not fit are refused.
+    pub fn apply_batch(&mut self, work: &mut IterationWork, out: BatchOutput) -> crate::Result<()> {
+        if out.iteration != work.index {
+            return Err(crate::Error::Parameter(format!(
+                "batch output of iteration {} offered to iteration {}",
+                out.iteration, work.index
+            )));
+        }
+        let batches = out.batches.start as usize..out.batches.end as usize;
+        let range = self.block_directions(work, &batches)?;
+        let wants_power = out.pass == Pass::Shoot && work.uses_mirror_maps();
+        let mirrors = self.specular.as_ref().map_or(0, |s| s.mirrors.len());
+        let checked = match (&out.power_in, wants_power) {
+            (None, false) => Ok(()),
+            (Some(power), true) => {
+                let fits = power.len() == range.len()
+                    && power
+                        .iter()
+                        .all(|p| p.len() == mirrors && p.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+                if fits {
+                    Ok(())
+                } else {
+                    Err(format!(
+                        "mirror power of batches {batches:?} does not fit their directions"
+                    ))
+                }
+            }
+            _ => Err(format!(
+                "batches {batches:?} of {:?}: mirror power missing or unexpected",
+                out.pass
+            )),
+        };
+        checked.map_err(crate::Error::Decode)?;
+        work.absorb(out.pass, batches, out.sum)?;
+        if let Some(power) = out.power_in {
+            for (slot, p) in work.power_in[range].iter_mut().zip(power) {
+                *slot = p;
+            }
+        }
+        Ok(())
+    }
+
+    /// Takes a block's mirror maps into this propagation, as if it had
+    /// stepped them itself: for a coordinator that holds every map (the
+    /// service's coordinator does not: the maps go through the store from
+    /// worker to worker), and for a worker's replica that computed them and
+    /// now starts the next iteration (restore its head first). Call when the
+    /// propagation holds the snapshot they belong to. Maps for another
+    /// snapshot or of other sizes are refused; their values are trusted, as
+    /// [`Propagation::compute_block`] made them from checked inputs (maps
+    /// from bytes go through [`Propagation::restore_shooting_batch`]).
+    pub fn adopt_mirrors(&mut self, block: MirrorBlock) -> crate::Result<()> {
+        let l = self.directions.len();
+        let batches = block.batches.start as usize..block.batches.end as usize;
+        if batches.is_empty() || batches.end > batch_count(l) {
+            return Err(crate::Error::Parameter(format!("mirror maps of batches {batches:?}")));
+        }
+        let range = batch_range(batches.start, l).start..batch_range(batches.end - 1, l).end;
+        if block.iterations != self.iterations_done()
+            || block.shooting.len() != range.len()
+            || block.total.len() != range.len()
+        {
+            return Err(crate::Error::Parameter(format!(
+                "mirror maps of batches {batches:?} after {} iterations offered after {}",
+                block.iterations,
+                self.iterations_done()
+            )));
+        }
+        let Some(spec) = self.specular.as_mut() else {
+            return Err(crate::Error::Parameter(
+                "mirror maps for a scene without mirrors".into(),
+            ));
+        };
+        let fits = |maps: &[Vec<Rgb>]| {
+            maps.iter()
+                .zip(&spec.layouts[range.clone()])
+                .all(|(a, l)| a.len() == l.len as usize)
+        };
+        if !fits(&block.shooting) || !fits(&block.total) {
+            return Err(crate::Error::Parameter(format!(
+                "mirror maps of batches {batches:?} do not fit their directions"
+            )));
+        }
+        {
+            if spec.pending.is_some() != block.pending {
+                return Err(crate::Error::Parameter(
+                    "mirror maps of a block that did not exchange like the iteration".into(),
+                ));
+            }
+            for ((m, shooting), total) in spec.maps[range].iter_mut().zip(block.shooting).zip(block.total) {
+                m.total = total;
+                if block.pending {
+                    m.incident = shooting;
+                } else {
+                    m.unshot = shooting;
+                }
+            }
+        }
+        Ok(())
+    }
+}
