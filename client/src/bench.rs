@@ -28,10 +28,10 @@ use clap::Args;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
-use vlf_core::propagate::{Checkpoint, HomeThreads, Propagation};
+use vlf_core::propagate::{Checkpoint, HomeThreads, Propagation, split_by_cost};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
-use vlf_server::scheduler::{IterationRecord, IterationUse, split_by_cost};
+use vlf_server::scheduler::{IterationRecord, IterationUse};
 use vlf_store::{FieldJob, Store, Traffic};
 
 #[derive(Args)]
@@ -238,7 +238,7 @@ fn in_process_split(url: &str, scene: &Scene, spec: &JobSpec, workers: Workers) 
     while !prop.finished() {
         let t = Instant::now();
         let homes = split_by_cost(&costs, prop.iteration_work().batches(), workers.count);
-        costs = prop.step_split(&homes, &mut threads)?.1;
+        costs = prop.step_split(&homes, &mut threads, |_| {})?.1;
         job.write_snapshot(&prop)?;
         iterations.push(IterationRecord {
             seconds: t.elapsed().as_secs_f64(),

@@ -10,7 +10,7 @@ use common::*;
 use std::collections::HashMap;
 use vlf_core::propagate::{
     BatchOutput, Checkpoint, HomeThreads, MapBatch, Options, Pass, Perturbation, Propagation, ShootingState, StateHead,
-    Stop, Totals, reduce,
+    Stop, Totals, cut_homes, reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -219,8 +219,11 @@ fn perturbed_passes_split_across_workers_give_the_same_bits() {
 /// The in-process run with every pass's batches cut into homes (at the batches `cuts` name, each
 /// home on `threads` threads of its own) gives the same bits as the step, whatever the cut.
 fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts: &[&[usize]]) {
+    // The loop that shares every batch among the threads (`step` may cut on its own).
     let mut straight = Propagation::new(scene.clone(), options.clone()).unwrap();
-    straight.run(|_| {});
+    while !straight.finished() {
+        straight.step_shared(|_| {});
+    }
     let want = without_times(straight.checkpoint());
     for cut in cuts {
         let mut split = Propagation::new(scene.clone(), options.clone()).unwrap();
@@ -232,16 +235,36 @@ fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts
         let homes: Vec<_> = bounds.windows(2).map(|w| w[0]..w[1]).collect();
         let mut threads = HomeThreads::new(homes.len(), threads).unwrap();
         while !split.finished() {
-            let (_, costs) = split.step_split(&homes, &mut threads).unwrap();
+            let passes = split.iteration_work().passes().len();
+            let mut heard = Vec::new();
+            let (_, costs) = split.step_split(&homes, &mut threads, |p| heard.push(p)).unwrap();
             assert_eq!(costs.len(), n);
             assert!(
                 costs.iter().all(|&c| c > 0.0),
                 "every batch was shot and timed: {costs:?}"
             );
+            // Every batch of every pass, as it is finished, up to all of the iteration.
+            assert_eq!(heard.len(), n * passes);
+            assert!(heard.windows(2).all(|w| w[0].directions_done < w[1].directions_done));
+            let last = heard.last().unwrap();
+            assert_eq!(last.directions_done, last.directions_total);
         }
         assert!(
             without_times(split.checkpoint()) == want,
             "homes {homes:?} changed the bits"
+        );
+    }
+    // `step` on pools of 1 to 4 threads: the shared loop on 1 (and where homes would be too
+    // small), a home per thread for the others; the same bits.
+    let batches = vlf_core::propagate::work::batch_count(options.directions);
+    for threads in 1..=4 {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let mut auto = Propagation::new(scene.clone(), options.clone()).unwrap();
+        pool.install(|| auto.run(|_| {}));
+        let homes = cut_homes(threads, batches);
+        assert!(
+            without_times(auto.checkpoint()) == want,
+            "step on {threads} threads ({homes} homes) changed the bits"
         );
     }
 }
@@ -283,7 +306,7 @@ fn homes_that_do_not_cover_the_pass_in_order_are_refused() {
         vec![1..n],
         vec![0..1, 1..2, 2..n],
     ] {
-        let e = p.step_split(&homes, &mut two).unwrap_err().to_string();
+        let e = p.step_split(&homes, &mut two, |_| {}).unwrap_err().to_string();
         assert!(e.contains("homes"), "{homes:?}: {e}");
     }
     assert!(HomeThreads::new(0, 1).is_err() && HomeThreads::new(2, 0).is_err());

@@ -62,8 +62,8 @@ mod pass;
 mod usage;
 mod workers;
 
+pub use pass::block_len;
 use pass::{BatchState, PassRun, Shooting};
-pub use pass::{block_len, split_by_cost};
 pub use usage::IterationUse;
 use usage::UseClock;
 

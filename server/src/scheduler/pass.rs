@@ -7,7 +7,7 @@ use super::{LeaseEntry, WorkerEntry};
 use std::collections::HashMap;
 use std::ops::Range;
 use std::time::Duration;
-use vlf_core::propagate::Pass;
+use vlf_core::propagate::{Pass, split_by_cost};
 
 /// What the scheduler remembers of a job's shooting passes, per batch.
 #[derive(Default)]
@@ -193,7 +193,8 @@ impl PassRun {
 }
 
 /// `worker`'s home in a pass of `batches` batches: the registered workers, in registration
-/// order, split the pass by [`split_by_cost`] (all of it for a lone worker).
+/// order, split the pass by [`split_by_cost`] (all of it for a lone worker): by what its
+/// batches cost when last shot, as workers reported it.
 pub(super) fn home(
     worker: &str,
     workers: &HashMap<String, WorkerEntry>,
@@ -206,35 +207,6 @@ pub(super) fn home(
         return 0..batches;
     };
     split_by_cost(seconds, batches, order.len()).swap_remove(rank)
-}
-
-/// A pass of `batches` batches split into `parts` runs of consecutive batches of equal cost, in
-/// order (some empty when there are more parts than batches). A batch costs the `seconds` its
-/// last lease measured, or the mean of those measured (all alike before any): batches differ —
-/// the mirror scene's first quarter shoots in half the time of its last — and equal runs had one
-/// of two workers wait for the other every iteration. Part `r` starts at the batch boundary
-/// nearest to `r / parts` of the total cost. Public so that `vlf bench` cuts its in-process
-/// model of the workers (`Propagation::step_split`) by the same rule.
-pub fn split_by_cost(seconds: &[f64], batches: usize, parts: usize) -> Vec<Range<usize>> {
-    let measured: Vec<f64> = seconds.iter().copied().filter(|s| *s > 0.0).collect();
-    let mean = match measured.len() {
-        0 => 1.0,
-        n => measured.iter().sum::<f64>() / n as f64,
-    };
-    // Cost before each batch boundary: before[b] is the cost of batches 0..b.
-    let mut before = vec![0.0; batches + 1];
-    for b in 0..batches {
-        let cost = seconds.get(b).copied().filter(|s| *s > 0.0).unwrap_or(mean);
-        before[b + 1] = before[b] + cost;
-    }
-    let parts = parts.max(1);
-    let start = |r: usize| -> usize {
-        let target = before[batches] * r as f64 / parts as f64;
-        (0..=batches)
-            .min_by(|&a, &b| (before[a] - target).abs().total_cmp(&(before[b] - target).abs()))
-            .unwrap_or(0)
-    };
-    (0..parts).map(|r| start(r)..start(r + 1)).collect()
 }
 
 /// The open pass a lease belongs to.

@@ -464,23 +464,6 @@ fn homes_split_the_pass_by_what_its_batches_cost() {
     assert_eq!(home("w1-a", &two, 8, &partial), 0..4);
 }
 
-#[test]
-fn a_split_by_cost_covers_the_pass_in_order_and_is_what_the_homes_are() {
-    let costs: Vec<f64> = (0..16).map(|b| 0.001 * (1 + b % 5) as f64).collect();
-    for parts in 1..=20 {
-        let split = split_by_cost(&costs, 16, parts);
-        assert_eq!(split.len(), parts);
-        assert_eq!(split[0].start, 0);
-        assert_eq!(split[parts - 1].end, 16);
-        assert!(split.windows(2).all(|w| w[0].end == w[1].start), "{parts}: {split:?}");
-    }
-    // Three cheap batches and an expensive one: the expensive one alone.
-    assert_eq!(split_by_cost(&[1.0, 1.0, 1.0, 3.0], 4, 2), [0..3, 3..4]);
-    // More parts than batches: some are empty.
-    assert_eq!(split_by_cost(&[], 2, 4), [0..0, 0..1, 1..1, 1..2]);
-    assert_eq!(split_by_cost(&[], 0, 2), [0..0, 0..0]);
-}
-
 #[tokio::test]
 async fn a_worker_whose_batches_were_cheap_gets_more_of_the_next_pass() {
     let s = scheduler(60_000);

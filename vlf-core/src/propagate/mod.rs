@@ -56,7 +56,7 @@ pub use plan::Plan;
 pub use shoot::Flow;
 pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
-pub use split::HomeThreads;
+pub use split::{HOME_BATCHES, HomeThreads, cut_homes, split_by_cost};
 pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
@@ -254,6 +254,8 @@ pub struct Propagation {
     owners: Vec<u32>,
     /// A chunk's per-direction texel buffers, kept from one block or step to the next.
     buffers: work::KeptBuffers,
+    /// The threads of [`Propagation::step`]'s homes and what each batch cost last time.
+    cut: split::KeptCut,
 }
 
 fn sum_rgb(v: &[Rgb]) -> Rgb {
@@ -389,6 +391,7 @@ impl Propagation {
             stats: Vec::new(),
             owners,
             buffers: work::KeptBuffers::default(),
+            cut: split::KeptCut::default(),
         })
     }
 
@@ -433,9 +436,24 @@ impl Propagation {
         &self.stats
     }
 
-    /// Performs one iteration in this process: every batch of every pass
-    /// (see [`work`]), absorbed in order.
-    pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
+    /// Performs one iteration in this process with the threads of the current rayon pool: every
+    /// batch of every pass (see [`work`]), absorbed in order. With a few threads and many
+    /// batches (`split::cut_homes`) each thread takes a home of whole batches
+    /// ([`Propagation::step_split`], cut by what the batches cost last time); else the threads
+    /// share every batch's directions ([`Propagation::step_shared`]). The same bits either way.
+    pub fn step(&mut self, progress: impl FnMut(Progress)) -> IterationStats {
+        let threads = rayon::current_num_threads();
+        let batches = work::batch_count(self.directions.len());
+        match split::cut_homes(threads, batches) {
+            0 | 1 => self.step_shared(progress),
+            homes => self.step_cut(homes, threads / homes, progress),
+        }
+    }
+
+    /// Performs one iteration in this process, every batch's directions shared among the
+    /// current pool's threads, CHUNK at a time: what [`Propagation::step`] does when batches are
+    /// too few to give each thread a home.
+    pub fn step_shared(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let started = Instant::now();
         let mut work = self.iteration_work();
         let passes = work.passes();
