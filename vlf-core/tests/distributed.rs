@@ -76,6 +76,17 @@ impl MapStore {
 /// propagation and its last snapshot assembled from the parts; with `adopt`,
 /// the coordinator also takes the maps in (`adopt_mirrors`).
 fn run_distributed(scene: &Scene, options: &Options, workers: usize, adopt: bool) -> (Propagation, Checkpoint) {
+    run_distributed_in_blocks(scene, options, workers, adopt, 1 << (workers - 1))
+}
+
+/// [`run_distributed`] with blocks of `block` batches.
+fn run_distributed_in_blocks(
+    scene: &Scene,
+    options: &Options,
+    workers: usize,
+    adopt: bool,
+    block: usize,
+) -> (Propagation, Checkpoint) {
     let mut main = Propagation::new(scene.clone(), options.clone()).unwrap();
     // Replicas start every iteration blank (a clone of a fresh propagation),
     // so they hold only what they read of this iteration's snapshot: a map
@@ -110,8 +121,8 @@ fn run_distributed(scene: &Scene, options: &Options, workers: usize, adopt: bool
         let mut work = main.iteration_work();
         // Every output of the iteration, as stored: workers read a pass's
         // prerequisites from here, never from the coordinator. Leases hold
-        // blocks of 1, 2 or 4 batches with 1, 2 or 3 workers.
-        let blocks = reduce::blocks(work.batches(), 1 << (workers - 1));
+        // blocks of 1, 2 or 4 batches with 1, 2 or 3 workers (`run_distributed`).
+        let blocks = reduce::blocks(work.batches(), block);
         let mut stored: HashMap<(Pass, usize), Vec<u8>> = HashMap::new();
         let mut blocks_of_maps = Vec::new();
         for pass in work.passes() {
@@ -267,6 +278,59 @@ fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts
             "step on {threads} threads ({homes} homes) changed the bits"
         );
     }
+}
+
+#[test]
+fn a_block_cut_among_a_replicas_threads_gives_the_same_bits() {
+    // Whole-pass blocks of 16 batches on pools of 1 to 4 threads: a replica shoots a block
+    // with its threads sharing every batch (1 thread) or a home of batches each (2 to 4).
+    let options = Options {
+        directions: 513,
+        stop: Stop::Iterations(3),
+        ..options(0)
+    };
+    let mut straight = Propagation::new(mirror_room(), options.clone()).unwrap();
+    while !straight.finished() {
+        straight.step_shared(|_| {});
+    }
+    let want = without_times(straight.checkpoint());
+    let batches = vlf_core::propagate::work::batch_count(513);
+    for threads in 1..=4 {
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+        let (main, stored) = pool.install(|| run_distributed_in_blocks(&mirror_room(), &options, 1, true, batches));
+        let homes = cut_homes(threads, batches);
+        assert!(
+            without_times(stored) == want,
+            "{threads} threads ({homes} homes) changed the bits"
+        );
+        assert!(without_times(main.checkpoint()) == want);
+    }
+}
+
+#[test]
+fn a_cut_blocks_batch_costs_add_up_to_no_more_than_the_block_took() {
+    // A whole-pass block on 2 threads is cut into two homes shot at once: each batch's cost is
+    // its share of the block's time, so that a worker's report does not count its threads'
+    // time twice (before that, they added up to about twice the block's time).
+    let options = Options {
+        directions: 513,
+        stop: Stop::Iterations(2),
+        ..options(0)
+    };
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(2).build().unwrap();
+    pool.install(|| {
+        let mut p = Propagation::new(mirror_room(), options).unwrap();
+        let work = p.iteration_work();
+        let n = work.batches();
+        assert_eq!(cut_homes(2, n), 2);
+        let started = std::time::Instant::now();
+        let (_, _, costs) = p.compute_block_costed(&work, Pass::Shoot, 0..n).unwrap();
+        let took = started.elapsed().as_secs_f64();
+        assert_eq!(costs.len(), n);
+        assert!(costs.iter().all(|&c| c > 0.0), "{costs:?}");
+        let sum: f64 = costs.iter().sum();
+        assert!(sum <= took, "batch costs add up to {sum} s, the block took {took} s");
+    });
 }
 
 #[test]

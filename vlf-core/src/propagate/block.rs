@@ -148,20 +148,32 @@ impl Propagation {
         });
         let gathered = gathering.elapsed().as_secs_f64() / batches.len() as f64;
         let mut tree = TreeSum::new(batches.len());
-        let mut buffers = self.buffers.take();
         let mut costs = Vec::with_capacity(batches.len());
-        for (i, batch) in batches.clone().enumerate() {
-            let started = std::time::Instant::now();
-            let range = work.batch_range(batch, self.directions.len());
-            let own = maps
-                .as_deref_mut()
-                .map(|m| &mut m[range.start - directions.start..range.end - directions.start]);
-            let leaf = self.run_batch_with(work, pass, batch, own, &mut buffers)?;
-            tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
-            costs.push(gathered + started.elapsed().as_secs_f64());
+        // With a few threads and a long block, each thread shoots a home of its batches (as
+        // `Propagation::step` cuts a pass); else they share every batch. The same leaves.
+        match self.shoot_block_cut(work, pass, batches.clone(), maps.as_deref_mut())? {
+            Some(shot) => {
+                for (i, (leaf, cost)) in shot.into_iter().enumerate() {
+                    tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
+                    costs.push(gathered + cost);
+                }
+            }
+            None => {
+                let mut buffers = self.buffers.take();
+                for (i, batch) in batches.clone().enumerate() {
+                    let started = std::time::Instant::now();
+                    let range = work.batch_range(batch, self.directions.len());
+                    let own = maps
+                        .as_deref_mut()
+                        .map(|m| &mut m[range.start - directions.start..range.end - directions.start]);
+                    let leaf = self.run_batch_with(work, pass, batch, own, &mut buffers)?;
+                    tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
+                    costs.push(gathered + started.elapsed().as_secs_f64());
+                }
+                self.buffers.keep(buffers);
+            }
         }
         drop(maps);
-        self.buffers.keep(buffers);
         let power_in = spec.zip(incident.as_ref()).map(|(spec, incident)| {
             directions
                 .clone()

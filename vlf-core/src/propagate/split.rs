@@ -12,12 +12,13 @@
 //! repeat closely from one iteration to the next. On two threads the cut is the faster
 //! (×0.97 of the shared loop's time per iteration for the mirror scene, ×0.92 for the office,
 //! `docs/bench`), so [`Propagation::step`] cuts when every thread gets a home of a few
-//! batches ([`cut_homes`]).
+//! batches ([`cut_homes`]), and so does a worker's replica with a long block of its lease
+//! (`Propagation::compute_block`).
 //!
 //! It is also the distributed run's cut without the service: workers take homes by the same
 //! rule, so `vlf bench` runs this to tell what the cut costs from what the service adds.
 
-use super::work::{self, BatchSum};
+use super::work::{self, BatchSum, IterationWork, MirrorIo, Pass};
 use super::{IterationStats, Progress, Propagation};
 use crate::scene::Rgb;
 use std::ops::Range;
@@ -67,10 +68,15 @@ pub fn split_by_cost(seconds: &[f64], batches: usize, parts: usize) -> Vec<Range
     (0..parts).map(|r| start(r)..start(r + 1)).collect()
 }
 
-/// What [`Propagation::step`] keeps from one cut iteration to the next: its home threads and
-/// what each batch cost. A clone of the propagation starts without (threads are not copied).
+/// What a propagation keeps from one cut to the next: its home threads and what each batch of
+/// a pass cost when last shot (by [`Propagation::step`] or in a worker's block). Behind a lock,
+/// as a worker's block is shot through `&self`. A clone of the propagation starts without
+/// (threads are not copied).
 #[derive(Default)]
-pub(crate) struct KeptCut {
+pub(crate) struct KeptCut(std::sync::Mutex<CutState>);
+
+#[derive(Default)]
+struct CutState {
     threads: Option<HomeThreads>,
     costs: Vec<f64>,
 }
@@ -78,6 +84,35 @@ pub(crate) struct KeptCut {
 impl Clone for KeptCut {
     fn clone(&self) -> Self {
         KeptCut::default()
+    }
+}
+
+impl KeptCut {
+    fn lock(&self) -> std::sync::MutexGuard<'_, CutState> {
+        self.0.lock().unwrap_or_else(|p| p.into_inner())
+    }
+
+    /// Threads for `homes` homes of `per_home` threads (those kept, if they are that many), and
+    /// the costs kept, per batch (0 where none is known).
+    fn take(&self, homes: usize, per_home: usize) -> crate::Result<(HomeThreads, Vec<f64>)> {
+        let mut state = self.lock();
+        let threads = match state.threads.take() {
+            Some(t) if t.count() == homes && t.per_home() == per_home => t,
+            _ => HomeThreads::new(homes, per_home)?,
+        };
+        Ok((threads, state.costs.clone()))
+    }
+
+    /// Keeps `threads` for the next cut, and what the batches just shot cost.
+    fn keep(&self, threads: HomeThreads, costs: impl IntoIterator<Item = (usize, f64)>) {
+        let mut state = self.lock();
+        state.threads = Some(threads);
+        for (batch, cost) in costs {
+            if state.costs.len() <= batch {
+                state.costs.resize(batch + 1, 0.0);
+            }
+            state.costs[batch] = cost;
+        }
     }
 }
 
@@ -139,66 +174,24 @@ impl Propagation {
         let batches = work.batches();
         check_homes(homes, batches, threads.count())?;
         let l = self.directions.len();
-        let directions = |home: &Range<usize>| match home.is_empty() {
-            true => 0..0,
-            false => work.batch_range(home.start, l).start..work.batch_range(home.end - 1, l).end,
-        };
-        let spans: Vec<Range<usize>> = homes.iter().map(directions).collect();
         let mut maps = self.gathered_maps(&work);
         let mut costs = vec![0.0; batches];
         let passes = work.passes();
         let (iteration, total) = (work.index, passes.len() * l);
         for (p, &pass) in passes.iter().enumerate() {
-            let this = &*self;
-            let work_now = &work;
-            // The homes say what they finished; this thread passes it on as it comes.
-            let (finished, hear) = std::sync::mpsc::channel::<usize>();
-            let shot: Vec<Vec<(BatchSum, f64)>> = std::thread::scope(|scope| {
-                // Each home's mirror maps, apart: the homes' directions are consecutive.
-                let mut rest = maps.as_deref_mut();
-                let running: Vec<_> = (homes.iter().zip(&spans))
-                    .zip(threads.pools.iter().zip(threads.buffers.iter_mut()))
-                    .map(|((home, span), (pool, buffers))| {
-                        let mut own = rest.take().map(|r| {
-                            let (own, after) = r.split_at_mut(span.len());
-                            rest = Some(after);
-                            own
-                        });
-                        let finished = finished.clone();
-                        scope.spawn(move || {
-                            pool.install(|| {
-                                home.clone()
-                                    .map(|batch| {
-                                        let range = work_now.batch_range(batch, l);
-                                        let at = range.start - span.start..range.end - span.start;
-                                        let mut io = own.as_mut().map(|m| work::mirror_io(&mut m[at]));
-                                        let shooting = Instant::now();
-                                        let sum = this
-                                            .run_batch_with(work_now, pass, batch, io.as_deref_mut(), buffers)
-                                            .expect("batches of this process's own work are well-formed");
-                                        let _ = finished.send(range.len());
-                                        (sum, shooting.elapsed().as_secs_f64())
-                                    })
-                                    .collect()
-                            })
-                        })
-                    })
-                    .collect();
-                drop(finished);
-                let mut done = p * l;
-                for directions in hear {
+            let mut io = maps.as_mut().map(|m| work::mirror_io(m));
+            let mut done = p * l;
+            let shot = self
+                .shoot_homes(&work, pass, homes, io.as_deref_mut(), threads, |directions| {
                     done += directions;
                     progress(Progress {
                         iteration,
                         directions_done: done,
                         directions_total: total,
                     });
-                }
-                running
-                    .into_iter()
-                    .map(|home| home.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
-                    .collect()
-            });
+                })
+                .expect("batches of this process's own work are well-formed");
+            drop(io);
             for (home, sums) in homes.iter().zip(shot) {
                 for (batch, (sum, cost)) in home.clone().zip(sums) {
                     work.absorb(pass, batch..batch + 1, sum)
@@ -232,22 +225,119 @@ fn check_homes(homes: &[Range<usize>], batches: usize, threads: usize) -> crate:
 
 impl Propagation {
     /// [`Propagation::step`] cut into `homes` homes of `per_home` threads each, by what the
-    /// batches cost in the last cut iteration (evenly the first time).
+    /// batches cost when last shot (evenly the first time).
     pub(super) fn step_cut(&mut self, homes: usize, per_home: usize, progress: impl FnMut(Progress)) -> IterationStats {
-        let mut threads = match self.cut.threads.take() {
-            Some(t) if t.count() == homes && t.per_home() == per_home => t,
-            _ => HomeThreads::new(homes, per_home).expect("the current pool's threads, at most 1024"),
-        };
-        let batches = work::batch_count(self.directions.len());
-        let cut = split_by_cost(&self.cut.costs, batches, homes);
+        let (mut threads, known) = (self.cut.take(homes, per_home)).expect("the current pool's threads, at most 1024");
+        let cut = split_by_cost(&known, work::batch_count(self.directions.len()), homes);
         let (stats, costs) = self
             .step_split(&cut, &mut threads, progress)
             .expect("homes cut by split_by_cost cover the pass in order");
-        self.cut = KeptCut {
-            threads: Some(threads),
-            costs,
-        };
+        self.cut.keep(threads, costs.into_iter().enumerate());
         stats
+    }
+
+    /// Shoots the aligned block `batches` of `pass` cut into a home per thread of the current
+    /// pool, when each gets a few batches ([`cut_homes`]), by what they cost when last shot:
+    /// each batch's sum and its share of the block's time, in batch order. `None` when the block is not worth cutting (the
+    /// caller shoots it with the threads sharing every batch). What a worker with several threads
+    /// does with a block of its lease, as [`Propagation::step`] does with a pass.
+    pub(super) fn shoot_block_cut(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+        maps: Option<&mut [MirrorIo]>,
+    ) -> crate::Result<Option<Vec<(BatchSum, f64)>>> {
+        let threads = rayon::current_num_threads();
+        let homes = cut_homes(threads, batches.len());
+        if homes < 2 {
+            return Ok(None);
+        }
+        let (mut pools, known) = self.cut.take(homes, threads / homes)?;
+        let block_costs: Vec<f64> = batches.clone().map(|b| known.get(b).copied().unwrap_or(0.0)).collect();
+        let cut: Vec<Range<usize>> = split_by_cost(&block_costs, batches.len(), homes)
+            .into_iter()
+            .map(|h| h.start + batches.start..h.end + batches.start)
+            .collect();
+        let started = Instant::now();
+        let shot = self.shoot_homes(work, pass, &cut, maps, &mut pools, |_| {});
+        let wall = started.elapsed().as_secs_f64();
+        let shot: Vec<(BatchSum, f64)> = match shot {
+            Ok(shot) => shot.into_iter().flatten().collect(),
+            Err(e) => {
+                self.cut.keep(pools, []);
+                return Err(e);
+            }
+        };
+        self.cut.keep(pools, batches.zip(shot.iter().map(|(_, cost)| *cost)));
+        // The homes ran at once, so their batches' times add up to more than the block took:
+        // each batch is given its share of the block's time instead, which keeps the costs'
+        // proportions (what homes are cut by) and makes them add up to the worker's time, as a
+        // report's seconds must.
+        let threads_time: f64 = shot.iter().map(|(_, cost)| cost).sum();
+        let share = if threads_time > 0.0 { wall / threads_time } else { 0.0 };
+        Ok(Some(shot.into_iter().map(|(sum, cost)| (sum, cost * share)).collect()))
+    }
+
+    /// Shoots the batches of `pass` in `homes` (consecutive runs, in order), each home on a pool
+    /// of `threads` (one per home), its batches left to right into the home's own chunk
+    /// buffers. `maps` are the mirror maps of the homes' directions, from the first home's first
+    /// direction on (when the pass shoots them): each home gets its part. Returns per home each
+    /// batch's sum and the seconds it took to shoot; `finished` hears, on the calling thread, the
+    /// directions of every batch as a home finishes it.
+    fn shoot_homes(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        homes: &[Range<usize>],
+        maps: Option<&mut [MirrorIo]>,
+        threads: &mut HomeThreads,
+        mut finished: impl FnMut(usize),
+    ) -> crate::Result<Vec<Vec<(BatchSum, f64)>>> {
+        let l = self.directions.len();
+        let span = |home: &Range<usize>| match home.is_empty() {
+            true => 0..0,
+            false => work.batch_range(home.start, l).start..work.batch_range(home.end - 1, l).end,
+        };
+        let (done, hear) = std::sync::mpsc::channel::<usize>();
+        let shot: Vec<crate::Result<Vec<(BatchSum, f64)>>> = std::thread::scope(|scope| {
+            // Each home's mirror maps, apart: the homes' directions are consecutive.
+            let mut rest = maps;
+            let running: Vec<_> = (homes.iter())
+                .zip(threads.pools.iter().zip(threads.buffers.iter_mut()))
+                .map(|(home, (pool, buffers))| {
+                    let span = span(home);
+                    let mut own = rest.take().map(|r| {
+                        let (own, after) = r.split_at_mut(span.len());
+                        rest = Some(after);
+                        own
+                    });
+                    let done = done.clone();
+                    scope.spawn(move || {
+                        pool.install(|| {
+                            home.clone()
+                                .map(|batch| {
+                                    let range = work.batch_range(batch, l);
+                                    let at = range.start - span.start..range.end - span.start;
+                                    let io = own.as_deref_mut().map(|m| &mut m[at]);
+                                    let shooting = Instant::now();
+                                    let sum = self.run_batch_with(work, pass, batch, io, buffers)?;
+                                    let _ = done.send(range.len());
+                                    Ok((sum, shooting.elapsed().as_secs_f64()))
+                                })
+                                .collect()
+                        })
+                    })
+                })
+                .collect();
+            drop(done);
+            hear.into_iter().for_each(&mut finished);
+            running
+                .into_iter()
+                .map(|home| home.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+                .collect()
+        });
+        shot.into_iter().collect()
     }
 }
 
