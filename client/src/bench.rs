@@ -203,23 +203,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
 
 /// `vlf propagate`'s loop into a `memory://` store.
 fn in_process(url: &str, scene: &Scene, spec: &JobSpec) -> Result<(Sample, Checkpoint)> {
-    let started = Instant::now();
-    let store = Store::open(url)?;
-    let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
-    let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
-    let mut iterations = Vec::new();
-    while !prop.finished() {
-        let t = Instant::now();
+    in_process_with(url, scene, spec, |prop| {
         prop.step(|_| {});
-        job.write_snapshot(&prop)?;
-        iterations.push(IterationRecord {
-            seconds: t.elapsed().as_secs_f64(),
-            ..IterationRecord::default()
-        });
-    }
-    let last = prop.checkpoint();
-    job.finish(&prop.into_field(), false)?;
-    Ok((Sample::ended(started, iterations, &store), last))
+        Ok(())
+    })
 }
 
 /// The in-process loop cut into `workers.count` homes of `workers.count`-th of the threads, as
@@ -227,18 +214,31 @@ fn in_process(url: &str, scene: &Scene, spec: &JobSpec) -> Result<(Sample, Check
 /// are cut by what the batches cost in the one before, as the coordinator cuts them
 /// (`split_by_cost`); the first iteration's are even.
 fn in_process_split(url: &str, scene: &Scene, spec: &JobSpec, workers: Workers) -> Result<(Sample, Checkpoint)> {
+    let per_home = (workers.threads / workers.count).max(1);
+    let mut threads = HomeThreads::new(workers.count, per_home)?;
+    let mut costs = Vec::new();
+    in_process_with(url, scene, spec, |prop| {
+        let homes = split_by_cost(&costs, prop.iteration_work().batches(), workers.count);
+        costs = prop.step_split(&homes, &mut threads, |_| {})?.1;
+        Ok(())
+    })
+}
+
+/// `vlf propagate`'s loop into a `memory://` store, each iteration done by `step`.
+fn in_process_with(
+    url: &str,
+    scene: &Scene,
+    spec: &JobSpec,
+    mut step: impl FnMut(&mut Propagation) -> Result<()>,
+) -> Result<(Sample, Checkpoint)> {
     let started = Instant::now();
     let store = Store::open(url)?;
     let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
     let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
-    let per_home = (workers.threads / workers.count).max(1);
-    let mut threads = HomeThreads::new(workers.count, per_home)?;
-    let mut costs = Vec::new();
     let mut iterations = Vec::new();
     while !prop.finished() {
         let t = Instant::now();
-        let homes = split_by_cost(&costs, prop.iteration_work().batches(), workers.count);
-        costs = prop.step_split(&homes, &mut threads, |_| {})?.1;
+        step(&mut prop)?;
         job.write_snapshot(&prop)?;
         iterations.push(IterationRecord {
             seconds: t.elapsed().as_secs_f64(),
