@@ -346,7 +346,8 @@ fn median_interval(n: usize) -> Option<(usize, usize)> {
 /// One way of running the bench's job.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Way {
-    /// `vlf propagate`'s loop: every batch's directions shared among all the threads.
+    /// `vlf propagate`'s loop (`Propagation::step`: a home of batches per thread, or every batch
+    /// shared among the threads where homes would be too small).
     InProcess,
     /// The same loop cut into this many homes, as that many workers cut it.
     Split(usize),
