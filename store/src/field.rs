@@ -348,10 +348,28 @@ impl FieldJob {
         parts: &[(MapPart, usize)],
     ) -> Result<(ReleasedState, Vec<(MapPart, MapBatch)>), StoreError> {
         let (state, stored) = self.job.get_released_state_and_parts(k, parts)?;
-        let maps = (parts.par_iter().zip(stored))
+        Ok((self.state_of(k, state)?, self.decoded_parts(k, parts, stored)))
+    }
+
+    /// The mirror maps `parts` of snapshot `k` written so far, before the iteration after it is
+    /// released ([`Job::get_written_map_parts`]): those that could be read and decoded, with
+    /// their part and batch. What a worker reads ahead while the coordinator ends the iteration
+    /// before (see [`crate::ReadAhead`]).
+    pub fn written_maps(&self, k: u32, parts: &[(MapPart, usize)]) -> Result<Vec<(MapPart, MapBatch)>, StoreError> {
+        let stored = self.job.get_written_map_parts(k, parts)?;
+        Ok(self.decoded_parts(k, parts, stored))
+    }
+
+    /// The parts of `stored` (read for `parts` of snapshot `k`) that are there and decode.
+    fn decoded_parts(
+        &self,
+        k: u32,
+        parts: &[(MapPart, usize)],
+        stored: Vec<Option<Vec<u8>>>,
+    ) -> Vec<(MapPart, MapBatch)> {
+        (parts.par_iter().zip(stored))
             .filter_map(|(&(part, b), bytes)| Some((part, self.decode_map_part(k, b, &bytes?).ok()?)))
-            .collect();
-        Ok((self.state_of(k, state)?, maps))
+            .collect()
     }
 
     /// The released state of snapshot `k` from its stored bytes.

@@ -20,6 +20,7 @@ use crate::id::JobId;
 use crate::layout::{self, MapPart, Stage};
 use crate::manifest::{JobState, Manifest};
 use crate::store::{IN_FLIGHT, Put, Store};
+use bytes::Bytes;
 use rayon::prelude::*;
 
 /// A released state's bytes and, for each part asked along, its bytes if they could be read
@@ -349,10 +350,30 @@ impl Job {
             Some(state) => self.decode_snapshot(&keys[0], &state?)?,
             None => unreachable!("the state's key is the first"),
         };
-        let parts = (keys[1..].par_iter().zip(read.collect::<Vec<_>>()))
+        Ok((state, self.decode_each(&keys[1..], read.collect())))
+    }
+
+    /// The mirror-map `parts` of the resume state of iteration `k` written so far, whether or
+    /// not the iteration is released: each one's bytes, or `None` where it is not there yet or
+    /// cannot be read (see [`Job::get_released_state_and_parts`]). One bulk read.
+    pub fn get_written_map_parts(
+        &self,
+        k: u32,
+        parts: &[(MapPart, usize)],
+    ) -> Result<Vec<Option<Vec<u8>>>, StoreError> {
+        let keys = (parts.iter())
+            .map(|&(part, b)| layout::map_part(self.id(), k, part, b as u32))
+            .collect::<Result<Vec<_>, _>>()?;
+        let read = self.store.get_each(&keys)?;
+        Ok(self.decode_each(&keys, read))
+    }
+
+    /// The caller's serialisation in each snapshot blob read from `keys`, `None` where it could
+    /// not be read or is damaged.
+    fn decode_each(&self, keys: &[String], read: Vec<Result<Bytes, StoreError>>) -> Vec<Option<Vec<u8>>> {
+        (keys.par_iter().zip(read))
             .map(|(key, bytes)| bytes.ok().and_then(|b| self.decode_snapshot(key, &b).ok()))
-            .collect();
-        Ok((state, parts))
+            .collect()
     }
 
     /// The totals half of the resume state of iteration `k` as written, committed or not.

@@ -12,7 +12,7 @@ use vlf_core::propagate::{Checkpoint, Options, Pass, Perturbation, Propagation, 
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_store::blob::Encoding;
-use vlf_store::{Coordinator, FieldJob, JobId, MapPart, Replica, Stage, Store, StoreError, layout};
+use vlf_store::{Coordinator, FieldJob, JobId, MapPart, ReadAhead, Replica, Stage, Store, StoreError, layout};
 
 fn bundled(name: &str) -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -345,6 +345,83 @@ fn arrivals_come_with_the_head(o: &Opener) {
     assert_eq!(trips[3], 2, "{trips:?}");
 }
 
+/// Two workers, each on its own half of the pass, the first reading ahead the arrivals that
+/// cross into its half once it is done with an iteration, before the coordinator releases the
+/// next: its next start reads the head alone where it read the head and the arrivals. Parts not
+/// written yet when it reads ahead come with the head, as before; parts read ahead of another
+/// snapshot are ignored; the job ends with the in-process bits.
+fn arrivals_read_ahead(o: &Opener) {
+    let (scene, options) = (
+        bundled("mirrors.obj"),
+        Options {
+            stop: Stop::Iterations(9),
+            ..options(0, 33)
+        },
+    );
+    let reference = in_process(&o.open(), &scene, &options);
+    let (id, mut coordinator, _) = start(o, scene, options, Encoding::F32);
+    // Each replica with a store handle of its own, whose reads it counts.
+    let replica = || {
+        let store = o.open();
+        (Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap(), store)
+    };
+    let reads = |(replica, store): &mut (Replica, Store), k: u32, block: std::ops::Range<usize>| {
+        let before = store.traffic().reads;
+        replica.compute(k, Pass::Shoot, block).unwrap();
+        store.traffic().reads - before
+    };
+    let (mut a, mut b) = (replica(), replica());
+    let (mut read, mut fetched) = (Vec::new(), Vec::new());
+    let mut stale = None;
+    for k in 0..9 {
+        assert_eq!(coordinator.pending_pass(), Some((Pass::Shoot, 2)));
+        read.push(reads(&mut a, k, 0..1));
+        // In iteration 5, the first worker is done before the second started: nothing of its
+        // half is written yet.
+        let early = (k == 5).then(|| a.0.read_ahead(k, Pass::Shoot).map(ReadAhead::fetch));
+        reads(&mut b, k, 1..2);
+        // Not in the first iterations, where the arrivals that cross settle.
+        let ahead = match early {
+            Some(ahead) => ahead,
+            None if k >= 3 => a.0.read_ahead(k, Pass::Shoot).map(ReadAhead::fetch),
+            None => None,
+        };
+        fetched.push(ahead.as_ref().map_or(0, ReadAhead::fetched));
+        if k == 6 {
+            // Kept for iteration 8, where it is of the wrong snapshot.
+            stale = a.0.read_ahead(k, Pass::Shoot).map(ReadAhead::fetch);
+        }
+        match (k, ahead) {
+            (7, _) => a.0.adopt_ahead(stale.take().unwrap()),
+            (_, Some(ahead)) => a.0.adopt_ahead(ahead),
+            (_, None) => {}
+        }
+        coordinator.absorb_pass().unwrap();
+        coordinator.finish_iteration().unwrap();
+    }
+    let arrivals = fetched[3];
+    assert!(arrivals > 0, "{fetched:?}");
+    assert_eq!(fetched[3..], [arrivals, arrivals, 0, arrivals, arrivals, arrivals]);
+    // An iteration reads the head, and the arrivals that were not read ahead: those of
+    // iteration 3 (none read ahead), 6 (none written yet) and 8 (read ahead of snapshot 7).
+    let (head_only, with_arrivals) = (1, 1 + arrivals as u64);
+    assert_eq!(
+        read[3..],
+        [
+            with_arrivals,
+            head_only,
+            head_only,
+            with_arrivals,
+            head_only,
+            with_arrivals
+        ],
+        "{read:?}"
+    );
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(9).unwrap()) == without_times(reference.checkpoint(9).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+}
+
 /// A rotated copy's shooting needs the copy's areas whole: a replica learns the blocks it
 /// computed itself from memory and reads only the others' from the store — those the lease
 /// names without listing the store first. The job ends with the bits of the in-process run.
@@ -554,6 +631,7 @@ per_backend! {
     replicas_give_the_same_bits_with_perturbation => crate::perturbed,
     conflicting_or_missing_batches_are_errors => crate::conflicting_or_missing_batches,
     arrivals_come_with_the_head => crate::arrivals_come_with_the_head,
+    arrivals_read_ahead => crate::arrivals_read_ahead,
     an_output_without_its_maps_is_computed_again => crate::an_output_without_its_maps_is_computed_again,
     a_copys_shooting_reads_only_the_areas_others_computed => crate::a_copys_shooting_reads_only_the_areas_others_computed,
     a_run_computed_behind_returns_before_its_writes => crate::a_run_computed_behind_returns_before_its_writes,

@@ -21,7 +21,7 @@ use tonic::Code;
 use vlf_core::propagate::reduce;
 use vlf_proto::v1;
 use vlf_proto::{ConnectError, Target, pass_blocks_from_wire, pass_from_wire};
-use vlf_store::{FieldJob, JobId, Replica, Store, StoreError, Writing};
+use vlf_store::{FieldJob, JobId, ReadAhead, Replica, Store, StoreError, Writing};
 
 /// Where the worker finds the store.
 #[derive(Clone, Debug)]
@@ -240,6 +240,8 @@ async fn lease_loop(
 ) -> Loop {
     // The next lease, when the last report brought it.
     let mut next: Option<v1::Lease> = None;
+    // Mirror-map parts being read ahead of the next iteration.
+    let mut ahead: Option<Ahead> = None;
     loop {
         // Reports sent in the background since: forget them.
         while reports.try_join_next().is_some() {}
@@ -271,7 +273,8 @@ async fn lease_loop(
             return Loop::Stop;
         }
         let started = Instant::now();
-        let computed = compute(store, pool, replicas, &lease, workers, id).await;
+        let read_ahead = Ahead::for_lease(&mut ahead, &lease).await;
+        let computed = compute(store, pool, replicas, &lease, read_ahead, workers, id).await;
         // The outputs are on their way into the store. A local store has them in at once: the
         // report goes now and brings the next lease. One a round trip away is still writing:
         // the report goes once they are in, in the background, and the next lease is computed
@@ -280,7 +283,10 @@ async fn lease_loop(
         // the waits for the store (`Replica::batch_costs`); a failed lease reports the time
         // until it failed.
         let (result, costs) = match computed {
-            Ok((run, writes, costs)) => {
+            Ok((run, writes, costs, next_ahead)) => {
+                if let Some(next_ahead) = next_ahead {
+                    ahead = Some(Ahead::start(&lease.job_id, next_ahead, pool));
+                }
                 let mut writes = tokio::spawn(writes.finished());
                 match tokio::time::timeout(WRITE_OVERLAP, &mut writes).await {
                     Ok(written) => (written_or_error(written).map(|()| run), costs),
@@ -333,6 +339,46 @@ async fn lease_loop(
             Err(status) if status.code() == Code::NotFound || transient(&status) => return Loop::Register,
             Err(status) => return Loop::Refused(status),
         }
+    }
+}
+
+/// Mirror-map parts of the next snapshot being read while the worker waits for the iteration to
+/// be released (see [`ReadAhead`]): on the worker's own threads, idle by then.
+struct Ahead {
+    job: String,
+    snapshot: u32,
+    reading: tokio::task::JoinHandle<Result<ReadAhead, vlf_store::Panicked>>,
+}
+
+impl Ahead {
+    /// Starts reading `ahead`, of job `job`.
+    fn start(job: &str, ahead: ReadAhead, pool: &Arc<rayon::ThreadPool>) -> Ahead {
+        let pool = pool.clone();
+        Ahead {
+            job: job.to_string(),
+            snapshot: ahead.snapshot(),
+            reading: tokio::spawn(vlf_store::blocking(move || pool.install(|| ahead.fetch()))),
+        }
+    }
+
+    /// What was read ahead of `lease`'s iteration, once read; `None` if nothing was. Parts of a
+    /// later iteration of the same job are kept for it; any other are dropped.
+    async fn for_lease(ahead: &mut Option<Ahead>, lease: &v1::Lease) -> Option<ReadAhead> {
+        let reading = ahead.take()?;
+        if reading.job != lease.job_id || reading.snapshot < lease.snapshot {
+            return None;
+        }
+        if reading.snapshot > lease.snapshot {
+            *ahead = Some(reading);
+            return None;
+        }
+        let read = reading.reading.await.ok()?.ok()?;
+        tracing::debug!(
+            snapshot = read.snapshot(),
+            parts = read.fetched(),
+            "mirror maps read ahead"
+        );
+        Some(read)
     }
 }
 
@@ -407,6 +453,10 @@ fn report_when_written(
     });
 }
 
+/// A lease computed: its run, the writes of its outputs, what each batch cost, and what to read
+/// ahead of the next iteration.
+type Computed = (Range<usize>, Writing, Vec<f64>, Option<ReadAhead>);
+
 /// Computes a lease's batches into the store, left to right, one aligned block at a time; the
 /// outputs are those of the fewest aligned blocks that cover what was computed. Batches past the
 /// lease's committed part are claimed first (`Claim`). Returns the run computed: the lease's,
@@ -416,9 +466,10 @@ async fn compute(
     pool: &Arc<rayon::ThreadPool>,
     replicas: &Arc<Mutex<Replicas>>,
     lease: &v1::Lease,
+    ahead: Option<ReadAhead>,
     workers: &v1::workers_client::WorkersClient<vlf_proto::Authed>,
     worker_id: &str,
-) -> Result<(Range<usize>, Writing, Vec<f64>), String> {
+) -> Result<Computed, String> {
     let job = JobId::parse(&lease.job_id).map_err(|e| format!("lease names job `{}`: {e}", lease.job_id))?;
     let pass = pass_from_wire(lease.pass_kind, lease.pass_copy)
         .ok_or_else(|| format!("lease names pass ({}, {})", lease.pass_kind, lease.pass_copy))?;
@@ -444,14 +495,18 @@ async fn compute(
         asked,
     );
     let computing = vlf_store::blocking(move || {
-        pool.install(|| -> Result<(Range<usize>, Writing, Vec<f64>), StoreError> {
+        pool.install(|| -> Result<Computed, StoreError> {
             let mut replicas = lock(&replicas);
             let replica = replicas.replica(&store, &job)?;
             for (earlier, blocks) in reads {
                 replica.absorbed(k, earlier, blocks);
             }
+            if let Some(ahead) = ahead {
+                replica.adopt_ahead(ahead);
+            }
             let (run, writes) = replica.compute_run_behind(k, pass, start, |done| claim.next_block(done, &asks))?;
-            Ok((run, writes, replica.batch_costs().to_vec()))
+            let costs = replica.batch_costs().to_vec();
+            Ok((run, writes, costs, replica.read_ahead(k, pass)))
         })
     });
     let (computed, ()) = tokio::join!(computing, claimer);

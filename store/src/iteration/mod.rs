@@ -52,7 +52,7 @@ mod replica;
 
 pub use coordinator::{Coordinator, SnapshotCommit, WorkTraffic};
 pub use prototypes::Prototypes;
-pub use replica::Replica;
+pub use replica::{ReadAhead, Replica};
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;

@@ -14,7 +14,7 @@ use std::ops::Range;
 use std::time::Instant;
 use vlf_core::propagate::reduce::RunOutputs;
 use vlf_core::propagate::work::batch_count;
-use vlf_core::propagate::{BatchOutput, IterationWork, MirrorBlock, Pass, Propagation};
+use vlf_core::propagate::{BatchOutput, IterationWork, MapBatch, MirrorBlock, Pass, Propagation};
 
 /// A worker's copy of a job's propagation: the geometry is built once; each iteration restores
 /// the state from the store — except the mirror maps this replica computed itself, which it
@@ -40,6 +40,52 @@ pub struct Replica {
     absorbed: Vec<(u32, Pass, Vec<Range<usize>>)>,
     /// What each batch of the last computation cost (see [`Replica::batch_costs`]).
     costs: Vec<f64>,
+    /// Mirror-map parts of a later snapshot read ahead ([`Replica::adopt_ahead`]).
+    ahead: Option<ReadAhead>,
+}
+
+/// Mirror-map parts of the next snapshot that a worker reads while the coordinator ends the
+/// iteration ([`Replica::read_ahead`]), rather than after it releases the next one.
+///
+/// A worker's home stays put from one iteration to the next, so the arrivals that cross into it
+/// from the other workers' homes are the same parts each time: those its leases read this
+/// iteration. The other workers write them as they compute, block by block; once this worker
+/// is done with the iteration it waits — for the slowest worker, then for the coordinator to
+/// absorb the last outputs, reflect the diffuse light and write the next head — and reads the
+/// parts written by then. The next iteration's start then reads only the head and the parts
+/// that were not there yet, and decodes nothing more: with two workers on the mirror scene,
+/// about a megabyte of maps a worker decoded on the iteration's critical path.
+///
+/// Safe to read before the release: a part is written create-only, once, as a pure function of
+/// the job (a block computed twice writes the same bytes), so a part that is there is the one
+/// the next iteration reads. A part that is missing or fails to decode is simply left to the
+/// start, which reads it with the head and reports what is wrong with it.
+pub struct ReadAhead {
+    job: FieldJob,
+    snapshot: u32,
+    parts: Vec<(MapPart, usize)>,
+    maps: Vec<(MapPart, MapBatch)>,
+}
+
+impl ReadAhead {
+    /// The snapshot whose parts it reads.
+    pub fn snapshot(&self) -> u32 {
+        self.snapshot
+    }
+
+    /// Reads the parts written so far, in one bulk read, and decodes them (on the caller's
+    /// rayon pool). What cannot be read is left to the iteration's start.
+    pub fn fetch(mut self) -> ReadAhead {
+        if let Ok(maps) = self.job.written_maps(self.snapshot, &self.parts) {
+            self.maps = maps;
+        }
+        self
+    }
+
+    /// How many of its parts were read.
+    pub fn fetched(&self) -> usize {
+        self.maps.len()
+    }
 }
 
 struct Current {
@@ -79,6 +125,7 @@ impl Replica {
             holds_snapshot: None,
             absorbed: Vec::new(),
             costs: Vec::new(),
+            ahead: None,
         }
     }
 
@@ -138,6 +185,31 @@ impl Replica {
     pub fn absorbed(&mut self, k: u32, pass: Pass, blocks: Vec<Range<usize>>) {
         self.absorbed.retain(|(at, p, _)| *at == k && *p != pass);
         self.absorbed.push((k, pass, blocks));
+    }
+
+    /// What to read ahead of the iteration after the one from snapshot `k`, once this replica
+    /// computed a run of `pass` of it ([`ReadAhead`]): the mirror-map parts of snapshot `k + 1`
+    /// its leases will read again — those they read of snapshot `k`. `None` unless `pass` is the
+    /// iteration's last (before that, more leases of the iteration may come) and some part was
+    /// read.
+    pub fn read_ahead(&self, k: u32, pass: Pass) -> Option<ReadAhead> {
+        let current = self.current.as_ref().filter(|c| c.k == k)?;
+        if current.work.passes().last() != Some(&pass) || current.read.is_empty() {
+            return None;
+        }
+        Some(ReadAhead {
+            job: self.job.clone(),
+            snapshot: k + 1,
+            parts: current.read.clone(),
+            maps: Vec::new(),
+        })
+    }
+
+    /// Hands the replica parts read ahead ([`Replica::read_ahead`], then [`ReadAhead::fetch`]):
+    /// the start of the iteration from their snapshot restores them instead of reading them.
+    /// Those of another job or snapshot are dropped there.
+    pub fn adopt_ahead(&mut self, ahead: ReadAhead) {
+        self.ahead = (ahead.job.id() == self.job.id()).then_some(ahead);
     }
 
     /// Computes a run of `pass` from batch `start`, one aligned block at a time, as `next` hands
@@ -383,10 +455,18 @@ impl Replica {
     /// A worker's homes stay put from one iteration to the next, so its leases read the same
     /// parts of the other workers' maps each time (the arrivals that cross the edges of its
     /// home): what the last iteration read comes along with the head, in the same round trip,
-    /// instead of one more when the first block that gathers them starts.
+    /// instead of one more when the first block that gathers them starts — or before the head,
+    /// those read ahead ([`ReadAhead`]).
     fn start(&mut self, k: u32) -> Result<(), StoreError> {
         let guess = self.current.take().map(|c| c.read).unwrap_or_default();
         let held = std::mem::take(&mut self.held);
+        // Parts read ahead need not come with the head.
+        let ahead = (self.ahead.take())
+            .filter(|a| a.snapshot == k)
+            .map_or_else(Vec::new, |a| a.maps);
+        let guess: Vec<(MapPart, usize)> = (guess.into_iter())
+            .filter(|&(part, b)| !ahead.iter().any(|(p, m)| (*p, m.batch as usize) == (part, b)))
+            .collect();
         if self.holds_snapshot.take() == Some(k) {
             let all = vec![true; batch_count(self.prop.directions.len())];
             self.current = Some(Current {
@@ -413,7 +493,7 @@ impl Replica {
                     loaded.get_mut(range).into_iter().flatten().for_each(|b| *b = true);
                 }
                 let (mut shooting, mut totals) = (loaded.clone(), loaded);
-                for (part, maps) in prefetched {
+                for (part, maps) in ahead.into_iter().chain(prefetched) {
                     let b = maps.batch as usize;
                     let have = match part {
                         MapPart::Totals => &mut totals,
