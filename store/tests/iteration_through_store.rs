@@ -309,6 +309,25 @@ fn a_lease_reads_only_what_it_needs(o: &Opener) {
     coordinator.finish_iteration().unwrap();
 }
 
+/// A replica of job `id` with a store handle of its own, whose traffic counts its calls alone.
+fn counted_replica(o: &Opener, id: &JobId) -> (Replica, Store) {
+    let store = o.open();
+    (Replica::new(FieldJob::open(&store, id).unwrap()).unwrap(), store)
+}
+
+/// How much `count` of the replica's store traffic grew while it computed `block` of the shot
+/// of the iteration from snapshot `k`.
+fn count_computing(
+    (replica, store): &mut (Replica, Store),
+    k: u32,
+    block: std::ops::Range<usize>,
+    count: impl Fn(vlf_store::Traffic) -> u64,
+) -> u64 {
+    let before = count(store.traffic());
+    replica.compute(k, Pass::Shoot, block).unwrap();
+    count(store.traffic()) - before
+}
+
 /// Two workers, each on its own half of the pass: from the second time a worker computes its
 /// half, the arrivals it reads from the other's half come with the head, in one round trip,
 /// where a worker new to the half waits for two — and the bits are the same (the new worker's
@@ -317,14 +336,9 @@ fn arrivals_come_with_the_head(o: &Opener) {
     let (id, mut coordinator, _) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
     // Each replica with a store handle of its own, whose round trips it counts (handles of the
     // memory backend share one store, and its count: the replicas take turns).
-    let replica = || {
-        let store = o.open();
-        (Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap(), store)
-    };
-    let round_trips = |(replica, store): &mut (Replica, Store), k: u32, block: std::ops::Range<usize>| {
-        let before = store.traffic().round_trips;
-        replica.compute(k, Pass::Shoot, block).unwrap();
-        store.traffic().round_trips - before
+    let replica = || counted_replica(o, &id);
+    let round_trips = |replica: &mut (Replica, Store), k: u32, block: std::ops::Range<usize>| {
+        count_computing(replica, k, block, |t| t.round_trips)
     };
     let (mut a, mut b) = (replica(), replica());
     let mut trips = Vec::new();
@@ -361,14 +375,9 @@ fn arrivals_read_ahead(o: &Opener) {
     let reference = in_process(&o.open(), &scene, &options);
     let (id, mut coordinator, _) = start(o, scene, options, Encoding::F32);
     // Each replica with a store handle of its own, whose reads it counts.
-    let replica = || {
-        let store = o.open();
-        (Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap(), store)
-    };
-    let reads = |(replica, store): &mut (Replica, Store), k: u32, block: std::ops::Range<usize>| {
-        let before = store.traffic().reads;
-        replica.compute(k, Pass::Shoot, block).unwrap();
-        store.traffic().reads - before
+    let replica = || counted_replica(o, &id);
+    let reads = |replica: &mut (Replica, Store), k: u32, block: std::ops::Range<usize>| {
+        count_computing(replica, k, block, |t| t.reads)
     };
     let (mut a, mut b) = (replica(), replica());
     let (mut read, mut fetched) = (Vec::new(), Vec::new());
