@@ -401,6 +401,34 @@ fn batches_partition_the_directions_into_whole_chunks() {
     assert_eq!((batch_count(33), batch_range(1, 33)), (2, 16..33));
 }
 
+/// A coordinator opens an iteration's passes before it builds the iteration's work
+/// (`iteration_passes`): they are the work's passes, with the same prerequisites, through the
+/// perturbed iterations and after them, and in a scene with mirrors (never perturbed).
+#[test]
+fn the_next_passes_are_named_without_building_the_work() {
+    let lit_box = closed_box(
+        0.6,
+        2,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
+    );
+    for (scene, copies) in [(lit_box, [3, 3, 0, 0]), (mirror_room(), [0; 4])] {
+        let mut p = Propagation::new(scene, options(2)).unwrap();
+        let mut seen = Vec::new();
+        while !p.finished() {
+            let (passes, work) = (p.iteration_passes(), p.iteration_work());
+            assert_eq!(passes, work.passes());
+            for &pass in &passes {
+                assert_eq!(pass.prerequisites(), work.prerequisites(pass));
+            }
+            seen.push(passes.len());
+            p.step(|_| {});
+        }
+        let expected: Vec<usize> = copies.iter().map(|&c| if c == 0 { 1 } else { 2 * c }).collect();
+        assert_eq!(seen, expected);
+    }
+}
+
 #[test]
 fn a_perturbed_iteration_lists_every_copys_areas_first_and_learns_only_areas() {
     let scene = closed_box(

@@ -41,6 +41,7 @@ impl Scheduler {
                 clock: Clock {
                     created: now,
                     iteration_started: now,
+                    released: None,
                     batches_before_pass: 0,
                     batches_total: 0,
                     directions: 0,
@@ -94,12 +95,12 @@ impl Scheduler {
     }
 
     /// Starts iteration `snapshot + 1` of `job`: `passes` passes of `batches` batches over
-    /// `directions` directions.
+    /// `directions` directions. Its clock started when the one before ended, if it did here.
     pub fn start_iteration(&self, job: &JobId, passes: usize, batches: usize, directions: usize) {
         let mut state = self.lock();
         if let Some(entry) = state.jobs.get_mut(job) {
             let clock = &mut entry.clock;
-            clock.iteration_started = Instant::now();
+            clock.iteration_started = clock.released.take().unwrap_or_else(Instant::now);
             clock.use_clock = UseClock::default();
             clock.batches_before_pass = 0;
             clock.batches_total = passes * batches;
@@ -115,7 +116,9 @@ impl Scheduler {
         let alive = alive_workers(&state, self.timing);
         if let Some(entry) = state.jobs.get_mut(job) {
             let clock = &mut entry.clock;
-            let seconds = clock.iteration_started.elapsed().as_secs_f64();
+            let ended = Instant::now();
+            let seconds = ended.duration_since(clock.iteration_started).as_secs_f64();
+            clock.released = Some(ended);
             let used = clock.use_clock.end(seconds);
             clock.finished.push(IterationRecord {
                 seconds,

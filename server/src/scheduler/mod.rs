@@ -70,8 +70,9 @@ use usage::UseClock;
 /// A finished iteration, as the scheduler saw it ([`Scheduler::iterations`]).
 #[derive(Clone, Copy, Debug, Default)]
 pub struct IterationRecord {
-    /// From its start to the next one's (its snapshot released: the commit overlaps the next
-    /// iteration).
+    /// From its start — the release of the one before, or for the first one driven here, its
+    /// start — to the next one's, its snapshot's release (the commit overlaps the next
+    /// iteration): the records of a job add up to its iterations' time.
     pub seconds: f64,
     /// What it moved through the store.
     pub traffic: WorkTraffic,
@@ -217,6 +218,10 @@ impl JobEntry {
 struct Clock {
     created: Instant,
     iteration_started: Instant,
+    /// When the last iteration ended (its snapshot released): the next one starts then, so
+    /// that the iterations' durations add up to the run, what the driver does between the two
+    /// included.
+    released: Option<Instant>,
     /// Batches of the iteration's passes already absorbed and closed.
     batches_before_pass: usize,
     /// Batches of all the iteration's passes.

@@ -615,3 +615,20 @@ async fn an_iteration_records_what_its_workers_computed_and_publishes_it() {
     let next = s.iterations(&id).unwrap()[1].workers;
     assert_eq!((next.workers, next.busy_seconds, next.span_seconds), (0, 0.0, 0.0));
 }
+
+/// An iteration's record runs from the end of the one before, so that what the driver does
+/// between the two (opening the next passes, starting the commit) is in the records: a pause
+/// between `end_iteration` and the next `start_iteration` is counted in the second iteration.
+#[tokio::test]
+async fn iteration_records_run_from_the_last_release() {
+    let s = scheduler(60_000);
+    let id = job(&s);
+    s.end_iteration(&id, WorkTraffic::default());
+    let pause = Duration::from_millis(30);
+    std::thread::sleep(pause);
+    s.start_iteration(&id, 1, 3, 40);
+    s.end_iteration(&id, WorkTraffic::default());
+    let records = s.iterations(&id).unwrap();
+    assert_eq!(records.len(), 2);
+    assert!(records[1].seconds >= pause.as_secs_f64(), "{:?}", records[1].seconds);
+}

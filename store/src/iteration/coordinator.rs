@@ -55,7 +55,10 @@ impl SnapshotCommit {
 pub struct Coordinator {
     job: FieldJob,
     prop: Propagation,
+    /// The current iteration's work, built when first needed (its first absorb), and when the
+    /// iteration started: when its passes were first asked for, or else when the work was built.
     work: Option<(IterationWork, Instant)>,
+    opened: Option<Instant>,
     traffic: Vec<WorkTraffic>,
     /// The batch outputs read back so far in the current iteration.
     absorbed: WorkTraffic,
@@ -79,6 +82,7 @@ impl Coordinator {
             job,
             prop,
             work: None,
+            opened: None,
             traffic: Vec::new(),
             absorbed: WorkTraffic::default(),
             maps_held: true,
@@ -109,9 +113,13 @@ impl Coordinator {
     }
 
     fn work(&mut self) -> &mut IterationWork {
+        let opened = &mut self.opened;
         &mut self
             .work
-            .get_or_insert_with(|| (self.prop.iteration_work(), Instant::now()))
+            .get_or_insert_with(|| {
+                let started = opened.take().unwrap_or_else(Instant::now);
+                (self.prop.iteration_work(), started)
+            })
             .0
     }
 
@@ -127,11 +135,19 @@ impl Coordinator {
     }
 
     /// Every pass of the current iteration, in absorbing order, with its prerequisites, and the
-    /// batch count of each.
+    /// batch count of each. Cheap: the iteration's work (the shooting radiance of every texel,
+    /// the rotated copies) is built when the first block is absorbed, while the workers
+    /// compute, and not between the release and the leases that follow it.
     pub fn passes(&mut self) -> (Vec<(Pass, Vec<Pass>)>, usize) {
-        let work = self.work();
-        let passes = work.passes().into_iter().map(|p| (p, work.prerequisites(p))).collect();
-        (passes, work.batches())
+        let passes = match &self.work {
+            Some((work, _)) => work.passes(),
+            None => {
+                self.opened.get_or_insert_with(Instant::now);
+                self.prop.iteration_passes()
+            }
+        };
+        let passes = passes.into_iter().map(|p| (p, p.prerequisites())).collect();
+        (passes, batch_count(self.prop.directions.len()))
     }
 
     /// The blocks of every pass of the current iteration already in the store, in

@@ -205,31 +205,44 @@ enum Mode {
     },
 }
 
+/// The passes of an iteration that shoots through `copies` rotated copies of
+/// the directions (0: through the true directions), in the order they must
+/// be absorbed: every pass comes after its [`Pass::prerequisites`].
+fn passes_of(copies: u32) -> Vec<Pass> {
+    if copies == 0 {
+        return vec![Pass::Shoot];
+    }
+    (0..copies)
+        .map(|copy| Pass::Areas { copy })
+        .chain((0..copies).map(|copy| Pass::ShootCopy { copy }))
+        .collect()
+}
+
+impl Pass {
+    /// The passes whose results this one reads: its batches can be computed
+    /// as soon as these are absorbed (or [`IterationWork::learn`]ed),
+    /// whatever else is still running.
+    pub fn prerequisites(self) -> Vec<Pass> {
+        match self {
+            Pass::ShootCopy { copy } => vec![Pass::Areas { copy }],
+            Pass::Shoot | Pass::Areas { .. } => Vec::new(),
+        }
+    }
+}
+
 impl IterationWork {
     /// The passes of this iteration, in the order they must be absorbed:
     /// every pass comes after its [`prerequisites`](Self::prerequisites).
     pub fn passes(&self) -> Vec<Pass> {
         match &self.mode {
-            Mode::Direct { .. } => vec![Pass::Shoot],
-            Mode::Perturbed { copies, .. } => {
-                let copies = 0..copies.len() as u32;
-                copies
-                    .clone()
-                    .map(|copy| Pass::Areas { copy })
-                    .chain(copies.map(|copy| Pass::ShootCopy { copy }))
-                    .collect()
-            }
+            Mode::Direct { .. } => passes_of(0),
+            Mode::Perturbed { copies, .. } => passes_of(copies.len() as u32),
         }
     }
 
-    /// The passes whose results `pass` reads: its batches can be computed as
-    /// soon as these are absorbed (or [`learn`](Self::learn)ed), whatever
-    /// else is still running.
+    /// The passes whose results `pass` reads ([`Pass::prerequisites`]).
     pub fn prerequisites(&self, pass: Pass) -> Vec<Pass> {
-        match pass {
-            Pass::ShootCopy { copy } => vec![Pass::Areas { copy }],
-            Pass::Shoot | Pass::Areas { .. } => Vec::new(),
-        }
+        pass.prerequisites()
     }
 
     /// Whether the results `pass` reads are known here.
@@ -371,6 +384,23 @@ fn check_sum(pass: Pass, batches: &Range<usize>, sum: &BatchSum, texels: usize) 
 }
 
 impl Propagation {
+    /// The passes of the next iteration, in absorbing order: those of
+    /// [`Propagation::iteration_work`]'s, without computing what it shoots. A
+    /// coordinator opens them for leasing before it builds its own work.
+    pub fn iteration_passes(&self) -> Vec<Pass> {
+        passes_of(self.perturbed_copies())
+    }
+
+    /// How many rotated copies the next iteration shoots through: 0 but in
+    /// the perturbed first iterations. Perturbed copies only carry diffuse
+    /// transport; with mirrors in the scene every iteration goes through the
+    /// true directions (their maps exist only there).
+    fn perturbed_copies(&self) -> u32 {
+        let p = self.options.perturbation;
+        let perturbed = self.iterations_done() < p.iterations && p.count > 0 && self.specular.is_none();
+        if perturbed { p.count } else { 0 }
+    }
+
     /// The inputs of the next iteration, fixed from the current state:
     /// deferral, the shooting radiance, perturbation and mirror plan.
     pub fn iteration_work(&self) -> IterationWork {
@@ -407,12 +437,8 @@ impl Propagation {
             }
         }
 
-        // Perturbed copies only carry diffuse transport; with mirrors in the
-        // scene every iteration goes through the true directions (their maps
-        // exist only there).
         let p = self.options.perturbation;
-        let perturbed = index < p.iterations && p.count > 0 && self.specular.is_none();
-        let mode = if perturbed {
+        let mode = if self.perturbed_copies() > 0 {
             let share = 1.0 / p.count as f64;
             Mode::Perturbed {
                 part: shooting.iter().map(|v| v.map(|c| c * share)).collect(),
