@@ -29,6 +29,16 @@ fn options(perturb: u32) -> Options {
     }
 }
 
+/// A closed box of diffuse walls with one lamp: the perturbed tests' scene.
+fn lit_box() -> Scene {
+    closed_box(
+        0.6,
+        2,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
+    )
+}
+
 fn without_times(mut c: Checkpoint) -> Checkpoint {
     for s in &mut c.stats {
         s.seconds = 0.0;
@@ -218,12 +228,7 @@ fn batches_of_several_chunks_keep_each_directions_mirror_maps() {
 
 #[test]
 fn perturbed_passes_split_across_workers_give_the_same_bits() {
-    let scene = closed_box(
-        0.6,
-        2,
-        &[3],
-        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
-    );
+    let scene = lit_box();
     same_bits_as_in_process(scene, options(2));
 }
 
@@ -346,12 +351,7 @@ fn homes_on_threads_of_their_own_give_the_same_bits_with_mirrors() {
 
 #[test]
 fn homes_on_threads_of_their_own_give_the_same_bits_with_perturbation() {
-    let scene = closed_box(
-        0.6,
-        2,
-        &[3],
-        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
-    );
+    let scene = lit_box();
     homes_give_the_same_bits(scene, options(2), 2, &[&[1], &[2, 3]]);
 }
 
@@ -406,13 +406,7 @@ fn batches_partition_the_directions_into_whole_chunks() {
 /// perturbed iterations and after them, and in a scene with mirrors (never perturbed).
 #[test]
 fn the_next_passes_are_named_without_building_the_work() {
-    let lit_box = closed_box(
-        0.6,
-        2,
-        &[3],
-        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
-    );
-    for (scene, copies) in [(lit_box, [3, 3, 0, 0]), (mirror_room(), [0; 4])] {
+    for (scene, copies) in [(lit_box(), [3, 3, 0, 0]), (mirror_room(), [0; 4])] {
         let mut p = Propagation::new(scene, options(2)).unwrap();
         let mut seen = Vec::new();
         while !p.finished() {
@@ -431,12 +425,7 @@ fn the_next_passes_are_named_without_building_the_work() {
 
 #[test]
 fn a_perturbed_iteration_lists_every_copys_areas_first_and_learns_only_areas() {
-    let scene = closed_box(
-        0.6,
-        2,
-        &[3],
-        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
-    );
+    let scene = lit_box();
     let mut p = Propagation::new(scene, options(1)).unwrap();
     let mut work = p.iteration_work();
     let areas = |copy| Pass::Areas { copy };
