@@ -296,6 +296,8 @@ impl Driver {
             // The passes absorbed so far, with the blocks they were absorbed as.
             let mut absorbed: Vec<(Pass, Vec<std::ops::Range<usize>>)> = Vec::new();
             self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
+            // The leases are out: the work the absorbs need is built while the workers compute.
+            self.blocking(|c| c.prepare_work()).await.map_err(Stop::Failed)?;
             for (pass, _) in &passes {
                 let pass = *pass;
                 // Take each block in as soon as it is written, in order, while the rest are

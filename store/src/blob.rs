@@ -518,27 +518,56 @@ fn shape_product(shape: &[u32]) -> Option<u64> {
     shape.iter().try_fold(1u64, |acc, &d| acc.checked_mul(u64::from(d)))
 }
 
-/// Compresses `raw` and prepends the header.
+/// The blob of `raw`: the header, then `raw` compressed straight after it, in one buffer (no
+/// second buffer for the frame, and no copy of it).
 fn assemble(kind: BlobKind, encoding: Encoding, shape: &[u32], raw: &[u8]) -> Result<Vec<u8>, BlobError> {
-    // Only an allocation failure inside zstd can make this fail.
-    let stored = compress(raw, kind.zstd_level()).map_err(|e| BlobError::Compress(e.to_string()))?;
-    let mut out = Vec::with_capacity(HEADER_LEN + stored.len());
-    out.extend_from_slice(&MAGIC);
-    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-    out.extend_from_slice(&kind.code().to_le_bytes());
-    out.push(encoding.code());
-    out.push(shape.len() as u8);
-    out.extend_from_slice(&0u16.to_le_bytes());
-    for i in 0..MAX_RANK {
-        out.extend_from_slice(&shape.get(i).copied().unwrap_or(0).to_le_bytes());
+    let mut blob = Vec::with_capacity(HEADER_LEN + zstd::zstd_safe::compress_bound(raw.len()));
+    blob.resize(HEADER_LEN, 0);
+    // Only an allocation failure inside zstd can make this fail: the buffer has room for the
+    // largest frame `raw` can give.
+    compress_after(raw, kind.zstd_level(), &mut blob).map_err(|e| BlobError::Compress(e.to_string()))?;
+    let stored = &blob[HEADER_LEN..];
+    let header = header_bytes(kind, encoding, shape, raw.len(), stored.len(), crc32c::crc32c(stored));
+    blob[..HEADER_LEN].copy_from_slice(&header);
+    // Room the frame did not need is given back when it is much (radiance that compressed well),
+    // which moves the blob; a frame about as large as its input (resume state, batch outputs:
+    // numbers that hardly compress) keeps its place.
+    if blob.capacity() - blob.len() > blob.len() / 4 {
+        blob.shrink_to_fit();
     }
-    out.extend_from_slice(&(raw.len() as u64).to_le_bytes());
-    out.extend_from_slice(&(stored.len() as u64).to_le_bytes());
-    out.extend_from_slice(&crc32c::crc32c(&stored).to_le_bytes());
-    let header_crc = crc32c::crc32c(&out[..44]);
-    out.extend_from_slice(&header_crc.to_le_bytes());
-    out.extend_from_slice(&stored);
-    Ok(out)
+    Ok(blob)
+}
+
+/// The header of a blob whose payload is `stored_len` bytes with checksum `payload_crc`,
+/// `raw_len` before compression.
+fn header_bytes(
+    kind: BlobKind,
+    encoding: Encoding,
+    shape: &[u32],
+    raw_len: usize,
+    stored_len: usize,
+    payload_crc: u32,
+) -> [u8; HEADER_LEN] {
+    let mut header = [0u8; HEADER_LEN];
+    let mut at = 0;
+    let mut put = |bytes: &[u8]| {
+        header[at..at + bytes.len()].copy_from_slice(bytes);
+        at += bytes.len();
+    };
+    put(&MAGIC);
+    put(&FORMAT_VERSION.to_le_bytes());
+    put(&kind.code().to_le_bytes());
+    put(&[encoding.code(), shape.len() as u8]);
+    put(&0u16.to_le_bytes());
+    for i in 0..MAX_RANK {
+        put(&shape.get(i).copied().unwrap_or(0).to_le_bytes());
+    }
+    put(&(raw_len as u64).to_le_bytes());
+    put(&(stored_len as u64).to_le_bytes());
+    put(&payload_crc.to_le_bytes());
+    let header_crc = crc32c::crc32c(&header[..44]);
+    header[44..].copy_from_slice(&header_crc.to_le_bytes());
+    header
 }
 
 thread_local! {
@@ -552,8 +581,9 @@ thread_local! {
     static DECOMPRESSOR: RefCell<Option<zstd::zstd_safe::DCtx<'static>>> = const { RefCell::new(None) };
 }
 
-/// `raw` as one zstd frame at `level`, with this thread's context for that level.
-fn compress(raw: &[u8], level: i32) -> std::io::Result<Vec<u8>> {
+/// Appends `raw` as one zstd frame at `level` to `out`, which must have room for
+/// [`zstd::zstd_safe::compress_bound`] bytes more; with this thread's context for that level.
+fn compress_after(raw: &[u8], level: i32, out: &mut Vec<u8>) -> std::io::Result<()> {
     COMPRESSORS.with(|compressors| {
         let mut compressors = compressors.borrow_mut();
         let at = match compressors.iter().position(|(l, _)| *l == level) {
@@ -563,7 +593,11 @@ fn compress(raw: &[u8], level: i32) -> std::io::Result<Vec<u8>> {
                 compressors.len() - 1
             }
         };
-        compressors[at].1.compress(raw)
+        // The frame goes after what `out` holds: a cursor at its end.
+        let mut after = std::io::Cursor::new(out);
+        after.set_position(after.get_ref().len() as u64);
+        compressors[at].1.compress_to_buffer(raw, &mut after)?;
+        Ok(())
     })
 }
 
