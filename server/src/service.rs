@@ -294,6 +294,7 @@ impl tiles_server::Tiles for Api {
             .map(|n| blob_key(&id, n).map(|k| (n.clone(), k)))
             .collect::<Result<Vec<_>, _>>()?;
         let store = self.sched.store().as_async().clone();
+        let in_flight = store.in_flight();
         let stream = async_stream(move |tx| async move {
             // In the order asked, the reads overlapping their round trips to the store.
             let mut blobs = futures::stream::iter(keys)
@@ -309,7 +310,7 @@ impl tiles_server::Tiles for Api {
                         }
                     }
                 })
-                .buffered(vlf_store::IN_FLIGHT);
+                .buffered(in_flight);
             while let Some(item) = blobs.next().await {
                 let failed = item.is_err();
                 if tx.send(item).await.is_err() || failed {

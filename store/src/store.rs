@@ -3,8 +3,8 @@
 //!
 //! Every method is one backend request (or, for [`AsyncStore::put_new`] on a conflict, two), and
 //! every error names the key and the store URL — but for the bulk ones ([`AsyncStore::put_all`],
-//! [`AsyncStore::get_all`], [`AsyncStore::delete_all`]), which keep up to [`IN_FLIGHT`] requests
-//! going at once.
+//! [`AsyncStore::get_all`], [`AsyncStore::delete_all`]), which keep up to [`AsyncStore::in_flight`] requests
+//! going at once ([`FILE_THREADS`] to a local directory).
 //!
 //! **Why bulk calls.** A request to an object store waits a round trip (an S3 request in the same
 //! region: some 10–30 ms to its first byte) in which it uses no CPU. A snapshot is hundreds of
@@ -70,6 +70,18 @@ impl Drop for InFlight<'_> {
 /// Most requests a bulk call keeps in flight at once. An object store serves many more; this
 /// bounds the memory of the blobs in flight and the connections one process opens.
 pub const IN_FLIGHT: usize = 256;
+
+/// Most calls a bulk call keeps in flight to a local directory, in place of [`IN_FLIGHT`].
+/// `object_store` runs each call to a local file system as a blocking task on the caller's
+/// runtime, and tokio starts a thread for each task that finds none idle, up to 512: a bulk write
+/// of a job's field (6 000 tiles, 256 at a time) ran about 500 threads, and with transparent huge
+/// pages each new thread's allocator heap faulted in a fresh 2 MB page. On this project's 2-core
+/// VM that was 0.7 s of CPU in a 30-iteration mirror-scene `vlf run` into a directory on tmpfs,
+/// and 0.4 s of its 2 s. A disk or tmpfs serves a handful of calls at once as fast as hundreds.
+/// With this many in flight tokio still starts a few dozen threads (a call's tasks follow each
+/// other faster than a thread goes idle), so a [`Store`]'s own runtime also runs no more than
+/// this many.
+pub const FILE_THREADS: usize = 16;
 
 /// One object for [`AsyncStore::put_all`] to write.
 #[derive(Debug, Clone)]
@@ -167,6 +179,15 @@ impl AsyncStore {
                 url: self.url.to_string(),
                 reason: format!("flush task failed: {e}"),
             }),
+        }
+    }
+
+    /// How many calls a bulk call keeps in flight: [`IN_FLIGHT`] to an object store or memory,
+    /// [`FILE_THREADS`] to a local directory, whose calls each take a thread.
+    pub fn in_flight(&self) -> usize {
+        match self.local_root {
+            Some(_) => FILE_THREADS,
+            None => IN_FLIGHT,
         }
     }
 
@@ -311,7 +332,7 @@ impl AsyncStore {
         }
     }
 
-    /// Writes every object of `puts`, up to [`IN_FLIGHT`] requests at once, in no particular
+    /// Writes every object of `puts`, up to [`AsyncStore::in_flight`] requests at once, in no particular
     /// order (see the module docs). Stops at the first error, which it returns; of the others,
     /// some may be written — each object is written whole or not at all, as by
     /// [`AsyncStore::put`] and [`AsyncStore::put_new`].
@@ -323,17 +344,17 @@ impl AsyncStore {
                     false => self.put(&put.key, put.bytes).await,
                 }
             })
-            .buffer_unordered(IN_FLIGHT)
+            .buffer_unordered(self.in_flight())
             .try_collect()
             .await
     }
 
-    /// Reads the objects at `keys`, up to [`IN_FLIGHT`] requests at once, and returns their
+    /// Reads the objects at `keys`, up to [`AsyncStore::in_flight`] requests at once, and returns their
     /// contents in the order of `keys`. The first error is returned.
     pub async fn get_all(&self, keys: &[String]) -> Result<Vec<Bytes>, StoreError> {
         futures::stream::iter(keys)
             .map(|key| self.get(key))
-            .buffered(IN_FLIGHT)
+            .buffered(self.in_flight())
             .try_collect()
             .await
     }
@@ -343,27 +364,27 @@ impl AsyncStore {
     pub async fn get_each(&self, keys: &[String]) -> Vec<Result<Bytes, StoreError>> {
         futures::stream::iter(keys)
             .map(|key| self.get(key))
-            .buffered(IN_FLIGHT)
+            .buffered(self.in_flight())
             .collect()
             .await
     }
 
-    /// Whether an object exists at each of `keys`, in their order, up to [`IN_FLIGHT`] requests
+    /// Whether an object exists at each of `keys`, in their order, up to [`AsyncStore::in_flight`] requests
     /// at once.
     pub async fn exist_all(&self, keys: &[String]) -> Result<Vec<bool>, StoreError> {
         futures::stream::iter(keys)
             .map(|key| self.exists(key))
-            .buffered(IN_FLIGHT)
+            .buffered(self.in_flight())
             .try_collect()
             .await
     }
 
     /// Deletes the objects at `keys` (missing ones included, as [`AsyncStore::delete`]), up to
-    /// [`IN_FLIGHT`] requests at once.
+    /// [`AsyncStore::in_flight`] requests at once.
     pub async fn delete_all(&self, keys: &[String]) -> Result<(), StoreError> {
         futures::stream::iter(keys)
             .map(|key| self.delete(key))
-            .buffer_unordered(IN_FLIGHT)
+            .buffer_unordered(self.in_flight())
             .try_collect()
             .await
     }
@@ -479,6 +500,8 @@ impl Store {
         let url = inner.url().to_string();
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
+            // The runtime runs a local directory's calls: no more threads than they need.
+            .max_blocking_threads(FILE_THREADS)
             .thread_name("vlf-store-io")
             .enable_all()
             .build()
