@@ -32,7 +32,7 @@ use vlf_core::propagate::{Checkpoint, HomeThreads, Propagation, split_by_cost};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_server::scheduler::{IterationRecord, IterationUse};
-use vlf_store::{FieldJob, Store, Traffic};
+use vlf_store::{FieldJob, JobId, Store, Traffic};
 
 #[derive(Args)]
 pub struct BenchArgs {
@@ -60,16 +60,36 @@ pub struct BenchArgs {
     /// Make every call to the store wait this many milliseconds first (`memory://?latency=`), as
     /// a round trip to a remote object store would, both ways alike: what the service's store
     /// calls cost on a cluster's S3-compatible store, without one.
-    #[arg(long, value_name = "MS")]
+    #[arg(long, value_name = "MS", conflicts_with = "store")]
     latency: Option<f64>,
+    /// Store every run writes into, in place of a fresh `memory://` one: a directory (on tmpfs,
+    /// such as `/dev/shm/vlf-bench`, a local store without a disk's latency, whose blobs live
+    /// in the kernel's page cache rather than the process's heap) or any store URL. Each run's
+    /// job is deleted once it is measured.
+    #[arg(long, value_name = "URL")]
+    store: Option<String>,
 }
 
-/// The store every run of the bench writes into: `memory://`, with `--latency`'s wait.
+/// The store every run of the bench writes into: `--store`, else `memory://` with `--latency`'s
+/// wait.
 fn store_url(args: &BenchArgs) -> String {
-    match args.latency {
-        Some(ms) => format!("memory://?latency={ms}ms"),
-        None => "memory://".into(),
+    match (&args.store, args.latency) {
+        (Some(url), _) => url.clone(),
+        (None, Some(ms)) => format!("memory://?latency={ms}ms"),
+        (None, None) => "memory://".into(),
     }
+}
+
+/// Deletes a measured run's job, so that every run starts from the same store (a `memory://`
+/// store is dropped with the run: nothing to do).
+fn forget(store: &Store, id: &JobId) -> Result<()> {
+    if store.url().starts_with("memory://") {
+        return Ok(());
+    }
+    let keys = store.list(&vlf_store::layout::job_prefix(id))?;
+    store
+        .delete_all(&keys)
+        .with_context(|| format!("cannot delete the bench's job {id} from {}", store.url()))
 }
 
 /// A thread that computes for 30 ms of every 60 until dropped (`--cotenant`).
@@ -158,7 +178,7 @@ pub fn run(args: BenchArgs) -> Result<()> {
     let mut samples: Vec<Vec<Sample>> = ways.iter().map(|_| Vec::new()).collect();
     let mut reference: Option<Checkpoint> = None;
     let url = store_url(&args);
-    Store::open(&url).context("--latency")?;
+    Store::open(&url).context("--latency or --store")?;
     let cotenant = if args.cotenant { Some(Cotenant::start()?) } else { None };
     let bar = indicatif::ProgressBar::new((args.repeat * ways.len()) as u64);
     for _ in 0..args.repeat {
@@ -224,7 +244,7 @@ fn in_process_split(url: &str, scene: &Scene, spec: &JobSpec, workers: Workers) 
     })
 }
 
-/// `vlf propagate`'s loop into a `memory://` store, each iteration done by `step`.
+/// `vlf propagate`'s loop into the bench's store, each iteration done by `step`.
 fn in_process_with(
     url: &str,
     scene: &Scene,
@@ -247,10 +267,12 @@ fn in_process_with(
     }
     let last = prop.checkpoint();
     job.finish(&prop.into_field(), false)?;
-    Ok((Sample::ended(started, iterations, &store), last))
+    let sample = Sample::ended(started, iterations, &store);
+    forget(&store, job.id())?;
+    Ok((sample, last))
 }
 
-/// The embedded service over a `memory://` store.
+/// The embedded service over the bench's store.
 fn service(
     runtime: &tokio::runtime::Runtime,
     url: &str,
@@ -266,6 +288,7 @@ fn service(
     // Taken before the check below reads the store.
     let sample = Sample::ended(started, iterations, &store);
     let last = FieldJob::open(&store, &id)?.checkpoint(count)?;
+    forget(&store, &id)?;
     Ok((sample, last))
 }
 

@@ -656,6 +656,40 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     assert!(o.status.success(), "{}", stderr(&o));
     let printed = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(printed.contains("Every run gave the in-process bits"), "{printed}");
+    // Into a directory: the same bits, the report names it, and every run's job is deleted once
+    // measured (the store holds no object afterwards); with --latency as well, a refusal.
+    let local = dir.join("store");
+    let mut on_disk = args[..10].to_vec();
+    on_disk.extend(["--repeat", "2", "--workers", "1,2", "--store", local.to_str().unwrap()]);
+    let o = vlf(&on_disk);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let printed = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        printed.contains(&format!("`{}` store", local.display()))
+            && printed.contains("Every run gave the in-process bits"),
+        "{printed}"
+    );
+    let files = |root: &Path| -> usize {
+        let mut stack = vec![root.to_path_buf()];
+        let mut count = 0;
+        while let Some(d) = stack.pop() {
+            for entry in std::fs::read_dir(&d).unwrap().flatten() {
+                match entry.file_type().unwrap().is_dir() {
+                    true => stack.push(entry.path()),
+                    false => count += 1,
+                }
+            }
+        }
+        count
+    };
+    assert_eq!(files(&local), 0, "the bench left objects in {}", local.display());
+    on_disk.extend(["--latency", "2"]);
+    let o = vlf(&on_disk);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--latency"),
+        "{}",
+        stderr(&o)
+    );
     for bad in [
         ["--repeat", "0"],
         ["--workers", "0"],
