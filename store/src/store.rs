@@ -4,7 +4,7 @@
 //! Every method is one backend request (or, for [`AsyncStore::put_new`] on a conflict, two), and
 //! every error names the key and the store URL — but for the bulk ones ([`AsyncStore::put_all`],
 //! [`AsyncStore::get_all`], [`AsyncStore::delete_all`]), which keep up to [`AsyncStore::in_flight`] requests
-//! going at once ([`FILE_THREADS`] to a local directory).
+//! going at once ([`file_threads`] to a local directory).
 //!
 //! **Why bulk calls.** A request to an object store waits a round trip (an S3 request in the same
 //! region: some 10–30 ms to its first byte) in which it uses no CPU. A snapshot is hundreds of
@@ -71,17 +71,26 @@ impl Drop for InFlight<'_> {
 /// bounds the memory of the blobs in flight and the connections one process opens.
 pub const IN_FLIGHT: usize = 256;
 
-/// Most calls a bulk call keeps in flight to a local directory, in place of [`IN_FLIGHT`].
+/// Most calls a bulk call keeps in flight to a local directory, in place of [`IN_FLIGHT`]: the
+/// machine's cores, and at least 4.
+///
 /// `object_store` runs each call to a local file system as a blocking task on the caller's
-/// runtime, and tokio starts a thread for each task that finds none idle, up to 512: a bulk write
+/// runtime, and tokio starts a thread for each task that finds none idle, up to 512. A bulk write
 /// of a job's field (6 000 tiles, 256 at a time) ran about 500 threads, and with transparent huge
 /// pages each new thread's allocator heap faulted in a fresh 2 MB page. On this project's 2-core
 /// VM that was 0.7 s of CPU in a 30-iteration mirror-scene `vlf run` into a directory on tmpfs,
-/// and 0.4 s of its 2 s. A disk or tmpfs serves a handful of calls at once as fast as hundreds.
-/// With this many in flight tokio still starts a few dozen threads (a call's tasks follow each
-/// other faster than a thread goes idle), so a [`Store`]'s own runtime also runs no more than
-/// this many.
-pub const FILE_THREADS: usize = 16;
+/// and 0.4 s of its 2 s. With this many calls in flight tokio still starts a few dozen threads
+/// (a call's tasks follow each other faster than a thread goes idle), so a [`Store`]'s own
+/// runtime also runs no more than this many.
+///
+/// Why so few: a call into the page cache (tmpfs, or a disk's writes before the commit's sync)
+/// is CPU work, so threads beyond the cores only queue for them. With 16, two workers on this
+/// VM often waited 5 ms for a 0.2-ms read of the next iteration's head while the coordinator's
+/// background commit kept the threads busy (8–23 of 52 reads in 30-iteration runs); with 4,
+/// about half as often (5–10).
+pub fn file_threads() -> usize {
+    std::thread::available_parallelism().map_or(4, |n| n.get().max(4))
+}
 
 /// One object for [`AsyncStore::put_all`] to write.
 #[derive(Debug, Clone)]
@@ -183,10 +192,10 @@ impl AsyncStore {
     }
 
     /// How many calls a bulk call keeps in flight: [`IN_FLIGHT`] to an object store or memory,
-    /// [`FILE_THREADS`] to a local directory, whose calls each take a thread.
+    /// [`file_threads`] to a local directory, whose calls each take a thread.
     pub fn in_flight(&self) -> usize {
         match self.local_root {
-            Some(_) => FILE_THREADS,
+            Some(_) => file_threads(),
             None => IN_FLIGHT,
         }
     }
@@ -501,7 +510,7 @@ impl Store {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             // The runtime runs a local directory's calls: no more threads than they need.
-            .max_blocking_threads(FILE_THREADS)
+            .max_blocking_threads(file_threads())
             .thread_name("vlf-store-io")
             .enable_all()
             .build()

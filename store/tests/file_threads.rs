@@ -1,7 +1,7 @@
 //! A local store runs its file calls on a few threads, however many calls a bulk write keeps in
-//! flight (see `FILE_THREADS`). A test binary of its own: it counts the process's threads.
+//! flight (see `file_threads`). A test binary of its own: it counts the process's threads.
 
-use vlf_store::{FILE_THREADS, IN_FLIGHT, Put, Store};
+use vlf_store::{IN_FLIGHT, Put, Store, file_threads};
 
 /// The threads of this process, as the kernel lists them.
 #[cfg(target_os = "linux")]
@@ -27,7 +27,10 @@ fn a_bulk_write_to_a_directory_starts_a_bounded_number_of_threads() {
     // Idle threads stay a while after the call: every one it started is still there.
     let started = threads() - before;
     // The runtime's two async workers, which start with the first call, and its file threads.
-    assert!(started <= 2 + FILE_THREADS, "{count} writes started {started} threads");
+    assert!(
+        started <= 2 + file_threads(),
+        "{count} writes started {started} threads"
+    );
     let keys: Vec<String> = (0..count).map(|i| format!("burst/{i:05}.bin")).collect();
     let read = store.get_all(&keys).unwrap();
     assert!(read.iter().enumerate().all(|(i, b)| b[..] == vec![i as u8; 4096][..]));
