@@ -3,8 +3,9 @@
 //!
 //! Every method is one backend request (or, for [`AsyncStore::put_new`] on a conflict, two), and
 //! every error names the key and the store URL — but for the bulk ones ([`AsyncStore::put_all`],
-//! [`AsyncStore::get_all`], [`AsyncStore::delete_all`]), which keep up to [`AsyncStore::in_flight`] requests
-//! going at once ([`file_threads`] to a local directory).
+//! [`AsyncStore::get_all`], [`AsyncStore::delete_all`]), which keep up to
+//! [`AsyncStore::in_flight`] requests going at once ([`IN_FLIGHT`], or [`file_threads`] to a local
+//! directory).
 //!
 //! **Why bulk calls.** A request to an object store waits a round trip (an S3 request in the same
 //! region: some 10–30 ms to its first byte) in which it uses no CPU. A snapshot is hundreds of
@@ -89,7 +90,9 @@ pub const IN_FLIGHT: usize = 256;
 /// background commit kept the threads busy (8–23 of 52 reads in 30-iteration runs); with 4,
 /// about half as often (5–10).
 pub fn file_threads() -> usize {
-    std::thread::available_parallelism().map_or(4, |n| n.get().max(4))
+    // Asked once: every bulk call needs it, and the answer reads the process's cgroup files.
+    static THREADS: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *THREADS.get_or_init(|| std::thread::available_parallelism().map_or(4, |n| n.get().max(4)))
 }
 
 /// One object for [`AsyncStore::put_all`] to write.
@@ -341,9 +344,9 @@ impl AsyncStore {
         }
     }
 
-    /// Writes every object of `puts`, up to [`AsyncStore::in_flight`] requests at once, in no particular
-    /// order (see the module docs). Stops at the first error, which it returns; of the others,
-    /// some may be written — each object is written whole or not at all, as by
+    /// Writes every object of `puts`, up to [`AsyncStore::in_flight`] requests at once, in no
+    /// particular order (see the module docs). Stops at the first error, which it returns; of the
+    /// others, some may be written — each object is written whole or not at all, as by
     /// [`AsyncStore::put`] and [`AsyncStore::put_new`].
     pub async fn put_all(&self, puts: Vec<Put>) -> Result<(), StoreError> {
         futures::stream::iter(puts)
@@ -358,8 +361,8 @@ impl AsyncStore {
             .await
     }
 
-    /// Reads the objects at `keys`, up to [`AsyncStore::in_flight`] requests at once, and returns their
-    /// contents in the order of `keys`. The first error is returned.
+    /// Reads the objects at `keys`, up to [`AsyncStore::in_flight`] requests at once, and returns
+    /// their contents in the order of `keys`. The first error is returned.
     pub async fn get_all(&self, keys: &[String]) -> Result<Vec<Bytes>, StoreError> {
         futures::stream::iter(keys)
             .map(|key| self.get(key))
@@ -378,8 +381,8 @@ impl AsyncStore {
             .await
     }
 
-    /// Whether an object exists at each of `keys`, in their order, up to [`AsyncStore::in_flight`] requests
-    /// at once.
+    /// Whether an object exists at each of `keys`, in their order, up to
+    /// [`AsyncStore::in_flight`] requests at once.
     pub async fn exist_all(&self, keys: &[String]) -> Result<Vec<bool>, StoreError> {
         futures::stream::iter(keys)
             .map(|key| self.exists(key))
