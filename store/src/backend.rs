@@ -43,8 +43,9 @@ use object_store::throttle::{ThrottleConfig, ThrottledStore};
 use std::sync::Arc;
 use std::time::Duration;
 
-/// A backend, and the directory it lives in when it is local (what [`crate::AsyncStore::flush`]
-/// syncs).
+/// A backend, and the directory it lives in when it is local: what [`crate::AsyncStore::flush`]
+/// syncs, and where a blocking read of a few objects reads them itself
+/// ([`crate::Store::get_each`]).
 pub(crate) struct Backend {
     pub store: Arc<dyn ObjectStore>,
     pub local_root: Option<std::path::PathBuf>,
@@ -124,7 +125,7 @@ fn local(path: &str, create: bool) -> Result<Backend, String> {
         .with_automatic_cleanup(true);
     Ok(Backend {
         store: Arc::new(fs),
-        local_root: cfg!(target_os = "linux").then(|| std::path::PathBuf::from(path)),
+        local_root: Some(std::path::PathBuf::from(path)),
     })
 }
 

@@ -36,4 +36,4 @@ pub use job::Job;
 pub use layout::{MapPart, Stage};
 pub use manifest::{JobState, Manifest};
 pub use parts::StageParts;
-pub use store::{AsyncStore, IN_FLIGHT, Put, PutOutcome, Store, Traffic, Writing, file_threads};
+pub use store::{AsyncStore, IN_FLIGHT, Put, PutOutcome, READ_HERE, Store, Traffic, Writing, file_threads};

@@ -95,6 +95,19 @@ pub fn file_threads() -> usize {
     *THREADS.get_or_init(|| std::thread::available_parallelism().map_or(4, |n| n.get().max(4)))
 }
 
+/// Most objects a [`Store`]'s blocking read of a local directory reads on its caller's thread
+/// ([`Store::get`], [`Store::get_all`], [`Store::get_each`]); more go to the store's threads, which
+/// read them in parallel.
+///
+/// Why: the caller waits anyway, and `object_store` runs a local read as two blocking tasks (open,
+/// then read) queued behind every call the store's threads have in hand — on a worker, the map
+/// parts of its last block still being written; on the coordinator's side, the background commit
+/// of the last snapshot. With two workers into a directory on tmpfs on this project's 2-core VM,
+/// a worker's read of the next iteration's head waited for them: 0.36 ms in the median, 2 ms on
+/// average, up to 5 ms. Read on its own thread: 0.18 ms and 0.6 ms. The objects an iteration's
+/// path reads are that few: the head and the map parts a block gathers.
+pub const READ_HERE: usize = 8;
+
 /// One object for [`AsyncStore::put_all`] to write.
 #[derive(Debug, Clone)]
 pub struct Put {
@@ -134,7 +147,9 @@ impl Counters {
 pub struct AsyncStore {
     backend: Arc<dyn ObjectStore>,
     url: Arc<str>,
-    /// The directory of a local store whose writes [`AsyncStore::flush`] must sync.
+    /// The directory of a local store: whose writes [`AsyncStore::flush`] must sync, and where a
+    /// [`Store`]'s blocking read of a few objects reads them on its caller's thread
+    /// ([`AsyncStore::read_here`]).
     local_root: Option<Arc<std::path::Path>>,
     counters: Arc<Counters>,
 }
@@ -206,6 +221,37 @@ impl AsyncStore {
     /// The URL the store was opened with.
     pub fn url(&self) -> &str {
         &self.url
+    }
+
+    /// Reads `key` of a local directory on this thread, as [`AsyncStore::get`] would (the same
+    /// bytes, the same errors); `None` for a store that is not a local directory. For callers that
+    /// block anyway ([`Store`]'s reads of a few objects, see [`READ_HERE`]).
+    fn read_here(&self, key: &str) -> Option<Result<Bytes, StoreError>> {
+        let root = self.local_root.as_ref()?;
+        // The key's rules keep the path inside the root: no empty, `.` or `..` segment.
+        if let Err(reason) = check_key(key) {
+            return Some(Err(self.invalid_key(key, reason)));
+        }
+        let _waiting = InFlight::new(&self.counters);
+        let read = match std::fs::read(root.join(key)) {
+            Ok(bytes) => {
+                self.counters.read(bytes.len());
+                Ok(Bytes::from(bytes))
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(StoreError::NotFound {
+                url: self.url.to_string(),
+                key: key.to_string(),
+            }),
+            Err(e) => Err(self.backend_error(
+                "get",
+                key,
+                object_store::Error::Generic {
+                    store: "LocalFileSystem",
+                    source: Box::new(e),
+                },
+            )),
+        };
+        Some(read)
     }
 
     /// What went through this handle and its clones so far (not through other handles of the
@@ -554,6 +600,10 @@ impl Store {
 
     /// Blocking [`AsyncStore::get`].
     pub fn get(&self, key: &str) -> Result<Bytes, StoreError> {
+        if let Some(read) = self.inner.read_here(key) {
+            self.inner.counters.round_trips.fetch_add(1, Ordering::Relaxed);
+            return read;
+        }
         self.block_on(self.inner.get(key))?
     }
 
@@ -595,12 +645,28 @@ impl Store {
         if keys.is_empty() {
             return Ok(Vec::new());
         }
+        if let Some(read) = self.read_few_here(keys) {
+            return read.into_iter().collect();
+        }
         self.block_on(self.inner.get_all(keys))?
     }
 
     /// Blocking [`AsyncStore::get_each`].
     pub fn get_each(&self, keys: &[String]) -> Result<Vec<Result<Bytes, StoreError>>, StoreError> {
+        if let Some(read) = self.read_few_here(keys) {
+            return Ok(read);
+        }
         self.block_on(self.inner.get_each(keys))
+    }
+
+    /// `keys`, read one after the other on this thread, if they are at most [`READ_HERE`] objects
+    /// of a local directory (one round trip, as a bulk read counts); else `None`.
+    fn read_few_here(&self, keys: &[String]) -> Option<Vec<Result<Bytes, StoreError>>> {
+        if keys.len() > READ_HERE || self.inner.local_root.is_none() {
+            return None;
+        }
+        self.inner.counters.round_trips.fetch_add(1, Ordering::Relaxed);
+        keys.iter().map(|key| self.inner.read_here(key)).collect()
     }
 
     /// Blocking [`AsyncStore::exist_all`].

@@ -121,3 +121,64 @@ fn listing_jobs_checks_their_manifests_together() {
     assert_eq!(listed, made);
     assert!(store.traffic().most_in_flight >= 6, "{:?}", store.traffic());
 }
+
+/// A few objects of a local directory are read on the caller's thread (`READ_HERE`), more on the
+/// store's threads: both give the same bytes, the same traffic and the same errors.
+#[test]
+fn reads_of_a_directory_on_the_callers_thread_match_the_store_threads() {
+    use vlf_store::READ_HERE;
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path().to_str().unwrap()).unwrap();
+    let n = READ_HERE + 4;
+    store.put_all(puts(n, true)).unwrap();
+    let all = keys(n);
+    let before = store.traffic();
+    // More than READ_HERE: the store's threads.
+    let bulk = store.get_all(&all).unwrap();
+    // READ_HERE at most: this thread, in the order asked.
+    let few: Vec<String> = all[..READ_HERE].iter().rev().cloned().collect();
+    let here = store.get_all(&few).unwrap();
+    let each = store.get_each(&few).unwrap();
+    for (i, key) in few.iter().enumerate() {
+        let at = all.iter().position(|k| k == key).unwrap();
+        assert_eq!(here[i], bulk[at], "{key}");
+        assert_eq!(each[i].as_ref().unwrap(), &bulk[at], "{key}");
+        assert_eq!(store.get(key).unwrap(), bulk[at], "{key}");
+        assert_eq!(&bulk[at][..], format!("object {at}").as_bytes());
+    }
+    // Every read counted, each bulk call as one round trip, each `get` as one.
+    let read = store.traffic();
+    assert_eq!(read.reads - before.reads, (n + 3 * READ_HERE) as u64);
+    let bytes = |keys: &[String]| -> u64 {
+        keys.iter()
+            .map(|k| bulk[all.iter().position(|a| a == k).unwrap()].len() as u64)
+            .sum()
+    };
+    assert_eq!(read.read_bytes - before.read_bytes, bytes(&all) + 3 * bytes(&few));
+    assert_eq!(read.round_trips - before.round_trips, 3 + READ_HERE as u64);
+
+    // A missing object: `NotFound`, named, whichever thread reads it; the others still read.
+    let mut gaps = few.clone();
+    gaps[1] = "bulk/missing.bin".into();
+    match store.get_all(&gaps) {
+        Err(StoreError::NotFound { key, .. }) => assert_eq!(key, "bulk/missing.bin"),
+        other => panic!("expected NotFound, got {other:?}"),
+    }
+    let each = store.get_each(&gaps).unwrap();
+    assert!(matches!(&each[1], Err(StoreError::NotFound { key, .. }) if key == "bulk/missing.bin"));
+    assert_eq!(each[0].as_ref().unwrap(), &here[0]);
+    let mut many = all.clone();
+    many.push("bulk/missing.bin".into());
+    assert!(matches!(store.get_all(&many), Err(StoreError::NotFound { .. })));
+    // A key that would leave the directory is refused, not read.
+    std::fs::write(dir.path().parent().unwrap().join("outside.bin"), b"secret").ok();
+    for bad in ["../outside.bin", "bulk/../../outside.bin", "/bulk/000.bin"] {
+        assert!(
+            matches!(store.get(bad), Err(StoreError::InvalidKey { .. })),
+            "{bad}: {:?}",
+            store.get(bad)
+        );
+        let each = store.get_each(&[bad.to_string()]).unwrap();
+        assert!(matches!(&each[0], Err(StoreError::InvalidKey { .. })), "{bad}");
+    }
+}
