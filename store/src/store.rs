@@ -5,7 +5,8 @@
 //! every error names the key and the store URL — but for the bulk ones ([`AsyncStore::put_all`],
 //! [`AsyncStore::get_all`], [`AsyncStore::delete_all`]), which keep up to
 //! [`AsyncStore::in_flight`] requests going at once ([`IN_FLIGHT`], or [`file_threads`] to a local
-//! directory).
+//! directory). A blocking read of a few objects of a local directory is read on its caller's
+//! thread instead ([`READ_HERE`]).
 //!
 //! **Why bulk calls.** A request to an object store waits a round trip (an S3 request in the same
 //! region: some 10–30 ms to its first byte) in which it uses no CPU. A snapshot is hundreds of
