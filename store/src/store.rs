@@ -225,35 +225,29 @@ impl AsyncStore {
         &self.url
     }
 
-    /// Reads `key` of a local directory on this thread, as [`AsyncStore::get`] would (the same
-    /// bytes, the same errors); `None` for a store that is not a local directory. For callers that
-    /// block anyway ([`Store`]'s reads of a few objects, see [`READ_HERE`]).
-    fn read_here(&self, key: &str) -> Option<Result<Bytes, StoreError>> {
-        let root = self.local_root.as_ref()?;
+    /// Reads `key` of the local directory `root` (this store's) on this thread, as
+    /// [`AsyncStore::get`] would: the same bytes, counters and errors. For callers that block
+    /// anyway ([`Store`]'s reads of a few objects, see [`READ_HERE`]).
+    fn read_here(&self, root: &std::path::Path, key: &str) -> Result<Bytes, StoreError> {
         // The key's rules keep the path inside the root: no empty, `.` or `..` segment.
-        if let Err(reason) = check_key(key) {
-            return Some(Err(self.invalid_key(key, reason)));
-        }
+        self.path(key)?;
         let _waiting = InFlight::new(&self.counters);
-        let read = match std::fs::read(root.join(key)) {
-            Ok(bytes) => {
-                self.counters.read(bytes.len());
-                Ok(Bytes::from(bytes))
-            }
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Err(StoreError::NotFound {
-                url: self.url.to_string(),
-                key: key.to_string(),
-            }),
-            Err(e) => Err(self.backend_error(
-                "get",
-                key,
-                object_store::Error::Generic {
-                    store: "LocalFileSystem",
-                    source: Box::new(e),
+        let bytes = std::fs::read(root.join(key)).map_err(|e| {
+            let source = Box::new(e);
+            let e = match source.kind() {
+                std::io::ErrorKind::NotFound => object_store::Error::NotFound {
+                    path: key.to_string(),
+                    source,
                 },
-            )),
-        };
-        Some(read)
+                _ => object_store::Error::Generic {
+                    store: "LocalFileSystem",
+                    source,
+                },
+            };
+            self.backend_error("get", key, e)
+        })?;
+        self.counters.read(bytes.len());
+        Ok(Bytes::from(bytes))
     }
 
     /// What went through this handle and its clones so far (not through other handles of the
@@ -602,9 +596,9 @@ impl Store {
 
     /// Blocking [`AsyncStore::get`].
     pub fn get(&self, key: &str) -> Result<Bytes, StoreError> {
-        if let Some(read) = self.inner.read_here(key) {
+        if let Some(root) = self.inner.local_root.as_deref() {
             self.inner.counters.round_trips.fetch_add(1, Ordering::Relaxed);
-            return read;
+            return self.inner.read_here(root, key);
         }
         self.block_on(self.inner.get(key))?
     }
@@ -647,28 +641,26 @@ impl Store {
         if keys.is_empty() {
             return Ok(Vec::new());
         }
-        if let Some(read) = self.read_few_here(keys) {
-            return read.into_iter().collect();
+        if let Some(root) = self.few_here(keys) {
+            return keys.iter().map(|key| self.inner.read_here(root, key)).collect();
         }
         self.block_on(self.inner.get_all(keys))?
     }
 
     /// Blocking [`AsyncStore::get_each`].
     pub fn get_each(&self, keys: &[String]) -> Result<Vec<Result<Bytes, StoreError>>, StoreError> {
-        if let Some(read) = self.read_few_here(keys) {
-            return Ok(read);
+        if let Some(root) = self.few_here(keys) {
+            return Ok(keys.iter().map(|key| self.inner.read_here(root, key)).collect());
         }
         self.block_on(self.inner.get_each(keys))
     }
 
-    /// `keys`, read one after the other on this thread, if they are at most [`READ_HERE`] objects
-    /// of a local directory (one round trip, as a bulk read counts); else `None`.
-    fn read_few_here(&self, keys: &[String]) -> Option<Vec<Result<Bytes, StoreError>>> {
-        if keys.len() > READ_HERE || self.inner.local_root.is_none() {
-            return None;
-        }
+    /// The local directory to read `keys` from on this thread, one after the other: when they are
+    /// at most [`READ_HERE`] objects of one (counted as one round trip, as a bulk read is).
+    fn few_here(&self, keys: &[String]) -> Option<&std::path::Path> {
+        let root = self.inner.local_root.as_deref().filter(|_| keys.len() <= READ_HERE)?;
         self.inner.counters.round_trips.fetch_add(1, Ordering::Relaxed);
-        keys.iter().map(|key| self.inner.read_here(key)).collect()
+        Some(root)
     }
 
     /// Blocking [`AsyncStore::exist_all`].
