@@ -17,8 +17,9 @@
 //!
 //! Reported per way: the median and fastest wall time, the median over rounds of each round's
 //! ratio to its in-process run (with the smallest and largest: a noisy machine's slow spells hit
-//! both runs of a round alike), the median time of every iteration, and the work each iteration
-//! moved through the store (blobs and MB). Every service run's last checkpoint is checked bit for bit against
+//! both runs of a round alike), the CPU time the process spent on the run (every thread: so the
+//! service's extra work shows apart from its waiting, `cores busy` = CPU / wall), the median time
+//! of every iteration, and the work each iteration moved through the store (blobs and MB). Every service run's last checkpoint is checked bit for bit against
 //! the in-process one.
 
 use crate::JobFlags;
@@ -132,16 +133,43 @@ impl Drop for Cotenant {
 /// One run of one way.
 struct Sample {
     seconds: f64,
+    /// CPU time of the whole process over the run: user and system, every thread (the
+    /// coordinator's, the workers', the store's, a co-tenant's).
+    cpu_seconds: f64,
     iterations: Vec<IterationRecord>,
     /// Everything the run read and wrote through the store (snapshots, work, the final field).
     traffic: Traffic,
 }
 
+/// When a run started, on the wall clock and on the process's CPU clock.
+#[derive(Clone, Copy)]
+struct Started {
+    wall: Instant,
+    cpu: f64,
+}
+
+impl Started {
+    fn now() -> Started {
+        Started {
+            wall: Instant::now(),
+            cpu: process_cpu_seconds(),
+        }
+    }
+}
+
+/// The CPU time this process has used so far, all threads, user and system
+/// (`CLOCK_PROCESS_CPUTIME_ID`).
+fn process_cpu_seconds() -> f64 {
+    let t = rustix::time::clock_gettime(rustix::time::ClockId::ProcessCPUTime);
+    t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
+}
+
 impl Sample {
     /// A run that started at `started` and has just ended over `store`.
-    fn ended(started: Instant, iterations: Vec<IterationRecord>, store: &Store) -> Sample {
+    fn ended(started: Started, iterations: Vec<IterationRecord>, store: &Store) -> Sample {
         Sample {
-            seconds: started.elapsed().as_secs_f64(),
+            seconds: started.wall.elapsed().as_secs_f64(),
+            cpu_seconds: process_cpu_seconds() - started.cpu,
             iterations,
             traffic: store.traffic(),
         }
@@ -247,7 +275,7 @@ fn in_process_with(
     spec: &JobSpec,
     mut step: impl FnMut(&mut Propagation) -> Result<()>,
 ) -> Result<(Sample, Checkpoint)> {
-    let started = Instant::now();
+    let started = Started::now();
     let store = Store::open(url)?;
     let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
     let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
@@ -276,7 +304,7 @@ fn service(
     spec: &JobSpec,
     workers: Workers,
 ) -> Result<(Sample, Checkpoint)> {
-    let started = Instant::now();
+    let started = Started::now();
     let store = Store::open(url)?;
     let job = EmbeddedJob::New(scene.clone(), spec.clone());
     let Embedded { id, store, iterations } = runtime.block_on(embedded(store, job, workers, Follow::Quiet))?;
@@ -426,6 +454,7 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>
         let m = median(times);
         let _ = writeln!(out, "| {} | {m:.3} | {fastest:.3} | {} |", way.name(), ratios.cells());
     }
+    cpu_table(&mut out, ways, samples, threads, args.cotenant);
 
     // The plain iterations, summed per run and paired by round like the whole runs.
     let count = samples[0].first().map_or(0, |s| s.iterations.len());
@@ -524,6 +553,36 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>
     out
 }
 
+/// What each run cost in CPU, every thread of the process: the service's extra work shows apart
+/// from its waiting, which leaves cores idle (`cores busy` = CPU / wall).
+fn cpu_table(out: &mut String, ways: &[Way], samples: &[Vec<Sample>], threads: usize, cotenant: bool) {
+    let _ = writeln!(
+        out,
+        "\nCPU per run: user and system time of every thread of the process (the coordinator's, \
+         the workers', the store's{}), paired by round like the wall times; `cores busy` is CPU / \
+         wall, out of the {threads} threads' cores:\n",
+        if cotenant { ", the co-tenant's" } else { "" }
+    );
+    let _ = writeln!(
+        out,
+        "| run | median CPU s | × in-process | × 95 % | × range | cores busy |"
+    );
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|");
+    let base: Vec<f64> = samples[0].iter().map(|s| s.cpu_seconds).collect();
+    for (way, runs) in ways.iter().zip(samples) {
+        let cpu: Vec<f64> = runs.iter().map(|s| s.cpu_seconds).collect();
+        let busy = median(runs.iter().map(|s| s.cpu_seconds / s.seconds.max(1e-9)).collect());
+        let ratios = Ratios::paired(&base, &cpu);
+        let _ = writeln!(
+            out,
+            "| {} | {:.3} | {} | {busy:.2} |",
+            way.name(),
+            median(cpu),
+            ratios.cells()
+        );
+    }
+}
+
 /// What the service adds to the cut: each service run of two workers or more over its round's
 /// in-process run cut into as many homes, whole and over the plain iterations (`plain`).
 fn cut_table(out: &mut String, ways: &[Way], samples: &[Vec<Sample>], plain: &dyn Fn(&Sample) -> f64) {
@@ -610,6 +669,32 @@ fn cpu_name() -> Option<String> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_cpu_clock_is_the_whole_process() {
+        // A thread of its own computes until its own CPU clock says 20 ms: the process's clock,
+        // read on this thread (which only waits), must have counted them.
+        let before = process_cpu_seconds();
+        let spun = std::thread::spawn(|| {
+            let thread_seconds = || {
+                let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
+                t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
+            };
+            let start = thread_seconds();
+            let mut x = 1u64;
+            while thread_seconds() - start < 0.02 {
+                x = std::hint::black_box(x.wrapping_mul(6364136223846793005).wrapping_add(1));
+            }
+            thread_seconds() - start
+        })
+        .join()
+        .expect("the spinning thread");
+        let counted = process_cpu_seconds() - before;
+        assert!(
+            spun >= 0.02 && counted >= spun,
+            "the thread used {spun} s, the process clock counted {counted} s"
+        );
+    }
 
     #[test]
     fn paired_ratios_cancel_a_machine_that_slows_down_between_rounds() {

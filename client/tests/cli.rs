@@ -577,6 +577,31 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     assert!(!printed.contains("| 4 |"));
     assert!(rows[0].ends_with("MB |") || rows[0].contains(" / "), "{}", rows[0]);
     assert!(!printed.contains("co-tenant"));
+    // What each run cost in CPU, every thread of the process: a row per way, each run having
+    // used some, and at most all of the cores the whole time (a little more: the clocks are
+    // read a few instructions apart, and the store's and runtime's threads come on top).
+    let cpu = printed
+        .split("CPU per run")
+        .nth(1)
+        .and_then(|rest| rest.split("\n\n").nth(1))
+        .unwrap_or_else(|| panic!("no CPU table:\n{printed}"));
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as f64;
+    for way in [
+        "in-process",
+        "in-process, cut in 2 homes",
+        "service, 1 worker",
+        "service, 2 workers",
+    ] {
+        let row = cpu
+            .lines()
+            .find(|l| l.starts_with(&format!("| {way} | ")))
+            .unwrap_or_else(|| panic!("{way} missing from the CPU table:\n{printed}"));
+        let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+        let seconds: f64 = cells[2].parse().unwrap_or_else(|_| panic!("{row}"));
+        let busy: f64 = cells[6].parse().unwrap_or_else(|_| panic!("{row}"));
+        assert!(seconds > 0.0, "{row}");
+        assert!(busy > 0.0 && busy <= cores * 1.05, "{row}");
+    }
     // The plain iterations' sums, paired by round: a row per way.
     let plain = printed
         .split("(the propagation's throughput")
