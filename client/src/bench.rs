@@ -19,8 +19,8 @@
 //! ratio to its in-process run (with the smallest and largest: a noisy machine's slow spells hit
 //! both runs of a round alike), the CPU time the process spent on the run (every thread: so the
 //! service's extra work shows apart from its waiting, `cores busy` = CPU / wall), the median time
-//! of every iteration, and the work each iteration moved through the store (blobs and MB). Every service run's last checkpoint is checked bit for bit against
-//! the in-process one.
+//! of every iteration, and the work each iteration moved through the store (blobs and MB). Every
+//! service run's last checkpoint is checked bit for bit against the in-process one.
 
 use crate::JobFlags;
 use crate::run::{Embedded, EmbeddedJob, Follow, Workers, embedded};
@@ -160,7 +160,12 @@ impl Started {
 /// The CPU time this process has used so far, all threads, user and system
 /// (`CLOCK_PROCESS_CPUTIME_ID`).
 fn process_cpu_seconds() -> f64 {
-    let t = rustix::time::clock_gettime(rustix::time::ClockId::ProcessCPUTime);
+    cpu_clock_seconds(rustix::time::ClockId::ProcessCPUTime)
+}
+
+/// A CPU-time clock's reading, in seconds.
+fn cpu_clock_seconds(clock: rustix::time::ClockId) -> f64 {
+    let t = rustix::time::clock_gettime(clock);
     t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
 }
 
@@ -676,10 +681,7 @@ mod tests {
         // read on this thread (which only waits), must have counted them.
         let before = process_cpu_seconds();
         let spun = std::thread::spawn(|| {
-            let thread_seconds = || {
-                let t = rustix::time::clock_gettime(rustix::time::ClockId::ThreadCPUTime);
-                t.tv_sec as f64 + t.tv_nsec as f64 * 1e-9
-            };
+            let thread_seconds = || cpu_clock_seconds(rustix::time::ClockId::ThreadCPUTime);
             let start = thread_seconds();
             let mut x = 1u64;
             while thread_seconds() - start < 0.02 {
