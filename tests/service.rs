@@ -7,77 +7,24 @@
 
 #[path = "support/display.rs"]
 mod display;
+#[path = "support/process.rs"]
+mod process;
 
-use std::io::{BufRead, BufReader};
+use process::{PARAMS, Proc, describe, free_port, vlf_command};
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
+use std::process::Output;
 use std::time::{Duration, Instant};
 use tonic::Code;
 use vlf_core::field::LightField;
 use vlf_proto::Target;
+use vlf_proto::health::{HealthCheckRequest, health_check_response::ServingStatus};
 use vlf_proto::v1::{self, State};
 use vlf_store::{FieldJob, Job, JobId, Stage, Store};
 
-const VLF: &str = env!("CARGO_BIN_EXE_vlf");
-
-/// A child process killed (SIGKILL) when dropped, so a failing test leaves nothing running.
-struct Proc {
-    child: Child,
-    name: String,
-    log: PathBuf,
-}
-
-impl Proc {
-    fn kill(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-
-    /// The first stdout line containing `needle` (the process must print it within a minute).
-    fn wait_for_line(&mut self, needle: &str) -> String {
-        let stdout = self.child.stdout.take().expect("stdout piped");
-        let (tx, rx) = std::sync::mpsc::channel();
-        let needle = needle.to_string();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
-                if line.contains(&needle) {
-                    let _ = tx.send(line);
-                    return;
-                }
-            }
-        });
-        match rx.recv_timeout(Duration::from_secs(60)) {
-            Ok(line) => line,
-            Err(_) => panic!("{} never printed the line; its log:\n{}", self.name, self.log()),
-        }
-    }
-
-    fn log(&self) -> String {
-        std::fs::read_to_string(&self.log).unwrap_or_default()
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        self.kill();
-    }
-}
-
 fn spawn(dir: &Path, name: &str, args: &[&str]) -> Proc {
-    let log = dir.join(format!("{name}.log"));
-    let child = Command::new(VLF)
-        .args(args)
-        .env_remove("VLF_TOKEN")
-        .env_remove("VLF_SERVER")
-        .stdout(Stdio::piped())
-        .stderr(std::fs::File::create(&log).expect("log file"))
-        .spawn()
-        .expect("spawn vlf");
-    Proc {
-        child,
-        name: name.to_string(),
-        log,
-    }
+    let mut command = vlf_command();
+    command.args(args);
+    Proc::spawn(command, dir, name)
 }
 
 /// A coordinator on `listen` (port 0: any); returns it and its URL.
@@ -97,21 +44,11 @@ fn worker(dir: &Path, name: &str, url: &str, extra: &[&str]) -> Proc {
 }
 
 fn vlf(args: &[&str]) -> Output {
-    Command::new(VLF)
-        .args(args)
-        .env_remove("VLF_TOKEN")
-        .env_remove("VLF_SERVER")
-        .output()
-        .expect("run vlf")
+    vlf_command().args(args).output().expect("run vlf")
 }
 
 fn text(o: &Output) -> String {
-    format!(
-        "status {:?}\nstdout:\n{}\nstderr:\n{}",
-        o.status.code(),
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
+    describe(o)
 }
 
 fn scene(name: &str) -> String {
@@ -129,28 +66,6 @@ fn temp(name: &str) -> tempfile::TempDir {
         .tempdir()
         .expect("scratch directory")
 }
-
-/// A free loopback port (for a coordinator that must come back on the same address).
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
-
-/// The mirror scene at a size that runs in a second: mirrors make specular radiance cross
-/// workers, perturbation (on by default) makes iterations of several passes.
-const PARAMS: [&str; 8] = [
-    "--directions",
-    "33",
-    "--resolution",
-    "16",
-    "--tile",
-    "4",
-    "--encoding",
-    "f32",
-];
 
 /// `vlf propagate`'s field for the mirror scene with `PARAMS` and `extra`.
 fn reference(dir: &Path, extra: &[&str]) -> LightField {
@@ -466,6 +381,26 @@ fn auth_and_bad_requests_get_their_status_codes() {
     let o = vlf(&["worker", "--server", &url, "--token", "wrong"]);
     assert!(!o.status.success() && text(&o).contains("refused"), "{}", text(&o));
 
+    // The health service alone answers without the token (probes carry none), and says only
+    // whether each API serves.
+    let o = vlf(&["health", "--server", &url]);
+    assert!(o.status.success() && text(&o).contains("serving"), "{}", text(&o));
+    let mut c = rt.block_on(Target::new(url.clone()).connect()).unwrap();
+    for service in ["", "vlf.v1.Jobs", "vlf.v1.Workers", "vlf.v1.Tiles"] {
+        let r = rt.block_on(c.health.check(HealthCheckRequest {
+            service: service.into(),
+        }));
+        assert_eq!(
+            r.map(|r| r.into_inner().status()).ok(),
+            Some(ServingStatus::Serving),
+            "health of `{service}`"
+        );
+    }
+    let r = rt.block_on(c.health.check(HealthCheckRequest {
+        service: "vlf.v1.Nothing".into(),
+    }));
+    assert_eq!(code(r).map(|c| c.0), Some(Code::NotFound));
+
     let target = Target {
         url: url.clone(),
         token: Some("s3cret".into()),
@@ -586,6 +521,37 @@ fn auth_and_bad_requests_get_their_status_codes() {
         fetch(&["../other/manifest.blob"]).unwrap_err().code(),
         Code::InvalidArgument
     );
+}
+
+#[test]
+fn health_waits_for_a_coordinator_to_start_and_fails_without_one() {
+    let scratch = temp("health");
+    let dir = scratch.path();
+    let port = free_port();
+    let url = format!("http://127.0.0.1:{port}");
+    let o = vlf(&["health", "--server", &url]);
+    assert!(
+        !o.status.success() && text(&o).contains("does not serve") && text(&o).contains("refused"),
+        "{}",
+        text(&o)
+    );
+    // Asked before the coordinator listens, `--wait` keeps asking until it serves.
+    let mut waiting = spawn(dir, "health", &["health", "--server", &url, "--wait", "120"]);
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(
+        waiting.child.try_wait().unwrap().is_none(),
+        "health returned before any coordinator started:\n{}",
+        waiting.log()
+    );
+    let store = dir.join("store");
+    let (_server, served) = serve(dir, &store, &format!("127.0.0.1:{port}"), &["--token", "t"]);
+    assert_eq!(served, url);
+    let line = waiting.wait_for_line("serving");
+    assert_eq!(line, format!("{url}: serving"));
+    let status = waiting.child.wait().unwrap();
+    assert!(status.success(), "{status:?}:\n{}", waiting.log());
+    let o = vlf(&["health", "--server", &url, "--wait", "nan"]);
+    assert!(!o.status.success() && text(&o).contains("--wait"), "{}", text(&o));
 }
 
 #[test]
@@ -712,7 +678,7 @@ fn view_streams_through_a_coordinator_that_drops_connections() {
     // The wall mirror close up, mirrors from the rays: diffuse maps and tiles stream.
     let view = |server: &str, name: &str| -> (Output, PathBuf) {
         let shot = dir.join(name);
-        let o = Command::new(VLF)
+        let o = vlf_command()
             .args([
                 "view",
                 "--server",
@@ -735,8 +701,6 @@ fn view_streams_through_a_coordinator_that_drops_connections() {
             ])
             .arg(&shot)
             .env("DISPLAY", &display.name)
-            .env_remove("VLF_TOKEN")
-            .env_remove("VLF_SERVER")
             .output()
             .expect("run vlf view");
         (o, shot)

@@ -62,6 +62,9 @@ enum Command {
     Watch(JobArgs),
     /// Cancel a job.
     Cancel(JobArgs),
+    /// Ask a coordinator whether it serves (the standard gRPC health check, which needs no
+    /// token); exits with 0 when it does. For container health checks and start-up scripts.
+    Health(HealthArgs),
     /// Measure what accuracy costs: sweep the parameters against a reference path tracer
     /// (Mitsuba 3, or a given image) and write CSV, Markdown and plots.
     Study(study::StudyArgs),
@@ -81,6 +84,16 @@ pub struct SubmitArgs {
     /// Follow the job's progress until it ends.
     #[arg(long)]
     watch: bool,
+}
+
+#[derive(Args)]
+pub struct HealthArgs {
+    #[command(flatten)]
+    server: ServerFlags,
+    /// Keep asking for up to this many seconds while the coordinator does not answer or does
+    /// not serve yet.
+    #[arg(long, value_name = "SECONDS", default_value_t = 0.0)]
+    wait: f64,
 }
 
 #[derive(Args)]
@@ -402,6 +415,7 @@ fn main() {
         Command::Status(args) => block_on(remote::status(args)),
         Command::Watch(args) => block_on(remote::watch(args)),
         Command::Cancel(args) => block_on(remote::cancel(args)),
+        Command::Health(args) => block_on(remote::health(args)),
         Command::Study(args) => study::run(args),
         Command::Bench(args) => bench::run(args),
     };

@@ -1,13 +1,14 @@
 //! The commands that talk to a coordinator: `submit`, `status`, `watch`, `cancel`, `jobs
 //! --server`, and the fetching of a job's blobs for `render --server`.
 
-use crate::{JobArgs, ServerFlags, SubmitArgs};
+use crate::{HealthArgs, JobArgs, ServerFlags, SubmitArgs};
 use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::collections::BTreeMap;
 use std::path::Path;
+use vlf_proto::health::{HealthCheckRequest, health_check_response::ServingStatus};
 use vlf_proto::v1::{self, JobStatus, State};
-use vlf_proto::{Clients, Target};
+use vlf_proto::{Clients, ConnectError, Target};
 use vlf_server::scheduler::IterationUse;
 use vlf_store::{JobId, Stage, Store, layout};
 
@@ -162,6 +163,62 @@ pub async fn cancel(args: JobArgs) -> Result<()> {
         println!("job {} had already ended: {}", status.job_id, describe(&status));
     }
     Ok(())
+}
+
+/// `vlf health`: whether the coordinator serves, asked of `grpc.health.v1` (service `""`, the
+/// whole server) until it does or `--wait` runs out. A URL, CA file or token that cannot work
+/// fails at once; a coordinator that does not answer yet, or answers `NOT_SERVING`, is asked
+/// again every 200 ms.
+pub async fn health(args: HealthArgs) -> Result<()> {
+    if !(args.wait.is_finite() && (0.0..=86_400.0).contains(&args.wait)) {
+        bail!("--wait must be between 0 and 86400 seconds, got {}", args.wait);
+    }
+    let target = args.server.target();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs_f64(args.wait);
+    loop {
+        let answer = match target.connect().await {
+            Ok(mut clients) => clients
+                .health
+                .check(HealthCheckRequest { service: String::new() })
+                .await
+                .map(|reply| reply.into_inner().status()),
+            Err(ConnectError::Transport { source, .. }) => Err(tonic::Status::unavailable(chain(&source))),
+            Err(e) => return Err(e.into()),
+        };
+        let why = match answer {
+            Ok(ServingStatus::Serving) => {
+                println!("{}: serving", target.url);
+                return Ok(());
+            }
+            Ok(status) => format!("it answers {}", status.as_str_name()),
+            // A coordinator without the health service, or one that refuses the call, will not
+            // change its mind.
+            Err(status) if status.code() != tonic::Code::Unavailable => {
+                return Err(call_error(status)).with_context(|| format!("health check of {}", target.url));
+            }
+            Err(status) => format!("no answer ({})", status.message()),
+        };
+        if std::time::Instant::now() >= deadline {
+            bail!("the coordinator at {} does not serve: {why}", target.url);
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(200)).await;
+    }
+}
+
+/// An error with its causes, `outer: inner: …` (a transport error says only "transport error"
+/// itself; the cause says what: a refused connection, an unknown host).
+fn chain(error: &dyn std::error::Error) -> String {
+    let mut parts = vec![error.to_string()];
+    let mut cause = error.source();
+    while let Some(c) = cause {
+        let part = c.to_string();
+        // Wrappers often repeat their cause's words.
+        if parts.last() != Some(&part) {
+            parts.push(part);
+        }
+        cause = c.source();
+    }
+    parts.join(": ")
 }
 
 pub async fn jobs(target: Target) -> Result<()> {

@@ -1,6 +1,7 @@
 //! The client side of the API: a channel to a coordinator (plain or TLS) and clients that send
 //! the bearer token with every call.
 
+use crate::health::HealthClient;
 use crate::v1::{jobs_client::JobsClient, tiles_client::TilesClient, workers_client::WorkersClient};
 use std::path::PathBuf;
 use tonic::metadata::MetadataValue;
@@ -56,12 +57,13 @@ impl Interceptor for BearerToken {
 /// A channel with the token interceptor.
 pub type Authed = InterceptedService<Channel, BearerToken>;
 
-/// The three clients over one connection.
+/// The three clients over one connection, and the health service's.
 #[derive(Clone)]
 pub struct Clients {
     pub jobs: JobsClient<Authed>,
     pub workers: WorkersClient<Authed>,
     pub tiles: TilesClient<Authed>,
+    pub health: HealthClient<Authed>,
 }
 
 impl Target {
@@ -137,7 +139,8 @@ impl Target {
                 .max_encoding_message_size(limit)
                 .max_decoding_message_size(limit),
             workers: WorkersClient::with_interceptor(channel.clone(), auth.clone()),
-            tiles: TilesClient::with_interceptor(channel, auth).max_decoding_message_size(limit),
+            tiles: TilesClient::with_interceptor(channel.clone(), auth.clone()).max_decoding_message_size(limit),
+            health: HealthClient::with_interceptor(channel, auth),
         })
     }
 }

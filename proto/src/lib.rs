@@ -7,6 +7,14 @@ pub mod v1 {
     tonic::include_proto!("vlf.v1");
 }
 
+/// The standard gRPC health service, `grpc.health.v1` (what load balancers and Kubernetes' gRPC
+/// probes ask): the coordinator serves it without a token, and `vlf health` asks it.
+pub mod health {
+    pub use tonic_health::ServingStatus;
+    pub use tonic_health::pb::{HealthCheckRequest, health_check_response, health_client::HealthClient};
+    pub use tonic_health::server::{HealthReporter, health_reporter};
+}
+
 mod connect;
 mod convert;
 

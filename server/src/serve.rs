@@ -13,7 +13,10 @@ use tokio::task::JoinHandle;
 use tonic::service::Interceptor;
 use tonic::transport::{Identity, ServerTlsConfig};
 use tonic::{Request, Status};
-use vlf_proto::v1::{jobs_server::JobsServer, tiles_server::TilesServer, workers_server::WorkersServer};
+use vlf_proto::health::{HealthReporter, ServingStatus, health_reporter};
+use vlf_proto::v1::jobs_server::{JobsServer, SERVICE_NAME as JOBS};
+use vlf_proto::v1::tiles_server::{SERVICE_NAME as TILES, TilesServer};
+use vlf_proto::v1::workers_server::{SERVICE_NAME as WORKERS, WorkersServer};
 use vlf_store::{Prototypes, Store, StoreError};
 
 /// A certificate chain and its private key, PEM files.
@@ -81,6 +84,7 @@ pub enum ServeError {
 pub struct Server {
     addr: SocketAddr,
     scheduler: Arc<Scheduler>,
+    health: HealthReporter,
     shutdown: Option<oneshot::Sender<()>>,
     task: JoinHandle<Result<(), tonic::transport::Error>>,
     reaper: JoinHandle<()>,
@@ -141,7 +145,13 @@ impl Server {
                 .tls_config(ServerTlsConfig::new().identity(Identity::from_pem(cert, key)))
                 .map_err(|e| ServeError::Tls(e.to_string()))?;
         }
+        // `grpc.health.v1`, open without the token: a probe (Kubernetes', a load balancer's,
+        // `vlf health`) learns only whether the coordinator serves. It does once its store is
+        // open and its jobs are taken up, which is done by now.
+        let (health, health_service) = health_reporter();
+        set_health(&health, ServingStatus::Serving).await;
         let router = builder
+            .add_service(health_service)
             .add_service(tonic::service::interceptor::InterceptedService::new(jobs, auth.clone()))
             .add_service(WorkersServer::with_interceptor(api.clone(), auth.clone()))
             .add_service(TilesServer::with_interceptor(api, auth));
@@ -168,6 +178,7 @@ impl Server {
         Ok(Server {
             addr,
             scheduler,
+            health,
             shutdown: Some(tx),
             task,
             reaper,
@@ -183,8 +194,10 @@ impl Server {
         &self.scheduler
     }
 
-    /// Stops serving (open calls end) and waits for the server task.
+    /// Stops serving (open calls end) and waits for the server task. Health checks answer
+    /// `NOT_SERVING` from here on, to the connections still open.
     pub async fn shutdown(mut self) {
+        set_health(&self.health, ServingStatus::NotServing).await;
         if let Some(tx) = self.shutdown.take() {
             let _ = tx.send(());
         }
@@ -203,6 +216,13 @@ impl Server {
         };
         self.shutdown().await;
         result
+    }
+}
+
+/// Sets the health of the whole server (service `""`) and of each of its APIs.
+async fn set_health(health: &HealthReporter, status: ServingStatus) {
+    for service in ["", JOBS, WORKERS, TILES] {
+        health.set_service_status(service, status).await;
     }
 }
 
