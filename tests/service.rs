@@ -555,6 +555,54 @@ fn health_waits_for_a_coordinator_to_start_and_fails_without_one() {
 }
 
 #[test]
+fn a_coordinator_stopped_while_a_client_watches_ends_the_watch_and_exits() {
+    let scratch = temp("stop-watched");
+    let dir = scratch.path();
+    let store = dir.join("store");
+    let (mut server, url) = serve(dir, &store, "127.0.0.1:0", &[]);
+    // No worker: the job waits for one, and its watch would stay open as long.
+    let id = submit(&url, &[]);
+    let rt = runtime();
+    let mut c = rt.block_on(Target::new(url.clone()).connect()).unwrap();
+    let mut stream = rt
+        .block_on(c.jobs.watch(v1::JobRequest { job_id: id.clone() }))
+        .unwrap()
+        .into_inner();
+    let first = rt.block_on(stream.message()).unwrap().expect("a first status");
+    assert_eq!(first.job_id, id);
+    let term = std::process::Command::new("kill")
+        .args(["-TERM", &server.child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(term.success());
+    // The stream ends with a reason (statuses may come before it, none after it).
+    let end = loop {
+        let next = rt.block_on(async { tokio::time::timeout(Duration::from_secs(60), stream.message()).await });
+        match next.expect("the watch stayed open after the coordinator was told to stop") {
+            Ok(Some(_)) => continue,
+            Ok(None) => panic!("the watch ended without saying why"),
+            Err(status) => break status,
+        }
+    };
+    assert_eq!(end.code(), Code::Unavailable, "{end:?}");
+    assert!(end.message().contains("shutting down"), "{end:?}");
+    // And the coordinator exits (a hang is caught here, not timed).
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let exited = loop {
+        if let Some(status) = server.child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the coordinator did not exit:\n{}",
+            server.log()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert!(exited.success(), "{exited:?}:\n{}", server.log());
+}
+
+#[test]
 fn tls_with_a_token_serves_workers_and_clients_that_trust_the_ca() {
     let scratch = temp("tls");
     let dir = scratch.path();

@@ -85,6 +85,8 @@ pub struct Server {
     addr: SocketAddr,
     scheduler: Arc<Scheduler>,
     health: HealthReporter,
+    /// Set at shutdown: ends the open `Watch` streams (see [`Api`]).
+    closing: tokio::sync::watch::Sender<bool>,
     shutdown: Option<oneshot::Sender<()>>,
     task: JoinHandle<Result<(), tonic::transport::Error>>,
     reaper: JoinHandle<()>,
@@ -126,7 +128,8 @@ impl Server {
             source,
         })?;
 
-        let api = Api::new(scheduler.clone(), config.max_upload_bytes);
+        let (closing, closed) = tokio::sync::watch::channel(false);
+        let api = Api::new(scheduler.clone(), config.max_upload_bytes).closing_with(closed);
         let auth = BearerAuth {
             token: token.map(|t| Arc::from(format!("Bearer {t}").as_str())),
         };
@@ -179,6 +182,7 @@ impl Server {
             addr,
             scheduler,
             health,
+            closing,
             shutdown: Some(tx),
             task,
             reaper,
@@ -194,10 +198,12 @@ impl Server {
         &self.scheduler
     }
 
-    /// Stops serving (open calls end) and waits for the server task. Health checks answer
-    /// `NOT_SERVING` from here on, to the connections still open.
+    /// Stops serving and waits for the server task: calls in flight are answered (a worker's
+    /// long poll within its bound), open `Watch` streams end with `UNAVAILABLE`, and health
+    /// checks answer `NOT_SERVING` to the connections still open.
     pub async fn shutdown(mut self) {
         set_health(&self.health, ServingStatus::NotServing).await;
+        self.closing.send_replace(true);
         if let Some(tx) = self.shutdown.take() {
             let _ = tx.send(());
         }

@@ -20,11 +20,25 @@ use vlf_store::{JobId, StoreError, layout};
 pub struct Api {
     sched: Arc<Scheduler>,
     max_upload: u64,
+    /// Turns true when the server shuts down: open `Watch` streams end then, or a graceful
+    /// shutdown would wait for them as long as their jobs run (or forever, for a job that waits
+    /// for workers).
+    closing: Option<tokio::sync::watch::Receiver<bool>>,
 }
 
 impl Api {
     pub fn new(sched: Arc<Scheduler>, max_upload: u64) -> Api {
-        Api { sched, max_upload }
+        Api {
+            sched,
+            max_upload,
+            closing: None,
+        }
+    }
+
+    /// Ends the open `Watch` streams, with `UNAVAILABLE`, once `closing` turns true.
+    pub fn closing_with(mut self, closing: tokio::sync::watch::Receiver<bool>) -> Api {
+        self.closing = Some(closing);
+        self
     }
 
     /// The status of `id`: the scheduler's, or, for a job it does not drive (written into the
@@ -151,6 +165,7 @@ impl jobs_server::Jobs for Api {
                 return Ok(Response::new(Box::pin(futures::stream::iter([Ok(status)]))));
             }
         };
+        let mut closing = self.closing.clone();
         let stream = async_stream(move |tx| async move {
             loop {
                 let status = rx.borrow_and_update().clone();
@@ -158,8 +173,21 @@ impl jobs_server::Jobs for Api {
                 if tx.send(Ok(status)).await.is_err() || terminal {
                     return;
                 }
-                if rx.changed().await.is_err() {
-                    return;
+                tokio::select! {
+                    changed = rx.changed() => {
+                        if changed.is_err() {
+                            return;
+                        }
+                    }
+                    () = shut_down(&mut closing) => {
+                        let _ = tx
+                            .send(Err(Status::unavailable(
+                                "the coordinator is shutting down; watch the job again once it is back \
+                                 (a restarted coordinator takes its jobs up from the store)",
+                            )))
+                            .await;
+                        return;
+                    }
                 }
             }
         });
@@ -347,6 +375,17 @@ impl tiles_server::Tiles for Api {
 
 /// A stream fed by `produce` through a small channel (backpressure: a slow client slows the
 /// producer, nothing piles up).
+/// Resolves once `closing` turns true; never without one, or when its server was dropped
+/// without shutting down (its task serves on).
+async fn shut_down(closing: &mut Option<tokio::sync::watch::Receiver<bool>>) {
+    if let Some(rx) = closing
+        && rx.wait_for(|closing| *closing).await.is_ok()
+    {
+        return;
+    }
+    std::future::pending().await
+}
+
 fn async_stream<T, F, Fut>(produce: F) -> Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>
 where
     T: Send + 'static,
