@@ -250,6 +250,13 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     stalled.wait_for_line("stalled holding lease");
     let status = wait_status(&url, &id, "snapshot 1", |s| s.snapshots == [0, 1]);
     assert_eq!((status.iteration, status.batches_done), (2, 1), "{status:?}");
+    // A client following the job follows it on from the restarted coordinator.
+    let mut follower = vlf_command();
+    follower
+        .args(["watch", &id, "--server", &url])
+        .env("RUST_LOG", "vlf=debug");
+    let mut watching = Proc::spawn(follower, dir, "watching");
+    wait_for_log(&watching, "following the job's progress");
     server.kill();
     stalled.kill();
     // A worker that starts while no coordinator answers waits for one.
@@ -260,6 +267,25 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     assert!(resumed.snapshots.starts_with(&[0, 1]), "{resumed:?}");
     watch(&url, &id);
     assert_same_field(&expected, &field(&store, &id), "after a coordinator restart");
+    let end = watching.wait_for_line("finished");
+    assert!(end.starts_with(&id), "{end}");
+    let exited = watching.child.wait().unwrap();
+    assert!(exited.success(), "{exited:?}:\n{}", watching.log());
+    assert!(watching.log().contains("waiting up to"), "{}", watching.log());
+}
+
+/// Waits (a minute at most) until `proc`'s log holds `needle`.
+fn wait_for_log(proc: &Proc, needle: &str) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !proc.log().contains(needle) {
+        assert!(
+            Instant::now() < deadline,
+            "{} never logged {needle:?}:\n{}",
+            proc.name,
+            proc.log()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
 }
 
 #[test]

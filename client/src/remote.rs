@@ -301,52 +301,74 @@ pub fn describe_use(u: &v1::IterationUse) -> String {
     )
 }
 
+/// How long [`follow`] waits for a coordinator that went away (stopped, restarted, moved to
+/// another machine) to come back and take its jobs up from the store, before it gives up.
+const REJOIN: std::time::Duration = std::time::Duration::from_secs(120);
+
 /// Follows a job's status stream with a progress bar per iteration until it ends; returns the
-/// final status, or an error when the job failed or was cancelled.
+/// final status, or an error when the job failed or was cancelled. A coordinator that goes
+/// away meanwhile is waited for ([`REJOIN`]) and the job followed on from it.
 pub async fn follow(clients: &mut Clients, job: &str) -> Result<JobStatus> {
-    let mut stream = clients
-        .jobs
-        .watch(v1::JobRequest {
-            job_id: job.to_string(),
-        })
-        .await
-        .map_err(call_error)?
-        .into_inner();
-    let style = ProgressStyle::with_template("{prefix:>14} [{bar:40}] {pos}/{len} batches {msg}")
-        .unwrap_or_else(|_| ProgressStyle::default_bar())
-        .progress_chars("=> ");
-    let mut bar: Option<(u32, ProgressBar)> = None;
+    let mut bars = Bars::default();
     let mut last: Option<JobStatus> = None;
-    while let Some(status) = stream.message().await.map_err(call_error)? {
-        if let Some(previous) = &last
-            && status.seq <= previous.seq
-        {
-            bail!("progress arrived out of order ({} after {})", status.seq, previous.seq);
-        }
-        if status.state == State::Propagating as i32 {
-            if bar.as_ref().is_none_or(|(k, _)| *k != status.iteration) {
-                if let Some((_, b)) = bar.take() {
-                    b.finish_and_clear();
+    // Since when the coordinator has been away, while it is.
+    let mut away: Option<std::time::Instant> = None;
+    loop {
+        let request = v1::JobRequest {
+            job_id: job.to_string(),
+        };
+        let interrupted = match clients.jobs.watch(request).await {
+            Ok(stream) => {
+                tracing::debug!(job, "following the job's progress");
+                let mut stream = stream.into_inner();
+                // Statuses are numbered per stream: a coordinator that took the job up anew
+                // counts from 1 again.
+                let mut seq = None;
+                loop {
+                    match stream.message().await {
+                        Ok(Some(status)) => {
+                            away = None;
+                            if let Some(previous) = seq
+                                && status.seq <= previous
+                            {
+                                bail!("progress arrived out of order ({} after {previous})", status.seq);
+                            }
+                            seq = Some(status.seq);
+                            bars.show(&status);
+                            last = Some(status);
+                        }
+                        Ok(None) => break None,
+                        Err(status) => break Some(status),
+                    }
                 }
-                let b = ProgressBar::new(u64::from(status.batches_total));
-                b.set_style(style.clone());
-                b.set_prefix(format!("iteration {}", status.iteration));
-                bar = Some((status.iteration, b));
             }
-            if let Some((_, b)) = &bar {
-                b.set_length(u64::from(status.batches_total.max(1)));
-                b.set_position(u64::from(status.batches_done));
-                b.set_message(format!(
-                    "unshot {:.2e}, {} workers, {:.0} dir/s",
-                    status.unshot_fraction, status.workers_alive, status.directions_per_second
-                ));
-            }
+            Err(status) => Some(status),
+        };
+        let Some(status) = interrupted else { break };
+        let error = CallError {
+            code: status.code(),
+            message: status.message().to_string(),
+        };
+        if error.is_final() {
+            return Err(error.into());
         }
-        last = Some(status);
+        let since = *away.get_or_insert_with(|| {
+            bars.clear();
+            eprintln!(
+                "{error}; waiting up to {} s for the coordinator to come back",
+                REJOIN.as_secs()
+            );
+            std::time::Instant::now()
+        });
+        if since.elapsed() >= REJOIN {
+            return Err(anyhow::Error::new(error).context(format!(
+                "the coordinator did not come back within {} s",
+                REJOIN.as_secs()
+            )));
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(500)).await;
     }
-    if let Some((_, b)) = bar.take() {
-        b.finish_and_clear();
-    }
+    bars.clear();
     let last = last.context("the coordinator sent no status")?;
     println!("{}", describe(&last));
     match State::try_from(last.state) {
@@ -357,6 +379,44 @@ pub async fn follow(clients: &mut Clients, job: &str) -> Result<JobStatus> {
             "the coordinator closed the progress stream before job {} ended",
             last.job_id
         ),
+    }
+}
+
+/// The progress bar of the iteration being propagated.
+#[derive(Default)]
+struct Bars {
+    bar: Option<(u32, ProgressBar)>,
+}
+
+impl Bars {
+    fn show(&mut self, status: &JobStatus) {
+        if status.state != State::Propagating as i32 {
+            return;
+        }
+        if self.bar.as_ref().is_none_or(|(k, _)| *k != status.iteration) {
+            self.clear();
+            let style = ProgressStyle::with_template("{prefix:>14} [{bar:40}] {pos}/{len} batches {msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar())
+                .progress_chars("=> ");
+            let b = ProgressBar::new(u64::from(status.batches_total));
+            b.set_style(style);
+            b.set_prefix(format!("iteration {}", status.iteration));
+            self.bar = Some((status.iteration, b));
+        }
+        if let Some((_, b)) = &self.bar {
+            b.set_length(u64::from(status.batches_total.max(1)));
+            b.set_position(u64::from(status.batches_done));
+            b.set_message(format!(
+                "unshot {:.2e}, {} workers, {:.0} dir/s",
+                status.unshot_fraction, status.workers_alive, status.directions_per_second
+            ));
+        }
+    }
+
+    fn clear(&mut self) {
+        if let Some((_, b)) = self.bar.take() {
+            b.finish_and_clear();
+        }
     }
 }
 
