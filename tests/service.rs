@@ -17,7 +17,7 @@ use std::time::{Duration, Instant};
 use tonic::Code;
 use vlf_core::field::LightField;
 use vlf_proto::Target;
-use vlf_proto::health::{HealthCheckRequest, health_check_response::ServingStatus};
+use vlf_proto::health::{HealthCheckRequest, HealthCheckResponse, health_check_response::ServingStatus};
 use vlf_proto::v1::{self, State};
 use vlf_store::{FieldJob, Job, JobId, Stage, Store};
 
@@ -596,6 +596,13 @@ fn a_coordinator_stopped_while_a_client_watches_ends_the_watch_and_exits() {
         .into_inner();
     let first = rt.block_on(stream.message()).unwrap().expect("a first status");
     assert_eq!(first.job_id, id);
+    // A client that checks the coordinator's health by streaming it.
+    let mut health = rt
+        .block_on(c.health.watch(HealthCheckRequest { service: String::new() }))
+        .unwrap()
+        .into_inner();
+    let serving = rt.block_on(health.message()).unwrap().expect("a first health status");
+    assert_eq!(serving.status(), ServingStatus::Serving);
     let term = std::process::Command::new("kill")
         .args(["-TERM", &server.child.id().to_string()])
         .status()
@@ -612,6 +619,14 @@ fn a_coordinator_stopped_while_a_client_watches_ends_the_watch_and_exits() {
     };
     assert_eq!(end.code(), Code::Unavailable, "{end:?}");
     assert!(end.message().contains("shutting down"), "{end:?}");
+    // The health stream says the coordinator no longer serves, then ends.
+    let next = |health: &mut tonic::Streaming<_>| {
+        rt.block_on(async { tokio::time::timeout(Duration::from_secs(60), health.message()).await })
+            .expect("the health stream stayed open after the coordinator was told to stop")
+    };
+    let stopping: Option<HealthCheckResponse> = next(&mut health).unwrap();
+    assert_eq!(stopping.map(|h| h.status()), Some(ServingStatus::NotServing));
+    assert!(next(&mut health).unwrap().is_none(), "the health stream ends");
     // And the coordinator exits (a hang is caught here, not timed).
     let deadline = Instant::now() + Duration::from_secs(60);
     let exited = loop {

@@ -11,7 +11,9 @@ pub mod v1 {
 /// probes ask): the coordinator serves it without a token, and `vlf health` asks it.
 pub mod health {
     pub use tonic_health::ServingStatus;
-    pub use tonic_health::pb::{HealthCheckRequest, health_check_response, health_client::HealthClient};
+    pub use tonic_health::pb::{
+        HealthCheckRequest, HealthCheckResponse, health_check_response, health_client::HealthClient,
+    };
     pub use tonic_health::server::{HealthReporter, health_reporter};
 }
 

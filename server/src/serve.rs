@@ -203,12 +203,26 @@ impl Server {
     /// checks answer `NOT_SERVING` to the connections still open.
     pub async fn shutdown(mut self) {
         set_health(&self.health, ServingStatus::NotServing).await;
+        // A health `Watch` (gRPC clients that check health by streaming) has seen
+        // `NOT_SERVING`; it ends as its status is dropped.
+        for service in SERVICES {
+            self.health.clear_service_status(service).await;
+        }
         self.closing.send_replace(true);
         if let Some(tx) = self.shutdown.take() {
             let _ = tx.send(());
         }
         self.reaper.abort();
-        let _ = (&mut self.task).await;
+        // Calls in flight finish first, for `DRAIN` at most: a client that stopped reading a
+        // stream does not hold the coordinator up.
+        if tokio::time::timeout(DRAIN, &mut self.task).await.is_err() {
+            tracing::warn!(
+                "calls still open {} s after the shutdown: stopping without them",
+                DRAIN.as_secs()
+            );
+            self.task.abort();
+            let _ = (&mut self.task).await;
+        }
     }
 
     /// Serves until the server task ends (an error) or `stop` resolves.
@@ -225,9 +239,16 @@ impl Server {
     }
 }
 
-/// Sets the health of the whole server (service `""`) and of each of its APIs.
+/// The health service's names: the whole server (`""`) and each API.
+const SERVICES: [&str; 4] = ["", JOBS, WORKERS, TILES];
+
+/// How long a shutdown waits for the calls in flight: longer than a worker's long poll may
+/// last (the scheduler bounds it to 10 s).
+const DRAIN: Duration = Duration::from_secs(12);
+
+/// Sets the health of the whole server and of each of its APIs.
 async fn set_health(health: &HealthReporter, status: ServingStatus) {
-    for service in ["", JOBS, WORKERS, TILES] {
+    for service in SERVICES {
         health.set_service_status(service, status).await;
     }
 }
