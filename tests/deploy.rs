@@ -122,8 +122,8 @@ fn vlf_within(args: &[String], env: &BTreeMap<String, String>, limit: Duration) 
 
 /// Runs a coordinator, checks that `health` (the probe's `vlf` arguments) passes once it
 /// listens, starts `workers`, then submits the mirror scene, small, with `token` and follows it
-/// to its end. Returns what `vlf submit --watch` printed.
-fn serve_a_job(dir: &Path, coordinator: &Role, workers: &[Role], health: &[String], url: &str, token: &str) -> String {
+/// to its end.
+fn serve_a_job(dir: &Path, coordinator: &Role, workers: &[Role], health: &[String], url: &str, token: &str) {
     let mut server = start(dir, "coordinator", coordinator);
     let listening = server.wait_for_line("listening on ");
     assert_eq!(listening.trim_start_matches("listening on ").trim(), url);
@@ -148,12 +148,11 @@ fn serve_a_job(dir: &Path, coordinator: &Role, workers: &[Role], health: &[Strin
         all
     };
     assert!(o.status.success(), "{}\n{}", describe(&o), logs());
-    let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+    let stdout = String::from_utf8_lossy(&o.stdout);
     assert!(stdout.contains("finished"), "{}\n{}", describe(&o), logs());
     // Every worker registered with the coordinator (and so reached it by the given name).
     let registered = server.log().matches("worker registered").count();
     assert_eq!(registered, workers.len(), "{}", logs());
-    stdout
 }
 
 /// Compose's `${NAME}`, `${NAME:-default}` and `${NAME:?error}` in `s`, from `vars`.

@@ -309,7 +309,7 @@ const REJOIN: std::time::Duration = std::time::Duration::from_secs(120);
 /// final status, or an error when the job failed or was cancelled. A coordinator that goes
 /// away meanwhile is waited for ([`REJOIN`]) and the job followed on from it.
 pub async fn follow(clients: &mut Clients, job: &str) -> Result<JobStatus> {
-    let mut bars = Bars::default();
+    let mut bars = Bars::new();
     let mut last: Option<JobStatus> = None;
     // Since when the coordinator has been away, while it is.
     let mut away: Option<std::time::Instant> = None;
@@ -383,23 +383,27 @@ pub async fn follow(clients: &mut Clients, job: &str) -> Result<JobStatus> {
 }
 
 /// The progress bar of the iteration being propagated.
-#[derive(Default)]
 struct Bars {
+    style: ProgressStyle,
     bar: Option<(u32, ProgressBar)>,
 }
 
 impl Bars {
+    fn new() -> Bars {
+        let style = ProgressStyle::with_template("{prefix:>14} [{bar:40}] {pos}/{len} batches {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar())
+            .progress_chars("=> ");
+        Bars { style, bar: None }
+    }
+
     fn show(&mut self, status: &JobStatus) {
         if status.state != State::Propagating as i32 {
             return;
         }
         if self.bar.as_ref().is_none_or(|(k, _)| *k != status.iteration) {
             self.clear();
-            let style = ProgressStyle::with_template("{prefix:>14} [{bar:40}] {pos}/{len} batches {msg}")
-                .unwrap_or_else(|_| ProgressStyle::default_bar())
-                .progress_chars("=> ");
             let b = ProgressBar::new(u64::from(status.batches_total));
-            b.set_style(style);
+            b.set_style(self.style.clone());
             b.set_prefix(format!("iteration {}", status.iteration));
             self.bar = Some((status.iteration, b));
         }

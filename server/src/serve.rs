@@ -8,7 +8,6 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::sync::oneshot;
 use tokio::task::JoinHandle;
 use tonic::service::Interceptor;
 use tonic::transport::{Identity, ServerTlsConfig};
@@ -85,9 +84,9 @@ pub struct Server {
     addr: SocketAddr,
     scheduler: Arc<Scheduler>,
     health: HealthReporter,
-    /// Set at shutdown: ends the open `Watch` streams (see [`Api`]).
+    /// Set at shutdown: the listener stops accepting and the open `Watch` streams end (see
+    /// [`Api`]).
     closing: tokio::sync::watch::Sender<bool>,
-    shutdown: Option<oneshot::Sender<()>>,
     task: JoinHandle<Result<(), tonic::transport::Error>>,
     reaper: JoinHandle<()>,
 }
@@ -159,10 +158,11 @@ impl Server {
             .add_service(WorkersServer::with_interceptor(api.clone(), auth.clone()))
             .add_service(TilesServer::with_interceptor(api, auth));
 
-        let (tx, rx) = oneshot::channel::<()>();
         let incoming = connections(listener);
-        let task = tokio::spawn(router.serve_with_incoming_shutdown(incoming, async {
-            let _ = rx.await;
+        let mut stopping = closing.subscribe();
+        // A `Server` dropped without a shutdown stops too (its sender gone).
+        let task = tokio::spawn(router.serve_with_incoming_shutdown(incoming, async move {
+            let _ = stopping.wait_for(|closing| *closing).await;
         }));
         let reaper = {
             let scheduler = scheduler.clone();
@@ -183,7 +183,6 @@ impl Server {
             scheduler,
             health,
             closing,
-            shutdown: Some(tx),
             task,
             reaper,
         })
@@ -209,9 +208,6 @@ impl Server {
             self.health.clear_service_status(service).await;
         }
         self.closing.send_replace(true);
-        if let Some(tx) = self.shutdown.take() {
-            let _ = tx.send(());
-        }
         self.reaper.abort();
         // Calls in flight finish first, for `DRAIN` at most: a client that stopped reading a
         // stream does not hold the coordinator up.

@@ -375,15 +375,15 @@ impl tiles_server::Tiles for Api {
 
 /// A stream fed by `produce` through a small channel (backpressure: a slow client slows the
 /// producer, nothing piles up).
-/// Resolves once `closing` turns true; never without one, or when its server was dropped
-/// without shutting down (its task serves on).
+/// Resolves once `closing` turns true or its server is dropped (which stops it too); never
+/// without one.
 async fn shut_down(closing: &mut Option<tokio::sync::watch::Receiver<bool>>) {
-    if let Some(rx) = closing
-        && rx.wait_for(|closing| *closing).await.is_ok()
-    {
-        return;
+    match closing {
+        Some(rx) => {
+            let _ = rx.wait_for(|closing| *closing).await;
+        }
+        None => std::future::pending().await,
     }
-    std::future::pending().await
 }
 
 fn async_stream<T, F, Fut>(produce: F) -> Pin<Box<dyn Stream<Item = Result<T, Status>> + Send>>
