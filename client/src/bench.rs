@@ -37,7 +37,7 @@ use vlf_store::{FieldJob, JobId, Store, Traffic};
 
 #[derive(Args)]
 pub struct BenchArgs {
-    /// Wavefront OBJ scene.
+    /// Scene file: Wavefront OBJ (with its MTL) or glTF 2.0 (.gltf, .glb).
     scene: PathBuf,
     #[command(flatten)]
     job: JobFlags,

@@ -75,7 +75,8 @@ enum Command {
 
 #[derive(Args)]
 pub struct SubmitArgs {
-    /// Wavefront OBJ scene (its MTL libraries are sent with it).
+    /// Scene file: Wavefront OBJ (its MTL libraries are sent with it) or glTF 2.0 (.glb, or .gltf
+    /// with the buffers and images it names next to it).
     scene: PathBuf,
     #[command(flatten)]
     server: ServerFlags,
@@ -106,7 +107,8 @@ pub struct JobArgs {
 
 #[derive(Args)]
 pub struct PropagateArgs {
-    /// Wavefront OBJ scene (materials from its MTL; see the README's conventions).
+    /// Scene file: Wavefront OBJ (materials from its MTL) or glTF 2.0 (.gltf, .glb); see the
+    /// README's conventions.
     /// Not needed with --resume (the job holds its scene).
     #[arg(required_unless_present = "resume")]
     scene: Option<PathBuf>,

@@ -7,7 +7,7 @@ use anyhow::{Context, Result, bail};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::time::Instant;
 use vlf_core::propagate::Propagation;
-use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_core::scene::{ImportOptions, Scene, load_scene};
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{Encoding as WireEncoding, Parameters};
 use vlf_store::{FieldJob, JobId, Stage, Store, Summary};
@@ -16,6 +16,7 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     let pool = thread_pool(&args)?;
     let started = Instant::now();
     let (mut job, mut prop) = start(&args, &pool)?;
+    let setup_seconds = started.elapsed().as_secs_f64();
     print!("{}", prop.plan);
     tracing::info!(
         directions = prop.directions.len(),
@@ -52,6 +53,12 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     outcome?;
 
     let field_bytes = prop.field_bytes();
+    let geometry = format!(
+        "{} polygons in {} charts, {} texels",
+        prop.scene.surfaces.len(),
+        prop.atlas.charts.len(),
+        prop.atlas.texels
+    );
     let mut field = pool.install(|| prop.into_field());
     if args.job.resample {
         pool.install(|| field.resample_mirrors(8));
@@ -63,6 +70,14 @@ pub fn run(args: PropagateArgs) -> Result<()> {
 
     let summary = job.summary(Stage::Field)?;
     print_summary(&args, &job, &summary, started, store_seconds, Some(field_bytes))?;
+    // Where the time went: set-up (import or resume, charts, subfields, discrete areas, snapshot
+    // 0), propagation, and the store's writes after it.
+    let total = started.elapsed().as_secs_f64();
+    println!(
+        "  time split      setup_s={setup_seconds:.2} propagate_s={:.2} store_s={store_seconds:.2}",
+        (total - setup_seconds - store_seconds).max(0.0)
+    );
+    println!("  geometry        {geometry}");
     Ok(())
 }
 
@@ -108,10 +123,11 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
     Ok((job, prop))
 }
 
-/// Imports an OBJ scene (materials from its MTL), logging the importer's warnings.
+/// Imports a scene file (OBJ with its MTL, or glTF 2.0 `.gltf`/`.glb`: the extension decides),
+/// logging the importer's warnings.
 pub fn import(path: &std::path::Path) -> Result<Scene> {
     let (scene, warnings) =
-        load_obj(path, &ImportOptions::default()).with_context(|| format!("cannot import {}", path.display()))?;
+        load_scene(path, &ImportOptions::default()).with_context(|| format!("cannot import {}", path.display()))?;
     for w in &warnings {
         tracing::warn!("{w}");
     }

@@ -77,11 +77,32 @@ fn call_error(status: tonic::Status) -> anyhow::Error {
 }
 
 /// The OBJ and the MTL libraries its `mtllib` lines name (those that exist next to it; a missing
-/// one is reported by the server's importer, with the line that names it).
+/// one is reported by the server's importer, with the line that names it); or a glTF asset and
+/// the buffers and images it names by relative URI, in the same map (those that are plain file
+/// names next to it; a `.glb` or a `.gltf` with `data:` URIs needs none).
 pub fn read_upload(path: &Path) -> Result<v1::SceneUpload> {
     let obj = std::fs::read(path).with_context(|| format!("cannot read {}", path.display()))?;
     let dir = path.parent().unwrap_or(Path::new(""));
     let mut mtl = std::collections::HashMap::new();
+    let gltf = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("gltf") || e.eq_ignore_ascii_case("glb"));
+    if gltf {
+        // A malformed asset is reported by the server's importer, like a malformed OBJ.
+        for file in vlf_core::scene::gltf_external_files(path).unwrap_or_default() {
+            let plain = file.file_name().map(|f| f == file.as_os_str()) == Some(true);
+            if let (true, Some(name)) = (plain, file.to_str())
+                && let Ok(bytes) = std::fs::read(dir.join(&file))
+            {
+                mtl.insert(name.to_string(), bytes);
+            }
+        }
+        let obj_name = path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "scene.gltf".into());
+        return Ok(v1::SceneUpload { obj_name, obj, mtl });
+    }
     for line in String::from_utf8_lossy(&obj).lines() {
         let mut words = line.split_whitespace();
         if words.next() != Some("mtllib") {
@@ -548,6 +569,29 @@ pub fn is_finished(status: &JobStatus) -> bool {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_gltf_upload_carries_the_files_it_names() {
+        let dir = std::env::temp_dir().join(format!("vlf-client-upload-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let gltf = r#"{"asset": {"version": "2.0"},
+            "buffers": [{"byteLength": 4, "uri": "mesh%20data.bin"}, {"byteLength": 4, "uri": "sub/other.bin"},
+                        {"byteLength": 1, "uri": "data:application/octet-stream;base64,AA=="}],
+            "images": [{"uri": "wood.png"}, {"uri": "missing.png"}]}"#;
+        let path = dir.join("lamp.gltf");
+        std::fs::write(&path, gltf).unwrap();
+        std::fs::write(dir.join("mesh data.bin"), [1, 2, 3, 4]).unwrap();
+        std::fs::write(dir.join("wood.png"), [5]).unwrap();
+        let upload = read_upload(&path).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+        assert_eq!(upload.obj_name, "lamp.gltf");
+        assert_eq!(upload.obj, gltf.as_bytes());
+        // Plain names next to the asset that exist; the server reports the rest.
+        let mut names: Vec<&str> = upload.mtl.keys().map(String::as_str).collect();
+        names.sort();
+        assert_eq!(names, ["mesh data.bin", "wood.png"]);
+        assert_eq!(upload.mtl["mesh data.bin"], [1, 2, 3, 4]);
+    }
 
     #[test]
     fn an_iteration_use_reads_as_busy_share_and_serial_part() {

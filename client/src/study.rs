@@ -12,7 +12,7 @@ use vlf_study::{ReferenceSource, Study};
 
 #[derive(Args)]
 pub struct StudyArgs {
-    /// Wavefront OBJ scene.
+    /// Scene file: Wavefront OBJ (with its MTL) or glTF 2.0 (.gltf, .glb).
     scene: PathBuf,
     /// Output folder (CSV, Markdown, plots, images).
     #[arg(long, default_value = "study-out")]

@@ -277,7 +277,7 @@ impl PartSource for RemoteParts {
 
 impl StoreParts {
     fn read(&self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>> {
-        Ok(self.parts.read(&self.geometry, &self.catalog, parts)?)
+        Ok(self.parts.read(&self.catalog, parts)?)
     }
 }
 

@@ -1,11 +1,14 @@
-//! Scenes sent by clients: an OBJ and the MTL libraries it names, imported with the same
-//! importer as a local file (so a bad scene gets the same message, with file and line).
+//! Scenes sent by clients: an OBJ and the MTL libraries it names, or a glTF 2.0 asset (`.glb`,
+//! or `.gltf` with the buffers and images it names, sent in the same map as MTL files), imported
+//! with the same importer as a local file (so a bad scene gets the same message, with file and
+//! line). The upload's file name decides the format: `.gltf` and `.glb` are glTF, anything else
+//! is read as OBJ, as before glTF was accepted.
 //!
 //! The files are written into a private temporary directory under the names the client gave,
 //! which must be plain file names: an upload cannot reach outside that directory.
 
 use std::path::Path;
-use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_core::scene::{ImportOptions, Scene, load_gltf, load_obj};
 use vlf_proto::v1::SceneUpload;
 
 /// Why an upload is refused.
@@ -50,7 +53,12 @@ pub fn import(upload: &SceneUpload, limit: u64) -> Result<(Scene, Vec<String>), 
     }
     let obj = dir.path().join(obj_name);
     std::fs::write(&obj, &upload.obj)?;
-    load_obj(&obj, &ImportOptions::default()).map_err(|e| UploadError::Scene(strip_dir(&e.to_string(), dir.path())))
+    // The glTF importer reads files only inside the asset's folder (no `..`, no absolute paths).
+    let gltf = Path::new(obj_name)
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("gltf") || e.eq_ignore_ascii_case("glb"));
+    let load = if gltf { load_gltf } else { load_obj };
+    load(&obj, &ImportOptions::default()).map_err(|e| UploadError::Scene(strip_dir(&e.to_string(), dir.path())))
 }
 
 /// The importer names files by their path; the client knows them by name.
@@ -78,8 +86,12 @@ mod tests {
     use super::*;
 
     fn upload(obj: &str, mtl: &[(&str, &str)]) -> SceneUpload {
+        upload_as("room.obj", obj, mtl)
+    }
+
+    fn upload_as(name: &str, obj: &str, mtl: &[(&str, &str)]) -> SceneUpload {
         SceneUpload {
-            obj_name: "room.obj".into(),
+            obj_name: name.into(),
             obj: obj.as_bytes().to_vec(),
             mtl: mtl
                 .iter()
@@ -95,6 +107,49 @@ mod tests {
     fn an_upload_imports_like_a_file() {
         let (scene, _) = import(&upload(QUAD, &[("m.mtl", MTL)]), 1 << 20).unwrap();
         assert_eq!(scene.surfaces.len(), 1);
+    }
+
+    /// A glTF emitter triangle whose buffer (36 bytes) is `uri`.
+    fn gltf(uri: &str) -> String {
+        let view = r#""bufferViews": [{"buffer": 0, "byteLength": 36}]"#;
+        let accessor = r#""accessors": [{"bufferView": 0, "componentType": 5126, "count": 3, "type": "VEC3"}]"#;
+        let material = r#""materials": [{"emissiveFactor": [1, 1, 1], "pbrMetallicRoughness": {"metallicFactor": 0}}]"#;
+        let mesh = r#""meshes": [{"primitives": [{"attributes": {"POSITION": 0}, "material": 0}]}]"#;
+        format!(
+            r#"{{"asset": {{"version": "2.0"}}, "buffers": [{{"byteLength": 36, "uri": "{uri}"}}], {view}, {accessor},
+                {material}, {mesh}, "nodes": [{{"mesh": 0}}], "scenes": [{{"nodes": [0]}}]}}"#
+        )
+    }
+
+    /// The triangle's positions, (0,0,0) (1,0,0) (0,1,0) as f32.
+    const TRIANGLE: &str = "AAAAAAAAAAAAAAAAAACAPwAAAAAAAAAAAAAAAAAAgD8AAAAA";
+
+    #[test]
+    fn a_gltf_upload_imports_with_its_buffers() {
+        let embedded = gltf(&format!("data:application/octet-stream;base64,{TRIANGLE}"));
+        let (scene, _) = import(&upload_as("lamp.gltf", &embedded, &[]), 1 << 20).unwrap();
+        assert_eq!(scene.surfaces.len(), 1);
+        // An external buffer travels in the map, by name.
+        let bin: Vec<u8> = [0f32, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+            .iter()
+            .flat_map(|c| c.to_le_bytes())
+            .collect();
+        let mut up = upload_as("lamp.gltf", &gltf("tri.bin"), &[]);
+        up.mtl.insert("tri.bin".into(), bin);
+        let (scene, _) = import(&up, 1 << 20).unwrap();
+        assert_eq!(scene.surfaces.len(), 1);
+        // Missing, or outside the upload's folder: the importer's message, without the folder.
+        let e = import(&upload_as("lamp.gltf", &gltf("tri.bin"), &[]), 1 << 20)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("lamp.gltf: ") && e.contains("buffer 0: cannot read 'tri.bin'") && !e.contains("/tmp"),
+            "{e}"
+        );
+        let e = import(&upload_as("lamp.GLTF", &gltf("../tri.bin"), &[]), 1 << 20)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("inside the asset's folder"), "{e}");
     }
 
     #[test]

@@ -8,7 +8,7 @@
 //! | the propagation options | the manifest's `parameters` | JSON of `Options` (floats round-trip exactly) |
 //! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (the shooting state's head), per batch B of directions `shooting/BBBBB.blob` and `mirror-totals/BBBBB.blob` (its mirror maps), and `totals.blob` (diffuse) | `Propagation::snapshot_bytes`: f64, exact (see below for jobs of earlier builds) |
 //! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
-//! | outgoing radiance of surface s | `S/diffuse/s.blob` | `[height, width, 3]` texels, job encoding |
+//! | outgoing radiance of the charts of diffuse chunk c (`vlf_core::parts`) | `S/diffuse/c.blob` | `[texels, 3]`, the chunk's charts' grids end to end, job encoding |
 //! | radiance leaving mirrors along direction d in tile (s, t) | `field/dirs/d/tile-s-t.blob` | `[slots, 3]` in slot order, job encoding |
 //!
 //! where `S` is a snapshot or the final field.
@@ -50,7 +50,8 @@ use crate::store::{Put, Store};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
-use vlf_core::maps::{TexelAtlas, TexelGrid};
+use vlf_core::maps::TexelAtlas;
+use vlf_core::parts::diffuse_chunks;
 use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{
     Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Totals,
@@ -538,7 +539,7 @@ fn scaled(v: &[[f32; 3]], unit: f64) -> Vec<f32> {
     v.as_flattened().iter().map(|&x| x * scale).collect()
 }
 
-/// Writes every surface's diffuse map of `stage`, in parallel.
+/// Writes every chunk of diffuse maps of `stage`, in parallel.
 fn write_diffuse(
     job: &Job,
     stage: Stage,
@@ -546,21 +547,23 @@ fn write_diffuse(
     radiance: &[[f32; 3]],
     unit: f64,
 ) -> Result<(), StoreError> {
-    let surfaces: Vec<_> = atlas.grids.iter().enumerate().collect();
-    job.put_encoded(&surfaces, |&(s, g)| diffuse_put(job, stage, s, g, radiance, unit))
+    let chunks: Vec<_> = diffuse_chunks(atlas).into_iter().enumerate().collect();
+    job.put_encoded(&chunks, |(c, (_, texels))| {
+        diffuse_put(job, stage, *c, texels.clone(), radiance, unit)
+    })
 }
 
-/// The blob of surface `s`'s diffuse map, whose texels `g` are in `radiance`.
+/// The blob of diffuse chunk `c`, whose texels `texels` are in `radiance`.
 fn diffuse_put(
     job: &Job,
     stage: Stage,
-    s: usize,
-    g: &TexelGrid,
+    c: usize,
+    texels: std::ops::Range<usize>,
     radiance: &[[f32; 3]],
     unit: f64,
 ) -> Result<Put, StoreError> {
-    let values = scaled(&radiance[g.first..g.first + g.len()], unit);
-    job.diffuse_put(stage, s as u32, &[g.height, g.width, 3], &values)
+    let values = scaled(&radiance[texels.clone()], unit);
+    job.diffuse_put(stage, c as u32, &[texels.len() as u32, 3], &values)
 }
 
 /// The shooting state of a released snapshot as stored ([`FieldJob::released_state`]).
@@ -606,20 +609,20 @@ impl PendingSnapshot {
         let json = serde_json::to_vec_pretty(&self.summary)
             .map_err(|e| StoreError::Layout(format!("summary of snapshot {}: {e}", self.k)))?;
         // Mirror radiance of a snapshot lives in its checkpoint's totals (see the module docs).
-        enum Blob<'a> {
+        enum Blob {
             Totals,
             Summary,
-            Surface(usize, &'a TexelGrid),
+            Chunk(usize, std::ops::Range<usize>),
         }
         let blobs: Vec<Blob> = [Blob::Totals, Blob::Summary]
             .into_iter()
-            .chain(self.atlas.grids.iter().enumerate().map(|(s, g)| Blob::Surface(s, g)))
+            .chain((diffuse_chunks(&self.atlas).into_iter().enumerate()).map(|(c, (_, texels))| Blob::Chunk(c, texels)))
             .collect();
         let unit = self.summary.radiance_unit;
         self.job.put_encoded(&blobs, |blob| match blob {
             Blob::Totals => self.job.totals_put(self.k, &self.totals),
             Blob::Summary => self.job.summary_put(stage, &json),
-            Blob::Surface(s, g) => diffuse_put(&self.job, stage, *s, g, &self.diffuse, unit),
+            Blob::Chunk(c, texels) => diffuse_put(&self.job, stage, *c, texels.clone(), &self.diffuse, unit),
         })?;
         self.job.commit_iteration(self.k)?;
         Ok(self.job)

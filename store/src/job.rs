@@ -213,16 +213,15 @@ impl Job {
         Ok(self.put_into(stage, key, bytes))
     }
 
-    /// Writes the Total maps of diffuse surface `surface` (`values` in row-major `shape`, e.g.
-    /// `[rows, cols, 3]`), in the job's encoding.
-    pub fn put_diffuse(&self, stage: Stage, surface: u32, shape: &[u32], values: &[f32]) -> Result<(), StoreError> {
-        self.store
-            .put_all(vec![self.diffuse_put(stage, surface, shape, values)?])
+    /// Writes the diffuse maps of chunk `chunk` (`values` in row-major `shape`, e.g.
+    /// `[texels, 3]`), in the job's encoding.
+    pub fn put_diffuse(&self, stage: Stage, chunk: u32, shape: &[u32], values: &[f32]) -> Result<(), StoreError> {
+        self.store.put_all(vec![self.diffuse_put(stage, chunk, shape, values)?])
     }
 
     /// [`Job::put_diffuse`]'s blob, encoded, for [`Store::put_all`].
-    pub fn diffuse_put(&self, stage: Stage, surface: u32, shape: &[u32], values: &[f32]) -> Result<Put, StoreError> {
-        let key = layout::diffuse(self.id(), stage, surface)?;
+    pub fn diffuse_put(&self, stage: Stage, chunk: u32, shape: &[u32], values: &[f32]) -> Result<Put, StoreError> {
+        let key = layout::diffuse(self.id(), stage, chunk)?;
         self.values_put(stage, key, BlobKind::DiffuseMaps, shape, values)
     }
 
@@ -396,11 +395,11 @@ impl Job {
             .get_bytes_blob(&layout::summary(self.id(), stage)?, BlobKind::Summary)
     }
 
-    /// The Total maps of diffuse surface `surface` of a committed stage: shape and values.
-    pub fn get_diffuse(&self, stage: Stage, surface: u32) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
+    /// The diffuse maps of chunk `chunk` of a committed stage: shape and values.
+    pub fn get_diffuse(&self, stage: Stage, chunk: u32) -> Result<(Vec<u32>, Vec<f32>), StoreError> {
         self.check_committed(stage)?;
         self.store
-            .get_values(&layout::diffuse(self.id(), stage, surface)?, BlobKind::DiffuseMaps)
+            .get_values(&layout::diffuse(self.id(), stage, chunk)?, BlobKind::DiffuseMaps)
     }
 
     /// The directional maps of mirror `surface` of a committed stage: shape and values.

@@ -13,7 +13,7 @@
 //! | `jobs/J/iters/KKKKK/unshot/BBBBB.blob` | Snapshot | in jobs written before the mirror totals were stored by batch: the unshot mirror maps of batch B |
 //! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
 //! | `jobs/J/work/KKKKK/PASS/BBBBB.blob` | BatchOutput | a worker's output for one batch of the iteration after snapshot K (deleted once K+1 is committed) |
-//! | `S/diffuse/SSSSSSS.blob` | DiffuseMaps | Total maps of diffuse surface S |
+//! | `S/diffuse/CCCCCCC.blob` | DiffuseMaps | outgoing radiance of the charts of diffuse chunk C (`vlf_core::parts`) |
 //! | `S/mirrors/SSSSSSS.blob` | MirrorMaps | directional maps of mirror S |
 //! | `S/dirs/DDDDD/tile-TTTT-TTTT.blob` | TileRadiance | tile (s, t) of direction D's parallel subfield |
 //!
@@ -164,10 +164,10 @@ pub fn summary(job: &JobId, stage: Stage) -> Result<String, StoreError> {
     Ok(format!("{}summary.blob", stage_prefix(job, stage)?))
 }
 
-/// `S/diffuse/SSSSSSS.blob`: the Total maps of diffuse surface `surface`.
-pub fn diffuse(job: &JobId, stage: Stage, surface: u32) -> Result<String, StoreError> {
-    let surface = check("surface", surface, MAX_SURFACE)?;
-    Ok(format!("{}diffuse/{surface:07}.blob", stage_prefix(job, stage)?))
+/// `S/diffuse/CCCCCCC.blob`: the diffuse maps of chunk `chunk` (a run of charts).
+pub fn diffuse(job: &JobId, stage: Stage, chunk: u32) -> Result<String, StoreError> {
+    let chunk = check("chunk", chunk, MAX_SURFACE)?;
+    Ok(format!("{}diffuse/{chunk:07}.blob", stage_prefix(job, stage)?))
 }
 
 /// `S/mirrors/SSSSSSS.blob`: the directional maps of mirror `surface`.

@@ -11,8 +11,12 @@ use crate::id::JobId;
 use serde::{Deserialize, Serialize};
 use std::time::{SystemTime, UNIX_EPOCH};
 
-/// The version of the manifest's JSON schema.
-pub const MANIFEST_FORMAT: u32 = 1;
+/// The version of a job's stored layout, recorded in its manifest. A job of another version is
+/// refused with a message that says so, never read into a wrong picture.
+///
+/// * 1: texel grids per polygon, diffuse maps one blob per polygon.
+/// * 2: texel grids per chart (`vlf_core::maps::charts`), diffuse maps in chunks of charts.
+pub const MANIFEST_FORMAT: u32 = 2;
 
 /// Where a job stands.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -93,9 +97,18 @@ impl Manifest {
 
     /// Checks the invariants a stored manifest must satisfy.
     pub fn validate(&self) -> Result<(), String> {
-        if self.format != MANIFEST_FORMAT {
+        if self.format < MANIFEST_FORMAT {
             return Err(format!(
-                "manifest format {} is not supported (expected {MANIFEST_FORMAT})",
+                "the job was made by an older version of vlf (store format {}, this version reads \
+                 {MANIFEST_FORMAT}): its texels were laid out per polygon, not per chart, so its maps \
+                 do not fit; propagate the scene again",
+                self.format
+            ));
+        }
+        if self.format > MANIFEST_FORMAT {
+            return Err(format!(
+                "the job was made by a newer version of vlf (store format {}, this version reads \
+                 {MANIFEST_FORMAT}): upgrade vlf to read it",
                 self.format
             ));
         }

@@ -138,7 +138,7 @@ impl StageParts {
     pub fn key(&self, catalog: &PartCatalog, part: u32) -> Result<String, StoreError> {
         let id = self.job.id();
         match (catalog.part(part), self.stage, &self.mirrors) {
-            (Part::Surface(s), stage, _) => layout::diffuse(id, stage, s),
+            (Part::Chunk(c), stage, _) => layout::diffuse(id, stage, c),
             (Part::Tile { .. }, Stage::Iteration(_), MirrorSource::Whole(key)) => Ok(key.clone()),
             (Part::Tile { direction, .. }, Stage::Iteration(k), MirrorSource::Batches) => {
                 layout::map_part(id, k, MapPart::Totals, self.batch_of(direction) as u32)
@@ -170,17 +170,12 @@ impl StageParts {
         Ok(keys)
     }
 
-    /// Reads `parts` (numbers in `catalog`, the catalog of `geometry`): each one's radiance, in
-    /// the field's units, checked against the shape the geometry gives it and for finite,
+    /// Reads `parts` (numbers in `catalog`, the catalog of the stage's geometry): each one's
+    /// radiance, in the field's units, checked against the shape the catalog gives it and for finite,
     /// non-negative values. A blob that fails either is an error naming its key. The blobs not
     /// at hand are fetched together, their requests overlapping (see [`vlf_store`'s bulk
     /// calls](crate::store)), and decoded in parallel.
-    pub fn read(
-        &self,
-        geometry: &LightField,
-        catalog: &PartCatalog,
-        parts: &[u32],
-    ) -> Result<Vec<Vec<[f32; 3]>>, StoreError> {
+    pub fn read(&self, catalog: &PartCatalog, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, StoreError> {
         let store = self.job.job().store();
         let missing: Vec<String> = {
             let cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
@@ -211,11 +206,10 @@ impl StageParts {
             .map(|&i| {
                 let key = self.key(catalog, i)?;
                 let values = match catalog.part(i) {
-                    Part::Surface(s) => {
-                        let g = &geometry.atlas.grids[s as usize];
+                    Part::Chunk(_) => {
+                        let texels = catalog.values(i) as u32;
                         let (shape, values) = self.values(&key, blob(&key)?, BlobKind::DiffuseMaps)?;
-                        self.job
-                            .check_shape(&shape, &[g.height, g.width, 3], || Ok(key.clone()))?;
+                        self.job.check_shape(&shape, &[texels, 3], || Ok(key.clone()))?;
                         self.scaled(&values)
                     }
                     Part::Tile { direction, tile } => match self.stage {
@@ -341,7 +335,7 @@ impl FieldJob {
             Some(needs) => catalog.needed(needs),
             None => (0..catalog.len() as u32).collect(),
         };
-        let values = reader.read(&field, &catalog, &parts)?;
+        let values = reader.read(&catalog, &parts)?;
         for (&i, v) in parts.iter().zip(&values) {
             field.part_values_mut(&catalog, i).copy_from_slice(v);
         }

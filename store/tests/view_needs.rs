@@ -168,7 +168,7 @@ fn parts_read_one_by_one_are_the_fields_and_bad_blobs_are_named() {
         assert_eq!(catalog, PartCatalog::new(&whole));
         // Every part, in an order of its own: the whole field's values, bit for bit.
         let parts: Vec<u32> = (0..catalog.len() as u32).rev().collect();
-        let values = reader.read(&geometry, &catalog, &parts).unwrap();
+        let values = reader.read(&catalog, &parts).unwrap();
         for (&p, v) in parts.iter().zip(&values) {
             let want = whole.part_values(&catalog, p);
             assert!(
@@ -195,9 +195,9 @@ fn parts_read_one_by_one_are_the_fields_and_bad_blobs_are_named() {
     let middle = bytes.len() / 2;
     bytes[middle] ^= 0x55;
     store.put(&key, bytes).unwrap();
-    let error = reader.read(&geometry, &catalog, &[0, tile]).unwrap_err().to_string();
+    let error = reader.read(&catalog, &[0, tile]).unwrap_err().to_string();
     assert!(error.contains(&key), "{error}");
-    assert!(reader.read(&geometry, &catalog, &[0]).is_ok());
+    assert!(reader.read(&catalog, &[0]).is_ok());
     // A stage that is not committed is refused.
     assert!(StageParts::open(job.clone(), Stage::Iteration(99)).is_err());
 }

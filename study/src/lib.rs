@@ -29,7 +29,7 @@ use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::Options;
 use vlf_core::render::compare::{compare, error_map, false_colour};
 use vlf_core::render::{Camera, Image};
-use vlf_core::scene::{ImportOptions, Scene, load_obj};
+use vlf_core::scene::{ImportOptions, Scene, load_scene};
 use vlf_store::Encoding;
 
 use reference::{Mitsuba, Reference};
@@ -78,7 +78,7 @@ pub struct Outcome {
 /// line before each step (for a progress display).
 pub fn run(study: &Study, progress: &mut dyn FnMut(usize, usize, &str)) -> Result<Outcome> {
     std::fs::create_dir_all(&study.out).with_context(|| format!("cannot create {}", study.out.display()))?;
-    let (scene, warnings) = load_obj(&study.scene, &ImportOptions::default())
+    let (scene, warnings) = load_scene(&study.scene, &ImportOptions::default())
         .with_context(|| format!("cannot import {}", study.scene.display()))?;
     for w in warnings {
         tracing::warn!("{w}");
@@ -336,6 +336,6 @@ fn encoding_name(e: Encoding) -> &'static str {
 /// The scene as imported, for callers that need it (e.g. to export it).
 pub fn import(path: &Path) -> Result<Scene> {
     let (scene, _) =
-        load_obj(path, &ImportOptions::default()).with_context(|| format!("cannot import {}", path.display()))?;
+        load_scene(path, &ImportOptions::default()).with_context(|| format!("cannot import {}", path.display()))?;
     Ok(scene)
 }

@@ -53,7 +53,7 @@ struct GpuSurface {
     grid_origin: [f32; 3],
     inv_texel: f32,
     axis_u: [f32; 3],
-    /// The surface's part number (its diffuse map's entry in the part table).
+    /// The part number of the chunk holding the surface's chart (its entry in the part table).
     part: u32,
     axis_v: [f32; 3],
     width: u32,
@@ -61,6 +61,9 @@ struct GpuSurface {
     vertex_count: u32,
     height: u32,
     mirror_index: u32,
+    /// Where the chart's texels start in its chunk.
+    texel_offset: u32,
+    _pad: [u32; 3],
 }
 
 /// A BVH node as the shader reads it (the layout of `vlf_core::render::bvh::Node`).
@@ -148,11 +151,11 @@ impl FieldRenderer {
     pub fn streaming(gpu: &Gpu, field: &LightField, capacity: usize) -> Result<FieldRenderer, ViewerError> {
         let scene = &field.scene;
         let atlas = &field.atlas;
-        if atlas.grids.len() != scene.surfaces.len() || field.radiance.len() != atlas.texels {
+        if atlas.chart_of.len() != scene.surfaces.len() || field.radiance.len() != atlas.texels {
             return Err(ViewerError::Unsupported(format!(
-                "inconsistent field: {} surfaces, {} grids, {} texels, {} radiance values",
+                "inconsistent field: {} surfaces, {} charted, {} texels, {} radiance values",
                 scene.surfaces.len(),
-                atlas.grids.len(),
+                atlas.chart_of.len(),
                 atlas.texels,
                 field.radiance.len()
             )));
@@ -163,7 +166,9 @@ impl FieldRenderer {
         let mut vertices = Vec::new();
         let mut polygon_vertices: Vec<[f32; 4]> = Vec::new();
         let mut surfaces = Vec::with_capacity(scene.surfaces.len());
-        for (i, (surface, grid)) in scene.surfaces.iter().zip(&atlas.grids).enumerate() {
+        for (i, surface) in scene.surfaces.iter().enumerate() {
+            let grid = atlas.grid(i);
+            let part = catalog.chunk_of_surface(i);
             let corner = |v: DVec3| Vertex {
                 position: v.as_vec3().to_array(),
                 texel: (grid.coords(v) - 0.5).as_vec2().to_array(),
@@ -184,13 +189,15 @@ impl FieldRenderer {
                 grid_origin: grid.origin.as_vec3().to_array(),
                 inv_texel: (1.0 / grid.texel) as f32,
                 axis_u: grid.axis_u.as_vec3().to_array(),
-                part: i as u32,
+                part,
                 axis_v: grid.axis_v.as_vec3().to_array(),
                 width: grid.width,
                 first_vertex: polygon_vertices.len() as u32,
                 vertex_count: surface.vertices.len() as u32,
                 height: grid.height,
                 mirror_index: rays.mirror_index[i],
+                texel_offset: (grid.first - catalog.range(part).start) as u32,
+                _pad: [0; 3],
             });
             polygon_vertices.extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
         }

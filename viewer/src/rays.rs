@@ -7,7 +7,8 @@
 //!    rotation and the unit vectors are uploaded as they are).
 //! 2. In each direction's subfield the point projects between four rays; each ray's mirror slot
 //!    is read from a dense *window* per (direction, mirror) — the rectangle of ray cells the
-//!    mirror covers, holding where `MirrorLayout::locate` puts the ray, or `NONE` — and the
+//!    mirror covers and one more on every side, holding where `MirrorLayout::locate_in_chart`
+//!    puts the ray (on the mirror or on another polygon of its chart), or `NONE` — and the
 //!    rays' radiance is interpolated bilinearly over the rays that exist.
 //! 3. The three are blended by the barycentric weights of the directions that had a ray.
 //!
@@ -117,19 +118,26 @@ impl RayTables {
                     *b = (b.0.min(x), b.1.min(y), b.2.max(x + 1), b.3.max(y + 1));
                 });
             }
+            let resolution = sub.grid.resolution;
             for (m, &(x0, y0, x1, y1)) in bounds.iter().enumerate() {
                 if x0 == u32::MAX {
                     windows.extend([0, 0, 0, 0, 0]);
                     continue;
                 }
+                // One more ray on every side: a look-up near the mirror's edge may read the
+                // ray of a neighbouring polygon of the same mirror chart.
+                let (x0, y0) = (x0.saturating_sub(1), y0.saturating_sub(1));
+                let (x1, y1) = ((x1 + 1).min(resolution), (y1 + 1).min(resolution));
                 let surface = mirror_surfaces[m];
                 windows.extend([x0, y0, x1 - x0, y1 - y0, cells.len() as u32 / 2]);
                 for y in y0..y1 {
                     for x in x0..x1 {
-                        cells.extend(match layout.locate(sub, surface, x, y) {
-                            Some(slot) => place(x, y, slot),
-                            None => [NONE, NONE],
-                        });
+                        cells.extend(
+                            match layout.locate_in_chart(sub, &field.atlas.chart_of, surface, x, y) {
+                                Some(slot) => place(x, y, slot),
+                                None => [NONE, NONE],
+                            },
+                        );
                     }
                 }
             }

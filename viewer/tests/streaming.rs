@@ -10,7 +10,7 @@
 
 mod common;
 
-use common::{bundled_field, gpu};
+use common::{bundled_field_with_texel, gpu};
 use glam::DVec3;
 use std::collections::BTreeSet;
 use std::sync::{Arc, Mutex};
@@ -23,8 +23,13 @@ use vlf_viewer::stream::{FieldParts, StreamConfig, Streamer};
 use vlf_viewer::{FieldRenderer, Gpu, MirrorMode, PartSource};
 
 /// The bundled mirror scene, coarse.
+/// Fine texels, so that the diffuse maps come in several chunks and each view needs some of
+/// them, not all.
 fn field() -> LightField {
-    bundled_field("mirrors.obj", 129, 3)
+    let field = bundled_field_with_texel("mirrors.obj", 129, 3, 0.1);
+    let chunks = PartCatalog::new(&field).chunks();
+    assert!(chunks >= 3, "{chunks} chunks of diffuse maps");
+    field
 }
 
 /// The field with its radiance zero: what a viewer starts from.
@@ -224,7 +229,7 @@ fn a_failing_source_is_retried_and_a_cache_too_small_for_a_view_draws_what_fits(
     // streamer says the cache is full.
     let maps: usize = need_a
         .iter()
-        .filter(|&&p| matches!(s.catalog.part(p), vlf_core::parts::Part::Surface(_)))
+        .filter(|&&p| matches!(s.catalog.part(p), vlf_core::parts::Part::Chunk(_)))
         .map(|&p| s.catalog.values(p))
         .sum();
     assert!(maps < values);

@@ -70,8 +70,8 @@ impl ExactDirect {
             )));
         }
         let mut direct = first.radiance.clone();
-        for (surface, grid) in first.atlas.grids.iter().enumerate() {
-            let le = first.scene.material(surface).emission;
+        for (grid, &material) in first.atlas.charts.iter().zip(&first.atlas.chart_material) {
+            let le = first.scene.materials[material as usize].emission;
             let n = grid.width as usize * grid.height as usize;
             for t in &mut direct[grid.first..grid.first + n] {
                 for c in 0..3 {

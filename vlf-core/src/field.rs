@@ -158,7 +158,7 @@ impl LightField {
 
     /// Bilinear look-up of per-texel `values` (laid out like the atlas).
     pub(crate) fn bilinear(&self, values: &[[f32; 3]], surface: usize, p: DVec3) -> Rgb {
-        let g = &self.atlas.grids[surface];
+        let g = self.atlas.grid(surface);
         let c = g.coords(p) - 0.5;
         let (x0, y0) = (c.x.floor(), c.y.floor());
         let (fx, fy) = (c.x - x0, c.y - y0);
@@ -254,7 +254,7 @@ impl Propagation {
 /// Fills uncovered texels with the mean of covered neighbours, growing
 /// outwards a ring per pass (a few passes suffice: holes are border texels).
 fn fill_holes(atlas: &TexelAtlas, covered: &[bool], radiance: &mut [[f32; 3]]) {
-    for g in &atlas.grids {
+    for g in &atlas.charts {
         let (w, h) = (g.width as i64, g.height as i64);
         let mut known: Vec<bool> = covered[g.first..g.first + g.len()].to_vec();
         if !known.iter().any(|&k| k) {

@@ -3,13 +3,15 @@
 //!
 //! | part | values | where in the field |
 //! |---|---|---|
-//! | `Surface(s)` | surface `s`'s diffuse map, `width × height` texels | `radiance[first ..]` of its grid |
+//! | `Chunk(c)` | the diffuse maps of a run of consecutive charts ([`TexelAtlas::chunks`]) | `radiance[first ..]` of its first chart's grid |
 //! | `Tile { direction: d, tile: k }` | the mirror slots of tile `k` of subfield `d` | `totals[d][range]` |
 //!
 //! A tile's slots are contiguous because a [`MirrorLayout`](crate::propagate::specular::MirrorLayout)
 //! numbers slots tile by tile ([`MirrorLayout::tile_slots`](crate::propagate::specular::MirrorLayout::tile_slots));
-//! only tiles that hold mirror slots are parts. The store writes one blob per part of a final
-//! field; [`LightField::view_needs`] says which parts a view reads, so a viewer can hold only
+//! only tiles that hold mirror slots are parts. Diffuse maps are cut into chunks of at most
+//! [`DIFFUSE_CHUNK_TEXELS`] texels (a chart larger than that is a chunk of its own), so that
+//! their number follows the texels, not the polygon count: a scan of 10⁵ triangles is a few
+//! chunks, not 10⁵ blobs. The store writes one blob per part of a final field; [`LightField::view_needs`] says which parts a view reads, so a viewer can hold only
 //! those.
 //!
 //! Everything but the radiance is a deterministic function of the scene and the options, so the
@@ -18,25 +20,48 @@
 
 use crate::field::LightField;
 use crate::lookup::ViewNeeds;
+use crate::maps::TexelAtlas;
 use std::collections::HashMap;
 use std::ops::Range;
+
+/// Most texels in one chunk of diffuse maps: 768 KiB of f32 RGB, 384 KiB in f16.
+pub const DIFFUSE_CHUNK_TEXELS: usize = 1 << 16;
 
 /// One part of a field's radiance (see the module docs).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Part {
-    /// A surface's diffuse map.
-    Surface(u32),
+    /// The diffuse maps of chunk `c` (a run of charts).
+    Chunk(u32),
     /// The mirror slots of tile `tile` of line direction `direction`.
     Tile { direction: u32, tile: u32 },
 }
 
-/// Every part of a field, numbered: surfaces first (part `i` is surface `i`), then mirror tiles
-/// direction by direction, tile by tile. With each, where its values lie in the field.
+/// Every part of a field, numbered: chunks of diffuse maps first (part `i` is chunk `i`), then
+/// mirror tiles direction by direction, tile by tile. With each, where its values lie in the
+/// field.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct PartCatalog {
     parts: Vec<Part>,
     ranges: Vec<Range<usize>>,
     index: HashMap<Part, u32>,
+    /// The chunk of every chart.
+    chunk_of_chart: Vec<u32>,
+    /// The chunk of every surface (its chart's).
+    chunk_of_surface: Vec<u32>,
+}
+
+/// The chunks of `atlas`' diffuse maps: for each, its charts and its texels (one contiguous
+/// range of the atlas).
+pub fn diffuse_chunks(atlas: &TexelAtlas) -> Vec<(Range<u32>, Range<usize>)> {
+    atlas
+        .chunks(DIFFUSE_CHUNK_TEXELS)
+        .into_iter()
+        .map(|charts| {
+            let first = atlas.charts[charts.start as usize].first;
+            let last = &atlas.charts[charts.end as usize - 1];
+            (charts, first..last.first + last.len())
+        })
+        .collect()
 }
 
 impl PartCatalog {
@@ -44,10 +69,18 @@ impl PartCatalog {
     pub fn new(field: &LightField) -> PartCatalog {
         let mut parts = Vec::new();
         let mut ranges = Vec::new();
-        for (s, g) in field.atlas.grids.iter().enumerate() {
-            parts.push(Part::Surface(s as u32));
-            ranges.push(g.first..g.first + (g.width * g.height) as usize);
+        let mut chunk_of_chart = vec![0u32; field.atlas.charts.len()];
+        for (c, (charts, texels)) in diffuse_chunks(&field.atlas).into_iter().enumerate() {
+            parts.push(Part::Chunk(c as u32));
+            ranges.push(texels);
+            chunk_of_chart[charts.start as usize..charts.end as usize].fill(c as u32);
         }
+        let chunk_of_surface = field
+            .atlas
+            .chart_of
+            .iter()
+            .map(|&c| chunk_of_chart[c as usize])
+            .collect();
         if let Some(spec) = &field.specular {
             for (d, (layout, sub)) in spec.layouts.iter().zip(spec.subfields.iter()).enumerate() {
                 for (k, range) in layout.tile_slots(sub) {
@@ -60,7 +93,28 @@ impl PartCatalog {
             }
         }
         let index = parts.iter().enumerate().map(|(i, &p)| (p, i as u32)).collect();
-        PartCatalog { parts, ranges, index }
+        PartCatalog {
+            parts,
+            ranges,
+            index,
+            chunk_of_chart,
+            chunk_of_surface,
+        }
+    }
+
+    /// The chunk part holding `surface`'s diffuse map.
+    pub fn chunk_of_surface(&self, surface: usize) -> u32 {
+        self.chunk_of_surface[surface]
+    }
+
+    /// The chunk part holding chart `chart`'s diffuse map.
+    pub fn chunk_of_chart(&self, chart: usize) -> u32 {
+        self.chunk_of_chart[chart]
+    }
+
+    /// Number of chunks of diffuse maps (parts `0..chunks`).
+    pub fn chunks(&self) -> usize {
+        self.parts.iter().take_while(|p| matches!(p, Part::Chunk(_))).count()
     }
 
     /// Number of parts.
@@ -87,7 +141,7 @@ impl PartCatalog {
         self.index.get(&part).copied()
     }
 
-    /// Where part `i`'s values lie: in [`LightField::radiance`] for a surface, in
+    /// Where part `i`'s values lie: in [`LightField::radiance`] for a chunk, in
     /// `totals[direction]` for a tile.
     pub fn range(&self, i: u32) -> Range<usize> {
         self.ranges[i as usize].clone()
@@ -103,11 +157,17 @@ impl PartCatalog {
         self.ranges.iter().map(|r| r.len()).sum()
     }
 
-    /// The numbers of the parts `needs` lists, coarse first: diffuse maps (they draw every
-    /// surface and, through traced reflections, the mirrors), then mirror tiles by how much of
-    /// the image they make ([`ViewNeeds::tile_weight`], heaviest first; ties in tile order).
+    /// The numbers of the parts `needs` lists, coarse first: the chunks of the diffuse maps of
+    /// its surfaces (they draw every surface and, through traced reflections, the mirrors),
+    /// then mirror tiles by how much of the image they make ([`ViewNeeds::tile_weight`],
+    /// heaviest first; ties in tile order).
     pub fn needed(&self, needs: &ViewNeeds) -> Vec<u32> {
-        let surfaces = needs.surfaces.iter().map(|&s| Part::Surface(s));
+        let mut chunks: Vec<u32> = (needs.surfaces.iter())
+            .filter_map(|&s| self.chunk_of_surface.get(s as usize).copied())
+            .collect();
+        chunks.sort_unstable();
+        chunks.dedup();
+        let surfaces = chunks.into_iter().map(Part::Chunk);
         let mut tiles: Vec<(u32, u32)> = needs.mirror_tiles.iter().copied().collect();
         let weight = |t: &(u32, u32)| needs.tile_weight.get(t).copied().unwrap_or(0.0);
         tiles.sort_by(|a, b| weight(b).total_cmp(&weight(a)).then(a.cmp(b)));
@@ -123,7 +183,7 @@ impl LightField {
     pub fn part_values(&self, catalog: &PartCatalog, i: u32) -> &[[f32; 3]] {
         let range = catalog.range(i);
         match catalog.part(i) {
-            Part::Surface(_) => &self.radiance[range],
+            Part::Chunk(_) => &self.radiance[range],
             Part::Tile { direction, .. } => match &self.specular {
                 Some(spec) => &spec.totals[direction as usize][range],
                 None => &[],
@@ -135,7 +195,7 @@ impl LightField {
     pub fn part_values_mut(&mut self, catalog: &PartCatalog, i: u32) -> &mut [[f32; 3]] {
         let range = catalog.range(i);
         match catalog.part(i) {
-            Part::Surface(_) => &mut self.radiance[range],
+            Part::Chunk(_) => &mut self.radiance[range],
             Part::Tile { direction, .. } => match &mut self.specular {
                 Some(spec) => &mut spec.totals[direction as usize][range],
                 None => &mut [],
@@ -176,7 +236,7 @@ mod tests {
         let mut slots: Vec<Vec<u32>> = spec.totals.iter().map(|t| vec![0; t.len()]).collect();
         for i in 0..catalog.len() as u32 {
             let counts = match catalog.part(i) {
-                Part::Surface(_) => &mut texels,
+                Part::Chunk(_) => &mut texels,
                 Part::Tile { direction, .. } => &mut slots[direction as usize],
             };
             for c in &mut counts[catalog.range(i)] {
@@ -226,7 +286,7 @@ mod tests {
             .iter()
             .filter_map(|p| match *p {
                 Part::Tile { direction, tile } => Some((direction, tile)),
-                Part::Surface(_) => None,
+                Part::Chunk(_) => None,
             })
             .take(3)
             .collect();
@@ -240,7 +300,12 @@ mod tests {
         let order: Vec<Part> = catalog.needed(&needs).iter().map(|&i| catalog.part(i)).collect();
         assert_eq!(
             order,
-            vec![Part::Surface(2), tile(tiles[1]), tile(tiles[2]), tile(tiles[0])]
+            vec![
+                Part::Chunk(catalog.chunk_of_surface(2)),
+                tile(tiles[1]),
+                tile(tiles[2]),
+                tile(tiles[0])
+            ]
         );
     }
 }

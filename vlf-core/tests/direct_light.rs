@@ -69,7 +69,7 @@ fn direct_part_error(l: usize, n: u32) -> f64 {
     let bvh = Bvh::build(&last.scene);
     let (mut diff, mut sum) = (0.0, 0.0);
     for surface in [1, 2] {
-        let g = &first.atlas.grids[surface];
+        let g = first.atlas.grid(surface);
         for y in 0..g.height {
             for x in 0..g.width {
                 let t = g.first + (y * g.width + x) as usize;

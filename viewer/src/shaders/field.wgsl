@@ -3,7 +3,8 @@
 //
 // Radiance maps. Every surface owns a rectangular grid of texels (see `vlf_core::maps`), one
 // *part* of the field (`vlf_core::parts`); a part lies in the pool from `parts[part]` on, or is
-// not resident (NONE, drawn black): texel (s, t) of surface i is `pool[parts[i] + t·width_i + s]`. A point
+// not resident (NONE, drawn black): texel (s, t) of surface i (its chart's grid) is
+// `pool[parts[part_i] + texel_offset_i + t·width_i + s]`. A point
 // reads its outgoing radiance bilinearly between texel centres, clamping at the grid's border,
 // exactly as `LightField::radiance_at` does on the CPU. For the visible surface the texel
 // coordinates (shifted by ½ to texel centres) come per vertex, computed in f64 on the CPU: they
@@ -44,7 +45,7 @@ struct Surface {
     grid_origin: vec3<f32>,
     inv_texel: f32,
     axis_u: vec3<f32>,
-    // The surface's part (its diffuse map).
+    // The part holding the surface's chart's diffuse map (a chunk of charts).
     part: u32,
     axis_v: vec3<f32>,
     width: u32,
@@ -53,6 +54,8 @@ struct Surface {
     height: u32,
     // Index among the mirrors (for the ray tables), NONE for other surfaces.
     mirror_index: u32,
+    // Where the surface's chart's texels start in its part (a chunk of charts).
+    texel_offset: u32,
 };
 
 struct Node {
@@ -117,7 +120,7 @@ fn pool_rgb(value: u32) -> vec3<f32> {
 }
 
 fn texel_radiance(s: Surface, base: u32, x: u32, y: u32) -> vec3<f32> {
-    return pool_rgb(base + y * s.width + x);
+    return pool_rgb(base + s.texel_offset + y * s.width + x);
 }
 
 // Bilinear between texel centres at texel coordinates `c` (already shifted by ½); black while

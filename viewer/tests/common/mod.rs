@@ -25,13 +25,21 @@ pub fn gpu() -> Option<Gpu> {
 
 /// A bundled scene propagated with `directions` on a 32 × 32 grid (tiles of 8) for
 /// `iterations`.
+#[allow(dead_code)] // not every test binary uses both
 pub fn bundled_field(scene: &str, directions: usize, iterations: u32) -> LightField {
+    bundled_field_with_texel(scene, directions, iterations, 1.0)
+}
+
+/// [`bundled_field`] with texels of `texel_cells` ray spacings.
+#[allow(dead_code)] // not every test binary uses both
+pub fn bundled_field_with_texel(scene: &str, directions: usize, iterations: u32, texel_cells: f64) -> LightField {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(scene);
     let (scene, _) = load_obj(&path, &ImportOptions::default()).expect("bundled scene");
     let options = Options {
         directions,
         grid: GridSize::new(32, 8).expect("grid"),
         stop: Stop::Iterations(iterations),
+        texel_cells,
         ..Options::default()
     };
     let mut p = Propagation::new(scene, options).expect("propagation");

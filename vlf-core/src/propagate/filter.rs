@@ -29,7 +29,7 @@ fn kernel(sigma: f64) -> (usize, Vec<f64>) {
 pub(crate) fn gaussian(atlas: &TexelAtlas, area: &[f64], power: &mut [Rgb], sigma: f64) {
     let (radius, kernel) = kernel(sigma);
     let filtered: Vec<Vec<Rgb>> = atlas
-        .grids
+        .charts
         .par_iter()
         .map(|g| {
             let (w, h) = (g.width as usize, g.height as usize);
@@ -73,7 +73,7 @@ pub(crate) fn gaussian(atlas: &TexelAtlas, area: &[f64], power: &mut [Rgb], sigm
             out
         })
         .collect();
-    for (g, out) in atlas.grids.iter().zip(filtered) {
+    for (g, out) in atlas.charts.iter().zip(filtered) {
         power[g.first..g.first + g.len()].copy_from_slice(&out);
     }
 }
@@ -89,7 +89,7 @@ mod tests {
     fn by_definition(atlas: &TexelAtlas, area: &[f64], power: &mut [Rgb], sigma: f64) {
         let (radius, kernel) = kernel(sigma);
         let radius = radius as i64;
-        for g in &atlas.grids {
+        for g in &atlas.charts {
             let (w, h) = (g.width as i64, g.height as i64);
             let src = &power[g.first..g.first + g.len()];
             let valid = &area[g.first..g.first + g.len()];
@@ -143,7 +143,9 @@ mod tests {
     /// isolated texel with no valid neighbour, zero and non-zero power.
     fn fixture() -> (TexelAtlas, Vec<f64>, Vec<Rgb>) {
         let atlas = TexelAtlas {
-            grids: vec![grid(13, 9, 0), grid(2, 11, 117), grid(1, 1, 139)],
+            charts: vec![grid(13, 9, 0), grid(2, 11, 117), grid(1, 1, 139)],
+            chart_of: vec![0, 1, 2],
+            chart_material: vec![0, 0, 0],
             texels: 140,
         };
         // A small deterministic generator: the test needs variety, not quality.

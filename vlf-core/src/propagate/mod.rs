@@ -34,7 +34,7 @@
 //!    (fixed batches, so the bits do not depend on the thread count), times
 //!    `ρd` it becomes Next and is added to Total.
 //!
-//! Options: deferred propagation (surfaces with negligible unshot power wait),
+//! Options: deferred propagation (charts with negligible unshot power wait),
 //! perturbation (the paper's remedy for holes: shoot the first iterations
 //! through randomly rotated copies of the direction set) and power-preserving
 //! Gaussian filtering of the Next maps.
@@ -190,6 +190,7 @@ pub struct IterationStats {
     pub flow: FlowRecord,
     /// Unshot power left after the iteration (Next + deferred).
     pub unshot: Rgb,
+    /// Charts (surfaces sharing texels, [`crate::maps::charts`]) deferred this iteration.
     pub deferred_surfaces: usize,
     /// Mirror exchange after the iteration (zero without mirrors).
     pub exchange: Exchange,
@@ -251,6 +252,7 @@ pub struct Propagation {
     /// What this propagation simulates (see [`Plan`]).
     pub plan: Plan,
     stacking: Vec<u32>,
+    /// The chart of every texel.
     owners: Vec<u32>,
     /// A chunk's per-direction texel buffers, kept from one block or step to the next.
     buffers: work::KeptBuffers,
@@ -357,8 +359,8 @@ impl Propagation {
         let current: Vec<Rgb> = projected_area
             .iter()
             .zip(&owners)
-            .map(|(&t, &s)| {
-                let le = scene.material(s as usize).emission;
+            .map(|(&t, &c)| {
+                let le = scene.materials[atlas.chart_material[c as usize] as usize].emission;
                 [le[0] * t, le[1] * t, le[2] * t]
             })
             .collect();
@@ -370,7 +372,8 @@ impl Propagation {
         }
         let mut plan = Plan::new(&scene, geometry, &subfields);
         let mirrors = plan.mapped_mirrors();
-        let specular = (!mirrors.is_empty()).then(|| Specular::new(&scene, &directions, &subfields, mirrors));
+        let specular = (!mirrors.is_empty())
+            .then(|| Specular::new(&scene, &directions, &subfields, mirrors, atlas.chart_of.clone()));
         plan.mirror_slots = specular
             .as_ref()
             .map_or(0, |s| s.layouts.iter().map(|l| l.len as usize).sum());
@@ -549,8 +552,8 @@ impl Propagation {
             .received
             .iter()
             .zip(&self.owners)
-            .map(|(r, &s)| {
-                let rho = scene.material(s as usize).diffuse;
+            .map(|(r, &c)| {
+                let rho = scene.materials[self.atlas.chart_material[c as usize] as usize].diffuse;
                 [r[0] * rho[0], r[1] * rho[1], r[2] * rho[2]]
             })
             .collect();

@@ -140,7 +140,7 @@ pub(crate) fn for_each_ray(
                 u32::MAX / 2 + 1 + rank
             };
             let surface = &scene.surfaces[e.surface as usize];
-            let grid = &atlas.grids[e.surface as usize];
+            let grid = atlas.grid(e.surface as usize);
             let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
             let tp = TexelProjection {
                 depth: proj.depth,
@@ -177,7 +177,7 @@ pub(crate) fn for_each_ray(
             // Few hits per ray: insertion sort beats a general sort here.
             for i in 1..hits.len() {
                 let mut j = i;
-                while j > 0 && before(&hits[j], &hits[j - 1]) {
+                while j > 0 && before(scene, &hits[j], &hits[j - 1]) {
                     hits.swap(j, j - 1);
                     j -= 1;
                 }
@@ -187,16 +187,27 @@ pub(crate) fn for_each_ray(
     }
 }
 
-/// Hit order along `+w`: by depth, and for (near-)coincident surfaces by
-/// their tie key, so that a flush lamp is met before its ceiling from below
-/// and two back-to-back polygons never exchange light through each other.
+/// Hit order along `+w`: by depth, and for (near-)coincident *parallel*
+/// surfaces by their tie key, so that a flush lamp is met before its ceiling
+/// from below and two back-to-back polygons never exchange light through
+/// each other. Surfaces that are not parallel and meet the ray at (almost)
+/// the same depth cross there — a ray grazing the edge where a tessellated
+/// sphere's silhouette folds — and keep their depth order: the tie key would
+/// put the facet facing `−w` first and let the ray escape through the fold.
 #[inline]
-fn before(a: &RayHit, b: &RayHit) -> bool {
-    if (a.depth - b.depth).abs() <= DEPTH_TIE {
+fn before(scene: &Scene, a: &RayHit, b: &RayHit) -> bool {
+    if (a.depth - b.depth).abs() <= DEPTH_TIE && parallel(scene, a.surface, b.surface) {
         a.tie < b.tie
     } else {
         a.depth < b.depth
     }
+}
+
+/// Whether two surfaces are parallel (either facing) to rounding.
+#[inline]
+fn parallel(scene: &Scene, a: u32, b: u32) -> bool {
+    let (na, nb) = (scene.surfaces[a as usize].normal, scene.surfaces[b as usize].normal);
+    na.dot(nb).abs() >= 1.0 - 1e-9
 }
 
 /// Where the power shot along one direction went (per channel).

@@ -122,6 +122,20 @@ impl MirrorLayout {
         let base = self.entry_base[entry];
         (base != NO_SLOT).then_some(base + offset)
     }
+
+    /// The mirror slot of grid cell `(x, y)` on `surface` or, where its ray misses `surface`,
+    /// on another surface of the same chart (`chart_of` per surface): a mirror tessellated
+    /// into several coplanar polygons is one mirror to its look-ups, so a neighbouring ray
+    /// that crosses the polygon next door is not dropped.
+    pub fn locate_in_chart(&self, sub: &Subfield, chart_of: &[u32], surface: u32, x: u32, y: u32) -> Option<u32> {
+        if let Some(slot) = self.locate(sub, surface, x, y) {
+            return Some(slot);
+        }
+        let chart = chart_of[surface as usize];
+        let (entry, offset) = sub.locate_entry_where(x, y, |s| s != surface && chart_of[s as usize] == chart)?;
+        let base = self.entry_base[entry];
+        (base != NO_SLOT).then_some(base + offset)
+    }
 }
 
 /// The mirror maps owned by one direction (see the module docs).
@@ -184,6 +198,9 @@ pub struct Specular {
     /// maps hold them and the unshot maps are stale (see [`Pending`]).
     pub pending: Option<Pending>,
     ordinal: Vec<u32>,
+    /// The chart of every surface ([`crate::maps::TexelAtlas::chart_of`]): the polygons of a
+    /// tessellated mirror read each other's rays.
+    chart_of: Vec<u32>,
 }
 
 /// The last iteration's arrivals on mirrors, waiting to be reflected.
@@ -206,7 +223,13 @@ pub struct Pending {
 impl Specular {
     /// Lays out the mirror maps of `mirrors` over every subfield and builds the
     /// reflection routes.
-    pub fn new(scene: &Scene, directions: &DirectionSet, subfields: &[Subfield], mirrors: Vec<u32>) -> Self {
+    pub fn new(
+        scene: &Scene,
+        directions: &DirectionSet,
+        subfields: &[Subfield],
+        mirrors: Vec<u32>,
+        chart_of: Vec<u32>,
+    ) -> Self {
         let mut has_maps = vec![false; scene.surfaces.len()];
         let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
         for (k, &m) in mirrors.iter().enumerate() {
@@ -254,6 +277,7 @@ impl Specular {
             routes,
             pending: None,
             ordinal,
+            chart_of,
         }
     }
 
@@ -447,7 +471,7 @@ impl Specular {
                     let g = source.frame.to_grid(p, n);
                     let v = if g.x >= 0.0 && g.y >= 0.0 {
                         source_layout
-                            .locate(source, route.mirror, g.x as u32, g.y as u32)
+                            .locate_in_chart(source, &self.chart_of, route.mirror, g.x as u32, g.y as u32)
                             .map_or([0.0; 3], |s| source_incident[s as usize])
                     } else {
                         [0.0; 3]

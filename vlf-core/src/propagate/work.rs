@@ -407,8 +407,8 @@ impl Propagation {
         let index = self.iterations_done();
         let texels = self.atlas.texels;
 
-        // Deferred propagation: quiet surfaces keep their unshot power.
-        let mut per_surface = vec![0.0f64; self.scene.surfaces.len()];
+        // Deferred propagation: quiet charts keep their unshot power.
+        let mut per_surface = vec![0.0f64; self.atlas.charts.len()];
         for (t, c) in self.current.iter().enumerate() {
             per_surface[self.owners[t] as usize] += super::luminance(c);
         }

@@ -251,6 +251,34 @@ impl Subfield {
         None
     }
 
+    /// Like [`Subfield::locate_entry`], for the first surface of the tile (in surface order)
+    /// that `accept`s and whose rays include cell `(x, y)`: how a look-up on one polygon of a
+    /// tessellated mirror finds a neighbouring ray that crosses another polygon of it.
+    pub fn locate_entry_where(&self, x: u32, y: u32, accept: impl Fn(u32) -> bool) -> Option<(usize, u32)> {
+        let (m, n) = (self.grid.tile, self.grid.resolution);
+        if x >= n || y >= n {
+            return None;
+        }
+        let k = ((y / m) * self.grid.tiles_per_side() + x / m) as usize;
+        let (row, col) = ((y % m) as u16, (x % m) as u16);
+        for (local, e) in self.tile(k).iter().enumerate() {
+            if !accept(e.surface) {
+                continue;
+            }
+            let mut offset = 0u32;
+            for s in self.spans_of(e) {
+                if s.row == row {
+                    if s.start <= col && col < s.end {
+                        return Some((self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
+                    }
+                    break;
+                }
+                offset += (s.end - s.start) as u32;
+            }
+        }
+        None
+    }
+
     /// Visits every ray of `surface` in slot order with its grid cell `(x, y)`.
     pub fn rays_of(&self, k: usize, entry: &TileSurface, mut visit: impl FnMut(u32, u32, u32)) {
         let m = self.grid.tile;

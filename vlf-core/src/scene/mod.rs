@@ -8,15 +8,67 @@
 //! images stay in the scene's own units; [`Normalisation`] converts between
 //! the two. Radiance and radiosity are invariant under this similarity (only
 //! powers scale, by `scale²`), so no photometric quantity is rescaled.
+//!
+//! Files are read by one module per format (`obj.rs`: Wavefront OBJ + MTL;
+//! `gltf/`: glTF 2.0, `.gltf` and `.glb`), chosen by [`load_scene`]; each
+//! turns its file into polygons and materials, and `build.rs` validates,
+//! splits (non-convex faces into convex pieces, non-planar ones into
+//! triangles: `bent.rs`, geometry in `polygon.rs`) and normalises them,
+//! the same for every format and for [`Scene::from_polygons`].
 
+mod bent;
+mod build;
+mod gltf;
 mod obj;
 mod polygon;
+mod weld;
 
-pub use obj::{ImportOptions, MAX_MIRROR_REFLECTANCE, load_obj};
+pub use self::gltf::{gltf_external_files, load_gltf};
+pub use build::{ImportOptions, MAX_MIRROR_REFLECTANCE};
+pub use obj::load_obj;
 pub use polygon::{PolygonError, convex_pieces, newell_normal};
+
+use std::path::Path;
 
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
+
+/// The scene file formats, by extension (case-insensitive): what
+/// [`load_scene`] reads.
+pub const SCENE_EXTENSIONS: &[&str] = &["obj", "gltf", "glb"];
+
+/// Reads a scene file of any supported format, chosen by its extension:
+/// `.obj` ([`load_obj`], with its MTL libraries), `.gltf` or `.glb`
+/// ([`load_gltf`]). Every format goes through the same validation and
+/// normalisation, so the result and its warnings mean the same whatever the
+/// source. Another extension is an error that names the supported ones.
+pub fn load_scene(path: &Path, options: &ImportOptions) -> Result<(Scene, Vec<String>), crate::Error> {
+    let extension = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+        .unwrap_or_default();
+    match extension.as_str() {
+        "obj" => load_obj(path, options),
+        "gltf" | "glb" => load_gltf(path, options),
+        _ => Err(crate::Error::scene(
+            &path.display().to_string(),
+            None,
+            format!(
+                "unknown scene format {}: supported are {}",
+                if extension.is_empty() {
+                    "(no extension)".to_string()
+                } else {
+                    format!("'.{extension}'")
+                },
+                SCENE_EXTENSIONS
+                    .iter()
+                    .map(|e| format!(".{e}"))
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            ),
+        )),
+    }
+}
 
 /// RGB triple used for reflectances and radiances (linear, per channel).
 pub type Rgb = [f64; 3];
@@ -49,9 +101,11 @@ impl Material {
 /// Where a surface came from in the input, for error messages and tooling.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FaceOrigin {
-    /// 1-based line of the `f` statement in the OBJ file (0 if generated).
+    /// 1-based line of the `f` statement in the OBJ file (0 if generated,
+    /// or for formats without lines, such as glTF).
     pub line: usize,
-    /// 0-based index of the face among all faces of the file.
+    /// 0-based index of the face among all faces of the file (for glTF, of
+    /// the triangle among all triangles read).
     pub face: usize,
 }
 
@@ -111,15 +165,16 @@ impl Scene {
 
     /// Builds a scene from polygons given in scene units (each a list of
     /// vertices, counter-clockwise about the front normal), normalising it
-    /// into the VLF frame. This is the mechanism behind the OBJ importer and
+    /// into the VLF frame. This is the mechanism behind the importers and
     /// the programmatic test scenes alike: it validates, splits non-convex
-    /// polygons and skips degenerate ones (returned as warnings).
+    /// polygons into convex pieces and bent ones into triangles, and skips
+    /// degenerate ones (both returned as warnings).
     pub fn from_polygons(
         polygons: &[(Vec<DVec3>, usize, FaceOrigin)],
         materials: Vec<Material>,
         options: &ImportOptions,
     ) -> Result<(Scene, Vec<String>), crate::Error> {
-        obj::build_scene(polygons, materials, options, "<generated>")
+        build::build_scene(polygons, materials, options, "<generated>")
     }
 
     /// The scene as bytes (bincode), for storage: the exact normalised

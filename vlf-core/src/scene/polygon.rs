@@ -146,12 +146,12 @@ pub fn convex_pieces(v: &[DVec3]) -> Result<Vec<Vec<DVec3>>, PolygonError> {
 /// plane with `u × w = n`, so that counter-clockwise about `n` is
 /// counter-clockwise in 2-D; centred on the centroid and scaled by the
 /// diameter so that coordinates are of order one.
-struct Plane2d {
-    points: Vec<DVec2>,
+pub(super) struct Plane2d {
+    pub(super) points: Vec<DVec2>,
 }
 
 impl Plane2d {
-    fn new(v: &[DVec3]) -> Option<Self> {
+    pub(super) fn new(v: &[DVec3]) -> Option<Self> {
         let d = diameter(v);
         if !(d.is_finite() && d > 0.0) {
             return None;
@@ -177,7 +177,7 @@ impl Plane2d {
 }
 
 /// Twice the signed area of the triangle `a b c` (positive if CCW).
-fn orient(a: DVec2, b: DVec2, c: DVec2) -> f64 {
+pub(super) fn orient(a: DVec2, b: DVec2, c: DVec2) -> f64 {
     (b - a).perp_dot(c - a)
 }
 
@@ -235,7 +235,7 @@ fn is_convex_2d(ring: &[usize], p: &[DVec2]) -> bool {
 
 /// Whether two edges that are not neighbours in the ring cross or touch.
 /// O(n²), run only on non-convex polygons.
-fn self_intersects(ring: &[usize], p: &[DVec2]) -> bool {
+pub(super) fn self_intersects(ring: &[usize], p: &[DVec2]) -> bool {
     let n = ring.len();
     for i in 0..n {
         let (a, b) = (p[ring[i]], p[ring[(i + 1) % n]]);

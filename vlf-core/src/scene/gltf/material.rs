@@ -1,0 +1,298 @@
+//! glTF materials (metallic-roughness PBR) as VLF materials: ideal diffuse,
+//! ideal mirror, isotropic emission.
+//!
+//! * `baseColorFactor` (linear RGB; alpha ignored) is the reflectance. A
+//!   `baseColorTexture` multiplies it by the texture's *average* linear
+//!   colour (texels are sRGB and decoded before averaging): a surface has one
+//!   reflectance in the VLF, per-texel albedo is not supported yet, and a
+//!   warning says so.
+//! * **Smooth** (`roughnessFactor` ≤ [`MIRROR_ROUGHNESS`]): glTF's BRDF is a
+//!   linear mix of a dielectric and a metal by `metallicFactor` m, so the
+//!   metal share becomes an ideal mirror, ρs = m × base, and the rest is
+//!   diffuse, ρd = (1 − m) × base. Metallic 1 is a pure mirror (ρs = base);
+//!   metallic 0 a pure diffuser (the dielectric's few-percent Fresnel
+//!   reflection is neglected, as for any diffuse material here).
+//! * **Rough** (roughness above that): the glossy lobe has no counterpart
+//!   among ideal diffuse and ideal mirror; the diffuser keeps its albedo:
+//!   ρd = base whatever the metallic factor, and a metallic one gets a
+//!   warning (its reflection is spread over the hemisphere, not glossy).
+//! * `emissiveFactor` × `KHR_materials_emissive_strength` (× the
+//!   `emissiveTexture`'s average linear colour, with a warning) is the
+//!   emitted radiance `Le`, in the same units as an OBJ's `Ke`.
+//! * `doubleSided` is returned to the mesh reader, which emits each triangle
+//!   twice, once per side (so both sides reflect, and emit).
+//! * Everything else (`metallicRoughnessTexture`, normal and occlusion maps,
+//!   `alphaMode`, extensions such as transmission, volume, clearcoat or
+//!   sheen) is ignored with a warning naming the material.
+//! * Values glTF does not allow (a colour above 1 or below 0) are clamped
+//!   into range with a warning, so the result always passes the shared
+//!   material checks.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use ::gltf::json;
+use json::validation::Checked;
+
+use super::data::{Buffers, image_bytes};
+use crate::Error;
+use crate::scene::build::fmt_rgb;
+use crate::scene::{Material, Rgb};
+
+/// Largest roughness read as an ideal mirror: below it a glossy reflection
+/// is sharp to a few degrees (the GGX lobe's width is of order roughness²).
+/// An f32, as glTF's factors are: a file's `0.05` is exactly this.
+pub(super) const MIRROR_ROUGHNESS: f32 = 0.05;
+
+/// A converted material and whether its triangles are double-sided.
+pub(super) struct Converted {
+    pub material: Material,
+    pub double_sided: bool,
+}
+
+/// Converts materials, caching texture averages by image.
+pub(super) struct Materials<'a> {
+    pub root: &'a json::Root,
+    pub dir: &'a Path,
+    pub averages: HashMap<usize, Rgb>,
+}
+
+impl Materials<'_> {
+    /// glTF's default material (for a primitive without one): base colour 1,
+    /// metallic 1, roughness 1, which the rules above make a white diffuser.
+    pub fn default_material() -> Converted {
+        Converted {
+            material: Material {
+                name: "glTF default material".to_string(),
+                diffuse: [1.0; 3],
+                specular: [0.0; 3],
+                emission: [0.0; 3],
+            },
+            double_sided: false,
+        }
+    }
+
+    /// Converts material `index`, adding its warnings.
+    pub fn convert(
+        &mut self,
+        buffers: &mut Buffers,
+        index: usize,
+        warnings: &mut Vec<String>,
+    ) -> Result<Converted, Error> {
+        let file = buffers.file().to_string();
+        let Some(m) = self.root.materials.get(index) else {
+            return Err(Error::scene(
+                &file,
+                None,
+                format!(
+                    "material {index} does not exist (the file has {})",
+                    self.root.materials.len()
+                ),
+            ));
+        };
+        let name = match &m.name {
+            Some(n) if !n.is_empty() => n.clone(),
+            _ => format!("material #{index}"),
+        };
+        let label = format!("material '{name}' (#{index})");
+        let fail = |msg: String| Error::scene(&file, None, format!("{label}: {msg}"));
+        let mut warn = |msg: String| warnings.push(format!("{file}: {label}: {msg}"));
+        let pbr = &m.pbr_metallic_roughness;
+
+        let factor = pbr.base_color_factor.0;
+        let mut base = clamp_unit(
+            [factor[0], factor[1], factor[2]].map(f64::from),
+            "baseColorFactor",
+            &mut warn,
+        )
+        .map_err(fail)?;
+        if let Some(info) = &pbr.base_color_texture {
+            let average = self
+                .texture_average(buffers, info.index.value())
+                .map_err(|m| fail(format!("baseColorTexture: {m}")))?;
+            base = mul(base, average);
+            warn(format!(
+                "baseColorTexture averaged to {} (linear) over the material: per-texel albedo is not supported yet",
+                fmt_rgb(average)
+            ));
+        }
+        let metallic = clamp_scalar(pbr.metallic_factor.0, "metallicFactor", &mut warn).map_err(fail)?;
+        let roughness = clamp_scalar(pbr.roughness_factor.0, "roughnessFactor", &mut warn).map_err(fail)?;
+        if pbr.metallic_roughness_texture.is_some() {
+            warn("metallicRoughnessTexture ignored: the factors are used".to_string());
+        }
+        // For messages, as the file writes them.
+        let (m_f32, r_f32) = (pbr.metallic_factor.0, pbr.roughness_factor.0);
+        let (diffuse, specular) = if roughness <= f64::from(MIRROR_ROUGHNESS) {
+            if metallic > 0.0 && metallic < 1.0 {
+                warn(format!(
+                    "metallic {m_f32} (roughness {r_f32}) read as a partial mirror: \
+                     ρs = metallic × base colour, ρd = (1 − metallic) × base colour"
+                ));
+            }
+            (base.map(|b| b * (1.0 - metallic)), base.map(|b| b * metallic))
+        } else {
+            if metallic > 0.0 {
+                warn(format!(
+                    "metallic {m_f32} with roughness {r_f32} > {MIRROR_ROUGHNESS}: a rough metal's glossy \
+                     reflection is approximated as diffuse, ρd = base colour {} (its albedo); only \
+                     roughness ≤ {MIRROR_ROUGHNESS} is an ideal mirror",
+                    fmt_rgb(base)
+                ));
+            }
+            (base, [0.0; 3])
+        };
+
+        let factor = m.emissive_factor.0.map(f64::from);
+        let strength = m
+            .extensions
+            .as_ref()
+            .and_then(|e| e.emissive_strength.as_ref())
+            .map_or(1.0, |s| f64::from(s.emissive_strength.0));
+        if !(strength.is_finite() && strength >= 0.0) {
+            return Err(fail(format!(
+                "KHR_materials_emissive_strength {strength} is not a finite number ≥ 0"
+            )));
+        }
+        let mut emission = clamp_emission(factor.map(|f| f * strength), &mut warn).map_err(fail)?;
+        if let Some(info) = &m.emissive_texture
+            && emission.iter().any(|&e| e > 0.0)
+        {
+            let average = self
+                .texture_average(buffers, info.index.value())
+                .map_err(|m| fail(format!("emissiveTexture: {m}")))?;
+            emission = mul(emission, average);
+            warn(format!(
+                "emissiveTexture averaged to {} (linear) over the material: per-texel emission is not supported yet",
+                fmt_rgb(average)
+            ));
+        }
+
+        if m.normal_texture.is_some() || m.occlusion_texture.is_some() {
+            warn("normal and occlusion textures ignored".to_string());
+        }
+        match m.alpha_mode {
+            Checked::Valid(json::material::AlphaMode::Opaque) => {}
+            _ => warn("alphaMode ignored: the surface is opaque".to_string()),
+        }
+        if let Some(ext) = &m.extensions {
+            for key in ext.others.keys() {
+                warn(format!(
+                    "extension {key} ignored: only base colour, metallic-roughness and emission are read"
+                ));
+            }
+        }
+        Ok(Converted {
+            material: Material {
+                name,
+                diffuse,
+                specular,
+                emission,
+            },
+            double_sided: m.double_sided,
+        })
+    }
+
+    /// Average linear colour of texture `index`'s image (cached).
+    fn texture_average(&mut self, buffers: &mut Buffers, index: usize) -> Result<Rgb, String> {
+        let Some(texture) = self.root.textures.get(index) else {
+            return Err(format!(
+                "texture {index} does not exist (the file has {})",
+                self.root.textures.len()
+            ));
+        };
+        let image = texture.source.value();
+        if let Some(&average) = self.averages.get(&image) {
+            return Ok(average);
+        }
+        let bytes = image_bytes(self.root, buffers, self.dir, image)?;
+        let decoded = image::load_from_memory(&bytes).map_err(|e| format!("image {image} cannot be decoded: {e}"))?;
+        let average = average_linear(&decoded).ok_or_else(|| format!("image {image} has no pixels"))?;
+        self.averages.insert(image, average);
+        Ok(average)
+    }
+}
+
+/// The sRGB transfer function's inverse: an encoded value in `[0, 1]` to
+/// linear.
+pub(super) fn srgb_to_linear(c: f64) -> f64 {
+    if c <= 0.04045 {
+        c / 12.92
+    } else {
+        ((c + 0.055) / 1.055).powf(2.4)
+    }
+}
+
+/// Mean linear RGB of an sRGB-encoded image (alpha ignored); `None` if it
+/// has no pixels.
+pub(super) fn average_linear(image: &image::DynamicImage) -> Option<Rgb> {
+    let pixels = u64::from(image.width()) * u64::from(image.height());
+    if pixels == 0 {
+        return None;
+    }
+    let mut sum = [0.0f64; 3];
+    let eight_bit = matches!(
+        image.color(),
+        image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8
+    );
+    if eight_bit {
+        let lut: Vec<f64> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0)).collect();
+        for p in image.to_rgb8().pixels() {
+            for (s, &v) in sum.iter_mut().zip(&p.0) {
+                *s += lut[v as usize];
+            }
+        }
+    } else {
+        for p in image.to_rgb32f().pixels() {
+            for (s, &v) in sum.iter_mut().zip(&p.0) {
+                *s += srgb_to_linear(f64::from(v).clamp(0.0, 1.0));
+            }
+        }
+    }
+    Some(sum.map(|s| s / pixels as f64))
+}
+
+fn mul(a: Rgb, b: Rgb) -> Rgb {
+    [a[0] * b[0], a[1] * b[1], a[2] * b[2]]
+}
+
+/// A reflectance clamped into `[0, 1]`, warning if it was outside.
+fn clamp_unit(c: Rgb, what: &str, warn: &mut impl FnMut(String)) -> Result<Rgb, String> {
+    if c.iter().any(|x| !x.is_finite()) {
+        return Err(format!("{what} {} is not finite", fmt_rgb(c)));
+    }
+    let clamped = c.map(|x| x.clamp(0.0, 1.0));
+    if clamped != c {
+        warn(format!(
+            "{what} {} clamped to {} (glTF allows [0, 1])",
+            fmt_rgb(c),
+            fmt_rgb(clamped)
+        ));
+    }
+    Ok(clamped)
+}
+
+/// A factor clamped into `[0, 1]`, warning if it was outside.
+fn clamp_scalar(x: f32, what: &str, warn: &mut impl FnMut(String)) -> Result<f64, String> {
+    let x = f64::from(x);
+    if !x.is_finite() {
+        return Err(format!("{what} {x} is not finite"));
+    }
+    let clamped = x.clamp(0.0, 1.0);
+    if clamped != x {
+        warn(format!("{what} {x} clamped to {clamped} (glTF allows [0, 1])"));
+    }
+    Ok(clamped)
+}
+
+/// Emitted radiance clamped at 0 from below, warning if it was negative.
+fn clamp_emission(e: Rgb, warn: &mut impl FnMut(String)) -> Result<Rgb, String> {
+    if e.iter().any(|x| !x.is_finite()) {
+        return Err(format!("emission {} is not finite", fmt_rgb(e)));
+    }
+    let clamped = e.map(|x| x.max(0.0));
+    if clamped != e {
+        warn(format!("emission {} clamped to {}", fmt_rgb(e), fmt_rgb(clamped)));
+    }
+    Ok(clamped)
+}

@@ -1,0 +1,179 @@
+//! What a glTF asset is refused for: every error names what is wrong,
+//! none panics.
+
+use super::*;
+
+#[test]
+fn missing_buffers_and_files_are_errors() {
+    let a = with_light();
+    let (json, _) = a.gltf_external("missing.bin");
+    let folder = Folder::new();
+    let path = folder.write("scene.gltf", &json);
+    let e = load_gltf(&path, &ImportOptions::default()).unwrap_err().to_string();
+    assert!(e.contains("buffer 0") && e.contains("cannot read 'missing.bin'"), "{e}");
+    // Outside the asset's folder, or with a scheme: refused before reading.
+    for uri in [
+        "../secret.bin",
+        "/etc/passwd",
+        "http://example.com/a.bin",
+        "file:///etc/passwd",
+        "bad%zz.bin",
+        "%+1.bin",
+    ] {
+        let (json, _) = a.gltf_external(uri);
+        let e = error(&json);
+        assert!(e.contains("only data: URIs and relative paths"), "{uri}: {e}");
+    }
+    // A .glb whose buffer has no uri but no BIN chunk either.
+    let mut root = a.root.clone();
+    root["buffers"] = json!([{"byteLength": 36}]);
+    let e = error(&serde_json::to_vec(&root).unwrap());
+    assert!(e.contains("buffer 0: has no uri"), "{e}");
+    // A buffer shorter than its byteLength.
+    let mut root: Value = serde_json::from_slice(&a.gltf()).unwrap();
+    root["buffers"][0]["byteLength"] = json!(40);
+    let e = error(&serde_json::to_vec(&root).unwrap());
+    assert!(e.contains("byteLength is 40 but its data has only 36 bytes"), "{e}");
+    // A buffer view past the end of its buffer, an accessor past its view.
+    let mut root: Value = serde_json::from_slice(&a.gltf()).unwrap();
+    root["bufferViews"][0]["byteOffset"] = json!(8);
+    let e = error(&serde_json::to_vec(&root).unwrap());
+    assert!(e.contains("bufferView 0") && e.contains("lies outside buffer 0"), "{e}");
+    let mut root: Value = serde_json::from_slice(&a.gltf()).unwrap();
+    root["accessors"][0]["count"] = json!(4);
+    let e = error(&serde_json::to_vec(&root).unwrap());
+    assert!(
+        e.contains("POSITION of mesh #0 primitive 0: accessor 0") && e.contains("do not fit"),
+        "{e}"
+    );
+    let mut root: Value = serde_json::from_slice(&a.gltf()).unwrap();
+    root["accessors"][0]["count"] = json!(0);
+    let e = error(&serde_json::to_vec(&root).unwrap());
+    assert!(e.contains("no faces"), "{e}");
+    let missing = error(&{
+        let mut root: Value = serde_json::from_slice(&a.gltf()).unwrap();
+        root["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = json!(7);
+        serde_json::to_vec(&root).unwrap()
+    });
+    assert!(missing.contains("accessor 7: does not exist"), "{missing}");
+}
+
+#[test]
+fn bad_indices_positions_and_accessor_types_are_errors() {
+    let mut a = with_light();
+    let m = a.material(diffuse("white"));
+    a.triangles(&LIGHT, Some(&[0, 1, 5]), m, json!({}));
+    let e = error(&a.gltf());
+    assert!(
+        e.contains("mesh #1 primitive 0: index 5 (element 2 of the indices) is out of range"),
+        "{e}"
+    );
+
+    let mut a = with_light();
+    a.triangles(
+        &[[0.0, 0.0, 1.0], [f32::NAN, 0.0, 1.0], [0.0, 1.0, 1.0]],
+        None,
+        0,
+        json!({}),
+    );
+    let e = error(&a.gltf());
+    assert!(e.contains("mesh #1 primitive 0: POSITION 1 is not finite"), "{e}");
+
+    let mut root: Value = serde_json::from_slice(&with_light().gltf()).unwrap();
+    root["accessors"][0]["type"] = json!("VEC2");
+    let e = error(&serde_json::to_vec(&root).unwrap());
+    assert!(e.contains("accessor 0: is VEC2 of FLOAT, expected VEC3"), "{e}");
+
+    let mut a = with_light();
+    let m = a.material(diffuse("white"));
+    a.triangles(&LIGHT, Some(&[0, 1, 2]), m, json!({}));
+    a.root["accessors"][2]["componentType"] = json!(5126);
+    let e = error(&a.gltf());
+    assert!(
+        e.contains("indices of mesh #1 primitive 0: accessor 2: is SCALAR of FLOAT"),
+        "{e}"
+    );
+    let mut a = with_light();
+    let m = a.material(diffuse("white"));
+    a.triangles(&LIGHT, Some(&[0, 1, 2, 0]), m, json!({}));
+    let e = error(&a.gltf());
+    assert!(e.contains("4 vertices, not a multiple of 3"), "{e}");
+
+    // A transform beyond f32 (read as infinite); a large one is fine, in f64.
+    let mut a = with_light();
+    a.triangles(&LIGHT, None, 0, json!({"name": "far", "scale": [1e39, 1.0, 1.0]}));
+    let e = error(&a.gltf());
+    // serde_json refuses the number itself where the workspace enables its exact float parsing.
+    assert!(
+        e.contains("node 'far' (#1): its transform is not finite") || e.contains("number out of range"),
+        "{e}"
+    );
+    let mut a = with_light();
+    a.triangles(&LIGHT, None, 0, json!({"scale": [3e38, 3e38, 3e38]}));
+    assert!(load(&a.gltf()).is_ok());
+}
+
+#[test]
+fn malformed_files_are_errors() {
+    let e = error(b"{ \"asset\": {\"version\": \"2.0\"}, ");
+    assert!(e.contains("not valid JSON") && e.contains("line 1"), "{e}");
+    let e = error(b"{\"meshes\": []}");
+    assert!(
+        e.contains("not a valid glTF 2.0 document") && e.contains("asset"),
+        "{e}"
+    );
+    let e = import(
+        b"PK\x03\x04",
+        "scene.glb",
+        Path::new("/nonexistent"),
+        &ImportOptions::default(),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.starts_with("scene.glb: not a binary glTF"), "{e}");
+    // A byte order mark is tolerated.
+    let mut bom = b"\xEF\xBB\xBF".to_vec();
+    bom.extend(with_light().gltf());
+    assert!(load(&bom).is_ok());
+    let e = error(b"{\"asset\": {\"version\": \"1.0\"}}");
+    assert!(e.contains("glTF version 1.0 is not supported"), "{e}");
+
+    for ext in [
+        "KHR_draco_mesh_compression",
+        "EXT_meshopt_compression",
+        "KHR_materials_volume",
+    ] {
+        let mut a = with_light();
+        a.root["extensionsUsed"] = json!([ext]);
+        a.root["extensionsRequired"] = json!([ext]);
+        let e = error(&a.gltf());
+        assert!(
+            e.contains(&format!("requires extension {ext}, which is not supported")),
+            "{e}"
+        );
+    }
+
+    // Every truncation of a valid .glb is an error, never a panic.
+    let glb = with_light().glb();
+    assert!(load(&glb).is_ok());
+    for n in 0..glb.len() {
+        let e = load(&glb[..n]);
+        assert!(e.is_err(), "{n} bytes loaded");
+    }
+    let e = error(&glb[..glb.len() - 1]);
+    assert!(e.contains("malformed binary glTF (.glb): truncated"), "{e}");
+    let e = error(&glb[..6]);
+    assert!(e.contains("shorter than the 12-byte header"), "{e}");
+    // Every corrupted byte is an error or a scene, never a panic.
+    for n in 0..glb.len() {
+        let mut bad = glb.clone();
+        bad[n] ^= 0xff;
+        let _ = load(&bad);
+    }
+
+    // A node hierarchy with a cycle.
+    let mut a = with_light();
+    a.root["nodes"][0]["children"] = json!([0]);
+    let e = error(&a.gltf());
+    assert!(e.contains("node 0 is reached twice"), "{e}");
+}
