@@ -453,3 +453,98 @@ fn snapshots_and_fields_are_written_with_their_requests_overlapping() {
         }
     }
 }
+
+/// A scene of 30 000 polygons (every wall of a closed room a grid of triangles, fine texels so
+/// the maps span several chunks): a snapshot is a bounded number of blobs — the diffuse maps
+/// by chunk of charts, not by polygon — and a damaged chunk is named by its key.
+#[test]
+fn a_snapshot_of_thousands_of_polygons_is_a_few_blobs() {
+    use glam::DVec3;
+    use vlf_core::scene::{FaceOrigin, Material};
+    let (h, k) = (1.0, 50);
+    let axes = [DVec3::X, DVec3::Y, DVec3::Z];
+    let mut polygons = Vec::new();
+    for face in 0..6 {
+        let axis = axes[face / 2];
+        let sign = if face % 2 == 0 { -1.0 } else { 1.0 };
+        let (ta, tb) = (axes[(face / 2 + 1) % 3], axes[(face / 2 + 2) % 3]);
+        let at = |i: usize, j: usize| {
+            axis * sign * h + ta * h * (2.0 * i as f64 / k as f64 - 1.0) + tb * h * (2.0 * j as f64 / k as f64 - 1.0)
+        };
+        for i in 0..k {
+            for j in 0..k {
+                for t in [
+                    [at(i, j), at(i + 1, j), at(i + 1, j + 1)],
+                    [at(i, j), at(i + 1, j + 1), at(i, j + 1)],
+                ] {
+                    // Inward: ta × tb = axis, so flip on the + faces.
+                    let t = if sign > 0.0 {
+                        vec![t[0], t[1], t[2]]
+                    } else {
+                        vec![t[0], t[2], t[1]]
+                    };
+                    let material = usize::from(
+                        face == 3 && (k / 2 - 4..k / 2 + 4).contains(&i) && (k / 2 - 4..k / 2 + 4).contains(&j),
+                    );
+                    polygons.push((
+                        t,
+                        material,
+                        FaceOrigin {
+                            line: 0,
+                            face: polygons.len(),
+                        },
+                    ));
+                }
+            }
+        }
+    }
+    let m = |name: &str, d: f64, e: f64| Material {
+        name: name.into(),
+        diffuse: [d; 3],
+        specular: [0.0; 3],
+        emission: [e; 3],
+    };
+    let (scene, _) = Scene::from_polygons(
+        &polygons,
+        vec![m("wall", 0.5, 0.0), m("lamp", 0.5, 10.0)],
+        &ImportOptions::default(),
+    )
+    .unwrap();
+    assert_eq!(scene.surfaces.len(), 30_000);
+    let store = Store::open("memory://").unwrap();
+    let options = Options {
+        directions: 9,
+        grid: GridSize::new(32, 8).unwrap(),
+        stop: Stop::Iterations(1),
+        texel_cells: 0.1,
+        ..Options::default()
+    };
+    let mut p = Propagation::new(scene, options).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F16).unwrap();
+    p.step(|_| {});
+    job.write_snapshot(&p).unwrap();
+    let id = job.id().clone();
+    let snapshot = store
+        .list(&layout::stage_prefix(&id, Stage::Iteration(1)).unwrap())
+        .unwrap();
+    let chunks = vlf_core::parts::diffuse_chunks(&p.atlas).len();
+    println!(
+        "{} polygons, {} charts, {} texels: {} chunks, snapshot of {} blobs",
+        p.scene.surfaces.len(),
+        p.atlas.charts.len(),
+        p.atlas.texels,
+        chunks,
+        snapshot.len()
+    );
+    assert!(chunks >= 2, "the maps should span several chunks here");
+    assert!(snapshot.len() <= chunks + 8, "{snapshot:?}");
+    // A damaged chunk is named by its key, and the snapshot before it still reads.
+    let key = layout::diffuse(&id, Stage::Iteration(1), 1).unwrap();
+    let mut bad = store.get(&key).unwrap().to_vec();
+    let last = bad.len() - 1;
+    bad[last] ^= 0x01;
+    store.put(&key, bad).unwrap();
+    let e = job.load(Stage::Iteration(1)).unwrap_err().to_string();
+    assert!(e.contains(&key), "{e}");
+    assert!(job.load(Stage::Iteration(0)).is_ok());
+}

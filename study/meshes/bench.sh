@@ -41,7 +41,7 @@ for obj in room-plain room-grid sphere bunny dragon-res3-47794 dragon-res2-20252
   wall=$(awk -F': ' '/Elapsed \(wall clock\)/ {n = split($2, t, ":"); s = 0; for (i = 1; i <= n; i++) s = s * 60 + t[i]; printf "%.1f", s}' "$log")
   charts=$(sed -n 's/.* in \([0-9]*\) charts.*/\1/p' "$log" | head -1)
   texels=$(sed -n 's/.* charts, \([0-9]*\) texels.*/\1/p' "$log" | head -1)
-  setup=$(sed -n 's/.*setup_s=\([0-9.]*\).*/\1/p' "$log" | head -1)
+  setup=$(sed -n 's/.*setup_s=\([0-9.]*\).*/\1/p' "$log" | tail -1)
   propt=$(sed -n 's/.*propagate_s=\([0-9.]*\).*/\1/p' "$log" | head -1)
   storet=$(sed -n 's/.*store_s=\([0-9.]*\).*/\1/p' "$log" | tail -1)
   size=$(du -sm "$store" | cut -f1)

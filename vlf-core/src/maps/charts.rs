@@ -74,6 +74,14 @@ pub struct Chart {
 /// Cuts the scene's surfaces into charts (see the module docs). `texel` is the texel edge used
 /// by the fold-over test. Charts come in order of their smallest surface index.
 pub fn segment(scene: &Scene, texel: f64) -> Vec<Chart> {
+    segment_with_planes(scene, texel).0
+}
+
+/// [`segment`], and for every surface the surface that stands for its plane in the subfields
+/// ([`crate::psf::Subfield::build`]): the first surface of its planar group (coplanar
+/// neighbours of one diffuse material, which share a chart and a plane, so a ray crossing any of
+/// them is the same hit), or the surface itself for a mirror (whose slots are per surface).
+pub fn segment_with_planes(scene: &Scene, texel: f64) -> (Vec<Chart>, Vec<u32>) {
     let count = scene.surfaces.len();
     let keys: Vec<Vec<[i64; 3]>> = scene
         .surfaces
@@ -271,7 +279,15 @@ pub fn segment(scene: &Scene, texel: f64) -> Vec<Chart> {
         })
         .collect();
     charts.sort_by_key(|c| c.surfaces[0]);
-    charts
+    let mut plane_rep: Vec<u32> = (0..count as u32).collect();
+    for g in &groups {
+        if !scene.materials[scene.surfaces[g[0] as usize].material].is_mirror() {
+            for &s in g {
+                plane_rep[s as usize] = g[0];
+            }
+        }
+    }
+    (charts, plane_rep)
 }
 
 /// Whether a surface other than `a` and `b`, and not in their plane, has an edge along the

@@ -76,6 +76,9 @@ pub struct TexelAtlas {
     pub chart_of: Vec<u32>,
     /// The material of every chart (all its surfaces share it).
     pub chart_material: Vec<u32>,
+    /// For every surface, the surface that stands for its plane in the subfields
+    /// ([`charts::segment_with_planes`]): a wall cut into 3 200 triangles is one entry per tile.
+    pub plane_rep: Vec<u32>,
     pub texels: usize,
 }
 
@@ -101,7 +104,7 @@ impl TexelAtlas {
             )));
         }
         let snap = |world: f64| -1.0 + (((world + 1.0) / ray_spacing - PHI).floor() + PHI) * ray_spacing;
-        let charts = charts::segment(scene, texel);
+        let (charts, plane_rep) = charts::segment_with_planes(scene, texel);
         let mut grids = Vec::with_capacity(charts.len());
         let mut chart_of = vec![0u32; scene.surfaces.len()];
         let mut chart_material = Vec::with_capacity(charts.len());
@@ -155,6 +158,7 @@ impl TexelAtlas {
             charts: grids,
             chart_of,
             chart_material,
+            plane_rep,
             texels: first,
         })
     }
@@ -172,6 +176,15 @@ impl TexelAtlas {
             owner[g.first..g.first + g.len()].fill(c as u32);
         }
         owner
+    }
+
+    /// Area of every surface's chart (the sum of its surfaces' areas).
+    pub fn chart_areas(&self, scene: &Scene) -> Vec<f64> {
+        let mut area = vec![0.0; self.charts.len()];
+        for (s, &c) in self.chart_of.iter().enumerate() {
+            area[c as usize] += scene.surfaces[s].area;
+        }
+        self.chart_of.iter().map(|&c| area[c as usize]).collect()
     }
 
     /// The material of each texel (its chart's).

@@ -146,6 +146,7 @@ mod tests {
             charts: vec![grid(13, 9, 0), grid(2, 11, 117), grid(1, 1, 139)],
             chart_of: vec![0, 1, 2],
             chart_material: vec![0, 0, 0],
+            plane_rep: vec![0, 1, 2],
             texels: 140,
         };
         // A small deterministic generator: the test needs variety, not quality.

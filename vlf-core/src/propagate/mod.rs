@@ -345,9 +345,9 @@ impl Propagation {
         let subfields: Vec<Subfield> = directions
             .directions()
             .par_iter()
-            .map(|d| Subfield::build(&scene, d.vector, grid))
+            .map(|d| Subfield::build(&scene, d.vector, grid, &atlas.plane_rep))
             .collect();
-        let stacking = shoot::stacking(&scene);
+        let stacking = shoot::stacking(&scene, &atlas.chart_areas(&scene));
         let geometry = shoot::Geometry {
             scene: &scene,
             atlas: &atlas,

@@ -42,15 +42,16 @@ const DEPTH_TIE: f64 = 1e-9;
 
 /// The stacking order of coplanar surfaces: a higher rank lies on top
 /// (is seen first from the front). Emitters lie on top of what they are
-/// flush with, then smaller polygons on top of larger ones (a decal on a
-/// wall), then later ones.
-pub(crate) fn stacking(scene: &Scene) -> Vec<u32> {
+/// flush with, then smaller charts on top of larger ones (a decal on a wall,
+/// however the wall is cut: `chart_area` is each surface's chart's area),
+/// then later surfaces.
+pub(crate) fn stacking(scene: &Scene, chart_area: &[f64]) -> Vec<u32> {
     let mut order: Vec<usize> = (0..scene.surfaces.len()).collect();
     order.sort_by(|&a, &b| {
         let ea = scene.material(a).is_emitter();
         let eb = scene.material(b).is_emitter();
         ea.cmp(&eb)
-            .then(scene.surfaces[b].area.total_cmp(&scene.surfaces[a].area))
+            .then(chart_area[b].total_cmp(&chart_area[a]))
             .then(a.cmp(&b))
     });
     let mut rank = vec![0u32; order.len()];

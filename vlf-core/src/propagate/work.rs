@@ -536,7 +536,7 @@ impl Propagation {
                 .into_par_iter()
                 .zip(bufs.par_iter_mut())
                 .map_init(Scratch::default, |scratch, (d, buf)| {
-                    let sub = Subfield::build(scene, set.get(d).vector, self.options.grid);
+                    let sub = Subfield::build(scene, set.get(d).vector, self.options.grid, &self.atlas.plane_rep);
                     clear(buf);
                     kernel(&sub, set.get(d).weight, buf, scratch)
                 })

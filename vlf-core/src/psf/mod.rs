@@ -8,8 +8,9 @@
 //! scene lies in the unit sphere, the grid covers it for every direction.
 //!
 //! Each tile lists the surfaces its rays cross, and for each surface a
-//! *visibility map* stored as an **edge table**: one span of covered rays per
-//! tile row (surfaces are convex, so one span is enough). The depth of a
+//! *visibility map* stored as an **edge table**: spans of covered rays per
+//! tile row (one for a convex surface; coplanar neighbours of a chart share
+//! their representative's entry, see [`Subfield::build`]). The depth of a
 //! surface along a ray and the texel it crosses are not stored: they are
 //! affine in the ray's grid coordinates and recomputed on the fly
 //! ([`SurfaceProjection`]), as in the paper.
@@ -132,18 +133,26 @@ pub struct Subfield {
 
 impl Subfield {
     /// Rasterises every surface of the scene into the subfield of direction `w`.
-    pub fn build(scene: &Scene, w: DVec3, grid: GridSize) -> Self {
+    ///
+    /// `plane_rep[s]` names the surface that stands for `s` in the tiles
+    /// ([`crate::maps::TexelAtlas::plane_rep`]): coplanar neighbours of one diffuse chart are
+    /// the same hit for a ray, so their spans go into one entry of their representative, the
+    /// spans of a row that touch joined into one. A wall cut into 3 200 triangles then costs
+    /// a tile one entry, as a plain quad does: the work follows the rays, not the polygons.
+    /// (An entry's row may then hold several spans, where a chart is not convex.)
+    pub fn build(scene: &Scene, w: DVec3, grid: GridSize, plane_rep: &[u32]) -> Self {
         let frame = PsfFrame::new(w);
         let n = grid.resolution;
         let m = grid.tile;
         let per_side = grid.tiles_per_side() as usize;
-        // Per tile: (surface, row span in tile-local coordinates), in surface order.
+        // Per tile: (representative surface, row span in tile-local coordinates).
         let mut buckets: Vec<Vec<(u32, Span)>> = vec![Vec::new(); per_side * per_side];
         let mut projected = Vec::new();
         for (id, surface) in scene.surfaces.iter().enumerate() {
             if surface.normal.dot(frame.w).abs() < 1e-12 {
                 continue; // edge-on: no ray crosses it
             }
+            let rep = plane_rep.get(id).copied().unwrap_or(id as u32);
             projected.clear();
             projected.extend(surface.vertices.iter().map(|&p| frame.to_grid(p, n)));
             raster::rasterize_convex(&projected, n, |s| {
@@ -154,7 +163,7 @@ impl Subfield {
                     let tile_col = x / m;
                     let tile_end = ((tile_col + 1) * m).min(s.end);
                     buckets[tile_row * per_side + tile_col as usize].push((
-                        id as u32,
+                        rep,
                         Span {
                             row: local_row,
                             start: (x - tile_col * m) as u16,
@@ -167,10 +176,12 @@ impl Subfield {
         }
         let mut tile_start = Vec::with_capacity(buckets.len() + 1);
         let mut entries = Vec::new();
-        let mut spans = Vec::new();
+        let mut spans: Vec<Span> = Vec::new();
         let mut slots = 0u32;
-        for bucket in buckets {
+        for mut bucket in buckets {
             tile_start.push(entries.len() as u32);
+            // By surface, then row and start: a representative's spans together, in order.
+            bucket.sort_unstable_by_key(|&(surface, s)| (surface, s.row, s.start));
             let mut k = 0;
             while k < bucket.len() {
                 let surface = bucket[k].0;
@@ -179,7 +190,14 @@ impl Subfield {
                 while k < bucket.len() && bucket[k].0 == surface {
                     let s = bucket[k].1;
                     rays += (s.end - s.start) as u32;
-                    spans.push(s);
+                    let joins = spans.len() as u32 > first_span
+                        && spans
+                            .last()
+                            .is_some_and(|last| last.row == s.row && last.end == s.start);
+                    match spans.last_mut() {
+                        Some(last) if joins => last.end = s.end,
+                        _ => spans.push(s),
+                    }
                     k += 1;
                 }
                 entries.push(TileSurface {
@@ -242,9 +260,8 @@ impl Subfield {
         let (row, col) = ((y % m) as u16, (x % m) as u16);
         let mut offset = 0u32;
         for s in self.spans_of(e) {
-            if s.row == row {
-                return (s.start <= col && col < s.end)
-                    .then(|| (self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
+            if s.row == row && s.start <= col && col < s.end {
+                return Some((self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
             }
             offset += (s.end - s.start) as u32;
         }
@@ -267,11 +284,8 @@ impl Subfield {
             }
             let mut offset = 0u32;
             for s in self.spans_of(e) {
-                if s.row == row {
-                    if s.start <= col && col < s.end {
-                        return Some((self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
-                    }
-                    break;
+                if s.row == row && s.start <= col && col < s.end {
+                    return Some((self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
                 }
                 offset += (s.end - s.start) as u32;
             }
@@ -409,7 +423,8 @@ mod tests {
         for (n, m) in [(32, 8), (64, 8), (48, 16), (16, 16), (30, 5)] {
             let grid = GridSize::new(n, m).unwrap();
             let w = DVec3::new(0.2, 0.3, 0.9).normalize();
-            let sub = Subfield::build(&scene, w, grid);
+            let reps: Vec<u32> = (0..scene.surfaces.len() as u32).collect();
+            let sub = Subfield::build(&scene, w, grid, &reps);
             assert_eq!(sub.tile_count(), ((n / m) * (n / m)) as usize);
             let mut per_surface = vec![0u64; scene.surfaces.len()];
             for k in 0..sub.tile_count() {

@@ -38,7 +38,12 @@ pub struct RowSpan {
 /// grid (the scene lies in the unit sphere), so `i64` never overflows: with
 /// `N ≤ 65536`, products of two coordinate differences stay below 2⁵⁰.
 fn snap(x: f64) -> i64 {
-    (x * SUBPIXELS as f64).round() as i64
+    let y = x * SUBPIXELS as f64;
+    // `f64::round` is a library call on the baseline x86-64 target, and this runs for every
+    // vertex of every polygon in every direction: for y ≥ 0 (grid coordinates of a scene inside
+    // the unit sphere always are) round-half-up by truncation instead, which is the same
+    // integer but where y + ½ rounds up in floating point (within 2⁻⁵³ of a half step).
+    if y >= 0.0 { (y + 0.5) as i64 } else { y.round() as i64 }
 }
 
 fn floor_div(a: i64, b: i64) -> i64 {
@@ -58,7 +63,33 @@ pub fn rasterize_convex(points: &[DVec2], n: u32, mut emit: impl FnMut(RowSpan))
     if points.len() < 3 {
         return 0;
     }
-    let mut p: Vec<(i64, i64)> = points.iter().map(|q| (snap(q.x), snap(q.y))).collect();
+    // Most polygons are triangles and quads: snapped onto the stack.
+    let mut stack = [(0i64, 0i64); 8];
+    let mut heap = Vec::new();
+    let p: &mut [(i64, i64)] = if points.len() <= stack.len() {
+        for (d, q) in stack.iter_mut().zip(points) {
+            *d = (snap(q.x), snap(q.y));
+        }
+        &mut stack[..points.len()]
+    } else {
+        heap.extend(points.iter().map(|q| (snap(q.x), snap(q.y))));
+        &mut heap[..]
+    };
+    // No cell centre inside the bounding box (a polygon smaller than a ray cell, the rule in
+    // scanned meshes): nothing to cover.
+    let (mut min_x, mut max_x) = (i64::MAX, i64::MIN);
+    let (mut min_y0, mut max_y0) = (i64::MAX, i64::MIN);
+    for q in p.iter() {
+        min_x = min_x.min(q.0);
+        max_x = max_x.max(q.0);
+        min_y0 = min_y0.min(q.1);
+        max_y0 = max_y0.max(q.1);
+    }
+    if ceil_div(min_x - HALF, SUBPIXELS) > floor_div(max_x - HALF, SUBPIXELS)
+        || ceil_div(min_y0 - HALF, SUBPIXELS) > floor_div(max_y0 - HALF, SUBPIXELS)
+    {
+        return 0;
+    }
     // Twice the signed area, exact.
     let area2: i128 = (0..p.len())
         .map(|k| {
