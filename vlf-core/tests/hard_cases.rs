@@ -850,7 +850,8 @@ fn scale_invariance(size: DVec3, label: &str) -> Vec<String> {
         let (scene, warnings) =
             Scene::from_polygons(&room(size, scale, offset), materials.clone(), &ImportOptions::default())
                 .expect("room imports");
-        assert!(warnings.is_empty(), "{warnings:?}");
+        // The ceiling's tiles meet the walls in T-junctions, split the same way at every scale.
+        assert!(warnings.iter().all(|w| w.contains("T-junction")), "{warnings:?}");
         scene
     };
     let stop = Stop::Iterations(5);

@@ -22,6 +22,9 @@ use std::collections::HashMap;
 /// edge's length, and strictly between its endpoints (by more than it).
 const ON_EDGE: f64 = 1e-7;
 
+/// Vertices closer than this (VLF frame) are one vertex.
+const VERTEX_QUANTUM: f64 = 1.0 / (1u64 << 32) as f64;
+
 /// Splits every surface that has T vertices on its edges (see the module docs). Returns the
 /// surfaces (in order, a split surface's fan in its place) and how many were split.
 pub fn split_t_junctions(surfaces: Vec<Surface>) -> (Vec<Surface>, usize) {
@@ -43,12 +46,18 @@ pub fn split_t_junctions(surfaces: Vec<Surface>) -> (Vec<Surface>, usize) {
         let q = (p / cell).floor();
         (q.x as i64, q.y as i64, q.z as i64)
     };
+    // Vertices closer than a quantum are one vertex (the same corner computed twice rounds a
+    // few ulps apart): the first one met stands for them.
+    let quantum = |p: DVec3| {
+        let q = (p / VERTEX_QUANTUM).round();
+        (q.x as i64, q.y as i64, q.z as i64)
+    };
+    let mut seen = std::collections::HashSet::new();
     let mut grid: HashMap<(i64, i64, i64), Vec<DVec3>> = HashMap::new();
     for s in &surfaces {
         for &p in &s.vertices {
-            let list = grid.entry(key(p)).or_default();
-            if !list.contains(&p) {
-                list.push(p);
+            if seen.insert(quantum(p)) {
+                grid.entry(key(p)).or_default().push(p);
             }
         }
     }
@@ -102,7 +111,7 @@ fn vertices_on_edge(grid: &HashMap<(i64, i64, i64), Vec<DVec3>>, cell: f64, a: D
     let mut hits: Vec<(f64, DVec3)> = Vec::new();
     let mut test = |p: DVec3| {
         let t = (p - a).dot(d) / len2;
-        if t * len <= tol || (1.0 - t) * len <= tol {
+        if t * len <= tol.max(4.0 * VERTEX_QUANTUM) || (1.0 - t) * len <= tol.max(4.0 * VERTEX_QUANTUM) {
             return;
         }
         if (a + d * t - p).length() <= tol {
