@@ -2,16 +2,28 @@
 //!
 //! Perturbation and point-sampled rays leave high-frequency noise in the
 //! maps; the paper smooths the Next maps with a small Gaussian before they
-//! are shot. To keep energy balance exact the filter *scatters* power: texel
-//! `i` spreads `Φ_i` over the texels `j` of the same surface that rays cross
-//! (`T_j > 0`) with weights `g(|i − j|) / Σ_j g(|i − j|)`, which sum to one.
+//! are shot. What is smoothed is the **radiosity** `B = Φ/T` (power over
+//! discrete area), as a normalised convolution over the texels of the same
+//! chart that rays cross (`T_i > 0`):
+//!
+//! ```text
+//!     B'_j = Σ_i g(|i − j|)·Φ_i / Σ_i g(|i − j|)·T_i,      Φ'_j = s·B'_j·T_j
+//! ```
+//!
+//! with `s` per chart and channel so that the chart's power is exactly what
+//! it was (`s = ΣΦ / Σ B'·T`; energy balance stays exact). A uniform
+//! radiosity comes out uniform, texel by texel, however unevenly rays cross
+//! the texels. The first version scattered each texel's power over its
+//! neighbours with weights `g` alone: a texel at a chart's border that few
+//! rays cross (small `T`) got a whole texel's share of power, its radiance
+//! rose, and the filter created light — the Stanford bunny in a room rendered
+//! 17 % too bright (36 % block-16 error against Mitsuba; 4.5 % with the
+//! filter off).
 //!
 //! The filter runs between iterations, where every worker waits for it, so
-//! its inner loop matters: the taps of a texel are gathered once (weights
-//! `g_x · g_y` of the taps inside the grid that rays cross, row by row) and
-//! used for both the normalisation and the scatter. The result is the same,
-//! to the bit, as the definition above evaluated tap by tap (tested against
-//! it below).
+//! its inner loop matters: a texel's window is walked row by row over the
+//! taps inside the grid (tested against the formula evaluated tap by tap).
+//! Texels no ray crosses keep whatever they hold (nothing, in practice).
 
 use crate::maps::TexelAtlas;
 use crate::scene::Rgb;
@@ -35,37 +47,45 @@ pub(crate) fn gaussian(atlas: &TexelAtlas, area: &[f64], power: &mut [Rgb], sigm
             let (w, h) = (g.width as usize, g.height as usize);
             let src = &power[g.first..g.first + g.len()];
             let valid = &area[g.first..g.first + g.len()];
-            let mut out = vec![[0.0; 3]; g.len()];
-            // (texel, weight) of the current texel's taps.
-            let mut taps: Vec<(usize, f64)> = Vec::with_capacity((2 * radius + 1).pow(2));
+            let mut out: Vec<Rgb> = src.to_vec();
+            let mut before = [0.0; 3];
+            let mut after = [0.0; 3];
             for y in 0..h {
                 let rows = y.saturating_sub(radius)..(y + radius + 1).min(h);
                 for x in 0..w {
-                    let i = y * w + x;
-                    let p = src[i];
-                    if p == [0.0; 3] {
+                    let j = y * w + x;
+                    if valid[j] <= 0.0 {
                         continue;
                     }
                     let columns = x.saturating_sub(radius)..(x + radius + 1).min(w);
-                    taps.clear();
+                    let (mut sum, mut norm) = ([0.0; 3], 0.0);
                     for yy in rows.clone() {
                         let gy = kernel[yy + radius - y];
                         for xx in columns.clone() {
-                            let j = yy * w + xx;
-                            if valid[j] > 0.0 {
-                                taps.push((j, kernel[xx + radius - x] * gy));
+                            let i = yy * w + xx;
+                            if valid[i] > 0.0 {
+                                let k = kernel[xx + radius - x] * gy;
+                                norm += k * valid[i];
+                                for c in 0..3 {
+                                    sum[c] += k * src[i][c];
+                                }
                             }
                         }
                     }
-                    let norm: f64 = taps.iter().map(|&(_, g)| g).sum();
-                    if norm <= 0.0 {
-                        out[i] = [out[i][0] + p[0], out[i][1] + p[1], out[i][2] + p[2]];
-                        continue;
+                    // norm > 0: the texel itself is a tap.
+                    for c in 0..3 {
+                        before[c] += src[j][c];
+                        out[j][c] = sum[c] / norm * valid[j];
+                        after[c] += out[j][c];
                     }
-                    for &(j, g) in &taps {
-                        let k = g / norm;
-                        for c in 0..3 {
-                            out[j][c] += p[c] * k;
+                }
+            }
+            for c in 0..3 {
+                if after[c] > 0.0 {
+                    let s = before[c] / after[c];
+                    for j in 0..g.len() {
+                        if valid[j] > 0.0 {
+                            out[j][c] *= s;
                         }
                     }
                 }
@@ -84,41 +104,51 @@ mod tests {
     use crate::maps::TexelGrid;
     use glam::DVec3;
 
-    /// The filter as defined: every tap of the (2r+1)² window tested on its
-    /// own, the weights summed, then scattered.
+    /// The filter as defined: the normalised convolution of `Φ/T` tap by tap over the
+    /// (2r+1)² window, then the chart's power restored.
     fn by_definition(atlas: &TexelAtlas, area: &[f64], power: &mut [Rgb], sigma: f64) {
         let (radius, kernel) = kernel(sigma);
         let radius = radius as i64;
         for g in &atlas.charts {
             let (w, h) = (g.width as i64, g.height as i64);
-            let src = &power[g.first..g.first + g.len()];
+            let src = power[g.first..g.first + g.len()].to_vec();
             let valid = &area[g.first..g.first + g.len()];
-            let mut out = vec![[0.0; 3]; g.len()];
+            let mut out = src.clone();
             for y in 0..h {
                 for x in 0..w {
-                    let i = (y * w + x) as usize;
-                    let p = src[i];
-                    if p == [0.0; 3] {
+                    let j = (y * w + x) as usize;
+                    if valid[j] <= 0.0 {
                         continue;
                     }
-                    let taps = || {
-                        (-radius..=radius)
-                            .flat_map(move |dy| (-radius..=radius).map(move |dx| (dx, dy)))
-                            .filter_map(|(dx, dy)| {
-                                let (xx, yy) = (x + dx, y + dy);
-                                let j = (yy * w + xx) as usize;
-                                (xx >= 0 && yy >= 0 && xx < w && yy < h && valid[j] > 0.0)
-                                    .then(|| (j, kernel[(dx + radius) as usize] * kernel[(dy + radius) as usize]))
-                            })
-                    };
-                    let norm: f64 = taps().map(|(_, g)| g).sum();
-                    if norm <= 0.0 {
-                        out[i] = [out[i][0] + p[0], out[i][1] + p[1], out[i][2] + p[2]];
-                        continue;
+                    let (mut sum, mut norm) = ([0.0; 3], 0.0);
+                    for dy in -radius..=radius {
+                        for dx in -radius..=radius {
+                            let (xx, yy) = (x + dx, y + dy);
+                            if xx < 0 || yy < 0 || xx >= w || yy >= h {
+                                continue;
+                            }
+                            let i = (yy * w + xx) as usize;
+                            if valid[i] > 0.0 {
+                                let k = kernel[(dx + radius) as usize] * kernel[(dy + radius) as usize];
+                                norm += k * valid[i];
+                                for c in 0..3 {
+                                    sum[c] += k * src[i][c];
+                                }
+                            }
+                        }
                     }
-                    for (j, g) in taps() {
-                        for c in 0..3 {
-                            out[j][c] += p[c] * (g / norm);
+                    for c in 0..3 {
+                        out[j][c] = sum[c] / norm * valid[j];
+                    }
+                }
+            }
+            for c in 0..3 {
+                let before: f64 = (0..g.len()).filter(|&j| valid[j] > 0.0).map(|j| src[j][c]).sum();
+                let after: f64 = (0..g.len()).filter(|&j| valid[j] > 0.0).map(|j| out[j][c]).sum();
+                if after > 0.0 {
+                    for j in 0..g.len() {
+                        if valid[j] > 0.0 {
+                            out[j][c] *= before / after;
                         }
                     }
                 }
@@ -168,14 +198,15 @@ mod tests {
     }
 
     #[test]
-    fn equals_the_definition_to_the_bit() {
+    fn equals_the_definition() {
         let (atlas, area, power) = fixture();
         for sigma in [0.3, 0.6, 1.0, 1.7, 4.0] {
             let (mut fast, mut reference) = (power.clone(), power.clone());
             gaussian(&atlas, &area, &mut fast, sigma);
             by_definition(&atlas, &area, &mut reference, sigma);
-            let bits = |v: &[Rgb]| v.iter().flatten().map(|c| c.to_bits()).collect::<Vec<_>>();
-            assert_eq!(bits(&fast), bits(&reference), "σ = {sigma}");
+            for (a, b) in fast.iter().flatten().zip(reference.iter().flatten()) {
+                assert!((a - b).abs() <= 1e-12 * b.abs().max(1e-300), "σ = {sigma}: {a} vs {b}");
+            }
             assert_ne!(fast, power, "σ = {sigma}: the filter moved no power");
         }
     }
@@ -200,6 +231,50 @@ mod tests {
                 assert_eq!(*p, power[i], "texel {i} received power");
             }
         }
-        assert_eq!(filtered[139], power[139], "a lone texel keeps its power");
+        for c in 0..3 {
+            let (a, b) = (filtered[139][c], power[139][c]);
+            assert!(
+                (a - b).abs() <= 1e-12 * b.abs(),
+                "a lone texel keeps its power: {a} vs {b}"
+            );
+        }
+    }
+
+    /// A uniformly lit chart whose border texels are crossed by few rays (discrete area 0.05
+    /// of a whole texel's, as where a chart's outline cuts its texels): the filtered radiance
+    /// `Φ/T` stays uniform, border included, and no power is made or lost. Scattering power
+    /// with the Gaussian alone left the border texels 6.9 times too bright; with `g·T`
+    /// weights, the corners 1.7 times.
+    #[test]
+    fn a_uniform_radiosity_stays_uniform_next_to_partial_texels() {
+        let (w, h) = (12u32, 9u32);
+        let atlas = TexelAtlas {
+            charts: vec![grid(w, h, 0)],
+            chart_of: vec![0],
+            chart_material: vec![0],
+            plane_rep: vec![0],
+            texels: (w * h) as usize,
+        };
+        let area: Vec<f64> = (0..w * h)
+            .map(|t| {
+                let (x, y) = (t % w, t / w);
+                if x == 0 || y == 0 || x == w - 1 || y == h - 1 {
+                    0.05
+                } else {
+                    1.0
+                }
+            })
+            .collect();
+        let radiance = 2.5;
+        let mut power: Vec<Rgb> = area.iter().map(|&a| [radiance * a; 3]).collect();
+        let before: f64 = power.iter().map(|p| p[0]).sum();
+        gaussian(&atlas, &area, &mut power, 1.0);
+        let after: f64 = power.iter().map(|p| p[0]).sum();
+        assert!((after - before).abs() < 1e-12 * before);
+        let worst = (power.iter().zip(&area))
+            .map(|(p, &a)| (p[0] / a / radiance - 1.0).abs())
+            .fold(0.0, f64::max);
+        println!("uniform radiosity through the filter: worst texel off by {worst:.3}");
+        assert!(worst < 1e-12, "a texel's radiance is off by {worst:.3}");
     }
 }
