@@ -256,12 +256,16 @@ impl Subfield {
         let k = ((y / m) * self.grid.tiles_per_side() + x / m) as usize;
         let entries = self.tile(k);
         let local = entries.binary_search_by_key(&surface, |e| e.surface).ok()?;
-        let e = &entries[local];
-        let (row, col) = ((y % m) as u16, (x % m) as u16);
+        let offset = self.offset_in(&entries[local], (y % m) as u16, (x % m) as u16)?;
+        Some((self.tile_start[k] as usize + local, offset))
+    }
+
+    /// The offset within `entry` of the ray at tile-local `(row, col)`, if the entry covers it.
+    fn offset_in(&self, entry: &TileSurface, row: u16, col: u16) -> Option<u32> {
         let mut offset = 0u32;
-        for s in self.spans_of(e) {
+        for s in self.spans_of(entry) {
             if s.row == row && s.start <= col && col < s.end {
-                return Some((self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
+                return Some(offset + (col - s.start) as u32);
             }
             offset += (s.end - s.start) as u32;
         }
@@ -278,19 +282,10 @@ impl Subfield {
         }
         let k = ((y / m) * self.grid.tiles_per_side() + x / m) as usize;
         let (row, col) = ((y % m) as u16, (x % m) as u16);
-        for (local, e) in self.tile(k).iter().enumerate() {
-            if !accept(e.surface) {
-                continue;
-            }
-            let mut offset = 0u32;
-            for s in self.spans_of(e) {
-                if s.row == row && s.start <= col && col < s.end {
-                    return Some((self.tile_start[k] as usize + local, offset + (col - s.start) as u32));
-                }
-                offset += (s.end - s.start) as u32;
-            }
-        }
-        None
+        let (local, offset) = (self.tile(k).iter().enumerate())
+            .filter(|(_, e)| accept(e.surface))
+            .find_map(|(local, e)| Some((local, self.offset_in(e, row, col)?)))?;
+        Some((self.tile_start[k] as usize + local, offset))
     }
 
     /// Visits every ray of `surface` in slot order with its grid cell `(x, y)`.

@@ -78,15 +78,15 @@ pub fn rasterize_convex(points: &[DVec2], n: u32, mut emit: impl FnMut(RowSpan))
     // No cell centre inside the bounding box (a polygon smaller than a ray cell, the rule in
     // scanned meshes): nothing to cover.
     let (mut min_x, mut max_x) = (i64::MAX, i64::MIN);
-    let (mut min_y0, mut max_y0) = (i64::MAX, i64::MIN);
+    let (mut min_y, mut max_y) = (i64::MAX, i64::MIN);
     for q in p.iter() {
         min_x = min_x.min(q.0);
         max_x = max_x.max(q.0);
-        min_y0 = min_y0.min(q.1);
-        max_y0 = max_y0.max(q.1);
+        min_y = min_y.min(q.1);
+        max_y = max_y.max(q.1);
     }
     if ceil_div(min_x - HALF, SUBPIXELS) > floor_div(max_x - HALF, SUBPIXELS)
-        || ceil_div(min_y0 - HALF, SUBPIXELS) > floor_div(max_y0 - HALF, SUBPIXELS)
+        || ceil_div(min_y - HALF, SUBPIXELS) > floor_div(max_y - HALF, SUBPIXELS)
     {
         return 0;
     }
@@ -103,8 +103,6 @@ pub fn rasterize_convex(points: &[DVec2], n: u32, mut emit: impl FnMut(RowSpan))
     if area2 < 0 {
         p.reverse();
     }
-    let min_y = p.iter().map(|q| q.1).min().unwrap_or(0);
-    let max_y = p.iter().map(|q| q.1).max().unwrap_or(0);
     let n = n as i64;
     // Rows whose centre j·S + S/2 lies in [min_y, max_y].
     let row_lo = ceil_div(min_y - HALF, SUBPIXELS).max(0);

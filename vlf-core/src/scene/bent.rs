@@ -11,7 +11,7 @@
 
 use glam::{DVec2, DVec3};
 
-use super::polygon::{Plane2d, PolygonError, REL_AREA_EPS, orient, self_intersects};
+use super::polygon::{Plane2d, PolygonError, REL_AREA_EPS, in_closed_triangle, orient, self_intersects};
 
 /// Splits a (non-planar) polygon into triangles, as index triples into `v`,
 /// each counter-clockwise about the polygon's Newell normal in projection
@@ -80,14 +80,9 @@ fn ear_clip(mut ring: Vec<usize>, p: &[DVec2]) -> Result<Vec<[usize; 3]>, Polygo
             let (a, b, c) = corners(k);
             let (pa, pb, pc) = (p[a], p[b], p[c]);
             orient(pa, pb, pc) > least
-                && !ring.iter().any(|&q| {
-                    q != a
-                        && q != b
-                        && q != c
-                        && orient(pa, pb, p[q]) >= -REL_AREA_EPS
-                        && orient(pb, pc, p[q]) >= -REL_AREA_EPS
-                        && orient(pc, pa, p[q]) >= -REL_AREA_EPS
-                })
+                && !ring
+                    .iter()
+                    .any(|&q| q != a && q != b && q != c && in_closed_triangle(pa, pb, pc, p[q]))
         };
         let k = (0..n)
             .find(|&k| is_ear(k, REL_AREA_EPS))

@@ -177,6 +177,12 @@ impl Plane2d {
 }
 
 /// Twice the signed area of the triangle `a b c` (positive if CCW).
+/// Whether `q` lies inside or on the counter-clockwise triangle `a, b, c` (to the area
+/// tolerance): what keeps an ear from being clipped over another vertex.
+pub(super) fn in_closed_triangle(a: DVec2, b: DVec2, c: DVec2, q: DVec2) -> bool {
+    orient(a, b, q) >= -REL_AREA_EPS && orient(b, c, q) >= -REL_AREA_EPS && orient(c, a, q) >= -REL_AREA_EPS
+}
+
 pub(super) fn orient(a: DVec2, b: DVec2, c: DVec2) -> f64 {
     (b - a).perp_dot(c - a)
 }
@@ -305,14 +311,9 @@ fn ear_clip(mut ring: Vec<usize>, p: &[DVec2]) -> Result<(Vec<Ring>, Vec<Edge>),
                 return false; // reflex (or flat): not an ear tip
             }
             // No other vertex inside or on the (closed) ear.
-            !ring.iter().any(|&q| {
-                q != a
-                    && q != b
-                    && q != c
-                    && orient(pa, pb, p[q]) >= -REL_AREA_EPS
-                    && orient(pb, pc, p[q]) >= -REL_AREA_EPS
-                    && orient(pc, pa, p[q]) >= -REL_AREA_EPS
-            })
+            !ring
+                .iter()
+                .any(|&q| q != a && q != b && q != c && in_closed_triangle(pa, pb, pc, p[q]))
         });
         let Some(k) = ear else {
             return Err(PolygonError::Triangulation);
