@@ -35,7 +35,7 @@
 //! fold-over test): hashing is used for look-ups only, every order is by surface index or by
 //! area with index as tie-break, so charts are bit-identical on every machine and thread count.
 
-use crate::scene::Scene;
+use crate::scene::{Scene, vertex_key};
 use glam::{DVec2, DVec3};
 use std::collections::{HashMap, HashSet};
 
@@ -53,11 +53,6 @@ pub const LEFTOVER_ANGLE_DEG: f64 = 45.0;
 /// faces agree to rounding).
 const PLANE_NORMAL_TOLERANCE: f64 = 1e-9;
 const PLANE_OFFSET_TOLERANCE: f64 = 1e-9;
-
-/// Vertices closer than this quantum (VLF frame) are one vertex when finding neighbours.
-/// Importers keep shared vertices bit-identical up to the rounding of flattening (≈1e-16), far
-/// below it.
-const VERTEX_QUANTUM: f64 = 1.0 / (1u64 << 32) as f64;
 
 /// One chart: its surfaces and the normal of the plane it is parameterised on.
 #[derive(Clone, Debug, PartialEq)]
@@ -326,11 +321,6 @@ fn stands_on(
         }
     }
     false
-}
-
-fn vertex_key(p: DVec3) -> [i64; 3] {
-    let q = |x: f64| (x / VERTEX_QUANTUM).round() as i64;
-    [q(p.x), q(p.y), q(p.z)]
 }
 
 /// The cells of a texel lattice on the plane `(frame.u, frame.v)` whose centres lie strictly

@@ -61,7 +61,7 @@ pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
-use crate::psf::{GridSize, Subfield};
+use crate::psf::{Footprints, GridSize, RasterScratch, Subfield};
 use crate::scene::{Rgb, Scene};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -238,6 +238,8 @@ pub struct Propagation {
     pub atlas: TexelAtlas,
     /// Shared: a clone of the propagation (a worker's replica) does not copy them.
     pub subfields: Arc<[Subfield]>,
+    /// What the subfields rasterise, for the rotated copies built on the fly.
+    footprints: Arc<Footprints>,
     /// Discrete projected area `T_t` of every texel (see module docs).
     pub projected_area: Vec<f64>,
     /// Unshot power per texel (the paper's Current map).
@@ -342,10 +344,13 @@ impl Propagation {
         let directions = DirectionSet::new(options.directions)?;
         let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing())?;
         let grid = options.grid;
+        let footprints = Arc::new(Footprints::new(&scene, &atlas.plane_rep));
         let subfields: Vec<Subfield> = directions
             .directions()
             .par_iter()
-            .map(|d| Subfield::build(&scene, d.vector, grid, &atlas.plane_rep))
+            .map_init(RasterScratch::default, |scratch, d| {
+                Subfield::build_with(&footprints, d.vector, grid, scratch)
+            })
             .collect();
         let stacking = shoot::stacking(&scene, &atlas.chart_areas(&scene));
         let geometry = shoot::Geometry {
@@ -388,6 +393,7 @@ impl Propagation {
             directions,
             atlas,
             subfields: subfields.into(),
+            footprints,
             projected_area,
             current,
             emitted,

@@ -104,17 +104,11 @@ fn sends_to(geometry: Geometry, subfields: &[Subfield]) -> Vec<(u32, u32)> {
     let mut edges: Vec<(u32, u32)> = subfields
         .par_iter()
         .map_init(Scratch::default, |scratch, sub| {
-            let facing: Vec<f64> = geometry
-                .scene
-                .surfaces
-                .iter()
-                .map(|s| s.normal.dot(sub.frame.w))
-                .collect();
             let mut pairs = Vec::new();
             for_each_ray(geometry, sub, None, scratch, |hits| {
                 for w in hits.windows(2) {
                     let (a, b) = (w[0].surface, w[1].surface);
-                    if facing[a as usize] > 0.0 && facing[b as usize] < 0.0 {
+                    if w[0].faces_forward() && w[1].faces_backward() {
                         pairs.push((a, b));
                         pairs.push((b, a));
                     }

@@ -23,6 +23,21 @@ pub(crate) struct RayHit {
     pub tie: u32,
 }
 
+impl RayHit {
+    /// Whether the surface's front looks along `−w` (a ray travelling along `+w` meets its
+    /// front). [`for_each_ray`] ranks those hits first among equals, so `tie` says it: at most
+    /// `u32::MAX / 2` for them, above for the others. No subfield holds a surface seen
+    /// edge-on, so every hit faces one way or the other.
+    pub fn faces_backward(&self) -> bool {
+        self.tie <= u32::MAX / 2
+    }
+
+    /// Whether the surface's front looks along `+w`.
+    pub fn faces_forward(&self) -> bool {
+        !self.faces_backward()
+    }
+}
+
 /// Marks a hit on a surface without directional (mirror) maps.
 pub(crate) const NO_SLOT: u32 = u32::MAX;
 
@@ -242,12 +257,11 @@ fn add_scaled(dst: &mut Rgb, src: &Rgb, k: f64) {
     }
 }
 
-/// One direction's subfield, its solid-angle weight and `n_s · w` per surface.
+/// One direction's subfield and its solid-angle weight.
 #[derive(Clone, Copy)]
 pub(crate) struct Beam<'a> {
     pub sub: &'a Subfield,
     pub weight: f64,
-    pub facing: &'a [f64],
 }
 
 /// What a hit sends along its ray: its diffuse radiance, plus its unshot
@@ -281,7 +295,7 @@ pub(crate) struct SpecularIo<'a> {
 /// `radiance[t]` is the power a texel sends per unit of `Δω · (ray count)`,
 /// i.e. `Φ_t / T_t` (see the module docs of [`crate::propagate`]); each ray
 /// leaving texel `t` carries `radiance[t] · weight`, plus, for a mirror, its
-/// unshot radiance along this direction. `beam.facing[s] = n_s · w`. Power
+/// unshot radiance along this direction. Power
 /// arriving at a texel is added to `received[t]`; radiance arriving at a
 /// mirror slot to `specular.incident`.
 pub(crate) fn shoot(
@@ -292,7 +306,7 @@ pub(crate) fn shoot(
     mut specular: Option<SpecularIo>,
     scratch: &mut Scratch,
 ) -> Flow {
-    let Beam { sub, weight, facing } = beam;
+    let Beam { sub, weight } = beam;
     let mut flow = Flow::default();
     let base = specular.as_ref().map(|s| s.mirror_base);
     let spec = &mut specular;
@@ -309,15 +323,15 @@ pub(crate) fn shoot(
         };
         // Along −w, the first surface sends into the void if it faces −w.
         let first = hits[0];
-        if facing[first.surface as usize] < 0.0 {
+        if first.faces_backward() {
             let l = leaving(&first, spec);
             add_scaled(&mut flow.shot, &l, weight);
             add_scaled(&mut flow.escaped, &l, weight);
         }
         for pair in hits.windows(2) {
             let (a, b) = (pair[0], pair[1]);
-            let a_forward = facing[a.surface as usize] > 0.0; // a's front looks along +w
-            let b_backward = facing[b.surface as usize] < 0.0; // b's front looks along −w
+            let a_forward = a.faces_forward();
+            let b_backward = b.faces_backward();
             if a_forward {
                 let l = leaving(&a, spec);
                 add_scaled(&mut flow.shot, &l, weight);
@@ -338,7 +352,7 @@ pub(crate) fn shoot(
             }
         }
         let last = hits[hits.len() - 1];
-        if facing[last.surface as usize] > 0.0 {
+        if last.faces_forward() {
             let l = leaving(&last, spec);
             add_scaled(&mut flow.shot, &l, weight);
             add_scaled(&mut flow.escaped, &l, weight);

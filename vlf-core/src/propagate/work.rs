@@ -41,7 +41,7 @@ use super::shoot::{self, Flow, Scratch};
 use super::specular::DirectionMaps;
 use super::{FlowRecord, Propagation, perturb, radiance_of};
 use crate::directions::DirectionSet;
-use crate::psf::Subfield;
+use crate::psf::{RasterScratch, Subfield};
 use crate::scene::Rgb;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -520,9 +520,6 @@ impl Propagation {
             stacking: &self.stacking,
         };
         let texels = self.atlas.texels;
-        let scene = &self.scene;
-        let facing =
-            |sub: &Subfield| -> Vec<f64> { scene.surfaces.iter().map(|s| s.normal.dot(sub.frame.w)).collect() };
         let clear = |buf: &mut Vec<Rgb>| {
             buf.clear();
             buf.resize(texels, [0.0; 3]);
@@ -535,11 +532,14 @@ impl Propagation {
             range
                 .into_par_iter()
                 .zip(bufs.par_iter_mut())
-                .map_init(Scratch::default, |scratch, (d, buf)| {
-                    let sub = Subfield::build(scene, set.get(d).vector, self.options.grid, &self.atlas.plane_rep);
-                    clear(buf);
-                    kernel(&sub, set.get(d).weight, buf, scratch)
-                })
+                .map_init(
+                    Default::default,
+                    |(scratch, raster): &mut (Scratch, RasterScratch), (d, buf)| {
+                        let sub = Subfield::build_with(&self.footprints, set.get(d).vector, self.options.grid, raster);
+                        clear(buf);
+                        kernel(&sub, set.get(d).weight, buf, scratch)
+                    },
+                )
                 .collect()
         };
         // The batch's directions, CHUNK at a time: each chunk's directions in
@@ -552,11 +552,9 @@ impl Propagation {
                         let layouts = self.specular.as_ref().map(|s| &s.layouts);
                         let run = |d: usize, maps: Option<&mut MirrorIo>, buf: &mut Vec<Rgb>, scratch: &mut Scratch| {
                             let sub = &self.subfields[d];
-                            let facing = facing(sub);
                             let beam = shoot::Beam {
                                 sub,
                                 weight: self.directions.get(d).weight,
-                                facing: &facing,
                             };
                             clear(buf);
                             let io = maps.zip(layouts).map(|(m, layouts)| shoot::SpecularIo {
@@ -603,12 +601,7 @@ impl Propagation {
                             )));
                         };
                         rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
-                            let facing = facing(sub);
-                            let beam = shoot::Beam {
-                                sub,
-                                weight,
-                                facing: &facing,
-                            };
+                            let beam = shoot::Beam { sub, weight };
                             shoot::shoot(geometry, beam, radiance, buf, None, scratch)
                         })
                     }

@@ -10,14 +10,16 @@
 //! Each tile lists the surfaces its rays cross, and for each surface a
 //! *visibility map* stored as an **edge table**: spans of covered rays per
 //! tile row (one for a convex surface; coplanar neighbours of a chart share
-//! their representative's entry, see [`Subfield::build`]). The depth of a
+//! their representative's entry, see [`Subfield::build`] and [`footprint`]). The depth of a
 //! surface along a ray and the texel it crosses are not stored: they are
 //! affine in the ray's grid coordinates and recomputed on the fly
 //! ([`SurfaceProjection`]), as in the paper.
 
+pub mod footprint;
 pub mod raster;
 
-use crate::scene::Scene;
+pub use footprint::{Footprints, RasterScratch};
+
 use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
@@ -132,48 +134,44 @@ pub struct Subfield {
 }
 
 impl Subfield {
-    /// Rasterises every surface of the scene into the subfield of direction `w`.
+    /// Rasterises every surface of the scene, prepared as `footprints`, into the subfield of
+    /// direction `w`.
     ///
-    /// `plane_rep[s]` names the surface that stands for `s` in the tiles
-    /// ([`crate::maps::TexelAtlas::plane_rep`]): coplanar neighbours of one diffuse chart are
-    /// the same hit for a ray, so their spans go into one entry of their representative, the
-    /// spans of a row that touch joined into one. A wall cut into 3 200 triangles then costs
-    /// a tile one entry, as a plain quad does: the work follows the rays, not the polygons.
-    /// (An entry's row may then hold several spans, where a chart is not convex.)
-    pub fn build(scene: &Scene, w: DVec3, grid: GridSize, plane_rep: &[u32]) -> Self {
+    /// Coplanar neighbours of one diffuse chart are the same hit for a ray, so they share one
+    /// entry, their representative's ([`crate::maps::TexelAtlas::plane_rep`]), rasterised by
+    /// the group's outline ([`footprint`]): a wall cut into 3 200 triangles then costs a tile
+    /// one entry and a direction one outline, as a plain quad does. (An entry's row may hold
+    /// several spans, where a chart is not convex.)
+    pub fn build(footprints: &Footprints, w: DVec3, grid: GridSize) -> Self {
+        Self::build_with(footprints, w, grid, &mut RasterScratch::default())
+    }
+
+    /// [`Subfield::build`] with the caller's working memory.
+    pub fn build_with(footprints: &Footprints, w: DVec3, grid: GridSize, scratch: &mut RasterScratch) -> Self {
         let frame = PsfFrame::new(w);
         let n = grid.resolution;
         let m = grid.tile;
         let per_side = grid.tiles_per_side() as usize;
         // Per tile: (representative surface, row span in tile-local coordinates).
         let mut buckets: Vec<Vec<(u32, Span)>> = vec![Vec::new(); per_side * per_side];
-        let mut projected = Vec::new();
-        for (id, surface) in scene.surfaces.iter().enumerate() {
-            if surface.normal.dot(frame.w).abs() < 1e-12 {
-                continue; // edge-on: no ray crosses it
+        footprints.rasterize(&frame, n, scratch, |rep, s| {
+            let tile_row = (s.row / m) as usize;
+            let local_row = (s.row % m) as u16;
+            let mut x = s.start;
+            while x < s.end {
+                let tile_col = x / m;
+                let tile_end = ((tile_col + 1) * m).min(s.end);
+                buckets[tile_row * per_side + tile_col as usize].push((
+                    rep,
+                    Span {
+                        row: local_row,
+                        start: (x - tile_col * m) as u16,
+                        end: (tile_end - tile_col * m) as u16,
+                    },
+                ));
+                x = tile_end;
             }
-            let rep = plane_rep.get(id).copied().unwrap_or(id as u32);
-            projected.clear();
-            projected.extend(surface.vertices.iter().map(|&p| frame.to_grid(p, n)));
-            raster::rasterize_convex(&projected, n, |s| {
-                let tile_row = (s.row / m) as usize;
-                let local_row = (s.row % m) as u16;
-                let mut x = s.start;
-                while x < s.end {
-                    let tile_col = x / m;
-                    let tile_end = ((tile_col + 1) * m).min(s.end);
-                    buckets[tile_row * per_side + tile_col as usize].push((
-                        rep,
-                        Span {
-                            row: local_row,
-                            start: (x - tile_col * m) as u16,
-                            end: (tile_end - tile_col * m) as u16,
-                        },
-                    ));
-                    x = tile_end;
-                }
-            });
-        }
+        });
         let mut tile_start = Vec::with_capacity(buckets.len() + 1);
         let mut entries = Vec::new();
         let mut spans: Vec<Span> = Vec::new();
@@ -355,7 +353,7 @@ impl SurfaceProjection {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::scene::{FaceOrigin, Material, Normalisation, Surface};
+    use crate::scene::{FaceOrigin, Material, Normalisation, Scene, Surface};
 
     fn tri(a: DVec3, b: DVec3, c: DVec3) -> Surface {
         let n = (b - a).cross(c - a);
@@ -419,7 +417,7 @@ mod tests {
             let grid = GridSize::new(n, m).unwrap();
             let w = DVec3::new(0.2, 0.3, 0.9).normalize();
             let reps: Vec<u32> = (0..scene.surfaces.len() as u32).collect();
-            let sub = Subfield::build(&scene, w, grid, &reps);
+            let sub = Subfield::build(&Footprints::new(&scene, &reps), w, grid);
             assert_eq!(sub.tile_count(), ((n / m) * (n / m)) as usize);
             let mut per_surface = vec![0u64; scene.surfaces.len()];
             for k in 0..sub.tile_count() {

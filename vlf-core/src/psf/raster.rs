@@ -1,4 +1,4 @@
-//! Watertight rasterisation of convex polygons onto a ray grid.
+//! Watertight rasterisation of convex polygons, and of outlines of polygon sets, onto a ray grid.
 //!
 //! A parallel subfield is an `N × N` grid of rays; ray `(i, j)` passes through
 //! the cell centre `(i + ½, j + ½)` in *grid units*. A polygon covers a ray
@@ -46,35 +46,60 @@ fn snap(x: f64) -> i64 {
     if y >= 0.0 { (y + 0.5) as i64 } else { y.round() as i64 }
 }
 
+/// Whether a cell centre `k·S + S/2` lies in `[lo, hi]` (fixed point).
+#[inline]
+pub fn spans_a_centre(lo: i64, hi: i64) -> bool {
+    ceil_div(lo - HALF, SUBPIXELS) <= floor_div(hi - HALF, SUBPIXELS)
+}
+
+#[inline]
 fn floor_div(a: i64, b: i64) -> i64 {
     debug_assert!(b > 0);
     a.div_euclid(b)
 }
 
+#[inline]
 fn ceil_div(a: i64, b: i64) -> i64 {
     -floor_div(-a, b)
+}
+
+/// A vertex in fixed point: grid units × [`SUBPIXELS`], rounded.
+pub type Fixed = (i64, i64);
+
+/// Snaps a grid-unit point to fixed point (the same for every polygon that has the vertex, so
+/// shared edges stay shared).
+pub fn snap_point(p: DVec2) -> Fixed {
+    (snap(p.x), snap(p.y))
 }
 
 /// Calls `emit` for each row span of an `n × n` grid covered by the convex
 /// polygon `points` (grid units, either winding). Returns the number of rays
 /// covered. A polygon seen edge-on (zero projected area after snapping)
 /// covers nothing.
-pub fn rasterize_convex(points: &[DVec2], n: u32, mut emit: impl FnMut(RowSpan)) -> u64 {
+pub fn rasterize_convex(points: &[DVec2], n: u32, emit: impl FnMut(RowSpan)) -> u64 {
     if points.len() < 3 {
         return 0;
     }
     // Most polygons are triangles and quads: snapped onto the stack.
     let mut stack = [(0i64, 0i64); 8];
     let mut heap = Vec::new();
-    let p: &mut [(i64, i64)] = if points.len() <= stack.len() {
+    let p: &mut [Fixed] = if points.len() <= stack.len() {
         for (d, q) in stack.iter_mut().zip(points) {
-            *d = (snap(q.x), snap(q.y));
+            *d = snap_point(*q);
         }
         &mut stack[..points.len()]
     } else {
-        heap.extend(points.iter().map(|q| (snap(q.x), snap(q.y))));
+        heap.extend(points.iter().map(|&q| snap_point(q)));
         &mut heap[..]
     };
+    rasterize_convex_fixed(p, n, emit)
+}
+
+/// [`rasterize_convex`] on snapped vertices (reordered in place to counter-clockwise).
+pub fn rasterize_convex_fixed(p: &mut [Fixed], n: u32, mut emit: impl FnMut(RowSpan)) -> u64 {
+    if p.len() < 3 {
+        return 0;
+    }
     // No cell centre inside the bounding box (a polygon smaller than a ray cell, the rule in
     // scanned meshes): nothing to cover.
     let (mut min_x, mut max_x) = (i64::MAX, i64::MIN);
@@ -85,9 +110,7 @@ pub fn rasterize_convex(points: &[DVec2], n: u32, mut emit: impl FnMut(RowSpan))
         min_y = min_y.min(q.1);
         max_y = max_y.max(q.1);
     }
-    if ceil_div(min_x - HALF, SUBPIXELS) > floor_div(max_x - HALF, SUBPIXELS)
-        || ceil_div(min_y - HALF, SUBPIXELS) > floor_div(max_y - HALF, SUBPIXELS)
-    {
+    if !spans_a_centre(min_x, max_x) || !spans_a_centre(min_y, max_y) {
         return 0;
     }
     // Twice the signed area, exact.
@@ -114,6 +137,10 @@ pub fn rasterize_convex(points: &[DVec2], n: u32, mut emit: impl FnMut(RowSpan))
         for k in 0..p.len() {
             let (a, b) = (p[k], p[(k + 1) % p.len()]);
             let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+            if dx == 0 && dy == 0 {
+                // Two corners snapped together: an edge of no length bounds nothing.
+                continue;
+            }
             let top_left = dy < 0 || (dy == 0 && dx < 0);
             let bias = if top_left { 0 } else { 1 };
             // Inside: dx·(yc − ay) − dy·(x − ax) − bias ≥ 0.
@@ -137,6 +164,110 @@ pub fn rasterize_convex(points: &[DVec2], n: u32, mut emit: impl FnMut(RowSpan))
                 row: row as u32,
                 start: lo as u32,
                 end: (hi + 1) as u32,
+            });
+        }
+    }
+    covered
+}
+
+/// One edge crossing a row: from column `col` on, the winding number changes by `wind`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord)]
+pub struct Crossing {
+    row: u32,
+    col: u32,
+    wind: i32,
+}
+
+/// Calls `emit` for each row span of an `n × n` grid covered by the region that the directed
+/// `edges` (pairs of indices into `points`) enclose: the centres of nonzero winding number.
+/// `edges` may form any number of closed loops (an outline with holes), in any order.
+///
+/// **Why it covers exactly what the polygons it outlines cover.** The top-left rule of
+/// [`rasterize_convex`] decides a centre `c` on an edge as if it were sampled at
+/// `c + (ε, −ε²)` for an infinitesimal ε: for an edge `(dx, dy)` of a counter-clockwise polygon
+/// the sign of `dx·(−ε²) − dy·ε` is that of `−dy` when `dy ≠ 0` (left edges own their centres)
+/// and of `−dx` when `dy = 0` (top edges do). That point lies on no edge, so it is inside a set
+/// of polygons that tile a region exactly when its winding number about their edges is
+/// nonzero, and an edge run both ways by two neighbours adds nothing to any winding number.
+/// The same sample point decides here: an edge crosses row `yc − ε²` when `y_lo < yc ≤ y_hi`,
+/// and lies left of `xc + ε` when its crossing `x(yc) ≤ xc` (exact integer arithmetic, as in
+/// [`rasterize_convex`]). So the outline of a chart's polygons covers each ray centre exactly
+/// when one of its polygons does, vertices and shared edges included (tested).
+pub fn rasterize_outline(
+    points: &[Fixed],
+    edges: &[(u32, u32)],
+    n: u32,
+    crossings: &mut Vec<Crossing>,
+    emit: impl FnMut(RowSpan),
+) -> u64 {
+    rasterize_outline_with(edges, |i| points[i as usize], n, crossings, emit)
+}
+
+/// [`rasterize_outline`] with the points given by `point(index)`.
+pub fn rasterize_outline_with(
+    edges: &[(u32, u32)],
+    point: impl Fn(u32) -> Fixed,
+    n: u32,
+    crossings: &mut Vec<Crossing>,
+    mut emit: impl FnMut(RowSpan),
+) -> u64 {
+    crossings.clear();
+    let n = n as i64;
+    for &(a, b) in edges {
+        let (a, b) = (point(a), point(b));
+        if a.1 == b.1 {
+            continue; // horizontal: crosses no row at y − ε²
+        }
+        let (wind, lo, hi) = if b.1 > a.1 { (1, a, b) } else { (-1, b, a) };
+        // Rows with lo.y < yc ≤ hi.y.
+        let first = (floor_div(lo.1 - HALF, SUBPIXELS) + 1).max(0);
+        let last = floor_div(hi.1 - HALF, SUBPIXELS).min(n - 1);
+        let (ex, ey) = (hi.0 - lo.0, hi.1 - lo.1);
+        for row in first..=last {
+            let yc = row * SUBPIXELS + HALF;
+            // First column whose centre xc satisfies xc ≥ x(yc) = lo.x + ex·(yc − lo.y)/ey.
+            let x = lo.0 + ceil_div(ex * (yc - lo.1), ey);
+            let col = ceil_div(x - HALF, SUBPIXELS).clamp(0, n);
+            crossings.push(Crossing {
+                row: row as u32,
+                col: col as u32,
+                wind,
+            });
+        }
+    }
+    crossings.sort_unstable();
+    let mut covered = 0u64;
+    let mut k = 0;
+    while k < crossings.len() {
+        let row = crossings[k].row;
+        let (mut winding, mut open) = (0i32, None);
+        while k < crossings.len() && crossings[k].row == row {
+            let col = crossings[k].col;
+            while k < crossings.len() && crossings[k].row == row && crossings[k].col == col {
+                winding += crossings[k].wind;
+                k += 1;
+            }
+            match open {
+                None if winding != 0 => open = Some(col),
+                Some(start) if winding == 0 => {
+                    open = None;
+                    if start < col {
+                        covered += (col - start) as u64;
+                        emit(RowSpan { row, start, end: col });
+                    }
+                }
+                _ => {}
+            }
+        }
+        // Closed loops leave every row at winding 0; an open outline is cut at the grid's edge.
+        if let Some(start) = open
+            && start < n as u32
+        {
+            covered += (n as u32 - start) as u64;
+            emit(RowSpan {
+                row,
+                start,
+                end: n as u32,
             });
         }
     }
@@ -242,5 +373,113 @@ mod tests {
             assert!(mesh.iter().all(|&c| c <= 1), "a centre covered twice (trial {trial})");
             assert_eq!(mesh, whole, "mesh coverage differs from its outline (trial {trial})");
         }
+    }
+
+    fn outline_coverage(points: &[DVec2], edges: &[(u32, u32)], n: u32) -> Vec<u32> {
+        let fixed: Vec<Fixed> = points.iter().map(|&p| snap_point(p)).collect();
+        let mut count = vec![0u32; (n * n) as usize];
+        let covered = rasterize_outline(&fixed, edges, n, &mut Vec::new(), |s| {
+            for i in s.start..s.end {
+                count[(s.row * n + i) as usize] += 1;
+            }
+        });
+        assert_eq!(covered, count.iter().map(|&c| c as u64).sum::<u64>());
+        count
+    }
+
+    /// A jittered triangle mesh over a region with a hole, vertices on cell centres and cell
+    /// edges included, its outline running past the grid: the outline (the edges that no
+    /// neighbour runs the other way), and equally all edges of all triangles, cover exactly
+    /// the centres that the triangles cover one by one.
+    #[test]
+    fn an_outline_covers_what_its_polygons_cover() {
+        let n = 24u32;
+        let mut seed = 11u64;
+        for trial in 0..40 {
+            let k = 7usize;
+            let (x0, x1) = (-2.0 + trial as f64 * 0.173, 20.5 + (trial % 5) as f64 * 2.0);
+            let step = (x1 - x0) / k as f64;
+            let index = |a: usize, b: usize| (a * (k + 1) + b) as u32;
+            let mut points = Vec::new();
+            for a in 0..=k {
+                for b in 0..=k {
+                    let mut q = DVec2::new(x0 + a as f64 * step, x0 + b as f64 * step * 0.8 + trial as f64 * 0.01);
+                    match trial % 4 {
+                        0 => q = (q - 0.5).round() + 0.5, // on centres
+                        1 => q = q.round(),               // on cell corners
+                        _ => q += DVec2::new(splitmix(&mut seed) - 0.5, splitmix(&mut seed) - 0.5) * step * 0.4,
+                    }
+                    points.push(q);
+                }
+            }
+            let mut triangles: Vec<[u32; 3]> = Vec::new();
+            for a in 0..k {
+                for b in 0..k {
+                    if (a, b) == (3, 3) || (a, b) == (3, 4) {
+                        continue; // a hole
+                    }
+                    let (p00, p10, p11, p01) = (index(a, b), index(a + 1, b), index(a + 1, b + 1), index(a, b + 1));
+                    if (a + b + trial) % 2 == 0 {
+                        triangles.extend([[p00, p10, p11], [p00, p11, p01]]);
+                    } else {
+                        triangles.extend([[p10, p11, p01], [p00, p10, p01]]);
+                    }
+                }
+            }
+            let polys: Vec<Vec<DVec2>> = triangles
+                .iter()
+                .map(|t| t.iter().map(|&i| points[i as usize]).collect())
+                .collect();
+            let mesh = coverage(&polys, n);
+            assert!(mesh.iter().all(|&c| c <= 1));
+            let all: Vec<(u32, u32)> = triangles
+                .iter()
+                .flat_map(|t| [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])])
+                .collect();
+            let outline: Vec<(u32, u32)> = all.iter().copied().filter(|&(a, b)| !all.contains(&(b, a))).collect();
+            assert!(outline.len() < all.len() / 3);
+            let mut scrambled = outline.clone();
+            scrambled.reverse();
+            for edges in [&all, &outline, &scrambled] {
+                let covered = outline_coverage(&points, edges, n);
+                assert!(covered.iter().all(|&c| c <= 1));
+                assert_eq!(covered, mesh, "trial {trial}");
+            }
+        }
+    }
+
+    /// A convex polygon is its own outline, whichever way round.
+    #[test]
+    fn a_convex_polygon_is_its_own_outline() {
+        let mut seed = 3u64;
+        for _ in 0..200 {
+            let c = DVec2::new(splitmix(&mut seed) * 16.0, splitmix(&mut seed) * 16.0);
+            let r = 0.3 + splitmix(&mut seed) * 9.0;
+            let corners = 3 + (splitmix(&mut seed) * 6.0) as usize;
+            let mut angles: Vec<f64> = (0..corners)
+                .map(|_| splitmix(&mut seed) * std::f64::consts::TAU)
+                .collect();
+            angles.sort_by(f64::total_cmp);
+            let mut poly: Vec<DVec2> = angles.iter().map(|a| c + DVec2::new(a.cos(), a.sin()) * r).collect();
+            if splitmix(&mut seed) < 0.5 {
+                poly.reverse();
+            }
+            let edges: Vec<(u32, u32)> = (0..corners as u32).map(|i| (i, (i + 1) % corners as u32)).collect();
+            assert_eq!(outline_coverage(&poly, &edges, 16), coverage(&[poly.clone()], 16));
+        }
+    }
+
+    /// Two corners that snap onto one point leave the polygon whole (an edge of no length
+    /// bounds nothing).
+    #[test]
+    fn corners_snapped_together_do_not_empty_a_polygon() {
+        let quad = vec![
+            DVec2::new(1.0, 1.0),
+            DVec2::new(7.0, 1.0),
+            DVec2::new(7.0, 6.0),
+            DVec2::new(7.0 + 1e-6, 6.0),
+            DVec2::new(1.0, 6.0),
+        ];
+        assert_eq!(coverage(&[quad], 8).iter().sum::<u32>(), 30);
     }
 }

@@ -109,6 +109,18 @@ pub struct FaceOrigin {
     pub face: usize,
 }
 
+/// Vertices closer than this (VLF frame) are one vertex wherever polygons are matched up by
+/// their corners (T-junctions, charts, subfield outlines). Importers keep shared corners
+/// bit-identical up to the rounding of flattening a face onto its plane (≈1e-16), far below it,
+/// and the frame spans 2, so distinct vertices of any real scene are far above it.
+pub const VERTEX_QUANTUM: f64 = 1.0 / (1u64 << 32) as f64;
+
+/// The key under which nearly coincident vertices (within [`VERTEX_QUANTUM`]) are one vertex.
+pub fn vertex_key(p: DVec3) -> [i64; 3] {
+    let q = |x: f64| (x / VERTEX_QUANTUM).round() as i64;
+    [q(p.x), q(p.y), q(p.z)]
+}
+
 /// One planar **convex** polygon, counter-clockwise about its front normal.
 ///
 /// Non-convex input polygons are split into convex pieces by the importer, so

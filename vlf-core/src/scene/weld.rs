@@ -14,16 +14,13 @@
 //! exactly the neighbours' edges, and its inner edges are shared within the fan. The texels do
 //! not care: the fan is in the polygon's chart ([`crate::maps::charts`]).
 
-use super::Surface;
+use super::{Surface, VERTEX_QUANTUM, vertex_key};
 use glam::DVec3;
 use std::collections::HashMap;
 
 /// A vertex lies on an edge when its distance to the edge's line is below this fraction of the
 /// edge's length, and strictly between its endpoints (by more than it).
 const ON_EDGE: f64 = 1e-7;
-
-/// Vertices closer than this (VLF frame) are one vertex.
-const VERTEX_QUANTUM: f64 = 1.0 / (1u64 << 32) as f64;
 
 /// Splits every surface that has T vertices on its edges (see the module docs). Returns the
 /// surfaces (in order, a split surface's fan in its place) and how many were split.
@@ -48,15 +45,11 @@ pub fn split_t_junctions(surfaces: Vec<Surface>) -> (Vec<Surface>, usize) {
     };
     // Vertices closer than a quantum are one vertex (the same corner computed twice rounds a
     // few ulps apart): the first one met stands for them.
-    let quantum = |p: DVec3| {
-        let q = (p / VERTEX_QUANTUM).round();
-        (q.x as i64, q.y as i64, q.z as i64)
-    };
     let mut seen = std::collections::HashSet::new();
     let mut grid: HashMap<(i64, i64, i64), Vec<DVec3>> = HashMap::new();
     for s in &surfaces {
         for &p in &s.vertices {
-            if seen.insert(quantum(p)) {
+            if seen.insert(vertex_key(p)) {
                 grid.entry(key(p)).or_default().push(p);
             }
         }

@@ -1,0 +1,314 @@
+//! Footprints: the shapes a subfield rasterises, prepared once per scene.
+//!
+//! For every direction, [`super::Subfield::build`] finds the rays that cross each surface. Done
+//! polygon by polygon, that work grows with how finely a modeller cut the scene, not with its
+//! rays: a wall given as 3 200 triangles is rasterised 3 200 times per direction, and every
+//! triangle of a scan projects its own copy of its three corners (a closed mesh has half as
+//! many vertices as triangles). So the scene is prepared once, here:
+//!
+//! * **Shared vertices.** Corners that coincide (within [`crate::scene::VERTEX_QUANTUM`]) are
+//!   one point, projected and snapped once per direction however many polygons meet there.
+//!   Snapping the same point once also keeps shared edges shared exactly.
+//! * **Planar charts by their outline.** The polygons of a planar group (coplanar neighbours
+//!   of one diffuse material, one entry per tile, see [`crate::maps::charts`]) are one plane
+//!   to a ray: what matters is which centres the group covers, not which of its polygons
+//!   covers them. Each polygon's edges are run counter-clockwise; an edge that a neighbour runs
+//!   the other way adds nothing to any winding number and is dropped, and what is left is the
+//!   group's outline (outer loop and holes). [`super::raster::rasterize_outline`] covers
+//!   exactly the centres that the polygons' own rasterisations cover (proved there, and
+//!   tested), so the subfields do not change, only their cost: the 40 × 40 grid room costs
+//!   what the plain room does.
+//!
+//! Curved charts keep one shape per polygon: their polygons are different planes, and a ray
+//! may cross the chart twice.
+
+use super::PsfFrame;
+use super::raster::{self, Crossing, Fixed, RowSpan};
+use crate::scene::{Scene, vertex_key};
+use glam::DVec3;
+use std::collections::HashMap;
+
+/// One shape of [`Footprints`]: a convex polygon (its corners, in order) or an outline (its
+/// directed edges), standing for surface `surface` in the tiles.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Shape {
+    surface: u32,
+    kind: ShapeKind,
+    /// Range of [`Footprints::corners`] (a polygon) or [`Footprints::edges`] (an outline).
+    first: u32,
+    len: u32,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum ShapeKind {
+    Polygon,
+    Outline,
+}
+
+/// What a subfield rasterises (see the module docs): the scene's distinct vertices, and one
+/// shape per surface or per planar group.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Footprints {
+    points: Vec<DVec3>,
+    /// Small, as they are walked for every direction: a scan's triangles are 10⁵ shapes.
+    shapes: Vec<Shape>,
+    /// Each shape's plane normal (a shape seen edge-on is crossed by no ray), read only for
+    /// the shapes that cover a ray centre.
+    normals: Vec<DVec3>,
+    corners: Vec<u32>,
+    edges: Vec<(u32, u32)>,
+}
+
+/// Per-direction working memory of [`Footprints::rasterize`], kept by the caller.
+#[derive(Default)]
+pub struct RasterScratch {
+    /// The points in fixed point, in `i32` (grid coordinates below 2¹²·[`raster::SUBPIXELS`]):
+    /// half the cache a scan's 10⁵ vertices take in `i64`.
+    fixed: Vec<[i32; 2]>,
+    polygon: Vec<Fixed>,
+    crossings: Vec<Crossing>,
+}
+
+impl Footprints {
+    /// Prepares `scene`'s shapes. `plane_rep[s]` is the surface that stands for `s` in the
+    /// tiles ([`crate::maps::TexelAtlas::plane_rep`]): surfaces sharing one are a planar group,
+    /// rasterised by its outline. Deterministic: shapes in order of their surface, edges sorted.
+    pub fn new(scene: &Scene, plane_rep: &[u32]) -> Self {
+        let mut points = Vec::new();
+        let mut index_of: HashMap<[i64; 3], u32> = HashMap::new();
+        let mut point = |p: DVec3| {
+            *index_of.entry(vertex_key(p)).or_insert_with(|| {
+                points.push(p);
+                points.len() as u32 - 1
+            })
+        };
+        let rep_of = |s: usize| plane_rep.get(s).copied().unwrap_or(s as u32) as usize;
+        let mut members: Vec<Vec<u32>> = vec![Vec::new(); scene.surfaces.len()];
+        for s in 0..scene.surfaces.len() {
+            members[rep_of(s)].push(s as u32);
+        }
+        let (mut shapes, mut normals, mut corners, mut edges) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (rep, group) in members.iter().enumerate() {
+            let normal = scene.surfaces[rep].normal;
+            if let [only] = group[..] {
+                let first = corners.len() as u32;
+                corners.extend(scene.surfaces[only as usize].vertices.iter().map(|&p| point(p)));
+                normals.push(normal);
+                shapes.push(Shape {
+                    surface: rep as u32,
+                    kind: ShapeKind::Polygon,
+                    first,
+                    len: corners.len() as u32 - first,
+                });
+            } else if !group.is_empty() {
+                // Net count of every undirected edge, + for the direction low → high index.
+                let mut net: HashMap<(u32, u32), i32> = HashMap::new();
+                for &s in group {
+                    let ring: Vec<u32> = scene.surfaces[s as usize].vertices.iter().map(|&p| point(p)).collect();
+                    for (k, &a) in ring.iter().enumerate() {
+                        let b = ring[(k + 1) % ring.len()];
+                        if a != b {
+                            *net.entry((a.min(b), a.max(b))).or_default() += if a < b { 1 } else { -1 };
+                        }
+                    }
+                }
+                let mut kept: Vec<((u32, u32), i32)> = net.into_iter().filter(|&(_, c)| c != 0).collect();
+                kept.sort_unstable();
+                let first = edges.len() as u32;
+                for ((lo, hi), c) in kept {
+                    let edge = if c > 0 { (lo, hi) } else { (hi, lo) };
+                    edges.extend(std::iter::repeat_n(edge, c.unsigned_abs() as usize));
+                }
+                normals.push(normal);
+                shapes.push(Shape {
+                    surface: rep as u32,
+                    kind: ShapeKind::Outline,
+                    first,
+                    len: edges.len() as u32 - first,
+                });
+            }
+        }
+        Footprints {
+            points,
+            shapes,
+            normals,
+            corners,
+            edges,
+        }
+    }
+
+    /// Number of shapes rasterised per direction (surfaces, with a planar group counted once).
+    pub fn shape_count(&self) -> usize {
+        self.shapes.len()
+    }
+
+    /// Rasterises every shape not seen edge-on onto the `n × n` grid of `frame`: `emit` gets the
+    /// surface that stands for it and each covered row span.
+    pub fn rasterize(&self, frame: &PsfFrame, n: u32, scratch: &mut RasterScratch, mut emit: impl FnMut(u32, RowSpan)) {
+        let RasterScratch {
+            fixed,
+            polygon,
+            crossings,
+        } = scratch;
+        fixed.clear();
+        fixed.extend(self.points.iter().map(|&p| {
+            let (x, y) = raster::snap_point(frame.to_grid(p, n));
+            [x as i32, y as i32]
+        }));
+        let at = |i: u32| {
+            let [x, y] = fixed[i as usize];
+            (x as i64, y as i64)
+        };
+        for (shape, normal) in self.shapes.iter().zip(&self.normals) {
+            let range = shape.first as usize..(shape.first + shape.len) as usize;
+            let surface = shape.surface;
+            match shape.kind {
+                ShapeKind::Polygon => {
+                    // Most polygons of a scan cover no ray centre: the bounding box says so
+                    // before anything else is looked at.
+                    let corners = &self.corners[range];
+                    let (mut lo, mut hi) = ([i32::MAX; 2], [i32::MIN; 2]);
+                    for &i in corners {
+                        let q = fixed[i as usize];
+                        lo = [lo[0].min(q[0]), lo[1].min(q[1])];
+                        hi = [hi[0].max(q[0]), hi[1].max(q[1])];
+                    }
+                    if !raster::spans_a_centre(lo[0] as i64, hi[0] as i64)
+                        || !raster::spans_a_centre(lo[1] as i64, hi[1] as i64)
+                        || normal.dot(frame.w).abs() < 1e-12
+                    {
+                        continue;
+                    }
+                    polygon.clear();
+                    polygon.extend(corners.iter().map(|&i| at(i)));
+                    raster::rasterize_convex_fixed(polygon, n, |s| emit(surface, s));
+                }
+                ShapeKind::Outline => {
+                    if normal.dot(frame.w).abs() < 1e-12 {
+                        continue; // edge-on: no ray crosses it
+                    }
+                    raster::rasterize_outline_with(&self.edges[range], at, n, crossings, |s| emit(surface, s));
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::maps::TexelAtlas;
+    use crate::scene::{FaceOrigin, ImportOptions, Material};
+    use glam::DVec2;
+
+    /// A floor cut into a jittered grid of triangles and quads, a box standing on it and a
+    /// second floor piece of another material: every direction's rays are covered by the
+    /// same surfaces' footprints, group by group, whether the groups are rasterised by their
+    /// outline or polygon by polygon.
+    #[test]
+    fn outlines_cover_what_the_polygons_cover() {
+        let k = 12;
+        let mut seed = 5u64;
+        let mut jitter = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * 0.3
+        };
+        let mut grid = vec![vec![DVec3::ZERO; k + 1]; k + 1];
+        for (a, row) in grid.iter_mut().enumerate() {
+            for (b, p) in row.iter_mut().enumerate() {
+                let inside = a > 0 && a < k && b > 0 && b < k;
+                let (ja, jb) = if inside { (jitter(), jitter()) } else { (0.0, 0.0) };
+                *p = DVec3::new((a as f64 + ja) / k as f64, (b as f64 + jb) / k as f64, 0.0);
+            }
+        }
+        let origin = FaceOrigin { line: 0, face: 0 };
+        let mut polygons = Vec::new();
+        for a in 0..k {
+            for b in 0..k {
+                let (p00, p10, p11, p01) = (grid[a][b], grid[a + 1][b], grid[a + 1][b + 1], grid[a][b + 1]);
+                match (a * 7 + b) % 3 {
+                    0 => polygons.push((vec![p00, p10, p11, p01], 0, origin.clone())),
+                    _ => {
+                        polygons.push((vec![p00, p10, p11], 0, origin.clone()));
+                        polygons.push((vec![p00, p11, p01], 0, origin.clone()));
+                    }
+                }
+            }
+        }
+        // Another material beside it, sharing its edge.
+        polygons.push((
+            vec![
+                DVec3::new(1.0, 0.0, 0.0),
+                DVec3::new(1.5, 0.0, 0.0),
+                DVec3::new(1.5, 1.0, 0.0),
+                DVec3::new(1.0, 1.0, 0.0),
+            ],
+            1,
+            origin.clone(),
+        ));
+        // A lamp facing down above it.
+        polygons.push((
+            vec![
+                DVec3::new(0.2, 0.2, 0.8),
+                DVec3::new(0.2, 0.6, 0.8),
+                DVec3::new(0.6, 0.6, 0.8),
+                DVec3::new(0.6, 0.2, 0.8),
+            ],
+            2,
+            origin,
+        ));
+        let material = |name: &str, emission: f64| Material {
+            name: name.into(),
+            diffuse: [0.5; 3],
+            specular: [0.0; 3],
+            emission: [emission; 3],
+        };
+        let (scene, _) = Scene::from_polygons(
+            &polygons,
+            vec![material("a", 0.0), material("b", 0.0), material("lamp", 1.0)],
+            &ImportOptions::default(),
+        )
+        .unwrap();
+        let atlas = TexelAtlas::new(&scene, 0.05, 2.0 / 64.0).unwrap();
+        let outlines = Footprints::new(&scene, &atlas.plane_rep);
+        let identity: Vec<u32> = (0..scene.surfaces.len() as u32).collect();
+        let one_by_one = Footprints::new(&scene, &identity);
+        assert_eq!(one_by_one.shape_count(), scene.surfaces.len());
+        assert_eq!(outlines.shape_count(), 3, "the floor is one group");
+        let n = 64;
+        let mut scratch = RasterScratch::default();
+        for w in [
+            DVec3::new(0.0, 0.0, 1.0),
+            DVec3::new(0.3, -0.2, 0.9),
+            DVec3::new(-0.7, 0.1, 0.2),
+            DVec3::new(0.01, 0.95, 0.2),
+        ] {
+            let frame = PsfFrame::new(w);
+            let mut by_group = vec![vec![0u32; (n * n) as usize]; scene.surfaces.len()];
+            outlines.rasterize(&frame, n, &mut scratch, |s, span| {
+                for x in span.start..span.end {
+                    by_group[s as usize][(span.row * n + x) as usize] += 1;
+                }
+            });
+            let mut by_polygon = vec![vec![0u32; (n * n) as usize]; scene.surfaces.len()];
+            one_by_one.rasterize(&frame, n, &mut scratch, |s, span| {
+                for x in span.start..span.end {
+                    by_polygon[atlas.plane_rep[s as usize] as usize][(span.row * n + x) as usize] += 1;
+                }
+            });
+            assert_eq!(by_group, by_polygon, "direction {w}");
+            assert!(by_group.iter().flatten().all(|&c| c <= 1));
+            // The plain polygons' own rasteriser agrees too.
+            let floor: u32 = by_group[0].iter().sum();
+            let direct: u64 = (scene.surfaces.iter().enumerate())
+                .filter(|(s, _)| atlas.plane_rep[*s] == 0)
+                .map(|(_, s)| {
+                    let pts: Vec<DVec2> = s.vertices.iter().map(|&p| frame.to_grid(p, n)).collect();
+                    raster::rasterize_convex(&pts, n, |_| {})
+                })
+                .sum();
+            assert_eq!(floor as u64, direct);
+            assert!(floor > 0);
+        }
+    }
+}
