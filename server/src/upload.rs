@@ -58,7 +58,11 @@ pub fn import(upload: &SceneUpload, limit: u64) -> Result<(Scene, Vec<String>), 
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("gltf") || e.eq_ignore_ascii_case("glb"));
     let load = if gltf { load_gltf } else { load_obj };
-    load(&obj, &ImportOptions::default()).map_err(|e| UploadError::Scene(strip_dir(&e.to_string(), dir.path())))
+    let options = ImportOptions {
+        confined: true,
+        ..Default::default()
+    };
+    load(&obj, &options).map_err(|e| UploadError::Scene(strip_dir(&e.to_string(), dir.path())))
 }
 
 /// The importer names files by their path; the client knows them by name.
@@ -162,5 +166,13 @@ mod tests {
         assert!(e.starts_with("room.obj:1"), "{e}");
         let e = import(&upload(QUAD, &[]), 1 << 20).unwrap_err().to_string();
         assert!(e.contains("m.mtl") && !e.contains("/tmp"), "{e}");
+        // An OBJ may not make the server read a file outside the upload, even one that exists.
+        for outside in ["../m.mtl", "/etc/hostname", "sub/m.mtl"] {
+            let obj = QUAD.replace("mtllib m.mtl", &format!("mtllib {outside}"));
+            let e = import(&upload(&obj, &[("m.mtl", MTL)]), 1 << 20)
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("not a plain file name beside the scene"), "{outside}: {e}");
+        }
     }
 }

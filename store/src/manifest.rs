@@ -16,7 +16,8 @@ use std::time::{SystemTime, UNIX_EPOCH};
 ///
 /// * 1: texel grids per polygon, diffuse maps one blob per polygon.
 /// * 2: texel grids per chart (`vlf_core::maps::charts`), diffuse maps in chunks of charts.
-pub const MANIFEST_FORMAT: u32 = 2;
+/// * 3: the stored scene carries albedo textures and texture coordinates.
+pub const MANIFEST_FORMAT: u32 = 3;
 
 /// Where a job stands.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -100,8 +101,8 @@ impl Manifest {
         if self.format < MANIFEST_FORMAT {
             return Err(format!(
                 "the job was made by an older version of vlf (store format {}, this version reads \
-                 {MANIFEST_FORMAT}): its texels were laid out per polygon, not per chart, so its maps \
-                 do not fit; propagate the scene again",
+                 {MANIFEST_FORMAT}): its scene and maps are laid out otherwise (format 1: texels per \
+                 polygon; 2: no albedo textures); propagate the scene again",
                 self.format
             ));
         }

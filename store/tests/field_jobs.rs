@@ -503,6 +503,7 @@ fn a_snapshot_of_thousands_of_polygons_is_a_few_blobs() {
         diffuse: [d; 3],
         specular: [0.0; 3],
         emission: [e; 3],
+        albedo_texture: None,
     };
     let (scene, _) = Scene::from_polygons(
         &polygons,

@@ -25,6 +25,7 @@ fn room(mirrors: usize) -> Scene {
         diffuse: [d; 3],
         specular: [s; 3],
         emission: [e; 3],
+        albedo_texture: None,
     };
     let materials = vec![
         m("wall", 0.6, 0.0, 0.0),

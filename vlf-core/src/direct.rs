@@ -184,7 +184,7 @@ impl LightField {
         let Some(exact) = &self.exact_direct else {
             return l;
         };
-        let rho = self.scene.material(surface).diffuse;
+        let rho = self.scene.albedo_at(surface, p);
         if !rho.iter().any(|&c| c > 0.0) {
             return l;
         }
@@ -219,6 +219,7 @@ mod tests {
             diffuse: [diffuse; 3],
             specular: [0.0; 3],
             emission: [emission; 3],
+            albedo_texture: None,
         }
     }
 

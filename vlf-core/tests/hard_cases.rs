@@ -844,6 +844,7 @@ fn scale_invariance(size: DVec3, label: &str) -> Vec<String> {
             diffuse: [0.7, 0.4, 0.2],
             specular: [0.0; 3],
             emission: [0.0; 3],
+            albedo_texture: None,
         },
     ];
     let build = |scale: f64, offset: DVec3| {

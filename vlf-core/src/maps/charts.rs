@@ -488,6 +488,7 @@ mod tests {
             normal,
             material,
             origin: FaceOrigin { line: 0, face: 0 },
+            uv: None,
         }
     }
 
@@ -497,6 +498,7 @@ mod tests {
             diffuse: [0.5 - specular / 2.0; 3],
             specular: [specular; 3],
             emission: [0.0; 3],
+            albedo_texture: None,
         };
         Scene {
             surfaces,
@@ -505,6 +507,7 @@ mod tests {
                 center: DVec3::ZERO,
                 scale: 1.0,
             },
+            textures: Vec::new(),
         }
     }
 

@@ -17,6 +17,7 @@
 //! See [`crate::propagate`] for why this makes shooting exactly
 //! power-conserving.
 
+pub mod albedo;
 pub mod charts;
 
 use crate::scene::Scene;

@@ -240,6 +240,8 @@ pub struct Propagation {
     pub subfields: Arc<[Subfield]>,
     /// What the subfields rasterise, for the rotated copies built on the fly.
     footprints: Arc<Footprints>,
+    /// Diffuse reflectance `ρ_t` of every texel ([`crate::maps::albedo`]).
+    albedo: Arc<[Rgb]>,
     /// Discrete projected area `T_t` of every texel (see module docs).
     pub projected_area: Vec<f64>,
     /// Unshot power per texel (the paper's Current map).
@@ -345,6 +347,7 @@ impl Propagation {
         let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing())?;
         let grid = options.grid;
         let footprints = Arc::new(Footprints::new(&scene, &atlas.plane_rep));
+        let albedo: Arc<[Rgb]> = crate::maps::albedo::texel_albedo(&scene, &atlas).into();
         let subfields: Vec<Subfield> = directions
             .directions()
             .par_iter()
@@ -394,6 +397,7 @@ impl Propagation {
             atlas,
             subfields: subfields.into(),
             footprints,
+            albedo,
             projected_area,
             current,
             emitted,
@@ -554,14 +558,8 @@ impl Propagation {
             }
             _ => (Exchange::default(), false),
         };
-        let mut next: Vec<Rgb> = work
-            .received
-            .iter()
-            .zip(&self.owners)
-            .map(|(r, &c)| {
-                let rho = scene.materials[self.atlas.chart_material[c as usize] as usize].diffuse;
-                [r[0] * rho[0], r[1] * rho[1], r[2] * rho[2]]
-            })
+        let mut next: Vec<Rgb> = (work.received.iter().zip(self.albedo.iter()))
+            .map(|(r, rho)| [r[0] * rho[0], r[1] * rho[1], r[2] * rho[2]])
             .collect();
         if let Some(sigma) = self.options.filter_sigma {
             filter::gaussian(&self.atlas, &self.projected_area, &mut next, sigma);

@@ -262,6 +262,7 @@ mod tests {
             diffuse: [0.5; 3],
             specular: [0.0; 3],
             emission: [emission; 3],
+            albedo_texture: None,
         };
         let (scene, _) = Scene::from_polygons(
             &polygons,

@@ -364,6 +364,7 @@ mod tests {
             area: n.length() / 2.0,
             material: 0,
             origin: FaceOrigin { line: 0, face: 0 },
+            uv: None,
         }
     }
 
@@ -384,11 +385,13 @@ mod tests {
                 diffuse: [0.5; 3],
                 specular: [0.0; 3],
                 emission: [1.0; 3],
+                albedo_texture: None,
             }],
             normalisation: Normalisation {
                 center: DVec3::ZERO,
                 scale: 1.0,
             },
+            textures: Vec::new(),
         }
     }
 

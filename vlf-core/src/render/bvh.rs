@@ -559,6 +559,7 @@ pub(crate) mod tests {
             area,
             material: 0,
             origin: FaceOrigin { line: 0, face: 0 },
+            uv: None,
         }
     }
 
@@ -570,11 +571,13 @@ pub(crate) mod tests {
                 diffuse: [0.5; 3],
                 specular: [0.0; 3],
                 emission: [0.0; 3],
+                albedo_texture: None,
             }],
             normalisation: Normalisation {
                 center: DVec3::ZERO,
                 scale: 1.0,
             },
+            textures: Vec::new(),
         }
     }
 

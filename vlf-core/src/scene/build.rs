@@ -54,7 +54,7 @@ use super::bent::triangulate;
 use super::polygon::{
     PolygonError, REL_AREA_EPS, centroid, convex_pieces, diameter, newell_normal, planarity_deviation,
 };
-use super::{FaceOrigin, Material, Normalisation, Rgb, Scene, Surface};
+use super::{FaceOrigin, Material, Normalisation, Rgb, Scene, Surface, Texture, UvMap};
 use crate::Error;
 
 /// Options of the importers.
@@ -70,6 +70,10 @@ pub struct ImportOptions {
     /// visibly. `0` triangulates every face with four or more vertices that
     /// is not exactly planar.
     pub planarity_tolerance: f64,
+    /// Read no file outside the scene file's folder: an OBJ's `mtllib` must then name a plain
+    /// file beside it (glTF's buffers and images always must). A server importing an upload
+    /// sets it, so an upload cannot make it read its own files.
+    pub confined: bool,
 }
 
 impl ImportOptions {
@@ -81,6 +85,7 @@ impl Default for ImportOptions {
     fn default() -> Self {
         ImportOptions {
             planarity_tolerance: Self::DEFAULT_PLANARITY_TOLERANCE,
+            confined: false,
         }
     }
 }
@@ -91,6 +96,16 @@ struct Piece {
     normal: DVec3,
     material: usize,
     origin: FaceOrigin,
+    /// The input face's texture coordinates (affine over its plane, so every piece shares them).
+    uv: Option<UvMap>,
+}
+
+/// Albedo textures of a format that has them (glTF): the textures its materials name, and
+/// the texture coordinates of each input polygon (empty: none).
+#[derive(Default)]
+pub(crate) struct Textured {
+    pub textures: Vec<Texture>,
+    pub uvs: Vec<Option<UvMap>>,
 }
 
 /// The pieces and warnings gathered while the faces are read.
@@ -120,7 +135,13 @@ impl Builder<'_> {
     /// Adds a face that is planar within the tolerance: flattened onto its
     /// Newell plane (a triangle is kept as it is) and split into convex
     /// pieces; skipped if degenerate.
-    fn add_planar(&mut self, vertices: &[DVec3], material: usize, origin: &FaceOrigin) -> Result<(), String> {
+    fn add_planar(
+        &mut self,
+        vertices: &[DVec3],
+        material: usize,
+        origin: &FaceOrigin,
+        uv: Option<UvMap>,
+    ) -> Result<(), String> {
         let d = diameter(vertices);
         let n = newell_normal(vertices);
         if d == 0.0 || n.length() <= REL_AREA_EPS * d * d {
@@ -144,6 +165,7 @@ impl Builder<'_> {
                 normal,
                 material,
                 origin: origin.clone(),
+                uv,
             })),
             Err(PolygonError::Degenerate) => self.skip_degenerate(origin),
             Err(e) => return Err(e.to_string()),
@@ -162,7 +184,14 @@ pub(crate) fn build_scene(
     options: &ImportOptions,
     file: &str,
 ) -> Result<(Scene, Vec<String>), Error> {
-    build_scene_named(polygons, materials, options, file, &|o| format!("face #{}", o.face))
+    build_scene_named(
+        polygons,
+        materials,
+        options,
+        file,
+        &|o| format!("face #{}", o.face),
+        Textured::default(),
+    )
 }
 
 /// [`build_scene`] for a format whose faces are better named otherwise than
@@ -174,8 +203,28 @@ pub(crate) fn build_scene_named(
     options: &ImportOptions,
     file: &str,
     name_face: &dyn Fn(&FaceOrigin) -> String,
+    textured: Textured,
 ) -> Result<(Scene, Vec<String>), Error> {
     check_options(options)?;
+    let Textured { textures, uvs } = textured;
+    for t in &textures {
+        t.validate().map_err(|msg| Error::scene(file, None, msg))?;
+    }
+    for (i, m) in materials.iter().enumerate() {
+        if let Some(t) = m.albedo_texture
+            && t as usize >= textures.len()
+        {
+            return Err(Error::scene(
+                file,
+                None,
+                format!(
+                    "material '{}' (#{i}) names texture {t}, but there are {}",
+                    m.name,
+                    textures.len()
+                ),
+            ));
+        }
+    }
     let mut builder = Builder {
         file,
         name_face,
@@ -192,7 +241,8 @@ pub(crate) fn build_scene_named(
         return Err(Error::scene(file, None, "the scene has no faces"));
     }
 
-    for (vertices, material, origin) in polygons {
+    for (k, (vertices, material, origin)) in polygons.iter().enumerate() {
+        let uv = uvs.get(k).copied().flatten();
         let line = (origin.line > 0).then_some(origin.line);
         let fail = |msg: String| Error::scene(file, line, format!("{}: {msg}", name_face(origin)));
         if *material >= materials.len() {
@@ -221,7 +271,7 @@ pub(crate) fn build_scene_named(
         let deviation = planarity_deviation(vertices);
         // A triangle is planar by construction (its deviation is rounding).
         if vertices.len() == 3 || deviation <= options.planarity_tolerance * d {
-            builder.add_planar(vertices, *material, origin).map_err(fail)?;
+            builder.add_planar(vertices, *material, origin, uv).map_err(fail)?;
             continue;
         }
         let bent = format!(
@@ -246,7 +296,7 @@ pub(crate) fn build_scene_named(
         ));
         for t in triangles {
             builder
-                .add_planar(&t.map(|i| vertices[i]), *material, origin)
+                .add_planar(&t.map(|i| vertices[i]), *material, origin, uv)
                 .map_err(fail)?;
         }
     }
@@ -285,6 +335,7 @@ pub(crate) fn build_scene_named(
                 area,
                 material: p.material,
                 origin: p.origin,
+                uv: p.uv.map(|m| m.scaled(normalisation.center, normalisation.scale)),
             }
         })
         .collect();
@@ -305,6 +356,7 @@ pub(crate) fn build_scene_named(
             surfaces,
             materials,
             normalisation,
+            textures,
         },
         warnings,
     ))
@@ -438,6 +490,7 @@ mod tests {
             diffuse,
             specular,
             emission,
+            albedo_texture: None,
         }
     }
 
@@ -522,7 +575,10 @@ mod tests {
             DVec3::new(0.0, 1.0, 1.0),
         ];
         let build = |t: f64| {
-            let options = ImportOptions { planarity_tolerance: t };
+            let options = ImportOptions {
+                planarity_tolerance: t,
+                ..Default::default()
+            };
             Scene::from_polygons(&with_light(bent.clone()), materials(), &options).unwrap()
         };
         // Within the default tolerance: flattened and kept whole, silently.
@@ -559,6 +615,7 @@ mod tests {
         let flat: Vec<DVec3> = bent.iter().map(|p| DVec3::new(p.x, p.y, 1.0)).collect();
         let options = ImportOptions {
             planarity_tolerance: 0.0,
+            ..Default::default()
         };
         let (scene, warnings) = Scene::from_polygons(&with_light(flat), materials(), &options).unwrap();
         assert!(warnings.is_empty(), "{warnings:?}");

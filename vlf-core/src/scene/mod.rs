@@ -21,12 +21,14 @@ mod build;
 mod gltf;
 mod obj;
 mod polygon;
+pub mod texture;
 mod weld;
 
 pub use self::gltf::{gltf_external_files, load_gltf};
 pub use build::{ImportOptions, MAX_MIRROR_REFLECTANCE};
 pub use obj::load_obj;
 pub use polygon::{PolygonError, convex_pieces, newell_normal};
+pub use texture::{Texture, UvMap, Wrap};
 
 use std::path::Path;
 
@@ -84,6 +86,9 @@ pub struct Material {
     pub specular: Rgb,
     /// Emitted radiance `Le` (W·sr⁻¹·m⁻²) from the front side, isotropic.
     pub emission: Rgb,
+    /// An albedo texture ([`Scene::textures`]) that multiplies `diffuse` where the surface's
+    /// [`Surface::uv`] places it (see [`texture`]).
+    pub albedo_texture: Option<u32>,
 }
 
 impl Material {
@@ -138,6 +143,8 @@ pub struct Surface {
     /// Index into [`Scene::materials`].
     pub material: usize,
     pub origin: FaceOrigin,
+    /// Texture coordinates over the surface, where its material has an albedo texture.
+    pub uv: Option<UvMap>,
 }
 
 /// The similarity that maps scene units into the VLF frame:
@@ -163,11 +170,28 @@ pub struct Scene {
     pub surfaces: Vec<Surface>,
     pub materials: Vec<Material>,
     pub normalisation: Normalisation,
+    /// Albedo textures, named by [`Material::albedo_texture`].
+    pub textures: Vec<Texture>,
 }
 
 impl Scene {
     pub fn material(&self, surface: usize) -> &Material {
         &self.materials[self.surfaces[surface].material]
+    }
+
+    /// Diffuse reflectance ρd of `surface` at its point `p`: the material's, times its albedo
+    /// texture where the surface's texture coordinates place `p` (the texture's mean where the
+    /// surface has none).
+    pub fn albedo_at(&self, surface: usize, p: DVec3) -> Rgb {
+        let m = self.material(surface);
+        let Some(t) = m.albedo_texture.and_then(|t| self.textures.get(t as usize)) else {
+            return m.diffuse;
+        };
+        let c = match &self.surfaces[surface].uv {
+            Some(map) => t.sample(map.at(p)),
+            None => t.mean(),
+        };
+        [m.diffuse[0] * c[0], m.diffuse[1] * c[1], m.diffuse[2] * c[2]]
     }
 
     /// Radius of the bounding sphere in the VLF frame: every vertex lies
@@ -211,9 +235,18 @@ impl Scene {
             {
                 return Err(bad(format!("material {i} (`{}`) is not physical", m.name)));
             }
+            if m.albedo_texture.is_some_and(|t| t as usize >= scene.textures.len()) {
+                return Err(bad(format!("material {i} (`{}`) names a missing texture", m.name)));
+            }
+        }
+        for t in &scene.textures {
+            t.validate().map_err(bad)?;
         }
         for (i, s) in scene.surfaces.iter().enumerate() {
-            let finite = s.vertices.iter().all(|v| v.is_finite()) && s.offset.is_finite() && s.area.is_finite();
+            let finite = s.vertices.iter().all(|v| v.is_finite())
+                && s.offset.is_finite()
+                && s.area.is_finite()
+                && s.uv.is_none_or(|m| m.is_finite());
             if s.material >= scene.materials.len()
                 || s.vertices.len() < 3
                 || !finite

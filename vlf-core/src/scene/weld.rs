@@ -161,6 +161,7 @@ mod tests {
             area: (v[1] - v[0]).cross(v[3] - v[0]).length(),
             material: 0,
             origin: FaceOrigin { line: 0, face: 0 },
+            uv: None,
         }
     }
 

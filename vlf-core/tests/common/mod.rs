@@ -10,6 +10,7 @@ pub fn material(name: &str, diffuse: f64, emission: f64) -> Material {
         diffuse: [diffuse; 3],
         specular: [0.0; 3],
         emission: [emission; 3],
+        albedo_texture: None,
     }
 }
 
@@ -33,6 +34,7 @@ pub fn surface(vertices: Vec<DVec3>, material: usize) -> Surface {
         area,
         material,
         origin: FaceOrigin { line: 0, face: 0 },
+        uv: None,
     }
 }
 
@@ -54,6 +56,7 @@ pub fn scene(surfaces: Vec<Surface>, materials: Vec<Material>) -> Scene {
             center: DVec3::ZERO,
             scale: 1.0,
         },
+        textures: Vec::new(),
     }
 }
 
@@ -85,6 +88,7 @@ pub fn mirror(name: &str, diffuse: f64, specular: f64) -> Material {
         diffuse: [diffuse; 3],
         specular: [specular; 3],
         emission: [0.0; 3],
+        albedo_texture: None,
     }
 }
 

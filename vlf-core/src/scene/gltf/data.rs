@@ -256,6 +256,9 @@ pub(super) enum Expect {
     Positions,
     /// `SCALAR` of `UNSIGNED_BYTE`, `UNSIGNED_SHORT` or `UNSIGNED_INT`.
     Indices,
+    /// `VEC2` of `FLOAT`, or of normalized `UNSIGNED_BYTE` / `UNSIGNED_SHORT` (glTF's
+    /// `TEXCOORD_n`).
+    TexCoords,
 }
 
 fn type_name(t: Type) -> &'static str {
@@ -311,11 +314,17 @@ pub(super) fn read_accessor(
                 && !accessor.normalized
                 && matches!(component, ComponentType::U8 | ComponentType::U16 | ComponentType::U32)
         }
+        Expect::TexCoords => {
+            ty == Type::Vec2
+                && (component == ComponentType::F32
+                    || (accessor.normalized && matches!(component, ComponentType::U8 | ComponentType::U16)))
+        }
     };
     if !fits {
         let expected = match expect {
             Expect::Positions => "VEC3",
             Expect::Indices => "SCALAR of UNSIGNED_BYTE, UNSIGNED_SHORT or UNSIGNED_INT",
+            Expect::TexCoords => "VEC2 of FLOAT, or of normalized UNSIGNED_BYTE or UNSIGNED_SHORT",
         };
         return Err(err(format!(
             "is {} of {}{}, expected {expected}",

@@ -2,10 +2,11 @@
 //! ideal mirror, isotropic emission.
 //!
 //! * `baseColorFactor` (linear RGB; alpha ignored) is the reflectance. A
-//!   `baseColorTexture` multiplies it by the texture's *average* linear
-//!   colour (texels are sRGB and decoded before averaging): a surface has one
-//!   reflectance in the VLF, per-texel albedo is not supported yet, and a
-//!   warning says so.
+//!   diffuser's `baseColorTexture` multiplies it where the surface's
+//!   `TEXCOORD_n` place it: the image (sRGB, decoded to linear) becomes a
+//!   scene [`Texture`], averaged over each texel of the field
+//!   ([`crate::maps::albedo`]). A mirror's is averaged over the image (a
+//!   mirror has one reflectance), with a warning.
 //! * **Smooth** (`roughnessFactor` ≤ [`MIRROR_ROUGHNESS`]): glTF's BRDF is a
 //!   linear mix of a dielectric and a metal by `metallicFactor` m, so the
 //!   metal share becomes an ideal mirror, ρs = m × base, and the rest is
@@ -37,7 +38,8 @@ use json::validation::Checked;
 use super::data::{Buffers, image_bytes};
 use crate::Error;
 use crate::scene::build::fmt_rgb;
-use crate::scene::{Material, Rgb};
+use crate::scene::texture::MAX_TEXTURE_SIZE;
+use crate::scene::{Material, Rgb, Texture, Wrap};
 
 /// Largest roughness read as an ideal mirror: below it a glossy reflection
 /// is sharp to a few degrees (the GGX lobe's width is of order roughness²).
@@ -48,13 +50,18 @@ pub(super) const MIRROR_ROUGHNESS: f32 = 0.05;
 pub(super) struct Converted {
     pub material: Material,
     pub double_sided: bool,
+    /// The `TEXCOORD_n` set its albedo texture reads (with `material.albedo_texture`).
+    pub tex_coord: u32,
 }
 
-/// Converts materials, caching texture averages by image.
+/// Converts materials, caching texture averages by image and albedo textures by texture.
 pub(super) struct Materials<'a> {
     pub root: &'a json::Root,
     pub dir: &'a Path,
     pub averages: HashMap<usize, Rgb>,
+    /// The scene's albedo textures, and which glTF texture each came from.
+    pub textures: Vec<Texture>,
+    pub texture_of: HashMap<usize, u32>,
 }
 
 impl Materials<'_> {
@@ -67,8 +74,10 @@ impl Materials<'_> {
                 diffuse: [1.0; 3],
                 specular: [0.0; 3],
                 emission: [0.0; 3],
+                albedo_texture: None,
             },
             double_sided: false,
+            tex_coord: 0,
         }
     }
 
@@ -106,16 +115,6 @@ impl Materials<'_> {
             &mut warn,
         )
         .map_err(fail)?;
-        if let Some(info) = &pbr.base_color_texture {
-            let average = self
-                .texture_average(buffers, info.index.value())
-                .map_err(|m| fail(format!("baseColorTexture: {m}")))?;
-            base = mul(base, average);
-            warn(format!(
-                "baseColorTexture averaged to {} (linear) over the material: per-texel albedo is not supported yet",
-                fmt_rgb(average)
-            ));
-        }
         let metallic = clamp_scalar(pbr.metallic_factor.0, "metallicFactor", &mut warn).map_err(fail)?;
         let roughness = clamp_scalar(pbr.roughness_factor.0, "roughnessFactor", &mut warn).map_err(fail)?;
         if pbr.metallic_roughness_texture.is_some() {
@@ -123,6 +122,28 @@ impl Materials<'_> {
         }
         // For messages, as the file writes them.
         let (m_f32, r_f32) = (pbr.metallic_factor.0, pbr.roughness_factor.0);
+        let mirror = roughness <= f64::from(MIRROR_ROUGHNESS) && metallic > 0.0;
+        // A diffuser's base colour texture is its albedo, sampled per texel of the field; a
+        // mirror has one reflectance, so there it is averaged.
+        let (mut albedo_texture, mut tex_coord) = (None, 0);
+        if let Some(info) = &pbr.base_color_texture {
+            if mirror {
+                let average = self
+                    .texture_average(buffers, info.index.value())
+                    .map_err(|m| fail(format!("baseColorTexture: {m}")))?;
+                base = mul(base, average);
+                warn(format!(
+                    "baseColorTexture averaged to {} (linear) over the mirror: a mirror has one reflectance",
+                    fmt_rgb(average)
+                ));
+            } else {
+                albedo_texture = Some(
+                    self.albedo_texture(buffers, info.index.value())
+                        .map_err(|m| fail(format!("baseColorTexture: {m}")))?,
+                );
+                tex_coord = info.tex_coord;
+            }
+        }
         let (diffuse, specular) = if roughness <= f64::from(MIRROR_ROUGHNESS) {
             if metallic > 0.0 && metallic < 1.0 {
                 warn(format!(
@@ -188,9 +209,63 @@ impl Materials<'_> {
                 diffuse,
                 specular,
                 emission,
+                albedo_texture,
             },
             double_sided: m.double_sided,
+            tex_coord,
         })
+    }
+
+    /// The scene's albedo texture made from glTF texture `index` (converted once): its image
+    /// decoded to linear RGB, box-filtered down to at most [`MAX_TEXTURE_SIZE`] per side, with
+    /// its sampler's wrap modes.
+    fn albedo_texture(&mut self, buffers: &mut Buffers, index: usize) -> Result<u32, String> {
+        if let Some(&known) = self.texture_of.get(&index) {
+            return Ok(known);
+        }
+        let Some(texture) = self.root.textures.get(index) else {
+            return Err(format!(
+                "texture {index} does not exist (the file has {})",
+                self.root.textures.len()
+            ));
+        };
+        let image = texture.source.value();
+        let wrap = match texture.sampler {
+            None => [Wrap::Repeat; 2],
+            Some(s) => {
+                let Some(sampler) = self.root.samplers.get(s.value()) else {
+                    return Err(format!(
+                        "sampler {} does not exist (the file has {})",
+                        s.value(),
+                        self.root.samplers.len()
+                    ));
+                };
+                let mode = |m: &Checked<json::texture::WrappingMode>| match m {
+                    Checked::Valid(json::texture::WrappingMode::ClampToEdge) => Wrap::Clamp,
+                    Checked::Valid(json::texture::WrappingMode::MirroredRepeat) => Wrap::Mirror,
+                    _ => Wrap::Repeat,
+                };
+                [mode(&sampler.wrap_s), mode(&sampler.wrap_t)]
+            }
+        };
+        let bytes = image_bytes(self.root, buffers, self.dir, image)?;
+        let decoded = image::load_from_memory(&bytes).map_err(|e| format!("image {image} cannot be decoded: {e}"))?;
+        let (width, height, texels) = linear_texels(&decoded).ok_or_else(|| format!("image {image} has no pixels"))?;
+        let (width, height, texels) = shrink(width, height, texels);
+        let name = match &self.root.images.get(image).and_then(|i| i.name.clone()) {
+            Some(n) => format!("image '{n}' (#{image})"),
+            None => format!("image #{image}"),
+        };
+        self.textures.push(Texture {
+            name,
+            width,
+            height,
+            texels,
+            wrap,
+        });
+        let id = self.textures.len() as u32 - 1;
+        self.texture_of.insert(index, id);
+        Ok(id)
     }
 
     /// Average linear colour of texture `index`'s image (cached).
@@ -221,6 +296,52 @@ pub(super) fn srgb_to_linear(c: f64) -> f64 {
     } else {
         ((c + 0.055) / 1.055).powf(2.4)
     }
+}
+
+/// An sRGB-encoded image's pixels as linear RGB (alpha ignored), row by row from the top;
+/// `None` if it has no pixels.
+fn linear_texels(image: &image::DynamicImage) -> Option<(u32, u32, Vec<[f32; 3]>)> {
+    let (width, height) = (image.width(), image.height());
+    if width == 0 || height == 0 {
+        return None;
+    }
+    let lut: Vec<f32> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0) as f32).collect();
+    let texels = match image.color() {
+        image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8 => {
+            image.to_rgb8().pixels().map(|p| p.0.map(|v| lut[v as usize])).collect()
+        }
+        _ => (image.to_rgb32f().pixels())
+            .map(|p| p.0.map(|v| srgb_to_linear(f64::from(v).clamp(0.0, 1.0)) as f32))
+            .collect(),
+    };
+    Some((width, height, texels))
+}
+
+/// Box-filters an image down by the smallest whole factor that brings both sides to at most
+/// [`MAX_TEXTURE_SIZE`] (a field texel covers far more than a texel of a larger image).
+fn shrink(width: u32, height: u32, texels: Vec<[f32; 3]>) -> (u32, u32, Vec<[f32; 3]>) {
+    let k = width.max(height).div_ceil(MAX_TEXTURE_SIZE);
+    if k <= 1 {
+        return (width, height, texels);
+    }
+    let (w, h) = (width.div_ceil(k), height.div_ceil(k));
+    let mut out = vec![[0.0f32; 3]; (w * h) as usize];
+    for y in 0..h {
+        for x in 0..w {
+            let (mut sum, mut n) = ([0.0f64; 3], 0u32);
+            for sy in y * k..((y + 1) * k).min(height) {
+                for sx in x * k..((x + 1) * k).min(width) {
+                    let c = texels[(sy * width + sx) as usize];
+                    for i in 0..3 {
+                        sum[i] += c[i] as f64;
+                    }
+                    n += 1;
+                }
+            }
+            out[(y * w + x) as usize] = sum.map(|v| (v / n as f64) as f32);
+        }
+    }
+    (w, h, out)
 }
 
 /// Mean linear RGB of an sRGB-encoded image (alpha ignored); `None` if it

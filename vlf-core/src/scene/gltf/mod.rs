@@ -19,7 +19,8 @@
 //!   the front), the same as OBJ's.
 //! * **Materials** follow [`material`]: base colour → ρd, smooth metal →
 //!   mirror, `emissiveFactor` × `KHR_materials_emissive_strength` → `Le`,
-//!   textures averaged; a primitive without a material gets glTF's default
+//!   a diffuser's base colour texture kept, with each triangle's
+//!   `TEXCOORD_n` as a [`UvMap`], other textures averaged; a primitive without a material gets glTF's default
 //!   material (a white diffuser), with a warning. Only the materials used
 //!   are kept, in order of first use.
 //! * **`doubleSided`** triangles are emitted twice, once per winding, so that
@@ -31,8 +32,9 @@
 //!   one share it); messages name it by mesh (name and index), primitive and
 //!   triangle.
 //! * **Required extensions** other than `KHR_materials_emissive_strength`,
-//!   `KHR_mesh_quantization` and `KHR_texture_transform` (which a texture
-//!   average does not need) are errors naming the extension — notably the
+//!   `KHR_mesh_quantization` and `KHR_texture_transform` (not applied:
+//!   albedo textures are placed by their plain coordinates, with a warning)
+//!   are errors naming the extension — notably the
 //!   compressions `KHR_draco_mesh_compression` and `EXT_meshopt_compression`,
 //!   whose data this importer cannot decode.
 //! * **Bad input** is an error, never a panic: a truncated `.glb`, JSON that
@@ -52,14 +54,14 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
 use ::gltf::json;
-use glam::{DMat3, DMat4, DQuat, DVec3};
+use glam::{DMat3, DMat4, DQuat, DVec2, DVec3};
 use json::mesh::{Mode, Semantic};
 use json::validation::Checked;
 
 use self::data::{Buffers, Container, Expect, read_accessor, read_container};
 use self::material::{Converted, Materials};
-use super::build::{ImportOptions, build_scene_named, check_options};
-use super::{FaceOrigin, Material, Scene};
+use super::build::{ImportOptions, Textured, build_scene_named, check_options};
+use super::{FaceOrigin, Material, Scene, UvMap};
 use crate::Error;
 
 /// Required extensions this importer honours.
@@ -108,6 +110,12 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
     let Container { json: root, bin } = read_container(bytes, &file)?;
     let mut warnings = Vec::new();
     check_asset(&root, &file, &mut warnings)?;
+    if root.extensions_used.iter().any(|e| e == "KHR_texture_transform") {
+        warnings.push(format!(
+            "{file}: KHR_texture_transform is not applied: albedo textures are placed by their plain \
+             texture coordinates"
+        ));
+    }
 
     let mut reader = Reader {
         root: &root,
@@ -117,10 +125,13 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
             root: &root,
             dir,
             averages: HashMap::new(),
+            textures: Vec::new(),
+            texture_of: HashMap::new(),
         },
         used: HashMap::new(),
         scene_materials: Vec::new(),
         polygons: Vec::new(),
+        uvs: Vec::new(),
         primitives: Vec::new(),
         triangles: 0,
         warnings,
@@ -130,8 +141,10 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
 
     let Reader {
         polygons,
+        uvs,
         primitives,
         scene_materials,
+        materials,
         mut warnings,
         ..
     } = reader;
@@ -145,7 +158,11 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
             None => format!("face #{}", o.face),
         }
     };
-    let (scene, more) = build_scene_named(&polygons, scene_materials, options, &file, &name_face)?;
+    let textured = Textured {
+        textures: materials.textures,
+        uvs,
+    };
+    let (scene, more) = build_scene_named(&polygons, scene_materials, options, &file, &name_face, textured)?;
     warnings.extend(more);
     // The two sides of a double-sided triangle warn alike.
     warnings.dedup();
@@ -250,10 +267,13 @@ struct Reader<'a> {
     buffers: Buffers,
     materials: Materials<'a>,
     /// glTF material (`None`: the default one) → index into
-    /// `scene_materials`, and whether it is double-sided.
-    used: HashMap<Option<usize>, (usize, bool)>,
+    /// `scene_materials`, whether it is double-sided, and the texture coordinate set its
+    /// albedo texture reads.
+    used: HashMap<Option<usize>, (usize, bool, u32)>,
     scene_materials: Vec<Material>,
     polygons: Vec<(Vec<DVec3>, usize, FaceOrigin)>,
+    /// Texture coordinates of each polygon, where its material has an albedo texture.
+    uvs: Vec<Option<UvMap>>,
     /// First face of each primitive read, and its label for messages.
     primitives: Vec<(usize, String)>,
     /// Triangles read so far: the next one's face number.
@@ -391,34 +411,82 @@ impl Reader<'_> {
                     .collect(),
                 _ => Vec::new(),
             };
-            let (material, double_sided) = self.material(primitive.material.map(|m| m.value()), &label)?;
+            let (material, double_sided, tex_coord) = self.material(primitive.material.map(|m| m.value()), &label)?;
+            let texcoords = if self.scene_materials[material].albedo_texture.is_some() {
+                match primitive
+                    .attributes
+                    .get(&Checked::Valid(Semantic::TexCoords(tex_coord)))
+                {
+                    Some(accessor) => {
+                        let what = format!("TEXCOORD_{tex_coord} of {label}");
+                        let uv = read_accessor(root, &mut self.buffers, accessor.value(), Expect::TexCoords, &what)?;
+                        let uv: Vec<DVec2> = uv.chunks_exact(2).map(|c| DVec2::new(c[0], c[1])).collect();
+                        if uv.len() != positions.len() {
+                            return Err(self.fail(format!(
+                                "{what}: {} coordinates for {} vertices",
+                                uv.len(),
+                                positions.len()
+                            )));
+                        }
+                        if let Some((i, t)) = uv.iter().enumerate().find(|(_, t)| !t.is_finite()) {
+                            return Err(self.fail(format!("{what}: coordinate {i} is not finite: {t}")));
+                        }
+                        Some(uv)
+                    }
+                    None => {
+                        self.warnings.push(format!(
+                            "{}: {label} has no TEXCOORD_{tex_coord} for its material's texture: \
+                             the texture's mean colour is used",
+                            self.file
+                        ));
+                        None
+                    }
+                }
+            } else {
+                None
+            };
             self.primitives.push((self.triangles, label));
-            self.add(&triangles, &positions, world, flip, material, double_sided);
+            self.add(
+                &triangles,
+                &positions,
+                texcoords.as_deref(),
+                world,
+                flip,
+                material,
+                double_sided,
+            );
         }
         Ok(())
     }
 
-    /// Adds triangles (indices into `positions`) as faces.
+    /// Adds triangles (indices into `positions`, and into `uv` where given) as faces.
+    #[allow(clippy::too_many_arguments)]
     fn add(
         &mut self,
         triangles: &[[usize; 3]],
         positions: &[DVec3],
+        uv: Option<&[DVec2]>,
         world: &DMat4,
         flip: bool,
         material: usize,
         double_sided: bool,
     ) {
         for t in triangles {
-            let [a, b, c] = t.map(|i| world.transform_point3(positions[i]));
+            let corners = t.map(|i| world.transform_point3(positions[i]));
+            // The map is affine over the triangle's plane, so it does not care about winding.
+            let map = uv.and_then(|uv| UvMap::from_triangle(corners, t.map(|i| uv[i])));
+            let [a, b, c] = corners;
             let front = if flip { [a, c, b] } else { [a, b, c] };
             let origin = FaceOrigin {
                 line: 0,
                 face: self.triangles,
             };
             self.polygons.push((front.to_vec(), material, origin.clone()));
+            self.uvs.push(map);
             if double_sided {
                 let [a, b, c] = front;
                 self.polygons.push((vec![a, c, b], material, origin));
+                self.uvs.push(map);
             }
             self.triangles += 1;
         }
@@ -427,7 +495,7 @@ impl Reader<'_> {
     /// The scene's index of glTF material `index` (`None`: the default
     /// material), converting it on first use, and whether it is
     /// double-sided.
-    fn material(&mut self, index: Option<usize>, primitive: &str) -> Result<(usize, bool), Error> {
+    fn material(&mut self, index: Option<usize>, primitive: &str) -> Result<(usize, bool, u32), Error> {
         if index.is_none() {
             self.warnings.push(format!(
                 "{}: {primitive} has no material: glTF's default material is used (a white diffuser, ρd = 1)",
@@ -437,11 +505,15 @@ impl Reader<'_> {
         if let Some(&known) = self.used.get(&index) {
             return Ok(known);
         }
-        let Converted { material, double_sided } = match index {
+        let Converted {
+            material,
+            double_sided,
+            tex_coord,
+        } = match index {
             Some(k) => self.materials.convert(&mut self.buffers, k, &mut self.warnings)?,
             None => Materials::default_material(),
         };
-        let entry = (self.scene_materials.len(), double_sided);
+        let entry = (self.scene_materials.len(), double_sided, tex_coord);
         self.scene_materials.push(material);
         self.used.insert(index, entry);
         Ok(entry)

@@ -71,7 +71,7 @@ pub fn load_obj(path: &Path, options: &ImportOptions) -> Result<(Scene, Vec<Stri
     let obj = scan_obj(&text, &file)?;
 
     let dir = path.parent().unwrap_or(Path::new(""));
-    let library = load_libraries(&obj.mtllibs, dir, &file)?;
+    let library = load_libraries(&obj.mtllibs, dir, &file, options.confined)?;
     for (line, name) in &obj.usemtl {
         if !library.contains_key(name) {
             let known = if obj.mtllibs.is_empty() {

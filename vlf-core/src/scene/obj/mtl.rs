@@ -25,6 +25,7 @@ pub(super) fn load_libraries(
     mtllibs: &[(usize, String)],
     dir: &Path,
     obj_file: &str,
+    confined: bool,
 ) -> Result<HashMap<String, MtlEntry>, Error> {
     let mut library = HashMap::new();
     let mut loaded: Vec<PathBuf> = Vec::new();
@@ -37,6 +38,22 @@ pub(super) fn load_libraries(
             arg.split_whitespace().collect()
         };
         for name in names {
+            // Confined (a server's upload): a plain file name beside the OBJ, nothing else.
+            let plain = Path::new(name).components().count() == 1
+                && matches!(
+                    Path::new(name).components().next(),
+                    Some(std::path::Component::Normal(_))
+                );
+            if confined && !plain {
+                return Err(Error::scene(
+                    obj_file,
+                    Some(*line),
+                    format!(
+                        "material library '{name}' is not a plain file name beside the scene: an uploaded \
+                         scene may only name the files uploaded with it"
+                    ),
+                ));
+            }
             let path = dir.join(name);
             if loaded.contains(&path) {
                 continue;
@@ -77,6 +94,7 @@ impl PendingMtl {
             diffuse: self.kd,
             specular,
             emission: self.ke,
+            albedo_texture: None,
         };
         library.insert(
             self.name,

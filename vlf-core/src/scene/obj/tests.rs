@@ -407,6 +407,7 @@ fn non_planar_faces_are_triangulated_and_self_intersecting_ones_are_errors() {
     // A looser tolerance flattens it instead, silently.
     let loose = ImportOptions {
         planarity_tolerance: 0.05,
+        ..Default::default()
     };
     let (scene, warnings) = load_with(&bent, Some(&mtl()), &loose).unwrap();
     assert!(warnings.is_empty(), "{warnings:?}");
@@ -518,7 +519,10 @@ fn scenes_without_faces_or_emitters_are_errors() {
 #[test]
 fn invalid_options_are_parameter_errors() {
     for t in [-1.0, f64::NAN, f64::INFINITY] {
-        let options = ImportOptions { planarity_tolerance: t };
+        let options = ImportOptions {
+            planarity_tolerance: t,
+            ..Default::default()
+        };
         let e = load_with(&with_emitter(&[]), Some(&mtl()), &options).unwrap_err();
         assert!(matches!(e, Error::Parameter(_)), "{e}");
     }

@@ -177,3 +177,35 @@ fn malformed_files_are_errors() {
     let e = error(&a.gltf());
     assert!(e.contains("node 0 is reached twice"), "{e}");
 }
+
+/// Texture coordinates that do not fit their positions are errors naming the primitive.
+#[test]
+fn bad_texture_coordinates_are_errors() {
+    use super::import::textured_floor;
+    // One coordinate short.
+    let mut a = textured_floor([255; 3], [0; 3], 1.0);
+    a.root["accessors"][3]["count"] = json!(3);
+    let e = error(&a.gltf());
+    assert!(
+        e.contains("TEXCOORD_0 of mesh #1 primitive 0") && e.contains("3 coordinates for 4 vertices"),
+        "{e}"
+    );
+    // A VEC3 where VEC2 is expected.
+    let mut a = textured_floor([255; 3], [0; 3], 1.0);
+    a.root["accessors"][3]["type"] = json!("VEC3");
+    a.root["accessors"][3]["count"] = json!(2);
+    let e = error(&a.gltf());
+    assert!(e.contains("expected VEC2 of FLOAT"), "{e}");
+    // A non-finite coordinate.
+    let mut a = textured_floor([255; 3], [0; 3], 1.0);
+    let view = a.root["accessors"][3]["bufferView"].as_u64().unwrap() as usize;
+    let offset = a.root["bufferViews"][view]["byteOffset"].as_u64().unwrap() as usize;
+    a.bin[offset..offset + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    let e = error(&a.gltf());
+    assert!(e.contains("coordinate 0 is not finite"), "{e}");
+    // A texture that does not exist.
+    let mut a = textured_floor([255; 3], [0; 3], 1.0);
+    a.root["materials"][1]["pbrMetallicRoughness"]["baseColorTexture"]["index"] = json!(7);
+    let e = error(&a.gltf());
+    assert!(e.contains("baseColorTexture: texture 7 does not exist"), "{e}");
+}

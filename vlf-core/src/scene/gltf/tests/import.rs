@@ -272,6 +272,8 @@ fn png_uri(pixels: [[u8; 3]; 4]) -> String {
     format!("data:image/png;base64,{data}")
 }
 
+/// Without texture coordinates, a diffuser's base colour texture reads as its mean colour; an
+/// emissive texture is averaged.
 #[test]
 fn textures_are_averaged_in_linear_colour() {
     // sRGB 128 is linear 0.2158605 (and 0, 255 are 0, 1).
@@ -289,10 +291,15 @@ fn textures_are_averaged_in_linear_colour() {
     let l128 = 0.215_860_5;
     let average = [(2.0 + l128) / 4.0, (1.0 + 3.0 * l128) / 4.0, (2.0 + l128) / 4.0];
     let painted = material(&scene, "painted");
-    assert_rgb(painted.diffuse, [0.5 * average[0], average[1], average[2]], 1e-6);
+    assert_eq!(painted.diffuse, [0.5, 1.0, 1.0]);
+    let surface = (0..scene.surfaces.len())
+        .find(|&s| scene.material(s).name == "painted")
+        .unwrap();
+    let rho = scene.albedo_at(surface, scene.surfaces[surface].vertices[0]);
+    assert_rgb(rho, [0.5 * average[0], average[1], average[2]], 1e-6);
     assert_rgb(material(&scene, "lamp").emission, average, 1e-6);
     // Averaging the encoded values instead would give about 0.31 in red.
-    assert!((painted.diffuse[0] - 0.3125).abs() > 0.03);
+    assert!((rho[0] - 0.3125).abs() > 0.03);
     assert_eq!(warnings.len(), 2, "{warnings:?}");
     assert!(
         warnings
@@ -302,8 +309,122 @@ fn textures_are_averaged_in_linear_colour() {
     assert!(
         warnings
             .iter()
-            .any(|w| w.contains("'painted'") && w.contains("per-texel albedo is not supported"))
+            .any(|w| w.contains("primitive 0") && w.contains("no TEXCOORD_0"))
     );
+}
+
+/// A floor of two triangles whose texture is white on its left half and black on its right
+/// (clamped at the edges), under a lamp.
+pub(super) fn textured_floor(left: [u8; 3], right: [u8; 3], factor: f32) -> Asset {
+    let mut a = Asset::new();
+    let lamp = a.material(json!({"name": "lamp", "emissiveFactor": [1.0, 1.0, 1.0],
+                                 "pbrMetallicRoughness": {"metallicFactor": 0.0}}));
+    // The lamp faces down at z = 1.
+    a.triangles(
+        &[[0.3, 0.3, 1.0], [0.3, 0.7, 1.0], [0.7, 0.7, 1.0], [0.7, 0.3, 1.0]],
+        Some(&[0, 1, 2, 0, 2, 3]),
+        lamp,
+        json!({}),
+    );
+    a.push("images", json!({"uri": png_uri([left, right, left, right])}));
+    a.push("samplers", json!({"wrapS": 33071, "wrapT": 33071}));
+    a.push("textures", json!({"source": 0, "sampler": 0}));
+    let floor = a.material(json!({"name": "floor",
+        "pbrMetallicRoughness": {"baseColorFactor": [factor, factor, factor, 1.0],
+                                 "baseColorTexture": {"index": 0}, "metallicFactor": 0}}));
+    let position = a.positions(&[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0]]);
+    let uv = a.texcoords(&[[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]);
+    let indices = a.indices(&[0, 1, 2, 0, 2, 3]);
+    a.mesh_node(
+        vec![
+            json!({"attributes": {"POSITION": position, "TEXCOORD_0": uv}, "indices": indices,
+                    "material": floor}),
+        ],
+        json!({}),
+    );
+    a
+}
+
+/// A base colour texture with texture coordinates is kept and read per texel of the field:
+/// the floor's texels reflect the factor times the image's colour under them.
+#[test]
+fn a_base_colour_texture_is_sampled_per_texel() {
+    let (scene, warnings) = load(&textured_floor([255; 3], [0; 3], 0.8).glb()).unwrap();
+    assert!(warnings.is_empty(), "{warnings:?}");
+    assert_eq!(scene.textures.len(), 1);
+    assert_eq!(material(&scene, "floor").albedo_texture, Some(0));
+    let atlas = crate::maps::TexelAtlas::new(&scene, 2.0 / 64.0, 2.0 / 64.0).unwrap();
+    let albedo = crate::maps::albedo::texel_albedo(&scene, &atlas);
+    let floor = (0..scene.surfaces.len())
+        .find(|&s| scene.material(s).name == "floor")
+        .unwrap();
+    assert!(scene.surfaces[floor].uv.is_some());
+    // Points on the floor (scene x in [0, 1]): the left quarter reads white, the right quarter
+    // black, bilinear in between.
+    let to_vlf = |x: f64, y: f64| scene.normalisation.to_vlf(DVec3::new(x, y, 0.0));
+    let texel = |x: f64, y: f64| {
+        let g = atlas.grid(floor);
+        g.index(g.coords(to_vlf(x, y)))
+    };
+    let k = f64::from(0.8f32);
+    for y in [0.2, 0.5, 0.8] {
+        assert_rgb(albedo[texel(0.1, y)], [k; 3], 1e-9);
+        assert_rgb(albedo[texel(0.9, y)], [0.0; 3], 1e-9);
+        assert_rgb(scene.albedo_at(floor, to_vlf(0.1, y)), [k; 3], 1e-12);
+        assert_rgb(scene.albedo_at(floor, to_vlf(0.5, y)), [k / 2.0; 3], 1e-12);
+    }
+    // The floor's mean albedo is the image's mean times the factor.
+    let g = atlas.grid(floor);
+    let inside: Vec<f64> = albedo[g.first..g.first + g.len()].iter().map(|c| c[0]).collect();
+    let mean = inside.iter().sum::<f64>() / inside.len() as f64;
+    assert!((mean - 0.4).abs() < 0.05, "{mean}");
+}
+
+/// Light transport reads the texture: a floor textured in one uniform colour gives the field
+/// of the same floor with that colour as its factor, and the black half of a black-and-white
+/// floor reflects nothing.
+#[test]
+fn propagation_reflects_what_the_texture_says() {
+    use crate::propagate::{Options, Propagation, Stop};
+    let options = Options {
+        directions: 129,
+        grid: crate::psf::GridSize::new(32, 8).unwrap(),
+        stop: Stop::Iterations(3),
+        ..Options::default()
+    };
+    let field = |asset: Asset| {
+        let (scene, _) = load(&asset.glb()).unwrap();
+        let mut p = Propagation::new(scene, options.clone()).unwrap();
+        p.run(|_| {});
+        p
+    };
+    // sRGB 188 is linear 0.5029.
+    let grey = field(textured_floor([188; 3], [188; 3], 1.0));
+    let plain = {
+        let mut a = textured_floor([188; 3], [188; 3], 1.0);
+        let linear = super::super::material::srgb_to_linear(188.0 / 255.0) as f32;
+        a.root["materials"][1]["pbrMetallicRoughness"] =
+            json!({"baseColorFactor": [linear, linear, linear, 1.0], "metallicFactor": 0});
+        field(a)
+    };
+    assert_eq!(grey.total.len(), plain.total.len());
+    for (a, b) in grey.total.iter().zip(&plain.total) {
+        for c in 0..3 {
+            assert!((a[c] - b[c]).abs() <= 1e-6 * b[c].abs().max(1e-3), "{a:?} vs {b:?}");
+        }
+    }
+    let split = field(textured_floor([255; 3], [0; 3], 1.0));
+    let scene = &split.scene;
+    let floor = (0..scene.surfaces.len())
+        .find(|&s| scene.material(s).name == "floor")
+        .unwrap();
+    let g = split.atlas.grid(floor);
+    let at = |x: f64| {
+        let t = g.index(g.coords(scene.normalisation.to_vlf(DVec3::new(x, 0.5, 0.0))));
+        split.total[t][0]
+    };
+    assert!(at(0.1) > 0.0);
+    assert_eq!(at(0.9), 0.0, "a black texel reflects nothing");
 }
 
 #[test]

@@ -29,7 +29,7 @@ impl Asset {
             root: json!({
                 "asset": {"version": "2.0"},
                 "buffers": [], "bufferViews": [], "accessors": [],
-                "meshes": [], "nodes": [], "materials": [], "images": [], "textures": [],
+                "meshes": [], "nodes": [], "materials": [], "images": [], "textures": [], "samplers": [],
                 "scenes": [{"nodes": []}], "scene": 0,
             }),
             bin: Vec::new(),
@@ -68,6 +68,15 @@ impl Asset {
             "accessors",
             json!({"bufferView": view, "componentType": 5126, "count": points.len(), "type": "VEC3",
                    "min": min, "max": max}),
+        )
+    }
+
+    fn texcoords(&mut self, uv: &[[f32; 2]]) -> usize {
+        let bytes: Vec<u8> = uv.iter().flatten().flat_map(|c| c.to_le_bytes()).collect();
+        let view = self.view(&bytes);
+        self.push(
+            "accessors",
+            json!({"bufferView": view, "componentType": 5126, "count": uv.len(), "type": "VEC2"}),
         )
     }
 
