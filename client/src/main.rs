@@ -108,7 +108,7 @@ pub struct JobArgs {
 #[derive(Args)]
 pub struct PropagateArgs {
     /// Scene file: Wavefront OBJ (materials from its MTL) or glTF 2.0 (.gltf, .glb); see the
-    /// README's conventions.
+    /// conventions in docs/scenes.md.
     /// Not needed with --resume (the job holds its scene).
     #[arg(required_unless_present = "resume")]
     scene: Option<PathBuf>,

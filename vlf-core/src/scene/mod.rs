@@ -75,7 +75,7 @@ pub fn load_scene(path: &Path, options: &ImportOptions) -> Result<(Scene, Vec<St
 /// RGB triple used for reflectances and radiances (linear, per channel).
 pub type Rgb = [f64; 3];
 
-/// A material, following the conventions of the README:
+/// A material, following the conventions of `docs/scenes.md`:
 /// `Kd` = ρd, `Ke` = emitted radiance, `illum 3` = ideal mirror with ρs = `Ks`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Material {
