@@ -15,6 +15,7 @@
 
 pub mod direct;
 pub mod directions;
+pub mod dynamic;
 pub mod error;
 pub mod field;
 pub mod lookup;

@@ -1,0 +1,130 @@
+//! Dynamic objects: meshes that move through a propagated field, lit by it.
+//!
+//! The field was propagated for the static scene; an object that moves in a walkthrough is
+//! not part of it. What the object looks like is light the field already holds: every point of
+//! the object receives, along each direction, the radiance the static scene sends toward it,
+//! and reflects a fraction ρd of what arrives ([`gather`]). Objects are rigid ([`Pose`]: a
+//! rotation then a translation, in the scene's own coordinates, as the user placed the scene),
+//! need no emitter, and block their own gather and each other's.
+//!
+//! This module holds the library side (placing objects, gathering light at their points).
+//! What is left for the client (drawing objects in the viewer, shadows that objects cast on
+//! the static scene, objects seen in mirrors, streaming what the gather needs) is listed in
+//! the issue that asks for them.
+
+pub mod gather;
+
+use crate::render::Bvh;
+use crate::scene::{FaceOrigin, Material, Normalisation, Scene, Surface, newell_normal};
+use glam::{DQuat, DVec3};
+
+/// A rigid motion in scene coordinates: `x ↦ rotation · x + translation`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Pose {
+    pub rotation: DQuat,
+    pub translation: DVec3,
+}
+
+impl Pose {
+    pub const IDENTITY: Pose = Pose {
+        rotation: DQuat::IDENTITY,
+        translation: DVec3::ZERO,
+    };
+
+    pub fn apply(&self, p: DVec3) -> DVec3 {
+        self.rotation * p + self.translation
+    }
+}
+
+/// A moving object: triangles in its own coordinates (scene units), one material.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DynamicObject {
+    pub name: String,
+    pub triangles: Vec<[DVec3; 3]>,
+    pub material: Material,
+}
+
+/// Why an object cannot be placed.
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum ObjectError {
+    #[error("object '{name}': {message}")]
+    Invalid { name: String, message: String },
+}
+
+impl DynamicObject {
+    /// Checks what the gather relies on: finite vertices, at least one triangle with area, a
+    /// physical, non-emitting material (an object is lit by the field; its own light would
+    /// not be in it).
+    pub fn validate(&self) -> Result<(), ObjectError> {
+        let bad = |message: String| ObjectError::Invalid {
+            name: self.name.clone(),
+            message,
+        };
+        if let Some(k) = self.triangles.iter().position(|t| !t.iter().all(|p| p.is_finite())) {
+            return Err(bad(format!("triangle {k} has a non-finite vertex")));
+        }
+        if !self
+            .triangles
+            .iter()
+            .any(|t| (t[1] - t[0]).cross(t[2] - t[0]).length() > 0.0)
+        {
+            return Err(bad("no triangle has an area".into()));
+        }
+        let m = &self.material;
+        let unit = |c: f64| c.is_finite() && (0.0..=1.0).contains(&c);
+        if !m.diffuse.iter().chain(&m.specular).all(|&c| unit(c)) || (0..3).any(|c| m.diffuse[c] + m.specular[c] > 1.0)
+        {
+            return Err(bad(format!(
+                "material '{}' is not physical (ρd + ρs ≤ 1 per channel)",
+                m.name
+            )));
+        }
+        if m.is_emitter() {
+            return Err(bad(format!(
+                "material '{}' emits: a dynamic object is lit by the field and cannot add light to it",
+                m.name
+            )));
+        }
+        Ok(())
+    }
+
+    /// The object at `pose`, in the field's frame (`normalisation` is the static scene's):
+    /// its triangles as surfaces (degenerate ones dropped) and a BVH over them.
+    pub fn place(&self, pose: &Pose, normalisation: &Normalisation) -> Result<PlacedObject, ObjectError> {
+        self.validate()?;
+        let surfaces: Vec<Surface> = (self.triangles.iter().enumerate())
+            .filter_map(|(k, t)| {
+                let vertices: Vec<DVec3> = t.iter().map(|&p| normalisation.to_vlf(pose.apply(p))).collect();
+                let n = newell_normal(&vertices);
+                (n.length() > 0.0).then(|| {
+                    let normal = n.normalize();
+                    Surface {
+                        offset: normal.dot(vertices[0]),
+                        area: n.length() / 2.0,
+                        normal,
+                        vertices,
+                        material: 0,
+                        origin: FaceOrigin { line: 0, face: k },
+                        uv: None,
+                    }
+                })
+            })
+            .collect();
+        let scene = Scene {
+            surfaces,
+            materials: vec![self.material.clone()],
+            normalisation: *normalisation,
+            textures: Vec::new(),
+        };
+        let bvh = Bvh::build(&scene);
+        Ok(PlacedObject { scene, bvh })
+    }
+}
+
+/// An object at one pose, in the field's frame: its surfaces (as a scene of their own, one
+/// material) and a BVH over them.
+#[derive(Clone, Debug)]
+pub struct PlacedObject {
+    pub scene: Scene,
+    pub bvh: Bvh,
+}
