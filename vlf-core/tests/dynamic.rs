@@ -67,11 +67,7 @@ fn cube(name: &str, c: DVec3, h: f64, rho: f64) -> DynamicObject {
         triangles.extend(quad(c + axis * h, u * h, v * h));
         triangles.extend(quad(c - axis * h, v * h, u * h));
     }
-    DynamicObject {
-        name: name.into(),
-        triangles,
-        material: grey(name, rho),
-    }
+    DynamicObject::uniform(name, triangles, grey(name, rho))
 }
 
 /// A uniform field gives every point of an object exactly ρ·L, whatever its normal and pose:
@@ -126,11 +122,7 @@ fn a_concave_object_shades_itself_by_its_form_factor() {
             side * a,
         ));
     }
-    let cup = DynamicObject {
-        name: "cup".into(),
-        triangles,
-        material: grey("cup", 0.8),
-    };
+    let cup = DynamicObject::uniform("cup", triangles, grey("cup", 0.8));
     let n = &field.scene.normalisation;
     let objects = [cup.place(&Pose::IDENTITY, n).unwrap()];
     let f = |x: f64, y: f64| {
@@ -167,11 +159,11 @@ fn objects_block_each_other() {
     let n = &field.scene.normalisation;
     let small = cube("small", DVec3::ZERO, 0.02, 0.5);
     // A large plate just above the small cube's top face, facing down.
-    let plate = DynamicObject {
-        name: "plate".into(),
-        triangles: quad(DVec3::new(0.0, 0.0, 0.1), DVec3::Y * 0.3, DVec3::X * 0.3).to_vec(),
-        material: grey("plate", 0.5),
-    };
+    let plate = DynamicObject::uniform(
+        "plate",
+        quad(DVec3::new(0.0, 0.0, 0.1), DVec3::Y * 0.3, DVec3::X * 0.3).to_vec(),
+        grey("plate", 0.5),
+    );
     let objects = [
         small.place(&Pose::IDENTITY, n).unwrap(),
         plate.place(&Pose::IDENTITY, n).unwrap(),
@@ -192,7 +184,7 @@ fn bad_objects_are_refused() {
         scale: 1.0,
     };
     let mut o = cube("lamp", DVec3::ZERO, 0.1, 0.5);
-    o.material.emission = [1.0; 3];
+    o.materials[0].emission = [1.0; 3];
     let e = o.place(&Pose::IDENTITY, &n).unwrap_err().to_string();
     assert!(e.contains("object 'lamp'") && e.contains("emits"), "{e}");
     let mut o = cube("nan", DVec3::ZERO, 0.1, 0.5);
@@ -204,22 +196,69 @@ fn bad_objects_are_refused() {
             .contains("triangle 3")
     );
     let mut o = cube("bright", DVec3::ZERO, 0.1, 0.5);
-    o.material.diffuse = [1.2; 3];
+    o.materials[0].diffuse = [1.2; 3];
     assert!(
         o.place(&Pose::IDENTITY, &n)
             .unwrap_err()
             .to_string()
             .contains("not physical")
     );
-    let flat = DynamicObject {
-        name: "flat".into(),
-        triangles: vec![[DVec3::ZERO, DVec3::X, DVec3::X * 2.0]],
-        material: grey("flat", 0.5),
-    };
+    let flat = DynamicObject::uniform("flat", vec![[DVec3::ZERO, DVec3::X, DVec3::X * 2.0]], grey("flat", 0.5));
     assert!(
         flat.place(&Pose::IDENTITY, &n)
             .unwrap_err()
             .to_string()
             .contains("no triangle has an area")
     );
+}
+
+/// An object file is read in the scene's coordinates, with no emitter and several materials:
+/// placed with the field's normalisation, its vertices land where the scene's would.
+#[test]
+fn objects_load_in_scene_coordinates_without_an_emitter() {
+    let dir = std::env::temp_dir().join(format!("vlf-dynamic-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(
+        dir.join("o.mtl"),
+        "newmtl red\nKd 0.8 0.1 0.1\nnewmtl blue\nKd 0.1 0.1 0.8\n",
+    )
+    .unwrap();
+    let obj = "mtllib o.mtl\nv 10 0 0\nv 12 0 0\nv 12 2 0\nv 10 2 0\nv 10 0 1\n\
+               usemtl red\nf 1 2 3 4\nusemtl blue\nf 1 5 2\n";
+    std::fs::write(dir.join("o.obj"), obj).unwrap();
+    let (object, warnings) = DynamicObject::load(&dir.join("o.obj")).unwrap();
+    assert!(warnings.is_empty(), "{warnings:?}");
+    assert_eq!(object.triangles.len(), 3, "a quad in two triangles and a triangle");
+    assert_eq!(object.materials.len(), 2);
+    for t in &object.triangles {
+        for p in t {
+            assert!(
+                (p.x >= 10.0 - 1e-9 && p.x <= 12.0 + 1e-9) && p.z.abs() <= 1.0 + 1e-9,
+                "{p}"
+            );
+        }
+    }
+    // Placed in a field whose scene is elsewhere, with that scene's normalisation.
+    let (field, _) = furnace(1);
+    let n = field.scene.normalisation;
+    let placed = object.place(&Pose::IDENTITY, &n).unwrap();
+    let v = placed.scene.surfaces[0].vertices[0];
+    assert!((n.to_scene(v) - object.triangles[0][0]).length() < 1e-9);
+    let reds: Vec<f64> = (placed.scene.surfaces.iter())
+        .map(|s| placed.scene.materials[s.material].diffuse[0])
+        .collect();
+    assert_eq!(reds, [0.8, 0.8, 0.1], "each triangle keeps its material");
+    // A file whose material emits is not an object.
+    std::fs::write(dir.join("lamp.mtl"), "newmtl lamp\nKd 0.5 0.5 0.5\nKe 1 1 1\n").unwrap();
+    std::fs::write(
+        dir.join("lamp.obj"),
+        "mtllib lamp.mtl\nv 0 0 0\nv 1 0 0\nv 0 1 0\nusemtl lamp\nf 1 2 3\n",
+    )
+    .unwrap();
+    let e = DynamicObject::load(&dir.join("lamp.obj")).unwrap_err().to_string();
+    assert!(e.contains("emits"), "{e}");
+    // A malformed file is the importer's error.
+    std::fs::write(dir.join("bad.obj"), "v 0 0 nan\nf 1 1 1\n").unwrap();
+    assert!(DynamicObject::load(&dir.join("bad.obj")).is_err());
+    std::fs::remove_dir_all(&dir).unwrap();
 }

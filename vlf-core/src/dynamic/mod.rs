@@ -36,22 +36,69 @@ impl Pose {
     }
 }
 
-/// A moving object: triangles in its own coordinates (scene units), one material.
+/// A moving object: triangles in its own coordinates (scene units), each with its material.
 #[derive(Clone, Debug, PartialEq)]
 pub struct DynamicObject {
     pub name: String,
     pub triangles: Vec<[DVec3; 3]>,
-    pub material: Material,
+    /// Index into `materials` of every triangle.
+    pub material_of: Vec<u32>,
+    pub materials: Vec<Material>,
 }
 
 /// Why an object cannot be placed.
-#[derive(Debug, thiserror::Error, PartialEq)]
+#[derive(Debug, thiserror::Error)]
 pub enum ObjectError {
     #[error("object '{name}': {message}")]
     Invalid { name: String, message: String },
+    #[error(transparent)]
+    Import(#[from] crate::Error),
 }
 
 impl DynamicObject {
+    /// An object of one material.
+    pub fn uniform(name: &str, triangles: Vec<[DVec3; 3]>, material: Material) -> Self {
+        DynamicObject {
+            name: name.to_string(),
+            material_of: vec![0; triangles.len()],
+            triangles,
+            materials: vec![material],
+        }
+    }
+
+    /// Reads an object from a scene file (OBJ with its MTL, or glTF), in the file's own
+    /// coordinates, which are the scene's: place it with the static scene's normalisation
+    /// ([`DynamicObject::place`]), not one of its own. It needs no emitter. Faces are split into
+    /// triangles as the importer splits them (convex pieces, bent faces). Returns the object
+    /// and the importer's warnings.
+    pub fn load(path: &std::path::Path) -> Result<(DynamicObject, Vec<String>), ObjectError> {
+        let options = crate::scene::ImportOptions {
+            object: true,
+            ..Default::default()
+        };
+        let (scene, warnings) = crate::scene::load_scene(path, &options)?;
+        let n = scene.normalisation;
+        let (mut triangles, mut material_of) = (Vec::new(), Vec::new());
+        for s in &scene.surfaces {
+            let v: Vec<DVec3> = s.vertices.iter().map(|&p| n.to_scene(p)).collect();
+            for k in 1..v.len() - 1 {
+                triangles.push([v[0], v[k], v[k + 1]]);
+                material_of.push(s.material as u32);
+            }
+        }
+        let name = path
+            .file_name()
+            .map_or_else(|| path.display().to_string(), |f| f.to_string_lossy().into_owned());
+        let object = DynamicObject {
+            name,
+            triangles,
+            material_of,
+            materials: scene.materials,
+        };
+        object.validate()?;
+        Ok((object, warnings))
+    }
+
     /// Checks what the gather relies on: finite vertices, at least one triangle with area, a
     /// physical, non-emitting material (an object is lit by the field; its own light would
     /// not be in it).
@@ -70,20 +117,36 @@ impl DynamicObject {
         {
             return Err(bad("no triangle has an area".into()));
         }
-        let m = &self.material;
-        let unit = |c: f64| c.is_finite() && (0.0..=1.0).contains(&c);
-        if !m.diffuse.iter().chain(&m.specular).all(|&c| unit(c)) || (0..3).any(|c| m.diffuse[c] + m.specular[c] > 1.0)
-        {
+        if self.material_of.len() != self.triangles.len() {
             return Err(bad(format!(
-                "material '{}' is not physical (ρd + ρs ≤ 1 per channel)",
-                m.name
+                "{} material indices for {} triangles",
+                self.material_of.len(),
+                self.triangles.len()
             )));
         }
-        if m.is_emitter() {
-            return Err(bad(format!(
-                "material '{}' emits: a dynamic object is lit by the field and cannot add light to it",
-                m.name
-            )));
+        if let Some(k) = self
+            .material_of
+            .iter()
+            .position(|&m| m as usize >= self.materials.len())
+        {
+            return Err(bad(format!("triangle {k} names a missing material")));
+        }
+        let unit = |c: f64| c.is_finite() && (0.0..=1.0).contains(&c);
+        for m in &self.materials {
+            if !m.diffuse.iter().chain(&m.specular).all(|&c| unit(c))
+                || (0..3).any(|c| m.diffuse[c] + m.specular[c] > 1.0)
+            {
+                return Err(bad(format!(
+                    "material '{}' is not physical (ρd + ρs ≤ 1 per channel)",
+                    m.name
+                )));
+            }
+            if m.is_emitter() {
+                return Err(bad(format!(
+                    "material '{}' emits: a dynamic object is lit by the field and cannot add light to it",
+                    m.name
+                )));
+            }
         }
         Ok(())
     }
@@ -103,7 +166,7 @@ impl DynamicObject {
                         area: n.length() / 2.0,
                         normal,
                         vertices,
-                        material: 0,
+                        material: self.material_of[k] as usize,
                         origin: FaceOrigin { line: 0, face: k },
                         uv: None,
                     }
@@ -112,7 +175,7 @@ impl DynamicObject {
             .collect();
         let scene = Scene {
             surfaces,
-            materials: vec![self.material.clone()],
+            materials: self.materials.clone(),
             normalisation: *normalisation,
             textures: Vec::new(),
         };
@@ -121,8 +184,8 @@ impl DynamicObject {
     }
 }
 
-/// An object at one pose, in the field's frame: its surfaces (as a scene of their own, one
-/// material) and a BVH over them.
+/// An object at one pose, in the field's frame: its surfaces (as a scene of their own, with
+/// the object's materials) and a BVH over them.
 #[derive(Clone, Debug)]
 pub struct PlacedObject {
     pub scene: Scene,

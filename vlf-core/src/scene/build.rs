@@ -74,6 +74,9 @@ pub struct ImportOptions {
     /// file beside it (glTF's buffers and images always must). A server importing an upload
     /// sets it, so an upload cannot make it read its own files.
     pub confined: bool,
+    /// Import a dynamic object ([`crate::dynamic`]) rather than a scene: it needs no emitter
+    /// (it is lit by a field), so a file without one is not refused.
+    pub object: bool,
 }
 
 impl ImportOptions {
@@ -86,6 +89,7 @@ impl Default for ImportOptions {
         ImportOptions {
             planarity_tolerance: Self::DEFAULT_PLANARITY_TOLERANCE,
             confined: false,
+            object: false,
         }
     }
 }
@@ -311,7 +315,7 @@ pub(crate) fn build_scene_named(
             "every face is degenerate (zero area): nothing is left of the scene",
         ));
     }
-    if !pieces.iter().any(|p| materials[p.material].is_emitter()) {
+    if !options.object && !pieces.iter().any(|p| materials[p.material].is_emitter()) {
         return Err(Error::scene(
             file,
             None,
