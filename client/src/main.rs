@@ -258,6 +258,20 @@ pub struct RenderArgs {
     /// same sample positions and filter as the CPU, mirrors either way.
     #[arg(long)]
     gpu: bool,
+    /// A dynamic object to draw in the view, lit by the field (OBJ or glTF, in the scene's
+    /// coordinates, no emitter needed); CPU only for now.
+    #[arg(long, value_name = "FILE")]
+    object: Option<PathBuf>,
+    /// Where to move the object: a translation in scene units.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3_arg, allow_hyphen_values = true, requires = "object")]
+    object_at: Option<glam::DVec3>,
+    /// How far to turn the object about --up, in degrees (before moving it).
+    #[arg(long, value_name = "DEG", allow_hyphen_values = true, requires = "object")]
+    object_turn: Option<f64>,
+    /// Directions of the object's gather (one of 9, 33, 129, 513, 2049, 8193; default: the
+    /// field's).
+    #[arg(long, value_name = "L", requires = "object")]
+    object_directions: Option<usize>,
 }
 
 #[derive(Args)]
@@ -343,6 +357,11 @@ impl ViewFlags {
     /// The validated camera for an image of `size`.
     pub fn camera(&self, size: (u32, u32)) -> vlf_core::Result<vlf_core::render::Camera> {
         vlf_core::render::Camera::new(self.eye, self.target, self.up, self.fovy, size.0, size.1)
+    }
+
+    /// The up vector (validated by [`ViewFlags::camera`]).
+    pub fn up(&self) -> glam::DVec3 {
+        self.up
     }
 }
 

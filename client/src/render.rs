@@ -3,8 +3,13 @@
 
 use crate::{DirectArg, FieldSource, JobsArgs, RenderArgs, SpecularArg};
 use anyhow::{Context, Result, bail};
+use glam::{DQuat, DVec3};
 use std::time::Instant;
+use vlf_core::dynamic::gather::Gatherer;
+use vlf_core::dynamic::view::render_with_objects;
+use vlf_core::dynamic::{DynamicObject, Pose};
 use vlf_core::lookup::SpecularMode;
+use vlf_core::render::Bvh;
 use vlf_proto::Target;
 use vlf_store::{FieldJob, Job, JobId, JobState, Stage, Store};
 
@@ -50,10 +55,33 @@ pub fn run(args: RenderArgs) -> Result<()> {
         field.use_exact_direct(&first, args.direct_samples)?;
     }
     let loaded = started.elapsed().as_secs_f64();
-    let image = if args.gpu {
-        gpu_render(&field, &camera, args.samples, mode)?
-    } else {
-        field.render(&camera, args.samples, mode)
+    let image = match &args.object {
+        Some(path) => {
+            if args.gpu {
+                bail!("--object draws on the CPU only: drop --gpu");
+            }
+            let (object, warnings) =
+                DynamicObject::load(path).with_context(|| format!("cannot read the object {}", path.display()))?;
+            for w in &warnings {
+                tracing::warn!("{w}");
+            }
+            let turn = args.object_turn.unwrap_or(0.0);
+            if !turn.is_finite() {
+                bail!("--object-turn must be finite, got {turn}");
+            }
+            let pose = Pose {
+                rotation: DQuat::from_axis_angle(args.view.up().normalize(), turn.to_radians()),
+                translation: args.object_at.unwrap_or(DVec3::ZERO),
+            };
+            let placed = [object.place(&pose, &field.scene.normalisation)?];
+            let bvh = Bvh::build(&field.scene);
+            let directions = args.object_directions.unwrap_or(field.options.directions);
+            let gatherer =
+                Gatherer::with_directions(&field, &bvh, &placed, mode, directions).context("--object-directions")?;
+            render_with_objects(&gatherer, &bvh, &camera, args.samples)
+        }
+        None if args.gpu => gpu_render(&field, &camera, args.samples, mode)?,
+        None => field.render(&camera, args.samples, mode),
     };
     image
         .save(&args.out, args.exposure)

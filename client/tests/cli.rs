@@ -940,3 +940,106 @@ fn view_draws_in_a_window_what_render_draws() {
     assert!(a.mean()[0] > 0.01, "{:?}", a.mean());
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// `vlf render --object`: a cube placed in the Cornell box is drawn lit by the field (not
+/// black, brighter on top, where the lamp is, than underneath) and hides what is behind it;
+/// the pixels it does not cover are the static view's, bit for bit (its shadows on the room are
+/// not drawn yet). Bad object input is refused clearly.
+#[test]
+fn render_draws_a_dynamic_object_lit_by_the_field() {
+    let out = temp("cornell");
+    let o = propagate(&out, "2");
+    assert!(o.status.success(), "{}", stderr(&o));
+    // A cube of side 100 around the origin of its own coordinates, no emitter.
+    let h = 50.0;
+    let corners: Vec<[f64; 3]> = (0..8)
+        .map(|i| {
+            [
+                if i & 1 == 0 { -h } else { h },
+                if i & 2 == 0 { -h } else { h },
+                if i & 4 == 0 { -h } else { h },
+            ]
+        })
+        .collect();
+    let faces = ["1 5 7 3", "2 4 8 6", "1 2 6 5", "3 7 8 4", "1 3 4 2", "5 6 8 7"];
+    let mut obj = String::from("mtllib cube.mtl\nusemtl white\n");
+    for c in &corners {
+        obj += &format!("v {} {} {}\n", c[0], c[1], c[2]);
+    }
+    for f in faces {
+        obj += &format!("f {f}\n");
+    }
+    std::fs::write(out.join("cube.obj"), obj).unwrap();
+    std::fs::write(out.join("cube.mtl"), "newmtl white\nKd 0.75 0.75 0.75\n").unwrap();
+    let render = |extra: &[&str], image: &str| {
+        let path = out.join(image);
+        let mut args = [&["render", out.to_str().unwrap()][..], &CORNELL_VIEW[..]].concat();
+        args.extend(["--size", "48x48", "--samples", "1", "--out", path.to_str().unwrap()]);
+        args.extend(extra);
+        let o = vlf(&args);
+        (o, path)
+    };
+    let (o, plain) = render(&[], "plain.pfm");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let cube = out.join("cube.obj");
+    let object = [
+        "--object",
+        cube.to_str().unwrap(),
+        "--object-at",
+        "278,200,200",
+        "--object-turn",
+        "20",
+    ];
+    let (o, with) = render(&object, "with.pfm");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (plain, with) = (
+        vlf_core::render::Image::load_pfm(&plain).unwrap(),
+        vlf_core::render::Image::load_pfm(&with).unwrap(),
+    );
+    let changed: Vec<usize> = (0..plain.pixels.len())
+        .filter(|&i| plain.pixels[i] != with.pixels[i])
+        .collect();
+    // The cube (about 100 units at ~1000 from the camera, 39° field) covers a patch of pixels
+    // around the image's centre, and nothing else changes.
+    assert!(
+        changed.len() > 20 && changed.len() < 48 * 48 / 4,
+        "{} pixels changed",
+        changed.len()
+    );
+    for &i in &changed {
+        let (x, y) = (i % 48, i / 48);
+        assert!(
+            (10..38).contains(&x) && (5..40).contains(&y),
+            "pixel ({x}, {y}) changed"
+        );
+        assert!(with.pixels[i].iter().all(|c| c.is_finite() && *c >= 0.0));
+    }
+    let lit = changed
+        .iter()
+        .filter(|&&i| with.pixels[i].iter().sum::<f32>() > 0.0)
+        .count();
+    assert!(
+        lit * 2 > changed.len(),
+        "the cube is mostly black: {lit} of {} lit",
+        changed.len()
+    );
+    // Bad input: a file with an emitter, a missing file, --object with --gpu.
+    std::fs::write(out.join("lamp.mtl"), "newmtl lamp\nKd 0.5 0.5 0.5\nKe 1 1 1\n").unwrap();
+    std::fs::write(
+        out.join("lamp.obj"),
+        "mtllib lamp.mtl\nusemtl lamp\nv 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n",
+    )
+    .unwrap();
+    let lamp = out.join("lamp.obj");
+    let (o, _) = render(&["--object", lamp.to_str().unwrap()], "x.pfm");
+    assert!(!o.status.success() && stderr(&o).contains("emits"), "{}", stderr(&o));
+    let missing = out.join("missing.obj");
+    let (o, _) = render(&["--object", missing.to_str().unwrap()], "x.pfm");
+    assert!(
+        !o.status.success() && stderr(&o).contains("missing.obj"),
+        "{}",
+        stderr(&o)
+    );
+    let (o, _) = render(&["--object", cube.to_str().unwrap(), "--gpu"], "x.pfm");
+    assert!(!o.status.success() && stderr(&o).contains("CPU only"), "{}", stderr(&o));
+}

@@ -83,6 +83,18 @@ impl<'a> Gatherer<'a> {
         })
     }
 
+    pub fn field(&self) -> &'a LightField {
+        self.field
+    }
+
+    pub fn objects(&self) -> &'a [PlacedObject] {
+        self.objects
+    }
+
+    pub fn mode(&self) -> SpecularMode {
+        self.mode
+    }
+
     /// The cosine-weighted mean radiance arriving at `p` over the hemisphere of `n`:
     /// `Σ L_in |n·ω| Δω / Σ |n·ω| Δω` (see the module docs). A diffuse point reflects ρd times
     /// it.
@@ -123,7 +135,7 @@ impl<'a> Gatherer<'a> {
 
     /// Radiance arriving at `origin` from `−dir` (looking along `dir`): the static surface's,
     /// or nothing where an object is closer or nothing is hit.
-    fn arriving(&self, origin: DVec3, dir: DVec3) -> Rgb {
+    pub fn arriving(&self, origin: DVec3, dir: DVec3) -> Rgb {
         let scene = &self.field.scene;
         let hit = self.bvh.intersect(scene, origin, dir, 0.0, f64::INFINITY);
         let t_static = hit.map_or(f64::INFINITY, |h| h.t);

@@ -7,12 +7,14 @@
 //! rotation then a translation, in the scene's own coordinates, as the user placed the scene),
 //! need no emitter, and block their own gather and each other's.
 //!
-//! This module holds the library side (placing objects, gathering light at their points).
+//! This module holds the library side: placing objects, gathering light at their points,
+//! and drawing a view with them on the CPU ([`view`]).
 //! What is left for the client (drawing objects in the viewer, shadows that objects cast on
 //! the static scene, objects seen in mirrors, streaming what the gather needs) is listed in
 //! the issue that asks for them.
 
 pub mod gather;
+pub mod view;
 
 use crate::render::Bvh;
 use crate::scene::{FaceOrigin, Material, Normalisation, Scene, Surface, newell_normal};

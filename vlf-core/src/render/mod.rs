@@ -43,6 +43,20 @@ pub fn render<F>(scene: &Scene, bvh: &Bvh, camera: &Camera, samples_per_axis: u3
 where
     F: Fn(&Hit, DVec3) -> [f64; 3] + Sync,
 {
+    render_rays(scene, camera, samples_per_axis, |origin, dir| {
+        match bvh.intersect(scene, origin, dir, 0.0, f64::INFINITY) {
+            Some(hit) => shade(&hit, dir),
+            None => [0.0; 3],
+        }
+    })
+}
+
+/// [`render`] with the radiance of every camera ray given by `radiance(origin, dir)` (VLF
+/// frame): for views that hold more than the static scene (dynamic objects).
+pub fn render_rays<F>(scene: &Scene, camera: &Camera, samples_per_axis: u32, radiance: F) -> Image
+where
+    F: Fn(DVec3, DVec3) -> [f64; 3] + Sync,
+{
     let n = samples_per_axis.max(1);
     let samples = n as f64 * n as f64;
     let mut image = Image::new(camera.width, camera.height);
@@ -59,11 +73,9 @@ where
             for (x, pixel) in row.iter_mut().enumerate() {
                 let mut sum = [0.0f64; 3];
                 pixel_rays(camera, &normalisation, n, x as u32, y as u32, |origin, dir| {
-                    if let Some(hit) = bvh.intersect(scene, origin, dir, 0.0, f64::INFINITY) {
-                        let c = shade(&hit, dir);
-                        for k in 0..3 {
-                            sum[k] += c[k];
-                        }
+                    let c = radiance(origin, dir);
+                    for k in 0..3 {
+                        sum[k] += c[k];
                     }
                 });
                 *pixel = sum.map(|s| (s / samples) as f32);

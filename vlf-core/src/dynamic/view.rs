@@ -1,0 +1,72 @@
+//! Drawing a view with dynamic objects in it (the CPU renderer's way).
+//!
+//! Each camera ray finds the nearer of the static scene and the objects. A static point is
+//! shaded from the field as without objects (the shadows objects cast on it are not drawn
+//! yet). A point of an object is shaded per pixel sample by the gather ([`super::gather`]):
+//! its diffuse part is ρd times the cosine-weighted radiance arriving over its hemisphere, its
+//! mirror part ρs times what the reflected ray meets in the static scene (nothing where an
+//! object is in the way). An object hides what lies behind it. Back faces of objects are
+//! black, as the static scene's are.
+
+use super::PlacedObject;
+use super::gather::Gatherer;
+use crate::render::{Bvh, Camera, Image, render_rays};
+use crate::scene::Rgb;
+use glam::DVec3;
+
+/// How far a reflected ray starts off an object's surface.
+const RAY_OFFSET: f64 = 1e-7;
+
+/// Draws `gatherer`'s field, with its objects, for `camera` (`samples` per pixel axis).
+pub fn render_with_objects(gatherer: &Gatherer, bvh: &Bvh, camera: &Camera, samples: u32) -> Image {
+    let field = gatherer.field();
+    let objects = gatherer.objects();
+    render_rays(&field.scene, camera, samples, |origin, dir| {
+        let hit = bvh.intersect(&field.scene, origin, dir, 0.0, f64::INFINITY);
+        let t_static = hit.map_or(f64::INFINITY, |h| h.t);
+        match nearest_object(objects, origin, dir, t_static) {
+            Some((o, object_hit)) => {
+                if !object_hit.front {
+                    return [0.0; 3];
+                }
+                let object = &objects[o];
+                let surface = &object.scene.surfaces[object_hit.surface];
+                let material = &object.scene.materials[surface.material];
+                let n = surface.normal;
+                let mut l: Rgb = [0.0; 3];
+                if material.is_diffuse() {
+                    l = gatherer.diffuse(object_hit.point, n, material.diffuse);
+                }
+                if material.is_mirror() {
+                    let reflected = dir - 2.0 * dir.dot(n) * n;
+                    let m = gatherer.arriving(object_hit.point + n * RAY_OFFSET, reflected);
+                    for c in 0..3 {
+                        l[c] += material.specular[c] * m[c];
+                    }
+                }
+                l
+            }
+            None => match hit {
+                Some(hit) => field.shade(bvh, &hit, dir, gatherer.mode()),
+                None => [0.0; 3],
+            },
+        }
+    })
+}
+
+/// The nearest object hit before `t_max`: the object's index and the hit.
+fn nearest_object(
+    objects: &[PlacedObject],
+    origin: DVec3,
+    dir: DVec3,
+    t_max: f64,
+) -> Option<(usize, crate::render::Hit)> {
+    let mut best: Option<(usize, crate::render::Hit)> = None;
+    for (k, o) in objects.iter().enumerate() {
+        let limit = best.map_or(t_max, |(_, h)| h.t);
+        if let Some(h) = o.bvh.intersect(&o.scene, origin, dir, 0.0, limit) {
+            best = Some((k, h));
+        }
+    }
+    best
+}
