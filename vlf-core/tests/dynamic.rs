@@ -262,3 +262,64 @@ fn objects_load_in_scene_coordinates_without_an_emitter() {
     assert!(DynamicObject::load(&dir.join("bad.obj")).is_err());
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// With ray-traced mirrors, an object is seen in the static scene's mirrors: next to the
+/// cube's own pixels, pixels of the wall mirror change too. With mirrors read from the field's
+/// rays only the cube's own pixels change (those rays were propagated without it).
+#[test]
+fn an_object_is_seen_in_traced_mirrors() {
+    use vlf_core::dynamic::view::render_with_objects;
+    use vlf_core::render::Camera;
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/mirrors.obj");
+    let (scene, _) = vlf_core::scene::load_scene(&path, &Default::default()).unwrap();
+    let options = Options {
+        directions: 33,
+        grid: GridSize::new(32, 8).unwrap(),
+        stop: Stop::Iterations(2),
+        ..Options::default()
+    };
+    let mut p = Propagation::new(scene, options).unwrap();
+    p.run(|_| {});
+    let field = p.into_field();
+    let bvh = Bvh::build(&field.scene);
+    let camera = Camera::new(
+        DVec3::new(278.0, 273.0, -800.0),
+        DVec3::new(278.0, 273.0, 0.0),
+        DVec3::Y,
+        39.0,
+        40,
+        40,
+    )
+    .unwrap();
+    // A cube near the back of the wall mirror (x = 1, facing +x): its image in the mirror is
+    // seen from the camera through the mirror's middle.
+    let cube = cube("cube", DVec3::new(60.0, 250.0, 500.0), 40.0, 0.7);
+    let placed = [cube.place(&Pose::IDENTITY, &field.scene.normalisation).unwrap()];
+    let changed = |mode: SpecularMode| {
+        let with = Gatherer::with_directions(&field, &bvh, &placed, mode, 33).unwrap();
+        let without = Gatherer::with_directions(&field, &bvh, &[], mode, 33).unwrap();
+        let (a, b) = (
+            render_with_objects(&with, &bvh, &camera, 1),
+            render_with_objects(&without, &bvh, &camera, 1),
+        );
+        (0..a.pixels.len())
+            .filter(|&i| a.pixels[i] != b.pixels[i])
+            .collect::<Vec<usize>>()
+    };
+    let direct = changed(SpecularMode::Rays);
+    let traced = changed(SpecularMode::Trace { depth: 4 });
+    assert!(!direct.is_empty());
+    assert!(
+        direct.iter().all(|i| traced.contains(i)),
+        "the cube's own pixels change either way"
+    );
+    let in_mirror: Vec<usize> = traced.iter().copied().filter(|i| !direct.contains(i)).collect();
+    assert!(
+        in_mirror.len() >= 4,
+        "the cube is not seen in the mirror: {} pixels",
+        in_mirror.len()
+    );
+    // The mirror is on the wall x = 1, which this camera (looking along +z, up +y) sees on the
+    // image's right.
+    assert!(in_mirror.iter().all(|&i| i % 40 >= 20), "{in_mirror:?}");
+}

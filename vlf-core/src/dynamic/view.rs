@@ -4,12 +4,13 @@
 //! shaded from the field as without objects (the shadows objects cast on it are not drawn
 //! yet). A point of an object is shaded per pixel sample by the gather ([`super::gather`]):
 //! its diffuse part is ρd times the cosine-weighted radiance arriving over its hemisphere, its
-//! mirror part ρs times what the reflected ray meets in the static scene (nothing where an
-//! object is in the way). An object hides what lies behind it. Back faces of objects are
-//! black, as the static scene's are.
+//! mirror part ρs times what the reflected ray meets. An object hides what lies behind it, and
+//! with ray-traced mirrors (`--specular trace`) it is seen in the static scene's mirrors. Back
+//! faces of objects are black, as the static scene's are.
 
 use super::PlacedObject;
 use super::gather::Gatherer;
+use crate::lookup::SpecularMode;
 use crate::render::{Bvh, Camera, Image, render_rays};
 use crate::scene::Rgb;
 use glam::DVec3;
@@ -19,39 +20,71 @@ const RAY_OFFSET: f64 = 1e-7;
 
 /// Draws `gatherer`'s field, with its objects, for `camera` (`samples` per pixel axis).
 pub fn render_with_objects(gatherer: &Gatherer, bvh: &Bvh, camera: &Camera, samples: u32) -> Image {
+    let depth = match gatherer.mode() {
+        SpecularMode::Trace { depth } => depth,
+        SpecularMode::Rays => 0,
+    };
+    render_rays(&gatherer.field().scene, camera, samples, |origin, dir| {
+        radiance_along(gatherer, bvh, origin, dir, depth)
+    })
+}
+
+/// Radiance arriving at `origin` looking along `dir`, with the objects in the scene: the
+/// nearer of the static scene and the objects, shaded. Reflections go at most `depth` mirrors
+/// deep. With ray-traced mirrors ([`SpecularMode::Trace`]) a static mirror's reflected ray
+/// sees the objects too; with mirrors read from the field's rays it cannot (those rays were
+/// propagated without them).
+fn radiance_along(gatherer: &Gatherer, bvh: &Bvh, origin: DVec3, dir: DVec3, depth: u32) -> Rgb {
     let field = gatherer.field();
     let objects = gatherer.objects();
-    render_rays(&field.scene, camera, samples, |origin, dir| {
-        let hit = bvh.intersect(&field.scene, origin, dir, 0.0, f64::INFINITY);
-        let t_static = hit.map_or(f64::INFINITY, |h| h.t);
-        match nearest_object(objects, origin, dir, t_static) {
-            Some((o, object_hit)) => {
-                if !object_hit.front {
-                    return [0.0; 3];
-                }
-                let object = &objects[o];
-                let surface = &object.scene.surfaces[object_hit.surface];
-                let material = &object.scene.materials[surface.material];
-                let n = surface.normal;
-                let mut l: Rgb = [0.0; 3];
-                if material.is_diffuse() {
-                    l = gatherer.diffuse(object_hit.point, n, material.diffuse);
-                }
-                if material.is_mirror() {
-                    let reflected = dir - 2.0 * dir.dot(n) * n;
-                    let m = gatherer.arriving(object_hit.point + n * RAY_OFFSET, reflected);
-                    for c in 0..3 {
-                        l[c] += material.specular[c] * m[c];
-                    }
-                }
-                l
-            }
-            None => match hit {
-                Some(hit) => field.shade(bvh, &hit, dir, gatherer.mode()),
-                None => [0.0; 3],
-            },
+    let hit = bvh.intersect(&field.scene, origin, dir, 0.0, f64::INFINITY);
+    let t_static = hit.map_or(f64::INFINITY, |h| h.t);
+    if let Some((o, object_hit)) = nearest_object(objects, origin, dir, t_static) {
+        if !object_hit.front {
+            return [0.0; 3];
         }
-    })
+        let object = &objects[o];
+        let surface = &object.scene.surfaces[object_hit.surface];
+        let material = &object.scene.materials[surface.material];
+        let n = surface.normal;
+        let mut l: Rgb = [0.0; 3];
+        if material.is_diffuse() {
+            l = gatherer.diffuse(object_hit.point, n, material.diffuse);
+        }
+        if material.is_mirror() {
+            let reflected = dir - 2.0 * dir.dot(n) * n;
+            let origin = object_hit.point + n * RAY_OFFSET;
+            // A mirror object reflects the static scene (and other objects, when tracing).
+            let m = if depth > 0 {
+                radiance_along(gatherer, bvh, origin, reflected, depth - 1)
+            } else {
+                gatherer.arriving(origin, reflected)
+            };
+            for c in 0..3 {
+                l[c] += material.specular[c] * m[c];
+            }
+        }
+        return l;
+    }
+    let Some(hit) = hit else {
+        return [0.0; 3];
+    };
+    let material = field.scene.material(hit.surface);
+    match gatherer.mode() {
+        SpecularMode::Trace { .. } if hit.front && material.is_mirror() => {
+            let mut l = field.diffuse_radiance_at(bvh, hit.surface, hit.point);
+            if depth > 0 {
+                let n = field.scene.surfaces[hit.surface].normal;
+                let reflected = dir - 2.0 * dir.dot(n) * n;
+                let m = radiance_along(gatherer, bvh, hit.point + n * RAY_OFFSET, reflected, depth - 1);
+                for c in 0..3 {
+                    l[c] += material.specular[c] * m[c];
+                }
+            }
+            l
+        }
+        mode => field.shade(bvh, &hit, dir, mode),
+    }
 }
 
 /// The nearest object hit before `t_max`: the object's index and the hit.
