@@ -4,9 +4,9 @@
 //! shaded from the field as without objects (the shadows objects cast on it are not drawn
 //! yet). A point of an object is shaded per pixel sample by the gather ([`super::gather`]):
 //! its diffuse part is ρd times the cosine-weighted radiance arriving over its hemisphere, its
-//! mirror part ρs times what the reflected ray meets. An object hides what lies behind it, and
-//! with ray-traced mirrors (`--specular trace`) it is seen in the static scene's mirrors. Back
-//! faces of objects are black, as the static scene's are.
+//! mirror part ρs times what the reflected ray meets. An object hides what lies behind it and
+//! is seen in the static scene's mirrors, traced or read from the rays. Back faces of objects
+//! are black, as the static scene's are.
 
 use super::PlacedObject;
 use super::gather::Gatherer;
@@ -31,9 +31,10 @@ pub fn render_with_objects(gatherer: &Gatherer, bvh: &Bvh, camera: &Camera, samp
 
 /// Radiance arriving at `origin` looking along `dir`, with the objects in the scene: the
 /// nearer of the static scene and the objects, shaded. Reflections go at most `depth` mirrors
-/// deep. With ray-traced mirrors ([`SpecularMode::Trace`]) a static mirror's reflected ray
-/// sees the objects too; with mirrors read from the field's rays it cannot (those rays were
-/// propagated without them).
+/// deep. A static mirror shows the objects: with ray-traced mirrors ([`SpecularMode::Trace`])
+/// its reflected ray sees them like everything else; with mirrors read from the field's rays
+/// (propagated without the objects) the reflected ray is traced once to find an object in the
+/// way, and where there is one the mirror shows it instead of what the rays hold.
 fn radiance_along(gatherer: &Gatherer, bvh: &Bvh, origin: DVec3, dir: DVec3, depth: u32) -> Rgb {
     let field = gatherer.field();
     let objects = gatherer.objects();
@@ -80,6 +81,25 @@ fn radiance_along(gatherer: &Gatherer, bvh: &Bvh, origin: DVec3, dir: DVec3, dep
                 for c in 0..3 {
                     l[c] += material.specular[c] * m[c];
                 }
+            }
+            l
+        }
+        SpecularMode::Rays if hit.front && material.is_mirror() && !objects.is_empty() => {
+            // The field's rays were propagated without the objects: where the reflected ray
+            // meets an object before the static scene, the object is what the mirror shows.
+            let n = field.scene.surfaces[hit.surface].normal;
+            let reflected = dir - 2.0 * dir.dot(n) * n;
+            let origin = hit.point + n * RAY_OFFSET;
+            let t_behind = bvh
+                .intersect(&field.scene, origin, reflected, 0.0, f64::INFINITY)
+                .map_or(f64::INFINITY, |h| h.t);
+            if nearest_object(objects, origin, reflected, t_behind).is_none() {
+                return field.shade(bvh, &hit, dir, SpecularMode::Rays);
+            }
+            let mut l = field.diffuse_radiance_at(bvh, hit.surface, hit.point);
+            let m = radiance_along(gatherer, bvh, origin, reflected, 0);
+            for c in 0..3 {
+                l[c] += material.specular[c] * m[c];
             }
             l
         }
