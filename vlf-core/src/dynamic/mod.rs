@@ -17,7 +17,7 @@ pub mod gather;
 pub mod view;
 
 use crate::render::Bvh;
-use crate::scene::{FaceOrigin, Material, Normalisation, Scene, Surface, newell_normal};
+use crate::scene::{FaceOrigin, Material, Normalisation, Scene, Surface};
 use glam::{DQuat, DVec3};
 
 /// A rigid motion in scene coordinates: `x ↦ rotation · x + translation`.
@@ -160,19 +160,7 @@ impl DynamicObject {
         let surfaces: Vec<Surface> = (self.triangles.iter().enumerate())
             .filter_map(|(k, t)| {
                 let vertices: Vec<DVec3> = t.iter().map(|&p| normalisation.to_vlf(pose.apply(p))).collect();
-                let n = newell_normal(&vertices);
-                (n.length() > 0.0).then(|| {
-                    let normal = n.normalize();
-                    Surface {
-                        offset: normal.dot(vertices[0]),
-                        area: n.length() / 2.0,
-                        normal,
-                        vertices,
-                        material: self.material_of[k] as usize,
-                        origin: FaceOrigin { line: 0, face: k },
-                        uv: None,
-                    }
-                })
+                Surface::from_vertices(vertices, self.material_of[k] as usize, FaceOrigin { line: 0, face: k })
             })
             .collect();
         let scene = Scene {

@@ -479,17 +479,7 @@ mod tests {
     use crate::scene::{FaceOrigin, Material, Normalisation, Surface};
 
     fn polygon(vertices: Vec<DVec3>, material: usize) -> Surface {
-        let n = crate::scene::newell_normal(&vertices);
-        let normal = n.normalize();
-        Surface {
-            offset: normal.dot(vertices[0]),
-            area: n.length() / 2.0,
-            vertices,
-            normal,
-            material,
-            origin: FaceOrigin { line: 0, face: 0 },
-            uv: None,
-        }
+        Surface::from_vertices(vertices, material, FaceOrigin { line: 0, face: 0 }).unwrap()
     }
 
     fn scene(surfaces: Vec<Surface>) -> Scene {

@@ -174,6 +174,27 @@ pub struct Scene {
     pub textures: Vec<Texture>,
 }
 
+impl Surface {
+    /// A planar convex polygon in the VLF frame, its normal, offset and area taken from its
+    /// Newell normal; `None` if it has no area. (The importers build their surfaces through
+    /// their own validation; this is for surfaces made in code, such as a placed object's.)
+    pub fn from_vertices(vertices: Vec<DVec3>, material: usize, origin: FaceOrigin) -> Option<Surface> {
+        let n = newell_normal(&vertices);
+        (n.length() > 0.0).then(|| {
+            let normal = n.normalize();
+            Surface {
+                offset: normal.dot(vertices[0]),
+                area: n.length() / 2.0,
+                normal,
+                vertices,
+                material,
+                origin,
+                uv: None,
+            }
+        })
+    }
+}
+
 impl Scene {
     pub fn material(&self, surface: usize) -> &Material {
         &self.materials[self.surfaces[surface].material]
