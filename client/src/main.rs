@@ -258,16 +258,20 @@ pub struct RenderArgs {
     /// same sample positions and filter as the CPU, mirrors either way.
     #[arg(long)]
     gpu: bool,
-    /// A dynamic object to draw in the view, lit by the field (OBJ or glTF, in the scene's
-    /// coordinates, no emitter needed); CPU only for now.
+    /// A dynamic object to draw in the view, lit by the field, casting shadows on the scene
+    /// (OBJ or glTF, in the scene's coordinates, no emitter needed); repeat for more objects.
+    /// CPU only for now.
     #[arg(long, value_name = "FILE")]
-    object: Option<PathBuf>,
-    /// Where to move the object: a translation in scene units.
+    object: Vec<PathBuf>,
+    /// Where to move each --object, in order: a translation in scene units (default: none).
     #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3_arg, allow_hyphen_values = true, requires = "object")]
-    object_at: Option<glam::DVec3>,
-    /// How far to turn the object about --up, in degrees (before moving it).
+    object_at: Vec<glam::DVec3>,
+    /// How far to turn each --object about --up, in order, in degrees (before moving it).
     #[arg(long, value_name = "DEG", allow_hyphen_values = true, requires = "object")]
-    object_turn: Option<f64>,
+    object_turn: Vec<f64>,
+    /// Cells of each object's shadow cone per shaded point (0: no shadows on the scene).
+    #[arg(long, value_name = "K", default_value_t = vlf_core::dynamic::gather::DEFAULT_SHADOW_SAMPLES, requires = "object")]
+    object_shadow_samples: u32,
     /// Directions of the object's gather (one of 9, 33, 129, 513, 2049, 8193; default: the
     /// field's).
     #[arg(long, value_name = "L", requires = "object")]

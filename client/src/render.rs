@@ -55,33 +55,21 @@ pub fn run(args: RenderArgs) -> Result<()> {
         field.use_exact_direct(&first, args.direct_samples)?;
     }
     let loaded = started.elapsed().as_secs_f64();
-    let image = match &args.object {
-        Some(path) => {
+    let image = match args.object.is_empty() {
+        false => {
             if args.gpu {
                 bail!("--object draws on the CPU only: drop --gpu");
             }
-            let (object, warnings) =
-                DynamicObject::load(path).with_context(|| format!("cannot read the object {}", path.display()))?;
-            for w in &warnings {
-                tracing::warn!("{w}");
-            }
-            let turn = args.object_turn.unwrap_or(0.0);
-            if !turn.is_finite() {
-                bail!("--object-turn must be finite, got {turn}");
-            }
-            let pose = Pose {
-                rotation: DQuat::from_axis_angle(args.view.up().normalize(), turn.to_radians()),
-                translation: args.object_at.unwrap_or(DVec3::ZERO),
-            };
-            let placed = [object.place(&pose, &field.scene.normalisation)?];
             let bvh = Bvh::build(&field.scene);
+            let placed = place_objects(&args, &field, &bvh)?;
             let directions = args.object_directions.unwrap_or(field.options.directions);
-            let gatherer =
-                Gatherer::with_directions(&field, &bvh, &placed, mode, directions).context("--object-directions")?;
+            let gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, directions)
+                .context("--object-directions")?
+                .with_shadow_samples(args.object_shadow_samples);
             render_with_objects(&gatherer, &bvh, &camera, args.samples)
         }
-        None if args.gpu => gpu_render(&field, &camera, args.samples, mode)?,
-        None => field.render(&camera, args.samples, mode),
+        true if args.gpu => gpu_render(&field, &camera, args.samples, mode)?,
+        true => field.render(&camera, args.samples, mode),
     };
     image
         .save(&args.out, args.exposure)
@@ -95,6 +83,46 @@ pub fn run(args: RenderArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
+}
+
+/// Reads every `--object` and places it at its `--object-at` and `--object-turn` (in order;
+/// missing ones leave the object as its file has it), refusing one that lies outside the
+/// scene or crosses a static surface.
+fn place_objects(
+    args: &RenderArgs,
+    field: &vlf_core::field::LightField,
+    bvh: &Bvh,
+) -> Result<Vec<vlf_core::dynamic::PlacedObject>> {
+    if args.object_at.len() > args.object.len() || args.object_turn.len() > args.object.len() {
+        bail!(
+            "{} --object-at and {} --object-turn for {} --object: at most one each per object",
+            args.object_at.len(),
+            args.object_turn.len(),
+            args.object.len()
+        );
+    }
+    let mut placed = Vec::new();
+    for (k, path) in args.object.iter().enumerate() {
+        let (object, warnings) =
+            DynamicObject::load(path).with_context(|| format!("cannot read the object {}", path.display()))?;
+        for w in &warnings {
+            tracing::warn!("{w}");
+        }
+        let turn = args.object_turn.get(k).copied().unwrap_or(0.0);
+        if !turn.is_finite() {
+            bail!("--object-turn must be finite, got {turn}");
+        }
+        let pose = Pose {
+            rotation: DQuat::from_axis_angle(args.view.up().normalize(), turn.to_radians()),
+            translation: args.object_at.get(k).copied().unwrap_or(DVec3::ZERO),
+        };
+        let object = object.place(&pose, &field.scene.normalisation)?;
+        object
+            .check_clear(&field.scene, bvh)
+            .with_context(|| format!("cannot place {} there", path.display()))?;
+        placed.push(object);
+    }
+    Ok(placed)
 }
 
 /// `--gpu`: the same view drawn by wgpu.

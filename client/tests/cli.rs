@@ -942,9 +942,10 @@ fn view_draws_in_a_window_what_render_draws() {
 }
 
 /// `vlf render --object`: a cube placed in the Cornell box is drawn lit by the field (not
-/// black, brighter on top, where the lamp is, than underneath) and hides what is behind it;
-/// the pixels it does not cover are the static view's, bit for bit (its shadows on the room are
-/// not drawn yet). Bad object input is refused clearly.
+/// black) and hides what is behind it; without shadows the pixels it does not cover are the
+/// static view's, bit for bit; with them, the room only darkens around it; a second object
+/// adds its own pixels. Bad object input is refused clearly: an emitter, a missing file, a
+/// cube through the floor, one outside the box.
 #[test]
 fn render_draws_a_dynamic_object_lit_by_the_field() {
     let out = temp("cornell");
@@ -986,16 +987,25 @@ fn render_draws_a_dynamic_object_lit_by_the_field() {
         "--object",
         cube.to_str().unwrap(),
         "--object-at",
-        "278,200,200",
+        "278,260,200",
         "--object-turn",
         "20",
     ];
-    let (o, with) = render(&object, "with.pfm");
+    let (o, with) = render(&[&object[..], &["--object-shadow-samples", "0"]].concat(), "with.pfm");
     assert!(o.status.success(), "{}", stderr(&o));
-    let (plain, with) = (
-        vlf_core::render::Image::load_pfm(&plain).unwrap(),
-        vlf_core::render::Image::load_pfm(&with).unwrap(),
+    let (o, shadowed) = render(&object, "shadowed.pfm");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let (o, two) = render(
+        &[
+            &object[..],
+            &["--object", cube.to_str().unwrap(), "--object-at", "400,50,100"],
+        ]
+        .concat(),
+        "two.pfm",
     );
+    assert!(o.status.success(), "{}", stderr(&o));
+    let load = |p: &std::path::Path| vlf_core::render::Image::load_pfm(p).unwrap();
+    let (plain, with, shadowed, two) = (load(&plain), load(&with), load(&shadowed), load(&two));
     let changed: Vec<usize> = (0..plain.pixels.len())
         .filter(|&i| plain.pixels[i] != with.pixels[i])
         .collect();
@@ -1023,6 +1033,33 @@ fn render_draws_a_dynamic_object_lit_by_the_field() {
         "the cube is mostly black: {lit} of {} lit",
         changed.len()
     );
+    // With shadows, the cube's pixels are the same and the room around it only loses light.
+    let darker: Vec<usize> = (0..plain.pixels.len())
+        .filter(|&i| !changed.contains(&i) && shadowed.pixels[i] != plain.pixels[i])
+        .collect();
+    assert!(darker.len() > 20, "{} pixels in shadow", darker.len());
+    for &i in &darker {
+        assert!(
+            (0..3).all(|c| shadowed.pixels[i][c] <= plain.pixels[i][c]),
+            "pixel {i} brighter"
+        );
+    }
+    for &i in &changed {
+        assert_eq!(shadowed.pixels[i], with.pixels[i], "the cube's own pixel {i}");
+    }
+    // The second cube (on the floor, to the right) covers pixels the first does not.
+    let second = (0..plain.pixels.len())
+        .filter(|&i| !changed.contains(&i) && !darker.contains(&i) && two.pixels[i] != plain.pixels[i])
+        .count();
+    assert!(second > 10, "{second} pixels of the second cube");
+    // Bad placements: through the floor (y = 0), far outside the box.
+    for (at, says) in [
+        ("278,20,200", "crosses a surface"),
+        ("278,200,-5000", "outside the scene"),
+    ] {
+        let (o, _) = render(&["--object", cube.to_str().unwrap(), "--object-at", at], "x.pfm");
+        assert!(!o.status.success() && stderr(&o).contains(says), "{at}: {}", stderr(&o));
+    }
     // Bad input: a file with an emitter, a missing file, --object with --gpu.
     std::fs::write(out.join("lamp.mtl"), "newmtl lamp\nKd 0.5 0.5 0.5\nKe 1 1 1\n").unwrap();
     std::fs::write(

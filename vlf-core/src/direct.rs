@@ -47,55 +47,81 @@ struct Sample {
     /// `Le · area` of the sub-triangle (VLF units; `E` is scale-free since
     /// area / r² is).
     power: Rgb,
+    /// The emitting surface it lies on.
+    #[serde(default)]
+    surface: u32,
 }
 
-/// What exact direct light needs: the field's direct part per texel and the
-/// emitters' quadrature points.
+/// The scene's emitters cut into quadrature points (see the module docs): the irradiance
+/// straight from them at any point, past whatever blocks the way.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct ExactDirect {
-    /// `D_t`: the field's direct radiance per texel (holes filled).
-    direct: Vec<[f32; 3]>,
+#[serde(transparent)]
+pub struct Emitters {
+    /// Grouped by surface, in the scene's order.
     samples: Vec<Sample>,
 }
 
-impl ExactDirect {
-    /// Builds the direct part from `first`, the same field after its first
-    /// iteration (its radiance minus the surfaces' own emission), and cuts
-    /// every emitter into about `samples_per_emitter` quadrature points (at
-    /// least 1 per fan triangle).
-    pub fn new(first: &LightField, samples_per_emitter: u32) -> crate::Result<ExactDirect> {
-        if samples_per_emitter == 0 || samples_per_emitter > 1 << 16 {
+impl Emitters {
+    /// Every emitter of `scene` in about `per_emitter` points (at least 1 per fan triangle).
+    pub fn new(scene: &Scene, per_emitter: u32) -> crate::Result<Emitters> {
+        if per_emitter == 0 || per_emitter > 1 << 16 {
             return Err(crate::Error::Parameter(format!(
-                "direct light samples per emitter must be 1..=65536, got {samples_per_emitter}"
+                "direct light samples per emitter must be 1..=65536, got {per_emitter}"
             )));
         }
-        let mut direct = first.radiance.clone();
-        for (grid, &material) in first.atlas.charts.iter().zip(&first.atlas.chart_material) {
-            let le = first.scene.materials[material as usize].emission;
-            let n = grid.width as usize * grid.height as usize;
-            for t in &mut direct[grid.first..grid.first + n] {
-                for c in 0..3 {
-                    t[c] = (t[c] - le[c] as f32).max(0.0);
-                }
-            }
-        }
-        Ok(ExactDirect {
-            direct,
-            samples: emitter_samples(&first.scene, samples_per_emitter),
+        Ok(Emitters {
+            samples: emitter_samples(scene, per_emitter),
         })
     }
 
-    /// Number of shadow rays per shaded point.
-    pub fn samples(&self) -> usize {
+    /// Number of quadrature points: shadow rays per shaded point.
+    pub fn len(&self) -> usize {
         self.samples.len()
     }
 
-    /// Irradiance `E(p)` straight from the emitters at `p` (VLF frame) on a
-    /// surface of front normal `normal`, with shadows.
-    pub fn irradiance(&self, scene: &Scene, bvh: &Bvh, p: DVec3, normal: DVec3) -> Rgb {
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// `Σ_s Le_s A_s cos θ_p cos θ_s / r²` over the points `s` in front of `p` (VLF frame,
+    /// front normal `normal`) whose shadow ray is not `blocked(origin, dir, t_max)`: the
+    /// irradiance `E(p)` when `blocked` is the scene, and other sums when it is something else
+    /// (the direct light an object takes away).
+    pub fn irradiance(&self, p: DVec3, normal: DVec3, blocked: impl Fn(DVec3, DVec3, f64) -> bool) -> Rgb {
+        Self::sum(&self.samples, p, normal, blocked)
+    }
+
+    /// The emitting surfaces, each with its number of points.
+    pub fn surfaces(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
+        self.samples
+            .chunk_by(|a, b| a.surface == b.surface)
+            .map(|g| (g[0].surface as usize, g.len()))
+    }
+
+    /// [`Emitters::irradiance`] from the points of the emitting surfaces that `which` selects.
+    pub fn irradiance_from(
+        &self,
+        which: impl Fn(usize) -> bool,
+        p: DVec3,
+        normal: DVec3,
+        blocked: impl Fn(DVec3, DVec3, f64) -> bool,
+    ) -> Rgb {
+        let mut e = [0.0; 3];
+        for g in self.samples.chunk_by(|a, b| a.surface == b.surface) {
+            if which(g[0].surface as usize) {
+                let part = Self::sum(g, p, normal, &blocked);
+                for c in 0..3 {
+                    e[c] += part[c];
+                }
+            }
+        }
+        e
+    }
+
+    fn sum(samples: &[Sample], p: DVec3, normal: DVec3, blocked: impl Fn(DVec3, DVec3, f64) -> bool) -> Rgb {
         let origin = p + normal * RAY_EPSILON;
         let mut e = [0.0; 3];
-        for s in &self.samples {
+        for s in samples {
             let to = s.point - p;
             let r2 = to.length_squared();
             if r2 <= 0.0 {
@@ -104,13 +130,7 @@ impl ExactDirect {
             let r = r2.sqrt();
             let w = to / r;
             let (cos_p, cos_s) = (normal.dot(w), -s.normal.dot(w));
-            if cos_p <= 0.0 || cos_s <= 0.0 {
-                continue;
-            }
-            if bvh
-                .intersect(scene, origin, w, 0.0, r * (1.0 - SHADOW_SHORTEN))
-                .is_some()
-            {
+            if cos_p <= 0.0 || cos_s <= 0.0 || blocked(origin, w, r * (1.0 - SHADOW_SHORTEN)) {
                 continue;
             }
             let g = cos_p * cos_s / r2;
@@ -122,10 +142,73 @@ impl ExactDirect {
     }
 }
 
+/// What exact direct light needs: the field's direct part per texel and the
+/// emitters' quadrature points.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ExactDirect {
+    /// `D_t`: the field's direct radiance per texel (holes filled).
+    direct: Vec<[f32; 3]>,
+    samples: Emitters,
+}
+
+impl ExactDirect {
+    /// Builds the direct part from `first`, the same field after its first
+    /// iteration (its radiance minus the surfaces' own emission), and cuts
+    /// every emitter into about `samples_per_emitter` quadrature points (at
+    /// least 1 per fan triangle).
+    pub fn new(first: &LightField, samples_per_emitter: u32) -> crate::Result<ExactDirect> {
+        let samples = Emitters::new(&first.scene, samples_per_emitter)?;
+        let mut direct = first.radiance.clone();
+        for (grid, &material) in first.atlas.charts.iter().zip(&first.atlas.chart_material) {
+            let le = first.scene.materials[material as usize].emission;
+            let n = grid.width as usize * grid.height as usize;
+            for t in &mut direct[grid.first..grid.first + n] {
+                for c in 0..3 {
+                    t[c] = (t[c] - le[c] as f32).max(0.0);
+                }
+            }
+        }
+        Ok(ExactDirect { direct, samples })
+    }
+
+    /// The emitters' quadrature points.
+    pub fn emitters(&self) -> &Emitters {
+        &self.samples
+    }
+
+    /// Number of shadow rays per shaded point.
+    pub fn samples(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// Irradiance `E(p)` straight from the emitters at `p` (VLF frame) on a
+    /// surface of front normal `normal`, with shadows.
+    pub fn irradiance(&self, scene: &Scene, bvh: &Bvh, p: DVec3, normal: DVec3) -> Rgb {
+        self.irradiance_past(scene, bvh, p, normal, |_, _, _| false)
+    }
+
+    /// [`ExactDirect::irradiance`] with more in the way than the static scene:
+    /// `occluded(origin, dir, t_max)` says whether something else (a moving
+    /// object) meets the shadow ray before `t_max`. Where it never does, the
+    /// result has the same bits as without it.
+    pub fn irradiance_past(
+        &self,
+        scene: &Scene,
+        bvh: &Bvh,
+        p: DVec3,
+        normal: DVec3,
+        occluded: impl Fn(DVec3, DVec3, f64) -> bool,
+    ) -> Rgb {
+        self.samples.irradiance(p, normal, |origin, w, t_max| {
+            bvh.intersect(scene, origin, w, 0.0, t_max).is_some() || occluded(origin, w, t_max)
+        })
+    }
+}
+
 /// Quadrature points of every emitter (see the module docs).
 fn emitter_samples(scene: &Scene, per_emitter: u32) -> Vec<Sample> {
     let mut out = Vec::new();
-    for s in &scene.surfaces {
+    for (surface, s) in scene.surfaces.iter().enumerate() {
         let le = scene.materials[s.material].emission;
         if !le.iter().any(|&c| c > 0.0) {
             continue;
@@ -145,6 +228,7 @@ fn emitter_samples(scene: &Scene, per_emitter: u32) -> Vec<Sample> {
                         point: at(u as f64 + 1.0 / 3.0, v as f64 + 1.0 / 3.0),
                         normal: s.normal,
                         power,
+                        surface: surface as u32,
                     });
                     // Downward sub-triangle (u+1, v), (u, v+1), (u+1, v+1).
                     if u + v + 2 <= k {
@@ -152,6 +236,7 @@ fn emitter_samples(scene: &Scene, per_emitter: u32) -> Vec<Sample> {
                             point: at(u as f64 + 2.0 / 3.0, v as f64 + 2.0 / 3.0),
                             normal: s.normal,
                             power,
+                            surface: surface as u32,
                         });
                     }
                 }
@@ -180,6 +265,20 @@ impl LightField {
     /// exchanged for the exact one when [`LightField::use_exact_direct`] was
     /// called.
     pub fn diffuse_radiance_at(&self, bvh: &Bvh, surface: usize, p: DVec3) -> Rgb {
+        self.diffuse_radiance_past(bvh, surface, p, |_, _, _| false)
+    }
+
+    /// [`LightField::diffuse_radiance_at`] with the shadow rays of exact
+    /// direct light also stopped where `occluded(origin, dir, t_max)` (see
+    /// [`ExactDirect::irradiance_past`]): moving objects cast sharp direct
+    /// shadows.
+    pub fn diffuse_radiance_past(
+        &self,
+        bvh: &Bvh,
+        surface: usize,
+        p: DVec3,
+        occluded: impl Fn(DVec3, DVec3, f64) -> bool,
+    ) -> Rgb {
         let mut l = self.radiance_at(surface, p);
         let Some(exact) = &self.exact_direct else {
             return l;
@@ -189,7 +288,7 @@ impl LightField {
             return l;
         }
         let d = self.bilinear(&exact.direct, surface, p);
-        let e = exact.irradiance(&self.scene, bvh, p, self.scene.surfaces[surface].normal);
+        let e = exact.irradiance_past(&self.scene, bvh, p, self.scene.surfaces[surface].normal, occluded);
         for c in 0..3 {
             l[c] = (l[c] - d[c] + rho[c] * std::f64::consts::FRAC_1_PI * e[c]).max(0.0);
         }
@@ -253,7 +352,7 @@ mod tests {
         for per_emitter in [8, 128, 2048] {
             let e = ExactDirect {
                 direct: Vec::new(),
-                samples: emitter_samples(&scene, per_emitter),
+                samples: Emitters::new(&scene, per_emitter).unwrap(),
             }
             .irradiance(&scene, &bvh, p, n);
             let err = (e[0] - analytic).abs() / analytic;
@@ -270,7 +369,7 @@ mod tests {
         let bvh = Bvh::build(&scene);
         let exact = ExactDirect {
             direct: Vec::new(),
-            samples: emitter_samples(&scene, 64),
+            samples: Emitters::new(&scene, 64).unwrap(),
         };
         let n = scene.surfaces[0].normal;
         let p = scene.normalisation.to_vlf(DVec3::ZERO);

@@ -223,10 +223,31 @@ impl LightField {
 
     /// Radiance leaving `hit` towards the viewer looking along `dir`.
     pub fn shade(&self, bvh: &Bvh, hit: &Hit, dir: DVec3, mode: SpecularMode) -> Rgb {
+        self.shade_by(bvh, hit, dir, mode, |surface, p| {
+            self.diffuse_radiance_at(bvh, surface, p)
+        })
+    }
+
+    /// [`LightField::shade`] with the diffuse part read from the field's maps even when exact
+    /// direct light is on: for light gathered over many directions at once (dynamic objects),
+    /// where the maps' resolution is enough and a shadow ray per emitter sample and direction
+    /// is not affordable.
+    pub fn shade_from_maps(&self, bvh: &Bvh, hit: &Hit, dir: DVec3, mode: SpecularMode) -> Rgb {
+        self.shade_by(bvh, hit, dir, mode, |surface, p| self.radiance_at(surface, p))
+    }
+
+    fn shade_by(
+        &self,
+        bvh: &Bvh,
+        hit: &Hit,
+        dir: DVec3,
+        mode: SpecularMode,
+        diffuse: impl Fn(usize, DVec3) -> Rgb,
+    ) -> Rgb {
         if !hit.front {
             return [0.0; 3];
         }
-        let mut out = self.diffuse_radiance_at(bvh, hit.surface, hit.point);
+        let mut out = diffuse(hit.surface, hit.point);
         let material = self.scene.material(hit.surface);
         if !material.is_mirror() {
             return out;

@@ -8,7 +8,7 @@
 //!
 //! where `L_in(p, ω)` is the radiance arriving from direction `ω`: the radiance that the
 //! static surface seen from `p` along `ω` sends back toward `p`. The field already holds it:
-//! that surface's stored radiance ([`LightField::shade`]: its diffuse map, a mirror's
+//! that surface's stored radiance ([`LightField::shade_from_maps`]: its diffuse map, a mirror's
 //! directional maps or a traced reflection, a back face 0), found with a ray through the
 //! scene's BVH. (The field's own tiles are no constant-time shortcut here: a diffuse-only
 //! field keeps no subfields, and the nearest field ray can pass half a ray spacing from `p`.)
@@ -29,19 +29,51 @@
 //!
 //! A direction blocked by an object (the point's own object, a concave mesh, or another)
 //! brings no light: light the objects reflect onto each other is not gathered (a second
-//! bounce, below the error of the first for the objects a walkthrough moves).
+//! bounce, below the error of the first for the objects a walkthrough moves). The static
+//! surfaces a gather ray meets are read as the field holds them, without the shadows the
+//! objects cast on them ([`super::shadow`]): that would cost a shadow cone per gather ray.
+//!
+//! **Direct light.** By default direct light comes from the field like all light. When the
+//! field shades with exact direct light ([`LightField::use_exact_direct`]), so does the
+//! gather: the static surfaces' own emission is left out of the sum, and the irradiance `E(p)`
+//! straight from the emitters, with shadow rays that the objects stop too, is added:
+//!
+//! ```text
+//! L_out = ρd · ( Σ_d (L_in − Le)(±ω_d) |n·ω_d| Δω_d / Σ_d |n·ω_d| Δω_d  +  E(p)/π ).
+//! ```
+//!
+//! **Cost** is one ray through the static BVH and the objects' per direction and point
+//! (`L × P` rays for `P` points), counted by [`rays_traced`].
 
 use super::PlacedObject;
+use crate::direct::Emitters;
 use crate::directions::DirectionSet;
 use crate::field::LightField;
 use crate::lookup::SpecularMode;
-use crate::render::Bvh;
+use crate::render::{Bvh, Hit};
 use crate::scene::Rgb;
 use glam::DVec3;
 
 /// How far a gather ray starts off the surface, against self-intersection (the VLF frame
 /// spans 2).
-const RAY_OFFSET: f64 = 1e-7;
+pub(super) const RAY_OFFSET: f64 = 1e-7;
+
+/// Shadow cone cells per object and static point, unless set ([`Gatherer::with_shadow_samples`]).
+pub const DEFAULT_SHADOW_SAMPLES: u32 = 128;
+
+/// Points per emitter for the direct part of shadows, unless set
+/// ([`Gatherer::with_direct_samples`]); as many as `render --direct-samples` takes by default.
+pub const DEFAULT_DIRECT_SAMPLES: u32 = 64;
+
+thread_local! {
+    static RAYS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };
+}
+
+/// Gather and shadow rays traced on this thread so far: what the cost of gathering is
+/// counted in (a thread-local count, so counting costs no contention).
+pub fn rays_traced() -> u64 {
+    RAYS.with(|r| r.get())
+}
 
 /// Gathers light from `field` at points of placed objects.
 pub struct Gatherer<'a> {
@@ -50,6 +82,8 @@ pub struct Gatherer<'a> {
     objects: &'a [PlacedObject],
     directions: DirectionSet,
     mode: SpecularMode,
+    shadow_samples: u32,
+    emitters: Emitters,
 }
 
 impl<'a> Gatherer<'a> {
@@ -80,11 +114,60 @@ impl<'a> Gatherer<'a> {
             objects,
             directions: DirectionSet::new(directions)?,
             mode,
+            shadow_samples: DEFAULT_SHADOW_SAMPLES,
+            emitters: Emitters::new(&field.scene, DEFAULT_DIRECT_SAMPLES)?,
         })
+    }
+
+    /// Cuts each emitter into about `k` points for the direct part of the objects' shadows
+    /// ([`super::shadow`]; exact direct light uses its own).
+    pub fn with_direct_samples(mut self, k: u32) -> crate::Result<Self> {
+        self.emitters = Emitters::new(&self.field.scene, k)?;
+        Ok(self)
+    }
+
+    pub fn emitters(&self) -> &Emitters {
+        &self.emitters
+    }
+
+    /// Cuts each object's shadow cone into `k` cells ([`super::shadow`]); 0 casts no shadows.
+    pub fn with_shadow_samples(mut self, k: u32) -> Self {
+        self.shadow_samples = k;
+        self
+    }
+
+    pub fn shadow_samples(&self) -> u32 {
+        self.shadow_samples
     }
 
     pub fn field(&self) -> &'a LightField {
         self.field
+    }
+
+    pub fn bvh(&self) -> &'a Bvh {
+        self.bvh
+    }
+
+    pub(super) fn count_ray(&self) {
+        RAYS.with(|r| r.set(r.get() + 1));
+    }
+
+    /// Whether an object meets the ray from `origin` along `dir` before `t_max`.
+    pub fn occluded(&self, origin: DVec3, dir: DVec3, t_max: f64) -> bool {
+        (self.objects.iter()).any(|o| o.intersect(origin, dir, t_max).is_some())
+    }
+
+    /// The nearest object the ray from `origin` along `dir` meets before `t_max`: its index and
+    /// the hit.
+    pub fn nearest_object(&self, origin: DVec3, dir: DVec3, t_max: f64) -> Option<(usize, Hit)> {
+        let mut best: Option<(usize, Hit)> = None;
+        for (k, o) in self.objects.iter().enumerate() {
+            let limit = best.map_or(t_max, |(_, h)| h.t);
+            if let Some(h) = o.intersect(origin, dir, limit) {
+                best = Some((k, h));
+            }
+        }
+        best
     }
 
     pub fn objects(&self) -> &'a [PlacedObject] {
@@ -101,6 +184,7 @@ impl<'a> Gatherer<'a> {
     pub fn incident(&self, p: DVec3, n: DVec3) -> Rgb {
         let n = n.normalize();
         let origin = p + n * RAY_OFFSET;
+        let exact = self.field.exact_direct.as_ref();
         let (mut sum, mut weights) = ([0.0f64; 3], 0.0f64);
         for d in 0..self.directions.len() {
             let direction = self.directions.get(d);
@@ -114,16 +198,21 @@ impl<'a> Gatherer<'a> {
                 (-direction.vector, -c * direction.weight)
             };
             weights += w;
-            let l = self.arriving(origin, dir);
+            let l = self.arriving_past(origin, dir, exact.is_some());
             for k in 0..3 {
                 sum[k] += l[k] * w;
             }
         }
         if weights > 0.0 {
-            sum.map(|s| s / weights)
-        } else {
-            [0.0; 3]
+            sum = sum.map(|s| s / weights);
         }
+        if let Some(exact) = exact {
+            let e = exact.irradiance_past(&self.field.scene, self.bvh, p, n, |o, d, t| self.occluded(o, d, t));
+            for k in 0..3 {
+                sum[k] += e[k] * std::f64::consts::FRAC_1_PI;
+            }
+        }
+        sum
     }
 
     /// Radiance a diffuse point of reflectance `rho` at `p` (normal `n`) sends in every
@@ -136,16 +225,33 @@ impl<'a> Gatherer<'a> {
     /// Radiance arriving at `origin` from `−dir` (looking along `dir`): the static surface's,
     /// or nothing where an object is closer or nothing is hit.
     pub fn arriving(&self, origin: DVec3, dir: DVec3) -> Rgb {
+        self.arriving_past(origin, dir, false)
+    }
+
+    /// [`Gatherer::arriving`], less the static surface's own emission when `no_emission`
+    /// (direct light is then counted by shadow rays).
+    fn arriving_past(&self, origin: DVec3, dir: DVec3, no_emission: bool) -> Rgb {
         let scene = &self.field.scene;
+        self.count_ray();
         let hit = self.bvh.intersect(scene, origin, dir, 0.0, f64::INFINITY);
         let t_static = hit.map_or(f64::INFINITY, |h| h.t);
-        let blocked = self
-            .objects
-            .iter()
-            .any(|o| o.bvh.intersect(&o.scene, origin, dir, 0.0, t_static).is_some());
         match hit {
-            Some(hit) if !blocked => self.field.shade(self.bvh, &hit, dir, self.mode),
+            Some(hit) if !self.occluded(origin, dir, t_static) => self.sent_back(&hit, dir, no_emission),
             _ => [0.0; 3],
         }
+    }
+
+    /// The radiance the static surface at `hit` sends back along `−dir`, as the field's maps
+    /// hold it ([`LightField::shade_from_maps`]: exact direct light is for the points a camera
+    /// sees, not for every gather ray), less the surface's own emission when `no_emission`.
+    pub(super) fn sent_back(&self, hit: &Hit, dir: DVec3, no_emission: bool) -> Rgb {
+        let mut l = self.field.shade_from_maps(self.bvh, hit, dir, self.mode);
+        if no_emission && hit.front {
+            let le = self.field.scene.material(hit.surface).emission;
+            for c in 0..3 {
+                l[c] = (l[c] - le[c]).max(0.0);
+            }
+        }
+        l
     }
 }

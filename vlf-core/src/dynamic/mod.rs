@@ -7,13 +7,13 @@
 //! rotation then a translation, in the scene's own coordinates, as the user placed the scene),
 //! need no emitter, and block their own gather and each other's.
 //!
-//! This module holds the library side: placing objects, gathering light at their points,
-//! and drawing a view with them on the CPU ([`view`]).
-//! What is left for the client (drawing objects in the viewer, shadows that objects cast on
-//! the static scene, objects seen in mirrors, streaming what the gather needs) is listed in
-//! the issue that asks for them.
+//! This module holds the library side, each piece readable as its formula: placing objects
+//! (this file), gathering light at their points ([`gather`]), the shadows they cast on the
+//! static scene ([`shadow`]), and drawing a view with them on the CPU ([`view`]), the
+//! reference the viewer's GPU version is held to.
 
 pub mod gather;
+pub mod shadow;
 pub mod view;
 
 use crate::render::Bvh;
@@ -170,14 +170,118 @@ impl DynamicObject {
             textures: Vec::new(),
         };
         let bvh = Bvh::build(&scene);
-        Ok(PlacedObject { scene, bvh })
+        let (lo, hi) = (scene.surfaces.iter().flat_map(|s| &s.vertices))
+            .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(lo, hi), &v| {
+                (lo.min(v), hi.max(v))
+            });
+        let center = (lo + hi) * 0.5;
+        let radius = (scene.surfaces.iter().flat_map(|s| &s.vertices))
+            .map(|v| v.distance(center))
+            .fold(0.0, f64::max);
+        Ok(PlacedObject {
+            name: self.name.clone(),
+            scene,
+            bvh,
+            center,
+            radius,
+        })
     }
 }
 
 /// An object at one pose, in the field's frame: its surfaces (as a scene of their own, with
-/// the object's materials) and a BVH over them.
+/// the object's materials), a BVH over them and a sphere that bounds them.
 #[derive(Clone, Debug)]
 pub struct PlacedObject {
+    pub name: String,
     pub scene: Scene,
     pub bvh: Bvh,
+    /// Centre and radius of a sphere holding every vertex (VLF frame): the cone a static
+    /// point sees the object in ([`shadow`]).
+    pub center: DVec3,
+    pub radius: f64,
+}
+
+/// How far (VLF frame) an object may cross a static surface before it is said to intersect
+/// it: an object resting on a floor touches it without crossing.
+const CONTACT_TOLERANCE: f64 = 1e-6;
+
+impl PlacedObject {
+    /// The object's nearest hit along the ray from `origin` along unit `dir` before `t_max`,
+    /// skipping its BVH where the ray misses the bounding sphere (most rays of a view).
+    pub fn intersect(&self, origin: DVec3, dir: DVec3, t_max: f64) -> Option<crate::render::Hit> {
+        let to = self.center - origin;
+        let along = to.dot(dir);
+        let r2 = self.radius * self.radius * (1.0 + 1e-9) + 1e-18;
+        if to.length_squared() - along * along > r2 || (along < 0.0 && to.length_squared() > r2) {
+            return None;
+        }
+        self.bvh.intersect(&self.scene, origin, dir, 0.0, t_max)
+    }
+
+    /// Checks that the object lies inside the field (the VLF frame's cube `[−1, 1]³`, where
+    /// the static scene is) and crosses no static surface: light the field carries through the
+    /// object's volume, and surfaces inside it, would be wrong on both sides. Touching is
+    /// allowed. An edge of one triangle crossing the other (either way round) finds every
+    /// crossing of two triangles.
+    pub fn check_clear(&self, scene: &Scene, bvh: &Bvh) -> Result<(), ObjectError> {
+        let bad = |message: String| ObjectError::Invalid {
+            name: self.name.clone(),
+            message,
+        };
+        let inside = |v: &DVec3| v.abs().max_element() <= 1.0 + CONTACT_TOLERANCE;
+        if !self.scene.surfaces.iter().flat_map(|s| &s.vertices).all(inside) {
+            return Err(bad(
+                "lies outside the scene's bounds, where the field holds no light (move it inside)".into(),
+            ));
+        }
+        let crossing = |a: DVec3, b: DVec3, scene: &Scene, bvh: &Bvh| {
+            let length = a.distance(b);
+            length > 2.0 * CONTACT_TOLERANCE
+                && bvh
+                    .intersect(
+                        scene,
+                        a,
+                        (b - a) / length,
+                        CONTACT_TOLERANCE,
+                        length - CONTACT_TOLERANCE,
+                    )
+                    .is_some_and(|h| {
+                        // A crossing, not an edge that ends on the surface within the tolerance.
+                        let n = scene.surfaces[h.surface].normal;
+                        let (da, db) = ((a - h.point).dot(n), (b - h.point).dot(n));
+                        da.abs() > CONTACT_TOLERANCE && db.abs() > CONTACT_TOLERANCE && da * db < 0.0
+                    })
+        };
+        let edges = |s: &Surface| {
+            let v = s.vertices.clone();
+            (0..v.len()).map(move |k| (v[k], v[(k + 1) % v.len()]))
+        };
+        let (lo, hi) = (
+            self.center - DVec3::splat(self.radius),
+            self.center + DVec3::splat(self.radius),
+        );
+        for s in &self.scene.surfaces {
+            for (a, b) in edges(s) {
+                if crossing(a, b, scene, bvh) {
+                    return Err(bad("crosses a surface of the static scene (move it clear)".into()));
+                }
+            }
+        }
+        for s in &scene.surfaces {
+            let near = s
+                .vertices
+                .iter()
+                .fold((DVec3::INFINITY, DVec3::NEG_INFINITY), |(l, h), &v| {
+                    (l.min(v), h.max(v))
+                });
+            if near.0.cmple(hi).all() && near.1.cmpge(lo).all() {
+                for (a, b) in edges(s) {
+                    if crossing(a, b, &self.scene, &self.bvh) {
+                        return Err(bad("crosses a surface of the static scene (move it clear)".into()));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
 }

@@ -1,17 +1,16 @@
 //! Drawing a view with dynamic objects in it (the CPU renderer's way).
 //!
 //! Each camera ray finds the nearer of the static scene and the objects. A static point is
-//! shaded from the field as without objects (the shadows objects cast on it are not drawn
-//! yet). A point of an object is shaded per pixel sample by the gather ([`super::gather`]):
-//! its diffuse part is ρd times the cosine-weighted radiance arriving over its hemisphere, its
+//! shaded from the field less the light the objects take from it ([`super::shadow`]), and a
+//! static mirror shows the objects and their shadows. A point of an object is shaded per pixel
+//! sample by the gather ([`super::gather`]): its diffuse part is ρd times the cosine-weighted radiance arriving over its hemisphere, its
 //! mirror part ρs times what the reflected ray meets. An object hides what lies behind it and
 //! is seen in the static scene's mirrors, traced or read from the rays. Back faces of objects
 //! are black, as the static scene's are.
 
-use super::PlacedObject;
 use super::gather::Gatherer;
 use crate::lookup::SpecularMode;
-use crate::render::{Bvh, Camera, Image, render_rays};
+use crate::render::{Bvh, Camera, Hit, Image, render_rays};
 use crate::scene::Rgb;
 use glam::DVec3;
 
@@ -40,7 +39,7 @@ fn radiance_along(gatherer: &Gatherer, bvh: &Bvh, origin: DVec3, dir: DVec3, dep
     let objects = gatherer.objects();
     let hit = bvh.intersect(&field.scene, origin, dir, 0.0, f64::INFINITY);
     let t_static = hit.map_or(f64::INFINITY, |h| h.t);
-    if let Some((o, object_hit)) = nearest_object(objects, origin, dir, t_static) {
+    if let Some((o, object_hit)) = gatherer.nearest_object(origin, dir, t_static) {
         if !object_hit.front {
             return [0.0; 3];
         }
@@ -67,59 +66,64 @@ fn radiance_along(gatherer: &Gatherer, bvh: &Bvh, origin: DVec3, dir: DVec3, dep
         }
         return l;
     }
-    let Some(hit) = hit else {
-        return [0.0; 3];
-    };
-    let material = field.scene.material(hit.surface);
-    match gatherer.mode() {
-        SpecularMode::Trace { .. } if hit.front && material.is_mirror() => {
-            let mut l = field.diffuse_radiance_at(bvh, hit.surface, hit.point);
-            if depth > 0 {
-                let n = field.scene.surfaces[hit.surface].normal;
-                let reflected = dir - 2.0 * dir.dot(n) * n;
-                let m = radiance_along(gatherer, bvh, hit.point + n * RAY_OFFSET, reflected, depth - 1);
-                for c in 0..3 {
-                    l[c] += material.specular[c] * m[c];
-                }
-            }
-            l
-        }
-        SpecularMode::Rays if hit.front && material.is_mirror() && !objects.is_empty() => {
-            // The field's rays were propagated without the objects: where the reflected ray
-            // meets an object before the static scene, the object is what the mirror shows.
-            let n = field.scene.surfaces[hit.surface].normal;
-            let reflected = dir - 2.0 * dir.dot(n) * n;
-            let origin = hit.point + n * RAY_OFFSET;
-            let t_behind = bvh
-                .intersect(&field.scene, origin, reflected, 0.0, f64::INFINITY)
-                .map_or(f64::INFINITY, |h| h.t);
-            if nearest_object(objects, origin, reflected, t_behind).is_none() {
-                return field.shade(bvh, &hit, dir, SpecularMode::Rays);
-            }
-            let mut l = field.diffuse_radiance_at(bvh, hit.surface, hit.point);
-            let m = radiance_along(gatherer, bvh, origin, reflected, 0);
-            for c in 0..3 {
-                l[c] += material.specular[c] * m[c];
-            }
-            l
-        }
-        mode => field.shade(bvh, &hit, dir, mode),
+    match hit {
+        Some(hit) => static_radiance(gatherer, bvh, &hit, dir, depth),
+        None => [0.0; 3],
     }
 }
 
-/// The nearest object hit before `t_max`: the object's index and the hit.
-fn nearest_object(
-    objects: &[PlacedObject],
-    origin: DVec3,
-    dir: DVec3,
-    t_max: f64,
-) -> Option<(usize, crate::render::Hit)> {
-    let mut best: Option<(usize, crate::render::Hit)> = None;
-    for (k, o) in objects.iter().enumerate() {
-        let limit = best.map_or(t_max, |(_, h)| h.t);
-        if let Some(h) = o.bvh.intersect(&o.scene, origin, dir, 0.0, limit) {
-            best = Some((k, h));
-        }
+/// Radiance the static surface at `hit` sends back along `−dir` with the objects in the
+/// scene: its diffuse part with the objects' shadows ([`Gatherer::diffuse_with_shadows`]),
+/// its mirror part showing the objects and their shadows. Without objects, the field's own
+/// shading.
+fn static_radiance(gatherer: &Gatherer, bvh: &Bvh, hit: &Hit, dir: DVec3, depth: u32) -> Rgb {
+    let field = gatherer.field();
+    if !hit.front {
+        return [0.0; 3];
     }
-    best
+    let mut l = gatherer.diffuse_with_shadows(hit.surface, hit.point);
+    let material = field.scene.material(hit.surface);
+    if !material.is_mirror() {
+        return l;
+    }
+    let n = field.scene.surfaces[hit.surface].normal;
+    let reflected = dir - 2.0 * dir.dot(n) * n;
+    let origin = hit.point + n * RAY_OFFSET;
+    let mirrored = match gatherer.mode() {
+        SpecularMode::Trace { .. } if depth == 0 => [0.0; 3],
+        SpecularMode::Trace { .. } => {
+            let m = radiance_along(gatherer, bvh, origin, reflected, depth - 1);
+            std::array::from_fn(|c| material.specular[c] * m[c])
+        }
+        SpecularMode::Rays if gatherer.objects().is_empty() => {
+            field.mirror_radiance_from_rays(hit.surface, hit.point, -dir)
+        }
+        SpecularMode::Rays => {
+            // The field's rays were propagated without the objects: the reflected ray is
+            // traced once. Where it meets an object first, the mirror shows the object; where
+            // it meets a static point in an object's shadow, the rays' light less that shadow.
+            let behind = bvh.intersect(&field.scene, origin, reflected, 0.0, f64::INFINITY);
+            let t_behind = behind.map_or(f64::INFINITY, |h| h.t);
+            if gatherer.nearest_object(origin, reflected, t_behind).is_some() {
+                let m = radiance_along(gatherer, bvh, origin, reflected, 0);
+                std::array::from_fn(|c| material.specular[c] * m[c])
+            } else {
+                let mut m = field.mirror_radiance_from_rays(hit.surface, hit.point, -dir);
+                if let Some(q) = behind.filter(|q| q.front) {
+                    let s = &field.scene;
+                    let rho = s.albedo_at(q.surface, q.point);
+                    if let Some(loss) = gatherer.shadow_loss(q.point, s.surfaces[q.surface].normal, rho) {
+                        for c in 0..3 {
+                            m[c] = (m[c] - material.specular[c] * loss[c]).max(0.0);
+                        }
+                    }
+                }
+                m
+            }
+        }
+    };
+    for c in 0..3 {
+        l[c] += mirrored[c];
+    }
+    l
 }

@@ -1,6 +1,8 @@
 //! Scenes the physics tests build themselves, directly in the VLF frame.
 #![allow(dead_code)]
 
+pub mod objects;
+
 use glam::DVec3;
 use vlf_core::scene::{FaceOrigin, Material, Normalisation, Scene, Surface};
 

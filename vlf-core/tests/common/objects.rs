@@ -1,0 +1,64 @@
+//! Moving objects and fields to put them in, for the dynamic-object tests.
+
+use super::{closed_box, material};
+use glam::DVec3;
+use vlf_core::dynamic::DynamicObject;
+use vlf_core::field::LightField;
+use vlf_core::propagate::{Options, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::scene::Material;
+
+/// A furnace (every wall emits Le = 1 and reflects ρ = 0.5) after `k` iterations: uniform
+/// radiance `Le·(1 − ρ^(k+1))/(1 − ρ)` in every texel, to 1e-5.
+pub fn furnace(k: u32) -> (LightField, f64) {
+    let (rho, le) = (0.5, 1.0);
+    let scene = closed_box(
+        0.55,
+        2,
+        &[0, 1, 2, 3, 4, 5],
+        vec![material("unused", rho, 0.0), material("glow", rho, le)],
+    );
+    let options = Options {
+        directions: 129,
+        grid: GridSize::new(32, 8).unwrap(),
+        stop: Stop::Iterations(k),
+        ..Options::default()
+    };
+    let mut p = Propagation::new(scene, options).unwrap();
+    p.run(|_| {});
+    (p.into_field(), le * (1.0 - rho.powi(k as i32 + 1)) / (1.0 - rho))
+}
+
+pub fn grey(name: &str, rho: f64) -> Material {
+    Material {
+        name: name.into(),
+        diffuse: [rho; 3],
+        specular: [0.0; 3],
+        emission: [0.0; 3],
+        albedo_texture: None,
+    }
+}
+
+/// The two triangles of the quad `c ± a ± b`, facing `a × b`.
+pub fn quad(c: DVec3, a: DVec3, b: DVec3) -> [[DVec3; 3]; 2] {
+    let (p0, p1, p2, p3) = (c - a - b, c + a - b, c + a + b, c - a + b);
+    [[p0, p1, p2], [p0, p2, p3]]
+}
+
+/// A cube of half-size `h` around `c`, facing out.
+pub fn cube(name: &str, c: DVec3, h: f64, rho: f64) -> DynamicObject {
+    let mut triangles = Vec::new();
+    for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
+        let u = if axis == DVec3::X {
+            DVec3::Y
+        } else if axis == DVec3::Y {
+            DVec3::Z
+        } else {
+            DVec3::X
+        };
+        let v = axis.cross(u);
+        triangles.extend(quad(c + axis * h, u * h, v * h));
+        triangles.extend(quad(c - axis * h, v * h, u * h));
+    }
+    DynamicObject::uniform(name, triangles, grey(name, rho))
+}
