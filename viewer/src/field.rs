@@ -64,6 +64,9 @@ struct GpuSurface {
     /// Where the chart's texels start in its chunk.
     texel_offset: u32,
     _pad: [u32; 3],
+    /// A dynamic object's diffuse reflectance (0 for the static scene's surfaces).
+    diffuse: [f32; 3],
+    _pad2: u32,
 }
 
 /// A BVH node as the shader reads it (the layout of `vlf_core::render::bvh::Node`).
@@ -131,13 +134,34 @@ pub struct FieldRenderer {
     vertex_count: u32,
     /// Maps the scene's units into the VLF frame.
     normalisation: vlf_core::scene::Normalisation,
+    /// The buffers bound at 0..=7 of `shaders/field.wgsl`, in binding order, for other
+    /// pipelines over the same field (the gather).
+    pub(crate) bindings: [wgpu::Buffer; 8],
+    /// The dynamic objects' BVH root among the nodes, `NONE` without objects.
+    pub(crate) objects_root: u32,
 }
 
 impl FieldRenderer {
     /// Uploads `field`'s surfaces, materials and BVH, and all of its radiance.
     pub fn new(gpu: &Gpu, field: &LightField) -> Result<FieldRenderer, ViewerError> {
+        FieldRenderer::with_objects(gpu, field, &[])
+    }
+
+    /// Uploads `field`'s surfaces, materials and BVH (its radiance is not read) with a pool of
+    /// `capacity` RGB values and no part resident: radiance comes with [`FieldRenderer::upload`].
+    pub fn streaming(gpu: &Gpu, field: &LightField, capacity: usize) -> Result<FieldRenderer, ViewerError> {
+        FieldRenderer::build(gpu, field, capacity, &[])
+    }
+
+    /// [`FieldRenderer::new`] with dynamic `objects` placed in the field: their surfaces and a
+    /// BVH over them are uploaded after the scene's, for the gather ([`crate::gather`]) to see.
+    pub fn with_objects(
+        gpu: &Gpu,
+        field: &LightField,
+        objects: &[vlf_core::dynamic::PlacedObject],
+    ) -> Result<FieldRenderer, ViewerError> {
         let catalog = PartCatalog::new(field);
-        let renderer = FieldRenderer::streaming(gpu, field, catalog.total_values())?;
+        let renderer = FieldRenderer::build(gpu, field, catalog.total_values(), objects)?;
         let mut base = 0;
         for i in 0..catalog.len() as u32 {
             renderer.upload(gpu, i, base, field.part_values(&catalog, i))?;
@@ -146,9 +170,12 @@ impl FieldRenderer {
         Ok(renderer)
     }
 
-    /// Uploads `field`'s surfaces, materials and BVH (its radiance is not read) with a pool of
-    /// `capacity` RGB values and no part resident: radiance comes with [`FieldRenderer::upload`].
-    pub fn streaming(gpu: &Gpu, field: &LightField, capacity: usize) -> Result<FieldRenderer, ViewerError> {
+    fn build(
+        gpu: &Gpu,
+        field: &LightField,
+        capacity: usize,
+        objects: &[vlf_core::dynamic::PlacedObject],
+    ) -> Result<FieldRenderer, ViewerError> {
         let scene = &field.scene;
         let atlas = &field.atlas;
         if atlas.chart_of.len() != scene.surfaces.len() || field.radiance.len() != atlas.texels {
@@ -198,20 +225,67 @@ impl FieldRenderer {
                 mirror_index: rays.mirror_index[i],
                 texel_offset: (grid.first - catalog.range(part).start) as u32,
                 _pad: [0; 3],
+                diffuse: [0.0; 3],
+                _pad2: 0,
             });
             polygon_vertices.extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
         }
         let bvh = Bvh::build(scene);
-        let nodes: Vec<GpuNode> = bvh
-            .nodes()
-            .iter()
-            .map(|n| GpuNode {
-                min: n.min,
-                max: n.max,
-                index: n.index,
-                count: n.count,
-            })
-            .collect();
+        let gpu_node = |n: &vlf_core::render::Node| GpuNode {
+            min: n.min,
+            max: n.max,
+            index: n.index,
+            count: n.count,
+        };
+        let mut nodes: Vec<GpuNode> = bvh.nodes().iter().map(gpu_node).collect();
+        let mut primitives: Vec<u32> = bvh.primitives().to_vec();
+        // Dynamic objects: their surfaces after the scene's, one BVH over all of them after the
+        // scene's, its indices shifted to point into the same arrays (see `trace_from`).
+        let objects_root = if objects.is_empty() {
+            NONE
+        } else {
+            let first_surface = surfaces.len() as u32;
+            let all = vlf_core::scene::Scene {
+                surfaces: objects.iter().flat_map(|o| o.scene.surfaces.iter().cloned()).collect(),
+                materials: Vec::new(),
+                normalisation: scene.normalisation,
+                textures: Vec::new(),
+            };
+            for o in objects {
+                for surface in &o.scene.surfaces {
+                    let material = &o.scene.materials[surface.material];
+                    surfaces.push(GpuSurface {
+                        normal: surface.normal.as_vec3().to_array(),
+                        offset: surface.offset as f32,
+                        specular: material.specular.map(|c| c as f32),
+                        mirror: material.is_mirror() as u32,
+                        grid_origin: [0.0; 3],
+                        inv_texel: 0.0,
+                        axis_u: [0.0; 3],
+                        part: 0,
+                        axis_v: [0.0; 3],
+                        width: 0,
+                        first_vertex: polygon_vertices.len() as u32,
+                        vertex_count: surface.vertices.len() as u32,
+                        height: 0,
+                        mirror_index: NONE,
+                        texel_offset: 0,
+                        _pad: [0; 3],
+                        diffuse: material.diffuse.map(|c| c as f32),
+                        _pad2: 0,
+                    });
+                    polygon_vertices.extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
+                }
+            }
+            let object_bvh = Bvh::build(&all);
+            let (first_node, first_primitive) = (nodes.len() as u32, primitives.len() as u32);
+            nodes.extend(object_bvh.nodes().iter().map(|n| GpuNode {
+                index: n.index + if n.count > 0 { first_primitive } else { first_node },
+                ..gpu_node(n)
+            }));
+            primitives.extend(object_bvh.primitives().iter().map(|&p| p + first_surface));
+            first_node
+        };
         // Every storage buffer must fit one binding, and the shader indexes them with u32 words.
         let limit = gpu
             .limits
@@ -253,7 +327,7 @@ impl FieldRenderer {
             let surfaces = storage("surfaces", bytemuck::cast_slice(&surfaces));
             let polygon_vertices = storage("polygon vertices", bytemuck::cast_slice(&polygon_vertices));
             let nodes_buffer = storage("bvh nodes", bytemuck::cast_slice(&nodes));
-            let primitives = storage("bvh primitives", bytemuck::cast_slice(bvh.primitives()));
+            let primitives = storage("bvh primitives", bytemuck::cast_slice(&primitives));
             let pool = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("radiance pool"),
                 size: (capacity as u64 * 12).max(256),
@@ -347,6 +421,16 @@ impl FieldRenderer {
                 multiview_mask: None,
                 cache: None,
             });
+            let bindings = [
+                view.clone(),
+                surfaces,
+                pool.clone(),
+                polygon_vertices,
+                nodes_buffer,
+                primitives,
+                rays,
+                parts.clone(),
+            ];
             FieldRenderer {
                 pipeline,
                 pool,
@@ -358,6 +442,8 @@ impl FieldRenderer {
                 vertices,
                 vertex_count,
                 normalisation: scene.normalisation,
+                bindings,
+                objects_root,
             }
         })
     }

@@ -10,6 +10,8 @@
 //!   a clear [`ViewerError::NoAdapter`] where there is none.
 //! * [`field`]: a field's geometry and radiance maps as GPU buffers, and the
 //!   pipeline that draws them.
+//! * [`gather`]: the dynamic objects' gather as a compute shader, the twin of
+//!   `vlf_core::dynamic::gather`.
 //! * [`headless`]: `vlf render --gpu`: the same sample positions and box filter
 //!   as the CPU renderer, into an [`vlf_core::render::Image`].
 //!
@@ -23,6 +25,7 @@
 
 pub mod field;
 pub mod frame;
+pub mod gather;
 pub mod gpu;
 pub mod headless;
 pub mod overlay;
@@ -34,6 +37,7 @@ pub mod walk;
 pub mod window;
 
 pub use field::{FieldRenderer, MirrorMode, Viewpoint};
+pub use gather::GpuGather;
 pub use gpu::Gpu;
 pub use headless::render;
 pub use stream::{PartSource, StreamConfig, StreamStats, Streamer};

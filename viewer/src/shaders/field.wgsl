@@ -56,6 +56,8 @@ struct Surface {
     mirror_index: u32,
     // Where the surface's chart's texels start in its part (a chunk of charts).
     texel_offset: u32,
+    // A dynamic object's diffuse reflectance (its surfaces follow the static scene's).
+    diffuse: vec3<f32>,
 };
 
 struct Node {
@@ -193,19 +195,27 @@ fn intersect_surface(index: u32, o: vec3<f32>, d: vec3<f32>, t_min: f32, t_max: 
     return t;
 }
 
-// The nearest surface along `o + t·d`, t ≥ t_min (ties to the lowest index, as on the CPU).
+// The nearest static surface along `o + t·d`, t ≥ t_min (ties to the lowest index, as on the
+// CPU).
 fn trace(o: vec3<f32>, d: vec3<f32>, t_min: f32) -> Hit {
     // Only fragments of drawn polygons trace, so the scene has surfaces and the BVH a root.
-    var best = Hit(NONE, 3.4e38, false);
+    return trace_from(0u, o, d, t_min, 3.4e38);
+}
+
+// The nearest surface within [t_min, t_max] of the BVH whose root is node `root`: 0 for the
+// static scene, the dynamic objects' root after it (their nodes follow the scene's, with
+// indices into the same arrays).
+fn trace_from(root: u32, o: vec3<f32>, d: vec3<f32>, t_min: f32, t_max: f32) -> Hit {
+    var best = Hit(NONE, t_max, false);
     // Components below 1e-30 become 1e-30, so the slab test never divides by zero (for a ray that
     // parallel to a slab, the sign of its huge inverse does not change the interval).
     let inv = 1.0 / select(d, vec3<f32>(1e-30), abs(d) < vec3<f32>(1e-30));
     var stack: array<u32, STACK_SIZE>;
     var top = 0u;
-    if (slab(nodes[0], o, inv, t_min, best.t) < 0.0) {
+    if (slab(nodes[root], o, inv, t_min, best.t) < 0.0) {
         return best;
     }
-    var current = 0u;
+    var current = root;
     loop {
         let node = nodes[current];
         var descended = false;
@@ -403,26 +413,35 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) ve
     if (!front) {
         return vec4<f32>(0.0, 0.0, 0.0, 1.0);
     }
-    var s = surfaces[in.surface];
-    var l = bilinear(s, in.texel);
+    let s = surfaces[in.surface];
+    let l = shade(s, in.position, normalize(in.position - view.eye.xyz), bilinear(s, in.texel), view.mode, view.depth);
+    return vec4<f32>(l, 1.0);
+}
+
+// The radiance the front of surface `s` sends from `p` back along the unit direction `d` it
+// is seen along: `l`, its diffuse radiance, plus a mirror's reflection — from the field's rays
+// (`mode` 1) or ray traced at most `depth` mirrors deep (`mode` 0).
+fn shade(first: Surface, position: vec3<f32>, incoming: vec3<f32>, diffuse: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+    var s = first;
+    var l = diffuse;
     if (s.mirror == 0u) {
-        return vec4<f32>(l, 1.0);
+        return l;
     }
-    var remaining = view.depth;
-    if (view.mode == 1u) {
-        let m = mirror_from_rays(s, in.position, normalize(view.eye.xyz - in.position));
+    var remaining = depth;
+    if (mode == 1u) {
+        let m = mirror_from_rays(s, position, -incoming);
         if (m.w == 0.0) {
-            return vec4<f32>(l + m.xyz, 1.0);
+            return l + m.xyz;
         }
         remaining = FALLBACK_DEPTH;
     }
     if (remaining == 0u) {
-        return vec4<f32>(l, 1.0);
+        return l;
     }
     // Reflections: follow the eye ray from mirror to mirror.
     var weight = vec3<f32>(1.0);
-    var p = in.position;
-    var d = normalize(in.position - view.eye.xyz);
+    var p = position;
+    var d = incoming;
     loop {
         weight *= s.specular;
         d = d - 2.0 * dot(d, s.normal) * s.normal;
@@ -439,5 +458,5 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) ve
             break;
         }
     }
-    return vec4<f32>(l, 1.0);
+    return l;
 }

@@ -1,0 +1,216 @@
+//! The gather on the GPU: the light arriving at points of dynamic objects, one compute
+//! invocation per point (`shaders/gather.wgsl`), the GPU twin of
+//! [`vlf_core::dynamic::gather::Gatherer::incident`] and tested against it.
+//!
+//! It runs over a [`FieldRenderer`] built [`FieldRenderer::with_objects`]: the field's
+//! surfaces, radiance pool, mirror tables and BVH, with the objects' surfaces and BVH after the
+//! scene's, so the shader traces the static scene and the objects with one traversal from two
+//! roots.
+
+use crate::pass::{READ_ONLY, bind_entry, buffer_entry, uniform_buffer};
+use crate::{FieldRenderer, Gpu, MirrorMode, ViewerError};
+use bytemuck::{Pod, Zeroable};
+use glam::DVec3;
+use vlf_core::directions::DirectionSet;
+use vlf_core::scene::Rgb;
+use wgpu::util::DeviceExt;
+
+/// Invocations per workgroup (`@workgroup_size` of `gather_main`).
+const WORKGROUP: u32 = 64;
+
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+struct Params {
+    points: u32,
+    directions: u32,
+    objects_root: u32,
+    mode: u32,
+    depth: u32,
+    _pad: [u32; 3],
+}
+
+/// A compute pipeline gathering light from a field at points of its dynamic objects.
+pub struct GpuGather {
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    field_bindings: [wgpu::Buffer; 8],
+    directions: wgpu::Buffer,
+    direction_count: u32,
+    objects_root: u32,
+    mirrors: MirrorMode,
+}
+
+impl GpuGather {
+    /// A gather over `field`'s renderer and its objects, with `directions` (the field's own set,
+    /// or another), mirrors read as `mirrors` says.
+    pub fn new(
+        gpu: &Gpu,
+        field: &FieldRenderer,
+        directions: &DirectionSet,
+        mirrors: MirrorMode,
+    ) -> Result<GpuGather, ViewerError> {
+        let vectors: Vec<[f32; 4]> = (0..directions.len())
+            .map(|d| {
+                let direction = directions.get(d);
+                direction.vector.as_vec3().extend(direction.weight as f32).to_array()
+            })
+            .collect();
+        gpu.checked(|| {
+            let device = &gpu.device;
+            let source = format!(
+                "{}\n{}",
+                include_str!("shaders/field.wgsl"),
+                include_str!("shaders/gather.wgsl")
+            );
+            let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("gather"),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+            let compute = wgpu::ShaderStages::COMPUTE;
+            let mut entries: Vec<wgpu::BindGroupLayoutEntry> =
+                (1..8).map(|b| buffer_entry(b, compute, READ_ONLY)).collect();
+            entries.insert(0, buffer_entry(0, compute, wgpu::BufferBindingType::Uniform));
+            entries.push(buffer_entry(8, compute, wgpu::BufferBindingType::Uniform));
+            entries.push(buffer_entry(9, compute, READ_ONLY));
+            entries.push(buffer_entry(10, compute, READ_ONLY));
+            entries.push(buffer_entry(
+                11,
+                compute,
+                wgpu::BufferBindingType::Storage { read_only: false },
+            ));
+            let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("gather"),
+                entries: &entries,
+            });
+            let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("gather"),
+                bind_group_layouts: &[Some(&layout)],
+                immediate_size: 0,
+            });
+            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                label: Some("gather"),
+                layout: Some(&pipeline_layout),
+                module: &shader,
+                entry_point: Some("gather_main"),
+                compilation_options: Default::default(),
+                cache: None,
+            });
+            let directions = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("gather directions"),
+                contents: bytemuck::cast_slice(&vectors),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+            GpuGather {
+                pipeline,
+                layout,
+                field_bindings: field.bindings.clone(),
+                directions,
+                direction_count: vectors.len() as u32,
+                objects_root: field.objects_root,
+                mirrors,
+            }
+        })
+    }
+
+    /// The cosine-weighted mean radiance arriving at each `(point, normal)` (VLF frame) over
+    /// the hemisphere of its normal: what [`vlf_core::dynamic::gather::Gatherer::incident`]
+    /// gives on the CPU, in f32.
+    pub fn incident(&self, gpu: &Gpu, points: &[(DVec3, DVec3)]) -> Result<Vec<Rgb>, ViewerError> {
+        if points.is_empty() {
+            return Ok(Vec::new());
+        }
+        let count = u32::try_from(points.len())
+            .ok()
+            .filter(|&n| n.div_ceil(WORKGROUP) <= gpu.limits.max_compute_workgroups_per_dimension)
+            .ok_or_else(|| ViewerError::TooLarge(format!("{} gather points in one dispatch", points.len())))?;
+        let packed: Vec<[f32; 4]> = points
+            .iter()
+            .flat_map(|&(p, n)| [p.as_vec3().extend(0.0).to_array(), n.as_vec3().extend(0.0).to_array()])
+            .collect();
+        let bytes = points.len() as u64 * 16;
+        let (output, readback) = gpu.checked(|| {
+            let device = &gpu.device;
+            let params = uniform_buffer(device, "gather params", std::mem::size_of::<Params>());
+            let (mode, depth) = match self.mirrors {
+                MirrorMode::Rays => (1, 0),
+                MirrorMode::Trace { depth } => (0, depth),
+            };
+            gpu.queue.write_buffer(
+                &params,
+                0,
+                bytemuck::bytes_of(&Params {
+                    points: count,
+                    directions: self.direction_count,
+                    objects_root: self.objects_root,
+                    mode,
+                    depth,
+                    _pad: [0; 3],
+                }),
+            );
+            let input = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("gather points"),
+                contents: bytemuck::cast_slice(&packed),
+                usage: wgpu::BufferUsages::STORAGE,
+            });
+            let output = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("gathered"),
+                size: bytes,
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            let readback = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("gathered readback"),
+                size: bytes,
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let mut entries: Vec<wgpu::BindGroupEntry> = (self.field_bindings.iter().enumerate())
+                .map(|(b, buffer)| bind_entry(b as u32, buffer))
+                .collect();
+            entries.extend([
+                bind_entry(8, &params),
+                bind_entry(9, &input),
+                bind_entry(10, &self.directions),
+                bind_entry(11, &output),
+            ]);
+            let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("gather"),
+                layout: &self.layout,
+                entries: &entries,
+            });
+            let mut encoder = device.create_command_encoder(&Default::default());
+            {
+                let mut pass = encoder.begin_compute_pass(&Default::default());
+                pass.set_pipeline(&self.pipeline);
+                pass.set_bind_group(0, &bind_group, &[]);
+                pass.dispatch_workgroups(count.div_ceil(WORKGROUP), 1, 1);
+            }
+            encoder.copy_buffer_to_buffer(&output, 0, &readback, 0, bytes);
+            gpu.queue.submit([encoder.finish()]);
+            (output, readback)
+        })?;
+        let slice = readback.slice(..);
+        let (sender, receiver) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = sender.send(r);
+        });
+        gpu.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
+        receiver
+            .recv()
+            .map_err(|e| ViewerError::Gpu(e.to_string()))?
+            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
+        let values: Vec<Rgb> = {
+            let mapped = slice.get_mapped_range().map_err(|e| ViewerError::Gpu(e.to_string()))?;
+            let floats: &[f32] = bytemuck::cast_slice(&mapped);
+            floats
+                .chunks_exact(4)
+                .map(|v| [v[0] as f64, v[1] as f64, v[2] as f64])
+                .collect()
+        };
+        readback.unmap();
+        drop(output);
+        Ok(values)
+    }
+}
