@@ -260,7 +260,7 @@ pub struct RenderArgs {
     gpu: bool,
     /// A dynamic object to draw in the view, lit by the field, casting shadows on the scene
     /// (OBJ or glTF, in the scene's coordinates, no emitter needed); repeat for more objects.
-    /// CPU only for now.
+    /// On the CPU, or with --gpu (the same gather and shadows in shaders).
     #[arg(long, value_name = "FILE")]
     object: Vec<PathBuf>,
     /// Where to move each --object, in order: a translation in scene units (default: none).

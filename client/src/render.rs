@@ -57,16 +57,20 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let loaded = started.elapsed().as_secs_f64();
     let image = match args.object.is_empty() {
         false => {
-            if args.gpu {
-                bail!("--object draws on the CPU only: drop --gpu");
-            }
             let bvh = Bvh::build(&field.scene);
             let placed = place_objects(&args, &field, &bvh)?;
             let directions = args.object_directions.unwrap_or(field.options.directions);
             let gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, directions)
                 .context("--object-directions")?
                 .with_shadow_samples(args.object_shadow_samples);
-            render_with_objects(&gatherer, &bvh, &camera, args.samples)
+            if args.gpu {
+                let gpu = vlf_viewer::Gpu::new()?;
+                tracing::info!(adapter = %gpu.describe(), "rendering on the GPU");
+                let renderer = vlf_viewer::FieldRenderer::with_objects(&gpu, &field, &gatherer)?;
+                vlf_viewer::render(&gpu, &renderer, &camera, args.samples, mode)?
+            } else {
+                render_with_objects(&gatherer, &bvh, &camera, args.samples)
+            }
         }
         true if args.gpu => gpu_render(&field, &camera, args.samples, mode)?,
         true => field.render(&camera, args.samples, mode),

@@ -1,14 +1,20 @@
-//! The dynamic objects' gather on the GPU: `cargo bench -p vlf-viewer --bench gather`.
+//! Dynamic objects on the GPU: `cargo bench -p vlf-viewer --bench gather`.
 //!
-//! The bundled Cornell box propagated at l = 513, N = 64 (4 iterations), a cube of side 100 in
-//! it, and the gather at 10 000 points of the cube over the field's 513 directions (5.1 M rays
-//! through the scene and the cube): the unit of gather cost, whose target is 16 ms on
-//! a real GPU. Each iteration uploads the points, dispatches and reads the result back, as a
-//! viewer's frame would. Skips (with a message) where there is no adapter.
+//! The bundled Cornell box propagated at l = 513, N = 64 (4 iterations), and
+//!
+//! - a cube of side 100 in it, gathered at 10 000 of its points over the field's 513
+//!   directions (5.1 M rays through the scene and the cube): the unit of gather cost,
+//!   whose target is 16 ms on a real GPU. Each iteration uploads the points, dispatches and
+//!   reads the result back;
+//! - whole 1280 × 720 frames (one sample a pixel, read back) with 1 and with 10 cubes of 3 072
+//!   triangles each: every object pixel gathered over the 513 directions, every static pixel
+//!   shadowed (K = 128 cells per object and the lamp's points).
+//!
+//! Skips (with a message) where there is no adapter; lavapipe takes minutes a frame.
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use glam::DVec3;
-use vlf_core::directions::DirectionSet;
+use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::dynamic::{DynamicObject, Pose};
 use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::{Options, Propagation, Stop};
@@ -16,16 +22,22 @@ use vlf_core::psf::GridSize;
 use vlf_core::scene::Material;
 use vlf_viewer::{FieldRenderer, Gpu, GpuGather};
 
-fn cube(c: DVec3, h: f64) -> DynamicObject {
+/// A cube of half-size `h` around `c`, each face split into `split × split` quads.
+fn cube(c: DVec3, h: f64, split: usize) -> DynamicObject {
     let mut triangles = Vec::new();
     for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
         let u = axis.any_orthogonal_vector().normalize();
         let v = axis.cross(u);
         for (n, a, b) in [(axis, u, v), (-axis, v, u)] {
-            let f = c + n * h;
-            let (p0, p1, p2, p3) = (f - (a + b) * h, f + (a - b) * h, f + (a + b) * h, f - (a - b) * h);
-            triangles.push([p0, p1, p2]);
-            triangles.push([p0, p2, p3]);
+            let step = 2.0 * h / split as f64;
+            for i in 0..split {
+                for j in 0..split {
+                    let at = |x: usize, y: usize| c + n * h + a * (-h + x as f64 * step) + b * (-h + y as f64 * step);
+                    let (p0, p1, p2, p3) = (at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1));
+                    triangles.push([p0, p1, p2]);
+                    triangles.push([p0, p2, p3]);
+                }
+            }
         }
     }
     let grey = Material {
@@ -63,10 +75,11 @@ fn bench(c: &mut Criterion) {
         rotation: glam::DQuat::IDENTITY,
         translation: at,
     };
-    let objects = [cube(DVec3::ZERO, 50.0).place(&pose, &n).expect("a valid cube")];
-    let renderer = FieldRenderer::with_objects(&gpu, &field, &objects).expect("upload");
-    let directions = DirectionSet::new(513).expect("513 directions");
-    let gather = GpuGather::new(&gpu, &renderer, &directions, SpecularMode::Rays.into()).expect("pipeline");
+    let objects = [cube(DVec3::ZERO, 50.0, 1).place(&pose, &n).expect("a valid cube")];
+    let bvh = vlf_core::render::Bvh::build(&field.scene);
+    let cpu = Gatherer::new(&field, &bvh, &objects, SpecularMode::Rays).expect("gatherer");
+    let renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
+    let gather = GpuGather::new(&gpu, &renderer, SpecularMode::Rays.into()).expect("pipeline");
     // 10 000 points on the cube's five faces that do not rest on the floor, just off them.
     let faces = [DVec3::X, -DVec3::X, DVec3::Y, DVec3::Z, -DVec3::Z];
     let points: Vec<(DVec3, DVec3)> = (0..10_000)
@@ -82,6 +95,32 @@ fn bench(c: &mut Criterion) {
     group.bench_function("10 000 points x 513 directions, Cornell box and a cube", |b| {
         b.iter(|| gather.incident(&gpu, &points).expect("gather"))
     });
+    group.finish();
+    // Frames with 1 and 10 cubes of 3 072 triangles (side 60, 16 × 16 quads a face).
+    let camera = vlf_core::render::Camera::new(
+        DVec3::new(278.0, 273.0, -800.0),
+        DVec3::new(278.0, 273.0, 0.0),
+        DVec3::Y,
+        39.0,
+        1280,
+        720,
+    )
+    .expect("camera");
+    let mut group = c.benchmark_group(format!("GPU frame 1280x720 on {}", gpu.describe()));
+    group.sample_size(10);
+    for count in [1usize, 10] {
+        let objects: Vec<_> = (0..count)
+            .map(|k| {
+                let at = DVec3::new(90.0 + 95.0 * (k % 5) as f64, 250.0 + 170.0 * (k / 5) as f64, 150.0);
+                cube(at, 30.0, 16).place(&Pose::IDENTITY, &n).expect("a valid cube")
+            })
+            .collect();
+        let cpu = Gatherer::new(&field, &bvh, &objects, SpecularMode::Rays).expect("gatherer");
+        let renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
+        group.bench_function(format!("{count} cubes of 3 072 triangles"), |b| {
+            b.iter(|| vlf_viewer::render(&gpu, &renderer, &camera, 1, SpecularMode::Rays).expect("frame"))
+        });
+    }
     group.finish();
 }
 

@@ -14,11 +14,13 @@
 //! polygon becomes a triangle fan whose vertices carry their texel coordinates in the polygon's
 //! grid, computed in f64 (see `shaders/field.wgsl`).
 
+use crate::objects::{ObjectData, StaticCounts};
 use crate::pass::{READ_ONLY, bind_entry, buffer_entry, color_pass, uniform_buffer};
 use crate::rays::{NONE, RayTables};
 use crate::{Gpu, ViewerError};
 use bytemuck::{Pod, Zeroable};
 use glam::{DMat4, DVec3, Mat4, Vec3};
+use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
 use vlf_core::parts::PartCatalog;
@@ -35,48 +37,75 @@ const NEAR: f64 = 1e-5;
 
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct Vertex {
-    position: [f32; 3],
-    texel: [f32; 2],
-    surface: u32,
+pub(crate) struct Vertex {
+    pub position: [f32; 3],
+    pub texel: [f32; 2],
+    pub surface: u32,
 }
 
 /// A surface as the shader reads it (`Surface` in `shaders/field.wgsl`: WGSL's layout, where a
 /// `vec3<f32>` takes 12 bytes aligned to 16 and the next scalar fills the gap).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct GpuSurface {
-    normal: [f32; 3],
-    offset: f32,
-    specular: [f32; 3],
-    mirror: u32,
-    grid_origin: [f32; 3],
-    inv_texel: f32,
-    axis_u: [f32; 3],
+pub(crate) struct GpuSurface {
+    pub normal: [f32; 3],
+    pub offset: f32,
+    pub specular: [f32; 3],
+    pub mirror: u32,
+    pub grid_origin: [f32; 3],
+    pub inv_texel: f32,
+    pub axis_u: [f32; 3],
     /// The part number of the chunk holding the surface's chart (its entry in the part table).
-    part: u32,
-    axis_v: [f32; 3],
-    width: u32,
-    first_vertex: u32,
-    vertex_count: u32,
-    height: u32,
-    mirror_index: u32,
+    pub part: u32,
+    pub axis_v: [f32; 3],
+    pub width: u32,
+    pub first_vertex: u32,
+    pub vertex_count: u32,
+    pub height: u32,
+    pub mirror_index: u32,
     /// Where the chart's texels start in its chunk.
-    texel_offset: u32,
-    _pad: [u32; 3],
+    pub texel_offset: u32,
+    pub _pad: [u32; 3],
     /// A dynamic object's diffuse reflectance (0 for the static scene's surfaces).
-    diffuse: [f32; 3],
-    _pad2: u32,
+    pub diffuse: [f32; 3],
+    pub _pad2: u32,
+}
+
+impl GpuSurface {
+    /// A dynamic object's surface: a plane and a material, no radiance map (the gather shades
+    /// it); its polygon's vertices are set by the caller.
+    pub(crate) fn object(normal: DVec3, offset: f64, material: &vlf_core::scene::Material) -> GpuSurface {
+        GpuSurface {
+            normal: normal.as_vec3().to_array(),
+            offset: offset as f32,
+            specular: material.specular.map(|c| c as f32),
+            mirror: material.is_mirror() as u32,
+            grid_origin: [0.0; 3],
+            inv_texel: 0.0,
+            axis_u: [0.0; 3],
+            part: 0,
+            axis_v: [0.0; 3],
+            width: 0,
+            first_vertex: 0,
+            vertex_count: 0,
+            height: 0,
+            mirror_index: NONE,
+            texel_offset: 0,
+            _pad: [0; 3],
+            diffuse: material.diffuse.map(|c| c as f32),
+            _pad2: 0,
+        }
+    }
 }
 
 /// A BVH node as the shader reads it (the layout of `vlf_core::render::bvh::Node`).
 #[repr(C)]
 #[derive(Clone, Copy, Pod, Zeroable)]
-struct GpuNode {
-    min: [f32; 3],
-    max: [f32; 3],
-    index: u32,
-    count: u32,
+pub(crate) struct GpuNode {
+    pub min: [f32; 3],
+    pub max: [f32; 3],
+    pub index: u32,
+    pub count: u32,
 }
 
 #[repr(C)]
@@ -134,34 +163,64 @@ pub struct FieldRenderer {
     vertex_count: u32,
     /// Maps the scene's units into the VLF frame.
     normalisation: vlf_core::scene::Normalisation,
-    /// The buffers bound at 0..=7 of `shaders/field.wgsl`, in binding order, for other
-    /// pipelines over the same field (the gather).
-    pub(crate) bindings: [wgpu::Buffer; 8],
-    /// The dynamic objects' BVH root among the nodes, `NONE` without objects.
-    pub(crate) objects_root: u32,
+    /// The buffers bound at 0..=12 of `shaders/field.wgsl` and `shaders/objects.wgsl`, in
+    /// binding order, for other pipelines over the same field (the gather).
+    pub(crate) bindings: [wgpu::Buffer; BINDINGS],
+}
+
+/// Buffers of the field and its objects, bound at 0..BINDINGS.
+pub(crate) const BINDINGS: usize = 13;
+
+/// The layout of the field's and objects' bindings as `stages` read them: the view uniform
+/// (the vertex stage reads it too), seven storage buffers of the field, the objects' uniform
+/// and four storage buffers of the objects.
+pub(crate) fn binding_layout(stages: wgpu::ShaderStages) -> Vec<wgpu::BindGroupLayoutEntry> {
+    (0..BINDINGS as u32)
+        .map(|b| match b {
+            0 => buffer_entry(0, stages | wgpu::ShaderStages::VERTEX, wgpu::BufferBindingType::Uniform),
+            8 => buffer_entry(8, stages, wgpu::BufferBindingType::Uniform),
+            _ => buffer_entry(b, stages, READ_ONLY),
+        })
+        .collect()
+}
+
+/// The field's shader with the objects' (they call each other), followed by `more`.
+pub(crate) fn shader_source(more: &[&str]) -> String {
+    let mut source = format!(
+        "{}\n{}",
+        include_str!("shaders/field.wgsl"),
+        include_str!("shaders/objects.wgsl")
+    );
+    for m in more {
+        source.push('\n');
+        source.push_str(m);
+    }
+    source
 }
 
 impl FieldRenderer {
     /// Uploads `field`'s surfaces, materials and BVH, and all of its radiance.
     pub fn new(gpu: &Gpu, field: &LightField) -> Result<FieldRenderer, ViewerError> {
-        FieldRenderer::with_objects(gpu, field, &[])
+        FieldRenderer::complete(gpu, field, None)
     }
 
     /// Uploads `field`'s surfaces, materials and BVH (its radiance is not read) with a pool of
     /// `capacity` RGB values and no part resident: radiance comes with [`FieldRenderer::upload`].
     pub fn streaming(gpu: &Gpu, field: &LightField, capacity: usize) -> Result<FieldRenderer, ViewerError> {
-        FieldRenderer::build(gpu, field, capacity, &[])
+        FieldRenderer::build(gpu, field, capacity, None)
     }
 
-    /// [`FieldRenderer::new`] with dynamic `objects` placed in the field: their surfaces and a
-    /// BVH over them are uploaded after the scene's, for the gather ([`crate::gather`]) to see.
-    pub fn with_objects(
-        gpu: &Gpu,
-        field: &LightField,
-        objects: &[vlf_core::dynamic::PlacedObject],
-    ) -> Result<FieldRenderer, ViewerError> {
+    /// [`FieldRenderer::new`] with the dynamic objects of `gatherer` (which must be over
+    /// `field`): drawn with the scene, shaded by the gather over its directions, casting shadows
+    /// with its cells and emitter points, as `vlf_core::dynamic::view` draws them on the CPU
+    /// (see `shaders/objects.wgsl`).
+    pub fn with_objects(gpu: &Gpu, field: &LightField, gatherer: &Gatherer) -> Result<FieldRenderer, ViewerError> {
+        FieldRenderer::complete(gpu, field, Some(gatherer))
+    }
+
+    fn complete(gpu: &Gpu, field: &LightField, gatherer: Option<&Gatherer>) -> Result<FieldRenderer, ViewerError> {
         let catalog = PartCatalog::new(field);
-        let renderer = FieldRenderer::build(gpu, field, catalog.total_values(), objects)?;
+        let renderer = FieldRenderer::build(gpu, field, catalog.total_values(), gatherer)?;
         let mut base = 0;
         for i in 0..catalog.len() as u32 {
             renderer.upload(gpu, i, base, field.part_values(&catalog, i))?;
@@ -174,7 +233,7 @@ impl FieldRenderer {
         gpu: &Gpu,
         field: &LightField,
         capacity: usize,
-        objects: &[vlf_core::dynamic::PlacedObject],
+        gatherer: Option<&Gatherer>,
     ) -> Result<FieldRenderer, ViewerError> {
         let scene = &field.scene;
         let atlas = &field.atlas;
@@ -225,7 +284,7 @@ impl FieldRenderer {
                 mirror_index: rays.mirror_index[i],
                 texel_offset: (grid.first - catalog.range(part).start) as u32,
                 _pad: [0; 3],
-                diffuse: [0.0; 3],
+                diffuse: material.diffuse.map(|c| c as f32),
                 _pad2: 0,
             });
             polygon_vertices.extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
@@ -239,53 +298,22 @@ impl FieldRenderer {
         };
         let mut nodes: Vec<GpuNode> = bvh.nodes().iter().map(gpu_node).collect();
         let mut primitives: Vec<u32> = bvh.primitives().to_vec();
-        // Dynamic objects: their surfaces after the scene's, one BVH over all of them after the
-        // scene's, its indices shifted to point into the same arrays (see `trace_from`).
-        let objects_root = if objects.is_empty() {
-            NONE
-        } else {
-            let first_surface = surfaces.len() as u32;
-            let all = vlf_core::scene::Scene {
-                surfaces: objects.iter().flat_map(|o| o.scene.surfaces.iter().cloned()).collect(),
-                materials: Vec::new(),
-                normalisation: scene.normalisation,
-                textures: Vec::new(),
-            };
-            for o in objects {
-                for surface in &o.scene.surfaces {
-                    let material = &o.scene.materials[surface.material];
-                    surfaces.push(GpuSurface {
-                        normal: surface.normal.as_vec3().to_array(),
-                        offset: surface.offset as f32,
-                        specular: material.specular.map(|c| c as f32),
-                        mirror: material.is_mirror() as u32,
-                        grid_origin: [0.0; 3],
-                        inv_texel: 0.0,
-                        axis_u: [0.0; 3],
-                        part: 0,
-                        axis_v: [0.0; 3],
-                        width: 0,
-                        first_vertex: polygon_vertices.len() as u32,
-                        vertex_count: surface.vertices.len() as u32,
-                        height: 0,
-                        mirror_index: NONE,
-                        texel_offset: 0,
-                        _pad: [0; 3],
-                        diffuse: material.diffuse.map(|c| c as f32),
-                        _pad2: 0,
-                    });
-                    polygon_vertices.extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
-                }
-            }
-            let object_bvh = Bvh::build(&all);
-            let (first_node, first_primitive) = (nodes.len() as u32, primitives.len() as u32);
-            nodes.extend(object_bvh.nodes().iter().map(|n| GpuNode {
-                index: n.index + if n.count > 0 { first_primitive } else { first_node },
-                ..gpu_node(n)
-            }));
-            primitives.extend(object_bvh.primitives().iter().map(|&p| p + first_surface));
-            first_node
-        };
+        // Dynamic objects after the scene (see `objects.rs`).
+        let objects = ObjectData::new(
+            scene,
+            gatherer,
+            StaticCounts {
+                surfaces: surfaces.len(),
+                polygon_vertices: polygon_vertices.len(),
+                nodes: nodes.len(),
+                primitives: primitives.len(),
+            },
+        );
+        surfaces.extend_from_slice(&objects.surfaces);
+        polygon_vertices.extend_from_slice(&objects.polygon_vertices);
+        nodes.extend_from_slice(&objects.nodes);
+        primitives.extend_from_slice(&objects.primitives);
+        vertices.extend_from_slice(&objects.raster);
         // Every storage buffer must fit one binding, and the shader indexes them with u32 words.
         let limit = gpu
             .limits
@@ -346,33 +374,50 @@ impl FieldRenderer {
                 contents: &nonempty(bytemuck::cast_slice(&vertices), 4),
                 usage: wgpu::BufferUsages::VERTEX,
             });
-            let shader = device.create_shader_module(wgpu::include_wgsl!("shaders/field.wgsl"));
+            let objects_uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some("objects"),
+                contents: bytemuck::bytes_of(&objects.uniform),
+                usage: wgpu::BufferUsages::UNIFORM,
+            });
+            let spheres = storage("object spheres", bytemuck::cast_slice(&objects.spheres));
+            let directions = storage("gather directions", bytemuck::cast_slice(&objects.directions));
+            let emitter_points = storage("emitter points", bytemuck::cast_slice(&objects.emitter_points));
+            let emitter_groups = storage("emitter groups", bytemuck::cast_slice(&objects.emitter_groups));
+            // Without objects, the field's shader alone (see `shaders/field.wgsl`).
+            let (source, fragment) = match gatherer {
+                Some(_) => (shader_source(&[]), "fs_objects"),
+                None => (include_str!("shaders/field.wgsl").to_string(), "fs_main"),
+            };
+            let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some("field"),
+                source: wgpu::ShaderSource::Wgsl(source.into()),
+            });
+            let bindings = [
+                view.clone(),
+                surfaces,
+                pool.clone(),
+                polygon_vertices,
+                nodes_buffer,
+                primitives,
+                rays,
+                parts.clone(),
+                objects_uniform,
+                spheres,
+                directions,
+                emitter_points,
+                emitter_groups,
+            ];
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some("field"),
-                entries: &[
-                    buffer_entry(0, wgpu::ShaderStages::VERTEX_FRAGMENT, wgpu::BufferBindingType::Uniform),
-                    buffer_entry(1, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    buffer_entry(2, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    buffer_entry(3, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    buffer_entry(4, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    buffer_entry(5, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    buffer_entry(6, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                    buffer_entry(7, wgpu::ShaderStages::FRAGMENT, READ_ONLY),
-                ],
+                entries: &binding_layout(wgpu::ShaderStages::FRAGMENT),
             });
+            let entries: Vec<wgpu::BindGroupEntry> = (bindings.iter().enumerate())
+                .map(|(b, buffer)| bind_entry(b as u32, buffer))
+                .collect();
             let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("field"),
                 layout: &layout,
-                entries: &[
-                    bind_entry(0, &view),
-                    bind_entry(1, &surfaces),
-                    bind_entry(2, &pool),
-                    bind_entry(3, &polygon_vertices),
-                    bind_entry(4, &nodes_buffer),
-                    bind_entry(5, &primitives),
-                    bind_entry(6, &rays),
-                    bind_entry(7, &parts),
-                ],
+                entries: &entries,
             });
             let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
                 label: Some("field"),
@@ -410,7 +455,7 @@ impl FieldRenderer {
                 multisample: Default::default(),
                 fragment: Some(wgpu::FragmentState {
                     module: &shader,
-                    entry_point: Some("fs_main"),
+                    entry_point: Some(fragment),
                     compilation_options: Default::default(),
                     targets: &[Some(wgpu::ColorTargetState {
                         format: COLOR_FORMAT,
@@ -421,16 +466,6 @@ impl FieldRenderer {
                 multiview_mask: None,
                 cache: None,
             });
-            let bindings = [
-                view.clone(),
-                surfaces,
-                pool.clone(),
-                polygon_vertices,
-                nodes_buffer,
-                primitives,
-                rays,
-                parts.clone(),
-            ];
             FieldRenderer {
                 pipeline,
                 pool,
@@ -443,7 +478,6 @@ impl FieldRenderer {
                 vertex_count,
                 normalisation: scene.normalisation,
                 bindings,
-                objects_root,
             }
         })
     }

@@ -4,14 +4,16 @@
 //!
 //! It runs over a [`FieldRenderer`] built [`FieldRenderer::with_objects`]: the field's
 //! surfaces, radiance pool, mirror tables and BVH, with the objects' surfaces and BVH after the
-//! scene's, so the shader traces the static scene and the objects with one traversal from two
-//! roots.
+//! scene's (`objects.rs`), so the shader traces the static scene and the objects with one
+//! traversal from two roots, over the gatherer's directions. Drawing a view with objects does
+//! the same per fragment (`shaders/objects.wgsl`); this pass computes it at given points, for
+//! tests, benchmarks and per-vertex shading.
 
+use crate::field::{BINDINGS, binding_layout, shader_source};
 use crate::pass::{READ_ONLY, bind_entry, buffer_entry, uniform_buffer};
 use crate::{FieldRenderer, Gpu, MirrorMode, ViewerError};
 use bytemuck::{Pod, Zeroable};
 use glam::DVec3;
-use vlf_core::directions::DirectionSet;
 use vlf_core::scene::Rgb;
 use wgpu::util::DeviceExt;
 
@@ -22,59 +24,36 @@ const WORKGROUP: u32 = 64;
 #[derive(Clone, Copy, Pod, Zeroable)]
 struct Params {
     points: u32,
-    directions: u32,
-    objects_root: u32,
     mode: u32,
     depth: u32,
-    _pad: [u32; 3],
+    _pad: u32,
 }
 
 /// A compute pipeline gathering light from a field at points of its dynamic objects.
 pub struct GpuGather {
     pipeline: wgpu::ComputePipeline,
+    shadows: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
-    field_bindings: [wgpu::Buffer; 8],
-    directions: wgpu::Buffer,
-    direction_count: u32,
-    objects_root: u32,
+    field_bindings: [wgpu::Buffer; BINDINGS],
     mirrors: MirrorMode,
 }
 
 impl GpuGather {
-    /// A gather over `field`'s renderer and its objects, with `directions` (the field's own set,
-    /// or another), mirrors read as `mirrors` says.
-    pub fn new(
-        gpu: &Gpu,
-        field: &FieldRenderer,
-        directions: &DirectionSet,
-        mirrors: MirrorMode,
-    ) -> Result<GpuGather, ViewerError> {
-        let vectors: Vec<[f32; 4]> = (0..directions.len())
-            .map(|d| {
-                let direction = directions.get(d);
-                direction.vector.as_vec3().extend(direction.weight as f32).to_array()
-            })
-            .collect();
+    /// A gather over `field`'s renderer (built [`FieldRenderer::with_objects`]: its objects,
+    /// directions and emitters), mirrors read as `mirrors` says.
+    pub fn new(gpu: &Gpu, field: &FieldRenderer, mirrors: MirrorMode) -> Result<GpuGather, ViewerError> {
         gpu.checked(|| {
             let device = &gpu.device;
-            let source = format!(
-                "{}\n{}",
-                include_str!("shaders/field.wgsl"),
-                include_str!("shaders/gather.wgsl")
-            );
             let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
                 label: Some("gather"),
-                source: wgpu::ShaderSource::Wgsl(source.into()),
+                source: wgpu::ShaderSource::Wgsl(shader_source(&[include_str!("shaders/gather.wgsl")]).into()),
             });
             let compute = wgpu::ShaderStages::COMPUTE;
-            let mut entries: Vec<wgpu::BindGroupLayoutEntry> =
-                (1..8).map(|b| buffer_entry(b, compute, READ_ONLY)).collect();
-            entries.insert(0, buffer_entry(0, compute, wgpu::BufferBindingType::Uniform));
-            entries.push(buffer_entry(8, compute, wgpu::BufferBindingType::Uniform));
-            entries.push(buffer_entry(9, compute, READ_ONLY));
-            entries.push(buffer_entry(10, compute, READ_ONLY));
+            let mut entries = binding_layout(compute);
+            entries.push(buffer_entry(13, compute, wgpu::BufferBindingType::Uniform));
+            entries.push(buffer_entry(14, compute, READ_ONLY));
             entries.push(buffer_entry(
-                11,
+                15,
                 compute,
                 wgpu::BufferBindingType::Storage { read_only: false },
             ));
@@ -87,26 +66,21 @@ impl GpuGather {
                 bind_group_layouts: &[Some(&layout)],
                 immediate_size: 0,
             });
-            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("gather"),
-                layout: Some(&pipeline_layout),
-                module: &shader,
-                entry_point: Some("gather_main"),
-                compilation_options: Default::default(),
-                cache: None,
-            });
-            let directions = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("gather directions"),
-                contents: bytemuck::cast_slice(&vectors),
-                usage: wgpu::BufferUsages::STORAGE,
-            });
+            let entry = |name: &str| {
+                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(name),
+                    layout: Some(&pipeline_layout),
+                    module: &shader,
+                    entry_point: Some(name),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+            };
             GpuGather {
-                pipeline,
+                pipeline: entry("gather_main"),
+                shadows: entry("shadow_main"),
                 layout,
                 field_bindings: field.bindings.clone(),
-                directions,
-                direction_count: vectors.len() as u32,
-                objects_root: field.objects_root,
                 mirrors,
             }
         })
@@ -116,6 +90,26 @@ impl GpuGather {
     /// the hemisphere of its normal: what [`vlf_core::dynamic::gather::Gatherer::incident`]
     /// gives on the CPU, in f32.
     pub fn incident(&self, gpu: &Gpu, points: &[(DVec3, DVec3)]) -> Result<Vec<Rgb>, ViewerError> {
+        let points: Vec<(DVec3, DVec3, Rgb)> = points.iter().map(|&(p, n)| (p, n, [0.0; 3])).collect();
+        let values = self.run(gpu, &self.pipeline, &points)?;
+        Ok(values.into_iter().map(|(l, _)| l).collect())
+    }
+
+    /// The radiance each static diffuse point `(point, normal, reflectance)` loses to the
+    /// objects, or `None` where they take nothing from it: what
+    /// [`vlf_core::dynamic::gather::Gatherer::shadow_loss`] gives on the CPU, in f32.
+    pub fn shadow_loss(&self, gpu: &Gpu, points: &[(DVec3, DVec3, Rgb)]) -> Result<Vec<Option<Rgb>>, ViewerError> {
+        let values = self.run(gpu, &self.shadows, points)?;
+        Ok(values.into_iter().map(|(l, any)| any.then_some(l)).collect())
+    }
+
+    /// Runs `pipeline` over `points`: its output per point, and whether its flag is set.
+    fn run(
+        &self,
+        gpu: &Gpu,
+        pipeline: &wgpu::ComputePipeline,
+        points: &[(DVec3, DVec3, Rgb)],
+    ) -> Result<Vec<(Rgb, bool)>, ViewerError> {
         if points.is_empty() {
             return Ok(Vec::new());
         }
@@ -125,7 +119,13 @@ impl GpuGather {
             .ok_or_else(|| ViewerError::TooLarge(format!("{} gather points in one dispatch", points.len())))?;
         let packed: Vec<[f32; 4]> = points
             .iter()
-            .flat_map(|&(p, n)| [p.as_vec3().extend(0.0).to_array(), n.as_vec3().extend(0.0).to_array()])
+            .flat_map(|&(p, n, rho)| {
+                [
+                    p.as_vec3().extend(0.0).to_array(),
+                    n.as_vec3().extend(0.0).to_array(),
+                    [rho[0] as f32, rho[1] as f32, rho[2] as f32, 0.0],
+                ]
+            })
             .collect();
         let bytes = points.len() as u64 * 16;
         let (output, readback) = gpu.checked(|| {
@@ -140,11 +140,9 @@ impl GpuGather {
                 0,
                 bytemuck::bytes_of(&Params {
                     points: count,
-                    directions: self.direction_count,
-                    objects_root: self.objects_root,
                     mode,
                     depth,
-                    _pad: [0; 3],
+                    _pad: 0,
                 }),
             );
             let input = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -167,12 +165,7 @@ impl GpuGather {
             let mut entries: Vec<wgpu::BindGroupEntry> = (self.field_bindings.iter().enumerate())
                 .map(|(b, buffer)| bind_entry(b as u32, buffer))
                 .collect();
-            entries.extend([
-                bind_entry(8, &params),
-                bind_entry(9, &input),
-                bind_entry(10, &self.directions),
-                bind_entry(11, &output),
-            ]);
+            entries.extend([bind_entry(13, &params), bind_entry(14, &input), bind_entry(15, &output)]);
             let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("gather"),
                 layout: &self.layout,
@@ -181,7 +174,7 @@ impl GpuGather {
             let mut encoder = device.create_command_encoder(&Default::default());
             {
                 let mut pass = encoder.begin_compute_pass(&Default::default());
-                pass.set_pipeline(&self.pipeline);
+                pass.set_pipeline(pipeline);
                 pass.set_bind_group(0, &bind_group, &[]);
                 pass.dispatch_workgroups(count.div_ceil(WORKGROUP), 1, 1);
             }
@@ -201,12 +194,12 @@ impl GpuGather {
             .recv()
             .map_err(|e| ViewerError::Gpu(e.to_string()))?
             .map_err(|e| ViewerError::Gpu(e.to_string()))?;
-        let values: Vec<Rgb> = {
+        let values: Vec<(Rgb, bool)> = {
             let mapped = slice.get_mapped_range().map_err(|e| ViewerError::Gpu(e.to_string()))?;
             let floats: &[f32] = bytemuck::cast_slice(&mapped);
             floats
                 .chunks_exact(4)
-                .map(|v| [v[0] as f64, v[1] as f64, v[2] as f64])
+                .map(|v| ([v[0] as f64, v[1] as f64, v[2] as f64], v[3] != 0.0))
                 .collect()
         };
         readback.unmap();

@@ -28,6 +28,7 @@ pub mod frame;
 pub mod gather;
 pub mod gpu;
 pub mod headless;
+mod objects;
 pub mod overlay;
 pub mod pass;
 pub mod rays;

@@ -91,6 +91,14 @@ impl Emitters {
         Self::sum(&self.samples, p, normal, blocked)
     }
 
+    /// Every quadrature point: where it is, the emitting surface's front normal, its power
+    /// `Le·A` and the surface's index; grouped by surface, in the scene's order.
+    pub fn points(&self) -> impl Iterator<Item = (DVec3, DVec3, Rgb, usize)> + '_ {
+        self.samples
+            .iter()
+            .map(|s| (s.point, s.normal, s.power, s.surface as usize))
+    }
+
     /// The emitting surfaces, each with its number of points.
     pub fn surfaces(&self) -> impl Iterator<Item = (usize, usize)> + '_ {
         self.samples

@@ -22,6 +22,11 @@
 //
 // Back faces are drawn black: they still hide what lies behind them, as a back-face hit does for
 // the CPU renderer's rays.
+//
+// Dynamic objects (objects.wgsl, appended to this file, with its own fragment entry point
+// `fs_objects`): their triangles are drawn with the scene's, each of their fragments shaded by
+// the gather, and the static scene's fragments lose the light the objects hide from them.
+// Without objects this file alone is compiled: a smaller shader, quicker to build.
 
 struct View {
     // VLF frame → clip space, sub-pixel jitter included.
@@ -56,7 +61,8 @@ struct Surface {
     mirror_index: u32,
     // Where the surface's chart's texels start in its part (a chunk of charts).
     texel_offset: u32,
-    // A dynamic object's diffuse reflectance (its surfaces follow the static scene's).
+    // Diffuse reflectance: of the material (a texture's mean colour is not read), or of a
+    // dynamic object's surface (those follow the static scene's, see objects.wgsl).
     diffuse: vec3<f32>,
 };
 

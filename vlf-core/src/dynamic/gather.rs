@@ -136,6 +136,11 @@ impl<'a> Gatherer<'a> {
         self
     }
 
+    /// The direction set gathered over.
+    pub fn directions(&self) -> &DirectionSet {
+        &self.directions
+    }
+
     pub fn shadow_samples(&self) -> u32 {
         self.shadow_samples
     }

@@ -1,0 +1,172 @@
+//! Dynamic objects on the GPU: what `shaders/objects.wgsl` reads to draw them, shade them by
+//! the gather and cast their shadows, laid out from a [`Gatherer`] (the CPU reference it is
+//! the twin of: the same objects, gather directions, shadow cells and emitter points).
+//!
+//! The objects' surfaces follow the static scene's in the surface and polygon-vertex arrays,
+//! and one BVH over all of them follows the scene's nodes and primitives, its indices shifted
+//! to point into the same arrays: the shader's one traversal (`trace_from`) serves both, from
+//! two roots.
+
+use crate::field::{GpuNode, GpuSurface, Vertex};
+use crate::rays::NONE;
+use bytemuck::{Pod, Zeroable};
+use glam::DVec3;
+use vlf_core::dynamic::gather::Gatherer;
+use vlf_core::render::Bvh;
+use vlf_core::scene::{Normalisation, Scene};
+
+/// `Objects` in `shaders/objects.wgsl`.
+#[repr(C)]
+#[derive(Clone, Copy, Pod, Zeroable)]
+pub(crate) struct ObjectsUniform {
+    first_surface: u32,
+    root: u32,
+    count: u32,
+    directions: u32,
+    shadow_cells: u32,
+    emitter_groups: u32,
+    _pad: [u32; 2],
+}
+
+/// Where the static scene's arrays end: the objects' entries go after.
+pub(crate) struct StaticCounts {
+    pub surfaces: usize,
+    pub polygon_vertices: usize,
+    pub nodes: usize,
+    pub primitives: usize,
+}
+
+/// Everything the objects add, ready to upload.
+pub(crate) struct ObjectData {
+    pub surfaces: Vec<GpuSurface>,
+    pub polygon_vertices: Vec<[f32; 4]>,
+    pub nodes: Vec<GpuNode>,
+    pub primitives: Vec<u32>,
+    /// The objects' triangles for the rasteriser.
+    pub raster: Vec<Vertex>,
+    pub uniform: ObjectsUniform,
+    /// Per object: bounding sphere centre and radius.
+    pub spheres: Vec<[f32; 4]>,
+    /// Per gather direction: unit vector and weight.
+    pub directions: Vec<[f32; 4]>,
+    /// Per emitter point: position, then power.
+    pub emitter_points: Vec<[f32; 4]>,
+    /// Per emitting surface: four vec4 (see `emitter_groups` in the shader), floats by their
+    /// bits.
+    pub emitter_groups: Vec<[u32; 4]>,
+}
+
+impl ObjectData {
+    /// The layout of `gatherer`'s objects (none without one) after a static `scene` of
+    /// `counts`.
+    pub fn new(scene: &Scene, gatherer: Option<&Gatherer>, counts: StaticCounts) -> ObjectData {
+        let objects = gatherer.map_or(&[][..], |g| g.objects());
+        let first_surface = counts.surfaces as u32;
+        let mut data = ObjectData {
+            surfaces: Vec::new(),
+            polygon_vertices: Vec::new(),
+            nodes: Vec::new(),
+            primitives: Vec::new(),
+            raster: Vec::new(),
+            uniform: ObjectsUniform {
+                first_surface,
+                root: NONE,
+                count: objects.len() as u32,
+                directions: 0,
+                shadow_cells: 0,
+                emitter_groups: 0,
+                _pad: [0; 2],
+            },
+            spheres: objects
+                .iter()
+                .map(|o| o.center.as_vec3().extend(o.radius as f32).to_array())
+                .collect(),
+            directions: Vec::new(),
+            emitter_points: Vec::new(),
+            emitter_groups: Vec::new(),
+        };
+        let Some(gatherer) = gatherer else {
+            return data;
+        };
+        for o in objects {
+            for surface in &o.scene.surfaces {
+                let material = &o.scene.materials[surface.material];
+                let index = first_surface + data.surfaces.len() as u32;
+                data.surfaces.push(GpuSurface {
+                    first_vertex: (counts.polygon_vertices + data.polygon_vertices.len()) as u32,
+                    vertex_count: surface.vertices.len() as u32,
+                    ..GpuSurface::object(surface.normal, surface.offset, material)
+                });
+                data.polygon_vertices
+                    .extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
+                for k in 1..surface.vertices.len().saturating_sub(1) {
+                    for v in [surface.vertices[0], surface.vertices[k], surface.vertices[k + 1]] {
+                        data.raster.push(Vertex {
+                            position: v.as_vec3().to_array(),
+                            texel: [0.0; 2],
+                            surface: index,
+                        });
+                    }
+                }
+            }
+        }
+        let all = Scene {
+            surfaces: objects.iter().flat_map(|o| o.scene.surfaces.iter().cloned()).collect(),
+            materials: Vec::new(),
+            normalisation: Normalisation {
+                center: DVec3::ZERO,
+                scale: 1.0,
+            },
+            textures: Vec::new(),
+        };
+        if !all.surfaces.is_empty() {
+            let bvh = Bvh::build(&all);
+            let (first_node, first_primitive) = (counts.nodes as u32, counts.primitives as u32);
+            data.nodes = (bvh.nodes().iter())
+                .map(|n| GpuNode {
+                    min: n.min,
+                    max: n.max,
+                    index: n.index + if n.count > 0 { first_primitive } else { first_node },
+                    count: n.count,
+                })
+                .collect();
+            data.primitives = bvh.primitives().iter().map(|&p| p + first_surface).collect();
+            data.uniform.root = first_node;
+        }
+        let set = gatherer.directions();
+        data.directions = (0..set.len())
+            .map(|d| {
+                let direction = set.get(d);
+                direction.vector.as_vec3().extend(direction.weight as f32).to_array()
+            })
+            .collect();
+        data.uniform.directions = set.len() as u32;
+        data.uniform.shadow_cells = gatherer.shadow_samples();
+        // Emitter points, grouped by surface, with each surface's centroid, area, normal,
+        // emission, index, count and first point.
+        let points: Vec<_> = gatherer.emitters().points().collect();
+        for group in points.chunk_by(|a, b| a.3 == b.3) {
+            let (surface, first) = (group[0].3, data.emitter_points.len() / 2);
+            let s = &scene.surfaces[surface];
+            let centroid = s.vertices.iter().sum::<DVec3>() / s.vertices.len() as f64;
+            let emission = scene.material(surface).emission.map(|c| c as f32);
+            let bits = |v: glam::Vec3| v.to_array().map(f32::to_bits);
+            let [cx, cy, cz] = bits(centroid.as_vec3());
+            let [nx, ny, nz] = bits(s.normal.as_vec3());
+            let [ex, ey, ez] = emission.map(f32::to_bits);
+            data.emitter_groups.extend([
+                [cx, cy, cz, (s.area as f32).to_bits()],
+                [nx, ny, nz, surface as u32],
+                [ex, ey, ez, group.len() as u32],
+                [first as u32, 0, 0, 0],
+            ]);
+            for &(point, _, power, _) in group {
+                data.emitter_points.push(point.as_vec3().extend(0.0).to_array());
+                data.emitter_points
+                    .push([power[0] as f32, power[1] as f32, power[2] as f32, 0.0]);
+            }
+        }
+        data.uniform.emitter_groups = (data.emitter_groups.len() / 4) as u32;
+        data
+    }
+}

@@ -1,0 +1,403 @@
+// Dynamic objects in a drawn field (appended to field.wgsl): what `vlf_core::dynamic` does on
+// the CPU — the gather at an object's points (`gather.rs`), the shadows objects cast on the
+// static scene (`shadow.rs`) and the objects seen in the static scene's mirrors (`view.rs`).
+// The objects' surfaces follow the scene's in `surfaces` (from `objects.first_surface` on) and
+// one BVH over all of them follows the scene's among `nodes` (root `objects.root`), so
+// `trace_from` serves both. WGSL has no recursion: the static scene seen from an object is
+// shaded by `shade` (field.wgsl), which knows nothing of objects.
+
+struct Objects {
+    // Surfaces from this index on are the objects'.
+    first_surface: u32,
+    // The objects' BVH root among `nodes`, NONE when there are none.
+    root: u32,
+    count: u32,
+    // Line directions of the gather (`gather_directions`).
+    directions: u32,
+    // Cells of each object's shadow cone (K); 0 casts no shadows.
+    shadow_cells: u32,
+    // Emitting surfaces (`emitter_groups`).
+    emitter_groups: u32,
+    _pad0: u32,
+    _pad1: u32,
+};
+
+@group(0) @binding(8) var<uniform> objects: Objects;
+// Per object: the centre (xyz) and radius (w) of a sphere holding it.
+@group(0) @binding(9) var<storage, read> spheres: array<vec4<f32>>;
+// Per line direction of the gather: its unit vector (xyz) and weight Δω (w).
+@group(0) @binding(10) var<storage, read> gather_directions: array<vec4<f32>>;
+// The emitters' quadrature points (`vlf_core::direct::Emitters`), two vec4 each: the point
+// (xyz) and its power Le·A (rgb in the second's xyz), whose normal is its group's.
+@group(0) @binding(11) var<storage, read> emitter_points: array<vec4<f32>>;
+// Per emitting surface, four vec4: its centroid (xyz) and area (w); its normal (xyz) and
+// index among the surfaces (w); its emission (xyz) and point count (w); its first point (x).
+// Integers and floats share the vec4s, so they are stored as u32 (floats by their bits: read as
+// f32, a small integer's bits would be a denormal, which a GPU may flush to zero).
+@group(0) @binding(12) var<storage, read> emitter_groups: array<vec4<u32>>;
+
+const PI: f32 = 3.14159265358979;
+const GOLDEN_ANGLE: f32 = 2.39996322972865;
+// Emitter points' shadow rays stop this much short of them (relative): more than the CPU's
+// 10⁻⁶, which is below f32's error in where the ray meets the emitter it aims at.
+const SHADOW_SHORTEN: f32 = 1e-4;
+
+// The nearest object along `o + t·d` before t_max (NONE when none).
+fn nearest_object(o: vec3<f32>, d: vec3<f32>, t_max: f32) -> Hit {
+    if (objects.root == NONE) {
+        return Hit(NONE, t_max, false);
+    }
+    return trace_from(objects.root, o, d, 0.0, t_max);
+}
+
+// Radiance arriving at `o` from −d: the static surface's (shaded as the field holds it), or
+// nothing where an object is nearer or nothing is hit.
+fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+    let hit = trace_from(0u, o, d, 0.0, 3.4e38);
+    if (hit.surface == NONE || !hit.front || nearest_object(o, d, hit.t).surface != NONE) {
+        return vec3<f32>(0.0);
+    }
+    let s = surfaces[hit.surface];
+    let p = o + hit.t * d;
+    return shade(s, p, d, diffuse_at(s, p), mode, depth);
+}
+
+// The cosine-weighted mean radiance arriving at `p` over the hemisphere of unit `n`, over the
+// gather's directions (`Gatherer::incident`).
+fn incident(p: vec3<f32>, n: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+    let origin = p + n * RAY_EPSILON;
+    var sum = vec3<f32>(0.0);
+    var weights = 0.0;
+    for (var k = 0u; k < objects.directions; k++) {
+        let direction = gather_directions[k];
+        let c = dot(n, direction.xyz);
+        if (c == 0.0) {
+            continue;
+        }
+        let d = select(-direction.xyz, direction.xyz, c > 0.0);
+        let w = abs(c) * direction.w;
+        weights += w;
+        sum += arriving(origin, d, mode, depth) * w;
+    }
+    if (weights > 0.0) {
+        sum /= weights;
+    }
+    return sum;
+}
+
+// Radiance the front of object surface `index` sends from `p` back along `incoming`: ρd times
+// the gathered light (`incident`), plus ρs times what the reflected ray meets in the static
+// scene. One loop over the gather's directions and then the reflected ray, so that the
+// shader holds one copy of `arriving` here (every call site of a function is a copy of it
+// once the driver inlines it, and a large shader takes long to build).
+fn object_radiance(index: u32, p: vec3<f32>, incoming: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+    let s = surfaces[index];
+    let n = s.normal;
+    let origin = p + n * RAY_EPSILON;
+    let count = select(0u, objects.directions, any(s.diffuse > vec3<f32>(0.0)));
+    var sum = vec3<f32>(0.0);
+    var weights = 0.0;
+    var mirrored = vec3<f32>(0.0);
+    for (var k = 0u; k <= count; k++) {
+        var d = incoming - 2.0 * dot(incoming, n) * n;
+        var w = 0.0;
+        if (k < count) {
+            let direction = gather_directions[k];
+            let c = dot(n, direction.xyz);
+            if (c == 0.0) {
+                continue;
+            }
+            d = select(-direction.xyz, direction.xyz, c > 0.0);
+            w = abs(c) * direction.w;
+        } else if (s.mirror == 0u) {
+            break;
+        }
+        let l = arriving(origin, d, mode, depth);
+        if (k < count) {
+            sum += l * w;
+            weights += w;
+        } else {
+            mirrored = l;
+        }
+    }
+    var out = s.specular * mirrored;
+    if (weights > 0.0) {
+        out += s.diffuse * (sum / weights);
+    }
+    return out;
+}
+
+// ---- Shadows (`vlf_core::dynamic::shadow`) ----
+
+// `glam`'s `any_orthonormal_pair` (Duff et al.), so the cells fall where the CPU's do.
+fn orthonormal_u(v: vec3<f32>) -> vec3<f32> {
+    let sign = select(-1.0, 1.0, v.z >= 0.0);
+    let a = -1.0 / (sign + v.z);
+    return vec3<f32>(1.0 + sign * v.x * v.x * a, sign * v.x * v.y * a, -sign * v.x);
+}
+
+fn orthonormal_v(v: vec3<f32>) -> vec3<f32> {
+    let sign = select(-1.0, 1.0, v.z >= 0.0);
+    let a = -1.0 / (sign + v.z);
+    return vec3<f32>(v.x * v.y * a, sign + v.y * v.y * a, -v.y);
+}
+
+// The cone from `o` toward object j's sphere: its axis (xyz) and cos α (w; −1 inside).
+fn cone(o: vec3<f32>, j: u32) -> vec4<f32> {
+    let sphere = spheres[j];
+    let to = sphere.xyz - o;
+    let d = length(to);
+    if (d <= sphere.w || d == 0.0) {
+        return vec4<f32>(select(vec3<f32>(0.0, 0.0, 1.0), to / d, d > 0.0), -1.0);
+    }
+    let sine = sphere.w / d;
+    return vec4<f32>(to / d, sqrt(1.0 - sine * sine));
+}
+
+fn reaches_above(c: vec4<f32>, n: vec3<f32>) -> bool {
+    if (c.w <= 0.0) {
+        return true;
+    }
+    return dot(n, c.xyz) > -sqrt(1.0 - c.w * c.w);
+}
+
+fn cone_solid_angle(c: vec4<f32>) -> f32 {
+    return 2.0 * PI * (1.0 - c.w);
+}
+
+// Whether emitter group `g`'s direct light is counted on the cone's cells at `p` (its points
+// are farther apart than the cells, `cell` sr each), not on its points.
+fn on_cells(g: u32, p: vec3<f32>, cell: f32) -> bool {
+    let a = bitcast<vec4<f32>>(emitter_groups[4u * g]);
+    let normal = bitcast<vec3<f32>>(emitter_groups[4u * g + 1u].xyz);
+    let count = emitter_groups[4u * g + 2u].w;
+    let to = p - a.xyz;
+    let r = length(to);
+    let solid_angle = min(a.w * max(dot(normal, to), 0.0) / (r * r * r), 2.0 * PI);
+    return solid_angle / f32(count) > cell;
+}
+
+// The group of emitting surface `surface`, NONE for a surface that does not emit.
+fn emitter_group(surface: u32) -> u32 {
+    for (var g = 0u; g < objects.emitter_groups; g++) {
+        if (emitter_groups[4u * g + 1u].w == surface) {
+            return g;
+        }
+    }
+    return NONE;
+}
+
+// The radiance a static diffuse point at `p` (normal `n`, reflectance `rho`) loses to the
+// objects (`Gatherer::shadow_loss`); w is 1 when any object takes light from it. The cones'
+// cells and the emitters' points are visited by one loop (cells first), each a ray traced once
+// through the objects and once through the scene.
+fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
+    let k = objects.shadow_cells;
+    if (k == 0u || objects.count == 0u || !any(rho > vec3<f32>(0.0))) {
+        return vec4<f32>(0.0);
+    }
+    let origin = p + n * RAY_EPSILON;
+    var above = false;
+    var cell_max = 0.0;
+    for (var j = 0u; j < objects.count; j++) {
+        let c = cone(origin, j);
+        above = above || reaches_above(c, n);
+        cell_max = max(cell_max, cone_solid_angle(c) / f32(k));
+    }
+    if (!above) {
+        return vec4<f32>(0.0);
+    }
+    var lost = vec3<f32>(0.0);
+    var hit_any = false;
+    // The cursor: cell i of object j's cone, then point i of emitter group g.
+    var j = 0u;
+    var g = 0u;
+    var i = 0u;
+    loop {
+        var w: vec3<f32>;
+        var weight = 0.0;
+        var t_max = 3.4e38;
+        var power = vec3<f32>(0.0);
+        let on_cone = j < objects.count;
+        if (on_cone) {
+            let c = cone(origin, j);
+            if (i >= k || !reaches_above(c, n)) {
+                j += 1u;
+                i = 0u;
+                continue;
+            }
+            let cos_theta = 1.0 - (1.0 - c.w) * (f32(i) + 0.5) / f32(k);
+            let sin_theta = sqrt(max(1.0 - cos_theta * cos_theta, 0.0));
+            let phi = f32(i) * GOLDEN_ANGLE;
+            i += 1u;
+            w = normalize(orthonormal_u(c.xyz) * (cos(phi) * sin_theta) + orthonormal_v(c.xyz) * (sin(phi) * sin_theta) + c.xyz * cos_theta);
+            weight = dot(n, w) * cone_solid_angle(c) / f32(k);
+            if (weight <= 0.0) {
+                continue;
+            }
+            var earlier = false;
+            for (var e = 0u; e < j; e++) {
+                let ce = cone(origin, e);
+                earlier = earlier || dot(w, ce.xyz) >= ce.w;
+            }
+            if (earlier) {
+                continue;
+            }
+        } else {
+            if (g >= objects.emitter_groups) {
+                break;
+            }
+            let count = emitter_groups[4u * g + 2u].w;
+            if (i >= count || on_cells(g, p, cell_max)) {
+                g += 1u;
+                i = 0u;
+                continue;
+            }
+            let point = emitter_points[2u * (emitter_groups[4u * g + 3u].x + i)].xyz;
+            power = emitter_points[2u * (emitter_groups[4u * g + 3u].x + i) + 1u].xyz;
+            i += 1u;
+            let to = point - p;
+            let r2 = dot(to, to);
+            if (r2 <= 0.0) {
+                continue;
+            }
+            let r = sqrt(r2);
+            w = to / r;
+            let cos_p = dot(n, w);
+            let cos_s = -dot(bitcast<vec3<f32>>(emitter_groups[4u * g + 1u].xyz), w);
+            if (cos_p <= 0.0 || cos_s <= 0.0) {
+                continue;
+            }
+            power *= cos_p * cos_s / r2;
+            t_max = r * (1.0 - SHADOW_SHORTEN);
+        }
+        // An object in the way, and no static surface before it (a cell) or at all (an
+        // emitter's point).
+        let blocker = nearest_object(origin, w, t_max);
+        if (blocker.surface == NONE) {
+            continue;
+        }
+        let hit = trace_from(0u, origin, w, 0.0, t_max);
+        if (hit.surface != NONE && (!on_cone || hit.t < blocker.t)) {
+            continue;
+        }
+        hit_any = true;
+        if (!on_cone) {
+            lost += power;
+            continue;
+        }
+        // The static surface behind the object: what it sends back, its emission left out
+        // where its direct light is counted on its points.
+        if (hit.surface == NONE || !hit.front) {
+            continue;
+        }
+        let s = surfaces[hit.surface];
+        let q = origin + hit.t * w;
+        var l = shade(s, q, w, diffuse_at(s, q), mode, depth);
+        let eg = emitter_group(hit.surface);
+        if (eg != NONE && !on_cells(eg, p, cell_max)) {
+            l = max(l - bitcast<vec3<f32>>(emitter_groups[4u * eg + 2u].xyz), vec3<f32>(0.0));
+        }
+        lost += l * weight;
+    }
+    if (!hit_any) {
+        return vec4<f32>(0.0);
+    }
+    return vec4<f32>(rho / PI * lost, 1.0);
+}
+
+// ---- A view with objects (`vlf_core::dynamic::view`) ----
+
+// What a camera ray sees with the objects in the scene, from the fragment of surface `start`
+// at `position` (its radiance map read at `diffuse`) on: an object is shaded by the gather; a
+// static surface sends its diffuse radiance less the objects' shadow, and a mirror adds what
+// its reflection meets — traced at most `depth` mirrors deep (`mode` 0), or read from the
+// field's rays (`mode` 1), whose reflected ray is traced once to find an object, or an
+// object's shadow, in the way. One loop along the path, so that the gather and the shadow
+// each have one call site.
+fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, diffuse: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+    var l = vec3<f32>(0.0);
+    // What the current surface's light counts for (the mirrors' ρs so far).
+    var weight = vec3<f32>(1.0);
+    var index = start;
+    var p = position;
+    var d = incoming;
+    // The static surface's radiance before its shadow, and how much of the shadow it loses.
+    var base = diffuse;
+    var scale = vec3<f32>(1.0);
+    // Where the shadow is taken: at the surface itself, or (mirrors from the rays) at the
+    // static point its reflected ray meets; NONE for no shadow.
+    var shadow_surface = start;
+    var shadow_point = position;
+    var remaining = depth;
+    var last = false;
+    loop {
+        if (index >= objects.first_surface) {
+            l += weight * object_radiance(index, p, d, mode, depth);
+            break;
+        }
+        var value = base;
+        if (shadow_surface != NONE) {
+            let q = surfaces[shadow_surface];
+            let loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth);
+            if (loss.w != 0.0) {
+                value = max(base - scale * loss.xyz, vec3<f32>(0.0));
+            }
+        }
+        l += weight * value;
+        let s = surfaces[index];
+        if (last || s.mirror == 0u || (mode == 0u && remaining == 0u)) {
+            break;
+        }
+        let reflected = d - 2.0 * dot(d, s.normal) * s.normal;
+        let origin = p + s.normal * RAY_EPSILON;
+        let hit = trace_from(0u, origin, reflected, select(RAY_EPSILON, 0.0, mode == 1u), 3.4e38);
+        let object = nearest_object(origin, reflected, hit.t);
+        if (object.surface != NONE) {
+            if (!object.front) {
+                break;
+            }
+            // The object is what the mirror shows.
+            weight *= s.specular;
+            index = object.surface;
+            p = origin + object.t * reflected;
+            d = reflected;
+            continue;
+        }
+        if (mode == 1u) {
+            // From the rays, less the shadow of the static point the reflection meets.
+            base = mirror_from_rays(s, p, -d).xyz;
+            scale = s.specular;
+            shadow_surface = select(NONE, hit.surface, hit.surface != NONE && hit.front);
+            shadow_point = origin + hit.t * reflected;
+            last = true;
+            continue;
+        }
+        if (hit.surface == NONE || !hit.front) {
+            break;
+        }
+        weight *= s.specular;
+        remaining -= 1u;
+        index = hit.surface;
+        p = origin + hit.t * reflected;
+        d = reflected;
+        base = diffuse_at(surfaces[index], p);
+        scale = vec3<f32>(1.0);
+        shadow_surface = index;
+        shadow_point = p;
+    }
+    return l;
+}
+
+@fragment
+fn fs_objects(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) vec4<f32> {
+    if (!front) {
+        return vec4<f32>(0.0, 0.0, 0.0, 1.0);
+    }
+    var diffuse = vec3<f32>(0.0);
+    if (in.surface < objects.first_surface) {
+        diffuse = bilinear(surfaces[in.surface], in.texel);
+    }
+    let incoming = normalize(in.position - view.eye.xyz);
+    return vec4<f32>(radiance_among_objects(in.surface, in.position, incoming, diffuse, view.mode, view.depth), 1.0);
+}
