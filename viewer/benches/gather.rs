@@ -22,24 +22,8 @@ use vlf_core::psf::GridSize;
 use vlf_core::scene::Material;
 use vlf_viewer::{FieldRenderer, Gpu, GpuGather};
 
-/// A cube of half-size `h` around `c`, each face split into `split × split` quads.
+/// A grey cube of half-size `h` around `c`, each face split into `split × split` squares.
 fn cube(c: DVec3, h: f64, split: usize) -> DynamicObject {
-    let mut triangles = Vec::new();
-    for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
-        let u = axis.any_orthogonal_vector().normalize();
-        let v = axis.cross(u);
-        for (n, a, b) in [(axis, u, v), (-axis, v, u)] {
-            let step = 2.0 * h / split as f64;
-            for i in 0..split {
-                for j in 0..split {
-                    let at = |x: usize, y: usize| c + n * h + a * (-h + x as f64 * step) + b * (-h + y as f64 * step);
-                    let (p0, p1, p2, p3) = (at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1));
-                    triangles.push([p0, p1, p2]);
-                    triangles.push([p0, p2, p3]);
-                }
-            }
-        }
-    }
     let grey = Material {
         name: "grey".into(),
         diffuse: [0.6; 3],
@@ -47,7 +31,7 @@ fn cube(c: DVec3, h: f64, split: usize) -> DynamicObject {
         emission: [0.0; 3],
         albedo_texture: None,
     };
-    DynamicObject::uniform("cube", triangles, grey)
+    DynamicObject::cube("cube", c, h, split, grey)
 }
 
 fn bench(c: &mut Criterion) {

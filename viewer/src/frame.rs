@@ -91,31 +91,19 @@ impl Frame {
             );
             gpu.queue.submit([encoder.finish()]);
         })?;
-        let slice = self.readback.slice(..);
-        let (sender, receiver) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = sender.send(r);
-        });
-        gpu.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
-        receiver
-            .recv()
-            .map_err(|e| ViewerError::Gpu(e.to_string()))?
-            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
-        let mut out = Vec::with_capacity((self.width * self.height * 4) as usize);
-        {
-            let bytes = slice.get_mapped_range().map_err(|e| ViewerError::Gpu(e.to_string()))?;
-            for row in bytes.chunks_exact(self.row_bytes as usize) {
-                let pixels = &row[..(self.width * PIXEL_BYTES) as usize];
+        let (width, row_bytes) = (self.width, self.row_bytes);
+        let out = gpu.read_mapped(&self.readback, |bytes| {
+            let mut out = Vec::with_capacity((width * self.height * 4) as usize);
+            for row in bytes.chunks_exact(row_bytes as usize) {
+                let pixels = &row[..(width * PIXEL_BYTES) as usize];
                 out.extend(
                     pixels
                         .chunks_exact(4)
                         .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])),
                 );
             }
-        }
-        self.readback.unmap();
+            out
+        })?;
         Ok(out)
     }
 

@@ -182,27 +182,13 @@ impl GpuGather {
             gpu.queue.submit([encoder.finish()]);
             (output, readback)
         })?;
-        let slice = readback.slice(..);
-        let (sender, receiver) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
-            let _ = sender.send(r);
-        });
-        gpu.device
-            .poll(wgpu::PollType::wait_indefinitely())
-            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
-        receiver
-            .recv()
-            .map_err(|e| ViewerError::Gpu(e.to_string()))?
-            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
-        let values: Vec<(Rgb, bool)> = {
-            let mapped = slice.get_mapped_range().map_err(|e| ViewerError::Gpu(e.to_string()))?;
-            let floats: &[f32] = bytemuck::cast_slice(&mapped);
+        let values = gpu.read_mapped(&readback, |bytes| {
+            let floats: &[f32] = bytemuck::cast_slice(bytes);
             floats
                 .chunks_exact(4)
                 .map(|v| ([v[0] as f64, v[1] as f64, v[2] as f64], v[3] != 0.0))
-                .collect()
-        };
-        readback.unmap();
+                .collect::<Vec<(Rgb, bool)>>()
+        })?;
         drop(output);
         Ok(values)
     }

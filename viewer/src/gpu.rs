@@ -68,6 +68,29 @@ impl Gpu {
 
     /// Runs `f` and turns any validation or out-of-memory error it raised into a
     /// [`ViewerError::Gpu`] instead of wgpu's default, which panics.
+    /// Waits for what was submitted so far, maps `buffer` (made with `MAP_READ`) and returns
+    /// what `read` makes of its bytes; unmaps it again.
+    pub fn read_mapped<T>(&self, buffer: &wgpu::Buffer, read: impl FnOnce(&[u8]) -> T) -> Result<T, ViewerError> {
+        let slice = buffer.slice(..);
+        let (sender, receiver) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = sender.send(r);
+        });
+        self.device
+            .poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
+        receiver
+            .recv()
+            .map_err(|e| ViewerError::Gpu(e.to_string()))?
+            .map_err(|e| ViewerError::Gpu(e.to_string()))?;
+        let out = {
+            let mapped = slice.get_mapped_range().map_err(|e| ViewerError::Gpu(e.to_string()))?;
+            read(&mapped)
+        };
+        buffer.unmap();
+        Ok(out)
+    }
+
     pub fn checked<T>(&self, f: impl FnOnce() -> T) -> Result<T, ViewerError> {
         let validation = self.device.push_error_scope(wgpu::ErrorFilter::Validation);
         let memory = self.device.push_error_scope(wgpu::ErrorFilter::OutOfMemory);

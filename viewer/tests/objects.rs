@@ -15,19 +15,8 @@ use vlf_core::render::Bvh;
 use vlf_core::scene::Material;
 use vlf_viewer::{FieldRenderer, GpuGather};
 
-/// A grey cube of half-size `h` (scene units) around `c`, facing out.
+/// A grey cube of half-size `h` (scene units) around `c`.
 fn cube(c: DVec3, h: f64) -> DynamicObject {
-    let mut triangles = Vec::new();
-    for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
-        let u = axis.any_orthogonal_vector().normalize();
-        let v = axis.cross(u);
-        for (n, a, b) in [(axis, u, v), (-axis, v, u)] {
-            let f = c + n * h;
-            let (p0, p1, p2, p3) = (f - (a + b) * h, f + (a - b) * h, f + (a + b) * h, f - (a - b) * h);
-            triangles.push([p0, p1, p2]);
-            triangles.push([p0, p2, p3]);
-        }
-    }
     let grey = Material {
         name: "grey".into(),
         diffuse: [0.6; 3],
@@ -35,7 +24,7 @@ fn cube(c: DVec3, h: f64) -> DynamicObject {
         emission: [0.0; 3],
         albedo_texture: None,
     };
-    DynamicObject::uniform("cube", triangles, grey)
+    DynamicObject::cube("cube", c, h, 1, grey)
 }
 
 /// Points just off the cube's faces (normals out) and points around it, in the VLF frame.

@@ -21,24 +21,8 @@ use vlf_core::psf::GridSize;
 use vlf_core::render::Bvh;
 use vlf_core::scene::Material;
 
-/// A cube of half-size `h` around the origin, facing out.
+/// A grey cube of half-size `h` around the origin.
 fn cube(h: f64) -> DynamicObject {
-    let mut triangles = Vec::new();
-    for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
-        let u = axis.any_orthogonal_vector().normalize();
-        let v = axis.cross(u);
-        for (n, a, b) in [(axis, u, v), (-axis, v, u)] {
-            let c = n * h;
-            let (p0, p1, p2, p3) = (
-                c - a * h - b * h,
-                c + a * h - b * h,
-                c + a * h + b * h,
-                c - a * h + b * h,
-            );
-            triangles.push([p0, p1, p2]);
-            triangles.push([p0, p2, p3]);
-        }
-    }
     let grey = Material {
         name: "grey".into(),
         diffuse: [0.6; 3],
@@ -46,7 +30,7 @@ fn cube(h: f64) -> DynamicObject {
         emission: [0.0; 3],
         albedo_texture: None,
     };
-    DynamicObject::uniform("cube", triangles, grey)
+    DynamicObject::cube("cube", DVec3::ZERO, h, 1, grey)
 }
 
 fn bench(c: &mut Criterion) {

@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::objects::{cube, furnace, grey};
+use common::objects::{cube, furnace, furnace_with_first, grey};
 use common::{closed_box, material, rect};
 use glam::DVec3;
 use vlf_core::dynamic::gather::{Gatherer, rays_traced};
@@ -64,26 +64,9 @@ fn a_disc_takes_its_projected_solid_angle_of_light() {
 /// the same analytic loss.
 #[test]
 fn with_exact_direct_light_the_shadow_rays_see_the_object() {
-    let (rho, le) = (0.5, 1.0);
-    let scene = closed_box(
-        0.55,
-        2,
-        &[0, 1, 2, 3, 4, 5],
-        vec![material("unused", rho, 0.0), material("glow", rho, le)],
-    );
-    let options = Options {
-        directions: 129,
-        grid: GridSize::new(32, 8).unwrap(),
-        stop: Stop::Iterations(6),
-        ..Options::default()
-    };
-    let mut p = Propagation::new(scene, options).unwrap();
-    p.step(|_| {});
-    let first = p.field_now();
-    p.run(|_| {});
-    let mut field = p.into_field();
+    let rho = 0.5;
+    let (first, mut field, l) = furnace_with_first(6);
     field.use_exact_direct(&first, 1024).unwrap();
-    let l = le * (1.0 - rho.powi(7)) / (1.0 - rho);
     let bvh = Bvh::build(&field.scene);
     let floor = -0.55;
     let point = DVec3::new(0.0, 0.0, floor);

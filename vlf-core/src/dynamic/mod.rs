@@ -68,6 +68,32 @@ impl DynamicObject {
         }
     }
 
+    /// A cube of half-size `half` around `center` (scene units), each face split into
+    /// `split × split` squares of two triangles, facing out, of one material: the test and
+    /// benchmark object.
+    pub fn cube(name: &str, center: DVec3, half: f64, split: usize, material: Material) -> Self {
+        let split = split.max(1);
+        let step = 2.0 * half / split as f64;
+        let mut triangles = Vec::with_capacity(12 * split * split);
+        for axis in [DVec3::X, DVec3::Y, DVec3::Z] {
+            let u = axis.any_orthonormal_vector();
+            let v = axis.cross(u);
+            // (u, v) and (v, u) are both right-handed about their face's outward normal.
+            for (n, a, b) in [(axis, u, v), (-axis, v, u)] {
+                let at =
+                    |x: usize, y: usize| center + (n - a - b) * half + a * (x as f64 * step) + b * (y as f64 * step);
+                for i in 0..split {
+                    for j in 0..split {
+                        let (p0, p1, p2, p3) = (at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1));
+                        triangles.push([p0, p1, p2]);
+                        triangles.push([p0, p2, p3]);
+                    }
+                }
+            }
+        }
+        DynamicObject::uniform(name, triangles, material)
+    }
+
     /// Reads an object from a scene file (OBJ with its MTL, or glTF), in the file's own
     /// coordinates, which are the scene's: place it with the static scene's normalisation
     /// ([`DynamicObject::place`]), not one of its own. It needs no emitter. Faces are split into

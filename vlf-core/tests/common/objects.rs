@@ -11,6 +11,13 @@ use vlf_core::scene::Material;
 /// A furnace (every wall emits Le = 1 and reflects ρ = 0.5) after `k` iterations: uniform
 /// radiance `Le·(1 − ρ^(k+1))/(1 − ρ)` in every texel, to 1e-5.
 pub fn furnace(k: u32) -> (LightField, f64) {
+    let (_, field, l) = furnace_with_first(k);
+    (field, l)
+}
+
+/// [`furnace`], with the field after its first iteration before it (what exact direct light
+/// needs).
+pub fn furnace_with_first(k: u32) -> (LightField, LightField, f64) {
     let (rho, le) = (0.5, 1.0);
     let scene = closed_box(
         0.55,
@@ -25,8 +32,10 @@ pub fn furnace(k: u32) -> (LightField, f64) {
         ..Options::default()
     };
     let mut p = Propagation::new(scene, options).unwrap();
+    p.step(|_| {});
+    let first = p.field_now();
     p.run(|_| {});
-    (p.into_field(), le * (1.0 - rho.powi(k as i32 + 1)) / (1.0 - rho))
+    (first, p.into_field(), le * (1.0 - rho.powi(k as i32 + 1)) / (1.0 - rho))
 }
 
 pub fn grey(name: &str, rho: f64) -> Material {
