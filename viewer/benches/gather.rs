@@ -24,13 +24,7 @@ use vlf_viewer::{FieldRenderer, Gpu, GpuGather};
 
 /// A grey cube of half-size `h` around `c`, each face split into `split × split` squares.
 fn cube(c: DVec3, h: f64, split: usize) -> DynamicObject {
-    let grey = Material {
-        name: "grey".into(),
-        diffuse: [0.6; 3],
-        specular: [0.0; 3],
-        emission: [0.0; 3],
-        albedo_texture: None,
-    };
+    let grey = Material::grey("grey", 0.6);
     DynamicObject::cube("cube", c, h, split, grey)
 }
 

@@ -128,7 +128,7 @@ impl GpuGather {
             })
             .collect();
         let bytes = points.len() as u64 * 16;
-        let (output, readback) = gpu.checked(|| {
+        let readback = gpu.checked(|| {
             let device = &gpu.device;
             let params = uniform_buffer(device, "gather params", std::mem::size_of::<Params>());
             let (mode, depth) = match self.mirrors {
@@ -180,7 +180,7 @@ impl GpuGather {
             }
             encoder.copy_buffer_to_buffer(&output, 0, &readback, 0, bytes);
             gpu.queue.submit([encoder.finish()]);
-            (output, readback)
+            readback
         })?;
         let values = gpu.read_mapped(&readback, |bytes| {
             let floats: &[f32] = bytemuck::cast_slice(bytes);
@@ -189,7 +189,6 @@ impl GpuGather {
                 .map(|v| ([v[0] as f64, v[1] as f64, v[2] as f64], v[3] != 0.0))
                 .collect::<Vec<(Rgb, bool)>>()
         })?;
-        drop(output);
         Ok(values)
     }
 }

@@ -17,14 +17,19 @@ use vlf_viewer::{FieldRenderer, GpuGather};
 
 /// A grey cube of half-size `h` (scene units) around `c`.
 fn cube(c: DVec3, h: f64) -> DynamicObject {
-    let grey = Material {
-        name: "grey".into(),
-        diffuse: [0.6; 3],
-        specular: [0.0; 3],
-        emission: [0.0; 3],
-        albedo_texture: None,
-    };
+    let grey = Material::grey("grey", 0.6);
     DynamicObject::cube("cube", c, h, 1, grey)
+}
+
+/// Two cubes in a bundled scene: one on the floor, one in the air.
+fn two_cubes(field: &LightField) -> Vec<PlacedObject> {
+    let n = field.scene.normalisation;
+    [
+        (DVec3::new(400.0, 51.0, 150.0), 50.0),
+        (DVec3::new(170.0, 380.0, 260.0), 40.0),
+    ]
+    .map(|(c, h)| cube(c, h).place(&Pose::IDENTITY, &n).unwrap())
+    .to_vec()
 }
 
 /// Points just off the cube's faces (normals out) and points around it, in the VLF frame.
@@ -149,15 +154,7 @@ fn view_matches(scene: &str, modes: &[SpecularMode]) {
     let Some(gpu) = gpu() else { return };
     let field = bundled_field(scene, 33, 3);
     let bvh = Bvh::build(&field.scene);
-    let n = field.scene.normalisation;
-    let placed = vec![
-        cube(DVec3::new(400.0, 51.0, 150.0), 50.0)
-            .place(&Pose::IDENTITY, &n)
-            .unwrap(),
-        cube(DVec3::new(170.0, 380.0, 260.0), 40.0)
-            .place(&Pose::IDENTITY, &n)
-            .unwrap(),
-    ];
+    let placed = two_cubes(&field);
     let camera = vlf_core::render::Camera::new(
         DVec3::new(278.0, 273.0, -800.0),
         DVec3::new(278.0, 273.0, 0.0),
@@ -216,15 +213,7 @@ fn the_gpu_casts_the_shadows_the_cpu_casts() {
     let Some(gpu) = gpu() else { return };
     let field = bundled_field("cornell.obj", 33, 3);
     let bvh = Bvh::build(&field.scene);
-    let n = field.scene.normalisation;
-    let placed = vec![
-        cube(DVec3::new(400.0, 51.0, 150.0), 50.0)
-            .place(&Pose::IDENTITY, &n)
-            .unwrap(),
-        cube(DVec3::new(170.0, 380.0, 260.0), 40.0)
-            .place(&Pose::IDENTITY, &n)
-            .unwrap(),
-    ];
+    let placed = two_cubes(&field);
     let cpu = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33)
         .unwrap()
         .with_shadow_samples(32);
@@ -234,7 +223,11 @@ fn the_gpu_casts_the_shadows_the_cpu_casts() {
     for i in 0..8 {
         for j in 0..8 {
             let (x, z) = (30.0 + 70.0 * i as f64, 20.0 + 70.0 * j as f64);
-            points.push((n.to_vlf(DVec3::new(x, 0.0, z)), DVec3::Y, [0.7; 3]));
+            points.push((
+                field.scene.normalisation.to_vlf(DVec3::new(x, 0.0, z)),
+                DVec3::Y,
+                [0.7; 3],
+            ));
         }
     }
     let want: Vec<Option<[f64; 3]>> = points

@@ -23,13 +23,7 @@ use vlf_core::scene::Material;
 
 /// A grey cube of half-size `h` around the origin.
 fn cube(h: f64) -> DynamicObject {
-    let grey = Material {
-        name: "grey".into(),
-        diffuse: [0.6; 3],
-        specular: [0.0; 3],
-        emission: [0.0; 3],
-        albedo_texture: None,
-    };
+    let grey = Material::grey("grey", 0.6);
     DynamicObject::cube("cube", DVec3::ZERO, h, 1, grey)
 }
 

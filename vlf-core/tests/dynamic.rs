@@ -8,7 +8,7 @@ mod common;
 
 use common::closed_box;
 use common::material;
-use common::objects::{cube, furnace, grey, quad};
+use common::objects::{cube, furnace, quad};
 use glam::{DQuat, DVec3};
 use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::dynamic::{DynamicObject, Pose};
@@ -17,6 +17,7 @@ use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::render::Bvh;
+use vlf_core::scene::Material;
 
 /// A uniform field gives every point of an object exactly ρ·L, whatever its normal and pose:
 /// the gather divides by its own quadrature's cosine sum.
@@ -70,7 +71,7 @@ fn a_concave_object_shades_itself_by_its_form_factor() {
             side * a,
         ));
     }
-    let cup = DynamicObject::uniform("cup", triangles, grey("cup", 0.8));
+    let cup = DynamicObject::uniform("cup", triangles, Material::grey("cup", 0.8));
     let n = &field.scene.normalisation;
     let objects = [cup.place(&Pose::IDENTITY, n).unwrap()];
     let f = |x: f64, y: f64| {
@@ -110,7 +111,7 @@ fn objects_block_each_other() {
     let plate = DynamicObject::uniform(
         "plate",
         quad(DVec3::new(0.0, 0.0, 0.1), DVec3::Y * 0.3, DVec3::X * 0.3).to_vec(),
-        grey("plate", 0.5),
+        Material::grey("plate", 0.5),
     );
     let objects = [
         small.place(&Pose::IDENTITY, n).unwrap(),
@@ -151,7 +152,11 @@ fn bad_objects_are_refused() {
             .to_string()
             .contains("not physical")
     );
-    let flat = DynamicObject::uniform("flat", vec![[DVec3::ZERO, DVec3::X, DVec3::X * 2.0]], grey("flat", 0.5));
+    let flat = DynamicObject::uniform(
+        "flat",
+        vec![[DVec3::ZERO, DVec3::X, DVec3::X * 2.0]],
+        Material::grey("flat", 0.5),
+    );
     assert!(
         flat.place(&Pose::IDENTITY, &n)
             .unwrap_err()
@@ -408,7 +413,7 @@ fn an_object_just_above_a_surface_gathers_what_the_surface_receives() {
     let plate = DynamicObject::uniform(
         "plate",
         quad(DVec3::new(0.1, 0.1, -0.54), DVec3::X * 0.03, DVec3::Y * 0.03).to_vec(),
-        grey("plate", 0.5),
+        Material::grey("plate", 0.5),
     );
     let objects = [plate.place(&Pose::IDENTITY, &field.scene.normalisation).unwrap()];
     let gather = Gatherer::new(&field, &bvh, &objects, SpecularMode::Rays).unwrap();
@@ -464,7 +469,7 @@ fn the_gather_costs_one_ray_per_direction_and_point() {
 fn gathering_per_vertex_converges_to_gathering_per_pixel() {
     let field = coloured_box(0.4);
     let bvh = Bvh::build(&field.scene);
-    let grey = grey("box", 0.6);
+    let grey = Material::grey("box", 0.6);
     let mut errors = Vec::new();
     for split in [1usize, 4, 16] {
         let object = DynamicObject::cube("box", DVec3::new(-0.2, 0.1, -0.2), 0.12, split, grey.clone());

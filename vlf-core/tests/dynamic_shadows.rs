@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::objects::{cube, furnace, furnace_with_first, grey};
+use common::objects::{cube, furnace, furnace_with_first};
 use common::{closed_box, material, rect};
 use glam::DVec3;
 use vlf_core::dynamic::gather::{Gatherer, rays_traced};
@@ -16,6 +16,7 @@ use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::render::{Bvh, Camera};
+use vlf_core::scene::Material;
 
 /// A horizontal disc (a 48-gon) of radius `a` at height `z`, centred on the z axis, facing down.
 fn disc(a: f64, z: f64) -> DynamicObject {
@@ -27,7 +28,7 @@ fn disc(a: f64, z: f64) -> DynamicObject {
     };
     // Clockwise seen from above: facing down.
     let triangles = (0..k).map(|i| [c, at(i + 1), at(i)]).collect();
-    DynamicObject::uniform("disc", triangles, grey("disc", 0.5))
+    DynamicObject::uniform("disc", triangles, Material::grey("disc", 0.5))
 }
 
 /// The radiance a floor point of reflectance ρ loses under a disc of radius `a` at height `h`
@@ -216,7 +217,7 @@ fn shadows_are_soft_and_do_not_pop_as_an_object_moves() {
     let small = DynamicObject::uniform(
         "pebble",
         common::objects::quad(DVec3::ZERO, DVec3::Y * 0.004, DVec3::X * 0.004).to_vec(),
-        grey("pebble", 0.5),
+        Material::grey("pebble", 0.5),
     );
     let loss_at = |x: f64| {
         let pose = Pose {
@@ -283,7 +284,7 @@ fn a_concave_object_shadows_itself_and_what_lies_under_it() {
             side * a,
         ));
     }
-    let cup = DynamicObject::uniform("cup", triangles, grey("cup", 0.5));
+    let cup = DynamicObject::uniform("cup", triangles, Material::grey("cup", 0.5));
     let objects = [placed(&cup, &field)];
     let gather = Gatherer::new(&field, &bvh, &objects, SpecularMode::Rays).unwrap();
     let inside = gather.incident(base + DVec3::Z * 1e-4, DVec3::Z)[0] / l;
@@ -334,7 +335,7 @@ fn a_small_lamp_behind_a_large_object_casts_a_smooth_shadow() {
     let plate = DynamicObject::uniform(
         "plate",
         common::objects::quad(DVec3::new(-0.3, 0.0, -0.2), DVec3::Y * 0.2, DVec3::X * 0.2).to_vec(),
-        grey("plate", 0.5),
+        Material::grey("plate", 0.5),
     );
     let objects = [placed(&plate, &field)];
     let gather = Gatherer::new(&field, &bvh, &objects, SpecularMode::Rays).unwrap();

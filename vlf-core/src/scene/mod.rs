@@ -92,6 +92,18 @@ pub struct Material {
 }
 
 impl Material {
+    /// A grey diffuse material of reflectance `rho`: no mirror, no emission, no texture (the
+    /// objects of tests and benchmarks).
+    pub fn grey(name: &str, rho: f64) -> Material {
+        Material {
+            name: name.into(),
+            diffuse: [rho; 3],
+            specular: [0.0; 3],
+            emission: [0.0; 3],
+            albedo_texture: None,
+        }
+    }
+
     pub fn is_emitter(&self) -> bool {
         self.emission.iter().any(|&e| e > 0.0)
     }

@@ -38,16 +38,6 @@ pub fn furnace_with_first(k: u32) -> (LightField, LightField, f64) {
     (first, p.into_field(), le * (1.0 - rho.powi(k as i32 + 1)) / (1.0 - rho))
 }
 
-pub fn grey(name: &str, rho: f64) -> Material {
-    Material {
-        name: name.into(),
-        diffuse: [rho; 3],
-        specular: [0.0; 3],
-        emission: [0.0; 3],
-        albedo_texture: None,
-    }
-}
-
 /// The two triangles of the quad `c ± a ± b`, facing `a × b`.
 pub fn quad(c: DVec3, a: DVec3, b: DVec3) -> [[DVec3; 3]; 2] {
     let (p0, p1, p2, p3) = (c - a - b, c + a - b, c + a + b, c - a + b);
@@ -69,5 +59,5 @@ pub fn cube(name: &str, c: DVec3, h: f64, rho: f64) -> DynamicObject {
         triangles.extend(quad(c + axis * h, u * h, v * h));
         triangles.extend(quad(c - axis * h, v * h, u * h));
     }
-    DynamicObject::uniform(name, triangles, grey(name, rho))
+    DynamicObject::uniform(name, triangles, Material::grey(name, rho))
 }
