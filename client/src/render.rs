@@ -13,6 +13,9 @@ use vlf_core::render::Bvh;
 use vlf_proto::Target;
 use vlf_store::{FieldJob, Job, JobId, JobState, Stage, Store};
 
+/// Most shadow cone cells per object and point: beyond, a view takes hours for no visible gain.
+const MAX_SHADOW_SAMPLES: u32 = 1 << 16;
+
 pub fn run(args: RenderArgs) -> Result<()> {
     if !(1..=16).contains(&args.samples) {
         bail!("--samples must be 1..=16, got {}", args.samples);
@@ -57,6 +60,12 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let loaded = started.elapsed().as_secs_f64();
     let image = match args.object.is_empty() {
         false => {
+            if args.object_shadow_samples > MAX_SHADOW_SAMPLES {
+                bail!(
+                    "--object-shadow-samples must be 0..={MAX_SHADOW_SAMPLES}, got {}",
+                    args.object_shadow_samples
+                );
+            }
             let bvh = Bvh::build(&field.scene);
             let placed = place_objects(&args, &field, &bvh)?;
             let directions = args.object_directions.unwrap_or(field.options.directions);

@@ -1052,6 +1052,15 @@ fn render_draws_a_dynamic_object_lit_by_the_field() {
         .filter(|&i| !changed.contains(&i) && !darker.contains(&i) && two.pixels[i] != plain.pixels[i])
         .count();
     assert!(second > 10, "{second} pixels of the second cube");
+    let (o, _) = render(
+        &[&object[..], &["--object-shadow-samples", "4000000000"]].concat(),
+        "x.pfm",
+    );
+    assert!(
+        !o.status.success() && stderr(&o).contains("--object-shadow-samples"),
+        "{}",
+        stderr(&o)
+    );
     // Bad placements: through the floor (y = 0), far outside the box.
     for (at, says) in [
         ("278,20,200", "crosses a surface"),
