@@ -7,6 +7,7 @@
 //! interface: scripts rely on them.
 
 mod bench;
+mod objects;
 mod propagate;
 mod remote;
 mod render;
@@ -258,24 +259,9 @@ pub struct RenderArgs {
     /// same sample positions and filter as the CPU, mirrors either way.
     #[arg(long)]
     gpu: bool,
-    /// A dynamic object to draw in the view, lit by the field, casting shadows on the scene
-    /// (OBJ or glTF, in the scene's coordinates, no emitter needed); repeat for more objects.
-    /// On the CPU, or with --gpu (the same gather and shadows in shaders).
-    #[arg(long, value_name = "FILE")]
-    object: Vec<PathBuf>,
-    /// Where to move each --object, in order: a translation in scene units (default: none).
-    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3_arg, allow_hyphen_values = true, requires = "object")]
-    object_at: Vec<glam::DVec3>,
-    /// How far to turn each --object about --up, in order, in degrees (before moving it).
-    #[arg(long, value_name = "DEG", allow_hyphen_values = true, requires = "object")]
-    object_turn: Vec<f64>,
-    /// Cells of each object's shadow cone per shaded point (0: no shadows on the scene).
-    #[arg(long, value_name = "K", default_value_t = vlf_core::dynamic::gather::DEFAULT_SHADOW_SAMPLES, requires = "object")]
-    object_shadow_samples: u32,
-    /// Directions of the object's gather (one of 9, 33, 129, 513, 2049, 8193; default: the
-    /// field's).
-    #[arg(long, value_name = "L", requires = "object")]
-    object_directions: Option<usize>,
+    /// Dynamic objects (on the CPU, or with --gpu: the same gather and shadows in shaders).
+    #[command(flatten)]
+    objects: crate::objects::ObjectFlags,
 }
 
 #[derive(Args)]
@@ -329,6 +315,14 @@ pub struct ViewArgs {
     /// … while walking from --eye to this point.
     #[arg(long, value_parser = parse_vec3_arg, allow_hyphen_values = true)]
     to: Option<glam::DVec3>,
+    /// Dynamic objects to walk among: Tab selects one, T F G H move it, R / Y lower and raise
+    /// it, Z / X turn it.
+    #[command(flatten)]
+    objects: crate::objects::ObjectFlags,
+    /// A scripted move over --frames: where each --object ends, in order (the translation its
+    /// pose ends with, scene units), from its --object-at.
+    #[arg(long, value_name = "X,Y,Z", value_parser = parse_vec3_arg, allow_hyphen_values = true, requires = "object")]
+    object_to: Vec<glam::DVec3>,
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]

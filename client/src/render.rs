@@ -3,18 +3,13 @@
 
 use crate::{DirectArg, FieldSource, JobsArgs, RenderArgs, SpecularArg};
 use anyhow::{Context, Result, bail};
-use glam::{DQuat, DVec3};
 use std::time::Instant;
 use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::dynamic::view::render_with_objects;
-use vlf_core::dynamic::{DynamicObject, Pose};
 use vlf_core::lookup::SpecularMode;
 use vlf_core::render::Bvh;
 use vlf_proto::Target;
 use vlf_store::{FieldJob, Job, JobId, JobState, Stage, Store};
-
-/// Most shadow cone cells per object and point: beyond, a view takes hours for no visible gain.
-const MAX_SHADOW_SAMPLES: u32 = 1 << 16;
 
 pub fn run(args: RenderArgs) -> Result<()> {
     if !(1..=16).contains(&args.samples) {
@@ -58,20 +53,14 @@ pub fn run(args: RenderArgs) -> Result<()> {
         field.use_exact_direct(&first, args.direct_samples)?;
     }
     let loaded = started.elapsed().as_secs_f64();
-    let image = match args.object.is_empty() {
+    let objects = &args.objects;
+    let image = match objects.is_empty() {
         false => {
-            if args.object_shadow_samples > MAX_SHADOW_SAMPLES {
-                bail!(
-                    "--object-shadow-samples must be 0..={MAX_SHADOW_SAMPLES}, got {}",
-                    args.object_shadow_samples
-                );
-            }
             let bvh = Bvh::build(&field.scene);
-            let placed = place_objects(&args, &field, &bvh)?;
-            let directions = args.object_directions.unwrap_or(field.options.directions);
-            let gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, directions)
+            let placed = objects.place(args.view.up(), &field.scene, &bvh)?;
+            let gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, objects.directions(&field))
                 .context("--object-directions")?
-                .with_shadow_samples(args.object_shadow_samples);
+                .with_shadow_samples(objects.object_shadow_samples);
             if args.gpu {
                 let gpu = vlf_viewer::Gpu::new()?;
                 tracing::info!(adapter = %gpu.describe(), "rendering on the GPU");
@@ -96,46 +85,6 @@ pub fn run(args: RenderArgs) -> Result<()> {
         args.out.display()
     );
     Ok(())
-}
-
-/// Reads every `--object` and places it at its `--object-at` and `--object-turn` (in order;
-/// missing ones leave the object as its file has it), refusing one that lies outside the
-/// scene or crosses a static surface.
-fn place_objects(
-    args: &RenderArgs,
-    field: &vlf_core::field::LightField,
-    bvh: &Bvh,
-) -> Result<Vec<vlf_core::dynamic::PlacedObject>> {
-    if args.object_at.len() > args.object.len() || args.object_turn.len() > args.object.len() {
-        bail!(
-            "{} --object-at and {} --object-turn for {} --object: at most one each per object",
-            args.object_at.len(),
-            args.object_turn.len(),
-            args.object.len()
-        );
-    }
-    let mut placed = Vec::new();
-    for (k, path) in args.object.iter().enumerate() {
-        let (object, warnings) =
-            DynamicObject::load(path).with_context(|| format!("cannot read the object {}", path.display()))?;
-        for w in &warnings {
-            tracing::warn!("{w}");
-        }
-        let turn = args.object_turn.get(k).copied().unwrap_or(0.0);
-        if !turn.is_finite() {
-            bail!("--object-turn must be finite, got {turn}");
-        }
-        let pose = Pose {
-            rotation: DQuat::from_axis_angle(args.view.up().normalize(), turn.to_radians()),
-            translation: args.object_at.get(k).copied().unwrap_or(DVec3::ZERO),
-        };
-        let object = object.place(&pose, &field.scene.normalisation)?;
-        object
-            .check_clear(&field.scene, bvh)
-            .with_context(|| format!("cannot place {} there", path.display()))?;
-        placed.push(object);
-    }
-    Ok(placed)
 }
 
 /// `--gpu`: the same view drawn by wgpu.

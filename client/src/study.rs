@@ -73,6 +73,11 @@ pub struct StudyArgs {
     /// The base point of the sweep (the other parameters stay at it).
     #[command(flatten)]
     job: JobFlags,
+    /// With --object: no sweep; the objects' pixels and their shadows against the path
+    /// tracer's render of the scene with them (`docs/dynamic.md`), propagated at the base
+    /// point, direct light from the field and exact.
+    #[command(flatten)]
+    objects: crate::objects::ObjectFlags,
 }
 
 fn numbers<T: std::str::FromStr>(name: &str, values: &[String]) -> Result<Vec<T>> {
@@ -108,6 +113,50 @@ fn pairs(values: &[String]) -> Result<Vec<(usize, u32)>> {
         .collect()
 }
 
+/// `vlf study --object`: the objects against the path tracer (`vlf_study::objects`).
+fn objects(args: &StudyArgs, camera: vlf_core::render::Camera, options: vlf_core::propagate::Options) -> Result<()> {
+    if args.reference.is_some() {
+        bail!("--object renders its two references with Mitsuba 3: drop --reference");
+    }
+    let scene = crate::propagate::import(&args.scene)?;
+    let bvh = vlf_core::render::Bvh::build(&scene);
+    let placed = args.objects.place(args.view.up(), &scene, &bvh)?;
+    let study = vlf_study::objects::ObjectStudy {
+        scene,
+        objects: placed,
+        camera,
+        samples: args.samples,
+        options,
+        direct_samples: args.direct_samples,
+        block: args.block,
+        reference: Mitsuba {
+            python: args.python.clone(),
+            spp: args.spp,
+            ladder: Vec::new(),
+            cache: args.cache.clone().unwrap_or_else(default_cache),
+        },
+        out: args.out.clone(),
+    };
+    let outcome = vlf_study::objects::run(&study, &mut |message| tracing::info!("{message}"))
+        .with_context(|| format!("object study of {} failed", args.scene.display()))?;
+    for r in &outcome.rows {
+        println!(
+            "direct light from the {}: objects {:+.2} % mean, {:.2} % relative RMSE; shadow region {:+.2} % mean, {:.2} % relative RMSE, depth {:.3} × the reference's",
+            r.direct,
+            r.objects.mean_error * 100.0,
+            r.objects.relative_rmse * 100.0,
+            r.shadow.mean_error * 100.0,
+            r.shadow.relative_rmse * 100.0,
+            r.depth_ratio
+        );
+    }
+    println!("wrote:");
+    for f in &outcome.files {
+        println!("  {}", f.display());
+    }
+    Ok(())
+}
+
 fn default_cache() -> PathBuf {
     let base = std::env::var_os("XDG_CACHE_HOME")
         .map(PathBuf::from)
@@ -125,6 +174,9 @@ pub fn run(args: StudyArgs) -> Result<()> {
     }
     let camera = args.view.camera(args.size)?;
     let spec = args.job.spec()?;
+    if !args.objects.is_empty() {
+        return objects(&args, camera, spec.options);
+    }
     let reference = match &args.reference {
         Some(path) => ReferenceSource::Image(path.clone()),
         None => ReferenceSource::Mitsuba(Mitsuba {

@@ -37,6 +37,17 @@ pub fn run(args: ViewArgs) -> Result<()> {
     if (args.turn != 0.0 || args.to.is_some()) && args.frames.is_none() {
         bail!("--turn and --to script a walk over --frames N; give --frames");
     }
+    if !args.object_to.is_empty() && args.frames.is_none() {
+        bail!("--object-to scripts the objects' moves over --frames N; give --frames");
+    }
+    if args.object_to.len() > args.objects.object.len() {
+        bail!(
+            "{} --object-to for {} --object: at most one per object",
+            args.object_to.len(),
+            args.objects.object.len()
+        );
+    }
+    args.objects.check()?;
     let specular = match args.specular {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
@@ -105,6 +116,24 @@ pub fn run(args: ViewArgs) -> Result<()> {
         stage,
         geometry.clone(),
     );
+    let objects = match args.objects.is_empty() {
+        true => None,
+        false => {
+            let bvh = vlf_core::render::Bvh::build(&geometry.scene);
+            let mut placement = vlf_viewer::Placement::new(args.objects.load(DVec3::Y)?, &geometry, &bvh)
+                .context("cannot place the objects there")?;
+            if let Some(frames) = args.frames
+                && !args.object_to.is_empty()
+            {
+                placement.script(args.object_to.iter().map(|&p| Some(p)).collect(), frames)?;
+            }
+            Some(vlf_viewer::ViewObjects {
+                placement,
+                directions: args.objects.directions(&geometry),
+                shadow_samples: args.objects.object_shadow_samples,
+            })
+        }
+    };
     let options = ViewOptions {
         title: title(&id, stage),
         size: args.size,
@@ -118,16 +147,27 @@ pub fn run(args: ViewArgs) -> Result<()> {
         loader: Some(loader),
         stream,
         settle: args.frames.is_some(),
+        objects,
     };
     let stats = vlf_viewer::view(geometry, source.into_part_source(), options)?;
     if stats.frames > 0 {
+        let first = stats.first_frame_seconds.unwrap_or(0.0);
+        let drawing = stats.seconds - first - stats.settle_seconds;
         println!(
-            "{} frames in {:.2} s ({:.1} fps) on {}; first frame after {:.2} s",
+            "{} frames in {:.2} s ({:.1} fps) on {}; first frame after {:.2} s; after it {:.1} fps drawing ({:.2} s waiting for parts left out)",
             stats.frames,
             stats.seconds,
             stats.frames as f64 / stats.seconds.max(1e-9),
             stats.adapter,
-            stats.first_frame_seconds.unwrap_or(f64::NAN)
+            stats.first_frame_seconds.unwrap_or(f64::NAN),
+            (stats.frames - 1) as f64 / drawing.max(1e-9),
+            stats.settle_seconds
+        );
+    }
+    if stats.refused_moves > 0 {
+        println!(
+            "{} object moves refused (into a wall or out of the scene)",
+            stats.refused_moves
         );
     }
     let s = &stats.stream;

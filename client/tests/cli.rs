@@ -941,17 +941,8 @@ fn view_draws_in_a_window_what_render_draws() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-/// `vlf render --object`: a cube placed in the Cornell box is drawn lit by the field (not
-/// black) and hides what is behind it; without shadows the pixels it does not cover are the
-/// static view's, bit for bit; with them, the room only darkens around it; a second object
-/// adds its own pixels; `--gpu` draws the same. Bad object input is refused clearly: an
-/// emitter, a missing file, a cube through the floor, one outside the box.
-#[test]
-fn render_draws_a_dynamic_object_lit_by_the_field() {
-    let out = temp("cornell");
-    let o = propagate(&out, "2");
-    assert!(o.status.success(), "{}", stderr(&o));
-    // A cube of side 100 around the origin of its own coordinates, no emitter.
+/// A cube of side 100 around the origin of its own coordinates, no emitter: `DIR/cube.obj`.
+fn write_cube(out: &Path) {
     let h = 50.0;
     let corners: Vec<[f64; 3]> = (0..8)
         .map(|i| {
@@ -972,6 +963,19 @@ fn render_draws_a_dynamic_object_lit_by_the_field() {
     }
     std::fs::write(out.join("cube.obj"), obj).unwrap();
     std::fs::write(out.join("cube.mtl"), "newmtl white\nKd 0.75 0.75 0.75\n").unwrap();
+}
+
+/// `vlf render --object`: a cube placed in the Cornell box is drawn lit by the field (not
+/// black) and hides what is behind it; without shadows the pixels it does not cover are the
+/// static view's, bit for bit; with them, the room only darkens around it; a second object
+/// adds its own pixels; `--gpu` draws the same. Bad object input is refused clearly: an
+/// emitter, a missing file, a cube through the floor, one outside the box.
+#[test]
+fn render_draws_a_dynamic_object_lit_by_the_field() {
+    let out = temp("cornell");
+    let o = propagate(&out, "2");
+    assert!(o.status.success(), "{}", stderr(&o));
+    write_cube(&out);
     let render = |extra: &[&str], image: &str| {
         let path = out.join(image);
         let mut args = [&["render", out.to_str().unwrap()][..], &CORNELL_VIEW[..]].concat();
@@ -1102,4 +1106,89 @@ fn render_draws_a_dynamic_object_lit_by_the_field() {
             "{off} pixels differ between the GPU and the CPU"
         );
     }
+}
+
+/// `vlf view --object`: a cube moved by a script (`--object-to`) over the frames is drawn at
+/// its end in the last frame exactly as `vlf render --gpu` draws it placed there: the object's
+/// buffers follow its moves, and the streamer fetched what its gather and shadow read. A
+/// script into the floor stops the cube at it (moves refused, said so), and a script without
+/// --frames is refused.
+#[test]
+fn view_moves_objects_as_render_places_them() {
+    let out = temp("view-objects");
+    let o = propagate(&out, "2");
+    assert!(o.status.success(), "{}", stderr(&o));
+    write_cube(&out);
+    let cube = out.join("cube.obj");
+    let camera = [&CORNELL_VIEW[..], &["--size", "64x48"][..]].concat();
+    let object = ["--object", cube.to_str().unwrap(), "--object-at", "278,260,200"];
+    let o = vlf(&[
+        &["view", out.to_str().unwrap()][..],
+        &camera,
+        &object,
+        &["--object-to", "150,350,200"],
+    ]
+    .concat());
+    assert!(
+        !o.status.success() && stderr(&o).contains("--object-to") && stderr(&o).contains("--frames"),
+        "{}",
+        stderr(&o)
+    );
+    let Some(display) = x_display() else { return };
+    let view = |extra: &[&str], shot: &Path| {
+        Command::new(env!("CARGO_BIN_EXE_vlf"))
+            .args(
+                [
+                    &["view", out.to_str().unwrap()][..],
+                    &camera,
+                    &object,
+                    &["--frames", "4", "--no-vsync", "--screenshot", shot.to_str().unwrap()],
+                    extra,
+                ]
+                .concat(),
+            )
+            .env("DISPLAY", &display.name)
+            .output()
+            .unwrap()
+    };
+    let shot = out.join("moved.pfm");
+    let o = view(&["--object-to", "150,350,200"], &shot);
+    if !gpu_available(&o) {
+        return;
+    }
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("4 frames") && !stdout.contains("refused"), "{stdout}");
+    let rendered = out.join("placed.pfm");
+    let o = vlf(&[
+        &["render", out.to_str().unwrap()][..],
+        &camera[..],
+        &["--object", cube.to_str().unwrap(), "--object-at", "150,350,200"],
+        &["--gpu", "--samples", "1", "--out", rendered.to_str().unwrap()],
+    ]
+    .concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let a = vlf_core::render::Image::load_pfm(&shot).unwrap();
+    let b = vlf_core::render::Image::load_pfm(&rendered).unwrap();
+    let differ = a.pixels.iter().zip(&b.pixels).filter(|(p, q)| p != q).count();
+    assert_eq!(
+        differ, 0,
+        "{differ} pixels of the view's last frame differ from render --gpu"
+    );
+    // Where the cube started the view shows something else: it did move.
+    let o = vlf(&[
+        &["render", out.to_str().unwrap()][..],
+        &camera[..],
+        &object[..],
+        &["--gpu", "--samples", "1", "--out", rendered.to_str().unwrap()],
+    ]
+    .concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let c = vlf_core::render::Image::load_pfm(&rendered).unwrap();
+    assert!(a.pixels != c.pixels);
+    // Into the floor: the cube stops where it touches it.
+    let o = view(&["--object-to", "278,-200,200"], &shot);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(stdout.contains("object moves refused"), "{stdout}");
+    let _ = std::fs::remove_dir_all(&out);
 }

@@ -18,6 +18,7 @@
 //!    maps.
 
 pub mod memory;
+pub mod objects;
 pub mod plot;
 pub mod reference;
 pub mod report;

@@ -7,8 +7,10 @@
 //!   whose target is 16 ms on a real GPU. Each iteration uploads the points, dispatches and
 //!   reads the result back;
 //! - whole 1280 × 720 frames (one sample a pixel, read back) with 1 and with 10 cubes of 3 072
-//!   triangles each: every object pixel gathered over the 513 directions, every static pixel
-//!   shadowed (K = 128 cells per object and the lamp's points).
+//!   triangles each: every object pixel gathered over the 513 directions, and the static scene
+//!   shadowed (K = 128 cells per object and the lamp's points) per fragment (`render --gpu`),
+//!   or per texel (`vlf view`) with the cubes standing still and with them moving every frame
+//!   (placed again, checked clear of the box, uploaded, shadows recomputed).
 //!
 //! Skips (with a message) where there is no adapter; lavapipe takes minutes a frame.
 
@@ -20,7 +22,7 @@ use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Material;
-use vlf_viewer::{FieldRenderer, Gpu, GpuGather};
+use vlf_viewer::{FieldRenderer, Gpu, GpuGather, Placement};
 
 /// A grey cube of half-size `h` around `c`, each face split into `split × split` squares.
 fn cube(c: DVec3, h: f64, split: usize) -> DynamicObject {
@@ -87,16 +89,44 @@ fn bench(c: &mut Criterion) {
     let mut group = c.benchmark_group(format!("GPU frame 1280x720 on {}", gpu.describe()));
     group.sample_size(10);
     for count in [1usize, 10] {
-        let objects: Vec<_> = (0..count)
+        let cubes: Vec<(DynamicObject, Pose)> = (0..count)
             .map(|k| {
                 let at = DVec3::new(90.0 + 95.0 * (k % 5) as f64, 250.0 + 170.0 * (k / 5) as f64, 150.0);
-                cube(at, 30.0, 16).place(&Pose::IDENTITY, &n).expect("a valid cube")
+                let pose = Pose {
+                    rotation: glam::DQuat::IDENTITY,
+                    translation: at,
+                };
+                (cube(DVec3::ZERO, 30.0, 16), pose)
             })
             .collect();
-        let cpu = Gatherer::new(&field, &bvh, &objects, SpecularMode::Rays).expect("gatherer");
-        let renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
-        group.bench_function(format!("{count} cubes of 3 072 triangles"), |b| {
-            b.iter(|| vlf_viewer::render(&gpu, &renderer, &camera, 1, SpecularMode::Rays).expect("frame"))
+        let ends: Vec<Option<DVec3>> = cubes
+            .iter()
+            .map(|(_, p)| Some(p.translation + DVec3::Z * 40.0))
+            .collect();
+        let mut placement = Placement::new(cubes, &field, &bvh).expect("clear of the box");
+        let (per_fragment, mut per_texel) = {
+            let cpu = Gatherer::new(&field, &bvh, placement.placed(), SpecularMode::Rays).expect("gatherer");
+            let a = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
+            let b = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
+            (a, b)
+        };
+        per_texel.shadows_per_texel(&gpu, &field).expect("texel shadows");
+        let frame = |r: &FieldRenderer| vlf_viewer::render(&gpu, r, &camera, 1, SpecularMode::Rays).expect("frame");
+        group.bench_function(format!("{count} cubes of 3 072 triangles, shadows per fragment"), |b| {
+            b.iter(|| frame(&per_fragment))
+        });
+        group.bench_function(format!("{count} cubes, shadows per texel, cubes still"), |b| {
+            b.iter(|| frame(&per_texel))
+        });
+        // As `vlf view --object-to` moves them: placed again, checked clear of the box, uploaded,
+        // their shadows recomputed per texel, drawn.
+        placement.script(ends, 1 << 40).expect("a script");
+        group.bench_function(format!("{count} cubes, shadows per texel, cubes moving"), |b| {
+            b.iter(|| {
+                placement.advance(1.0 / 60.0, 100.0, DVec3::NEG_Z, &field, &bvh);
+                per_texel.move_objects(&gpu, placement.placed()).expect("move");
+                frame(&per_texel)
+            })
         });
     }
     group.finish();

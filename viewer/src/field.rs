@@ -14,12 +14,15 @@
 //! polygon becomes a triangle fan whose vertices carry their texel coordinates in the polygon's
 //! grid, computed in f64 (see `shaders/field.wgsl`).
 
-use crate::objects::{ObjectData, StaticCounts};
+use crate::objects::{ObjectData, ObjectGeometry, ObjectsUniform, StaticCounts};
 use crate::pass::{READ_ONLY, bind_entry, buffer_entry, color_pass, uniform_buffer};
 use crate::rays::{NONE, RayTables};
+use crate::shadows::TexelShadows;
 use crate::{Gpu, ViewerError};
 use bytemuck::{Pod, Zeroable};
 use glam::{DMat4, DVec3, Mat4, Vec3};
+use std::cell::Cell;
+use vlf_core::dynamic::PlacedObject;
 use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
@@ -166,19 +169,32 @@ pub struct FieldRenderer {
     /// The buffers bound at 0..=12 of `shaders/field.wgsl` and `shaders/objects.wgsl`, in
     /// binding order, for other pipelines over the same field (the gather).
     pub(crate) bindings: [wgpu::Buffer; BINDINGS],
+    /// Where the objects' entries start in the buffers, and their layout (what a move must
+    /// keep).
+    objects: (StaticCounts, ObjectGeometry),
+    objects_uniform: ObjectsUniform,
+    /// The pass computing the objects' shadows per texel, once turned on
+    /// ([`FieldRenderer::shadows_per_texel`]).
+    texel_shadows: Option<TexelShadows>,
+    /// Whether the shadows per texel must be computed again before the next draw (objects
+    /// moved, parts arrived), and the mirror mode they were computed for.
+    shadows_stale: Cell<bool>,
+    shadows_mode: Cell<Option<MirrorMode>>,
 }
 
 /// Buffers of the field and its objects, bound at 0..BINDINGS.
-pub(crate) const BINDINGS: usize = 13;
+pub(crate) const BINDINGS: usize = 14;
 
 /// The layout of the field's and objects' bindings as `stages` read them: the view uniform
-/// (the vertex stage reads it too), seven storage buffers of the field, the objects' uniform
-/// and four storage buffers of the objects.
+/// (the vertex stage reads it too), seven storage buffers of the field, the objects' uniform,
+/// four storage buffers of the objects and their shadows per texel (written by
+/// [`crate::shadows`]).
 pub(crate) fn binding_layout(stages: wgpu::ShaderStages) -> Vec<wgpu::BindGroupLayoutEntry> {
     (0..BINDINGS as u32)
         .map(|b| match b {
             0 => buffer_entry(0, stages | wgpu::ShaderStages::VERTEX, wgpu::BufferBindingType::Uniform),
             8 => buffer_entry(8, stages, wgpu::BufferBindingType::Uniform),
+            13 => buffer_entry(13, stages, wgpu::BufferBindingType::Storage { read_only: false }),
             _ => buffer_entry(b, stages, READ_ONLY),
         })
         .collect()
@@ -208,6 +224,19 @@ impl FieldRenderer {
     /// `capacity` RGB values and no part resident: radiance comes with [`FieldRenderer::upload`].
     pub fn streaming(gpu: &Gpu, field: &LightField, capacity: usize) -> Result<FieldRenderer, ViewerError> {
         FieldRenderer::build(gpu, field, capacity, None)
+    }
+
+    /// [`FieldRenderer::streaming`] with the dynamic objects of `gatherer`, as
+    /// [`FieldRenderer::with_objects`] draws them; they move with
+    /// [`FieldRenderer::move_objects`]. While a surface the gather reads is not resident, the
+    /// gather's mean leaves it out (see `shaders/objects.wgsl`).
+    pub fn streaming_with_objects(
+        gpu: &Gpu,
+        field: &LightField,
+        capacity: usize,
+        gatherer: &Gatherer,
+    ) -> Result<FieldRenderer, ViewerError> {
+        FieldRenderer::build(gpu, field, capacity, Some(gatherer))
     }
 
     /// [`FieldRenderer::new`] with the dynamic objects of `gatherer` (which must be over
@@ -299,21 +328,20 @@ impl FieldRenderer {
         let mut nodes: Vec<GpuNode> = bvh.nodes().iter().map(gpu_node).collect();
         let mut primitives: Vec<u32> = bvh.primitives().to_vec();
         // Dynamic objects after the scene (see `objects.rs`).
-        let objects = ObjectData::new(
-            scene,
-            gatherer,
-            StaticCounts {
-                surfaces: surfaces.len(),
-                polygon_vertices: polygon_vertices.len(),
-                nodes: nodes.len(),
-                primitives: primitives.len(),
-            },
-        );
-        surfaces.extend_from_slice(&objects.surfaces);
-        polygon_vertices.extend_from_slice(&objects.polygon_vertices);
-        nodes.extend_from_slice(&objects.nodes);
-        primitives.extend_from_slice(&objects.primitives);
-        vertices.extend_from_slice(&objects.raster);
+        let counts = StaticCounts {
+            vertices: vertices.len(),
+            surfaces: surfaces.len(),
+            polygon_vertices: polygon_vertices.len(),
+            nodes: nodes.len(),
+            primitives: primitives.len(),
+        };
+        let objects = ObjectData::new(scene, gatherer, counts);
+        let moving = &objects.geometry;
+        surfaces.extend_from_slice(&moving.surfaces);
+        polygon_vertices.extend_from_slice(&moving.polygon_vertices);
+        nodes.extend_from_slice(&moving.nodes);
+        primitives.extend_from_slice(&moving.primitives);
+        vertices.extend_from_slice(&moving.raster);
         // Every storage buffer must fit one binding, and the shader indexes them with u32 words.
         let limit = gpu
             .limits
@@ -349,7 +377,8 @@ impl FieldRenderer {
                 device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                     label: Some(label),
                     contents: &nonempty(contents, 256),
-                    usage: wgpu::BufferUsages::STORAGE,
+                    // Written again where objects move.
+                    usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
                 })
             };
             let surfaces = storage("surfaces", bytemuck::cast_slice(&surfaces));
@@ -372,14 +401,25 @@ impl FieldRenderer {
             let vertices = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("vertices"),
                 contents: &nonempty(bytemuck::cast_slice(&vertices), 4),
-                usage: wgpu::BufferUsages::VERTEX,
+                usage: wgpu::BufferUsages::VERTEX | wgpu::BufferUsages::COPY_DST,
             });
             let objects_uniform = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("objects"),
                 contents: bytemuck::bytes_of(&objects.uniform),
-                usage: wgpu::BufferUsages::UNIFORM,
+                usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
             });
-            let spheres = storage("object spheres", bytemuck::cast_slice(&objects.spheres));
+            // As large as the pool where objects cast shadows per texel; a stub without objects.
+            let shadow_pool = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("shadow pool"),
+                size: if gatherer.is_some() {
+                    (capacity as u64 * 12).max(256)
+                } else {
+                    256
+                },
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            });
+            let spheres = storage("object spheres", bytemuck::cast_slice(&moving.spheres));
             let directions = storage("gather directions", bytemuck::cast_slice(&objects.directions));
             let emitter_points = storage("emitter points", bytemuck::cast_slice(&objects.emitter_points));
             let emitter_groups = storage("emitter groups", bytemuck::cast_slice(&objects.emitter_groups));
@@ -406,6 +446,7 @@ impl FieldRenderer {
                 directions,
                 emitter_points,
                 emitter_groups,
+                shadow_pool,
             ];
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some("field"),
@@ -478,7 +519,102 @@ impl FieldRenderer {
                 vertex_count,
                 normalisation: scene.normalisation,
                 bindings,
+                objects: (counts, objects.geometry.clone()),
+                objects_uniform: objects.uniform,
+                texel_shadows: None,
+                shadows_stale: Cell::new(true),
+                shadows_mode: Cell::new(None),
             }
+        })
+    }
+
+    /// Moves the objects to where `objects` have them: the same objects as the renderer was
+    /// built with (the same surfaces, in the same order), at other poses. Takes effect at the
+    /// next submission.
+    pub fn move_objects(&self, gpu: &Gpu, objects: &[PlacedObject]) -> Result<(), ViewerError> {
+        let (counts, layout) = &self.objects;
+        let moved = ObjectGeometry::new(objects, counts);
+        if !layout.same_layout(&moved) {
+            return Err(ViewerError::Unsupported(format!(
+                "{} objects of {} surfaces moved, but the view was built for {} of {}",
+                moved.spheres.len(),
+                moved.surfaces.len(),
+                layout.spheres.len(),
+                layout.surfaces.len()
+            )));
+        }
+        let write = |buffer: &wgpu::Buffer, first: usize, item: usize, bytes: &[u8]| {
+            if !bytes.is_empty() {
+                gpu.queue.write_buffer(buffer, (first * item) as u64, bytes);
+            }
+        };
+        let b = &self.bindings;
+        write(
+            &b[1],
+            counts.surfaces,
+            std::mem::size_of::<GpuSurface>(),
+            bytemuck::cast_slice(&moved.surfaces),
+        );
+        write(
+            &b[3],
+            counts.polygon_vertices,
+            16,
+            bytemuck::cast_slice(&moved.polygon_vertices),
+        );
+        write(
+            &b[4],
+            counts.nodes,
+            std::mem::size_of::<GpuNode>(),
+            bytemuck::cast_slice(&moved.nodes),
+        );
+        write(&b[5], counts.primitives, 4, bytemuck::cast_slice(&moved.primitives));
+        write(&b[9], 0, 16, bytemuck::cast_slice(&moved.spheres));
+        write(
+            &self.vertices,
+            counts.vertices,
+            std::mem::size_of::<Vertex>(),
+            bytemuck::cast_slice(&moved.raster),
+        );
+        self.shadows_stale.set(true);
+        Ok(())
+    }
+
+    /// Casts the objects' shadows per texel of the static charts from now on, rather than per
+    /// fragment: computed for every resident texel when the objects move or parts arrive
+    /// ([`crate::shadows`]), read bilinearly like the radiance. A walk whose objects stand
+    /// still then pays nothing for their shadows, and a moving object pays per texel, not per
+    /// pixel; the shadow is as sharp as the radiance maps (the field's own resolution), where
+    /// per fragment it is as sharp as the pixels. A renderer without objects is left as it is.
+    pub fn shadows_per_texel(&mut self, gpu: &Gpu, field: &LightField) -> Result<(), ViewerError> {
+        if self.objects_uniform.count == 0 || self.texel_shadows.is_some() {
+            return Ok(());
+        }
+        self.texel_shadows = Some(TexelShadows::new(gpu, &self.bindings, field)?);
+        self.objects_uniform.shadow_texels = 1;
+        gpu.queue
+            .write_buffer(&self.bindings[8], 0, bytemuck::bytes_of(&self.objects_uniform));
+        self.shadows_stale.set(true);
+        Ok(())
+    }
+
+    /// What every value of the pool loses to the objects' shadows, as last computed per texel
+    /// (zeros before): for tests.
+    pub fn texel_shadows(&self, gpu: &Gpu) -> Result<Vec<[f32; 3]>, ViewerError> {
+        let size = (self.capacity * 12) as u64;
+        let readback = gpu.checked(|| {
+            let readback = gpu.device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("shadow readback"),
+                size: size.max(4),
+                usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+                mapped_at_creation: false,
+            });
+            let mut encoder = gpu.device.create_command_encoder(&Default::default());
+            encoder.copy_buffer_to_buffer(&self.bindings[13], 0, &readback, 0, size.min(self.bindings[13].size()));
+            gpu.queue.submit([encoder.finish()]);
+            readback
+        })?;
+        gpu.read_mapped(&readback, |bytes| {
+            bytemuck::cast_slice::<u8, [f32; 3]>(&bytes[..size as usize]).to_vec()
         })
     }
 
@@ -511,6 +647,8 @@ impl FieldRenderer {
         }
         gpu.queue
             .write_buffer(&self.parts, part as u64 * 4, bytemuck::bytes_of(&(base as u32)));
+        // A texel's shadow reads the radiance behind the objects: new parts change it.
+        self.shadows_stale.set(true);
         Ok(())
     }
 
@@ -578,6 +716,14 @@ impl FieldRenderer {
             _pad: [0; 2],
         };
         gpu.queue.write_buffer(&self.view, 0, bytemuck::bytes_of(&uniform));
+        if let Some(shadows) = &self.texel_shadows
+            && (self.shadows_stale.get() || self.shadows_mode.get() != Some(viewpoint.mirrors))
+        {
+            // Before the view in the same submission: it reads them.
+            shadows.dispatch(encoder);
+            self.shadows_stale.set(false);
+            self.shadows_mode.set(Some(viewpoint.mirrors));
+        }
         let depth = wgpu::RenderPassDepthStencilAttachment {
             view: depth,
             depth_ops: Some(wgpu::Operations {

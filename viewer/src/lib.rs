@@ -31,7 +31,9 @@ pub mod headless;
 mod objects;
 pub mod overlay;
 pub mod pass;
+pub mod placement;
 pub mod rays;
+mod shadows;
 pub mod stream;
 pub mod tonemap;
 pub mod walk;
@@ -41,9 +43,10 @@ pub use field::{FieldRenderer, MirrorMode, Viewpoint};
 pub use gather::GpuGather;
 pub use gpu::Gpu;
 pub use headless::render;
+pub use placement::{ObjectMove, Placement};
 pub use stream::{PartSource, StreamConfig, StreamStats, Streamer};
 pub use walk::Walk;
-pub use window::{Loaded, Loader, Switch, ViewOptions, ViewStats, view};
+pub use window::{Loaded, Loader, Switch, ViewObjects, ViewOptions, ViewStats, view};
 
 /// What can go wrong drawing on the GPU.
 #[derive(Debug, thiserror::Error)]

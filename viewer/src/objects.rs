@@ -11,6 +11,7 @@ use crate::field::{GpuNode, GpuSurface, Vertex};
 use crate::rays::NONE;
 use bytemuck::{Pod, Zeroable};
 use glam::DVec3;
+use vlf_core::dynamic::PlacedObject;
 use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::render::Bvh;
 use vlf_core::scene::{Normalisation, Scene};
@@ -21,15 +22,19 @@ use vlf_core::scene::{Normalisation, Scene};
 pub(crate) struct ObjectsUniform {
     first_surface: u32,
     root: u32,
-    count: u32,
+    pub count: u32,
     directions: u32,
     shadow_cells: u32,
     emitter_groups: u32,
-    _pad: [u32; 2],
+    /// 1 where static surfaces read their shadows per texel.
+    pub shadow_texels: u32,
+    _pad: u32,
 }
 
 /// Where the static scene's arrays end: the objects' entries go after.
+#[derive(Clone, Copy)]
 pub(crate) struct StaticCounts {
+    pub vertices: usize,
     pub surfaces: usize,
     pub polygon_vertices: usize,
     pub nodes: usize,
@@ -38,15 +43,8 @@ pub(crate) struct StaticCounts {
 
 /// Everything the objects add, ready to upload.
 pub(crate) struct ObjectData {
-    pub surfaces: Vec<GpuSurface>,
-    pub polygon_vertices: Vec<[f32; 4]>,
-    pub nodes: Vec<GpuNode>,
-    pub primitives: Vec<u32>,
-    /// The objects' triangles for the rasteriser.
-    pub raster: Vec<Vertex>,
+    pub geometry: ObjectGeometry,
     pub uniform: ObjectsUniform,
-    /// Per object: bounding sphere centre and radius.
-    pub spheres: Vec<[f32; 4]>,
     /// Per gather direction: unit vector and weight.
     pub directions: Vec<[f32; 4]>,
     /// Per emitter point: position, then power.
@@ -56,31 +54,40 @@ pub(crate) struct ObjectData {
     pub emitter_groups: Vec<[u32; 4]>,
 }
 
+/// What moves with the objects: their surfaces, their BVH, their triangles for the rasteriser
+/// and their bounding spheres.
+#[derive(Clone)]
+pub(crate) struct ObjectGeometry {
+    pub surfaces: Vec<GpuSurface>,
+    pub polygon_vertices: Vec<[f32; 4]>,
+    pub nodes: Vec<GpuNode>,
+    pub primitives: Vec<u32>,
+    /// The objects' triangles for the rasteriser.
+    pub raster: Vec<Vertex>,
+    /// The BVH's root among all nodes, `NONE` without surfaces.
+    pub root: u32,
+    /// Per object: bounding sphere centre and radius.
+    pub spheres: Vec<[f32; 4]>,
+}
+
 impl ObjectData {
     /// The layout of `gatherer`'s objects (none without one) after a static `scene` of
     /// `counts`.
     pub fn new(scene: &Scene, gatherer: Option<&Gatherer>, counts: StaticCounts) -> ObjectData {
         let objects = gatherer.map_or(&[][..], |g| g.objects());
-        let first_surface = counts.surfaces as u32;
+        let geometry = ObjectGeometry::new(objects, &counts);
         let mut data = ObjectData {
-            surfaces: Vec::new(),
-            polygon_vertices: Vec::new(),
-            nodes: Vec::new(),
-            primitives: Vec::new(),
-            raster: Vec::new(),
             uniform: ObjectsUniform {
-                first_surface,
-                root: NONE,
+                first_surface: counts.surfaces as u32,
+                root: geometry.root,
                 count: objects.len() as u32,
                 directions: 0,
                 shadow_cells: 0,
                 emitter_groups: 0,
-                _pad: [0; 2],
+                shadow_texels: 0,
+                _pad: 0,
             },
-            spheres: objects
-                .iter()
-                .map(|o| o.center.as_vec3().extend(o.radius as f32).to_array())
-                .collect(),
+            geometry,
             directions: Vec::new(),
             emitter_points: Vec::new(),
             emitter_groups: Vec::new(),
@@ -88,51 +95,6 @@ impl ObjectData {
         let Some(gatherer) = gatherer else {
             return data;
         };
-        for o in objects {
-            for surface in &o.scene.surfaces {
-                let material = &o.scene.materials[surface.material];
-                let index = first_surface + data.surfaces.len() as u32;
-                data.surfaces.push(GpuSurface {
-                    first_vertex: (counts.polygon_vertices + data.polygon_vertices.len()) as u32,
-                    vertex_count: surface.vertices.len() as u32,
-                    ..GpuSurface::object(surface.normal, surface.offset, material)
-                });
-                data.polygon_vertices
-                    .extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
-                for k in 1..surface.vertices.len().saturating_sub(1) {
-                    for v in [surface.vertices[0], surface.vertices[k], surface.vertices[k + 1]] {
-                        data.raster.push(Vertex {
-                            position: v.as_vec3().to_array(),
-                            texel: [0.0; 2],
-                            surface: index,
-                        });
-                    }
-                }
-            }
-        }
-        let all = Scene {
-            surfaces: objects.iter().flat_map(|o| o.scene.surfaces.iter().cloned()).collect(),
-            materials: Vec::new(),
-            normalisation: Normalisation {
-                center: DVec3::ZERO,
-                scale: 1.0,
-            },
-            textures: Vec::new(),
-        };
-        if !all.surfaces.is_empty() {
-            let bvh = Bvh::build(&all);
-            let (first_node, first_primitive) = (counts.nodes as u32, counts.primitives as u32);
-            data.nodes = (bvh.nodes().iter())
-                .map(|n| GpuNode {
-                    min: n.min,
-                    max: n.max,
-                    index: n.index + if n.count > 0 { first_primitive } else { first_node },
-                    count: n.count,
-                })
-                .collect();
-            data.primitives = bvh.primitives().iter().map(|&p| p + first_surface).collect();
-            data.uniform.root = first_node;
-        }
         let set = gatherer.directions();
         data.directions = (0..set.len())
             .map(|d| {
@@ -168,5 +130,86 @@ impl ObjectData {
         }
         data.uniform.emitter_groups = (data.emitter_groups.len() / 4) as u32;
         data
+    }
+}
+
+impl ObjectGeometry {
+    /// The surfaces, BVH, triangles and spheres of `objects` after a static scene of `counts`.
+    /// The node array always holds `2·surfaces` entries (a BVH over P primitives has at most
+    /// 2P − 1 nodes; unused ones are zero): objects moved to other poses get BVHs of other
+    /// shapes, written over the same buffers ([`crate::FieldRenderer::move_objects`]).
+    pub fn new(objects: &[PlacedObject], counts: &StaticCounts) -> ObjectGeometry {
+        let first_surface = counts.surfaces as u32;
+        let mut geometry = ObjectGeometry {
+            surfaces: Vec::new(),
+            polygon_vertices: Vec::new(),
+            nodes: Vec::new(),
+            primitives: Vec::new(),
+            raster: Vec::new(),
+            root: NONE,
+            spheres: objects
+                .iter()
+                .map(|o| o.center.as_vec3().extend(o.radius as f32).to_array())
+                .collect(),
+        };
+        for o in objects {
+            for surface in &o.scene.surfaces {
+                let material = &o.scene.materials[surface.material];
+                let index = first_surface + geometry.surfaces.len() as u32;
+                geometry.surfaces.push(GpuSurface {
+                    first_vertex: (counts.polygon_vertices + geometry.polygon_vertices.len()) as u32,
+                    vertex_count: surface.vertices.len() as u32,
+                    ..GpuSurface::object(surface.normal, surface.offset, material)
+                });
+                geometry
+                    .polygon_vertices
+                    .extend(surface.vertices.iter().map(|v| v.as_vec3().extend(0.0).to_array()));
+                for k in 1..surface.vertices.len().saturating_sub(1) {
+                    for v in [surface.vertices[0], surface.vertices[k], surface.vertices[k + 1]] {
+                        geometry.raster.push(Vertex {
+                            position: v.as_vec3().to_array(),
+                            texel: [0.0; 2],
+                            surface: index,
+                        });
+                    }
+                }
+            }
+        }
+        let all = Scene {
+            surfaces: objects.iter().flat_map(|o| o.scene.surfaces.iter().cloned()).collect(),
+            materials: Vec::new(),
+            normalisation: Normalisation {
+                center: DVec3::ZERO,
+                scale: 1.0,
+            },
+            textures: Vec::new(),
+        };
+        if !all.surfaces.is_empty() {
+            let bvh = Bvh::build(&all);
+            let (first_node, first_primitive) = (counts.nodes as u32, counts.primitives as u32);
+            geometry.nodes = (bvh.nodes().iter())
+                .map(|n| GpuNode {
+                    min: n.min,
+                    max: n.max,
+                    index: n.index + if n.count > 0 { first_primitive } else { first_node },
+                    count: n.count,
+                })
+                .collect();
+            geometry.nodes.resize(2 * all.surfaces.len(), GpuNode::zeroed());
+            geometry.primitives = bvh.primitives().iter().map(|&p| p + first_surface).collect();
+            geometry.root = first_node;
+        }
+        geometry
+    }
+
+    /// Whether `other` fits the buffers laid out for `self`: the same surfaces, polygons and
+    /// triangles (objects moved, not changed).
+    pub fn same_layout(&self, other: &ObjectGeometry) -> bool {
+        self.surfaces.len() == other.surfaces.len()
+            && self.polygon_vertices.len() == other.polygon_vertices.len()
+            && self.nodes.len() == other.nodes.len()
+            && self.primitives.len() == other.primitives.len()
+            && self.raster.len() == other.raster.len()
+            && self.spheres.len() == other.spheres.len()
     }
 }

@@ -19,7 +19,16 @@
 //! | + / − | exposure ±½ stop |
 //! | P | save a screenshot (the linear frame, tone-mapped as on screen, or linear for `.pfm`) |
 //! | [ / ] / L | the previous / next / latest snapshot (watch a running job converge) |
+//! | Tab | select the next dynamic object |
+//! | T F G H | move the selected object forward, left, back, right (level, as the eye looks) |
+//! | R / Y | move it down / up |
+//! | Z / X | turn it left / right about the vertical through its centre |
 //! | Esc | quit |
+//!
+//! Dynamic objects ([`crate::placement`]) are drawn lit by the field's gather and casting
+//! shadows, as `vlf render --gpu --object` draws them; a move that would take one into a wall
+//! is refused. The streamer fetches what they read (the surfaces seen from around them) after
+//! what the camera sees; until it arrives, their gather averages the light already resident.
 //!
 //! Switching snapshots opens the other stage on a thread of its own (through the caller's
 //! [`Loader`]); the walk goes on meanwhile, and streaming starts again from the new source.
@@ -27,14 +36,19 @@
 use crate::field::MirrorMode;
 use crate::frame::Frame;
 use crate::overlay::Overlay;
+use crate::placement::{ObjectMove, Placement};
 use crate::stream::{PartSource, StreamConfig, StreamStats, Streamer};
 use crate::tonemap::Tonemap;
 use crate::walk::{Move, Walk};
 use crate::{FieldRenderer, Gpu, ViewerError};
+use glam::DVec3;
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, mpsc};
 use std::time::Instant;
+use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::field::LightField;
+use vlf_core::lookup::SpecularMode;
+use vlf_core::render::Bvh;
 use winit::application::ApplicationHandler;
 use winit::dpi::PhysicalSize;
 use winit::event::{ElementState, MouseScrollDelta, WindowEvent};
@@ -85,6 +99,17 @@ pub struct ViewOptions {
     /// runs and screenshots then show the complete view. Given up (with a warning) after a
     /// frame waited two minutes.
     pub settle: bool,
+    /// Dynamic objects to draw and move.
+    pub objects: Option<ViewObjects>,
+}
+
+/// The dynamic objects of a view and how they are shaded.
+pub struct ViewObjects {
+    pub placement: Placement,
+    /// Lines of the gather's direction set (one of `DirectionSet::SUPPORTED`).
+    pub directions: usize,
+    /// Cells of each object's shadow cone (0: no shadows).
+    pub shadow_samples: u32,
 }
 
 /// What a viewing session did.
@@ -98,6 +123,11 @@ pub struct ViewStats {
     pub screenshots: Vec<PathBuf>,
     /// How streaming stood at the end.
     pub stream: StreamStats,
+    /// Seconds spent waiting for parts (`settle`) after the first frame: the frame rate
+    /// without them, and without the first frame, is the drawing's own.
+    pub settle_seconds: f64,
+    /// Object moves refused (into a wall, out of the scene).
+    pub refused_moves: u64,
 }
 
 /// Opens the window on `geometry` (a field whose radiance is not read: it streams from
@@ -114,7 +144,9 @@ pub fn view(
     })?;
     event_loop.set_control_flow(ControlFlow::Poll);
     let (sender, loaded) = std::sync::mpsc::channel();
+    let bvh = Bvh::build(&geometry.scene);
     let mut app = App {
+        bvh,
         loader: options.loader.take().map(|l| Arc::new(Mutex::new(l))),
         loading: false,
         sender,
@@ -137,6 +169,8 @@ pub fn view(
 }
 
 struct App {
+    /// The static scene's BVH (where objects may go, the gather's layout).
+    bvh: Bvh,
     loader: Option<Arc<Mutex<Loader>>>,
     /// Whether a snapshot is being loaded.
     loading: bool,
@@ -161,8 +195,8 @@ struct State {
     gpu: Gpu,
     renderer: FieldRenderer,
     streamer: Streamer,
-    /// The camera and mirror mode the streamer last planned for.
-    planned: Option<(vlf_core::render::Camera, MirrorMode)>,
+    /// The camera, mirror mode and objects' spheres the streamer last planned for.
+    planned: Option<crate::stream::View>,
     tonemap: Tonemap,
     status: Overlay,
     frame: Frame,
@@ -271,7 +305,24 @@ impl App {
             );
             config.capacity = limit as usize;
         }
-        let renderer = FieldRenderer::streaming(gpu, &self.geometry, config.capacity)?;
+        let renderer = match &self.options.objects {
+            None => FieldRenderer::streaming(gpu, &self.geometry, config.capacity)?,
+            Some(o) => {
+                let mode = match self.options.mirrors {
+                    MirrorMode::Rays => SpecularMode::Rays,
+                    MirrorMode::Trace { depth } => SpecularMode::Trace { depth },
+                };
+                let gatherer =
+                    Gatherer::with_directions(&self.geometry, &self.bvh, o.placement.placed(), mode, o.directions)
+                        .map_err(|e| ViewerError::Unsupported(e.to_string()))?
+                        .with_shadow_samples(o.shadow_samples);
+                let mut renderer =
+                    FieldRenderer::streaming_with_objects(gpu, &self.geometry, config.capacity, &gatherer)?;
+                // Shadows per texel: a walk pays for them when objects move, not every frame.
+                renderer.shadows_per_texel(gpu, &self.geometry)?;
+                renderer
+            }
+        };
         let streamer = Streamer::start(self.geometry.clone(), source, config);
         Ok((renderer, streamer))
     }
@@ -286,23 +337,39 @@ impl App {
         let dt = now.duration_since(s.last).as_secs_f64().min(0.25);
         s.last = now;
         self.options.walk.advance(dt);
-        let camera = self
-            .options
-            .walk
+        let walk = &self.options.walk;
+        let camera = walk
             .camera(s.config.width, s.config.height)
             .map_err(|e| ViewerError::Unsupported(e.to_string()))?;
-        // The streamer plans for the camera when it moved; what arrived meanwhile is uploaded.
-        let view = (camera, self.options.mirrors);
-        if s.planned != Some(view) {
-            s.streamer.look(camera, self.options.mirrors);
-            s.planned = Some(view);
+        let mut spheres = Vec::new();
+        if let Some(o) = &mut self.options.objects {
+            if o.placement
+                .advance(dt, walk.speed, walk.forward(), &self.geometry, &self.bvh)
+            {
+                s.renderer.move_objects(&s.gpu, o.placement.placed())?;
+            }
+            spheres = o.placement.spheres();
         }
+        // The streamer plans for the camera when it moved, or when an object moved far from
+        // where it was planned for; what arrived meanwhile is uploaded.
+        let replan = match &s.planned {
+            Some((c, m, planned)) => *c != camera || *m != self.options.mirrors || moved_far(planned, &spheres),
+            None => true,
+        };
+        if replan {
+            s.streamer.look_around(camera, self.options.mirrors, spheres.clone());
+            s.planned = Some((camera, self.options.mirrors, spheres));
+        }
+        let settling = Instant::now();
         if self.options.settle && !s.streamer.wait_idle(SETTLE_TIMEOUT) {
             tracing::warn!(
                 "the view's parts did not arrive in {SETTLE_TIMEOUT:?} ({:?}); drawing on without waiting",
                 s.streamer.stats().error
             );
             self.options.settle = false;
+        }
+        if self.stats.frames > 0 {
+            self.stats.settle_seconds += settling.elapsed().as_secs_f64();
         }
         s.streamer.apply(&s.gpu, &s.renderer)?;
         let texture = match s.surface.get_current_texture() {
@@ -345,8 +412,12 @@ impl App {
                 MirrorMode::Trace { depth: 0 } => "mirrors without reflections".to_string(),
                 MirrorMode::Trace { depth } => format!("mirrors traced {depth} deep"),
             };
+            let selected = match self.options.objects.as_ref().and_then(|o| o.placement.selected()) {
+                Some((k, name)) => format!(" | object {} '{name}'", k + 1),
+                None => String::new(),
+            };
             let line = format!(
-                "{:.1} fps | {}x{} | {mode} | exposure {:+.1} | speed {:.3} | {}",
+                "{:.1} fps | {}x{} | {mode} | exposure {:+.1} | speed {:.3}{selected} | {}",
                 s.fps,
                 s.config.width,
                 s.config.height,
@@ -432,6 +503,23 @@ impl App {
             walk.set(m, pressed);
             return;
         }
+        let object_move = match code {
+            KeyCode::KeyT => Some(ObjectMove::Forward),
+            KeyCode::KeyG => Some(ObjectMove::Back),
+            KeyCode::KeyF => Some(ObjectMove::Left),
+            KeyCode::KeyH => Some(ObjectMove::Right),
+            KeyCode::KeyR => Some(ObjectMove::Down),
+            KeyCode::KeyY => Some(ObjectMove::Up),
+            KeyCode::KeyZ => Some(ObjectMove::TurnLeft),
+            KeyCode::KeyX => Some(ObjectMove::TurnRight),
+            _ => None,
+        };
+        if let Some(m) = object_move {
+            if let Some(o) = &mut self.options.objects {
+                o.placement.set(m, pressed);
+            }
+            return;
+        }
         if !pressed {
             return;
         }
@@ -449,6 +537,11 @@ impl App {
             KeyCode::BracketLeft => self.switch(Switch::Previous),
             KeyCode::BracketRight => self.switch(Switch::Next),
             KeyCode::KeyL => self.switch(Switch::Latest),
+            KeyCode::Tab => {
+                if let Some(o) = &mut self.options.objects {
+                    o.placement.select_next();
+                }
+            }
             KeyCode::KeyP | KeyCode::F12 => {
                 let n = self.stats.screenshots.len() + 1;
                 let path = self.options.screenshot_dir.join(format!("vlf-{n}.png"));
@@ -551,7 +644,21 @@ impl ApplicationHandler for App {
         if let Some(s) = &self.state {
             self.stats.stream = s.streamer.stats();
         }
+        if let Some(o) = &self.options.objects {
+            self.stats.refused_moves = o.placement.refused;
+        }
     }
+}
+
+/// Whether an object moved from where the streamer planned for it by more than a quarter of
+/// its radius (or objects came or went): what it reads changes little over shorter moves, and
+/// planning again every frame of a slow move would only keep the streaming thread busy.
+fn moved_far(planned: &[(DVec3, f64)], now: &[(DVec3, f64)]) -> bool {
+    planned.len() != now.len()
+        || planned
+            .iter()
+            .zip(now)
+            .any(|(a, b)| a.0.distance(b.0) > 0.25 * a.1.min(b.1))
 }
 
 /// The streaming part of the status line: parts resident (and their size) and in flight, bytes

@@ -243,3 +243,221 @@ fn the_gpu_casts_the_shadows_the_cpu_casts() {
         }
     }
 }
+
+/// While the surfaces an object gathers from stream in, its gather is the mean over those
+/// resident, not a mean with the missing ones black: in a field whose radiance is L everywhere,
+/// a cube gathers L with only some of the field's parts resident, as with all of them.
+#[test]
+fn a_gather_over_missing_parts_averages_what_is_resident() {
+    let Some(gpu) = gpu() else { return };
+    // The Cornell box closed by a front wall (at z = 0, facing in), so that every gather ray
+    // meets a surface.
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cornell.obj");
+    let (mut scene, _) = vlf_core::scene::load_obj(&path, &Default::default()).unwrap();
+    let n = scene.normalisation;
+    let corners = [(0.0, 0.0), (555.0, 0.0), (555.0, 555.0), (0.0, 555.0)];
+    let front = corners.map(|(x, y)| n.to_vlf(DVec3::new(x, y, 0.0))).to_vec();
+    let origin = vlf_core::scene::FaceOrigin { line: 0, face: 0 };
+    scene
+        .surfaces
+        .push(vlf_core::scene::Surface::from_vertices(front, 0, origin).unwrap());
+    let options = vlf_core::propagate::Options {
+        directions: 9,
+        grid: vlf_core::psf::GridSize::new(32, 8).unwrap(),
+        stop: vlf_core::propagate::Stop::Iterations(1),
+        texel_cells: 0.1,
+        ..Default::default()
+    };
+    let mut field = vlf_core::propagate::Propagation::new(scene, options)
+        .unwrap()
+        .into_field();
+    let l = 0.37f32;
+    field.radiance.iter_mut().for_each(|v| *v = [l; 3]);
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
+    assert!(catalog.chunks() >= 3, "{} chunks", catalog.chunks());
+    let bvh = Bvh::build(&field.scene);
+    let (c, h) = (DVec3::new(200.0, 420.0, 200.0), 40.0);
+    let placed = vec![cube(c, h).place(&Pose::IDENTITY, &field.scene.normalisation).unwrap()];
+    placed[0].check_clear(&field.scene, &bvh).unwrap();
+    let gatherer = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 129).unwrap();
+    let points: Vec<(DVec3, DVec3)> = points(&field, c, h).into_iter().take(20).collect();
+    let renderer = FieldRenderer::streaming_with_objects(&gpu, &field, catalog.total_values(), &gatherer).unwrap();
+    // Every other part resident.
+    let mut base = 0;
+    for i in (0..catalog.len() as u32).step_by(2) {
+        renderer.upload(&gpu, i, base, field.part_values(&catalog, i)).unwrap();
+        base += catalog.values(i);
+    }
+    let got = GpuGather::new(&gpu, &renderer, SpecularMode::Rays.into())
+        .unwrap()
+        .incident(&gpu, &points)
+        .unwrap();
+    for (k, g) in got.iter().enumerate() {
+        for c in g {
+            assert!((c - l as f64).abs() < 1e-5, "point {k}: {g:?}, want {l}");
+        }
+    }
+}
+
+/// A streamed view with objects, drawn after the streamer fetched what the camera sees and
+/// what the objects read (`Streamer::look_around`), is the complete field's view with them;
+/// the camera's parts alone are not enough for it (the objects read surfaces the camera does
+/// not see). Moving the objects on the GPU (`move_objects`) draws what a renderer built with
+/// them at their new poses draws.
+#[test]
+fn a_streamed_view_fetches_what_its_objects_read_and_follows_their_moves() {
+    use std::time::Duration;
+    use vlf_core::render::Camera;
+    use vlf_viewer::MirrorMode;
+    use vlf_viewer::stream::{FieldParts, StreamConfig, Streamer};
+    let Some(gpu) = gpu() else { return };
+    let field = std::sync::Arc::new(common::bundled_field_with_texel("cornell.obj", 33, 2, 0.1));
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
+    let bvh = Bvh::build(&field.scene);
+    let n = field.scene.normalisation;
+    let at = |c: DVec3| {
+        let placed = cube(c, 40.0).place(&Pose::IDENTITY, &n).unwrap();
+        placed.check_clear(&field.scene, &bvh).unwrap();
+        vec![placed]
+    };
+    let (here, there) = (at(DVec3::new(200.0, 420.0, 200.0)), at(DVec3::new(240.0, 400.0, 150.0)));
+    // Looking down at the cube and the floor around it: the walls it gathers from are out of
+    // view.
+    let camera = Camera::new(
+        DVec3::new(200.0, 540.0, 200.0),
+        DVec3::new(200.0, 0.0, 200.0),
+        DVec3::Z,
+        50.0,
+        64,
+        48,
+    )
+    .unwrap();
+    let mode = SpecularMode::Rays;
+    let gatherer = |placed: &[PlacedObject]| {
+        let g = Gatherer::with_directions(&field, &bvh, placed, mode, 129).unwrap();
+        // A gatherer borrows the placed objects: lay the renderer out now.
+        FieldRenderer::with_objects(&gpu, &field, &g).unwrap()
+    };
+    let complete = gatherer(&here);
+    let want = vlf_viewer::render(&gpu, &complete, &camera, 1, mode).unwrap();
+    let view_only: std::collections::BTreeSet<u32> = catalog
+        .needed(&field.view_needs(&camera, 1, mode))
+        .into_iter()
+        .collect();
+    assert!(view_only.len() < catalog.len(), "the view alone needs every part");
+    let streamed = |spheres: Vec<(DVec3, f64)>| {
+        let g = Gatherer::with_directions(&field, &bvh, &here, mode, 129).unwrap();
+        let renderer = FieldRenderer::streaming_with_objects(&gpu, &field, catalog.total_values(), &g).unwrap();
+        let config = StreamConfig {
+            capacity: catalog.total_values(),
+            batch_values: 1 << 16,
+            batch_parts: 16,
+            backoff: Duration::from_millis(1),
+        };
+        let streamer = Streamer::start(field.clone(), Box::new(FieldParts::new(field.clone())), config);
+        streamer.look_around(camera, MirrorMode::Rays, spheres);
+        assert!(streamer.wait_idle(Duration::from_secs(120)), "{:?}", streamer.stats());
+        streamer.apply(&gpu, &renderer).unwrap();
+        let image = vlf_viewer::render(&gpu, &renderer, &camera, 1, mode).unwrap();
+        (image, streamer.stats().fetched as usize, renderer)
+    };
+    let (alone, fetched_alone, _) = streamed(Vec::new());
+    assert_eq!(fetched_alone, view_only.len());
+    let (around, fetched_around, renderer) = streamed(vec![(here[0].center, here[0].radius)]);
+    assert!(fetched_around > fetched_alone, "{fetched_around} parts");
+    let off = |a: &vlf_core::render::Image| differing(a, &want, 0.0);
+    println!(
+        "of {} pixels, {} differ from the complete view with the camera's parts alone, {} with the objects' too",
+        want.pixels.len(),
+        off(&alone),
+        off(&around)
+    );
+    assert!(off(&alone) > 0, "the camera's parts alone drew the objects completely");
+    assert_eq!(off(&around), 0);
+    // Moved to `there` on the GPU: as a renderer built with the cube there draws it (all parts
+    // resident for the comparison).
+    let mut base = 0;
+    for i in 0..catalog.len() as u32 {
+        renderer.upload(&gpu, i, base, field.part_values(&catalog, i)).unwrap();
+        base += catalog.values(i);
+    }
+    renderer.move_objects(&gpu, &there).unwrap();
+    let moved = vlf_viewer::render(&gpu, &renderer, &camera, 1, mode).unwrap();
+    let built = vlf_viewer::render(&gpu, &gatherer(&there), &camera, 1, mode).unwrap();
+    assert_eq!(differing(&moved, &built, 0.0), 0);
+    assert!(differing(&moved, &want, 0.0) > 0, "the cube did not move");
+    // Other objects than the renderer's are refused.
+    let two = [here.clone(), there.clone()].concat();
+    assert!(renderer.move_objects(&gpu, &two).is_err());
+}
+
+/// The objects' shadows per texel (`shadows_per_texel`, what `vlf view` draws) are the CPU's
+/// `shadow_loss` at every texel's centre, recomputed when the objects move; a view reading
+/// them is the view shading every fragment but for the shadow's sharpness.
+#[test]
+fn shadows_per_texel_are_the_cpu_shadow_at_texel_centres_and_follow_moves() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field("cornell.obj", 129, 3);
+    let bvh = Bvh::build(&field.scene);
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
+    let n = field.scene.normalisation;
+    let at = |c: DVec3| vec![cube(c, 50.0).place(&Pose::IDENTITY, &n).unwrap()];
+    let (here, there) = (at(DVec3::new(400.0, 51.0, 150.0)), at(DVec3::new(170.0, 380.0, 260.0)));
+    let camera = vlf_core::render::Camera::new(
+        DVec3::new(278.0, 273.0, -800.0),
+        DVec3::new(278.0, 273.0, 0.0),
+        DVec3::Y,
+        39.0,
+        64,
+        64,
+    )
+    .unwrap();
+    let g = Gatherer::with_directions(&field, &bvh, &here, SpecularMode::Rays, 129).unwrap();
+    let per_fragment = FieldRenderer::with_objects(&gpu, &field, &g).unwrap();
+    let mut renderer = FieldRenderer::with_objects(&gpu, &field, &g).unwrap();
+    renderer.shadows_per_texel(&gpu, &field).unwrap();
+    // The pool holds the parts in catalog order (`FieldRenderer::with_objects`).
+    let mut bases = vec![0usize; catalog.len()];
+    for i in 1..catalog.len() {
+        bases[i] = bases[i - 1] + catalog.values(i as u32 - 1);
+    }
+    let check = |placed: &[PlacedObject]| {
+        let cpu = Gatherer::with_directions(&field, &bvh, placed, SpecularMode::Rays, 129).unwrap();
+        let got = renderer.texel_shadows(&gpu).unwrap();
+        let (mut worst, mut scale, mut shadowed) = (0.0f64, 0.0f64, 0);
+        for (i, s) in field.scene.surfaces.iter().enumerate() {
+            let grid = field.atlas.grid(i);
+            let part = catalog.chunk_of_surface(i);
+            let first = bases[part as usize] + grid.first - catalog.range(part).start;
+            let rho = field.scene.material(i).diffuse;
+            for t in (0..(grid.width * grid.height) as usize).step_by(7) {
+                let (x, y) = (
+                    (t % grid.width as usize) as f64 + 0.5,
+                    (t / grid.width as usize) as f64 + 0.5,
+                );
+                let p = grid.origin + (grid.axis_u * x + grid.axis_v * y) * grid.texel;
+                let want = cpu.shadow_loss(p, s.normal, rho).unwrap_or([0.0; 3]);
+                let have = got[first + t];
+                shadowed += (want[0] > 0.0) as usize;
+                for c in 0..3 {
+                    scale = scale.max(want[c]);
+                    worst = worst.max((have[c] as f64 - want[c]).abs());
+                }
+            }
+        }
+        println!("shadows per texel: {shadowed} texels shadowed; worst difference {worst:.2e} of {scale:.2e}");
+        assert!(shadowed > 100, "{shadowed}");
+        assert!(worst <= 1e-3 * scale, "{worst} of {scale}");
+    };
+    let texel_view = vlf_viewer::render(&gpu, &renderer, &camera, 1, SpecularMode::Rays).unwrap();
+    check(&here);
+    let fragment_view = vlf_viewer::render(&gpu, &per_fragment, &camera, 1, SpecularMode::Rays).unwrap();
+    let (a, b) = (texel_view.mean(), fragment_view.mean());
+    println!("image means per texel {a:?}, per fragment {b:?}");
+    for c in 0..3 {
+        assert!((a[c] - b[c]).abs() <= 0.01 * b[c], "{a:?} vs {b:?}");
+    }
+    renderer.move_objects(&gpu, &there).unwrap();
+    vlf_viewer::render(&gpu, &renderer, &camera, 1, SpecularMode::Rays).unwrap();
+    check(&there);
+}

@@ -61,7 +61,7 @@ pub struct ViewNeeds {
 
 impl ViewNeeds {
     /// Both needs together (while `view_needs` gathers them: the tiles are the weights' keys).
-    fn merged(mut self, other: ViewNeeds) -> ViewNeeds {
+    pub fn merged(mut self, other: ViewNeeds) -> ViewNeeds {
         self.surfaces.extend(other.surfaces);
         for (tile, w) in other.tile_weight {
             *self.tile_weight.entry(tile).or_default() += w;
@@ -184,6 +184,15 @@ impl LightField {
             .reduce(ViewNeeds::default, ViewNeeds::merged);
         needs.mirror_tiles = needs.tile_weight.keys().copied().collect();
         needs
+    }
+
+    /// Adds to `needs` what shading the first static surface along the ray from `origin` along
+    /// unit `dir` reads (nothing when the ray leaves the scene or meets a back face): what a
+    /// gather ray, or a shadow cell's ray behind an object, reads (`dynamic::needs`).
+    pub fn needs_along(&self, bvh: &Bvh, origin: DVec3, dir: DVec3, mode: SpecularMode, needs: &mut ViewNeeds) {
+        if let Some(hit) = bvh.intersect(&self.scene, origin, dir, 0.0, f64::INFINITY) {
+            self.needs_of(bvh, &hit, dir, mode, needs);
+        }
     }
 
     /// What [`LightField::shade`] reads for `hit`.

@@ -520,3 +520,85 @@ fn gathering_per_vertex_converges_to_gathering_per_pixel() {
     assert!(errors[1].0 < errors[0].0 && errors[2].0 < errors[1].0, "{errors:?}");
     assert!(errors[2].1 > errors[1].1 && errors[1].1 > errors[0].1, "{errors:?}");
 }
+
+/// What a streaming viewer fetches for an object (`dynamic::needs`) covers what its gather and
+/// its shadow read, and no more than what can be seen from around it: in a box cut in two by a
+/// partition, every surface a gather ray from the object's vertices meets, and every surface
+/// seen past the object from the floor around it, is listed; none of the far room's.
+#[test]
+fn an_objects_needs_cover_its_gather_and_shadow() {
+    use common::{rect, scene};
+    use vlf_core::directions::DirectionSet;
+    use vlf_core::dynamic::needs::needs_around;
+    let h = 0.5;
+    let mut box_scene = closed_box(
+        h,
+        6,
+        &[3],
+        vec![material("white", 0.7, 0.0), material("lamp", 0.7, 1.0)],
+    );
+    // The partition at x = 0.1, facing the room at x < 0.1.
+    box_scene.surfaces.push(rect(
+        DVec3::new(0.1, 0.0, 0.0),
+        DVec3::Y * h,
+        DVec3::Z * h,
+        -DVec3::X,
+        0,
+    ));
+    let scene = scene(box_scene.surfaces, box_scene.materials);
+    let options = Options {
+        directions: 9,
+        grid: GridSize::new(16, 8).unwrap(),
+        stop: Stop::Iterations(1),
+        ..Options::default()
+    };
+    let field = Propagation::new(scene, options).unwrap().into_field();
+    let bvh = Bvh::build(&field.scene);
+    let object = cube("box", DVec3::new(-0.25, -0.35, 0.1), 0.08, 0.7)
+        .place(&Pose::IDENTITY, &field.scene.normalisation)
+        .unwrap();
+    let directions = DirectionSet::new(129).unwrap();
+    let needs = needs_around(
+        &field,
+        &bvh,
+        &[(object.center, object.radius)],
+        &directions,
+        SpecularMode::Rays,
+    );
+    let seen = |origin: DVec3, dir: DVec3| {
+        bvh.intersect(&field.scene, origin, dir, 0.0, f64::INFINITY)
+            .filter(|h| h.front)
+            .map(|h| h.surface as u32)
+    };
+    let vertices: Vec<DVec3> = object.scene.surfaces.iter().flat_map(|s| s.vertices.clone()).collect();
+    let mut read = std::collections::BTreeSet::new();
+    for s in &object.scene.surfaces {
+        for &v in &s.vertices {
+            let origin = v + s.normal * 1e-6;
+            for d in 0..directions.len() {
+                let w = directions.get(d).vector;
+                let w = if w.dot(s.normal) > 0.0 { w } else { -w };
+                read.extend(seen(origin, w));
+            }
+        }
+    }
+    for x in -8..8 {
+        for z in -8..8 {
+            let p = DVec3::new(-0.5 + 0.6 * (x as f64 + 8.5) / 16.0, -h + 1e-6, 0.9 * z as f64 / 8.0);
+            for &v in &vertices {
+                read.extend(seen(p, (v - p).normalize()));
+            }
+        }
+    }
+    let missing: Vec<_> = read.difference(&needs.surfaces).collect();
+    assert!(missing.is_empty(), "read but not listed: {missing:?}");
+    assert!(read.len() > 50, "{} surfaces read", read.len());
+    // Nothing of the far room (beyond the partition, whose back faces the object).
+    let far: Vec<_> = (needs.surfaces.iter())
+        .filter(|&&s| {
+            let v = &field.scene.surfaces[s as usize].vertices;
+            v.iter().all(|p| p.x > 0.1 + 1e-9)
+        })
+        .collect();
+    assert!(far.is_empty(), "surfaces of the far room listed: {far:?}");
+}

@@ -127,8 +127,26 @@ fn pool_rgb(value: u32) -> vec3<f32> {
     return vec3<f32>(pool[i], pool[i + 1u], pool[i + 2u]);
 }
 
-fn texel_radiance(s: Surface, base: u32, x: u32, y: u32) -> vec3<f32> {
-    return pool_rgb(base + s.texel_offset + y * s.width + x);
+// The four texels around texel coordinates `c` (already shifted by ½) of surface `s`, whose
+// chart starts at pool value `base`: their values' places and bilinear weights, between texel
+// centres and clamped at the grid's edges. Radiance and the objects' shadows (`objects.wgsl`)
+// are looked up alike.
+struct Taps {
+    at: vec4<u32>,
+    w: vec4<f32>,
+};
+
+fn taps(s: Surface, base: u32, c: vec2<f32>) -> Taps {
+    let c0 = floor(c);
+    let f = c - c0;
+    let hi = vec2<f32>(f32(s.width - 1u), f32(s.height - 1u));
+    let a = vec2<u32>(clamp(c0, vec2<f32>(0.0), hi));
+    let b = vec2<u32>(clamp(c0 + 1.0, vec2<f32>(0.0), hi));
+    let first = base + s.texel_offset;
+    return Taps(
+        vec4<u32>(first + a.y * s.width + a.x, first + a.y * s.width + b.x, first + b.y * s.width + a.x, first + b.y * s.width + b.x),
+        vec4<f32>((1.0 - f.x) * (1.0 - f.y), f.x * (1.0 - f.y), (1.0 - f.x) * f.y, f.x * f.y),
+    );
 }
 
 // Bilinear between texel centres at texel coordinates `c` (already shifted by ½); black while
@@ -138,21 +156,19 @@ fn bilinear(s: Surface, c: vec2<f32>) -> vec3<f32> {
     if (base == NONE) {
         return vec3<f32>(0.0);
     }
-    let c0 = floor(c);
-    let f = c - c0;
-    let hi = vec2<f32>(f32(s.width - 1u), f32(s.height - 1u));
-    let a = vec2<u32>(clamp(c0, vec2<f32>(0.0), hi));
-    let b = vec2<u32>(clamp(c0 + 1.0, vec2<f32>(0.0), hi));
-    return texel_radiance(s, base, a.x, a.y) * ((1.0 - f.x) * (1.0 - f.y))
-         + texel_radiance(s, base, b.x, a.y) * (f.x * (1.0 - f.y))
-         + texel_radiance(s, base, a.x, b.y) * ((1.0 - f.x) * f.y)
-         + texel_radiance(s, base, b.x, b.y) * (f.x * f.y);
+    let t = taps(s, base, c);
+    return pool_rgb(t.at.x) * t.w.x + pool_rgb(t.at.y) * t.w.y + pool_rgb(t.at.z) * t.w.z + pool_rgb(t.at.w) * t.w.w;
+}
+
+// Texel coordinates (shifted by ½, as `bilinear` takes them) of point `p` of surface `s`.
+fn texel_coords(s: Surface, p: vec3<f32>) -> vec2<f32> {
+    let d = p - s.grid_origin;
+    return vec2<f32>(dot(d, s.axis_u), dot(d, s.axis_v)) * s.inv_texel - 0.5;
 }
 
 // Diffuse radiance of surface `s` at point `p` (VLF frame).
 fn diffuse_at(s: Surface, p: vec3<f32>) -> vec3<f32> {
-    let d = p - s.grid_origin;
-    return bilinear(s, vec2<f32>(dot(d, s.axis_u), dot(d, s.axis_v)) * s.inv_texel - 0.5);
+    return bilinear(s, texel_coords(s, p));
 }
 
 // Entry distance of the ray into a node's box, or -1 when it misses it within [t_min, t_max].

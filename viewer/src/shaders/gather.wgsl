@@ -10,12 +10,12 @@ struct GatherParams {
     _pad: u32,
 };
 
-@group(0) @binding(13) var<uniform> gather_params: GatherParams;
+@group(0) @binding(14) var<uniform> gather_params: GatherParams;
 // Per point: its position (xyz), its unit normal (xyz) and a reflectance (xyz), three vec4
 // each, in the VLF frame.
-@group(0) @binding(14) var<storage, read> gather_points: array<vec4<f32>>;
+@group(0) @binding(15) var<storage, read> gather_points: array<vec4<f32>>;
 // Per point: the gathered radiance (xyz), or the shadow's loss (xyz, w 1 where any).
-@group(0) @binding(15) var<storage, read_write> gathered: array<vec4<f32>>;
+@group(0) @binding(16) var<storage, read_write> gathered: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
 fn gather_main(@builtin(global_invocation_id) id: vec3<u32>) {

@@ -18,7 +18,9 @@ struct Objects {
     shadow_cells: u32,
     // Emitting surfaces (`emitter_groups`).
     emitter_groups: u32,
-    _pad0: u32,
+    // 1: static surfaces read their shadow from `shadow_pool` (computed per texel by
+    // `shadow_texels.wgsl` when the objects move); 0: computed per fragment.
+    shadow_texels: u32,
     _pad1: u32,
 };
 
@@ -35,6 +37,9 @@ struct Objects {
 // Integers and floats share the vec4s, so they are stored as u32 (floats by their bits: read as
 // f32, a small integer's bits would be a denormal, which a GPU may flush to zero).
 @group(0) @binding(12) var<storage, read> emitter_groups: array<vec4<u32>>;
+// Per value of the radiance pool: the radiance its texel loses to the objects (RGB, three
+// floats), when `objects.shadow_texels` is set. Written by `shadow_texels_main`, read here.
+@group(0) @binding(13) var<storage, read_write> shadow_pool: array<f32>;
 
 const PI: f32 = 3.14159265358979;
 const GOLDEN_ANGLE: f32 = 2.39996322972865;
@@ -50,16 +55,20 @@ fn nearest_object(o: vec3<f32>, d: vec3<f32>, t_max: f32) -> Hit {
     return trace_from(objects.root, o, d, 0.0, t_max);
 }
 
-// Radiance arriving at `o` from −d: the static surface's (shaded as the field holds it), or
-// nothing where an object is nearer or nothing is hit.
-fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+// Radiance arriving at `o` from −d (xyz): the static surface's (shaded as the field holds it),
+// or nothing where an object is nearer or nothing is hit. w is 0 where the surface's radiance
+// map is not resident (a streaming view): the gather leaves such directions out of its mean
+// until they arrive, so that an object is lit by the light known so far rather than drawn
+// darker.
+fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
     let hit = trace_from(0u, o, d, 0.0, 3.4e38);
     if (hit.surface == NONE || !hit.front || nearest_object(o, d, hit.t).surface != NONE) {
-        return vec3<f32>(0.0);
+        return vec4<f32>(0.0, 0.0, 0.0, 1.0);
     }
     let s = surfaces[hit.surface];
     let p = o + hit.t * d;
-    return shade(s, p, d, diffuse_at(s, p), mode, depth);
+    let known = select(0.0, 1.0, parts[s.part] != NONE);
+    return vec4<f32>(shade(s, p, d, diffuse_at(s, p), mode, depth), known);
 }
 
 // The cosine-weighted mean radiance arriving at `p` over the hemisphere of unit `n`, over the
@@ -76,8 +85,9 @@ fn incident(p: vec3<f32>, n: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
         }
         let d = select(-direction.xyz, direction.xyz, c > 0.0);
         let w = abs(c) * direction.w;
-        weights += w;
-        sum += arriving(origin, d, mode, depth) * w;
+        let l = arriving(origin, d, mode, depth);
+        weights += w * l.w;
+        sum += l.xyz * (w * l.w);
     }
     if (weights > 0.0) {
         sum /= weights;
@@ -114,10 +124,10 @@ fn object_radiance(index: u32, p: vec3<f32>, incoming: vec3<f32>, mode: u32, dep
         }
         let l = arriving(origin, d, mode, depth);
         if (k < count) {
-            sum += l * w;
-            weights += w;
+            sum += l.xyz * (w * l.w);
+            weights += w * l.w;
         } else {
-            mirrored = l;
+            mirrored = l.xyz;
         }
     }
     var out = s.specular * mirrored;
@@ -306,6 +316,22 @@ fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32
     return vec4<f32>(rho / PI * lost, 1.0);
 }
 
+// The objects' shadow at `p` on static surface `s` from the texels' (`shadow_pool`), bilinear
+// between texel centres as its radiance is (`bilinear`); none while its map is not resident.
+fn shadow_from_texels(s: Surface, p: vec3<f32>) -> vec3<f32> {
+    let base = parts[s.part];
+    if (base == NONE) {
+        return vec3<f32>(0.0);
+    }
+    let t = taps(s, base, texel_coords(s, p));
+    return shadow_rgb(t.at.x) * t.w.x + shadow_rgb(t.at.y) * t.w.y + shadow_rgb(t.at.z) * t.w.z + shadow_rgb(t.at.w) * t.w.w;
+}
+
+fn shadow_rgb(value: u32) -> vec3<f32> {
+    let i = value * 3u;
+    return vec3<f32>(shadow_pool[i], shadow_pool[i + 1u], shadow_pool[i + 2u]);
+}
+
 // ---- A view with objects (`vlf_core::dynamic::view`) ----
 
 // What a camera ray sees with the objects in the scene, from the fragment of surface `start`
@@ -339,7 +365,13 @@ fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, 
         var value = base;
         if (shadow_surface != NONE) {
             let q = surfaces[shadow_surface];
-            let loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth);
+            var loss: vec4<f32>;
+            if (objects.shadow_texels != 0u) {
+                let texels = shadow_from_texels(q, shadow_point);
+                loss = vec4<f32>(texels, select(0.0, 1.0, any(texels != vec3<f32>(0.0))));
+            } else {
+                loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth);
+            }
             if (loss.w != 0.0) {
                 value = max(base - scale * loss.xyz, vec3<f32>(0.0));
             }

@@ -7,7 +7,8 @@
 //! 1. lists the parts the view reads ([`LightField::view_needs`], on the CPU: the same look-ups
 //!    the shader does), diffuse maps first — they draw every surface, and while a mirror's tiles
 //!    are missing the shader traces it through the maps that are resident — then the mirror
-//!    tiles;
+//!    tiles; then what the dynamic objects in the view read (`vlf_core::dynamic::needs`: the
+//!    surfaces seen from around each object, which its gather and its shadow read);
 //! 2. marks them used ([`Residency::touch`]), so the least recently used parts of *other* views
 //!    are what the cache evicts;
 //! 3. fetches the missing ones from its [`PartSource`] in batches, a place in the pool reserved
@@ -24,14 +25,17 @@
 pub mod residency;
 
 use crate::{FieldRenderer, Gpu, MirrorMode, ViewerError};
+use glam::DVec3;
 pub use residency::Residency;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, mpsc};
 use std::time::Duration;
+use vlf_core::directions::DirectionSet;
+use vlf_core::dynamic::needs::needs_around;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
 use vlf_core::parts::PartCatalog;
-use vlf_core::render::Camera;
+use vlf_core::render::{Bvh, Camera};
 
 /// Where parts come from: a store, or a coordinator's tile stream. Called from the streamer's
 /// thread only.
@@ -108,10 +112,18 @@ impl StreamConfig {
     }
 }
 
+/// A view to plan for: the camera, how mirrors are drawn, and the bounding spheres (centre and
+/// radius, VLF frame) of the dynamic objects in it.
+pub type View = (Camera, MirrorMode, Vec<(DVec3, f64)>);
+
+/// Lines of the direction set the objects' needs are sampled along
+/// (`vlf_core::dynamic::needs`).
+const OBJECT_NEED_DIRECTIONS: usize = 129;
+
 /// What the window asks of the streamer.
 struct Request {
-    /// The camera to plan for and how mirrors are drawn; `None` once taken.
-    view: Option<(Camera, MirrorMode)>,
+    /// The view to plan for; `None` once taken.
+    view: Option<View>,
     /// Whether the streamer is planning for a camera it took.
     busy: bool,
     stop: bool,
@@ -152,6 +164,9 @@ impl Streamer {
         let (sender, updates) = mpsc::channel();
         let worker = Worker {
             catalog: PartCatalog::new(&geometry),
+            bvh: None,
+            last_view: None,
+            object_directions: DirectionSet::new(OBJECT_NEED_DIRECTIONS).expect("a supported direction count"),
             geometry,
             source,
             config,
@@ -171,7 +186,13 @@ impl Streamer {
     /// Asks for what `camera` sees, drawn with `mirrors`; replaces any camera not yet planned
     /// for, and interrupts the fetching for an older one. Never blocks on the network.
     pub fn look(&self, camera: Camera, mirrors: MirrorMode) {
-        lock(&self.shared.request).view = Some((camera, mirrors));
+        self.look_around(camera, mirrors, Vec::new());
+    }
+
+    /// [`Streamer::look`] for a view with dynamic objects in the bounding spheres `objects`
+    /// (centre and radius, VLF frame): what they read is fetched after what the camera sees.
+    pub fn look_around(&self, camera: Camera, mirrors: MirrorMode, objects: Vec<(DVec3, f64)>) {
+        lock(&self.shared.request).view = Some((camera, mirrors, objects));
         self.shared.newer.store(true, Ordering::Release);
         self.shared.wake.notify_all();
     }
@@ -233,6 +254,11 @@ impl Drop for Streamer {
 /// The streamer's thread.
 struct Worker {
     geometry: Arc<LightField>,
+    /// The static scene's BVH, built for the first view with objects.
+    bvh: Option<Bvh>,
+    /// The last camera planned for and the parts it needs.
+    last_view: Option<(Camera, MirrorMode, Vec<u32>)>,
+    object_directions: DirectionSet,
     catalog: PartCatalog,
     source: Box<dyn PartSource>,
     config: StreamConfig,
@@ -244,15 +270,15 @@ impl Worker {
     fn run(mut self) {
         let sizes = (0..self.catalog.len() as u32).map(|i| self.catalog.values(i)).collect();
         let mut residency = Residency::new(sizes, self.config.capacity);
-        while let Some((camera, mirrors)) = self.next_view() {
-            self.plan(&mut residency, &camera, mirrors);
+        while let Some((camera, mirrors, objects)) = self.next_view() {
+            self.plan(&mut residency, &camera, mirrors, &objects);
             lock(&self.shared.request).busy = false;
             self.shared.wake.notify_all();
         }
     }
 
     /// Waits for a camera not yet planned for; `None` when told to stop.
-    fn next_view(&self) -> Option<(Camera, MirrorMode)> {
+    fn next_view(&self) -> Option<View> {
         let mut request = lock(&self.shared.request);
         loop {
             if request.stop {
@@ -268,14 +294,27 @@ impl Worker {
     }
 
     /// Makes what `camera` sees resident, as far as the cache allows (see the module docs).
-    fn plan(&mut self, residency: &mut Residency, camera: &Camera, mirrors: MirrorMode) {
+    fn plan(&mut self, residency: &mut Residency, camera: &Camera, mirrors: MirrorMode, objects: &[(DVec3, f64)]) {
         let mode = match mirrors {
             MirrorMode::Rays => SpecularMode::Rays,
             MirrorMode::Trace { depth } => SpecularMode::Trace { depth },
         };
         let started = std::time::Instant::now();
-        let needs = self.geometry.view_needs(camera, 1, mode);
-        let needed = self.catalog.needed(&needs);
+        // Objects moving before a still camera: the camera's own needs are the same.
+        let mut needed = match &self.last_view {
+            Some((c, m, needed)) if c == camera && *m == mirrors => needed.clone(),
+            _ => {
+                let needed = self.catalog.needed(&self.geometry.view_needs(camera, 1, mode));
+                self.last_view = Some((*camera, mirrors, needed.clone()));
+                needed
+            }
+        };
+        if !objects.is_empty() {
+            let bvh = self.bvh.get_or_insert_with(|| Bvh::build(&self.geometry.scene));
+            let around = needs_around(&self.geometry, bvh, objects, &self.object_directions, mode);
+            let seen: std::collections::HashSet<u32> = needed.iter().copied().collect();
+            needed.extend(self.catalog.needed(&around).into_iter().filter(|p| !seen.contains(p)));
+        }
         let planning = started.elapsed().as_secs_f64();
         let needed_values: usize = needed.iter().map(|&p| self.catalog.values(p)).sum();
         residency.touch(&needed);

@@ -9,10 +9,11 @@
 //!
 //! This module holds the library side, each piece readable as its formula: placing objects
 //! (this file), gathering light at their points ([`gather`]), the shadows they cast on the
-//! static scene ([`shadow`]), and drawing a view with them on the CPU ([`view`]), the
-//! reference the viewer's GPU version is held to.
+//! static scene ([`shadow`]), what they read of the field ([`needs`]), and drawing a view with
+//! them on the CPU ([`view`]), the reference the viewer's GPU version is held to.
 
 pub mod gather;
+pub mod needs;
 pub mod shadow;
 pub mod view;
 
