@@ -78,6 +78,10 @@ pub struct StudyArgs {
     /// point, direct light from the field and exact.
     #[command(flatten)]
     objects: crate::objects::ObjectFlags,
+    /// With --object: the gather reads the static scene as the field holds it, without the
+    /// objects' shadows on it (to measure what seeing them is worth).
+    #[arg(long, requires = "object")]
+    no_gather_shadows: bool,
 }
 
 fn numbers<T: std::str::FromStr>(name: &str, values: &[String]) -> Result<Vec<T>> {
@@ -136,6 +140,7 @@ fn objects(args: &StudyArgs, camera: vlf_core::render::Camera, options: vlf_core
             cache: args.cache.clone().unwrap_or_else(default_cache),
         },
         out: args.out.clone(),
+        gather_shadows: !args.no_gather_shadows,
     };
     let outcome = vlf_study::objects::run(&study, &mut |message| tracing::info!("{message}"))
         .with_context(|| format!("object study of {} failed", args.scene.display()))?;

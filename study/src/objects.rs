@@ -51,6 +51,8 @@ pub struct ObjectStudy {
     pub block: u32,
     pub reference: Mitsuba,
     pub out: PathBuf,
+    /// Whether the gather sees the objects' shadows (`Gatherer::with_gather_shadows`).
+    pub gather_shadows: bool,
 }
 
 /// The errors of one way of drawing the objects.
@@ -121,7 +123,8 @@ pub fn run(study: &ObjectStudy, progress: &mut dyn FnMut(&str)) -> Result<Object
     for (direct, field) in [("exact", &exact), ("field", &run.field)] {
         let how = if direct == "exact" { "exact" } else { "from the field" };
         progress(&format!("drawing the objects, direct light {how}"));
-        let gatherer = Gatherer::new(field, &bvh, &study.objects, SpecularMode::Rays)?;
+        let gatherer =
+            Gatherer::new(field, &bvh, &study.objects, SpecularMode::Rays)?.with_gather_shadows(study.gather_shadows);
         let started = std::time::Instant::now();
         let with = render_with_objects(&gatherer, &bvh, camera, study.samples);
         let render_s = started.elapsed().as_secs_f64();
@@ -211,7 +214,7 @@ fn markdown(study: &ObjectStudy, outcome: &ObjectOutcome) -> String {
     let mut md = String::new();
     let _ = writeln!(
         md,
-        "# Dynamic objects against the path tracer\n\n{} object(s) in a {} × {} view; the static scene propagated at {} in {:.1} s. Reference: Mitsuba 3 at {} spp, with and without the objects. {} object pixels; {} pixels in the shadow region (darkened by more than {:.0} %).\n",
+        "# Dynamic objects against the path tracer\n\n{} object(s) in a {} × {} view; the static scene propagated at {} in {:.1} s. Reference: Mitsuba 3 at {} spp, with and without the objects. {} object pixels; {} pixels in the shadow region (darkened by more than {:.0} %). The gather {} the objects' shadows on the scene.\n",
         study.objects.len(),
         study.camera.width,
         study.camera.height,
@@ -220,7 +223,8 @@ fn markdown(study: &ObjectStudy, outcome: &ObjectOutcome) -> String {
         study.reference.spp,
         outcome.object_pixels,
         outcome.shadow_pixels,
-        SHADOW_THRESHOLD * 100.0
+        SHADOW_THRESHOLD * 100.0,
+        if study.gather_shadows { "sees" } else { "does not see" }
     );
     let _ = writeln!(
         md,

@@ -105,7 +105,9 @@ fn bench(c: &mut Criterion) {
             .collect();
         let mut placement = Placement::new(cubes, &field, &bvh).expect("clear of the box");
         let (per_fragment, mut per_texel) = {
-            let cpu = Gatherer::new(&field, &bvh, placement.placed(), SpecularMode::Rays).expect("gatherer");
+            let cpu = Gatherer::new(&field, &bvh, placement.placed(), SpecularMode::Rays)
+                .expect("gatherer")
+                .with_gather_shadows(true);
             let a = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
             let b = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
             (a, b)

@@ -370,7 +370,7 @@ impl FieldRenderer {
             v.resize(v.len().max(min), 0);
             v
         };
-        gpu.checked(|| {
+        let mut renderer = gpu.checked(|| {
             let device = &gpu.device;
             let view = uniform_buffer(device, "view", std::mem::size_of::<ViewUniform>());
             let storage = |label, contents: &[u8]| {
@@ -525,7 +525,12 @@ impl FieldRenderer {
                 shadows_stale: Cell::new(true),
                 shadows_mode: Cell::new(None),
             }
-        })
+        })?;
+        // The gather sees the objects' shadows per texel: their pass is needed from the start.
+        if gatherer.is_some_and(|g| g.gather_shadows()) {
+            renderer.texel_shadows = Some(TexelShadows::new(gpu, &renderer.bindings, field)?);
+        }
+        Ok(renderer)
     }
 
     /// Moves the objects to where `objects` have them: the same objects as the renderer was
@@ -586,15 +591,40 @@ impl FieldRenderer {
     /// pixel; the shadow is as sharp as the radiance maps (the field's own resolution), where
     /// per fragment it is as sharp as the pixels. A renderer without objects is left as it is.
     pub fn shadows_per_texel(&mut self, gpu: &Gpu, field: &LightField) -> Result<(), ViewerError> {
-        if self.objects_uniform.count == 0 || self.texel_shadows.is_some() {
+        if self.objects_uniform.count == 0 || self.objects_uniform.shadow_texels == 1 {
             return Ok(());
         }
-        self.texel_shadows = Some(TexelShadows::new(gpu, &self.bindings, field)?);
+        if self.texel_shadows.is_none() {
+            self.texel_shadows = Some(TexelShadows::new(gpu, &self.bindings, field)?);
+        }
         self.objects_uniform.shadow_texels = 1;
         gpu.queue
             .write_buffer(&self.bindings[8], 0, bytemuck::bytes_of(&self.objects_uniform));
         self.shadows_stale.set(true);
         Ok(())
+    }
+
+    /// Records the pass computing the objects' shadows per texel into `encoder`, where they
+    /// are out of date (objects moved, parts arrived, another mirror mode) and computed at all
+    /// (drawn per texel, or seen by the gather).
+    fn update_shadows(&self, gpu: &Gpu, encoder: &mut wgpu::CommandEncoder, mirrors: MirrorMode) {
+        if let Some(shadows) = &self.texel_shadows
+            && (self.shadows_stale.get() || self.shadows_mode.get() != Some(mirrors))
+        {
+            shadows.dispatch(gpu, encoder, mirrors);
+            self.shadows_stale.set(false);
+            self.shadows_mode.set(Some(mirrors));
+        }
+    }
+
+    /// Brings the objects' shadows per texel up to date for `mirrors` now (a draw does it
+    /// itself; compute passes over the renderer's buffers, the gather's, call this first).
+    pub fn refresh_shadows(&self, gpu: &Gpu, mirrors: MirrorMode) -> Result<(), ViewerError> {
+        gpu.checked(|| {
+            let mut encoder = gpu.device.create_command_encoder(&Default::default());
+            self.update_shadows(gpu, &mut encoder, mirrors);
+            gpu.queue.submit([encoder.finish()]);
+        })
     }
 
     /// What every value of the pool loses to the objects' shadows, as last computed per texel
@@ -716,14 +746,8 @@ impl FieldRenderer {
             _pad: [0; 2],
         };
         gpu.queue.write_buffer(&self.view, 0, bytemuck::bytes_of(&uniform));
-        if let Some(shadows) = &self.texel_shadows
-            && (self.shadows_stale.get() || self.shadows_mode.get() != Some(viewpoint.mirrors))
-        {
-            // Before the view in the same submission: it reads them.
-            shadows.dispatch(encoder);
-            self.shadows_stale.set(false);
-            self.shadows_mode.set(Some(viewpoint.mirrors));
-        }
+        // Before the view in the same submission: it reads them.
+        self.update_shadows(gpu, encoder, viewpoint.mirrors);
         let depth = wgpu::RenderPassDepthStencilAttachment {
             view: depth,
             depth_ops: Some(wgpu::Operations {

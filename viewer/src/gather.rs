@@ -42,6 +42,8 @@ impl GpuGather {
     /// A gather over `field`'s renderer (built [`FieldRenderer::with_objects`]: its objects,
     /// directions and emitters), mirrors read as `mirrors` says.
     pub fn new(gpu: &Gpu, field: &FieldRenderer, mirrors: MirrorMode) -> Result<GpuGather, ViewerError> {
+        // The gather may read the objects' shadows per texel.
+        field.refresh_shadows(gpu, mirrors)?;
         gpu.checked(|| {
             let device = &gpu.device;
             let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {

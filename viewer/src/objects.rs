@@ -28,7 +28,8 @@ pub(crate) struct ObjectsUniform {
     emitter_groups: u32,
     /// 1 where static surfaces read their shadows per texel.
     pub shadow_texels: u32,
-    _pad: u32,
+    /// 1 where gather rays see the objects' shadows (per texel).
+    pub gather_shadows: u32,
 }
 
 /// Where the static scene's arrays end: the objects' entries go after.
@@ -85,7 +86,7 @@ impl ObjectData {
                 shadow_cells: 0,
                 emitter_groups: 0,
                 shadow_texels: 0,
-                _pad: 0,
+                gather_shadows: gatherer.is_some_and(|g| g.gather_shadows()) as u32,
             },
             geometry,
             directions: Vec::new(),

@@ -11,8 +11,8 @@
 //! CPU reference's way.
 
 use crate::field::{BINDINGS, binding_layout, shader_source};
-use crate::pass::{READ_ONLY, bind_entry, buffer_entry};
-use crate::{Gpu, ViewerError};
+use crate::pass::{READ_ONLY, bind_entry, buffer_entry, uniform_buffer};
+use crate::{Gpu, MirrorMode, ViewerError};
 use vlf_core::field::LightField;
 use wgpu::util::DeviceExt;
 
@@ -25,6 +25,8 @@ const ROW: u32 = 65535;
 pub(crate) struct TexelShadows {
     pipeline: wgpu::ComputePipeline,
     bind_group: wgpu::BindGroup,
+    /// How mirrors are read behind the objects (`TexelParams`).
+    params: wgpu::Buffer,
     items: u32,
 }
 
@@ -66,6 +68,7 @@ impl TexelShadows {
             let compute = wgpu::ShaderStages::COMPUTE;
             let mut entries = binding_layout(compute);
             entries.push(buffer_entry(14, compute, READ_ONLY));
+            entries.push(buffer_entry(15, compute, wgpu::BufferBindingType::Uniform));
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some("shadow texels"),
                 entries: &entries,
@@ -91,7 +94,9 @@ impl TexelShadows {
             let mut entries: Vec<wgpu::BindGroupEntry> = (bindings.iter().enumerate())
                 .map(|(b, buffer)| bind_entry(b as u32, buffer))
                 .collect();
+            let params = uniform_buffer(device, "texel params", 16);
             entries.push(bind_entry(14, &work));
+            entries.push(bind_entry(15, &params));
             let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("shadow texels"),
                 layout: &layout,
@@ -100,17 +105,25 @@ impl TexelShadows {
             TexelShadows {
                 pipeline,
                 bind_group,
+                params,
                 items,
             }
         })
     }
 
-    /// Records the pass into `encoder` (with the view uniform the next draw writes: the
-    /// mirrors are read as it draws them).
-    pub(crate) fn dispatch(&self, encoder: &mut wgpu::CommandEncoder) {
+    /// Records the pass into `encoder`, mirrors behind the objects read as `mirrors` says (as
+    /// the view draws them). Its mode is written with `Queue::write_buffer`: one pass per
+    /// submission.
+    pub(crate) fn dispatch(&self, gpu: &Gpu, encoder: &mut wgpu::CommandEncoder, mirrors: MirrorMode) {
         if self.items == 0 {
             return;
         }
+        let (mode, depth) = match mirrors {
+            MirrorMode::Rays => (1u32, 0u32),
+            MirrorMode::Trace { depth } => (0, depth),
+        };
+        gpu.queue
+            .write_buffer(&self.params, 0, bytemuck::cast_slice(&[mode, depth, 0, 0]));
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("shadow texels"),
             timestamp_writes: None,

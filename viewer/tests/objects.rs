@@ -57,14 +57,16 @@ fn points(field: &LightField, c: DVec3, h: f64) -> Vec<(DVec3, DVec3)> {
     out
 }
 
-fn compare(scene: &str, c: DVec3, h: f64, modes: &[SpecularMode]) {
+fn compare(scene: &str, c: DVec3, h: f64, modes: &[SpecularMode], gather_shadows: bool) {
     let Some(gpu) = gpu() else { return };
     let field = bundled_field(scene, 129, 3);
     let bvh = Bvh::build(&field.scene);
     let placed: Vec<PlacedObject> = vec![cube(c, h).place(&Pose::IDENTITY, &field.scene.normalisation).unwrap()];
     let points = points(&field, c, h);
     for &mode in modes {
-        let cpu = Gatherer::with_directions(&field, &bvh, &placed, mode, 129).unwrap();
+        let cpu = Gatherer::with_directions(&field, &bvh, &placed, mode, 129)
+            .unwrap()
+            .with_gather_shadows(gather_shadows);
         let renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
         let want: Vec<[f64; 3]> = points.iter().map(|&(p, n)| cpu.incident(p, n)).collect();
         let got = GpuGather::new(&gpu, &renderer, mode.into())
@@ -84,19 +86,26 @@ fn compare(scene: &str, c: DVec3, h: f64, modes: &[SpecularMode]) {
             }
         }
         let mean = total / (3 * got.len()) as f64;
-        println!("{scene} {mode:?}: GPU vs CPU gather, mean {mean:.2e}, worst {worst:.2e} of the brightest point");
+        println!(
+            "{scene} {mode:?}, gather shadows {gather_shadows}: GPU vs CPU gather, mean {mean:.2e}, worst {worst:.2e} of the brightest point"
+        );
         assert!(mean < 1e-4, "{mean}");
     }
 }
 
+/// The gather, blind to the cube's shadow and seeing it (`with_gather_shadows`: the GPU's
+/// shadows per texel against the CPU's `texel_shadows`).
 #[test]
 fn the_gpu_gathers_what_the_cpu_gathers() {
-    compare(
-        "cornell.obj",
-        DVec3::new(420.0, 60.0, 120.0),
-        50.0,
-        &[SpecularMode::Rays],
-    );
+    for gather_shadows in [false, true] {
+        compare(
+            "cornell.obj",
+            DVec3::new(420.0, 60.0, 120.0),
+            50.0,
+            &[SpecularMode::Rays],
+            gather_shadows,
+        );
+    }
 }
 
 #[test]
@@ -106,6 +115,7 @@ fn the_gpu_gathers_mirrors_as_the_cpu_does() {
         DVec3::new(300.0, 250.0, 300.0),
         60.0,
         &[SpecularMode::Trace { depth: 3 }, SpecularMode::Rays],
+        true,
     );
 }
 

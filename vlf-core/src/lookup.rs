@@ -245,7 +245,7 @@ impl LightField {
         self.shade_by(bvh, hit, dir, mode, |surface, p| self.radiance_at(surface, p))
     }
 
-    fn shade_by(
+    pub(crate) fn shade_by(
         &self,
         bvh: &Bvh,
         hit: &Hit,

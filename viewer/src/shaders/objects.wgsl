@@ -21,7 +21,9 @@ struct Objects {
     // 1: static surfaces read their shadow from `shadow_pool` (computed per texel by
     // `shadow_texels.wgsl` when the objects move); 0: computed per fragment.
     shadow_texels: u32,
-    _pad1: u32,
+    // 1: gather rays read the static surfaces less the objects' shadows per texel
+    // (`Gatherer::with_gather_shadows`).
+    gather_shadows: u32,
 };
 
 @group(0) @binding(8) var<uniform> objects: Objects;
@@ -68,7 +70,11 @@ fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
     let s = surfaces[hit.surface];
     let p = o + hit.t * d;
     let known = select(0.0, 1.0, parts[s.part] != NONE);
-    return vec4<f32>(shade(s, p, d, diffuse_at(s, p), mode, depth), known);
+    var diffuse = diffuse_at(s, p);
+    if (objects.gather_shadows != 0u) {
+        diffuse = max(diffuse - shadow_from_texels(s, p), vec3<f32>(0.0));
+    }
+    return vec4<f32>(shade(s, p, d, diffuse, mode, depth), known);
 }
 
 // The cosine-weighted mean radiance arriving at `p` over the hemisphere of unit `n`, over the

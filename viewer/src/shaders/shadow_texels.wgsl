@@ -1,10 +1,20 @@
 // The objects' shadows per texel (appended to field.wgsl and objects.wgsl): what every texel
 // of the resident static charts loses to the objects (`shadow_loss` at the texel's centre),
-// into `shadow_pool`, where the view reads it bilinearly (`shadow_from_texels`). Run when
-// the objects move or parts arrive, not every frame; mirrors as the view draws them.
+// into `shadow_pool`, where the view and the gather read it bilinearly (`shadow_from_texels`).
+// Run when the objects move or parts arrive, not every frame; mirrors as the view draws them.
 
 // Per work item: a static surface and the first of the 64 texels of its chart the item covers.
 @group(0) @binding(14) var<storage, read> texel_work: array<vec2<u32>>;
+
+struct TexelParams {
+    // How mirrors are read behind the objects: 1 from the field's rays, 0 traced `depth` deep.
+    mode: u32,
+    depth: u32,
+    _pad0: u32,
+    _pad1: u32,
+};
+
+@group(0) @binding(15) var<uniform> texel_params: TexelParams;
 
 @compute @workgroup_size(64)
 fn shadow_texels_main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_invocation_index) lane: u32) {
@@ -22,7 +32,7 @@ fn shadow_texels_main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_in
     let x = f32(t % s.width) + 0.5;
     let y = f32(t / s.width) + 0.5;
     let p = s.grid_origin + (s.axis_u * x + s.axis_v * y) / s.inv_texel;
-    let loss = shadow_loss(p, s.normal, s.diffuse, view.mode, view.depth).xyz;
+    let loss = shadow_loss(p, s.normal, s.diffuse, texel_params.mode, texel_params.depth).xyz;
     let i = (base + s.texel_offset + t) * 3u;
     shadow_pool[i] = loss.x;
     shadow_pool[i + 1u] = loss.y;

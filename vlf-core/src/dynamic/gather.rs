@@ -84,6 +84,9 @@ pub struct Gatherer<'a> {
     mode: SpecularMode,
     shadow_samples: u32,
     emitters: Emitters,
+    /// The objects' shadows per texel that gather rays see, when they see them
+    /// ([`Gatherer::with_gather_shadows`]).
+    gather_shadows: Option<Vec<[f32; 3]>>,
 }
 
 impl<'a> Gatherer<'a> {
@@ -116,6 +119,7 @@ impl<'a> Gatherer<'a> {
             mode,
             shadow_samples: DEFAULT_SHADOW_SAMPLES,
             emitters: Emitters::new(&field.scene, DEFAULT_DIRECT_SAMPLES)?,
+            gather_shadows: None,
         })
     }
 
@@ -123,7 +127,8 @@ impl<'a> Gatherer<'a> {
     /// ([`super::shadow`]; exact direct light uses its own).
     pub fn with_direct_samples(mut self, k: u32) -> crate::Result<Self> {
         self.emitters = Emitters::new(&self.field.scene, k)?;
-        Ok(self)
+        let on = self.gather_shadows();
+        Ok(self.with_gather_shadows(on))
     }
 
     pub fn emitters(&self) -> &Emitters {
@@ -133,7 +138,29 @@ impl<'a> Gatherer<'a> {
     /// Cuts each object's shadow cone into `k` cells ([`super::shadow`]); 0 casts no shadows.
     pub fn with_shadow_samples(mut self, k: u32) -> Self {
         self.shadow_samples = k;
+        let on = self.gather_shadows();
+        self.with_gather_shadows(on)
+    }
+
+    /// Lets the gather see the objects' shadows on the static scene: a gather ray that meets a
+    /// static surface reads its radiance less what the objects take from it there, from
+    /// [`Gatherer::texel_shadows`] (computed here, and again when the shadow or direct samples
+    /// change: in a builder, not inside the gather's parallel loops). Without it, the cube
+    /// on a floor under a lamp gathers from the floor as if the cube cast no shadow on it,
+    /// and its faces toward its own shadow come out too bright (+50 % on the side facing away
+    /// from the lamp in the Cornell box, `docs/dynamic.md`). Off by default: the gather's
+    /// analytic tests (a furnace, one-sided light) are about the gather alone.
+    pub fn with_gather_shadows(mut self, on: bool) -> Self {
+        self.gather_shadows = None;
+        if on {
+            self.gather_shadows = Some(self.texel_shadows());
+        }
         self
+    }
+
+    /// Whether gather rays see the objects' shadows ([`Gatherer::with_gather_shadows`]).
+    pub fn gather_shadows(&self) -> bool {
+        self.gather_shadows.is_some()
     }
 
     /// The direction set gathered over.
@@ -241,7 +268,9 @@ impl<'a> Gatherer<'a> {
         let hit = self.bvh.intersect(scene, origin, dir, 0.0, f64::INFINITY);
         let t_static = hit.map_or(f64::INFINITY, |h| h.t);
         match hit {
-            Some(hit) if !self.occluded(origin, dir, t_static) => self.sent_back(&hit, dir, no_emission),
+            Some(hit) if !self.occluded(origin, dir, t_static) => {
+                self.sent_back_shadowed(&hit, dir, no_emission, self.gather_shadows.as_deref())
+            }
             _ => [0.0; 3],
         }
     }
@@ -250,7 +279,20 @@ impl<'a> Gatherer<'a> {
     /// hold it ([`LightField::shade_from_maps`]: exact direct light is for the points a camera
     /// sees, not for every gather ray), less the surface's own emission when `no_emission`.
     pub(super) fn sent_back(&self, hit: &Hit, dir: DVec3, no_emission: bool) -> Rgb {
-        let mut l = self.field.shade_from_maps(self.bvh, hit, dir, self.mode);
+        self.sent_back_shadowed(hit, dir, no_emission, None)
+    }
+
+    /// [`Gatherer::sent_back`], the diffuse radiance less `shadows` (per texel, as
+    /// [`Gatherer::texel_shadows`] lays them out) where given.
+    fn sent_back_shadowed(&self, hit: &Hit, dir: DVec3, no_emission: bool, shadows: Option<&[[f32; 3]]>) -> Rgb {
+        let field = self.field;
+        let mut l = match shadows {
+            None => field.shade_from_maps(self.bvh, hit, dir, self.mode),
+            Some(shadows) => field.shade_by(self.bvh, hit, dir, self.mode, |surface, p| {
+                let (l, loss) = (field.radiance_at(surface, p), field.bilinear(shadows, surface, p));
+                [0, 1, 2].map(|c| (l[c] - loss[c]).max(0.0))
+            }),
+        };
         if no_emission && hit.front {
             let le = self.field.scene.material(hit.surface).emission;
             for c in 0..3 {

@@ -229,3 +229,43 @@ impl Gatherer<'_> {
         l
     }
 }
+
+impl Gatherer<'_> {
+    /// What every texel of the static charts loses to the objects: `ΔL` at the texel's centre
+    /// on its chart's plane, with the normal and reflectance of the chart's first surface,
+    /// laid out like the field's radiance (zero where nothing is lost). What gather rays read
+    /// when they see the objects' shadows ([`Gatherer::with_gather_shadows`]), and what the
+    /// viewer draws as shadows per texel. Texels are independent: computed in parallel, the
+    /// same bits whatever the thread count.
+    pub fn texel_shadows(&self) -> Vec<[f32; 3]> {
+        use rayon::prelude::*;
+        let field = self.field();
+        let atlas = &field.atlas;
+        let mut first = vec![usize::MAX; atlas.charts.len()];
+        for (surface, &chart) in atlas.chart_of.iter().enumerate().rev() {
+            first[chart as usize] = surface;
+        }
+        let charts: Vec<(usize, Vec<[f32; 3]>)> = (0..atlas.charts.len())
+            .into_par_iter()
+            .filter(|&c| first[c] != usize::MAX)
+            .map(|c| {
+                let (g, surface) = (&atlas.charts[c], first[c]);
+                let n = field.scene.surfaces[surface].normal;
+                let values = (0..g.height)
+                    .flat_map(|y| (0..g.width).map(move |x| (x, y)))
+                    .map(|(x, y)| {
+                        let p = g.origin + (g.axis_u * (x as f64 + 0.5) + g.axis_v * (y as f64 + 0.5)) * g.texel;
+                        let rho = field.scene.albedo_at(surface, p);
+                        self.shadow_loss(p, n, rho).map_or([0.0; 3], |l| l.map(|v| v as f32))
+                    })
+                    .collect();
+                (g.first, values)
+            })
+            .collect();
+        let mut out = vec![[0.0f32; 3]; atlas.texels];
+        for (start, values) in charts {
+            out[start..start + values.len()].copy_from_slice(&values);
+        }
+        out
+    }
+}
