@@ -262,6 +262,10 @@ pub struct RenderArgs {
     /// Dynamic objects (on the CPU, or with --gpu: the same gather and shadows in shaders).
     #[command(flatten)]
     objects: crate::objects::ObjectFlags,
+    /// With --gpu: the objects' shadows on the static scene per texel, as `vlf view` draws
+    /// them, rather than per pixel.
+    #[arg(long, requires = "object")]
+    object_shadows_per_texel: bool,
 }
 
 #[derive(Args)]

@@ -24,6 +24,9 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
     let exact_direct = args.direct == DirectArg::Exact;
+    if args.object_shadows_per_texel && !args.gpu {
+        bail!("--object-shadows-per-texel draws as vlf view does, on the GPU: add --gpu");
+    }
     if args.gpu && exact_direct {
         bail!("--gpu draws the field's direct light only: drop --direct exact, or --gpu");
     }
@@ -65,7 +68,10 @@ pub fn run(args: RenderArgs) -> Result<()> {
             if args.gpu {
                 let gpu = vlf_viewer::Gpu::new()?;
                 tracing::info!(adapter = %gpu.describe(), "rendering on the GPU");
-                let renderer = vlf_viewer::FieldRenderer::with_objects(&gpu, &field, &gatherer)?;
+                let mut renderer = vlf_viewer::FieldRenderer::with_objects(&gpu, &field, &gatherer)?;
+                if args.object_shadows_per_texel {
+                    renderer.shadows_per_texel(&gpu, &field)?;
+                }
                 vlf_viewer::render(&gpu, &renderer, &camera, args.samples, mode)?
             } else {
                 render_with_objects(&gatherer, &bvh, &camera, args.samples)

@@ -27,7 +27,10 @@ pub fn x_display() -> Option<XDisplay> {
     {
         return Some(XDisplay { name, server: None });
     }
-    let number = 100 + std::process::id() % 800;
+    // One server per call: tests of one binary run in parallel, each stopping its own.
+    static CALLS: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed) % 10;
+    let number = 100 + (std::process::id() % 90) * 10 + call;
     let socket = PathBuf::from(format!("/tmp/.X11-unix/X{number}"));
     if socket.exists() && !Path::new(&format!("/tmp/.X{number}-lock")).exists() {
         // Left by a server that was killed: it would pass for this one being up.
