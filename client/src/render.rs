@@ -64,7 +64,8 @@ pub fn run(args: RenderArgs) -> Result<()> {
             let gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, objects.directions(&field))
                 .context("--object-directions")?
                 .with_shadow_samples(objects.object_shadow_samples)
-                .with_gather_shadows(true);
+                .with_gather_shadows(true)
+                .with_bounce_light(true);
             if args.gpu {
                 let gpu = vlf_viewer::Gpu::new()?;
                 tracing::info!(adapter = %gpu.describe(), "rendering on the GPU");

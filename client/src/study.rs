@@ -82,6 +82,10 @@ pub struct StudyArgs {
     /// objects' shadows on it (to measure what seeing them is worth).
     #[arg(long, requires = "object")]
     no_gather_shadows: bool,
+    /// With --object: the shadows take the light behind the objects without giving back the
+    /// light the objects reflect.
+    #[arg(long, requires = "object")]
+    no_bounce_light: bool,
 }
 
 fn numbers<T: std::str::FromStr>(name: &str, values: &[String]) -> Result<Vec<T>> {
@@ -141,6 +145,7 @@ fn objects(args: &StudyArgs, camera: vlf_core::render::Camera, options: vlf_core
         },
         out: args.out.clone(),
         gather_shadows: !args.no_gather_shadows,
+        bounce_light: !args.no_bounce_light,
     };
     let outcome = vlf_study::objects::run(&study, &mut |message| tracing::info!("{message}"))
         .with_context(|| format!("object study of {} failed", args.scene.display()))?;

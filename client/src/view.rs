@@ -153,14 +153,18 @@ pub fn run(args: ViewArgs) -> Result<()> {
     if stats.frames > 0 {
         let first = stats.first_frame_seconds.unwrap_or(0.0);
         let drawing = stats.seconds - first - stats.settle_seconds;
+        let rate = |frames: f64, seconds: f64| match frames / seconds.max(1e-9) {
+            fps if fps >= 1.0 => format!("{fps:.1} fps"),
+            fps => format!("{:.2} s a frame", 1.0 / fps.max(1e-12)),
+        };
         println!(
-            "{} frames in {:.2} s ({:.1} fps) on {}; first frame after {:.2} s; after it {:.1} fps drawing ({:.2} s waiting for parts left out)",
+            "{} frames in {:.2} s ({}) on {}; first frame after {:.2} s; after it {} drawing ({:.2} s waiting for parts left out)",
             stats.frames,
             stats.seconds,
-            stats.frames as f64 / stats.seconds.max(1e-9),
+            rate(stats.frames as f64, stats.seconds),
             stats.adapter,
             stats.first_frame_seconds.unwrap_or(f64::NAN),
-            (stats.frames - 1) as f64 / drawing.max(1e-9),
+            rate((stats.frames - 1) as f64, drawing),
             stats.settle_seconds
         );
     }

@@ -7,9 +7,11 @@
 //! over two regions of the image:
 //!
 //! - **the objects' pixels**: where the pixel's centre ray meets an object first;
-//! - **the shadow region**: other pixels that the objects darken by more than
-//!   [`SHADOW_THRESHOLD`] of their brightness in the field's render with exact direct light
-//!   (the sharpest), emitters left out.
+//! - **the shadow region**: other pixels that the objects change by more than
+//!   [`SHADOW_THRESHOLD`] of their brightness in the path tracer's renders (darker in their
+//!   shadow, brighter where they reflect light), each image averaged over 3 × 3 pixels first
+//!   so that the reference's noise does not pick the pixels; emitters left out. The region is
+//!   the reference's, the same whatever the field's settings.
 //!
 //! Over the shadow region, besides the image's own error, the *shadow depth* is compared: how
 //! much light the objects take away, `Σ (static − with)`, in the field's renders against the
@@ -31,8 +33,8 @@ use vlf_core::render::{Bvh, Camera, Image};
 use vlf_core::scene::Scene;
 use vlf_store::Encoding;
 
-/// A static pixel is in the shadow region where the objects take away more than this fraction
-/// of its brightness.
+/// A static pixel is in the shadow region where the objects change its brightness by more than
+/// this fraction (in the path tracer's renders, 3 × 3 averaged).
 pub const SHADOW_THRESHOLD: f64 = 0.01;
 
 /// Everything an object study needs.
@@ -53,6 +55,8 @@ pub struct ObjectStudy {
     pub out: PathBuf,
     /// Whether the gather sees the objects' shadows (`Gatherer::with_gather_shadows`).
     pub gather_shadows: bool,
+    /// Whether the shadows give back the objects' light (`Gatherer::with_bounce_light`).
+    pub bounce_light: bool,
 }
 
 /// The errors of one way of drawing the objects.
@@ -123,21 +127,20 @@ pub fn run(study: &ObjectStudy, progress: &mut dyn FnMut(&str)) -> Result<Object
     for (direct, field) in [("exact", &exact), ("field", &run.field)] {
         let how = if direct == "exact" { "exact" } else { "from the field" };
         progress(&format!("drawing the objects, direct light {how}"));
-        let gatherer =
-            Gatherer::new(field, &bvh, &study.objects, SpecularMode::Rays)?.with_gather_shadows(study.gather_shadows);
+        let gatherer = Gatherer::new(field, &bvh, &study.objects, SpecularMode::Rays)?
+            .with_gather_shadows(study.gather_shadows)
+            .with_bounce_light(study.bounce_light);
         let started = std::time::Instant::now();
         let with = render_with_objects(&gatherer, &bvh, camera, study.samples);
         let render_s = started.elapsed().as_secs_f64();
         let without = field.render(camera, study.samples, SpecularMode::Rays);
         images.push((direct, with, without, render_s));
     }
-    // The shadow region, from the sharpest render (exact direct light).
-    let (_, with, without, _) = &images[0];
-    let shadow_mask: Vec<bool> = (0..with.pixels.len())
-        .map(|i| {
-            let (a, b) = (brightness(without.pixels[i]), brightness(with.pixels[i]));
-            !object_mask[i] && !masks.emitters[i] && a > 0.0 && a - b > SHADOW_THRESHOLD * a
-        })
+    // The shadow region, from the path tracer's pair.
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    let (a, b) = (box3(&reference_static, w, h), box3(&reference_with, w, h));
+    let shadow_mask: Vec<bool> = (0..w * h)
+        .map(|i| !object_mask[i] && !masks.emitters[i] && a[i] > 0.0 && (a[i] - b[i]).abs() > SHADOW_THRESHOLD * a[i])
         .collect();
     let region = |mask: &[bool]| -> Vec<bool> { mask.iter().map(|&m| !m).collect() };
     let (not_objects, not_shadow) = (region(&object_mask), region(&shadow_mask));
@@ -206,6 +209,24 @@ fn object_pixels(scene: &Scene, bvh: &Bvh, objects: &[PlacedObject], camera: &Ca
     mask
 }
 
+/// Brightness averaged over the 3 × 3 pixels around each pixel (fewer at the image's edges).
+fn box3(image: &Image, w: usize, h: usize) -> Vec<f64> {
+    let mut out = vec![0.0; w * h];
+    for y in 0..h {
+        for x in 0..w {
+            let (mut sum, mut n) = (0.0, 0.0);
+            for j in y.saturating_sub(1)..(y + 2).min(h) {
+                for i in x.saturating_sub(1)..(x + 2).min(w) {
+                    sum += brightness(image.pixels[j * w + i]);
+                    n += 1.0;
+                }
+            }
+            out[y * w + x] = sum / n;
+        }
+    }
+    out
+}
+
 fn brightness(p: [f32; 3]) -> f64 {
     p.iter().map(|&c| c as f64).sum::<f64>() / 3.0
 }
@@ -214,7 +235,7 @@ fn markdown(study: &ObjectStudy, outcome: &ObjectOutcome) -> String {
     let mut md = String::new();
     let _ = writeln!(
         md,
-        "# Dynamic objects against the path tracer\n\n{} object(s) in a {} × {} view; the static scene propagated at {} in {:.1} s. Reference: Mitsuba 3 at {} spp, with and without the objects. {} object pixels; {} pixels in the shadow region (darkened by more than {:.0} %). The gather {} the objects' shadows on the scene.\n",
+        "# Dynamic objects against the path tracer\n\n{} object(s) in a {} × {} view; the static scene propagated at {} in {:.1} s. Reference: Mitsuba 3 at {} spp, with and without the objects. {} object pixels; {} pixels in the shadow region (changed by more than {:.0} % in the reference). The gather {} the objects' shadows on the scene; the shadows {} the objects' own light.\n",
         study.objects.len(),
         study.camera.width,
         study.camera.height,
@@ -224,7 +245,12 @@ fn markdown(study: &ObjectStudy, outcome: &ObjectOutcome) -> String {
         outcome.object_pixels,
         outcome.shadow_pixels,
         SHADOW_THRESHOLD * 100.0,
-        if study.gather_shadows { "sees" } else { "does not see" }
+        if study.gather_shadows { "sees" } else { "does not see" },
+        if study.bounce_light {
+            "give back"
+        } else {
+            "do not give back"
+        }
     );
     let _ = writeln!(
         md,

@@ -107,7 +107,8 @@ fn bench(c: &mut Criterion) {
         let (per_fragment, mut per_texel) = {
             let cpu = Gatherer::new(&field, &bvh, placement.placed(), SpecularMode::Rays)
                 .expect("gatherer")
-                .with_gather_shadows(true);
+                .with_gather_shadows(true)
+                .with_bounce_light(true);
             let a = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
             let b = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
             (a, b)

@@ -183,18 +183,18 @@ pub struct FieldRenderer {
 }
 
 /// Buffers of the field and its objects, bound at 0..BINDINGS.
-pub(crate) const BINDINGS: usize = 14;
+pub(crate) const BINDINGS: usize = 15;
 
 /// The layout of the field's and objects' bindings as `stages` read them: the view uniform
 /// (the vertex stage reads it too), seven storage buffers of the field, the objects' uniform,
-/// four storage buffers of the objects and their shadows per texel (written by
-/// [`crate::shadows`]).
+/// four storage buffers of the objects, and their shadows per texel and their own light
+/// (written by [`crate::shadows`]).
 pub(crate) fn binding_layout(stages: wgpu::ShaderStages) -> Vec<wgpu::BindGroupLayoutEntry> {
     (0..BINDINGS as u32)
         .map(|b| match b {
             0 => buffer_entry(0, stages | wgpu::ShaderStages::VERTEX, wgpu::BufferBindingType::Uniform),
             8 => buffer_entry(8, stages, wgpu::BufferBindingType::Uniform),
-            13 => buffer_entry(13, stages, wgpu::BufferBindingType::Storage { read_only: false }),
+            13 | 14 => buffer_entry(b, stages, wgpu::BufferBindingType::Storage { read_only: false }),
             _ => buffer_entry(b, stages, READ_ONLY),
         })
         .collect()
@@ -419,6 +419,12 @@ impl FieldRenderer {
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
                 mapped_at_creation: false,
             });
+            let object_light = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("object light"),
+                size: (moving.surfaces.len() as u64 * 12).max(256),
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            });
             let spheres = storage("object spheres", bytemuck::cast_slice(&moving.spheres));
             let directions = storage("gather directions", bytemuck::cast_slice(&objects.directions));
             let emitter_points = storage("emitter points", bytemuck::cast_slice(&objects.emitter_points));
@@ -447,6 +453,7 @@ impl FieldRenderer {
                 emitter_points,
                 emitter_groups,
                 shadow_pool,
+                object_light,
             ];
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some("field"),
@@ -526,9 +533,10 @@ impl FieldRenderer {
                 shadows_mode: Cell::new(None),
             }
         })?;
-        // The gather sees the objects' shadows per texel: their pass is needed from the start.
-        if gatherer.is_some_and(|g| g.gather_shadows()) {
-            renderer.texel_shadows = Some(TexelShadows::new(gpu, &renderer.bindings, field)?);
+        // The gather sees the objects' shadows per texel, or the shadows give back the objects'
+        // light: their passes are needed from the start.
+        if gatherer.is_some_and(|g| g.gather_shadows() || g.bounce_light()) {
+            renderer.texel_shadows = Some(renderer.new_texel_shadows(gpu, field)?);
         }
         Ok(renderer)
     }
@@ -595,13 +603,24 @@ impl FieldRenderer {
             return Ok(());
         }
         if self.texel_shadows.is_none() {
-            self.texel_shadows = Some(TexelShadows::new(gpu, &self.bindings, field)?);
+            self.texel_shadows = Some(self.new_texel_shadows(gpu, field)?);
         }
         self.objects_uniform.shadow_texels = 1;
         gpu.queue
             .write_buffer(&self.bindings[8], 0, bytemuck::bytes_of(&self.objects_uniform));
         self.shadows_stale.set(true);
         Ok(())
+    }
+
+    fn new_texel_shadows(&self, gpu: &Gpu, field: &LightField) -> Result<TexelShadows, ViewerError> {
+        let surfaces = self.objects.1.surfaces.len() as u32;
+        TexelShadows::new(
+            gpu,
+            &self.bindings,
+            field,
+            surfaces,
+            self.objects_uniform.bounce_light != 0,
+        )
     }
 
     /// Records the pass computing the objects' shadows per texel into `encoder`, where they

@@ -52,10 +52,10 @@ impl GpuGather {
             });
             let compute = wgpu::ShaderStages::COMPUTE;
             let mut entries = binding_layout(compute);
-            entries.push(buffer_entry(14, compute, wgpu::BufferBindingType::Uniform));
-            entries.push(buffer_entry(15, compute, READ_ONLY));
+            entries.push(buffer_entry(15, compute, wgpu::BufferBindingType::Uniform));
+            entries.push(buffer_entry(16, compute, READ_ONLY));
             entries.push(buffer_entry(
-                16,
+                17,
                 compute,
                 wgpu::BufferBindingType::Storage { read_only: false },
             ));
@@ -167,7 +167,7 @@ impl GpuGather {
             let mut entries: Vec<wgpu::BindGroupEntry> = (self.field_bindings.iter().enumerate())
                 .map(|(b, buffer)| bind_entry(b as u32, buffer))
                 .collect();
-            entries.extend([bind_entry(14, &params), bind_entry(15, &input), bind_entry(16, &output)]);
+            entries.extend([bind_entry(15, &params), bind_entry(16, &input), bind_entry(17, &output)]);
             let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
                 label: Some("gather"),
                 layout: &self.layout,

@@ -30,6 +30,9 @@ pub(crate) struct ObjectsUniform {
     pub shadow_texels: u32,
     /// 1 where gather rays see the objects' shadows (per texel).
     pub gather_shadows: u32,
+    /// 1 where shadows give back the objects' own light.
+    pub bounce_light: u32,
+    _pad: [u32; 3],
 }
 
 /// Where the static scene's arrays end: the objects' entries go after.
@@ -87,6 +90,8 @@ impl ObjectData {
                 emitter_groups: 0,
                 shadow_texels: 0,
                 gather_shadows: gatherer.is_some_and(|g| g.gather_shadows()) as u32,
+                bounce_light: gatherer.is_some_and(|g| g.bounce_light()) as u32,
+                _pad: [0; 3],
             },
             geometry,
             directions: Vec::new(),

@@ -8,7 +8,12 @@
 //! ([`crate::FieldRenderer::shadows_per_texel`]), and nothing while they stand still. The
 //! shadow is then as sharp as the field's radiance maps rather than the pixels: what the
 //! field itself resolves. `vlf view` shadows per texel; `vlf render --gpu` per fragment, the
-//! CPU reference's way.
+//! CPU reference's way. Gather rays read these shadows too (`Gatherer::with_gather_shadows`).
+//!
+//! Where the shadows give back the objects' own light (`Gatherer::with_bounce_light`), the
+//! pass runs in three steps, as `Gatherer::prepared` does on the CPU: the texels' shadows
+//! without the objects' light, the objects' light gathered at each of their surfaces
+//! (`object_light_main`, seeing those shadows), then the texels' shadows with it.
 
 use crate::field::{BINDINGS, binding_layout, shader_source};
 use crate::pass::{READ_ONLY, bind_entry, buffer_entry, uniform_buffer};
@@ -23,11 +28,16 @@ const ROW: u32 = 65535;
 
 /// The compute pass over a renderer's buffers (see the module docs).
 pub(crate) struct TexelShadows {
-    pipeline: wgpu::ComputePipeline,
-    bind_group: wgpu::BindGroup,
-    /// How mirrors are read behind the objects (`TexelParams`).
-    params: wgpu::Buffer,
+    texels: wgpu::ComputePipeline,
+    object_light: wgpu::ComputePipeline,
+    /// Bound with `TexelParams` without the objects' light given back, and with it.
+    first: wgpu::BindGroup,
+    last: wgpu::BindGroup,
+    params: [wgpu::Buffer; 2],
     items: u32,
+    /// The objects' surfaces, and whether the shadows give back their light.
+    object_surfaces: u32,
+    bounce: bool,
 }
 
 impl TexelShadows {
@@ -37,6 +47,8 @@ impl TexelShadows {
         gpu: &Gpu,
         bindings: &[wgpu::Buffer; BINDINGS],
         field: &LightField,
+        object_surfaces: u32,
+        bounce: bool,
     ) -> Result<TexelShadows, ViewerError> {
         // A work item per 64 texels of each static chart with a diffuse reflectance, for the
         // first of its surfaces (a chart's surfaces share its plane and material).
@@ -67,8 +79,8 @@ impl TexelShadows {
             });
             let compute = wgpu::ShaderStages::COMPUTE;
             let mut entries = binding_layout(compute);
-            entries.push(buffer_entry(14, compute, READ_ONLY));
-            entries.push(buffer_entry(15, compute, wgpu::BufferBindingType::Uniform));
+            entries.push(buffer_entry(15, compute, READ_ONLY));
+            entries.push(buffer_entry(16, compute, wgpu::BufferBindingType::Uniform));
             let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
                 label: Some("shadow texels"),
                 entries: &entries,
@@ -78,58 +90,80 @@ impl TexelShadows {
                 bind_group_layouts: &[Some(&layout)],
                 immediate_size: 0,
             });
-            let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("shadow texels"),
-                layout: Some(&pipeline_layout),
-                module: &shader,
-                entry_point: Some("shadow_texels_main"),
-                compilation_options: Default::default(),
-                cache: None,
-            });
+            let pipeline = |entry: &str| {
+                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(entry),
+                    layout: Some(&pipeline_layout),
+                    module: &shader,
+                    entry_point: Some(entry),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+            };
             let work = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("texel work"),
                 contents: bytemuck::cast_slice(&work),
                 usage: wgpu::BufferUsages::STORAGE,
             });
-            let mut entries: Vec<wgpu::BindGroupEntry> = (bindings.iter().enumerate())
-                .map(|(b, buffer)| bind_entry(b as u32, buffer))
-                .collect();
-            let params = uniform_buffer(device, "texel params", 16);
-            entries.push(bind_entry(14, &work));
-            entries.push(bind_entry(15, &params));
-            let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("shadow texels"),
-                layout: &layout,
-                entries: &entries,
-            });
+            let params = [0, 1].map(|_| uniform_buffer(device, "texel params", 16));
+            let bind_group = |params: &wgpu::Buffer| {
+                let mut entries: Vec<wgpu::BindGroupEntry> = (bindings.iter().enumerate())
+                    .map(|(b, buffer)| bind_entry(b as u32, buffer))
+                    .collect();
+                entries.push(bind_entry(15, &work));
+                entries.push(bind_entry(16, params));
+                device.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("shadow texels"),
+                    layout: &layout,
+                    entries: &entries,
+                })
+            };
             TexelShadows {
-                pipeline,
-                bind_group,
+                texels: pipeline("shadow_texels_main"),
+                object_light: pipeline("object_light_main"),
+                first: bind_group(&params[0]),
+                last: bind_group(&params[1]),
                 params,
                 items,
+                object_surfaces,
+                bounce,
             }
         })
     }
 
-    /// Records the pass into `encoder`, mirrors behind the objects read as `mirrors` says (as
-    /// the view draws them). Its mode is written with `Queue::write_buffer`: one pass per
-    /// submission.
+    /// Records the passes into `encoder`, mirrors behind the objects read as `mirrors` says
+    /// (as the view draws them): the texels' shadows, and where the shadows give back the
+    /// objects' light, that light and the texels' shadows again (see the module docs). The
+    /// parameters are written with `Queue::write_buffer`: one call per submission.
     pub(crate) fn dispatch(&self, gpu: &Gpu, encoder: &mut wgpu::CommandEncoder, mirrors: MirrorMode) {
-        if self.items == 0 {
-            return;
-        }
         let (mode, depth) = match mirrors {
             MirrorMode::Rays => (1u32, 0u32),
             MirrorMode::Trace { depth } => (0, depth),
         };
-        gpu.queue
-            .write_buffer(&self.params, 0, bytemuck::cast_slice(&[mode, depth, 0, 0]));
+        for (params, bounce) in self.params.iter().zip([0, self.bounce as u32]) {
+            gpu.queue.write_buffer(
+                params,
+                0,
+                bytemuck::cast_slice(&[mode, depth, bounce, self.object_surfaces]),
+            );
+        }
         let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
             label: Some("shadow texels"),
             timestamp_writes: None,
         });
-        pass.set_pipeline(&self.pipeline);
-        pass.set_bind_group(0, &self.bind_group, &[]);
-        pass.dispatch_workgroups(self.items.min(ROW), self.items.div_ceil(ROW), 1);
+        let texels = |pass: &mut wgpu::ComputePass, group: &wgpu::BindGroup| {
+            if self.items > 0 {
+                pass.set_pipeline(&self.texels);
+                pass.set_bind_group(0, group, &[]);
+                pass.dispatch_workgroups(self.items.min(ROW), self.items.div_ceil(ROW), 1);
+            }
+        };
+        if self.bounce && self.object_surfaces > 0 {
+            texels(&mut pass, &self.first);
+            pass.set_pipeline(&self.object_light);
+            pass.set_bind_group(0, &self.first, &[]);
+            pass.dispatch_workgroups(self.object_surfaces.div_ceil(WORKGROUP), 1, 1);
+        }
+        texels(&mut pass, &self.last);
     }
 }

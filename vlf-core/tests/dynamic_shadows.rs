@@ -477,3 +477,30 @@ fn the_gather_sees_the_objects_shadows_on_the_scene() {
     let (a, b) = (plain.incident(far, -DVec3::Z)[0], seeing.incident(far, -DVec3::Z)[0]);
     assert!((a - b).abs() < 1e-4 * a, "{a} vs {b}");
 }
+
+/// With the objects' light given back (`with_bounce_light`), a disc of reflectance ρd over a
+/// furnace floor sends back ρd·L of the L it hides: the floor loses (1 − ρd)·ρ·L·a²/(h² + a²).
+/// Direct light from the field.
+#[test]
+fn a_disc_gives_back_the_light_it_reflects() {
+    let (field, l) = furnace(6);
+    let bvh = Bvh::build(&field.scene);
+    let floor = -0.55;
+    let p = DVec3::new(0.0, 0.0, floor);
+    for (a, h) in [(0.05, 0.1), (0.1, 0.05)] {
+        let objects = [placed(&disc(a, floor + h), &field)];
+        let gather = Gatherer::new(&field, &bvh, &objects, SpecularMode::Rays)
+            .unwrap()
+            .with_bounce_light(true);
+        let light = gather.object_light_cache().expect("computed")[0][0][0];
+        assert!(
+            (light - 0.5 * l).abs() < 1e-3 * l,
+            "the disc sends {light}, want {}",
+            0.5 * l
+        );
+        let loss = gather.shadow_loss(p, DVec3::Z, [0.5; 3]).expect("the disc is overhead")[0];
+        let want = (1.0 - 0.5) * disc_loss(0.5, l, a, h);
+        println!("disc a = {a}, h = {h}, giving back its light: loss {loss:.5}, analytic {want:.5}");
+        assert!((loss / want - 1.0).abs() < 0.1, "a = {a}, h = {h}: {loss} vs {want}");
+    }
+}

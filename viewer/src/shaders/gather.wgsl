@@ -10,12 +10,12 @@ struct GatherParams {
     _pad: u32,
 };
 
-@group(0) @binding(14) var<uniform> gather_params: GatherParams;
+@group(0) @binding(15) var<uniform> gather_params: GatherParams;
 // Per point: its position (xyz), its unit normal (xyz) and a reflectance (xyz), three vec4
 // each, in the VLF frame.
-@group(0) @binding(15) var<storage, read> gather_points: array<vec4<f32>>;
+@group(0) @binding(16) var<storage, read> gather_points: array<vec4<f32>>;
 // Per point: the gathered radiance (xyz), or the shadow's loss (xyz, w 1 where any).
-@group(0) @binding(16) var<storage, read_write> gathered: array<vec4<f32>>;
+@group(0) @binding(17) var<storage, read_write> gathered: array<vec4<f32>>;
 
 @compute @workgroup_size(64)
 fn gather_main(@builtin(global_invocation_id) id: vec3<u32>) {
@@ -38,5 +38,5 @@ fn shadow_main(@builtin(global_invocation_id) id: vec3<u32>) {
     let p = gather_points[3u * i].xyz;
     let n = normalize(gather_points[3u * i + 1u].xyz);
     let rho = gather_points[3u * i + 2u].xyz;
-    gathered[i] = shadow_loss(p, n, rho, gather_params.mode, gather_params.depth);
+    gathered[i] = shadow_loss(p, n, rho, gather_params.mode, gather_params.depth, objects.bounce_light != 0u);
 }

@@ -24,6 +24,12 @@ struct Objects {
     // 1: gather rays read the static surfaces less the objects' shadows per texel
     // (`Gatherer::with_gather_shadows`).
     gather_shadows: u32,
+    // 1: shadows give back the light the objects reflect (`object_light`,
+    // `Gatherer::with_bounce_light`).
+    bounce_light: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 };
 
 @group(0) @binding(8) var<uniform> objects: Objects;
@@ -42,6 +48,9 @@ struct Objects {
 // Per value of the radiance pool: the radiance its texel loses to the objects (RGB, three
 // floats), when `objects.shadow_texels` is set. Written by `shadow_texels_main`, read here.
 @group(0) @binding(13) var<storage, read_write> shadow_pool: array<f32>;
+// Per object surface (from `objects.first_surface` on): the diffuse radiance it sends (RGB,
+// three floats), gathered at its centroid by `object_light_main` (shadow_texels.wgsl).
+@group(0) @binding(14) var<storage, read_write> object_light: array<f32>;
 
 const PI: f32 = 3.14159265358979;
 const GOLDEN_ANGLE: f32 = 2.39996322972865;
@@ -207,7 +216,7 @@ fn emitter_group(surface: u32) -> u32 {
 // objects (`Gatherer::shadow_loss`); w is 1 when any object takes light from it. The cones'
 // cells and the emitters' points are visited by one loop (cells first), each a ray traced once
 // through the objects and once through the scene.
-fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
+fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32, bounce: bool) -> vec4<f32> {
     let k = objects.shadow_cells;
     if (k == 0u || objects.count == 0u || !any(rho > vec3<f32>(0.0))) {
         return vec4<f32>(0.0);
@@ -302,6 +311,11 @@ fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32
             lost += power;
             continue;
         }
+        // The object's own light, given back.
+        if (bounce && blocker.front) {
+            let o = 3u * (blocker.surface - objects.first_surface);
+            lost -= vec3<f32>(object_light[o], object_light[o + 1u], object_light[o + 2u]) * weight;
+        }
         // The static surface behind the object: what it sends back, its emission left out
         // where its direct light is counted on its points.
         if (hit.surface == NONE || !hit.front) {
@@ -376,7 +390,7 @@ fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, 
                 let texels = shadow_from_texels(q, shadow_point);
                 loss = vec4<f32>(texels, select(0.0, 1.0, any(texels != vec3<f32>(0.0))));
             } else {
-                loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth);
+                loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth, objects.bounce_light != 0u);
             }
             if (loss.w != 0.0) {
                 value = max(base - scale * loss.xyz, vec3<f32>(0.0));

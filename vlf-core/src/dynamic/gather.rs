@@ -84,9 +84,14 @@ pub struct Gatherer<'a> {
     mode: SpecularMode,
     shadow_samples: u32,
     emitters: Emitters,
-    /// The objects' shadows per texel that gather rays see, when they see them
+    /// Whether gather rays see the objects' shadows, and those shadows per texel
     /// ([`Gatherer::with_gather_shadows`]).
+    sees_shadows: bool,
     gather_shadows: Option<Vec<[f32; 3]>>,
+    /// Whether the objects' shadows give back the light the objects reflect, and that light
+    /// per object and surface ([`Gatherer::with_bounce_light`]).
+    bounces: bool,
+    pub(super) object_light: Option<Vec<Vec<Rgb>>>,
 }
 
 impl<'a> Gatherer<'a> {
@@ -119,7 +124,10 @@ impl<'a> Gatherer<'a> {
             mode,
             shadow_samples: DEFAULT_SHADOW_SAMPLES,
             emitters: Emitters::new(&field.scene, DEFAULT_DIRECT_SAMPLES)?,
+            sees_shadows: false,
             gather_shadows: None,
+            bounces: false,
+            object_light: None,
         })
     }
 
@@ -127,8 +135,7 @@ impl<'a> Gatherer<'a> {
     /// ([`super::shadow`]; exact direct light uses its own).
     pub fn with_direct_samples(mut self, k: u32) -> crate::Result<Self> {
         self.emitters = Emitters::new(&self.field.scene, k)?;
-        let on = self.gather_shadows();
-        Ok(self.with_gather_shadows(on))
+        Ok(self.prepared())
     }
 
     pub fn emitters(&self) -> &Emitters {
@@ -138,8 +145,7 @@ impl<'a> Gatherer<'a> {
     /// Cuts each object's shadow cone into `k` cells ([`super::shadow`]); 0 casts no shadows.
     pub fn with_shadow_samples(mut self, k: u32) -> Self {
         self.shadow_samples = k;
-        let on = self.gather_shadows();
-        self.with_gather_shadows(on)
+        self.prepared()
     }
 
     /// Lets the gather see the objects' shadows on the static scene: a gather ray that meets a
@@ -151,16 +157,75 @@ impl<'a> Gatherer<'a> {
     /// from the lamp in the Cornell box, `docs/dynamic.md`). Off by default: the gather's
     /// analytic tests (a furnace, one-sided light) are about the gather alone.
     pub fn with_gather_shadows(mut self, on: bool) -> Self {
-        self.gather_shadows = None;
-        if on {
-            self.gather_shadows = Some(self.texel_shadows());
-        }
-        self
+        self.sees_shadows = on;
+        self.prepared()
     }
 
     /// Whether gather rays see the objects' shadows ([`Gatherer::with_gather_shadows`]).
     pub fn gather_shadows(&self) -> bool {
-        self.gather_shadows.is_some()
+        self.sees_shadows
+    }
+
+    /// Lets the objects' shadows give back the light the objects reflect onto the static
+    /// scene: where a shadow cone's cell meets an object, the point loses the radiance behind
+    /// the object but receives the object's own, `ΔL = ρ/π ∫_{Ω_obj} (L_in − L_obj)(n·ω)⁺ dω`
+    /// ([`super::shadow`]). `L_obj` is the object's diffuse radiance, gathered once per pose
+    /// at the centroid of each of its surfaces ([`Gatherer::object_light`], seeing the
+    /// objects' shadows where the gather does): flat per triangle, and without an object
+    /// mirror's reflection. A white object can then brighten what is near it. Without it, the
+    /// shadow of a white cube in the Cornell box is twice as deep as a path tracer's
+    /// (`docs/dynamic.md`). Off by default, for the shadow's analytic tests (a black disc).
+    pub fn with_bounce_light(mut self, on: bool) -> Self {
+        self.bounces = on;
+        self.prepared()
+    }
+
+    /// Whether the objects' shadows give back their reflected light
+    /// ([`Gatherer::with_bounce_light`]).
+    pub fn bounce_light(&self) -> bool {
+        self.bounces
+    }
+
+    /// The light each object sends back, per surface ([`Gatherer::with_bounce_light`]).
+    pub fn object_light_cache(&self) -> Option<&[Vec<Rgb>]> {
+        self.object_light.as_deref()
+    }
+
+    /// Computes what the settings ask for, in order: the shadows per texel (without the
+    /// objects' light), the objects' light (its gather seeing those shadows), then the shadows
+    /// again with the objects' light given back. In a builder, not inside the gather's
+    /// parallel loops.
+    fn prepared(mut self) -> Self {
+        self.gather_shadows = None;
+        self.object_light = None;
+        if self.sees_shadows {
+            self.gather_shadows = Some(self.texel_shadows());
+        }
+        if self.bounces {
+            self.object_light = Some(self.object_light());
+            if self.sees_shadows {
+                self.gather_shadows = Some(self.texel_shadows());
+            }
+        }
+        self
+    }
+
+    /// The diffuse radiance each object sends from the centroid of each of its surfaces
+    /// (`ρd` times the gather there), per object and surface: what a shadow gives back with
+    /// [`Gatherer::with_bounce_light`].
+    pub fn object_light(&self) -> Vec<Vec<Rgb>> {
+        use rayon::prelude::*;
+        self.objects
+            .iter()
+            .map(|o| {
+                (o.scene.surfaces.par_iter())
+                    .map(|s| {
+                        let centroid = s.vertices.iter().sum::<DVec3>() / s.vertices.len() as f64;
+                        self.diffuse(centroid, s.normal, o.scene.materials[s.material].diffuse)
+                    })
+                    .collect()
+            })
+            .collect()
     }
 
     /// The direction set gathered over.

@@ -166,10 +166,19 @@ impl Gatherer<'_> {
                 if cos <= 0.0 || cones[..j].iter().any(|c| c.contains(w)) {
                     continue;
                 }
-                let Some(behind) = self.behind_object(origin, w) else {
+                let Some((behind, (object, front))) = self.behind_object(origin, w) else {
                     continue;
                 };
                 any = true;
+                // The object's own light, given back.
+                if let Some(light) = &self.object_light
+                    && front.front
+                {
+                    let l = light[object][front.surface];
+                    for c in 0..3 {
+                        lost[c] -= l[c] * cos * cell;
+                    }
+                }
                 if let Some(hit) = behind {
                     let l = self.sent_back(&hit, w, !on_cells.contains(&hit.surface));
                     for c in 0..3 {
@@ -197,16 +206,17 @@ impl Gatherer<'_> {
     }
 
     /// Whether an object is nearer than the static scene along `dir` from `origin`, and if so
-    /// the static surface behind it (`None` inside: nothing).
-    fn behind_object(&self, origin: DVec3, dir: DVec3) -> Option<Option<Hit>> {
+    /// the static surface behind it (`None` inside: nothing) and the object and its surface
+    /// met.
+    fn behind_object(&self, origin: DVec3, dir: DVec3) -> Option<(Option<Hit>, (usize, Hit))> {
         self.count_ray();
-        let t_object = self.nearest_object(origin, dir, f64::INFINITY)?.1.t;
+        let (object, front) = self.nearest_object(origin, dir, f64::INFINITY)?;
         match self
             .bvh()
             .intersect(&self.field().scene, origin, dir, 0.0, f64::INFINITY)
         {
-            Some(hit) if hit.t < t_object => None,
-            hit => Some(hit),
+            Some(hit) if hit.t < front.t => None,
+            hit => Some((hit, (object, front))),
         }
     }
 }
