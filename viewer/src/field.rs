@@ -214,6 +214,76 @@ pub(crate) fn shader_source(more: &[&str]) -> String {
     source
 }
 
+/// Compute passes over a field's buffers (bound at 0..BINDINGS, as [`FieldRenderer::bindings`])
+/// and buffers of their own bound after them: the gather at given points, the shadows per
+/// texel. `source` is appended to the field's and the objects' shaders.
+pub(crate) struct FieldCompute {
+    layout: wgpu::BindGroupLayout,
+    pipeline_layout: wgpu::PipelineLayout,
+    shader: wgpu::ShaderModule,
+}
+
+impl FieldCompute {
+    /// The pass's own buffers are of the types `extra`, bound at `BINDINGS`, `BINDINGS + 1`, …
+    pub(crate) fn new(
+        device: &wgpu::Device,
+        label: &str,
+        source: &str,
+        extra: &[wgpu::BufferBindingType],
+    ) -> FieldCompute {
+        let compute = wgpu::ShaderStages::COMPUTE;
+        let mut entries = binding_layout(compute);
+        entries.extend((extra.iter().enumerate()).map(|(k, &ty)| buffer_entry((BINDINGS + k) as u32, compute, ty)));
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some(label),
+            entries: &entries,
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some(label),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some(label),
+            source: wgpu::ShaderSource::Wgsl(shader_source(&[source]).into()),
+        });
+        FieldCompute {
+            layout,
+            pipeline_layout,
+            shader,
+        }
+    }
+
+    /// The pipeline of the shader's entry point `entry`.
+    pub(crate) fn pipeline(&self, device: &wgpu::Device, entry: &str) -> wgpu::ComputePipeline {
+        device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some(entry),
+            layout: Some(&self.pipeline_layout),
+            module: &self.shader,
+            entry_point: Some(entry),
+            compilation_options: Default::default(),
+            cache: None,
+        })
+    }
+
+    /// The field's buffers `field` and the pass's own `extra`, bound.
+    pub(crate) fn bind_group(
+        &self,
+        device: &wgpu::Device,
+        field: &[wgpu::Buffer; BINDINGS],
+        extra: &[&wgpu::Buffer],
+    ) -> wgpu::BindGroup {
+        let entries: Vec<wgpu::BindGroupEntry> = (field.iter().chain(extra.iter().copied()).enumerate())
+            .map(|(b, buffer)| bind_entry(b as u32, buffer))
+            .collect();
+        device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: None,
+            layout: &self.layout,
+            entries: &entries,
+        })
+    }
+}
+
 impl FieldRenderer {
     /// Uploads `field`'s surfaces, materials and BVH, and all of its radiance.
     pub fn new(gpu: &Gpu, field: &LightField) -> Result<FieldRenderer, ViewerError> {

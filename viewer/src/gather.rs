@@ -9,8 +9,8 @@
 //! the same per fragment (`shaders/objects.wgsl`); this pass computes it at given points, for
 //! tests, benchmarks and per-vertex shading.
 
-use crate::field::{BINDINGS, binding_layout, shader_source};
-use crate::pass::{READ_ONLY, bind_entry, buffer_entry, uniform_buffer};
+use crate::field::{BINDINGS, FieldCompute};
+use crate::pass::{READ_ONLY, uniform_buffer};
 use crate::{FieldRenderer, Gpu, MirrorMode, ViewerError};
 use bytemuck::{Pod, Zeroable};
 use glam::DVec3;
@@ -33,7 +33,7 @@ struct Params {
 pub struct GpuGather {
     pipeline: wgpu::ComputePipeline,
     shadows: wgpu::ComputePipeline,
-    layout: wgpu::BindGroupLayout,
+    compute: FieldCompute,
     field_bindings: [wgpu::Buffer; BINDINGS],
     mirrors: MirrorMode,
 }
@@ -46,42 +46,20 @@ impl GpuGather {
         field.refresh_shadows(gpu, mirrors)?;
         gpu.checked(|| {
             let device = &gpu.device;
-            let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("gather"),
-                source: wgpu::ShaderSource::Wgsl(shader_source(&[include_str!("shaders/gather.wgsl")]).into()),
-            });
-            let compute = wgpu::ShaderStages::COMPUTE;
-            let mut entries = binding_layout(compute);
-            entries.push(buffer_entry(15, compute, wgpu::BufferBindingType::Uniform));
-            entries.push(buffer_entry(16, compute, READ_ONLY));
-            entries.push(buffer_entry(
-                17,
-                compute,
-                wgpu::BufferBindingType::Storage { read_only: false },
-            ));
-            let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("gather"),
-                entries: &entries,
-            });
-            let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some("gather"),
-                bind_group_layouts: &[Some(&layout)],
-                immediate_size: 0,
-            });
-            let entry = |name: &str| {
-                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(name),
-                    layout: Some(&pipeline_layout),
-                    module: &shader,
-                    entry_point: Some(name),
-                    compilation_options: Default::default(),
-                    cache: None,
-                })
-            };
+            let compute = FieldCompute::new(
+                device,
+                "gather",
+                include_str!("shaders/gather.wgsl"),
+                &[
+                    wgpu::BufferBindingType::Uniform,
+                    READ_ONLY,
+                    wgpu::BufferBindingType::Storage { read_only: false },
+                ],
+            );
             GpuGather {
-                pipeline: entry("gather_main"),
-                shadows: entry("shadow_main"),
-                layout,
+                pipeline: compute.pipeline(device, "gather_main"),
+                shadows: compute.pipeline(device, "shadow_main"),
+                compute,
                 field_bindings: field.bindings.clone(),
                 mirrors,
             }
@@ -164,15 +142,9 @@ impl GpuGather {
                 usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
                 mapped_at_creation: false,
             });
-            let mut entries: Vec<wgpu::BindGroupEntry> = (self.field_bindings.iter().enumerate())
-                .map(|(b, buffer)| bind_entry(b as u32, buffer))
-                .collect();
-            entries.extend([bind_entry(15, &params), bind_entry(16, &input), bind_entry(17, &output)]);
-            let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
-                label: Some("gather"),
-                layout: &self.layout,
-                entries: &entries,
-            });
+            let bind_group = self
+                .compute
+                .bind_group(device, &self.field_bindings, &[&params, &input, &output]);
             let mut encoder = device.create_command_encoder(&Default::default());
             {
                 let mut pass = encoder.begin_compute_pass(&Default::default());

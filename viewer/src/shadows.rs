@@ -15,8 +15,8 @@
 //! without the objects' light, the objects' light gathered at each of their surfaces
 //! (`object_light_main`, seeing those shadows), then the texels' shadows with it.
 
-use crate::field::{BINDINGS, binding_layout, shader_source};
-use crate::pass::{READ_ONLY, bind_entry, buffer_entry, uniform_buffer};
+use crate::field::{BINDINGS, FieldCompute};
+use crate::pass::{READ_ONLY, uniform_buffer};
 use crate::{Gpu, MirrorMode, ViewerError};
 use vlf_core::field::LightField;
 use wgpu::util::DeviceExt;
@@ -73,56 +73,23 @@ impl TexelShadows {
         }
         gpu.checked(|| {
             let device = &gpu.device;
-            let shader = device.create_shader_module(wgpu::ShaderModuleDescriptor {
-                label: Some("shadow texels"),
-                source: wgpu::ShaderSource::Wgsl(shader_source(&[include_str!("shaders/shadow_texels.wgsl")]).into()),
-            });
-            let compute = wgpu::ShaderStages::COMPUTE;
-            let mut entries = binding_layout(compute);
-            entries.push(buffer_entry(15, compute, READ_ONLY));
-            entries.push(buffer_entry(16, compute, wgpu::BufferBindingType::Uniform));
-            let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
-                label: Some("shadow texels"),
-                entries: &entries,
-            });
-            let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
-                label: Some("shadow texels"),
-                bind_group_layouts: &[Some(&layout)],
-                immediate_size: 0,
-            });
-            let pipeline = |entry: &str| {
-                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                    label: Some(entry),
-                    layout: Some(&pipeline_layout),
-                    module: &shader,
-                    entry_point: Some(entry),
-                    compilation_options: Default::default(),
-                    cache: None,
-                })
-            };
+            let compute = FieldCompute::new(
+                device,
+                "shadow texels",
+                include_str!("shaders/shadow_texels.wgsl"),
+                &[READ_ONLY, wgpu::BufferBindingType::Uniform],
+            );
             let work = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("texel work"),
                 contents: bytemuck::cast_slice(&work),
                 usage: wgpu::BufferUsages::STORAGE,
             });
             let params = [0, 1].map(|_| uniform_buffer(device, "texel params", 16));
-            let bind_group = |params: &wgpu::Buffer| {
-                let mut entries: Vec<wgpu::BindGroupEntry> = (bindings.iter().enumerate())
-                    .map(|(b, buffer)| bind_entry(b as u32, buffer))
-                    .collect();
-                entries.push(bind_entry(15, &work));
-                entries.push(bind_entry(16, params));
-                device.create_bind_group(&wgpu::BindGroupDescriptor {
-                    label: Some("shadow texels"),
-                    layout: &layout,
-                    entries: &entries,
-                })
-            };
             TexelShadows {
-                texels: pipeline("shadow_texels_main"),
-                object_light: pipeline("object_light_main"),
-                first: bind_group(&params[0]),
-                last: bind_group(&params[1]),
+                texels: compute.pipeline(device, "shadow_texels_main"),
+                object_light: compute.pipeline(device, "object_light_main"),
+                first: compute.bind_group(device, bindings, &[&work, &params[0]]),
+                last: compute.bind_group(device, bindings, &[&work, &params[1]]),
                 params,
                 items,
                 object_surfaces,

@@ -44,9 +44,16 @@
 //! horizon, or outside every cone) loses nothing and keeps the very bits it has without the
 //! objects: the loss is applied only where it is not zero.
 //!
-//! **Left out.** The light an object reflects onto the static scene is not added back: the
-//! shadowed point sees the object's own radiance `L_obj` where it lost `L_in`, so the shadow is
-//! too dark by `ρ/π ∫_{Ω_obj} L_obj (n·ω)⁺ dω` (measured in `docs/dynamic.md`).
+//! **The object's own light.** Where it lost `L_in`, the shadowed point sees the object's own
+//! radiance `L_obj`. With [`Gatherer::with_bounce_light`] it is given back,
+//! `ΔL = ρ/π ∫_{Ω_obj} (L_in − L_obj)(n·ω)⁺ dω`, `L_obj` gathered once per pose at each object
+//! surface's centroid (flat per triangle; an object mirror's reflection left out), so a white
+//! object can brighten what is near it; without, the shadow is too dark by
+//! `ρ/π ∫_{Ω_obj} L_obj (n·ω)⁺ dω` (measured in `docs/dynamic.md`).
+//!
+//! **Per texel.** [`Gatherer::texel_shadows`] evaluates `ΔL` at the centre of every texel of
+//! the static charts: what gather rays read with [`Gatherer::with_gather_shadows`], and the
+//! viewer's shadows per texel.
 
 use super::gather::{Gatherer, RAY_OFFSET};
 use crate::render::Hit;
