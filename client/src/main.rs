@@ -6,6 +6,8 @@
 //! viewpoint; `vlf jobs` lists a store's jobs. Exact flags are part of the
 //! interface: scripts rely on them.
 
+use vlf_core::propagate::defaults;
+
 mod bench;
 mod objects;
 mod propagate;
@@ -129,45 +131,46 @@ pub struct PropagateArgs {
 }
 
 /// What a job computes: the settings of `vlf_proto::v1::Parameters`, shared by `propagate`, `run`
-/// and `submit`.
+/// and `submit`. Their defaults are `vlf_core::propagate::defaults`, as the service's.
 #[derive(Args, Clone)]
 pub struct JobFlags {
     /// Encoding of the stored radiance: f32 (lossless), f16 or rgb9e5 (compact).
     #[arg(long, value_enum, default_value_t = EncodingArg::F16)]
     encoding: EncodingArg,
     /// Number of directions l = 2·4^k + 1: 9, 33, 129, 513, 2049 or 8193.
-    #[arg(long, default_value_t = 513)]
+    #[arg(long, default_value_t = defaults::DIRECTIONS)]
     directions: usize,
     /// Rays per side N of every parallel subfield.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = defaults::RESOLUTION)]
     resolution: u32,
     /// Tile size m (rays per tile side; divides N).
-    #[arg(long, default_value_t = 8)]
+    #[arg(long, default_value_t = defaults::TILE)]
     tile: u32,
     /// Run exactly K iterations.
     #[arg(long, conflicts_with = "converge")]
     iterations: Option<u32>,
-    /// Iterate until the unshot power is below EPS × the emitted power (default 1e-3).
+    /// Iterate until the unshot power is below EPS × the emitted power (default 1e-3, at most
+    /// 1000 iterations).
     #[arg(long)]
     converge: Option<f64>,
     /// Texel edge in ray spacings (2/N in the normalised frame).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = defaults::TEXEL_CELLS)]
     texel: f64,
     /// Deferred propagation: surfaces with less than this fraction of the unshot power wait.
     #[arg(long)]
     defer: Option<f64>,
     /// Perturb the direction set in the first ITERS iterations (remedy for holes; 0 = off).
-    #[arg(long, default_value_t = 2)]
+    #[arg(long, default_value_t = defaults::PERTURB_ITERATIONS)]
     perturb: u32,
     /// Rotated copies of the direction set per perturbed iteration.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = defaults::PERTURB_COUNT)]
     perturb_count: u32,
     /// After the last iteration, re-sample the mirrors' directional maps by
     /// backward ray tracing (sharper reflections when rendering from the rays).
     #[arg(long)]
     resample: bool,
     /// Gaussian filter of the Next maps, σ in texels (0 = off).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = defaults::FILTER_SIGMA)]
     filter: f64,
 }
 
@@ -445,5 +448,30 @@ fn main() {
     if let Err(e) = result {
         eprintln!("error: {e:#}");
         std::process::exit(1);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    /// A job started from the command line without settings, from `submit` or from the
+    /// service's messages gets the same options: `Options::recommended`, from one table.
+    #[test]
+    fn a_job_without_settings_gets_the_recommended_options() {
+        for line in [
+            &["vlf", "propagate", "scene.obj", "--store", "memory://"][..],
+            &["vlf", "submit", "scene.obj"][..],
+        ] {
+            let spec = match Cli::parse_from(line).command {
+                Command::Propagate(args) => args.job.spec().unwrap(),
+                Command::Submit(args) => args.job.spec().unwrap(),
+                _ => unreachable!("parsed as another command"),
+            };
+            assert_eq!(spec.options, vlf_core::propagate::Options::recommended(), "{line:?}");
+        }
+        let wire = vlf_proto::JobSpec::from_parameters(&Default::default()).unwrap();
+        assert_eq!(wire.options, vlf_core::propagate::Options::recommended());
     }
 }

@@ -3,7 +3,7 @@
 //! validates it into [`JobSpec`], so a job means the same thing however it was started.
 
 use crate::v1::{self, Parameters};
-use vlf_core::propagate::{Options, Pass, Perturbation, Stop};
+use vlf_core::propagate::{Options, Pass, Perturbation, Stop, defaults};
 use vlf_core::psf::GridSize;
 use vlf_store::Encoding;
 
@@ -17,46 +17,33 @@ pub struct JobSpec {
 }
 
 impl JobSpec {
-    /// Default number of directions.
-    pub const DIRECTIONS: u32 = 513;
-    /// Default resolution N.
-    pub const RESOLUTION: u32 = 64;
-    /// Default tile m.
-    pub const TILE: u32 = 8;
-    /// Default convergence threshold.
-    pub const CONVERGE: f64 = 1e-3;
-    /// Iteration cap of a run to convergence.
-    pub const MAX_ITERATIONS: u32 = 1000;
-    /// Default perturbed iterations and copies.
-    pub const PERTURB: u32 = 2;
-    pub const PERTURB_COUNT: u32 = 4;
-    /// Default filter sigma (texels).
-    pub const FILTER: f64 = 1.0;
-
-    /// Validates `p` (unset fields take their defaults); the error names the parameter.
+    /// Validates `p` (unset fields take their defaults, `vlf_core::propagate::defaults`); the
+    /// error names the parameter.
     pub fn from_parameters(p: &Parameters) -> Result<JobSpec, vlf_core::Error> {
         if p.iterations.is_some() && p.converge.is_some() {
             return Err(vlf_core::Error::Parameter(
                 "give either a fixed iteration count or a convergence threshold, not both".into(),
             ));
         }
+        let d = Options::recommended();
         let stop = match (p.iterations, p.converge) {
             (Some(k), _) => Stop::Iterations(k),
-            (None, eps) => Stop::Converge {
-                epsilon: eps.unwrap_or(Self::CONVERGE),
-                max_iterations: Self::MAX_ITERATIONS,
+            (None, Some(epsilon)) => Stop::Converge {
+                epsilon,
+                max_iterations: defaults::MAX_ITERATIONS,
             },
+            (None, None) => d.stop,
         };
-        let filter = p.filter.unwrap_or(Self::FILTER);
+        let filter = p.filter.or(d.filter_sigma).unwrap_or(0.0);
         let options = Options {
-            directions: p.directions.unwrap_or(Self::DIRECTIONS) as usize,
-            grid: GridSize::new(p.resolution.unwrap_or(Self::RESOLUTION), p.tile.unwrap_or(Self::TILE))?,
+            directions: p.directions.map_or(d.directions, |l| l as usize),
+            grid: GridSize::new(p.resolution.unwrap_or(d.grid.resolution), p.tile.unwrap_or(d.grid.tile))?,
             stop,
-            texel_cells: p.texel.unwrap_or(1.0),
+            texel_cells: p.texel.unwrap_or(d.texel_cells),
             deferral: p.defer,
             perturbation: Perturbation {
-                iterations: p.perturb.unwrap_or(Self::PERTURB),
-                count: p.perturb_count.unwrap_or(Self::PERTURB_COUNT),
+                iterations: p.perturb.unwrap_or(d.perturbation.iterations),
+                count: p.perturb_count.unwrap_or(d.perturbation.count),
             },
             filter_sigma: (filter != 0.0).then_some(filter),
         };
@@ -136,8 +123,9 @@ mod tests {
     use super::*;
 
     #[test]
-    fn defaults_are_the_command_lines() {
+    fn defaults_are_the_recommended_options() {
         let spec = JobSpec::from_parameters(&Parameters::default()).unwrap();
+        assert_eq!(spec.options, Options::recommended());
         assert_eq!(spec.options.directions, 513);
         assert_eq!(spec.options.grid, GridSize::new(64, 8).unwrap());
         assert_eq!(

@@ -104,22 +104,62 @@ pub struct Options {
     pub filter_sigma: Option<f64>,
 }
 
+/// The settings a job gets where its user names none: the one table that the command line
+/// (`propagate`, `run`, `submit`, `bench`, `study`'s base point), the service's messages
+/// (`vlf_proto::convert::JobSpec`) and [`Options::recommended`] read.
+pub mod defaults {
+    /// Line directions `l`.
+    pub const DIRECTIONS: usize = 513;
+    /// Rays per subfield side `N`, and tile side `m`.
+    pub const RESOLUTION: u32 = 64;
+    pub const TILE: u32 = 8;
+    /// Stop when the unshot power is below this fraction of the emitted power, or after
+    /// [`MAX_ITERATIONS`].
+    pub const CONVERGE: f64 = 1e-3;
+    pub const MAX_ITERATIONS: u32 = 1000;
+    /// Texel edge in ray spacings.
+    pub const TEXEL_CELLS: f64 = 1.0;
+    /// The paper's remedies for holes: perturbed iterations and copies, and the Next maps'
+    /// filter σ in texels (issue 30 measures what they cost in bias).
+    pub const PERTURB_ITERATIONS: u32 = 2;
+    pub const PERTURB_COUNT: u32 = 4;
+    pub const FILTER_SIGMA: f64 = 1.0;
+}
+
 impl Default for Options {
+    /// The pure method at the default resolution ([`defaults`]): no perturbation, no filter.
+    /// The library's neutral point, which tests and benchmarks vary from; a user's job gets
+    /// [`Options::recommended`].
     fn default() -> Self {
         Options {
-            directions: 513,
+            directions: defaults::DIRECTIONS,
             grid: GridSize {
-                resolution: 64,
-                tile: 8,
+                resolution: defaults::RESOLUTION,
+                tile: defaults::TILE,
             },
             stop: Stop::Converge {
-                epsilon: 1e-3,
-                max_iterations: 1000,
+                epsilon: defaults::CONVERGE,
+                max_iterations: defaults::MAX_ITERATIONS,
             },
-            texel_cells: 1.0,
+            texel_cells: defaults::TEXEL_CELLS,
             deferral: None,
             perturbation: Perturbation::default(),
             filter_sigma: None,
+        }
+    }
+}
+
+impl Options {
+    /// What a job gets where its user names nothing: every setting of [`defaults`], remedies
+    /// included.
+    pub fn recommended() -> Options {
+        Options {
+            perturbation: Perturbation {
+                iterations: defaults::PERTURB_ITERATIONS,
+                count: defaults::PERTURB_COUNT,
+            },
+            filter_sigma: Some(defaults::FILTER_SIGMA),
+            ..Options::default()
         }
     }
 }
