@@ -63,9 +63,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
             let placed = objects.place(args.view.up(), &field.scene, &bvh)?;
             let gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, objects.directions(&field))
                 .context("--object-directions")?
-                .with_shadow_samples(objects.object_shadow_samples)
-                .with_gather_shadows(true)
-                .with_bounce_light(true);
+                .with_shadow_samples(objects.object_shadow_samples);
+            // The gather sees the objects' shadows, and the shadows give back the objects'
+            // light: on the GPU its passes compute them, on the CPU the gatherer does.
+            let gatherer = match args.gpu {
+                true => gatherer.with_gpu_lighting(true, true),
+                false => gatherer.with_gather_shadows(true).with_bounce_light(true),
+            };
             if args.gpu {
                 let gpu = vlf_viewer::Gpu::new()?;
                 tracing::info!(adapter = %gpu.describe(), "rendering on the GPU");

@@ -107,8 +107,7 @@ fn bench(c: &mut Criterion) {
         let (per_fragment, mut per_texel) = {
             let cpu = Gatherer::new(&field, &bvh, placement.placed(), SpecularMode::Rays)
                 .expect("gatherer")
-                .with_gather_shadows(true)
-                .with_bounce_light(true);
+                .with_gpu_lighting(true, true);
             let a = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
             let b = FieldRenderer::with_objects(&gpu, &field, &cpu).expect("upload");
             (a, b)

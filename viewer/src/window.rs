@@ -316,8 +316,8 @@ impl App {
                     Gatherer::with_directions(&self.geometry, &self.bvh, o.placement.placed(), mode, o.directions)
                         .map_err(|e| ViewerError::Unsupported(e.to_string()))?
                         .with_shadow_samples(o.shadow_samples)
-                        .with_gather_shadows(true)
-                        .with_bounce_light(true);
+                        // The GPU computes both: nothing for the CPU to compute here.
+                        .with_gpu_lighting(true, true);
                 let mut renderer =
                     FieldRenderer::streaming_with_objects(gpu, &self.geometry, config.capacity, &gatherer)?;
                 // Shadows per texel: a walk pays for them when objects move, not every frame.

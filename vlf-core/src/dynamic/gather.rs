@@ -180,6 +180,17 @@ impl<'a> Gatherer<'a> {
         self.prepared()
     }
 
+    /// Sets what [`Gatherer::with_gather_shadows`] and [`Gatherer::with_bounce_light`] set,
+    /// without computing what the CPU needs for them (the shadows per texel and the objects'
+    /// light cost `texels × objects × K` rays): for a gatherer that only lays the objects out
+    /// for the GPU, which computes its own (`vlf_viewer::FieldRenderer::with_objects`). Its own
+    /// CPU gather then reads the field as if both were off.
+    pub fn with_gpu_lighting(mut self, gather_shadows: bool, bounce_light: bool) -> Self {
+        (self.sees_shadows, self.bounces) = (gather_shadows, bounce_light);
+        (self.gather_shadows, self.object_light) = (None, None);
+        self
+    }
+
     /// Whether the objects' shadows give back their reflected light
     /// ([`Gatherer::with_bounce_light`]).
     pub fn bounce_light(&self) -> bool {
