@@ -29,7 +29,7 @@ use clap::Args;
 use std::fmt::Write as _;
 use std::path::PathBuf;
 use std::time::Instant;
-use vlf_core::propagate::{Checkpoint, HomeThreads, Propagation, split_by_cost};
+use vlf_core::propagate::{Checkpoint, HomeThreads, PhaseTimes, Propagation, split_by_cost};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_server::scheduler::{IterationRecord, IterationUse};
@@ -139,6 +139,9 @@ struct Sample {
     iterations: Vec<IterationRecord>,
     /// Everything the run read and wrote through the store (snapshots, work, the final field).
     traffic: Traffic,
+    /// In one process: per iteration, where its time went, and the seconds its snapshot took
+    /// to write (empty for the service).
+    phases: Vec<(PhaseTimes, f64)>,
 }
 
 /// When a run started, on the wall clock and on the process's CPU clock.
@@ -177,6 +180,7 @@ impl Sample {
             cpu_seconds: process_cpu_seconds() - started.cpu,
             iterations,
             traffic: store.traffic(),
+            phases: Vec::new(),
         }
     }
 }
@@ -285,18 +289,25 @@ fn in_process_with(
     let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
     let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
     let mut iterations = Vec::new();
+    let mut phases = Vec::new();
     while !prop.finished() {
         let t = Instant::now();
         step(&mut prop)?;
+        let writing = Instant::now();
         job.write_snapshot(&prop)?;
+        let written = writing.elapsed().as_secs_f64();
         iterations.push(IterationRecord {
             seconds: t.elapsed().as_secs_f64(),
             ..IterationRecord::default()
         });
+        phases.push((prop.phase_times.last().copied().unwrap_or_default(), written));
     }
     let last = prop.checkpoint();
     job.finish(&prop.into_field(), false)?;
-    let sample = Sample::ended(started, iterations, &store);
+    let sample = Sample {
+        phases,
+        ..Sample::ended(started, iterations, &store)
+    };
     forget(&store, job.id())?;
     Ok((sample, last))
 }
@@ -460,6 +471,7 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>
         let _ = writeln!(out, "| {} | {m:.3} | {fastest:.3} | {} |", way.name(), ratios.cells());
     }
     cpu_table(&mut out, ways, samples, threads, args.cotenant);
+    phase_table(&mut out, ways, samples);
 
     // The plain iterations, summed per run and paired by round like the whole runs.
     let count = samples[0].first().map_or(0, |s| s.iterations.len());
@@ -556,6 +568,52 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>
         let _ = writeln!(out, "{row}");
     }
     out
+}
+
+/// Where the iterations of the runs in one process spent their time, phase by phase
+/// (`vlf_core::propagate::PhaseTimes`, and the snapshot's write): the median over runs of each
+/// run's sum over its iterations, and its share of the iterations' time. `other` is what no
+/// phase accounts for (progress reports, the loop itself).
+fn phase_table(out: &mut String, ways: &[Way], samples: &[Vec<Sample>]) {
+    let rows: Vec<(String, [f64; 7])> = (ways.iter().zip(samples))
+        .filter(|(_, runs)| runs.iter().all(|s| !s.phases.is_empty()))
+        .map(|(way, runs)| {
+            let per_run = |f: &dyn Fn(&Sample) -> f64| median(runs.iter().map(f).collect());
+            let sum = |f: fn(&(PhaseTimes, f64)) -> f64| move |s: &Sample| s.phases.iter().map(f).sum::<f64>();
+            let total = per_run(&|s: &Sample| s.iterations.iter().map(|i| i.seconds).sum());
+            let parts = [
+                per_run(&sum(|p| p.0.plan)),
+                per_run(&sum(|p| p.0.shoot)),
+                per_run(&sum(|p| p.0.reduce)),
+                per_run(&sum(|p| p.0.finish)),
+                per_run(&sum(|p| p.1)),
+            ];
+            let other = (total - parts.iter().sum::<f64>()).max(0.0);
+            let cells = [parts[0], parts[1], parts[2], parts[3], parts[4], other, total];
+            (way.name(), cells)
+        })
+        .collect();
+    if rows.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        out,
+        "\nWhere the iterations' time goes in one process (median over runs of each run's sum, \
+         seconds and share; tracing spans `plan`, `shoot`, `reduce`, `finish` at debug level):\n"
+    );
+    let _ = writeln!(
+        out,
+        "| run | plan | shoot | reduce | finish | snapshot write | other | iterations |"
+    );
+    let _ = writeln!(out, "|---|---:|---:|---:|---:|---:|---:|---:|");
+    for (name, cells) in rows {
+        let total = cells[6].max(1e-12);
+        let mut row = format!("| {name} |");
+        for &c in &cells[..6] {
+            let _ = write!(row, " {c:.3} ({:.0} %) |", 100.0 * c / total);
+        }
+        let _ = writeln!(out, "{row} {:.3} |", cells[6]);
+    }
 }
 
 /// What each run cost in CPU, every thread of the process: the service's extra work shows apart

@@ -239,6 +239,30 @@ pub struct IterationStats {
     pub seconds: f64,
 }
 
+/// Where one iteration's time went in this process, phase by phase (seconds): what the
+/// `plan`, `shoot`, `reduce` and `finish` tracing spans (debug level, target
+/// `vlf_core::propagate`) time, and what `vlf bench` breaks an iteration down into. Not part
+/// of a checkpoint or of [`IterationStats`]: timings are not the field's bits.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct PhaseTimes {
+    /// The iteration's work laid out ([`Propagation::iteration_work`]) and the mirror maps'
+    /// arrivals of the last iteration gathered.
+    pub plan: f64,
+    /// The directions' batches shot, every thread at work, less the reduction.
+    pub shoot: f64,
+    /// The batches' sums added into the iteration's totals, in batch order.
+    pub reduce: f64,
+    /// The end: mirror totals and power in, then [`Propagation::finish_iteration`] (the Next
+    /// maps filtered and swapped, convergence, statistics).
+    pub finish: f64,
+}
+
+impl PhaseTimes {
+    pub fn total(&self) -> f64 {
+        self.plan + self.shoot + self.reduce + self.finish
+    }
+}
+
 /// Serializable copy of [`Flow`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct FlowRecord {
@@ -290,6 +314,8 @@ pub struct Propagation {
     pub total: Vec<Rgb>,
     pub emitted: Rgb,
     pub stats: Vec<IterationStats>,
+    /// Per iteration stepped in this process ([`Propagation::step`]), where its time went.
+    pub phase_times: Vec<PhaseTimes>,
     /// Mirror maps and reflection routes; `None` when the scene has no
     /// mirror light can reach (no specular machinery at all).
     pub specular: Option<Specular>,
@@ -445,6 +471,7 @@ impl Propagation {
             owners,
             buffers: work::KeptBuffers::default(),
             cut: split::KeptCut::default(),
+            phase_times: Vec::new(),
         })
     }
 
@@ -508,10 +535,12 @@ impl Propagation {
     /// too few to give each thread a home.
     pub fn step_shared(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let started = Instant::now();
+        let mut clock = PhaseClock::start(started);
         let mut work = self.iteration_work();
         let passes = work.passes();
         let l = self.directions.len();
         let mut maps = self.gathered_maps(&work);
+        clock.planned();
         let mut buffers = self.buffers.take();
         for (p, &pass) in passes.iter().enumerate() {
             for batch in 0..work.batches() {
@@ -520,8 +549,10 @@ impl Propagation {
                 let sum = self
                     .run_batch_with(&work, pass, batch, own.as_deref_mut(), &mut buffers)
                     .expect("batches of this process's own work are well-formed");
+                clock.reducing();
                 work.absorb(pass, batch..batch + 1, sum)
                     .expect("this process absorbs its batches in order");
+                clock.reduced();
                 progress(Progress {
                     iteration: work.index,
                     directions_done: p * l + range.end,
@@ -530,7 +561,10 @@ impl Propagation {
             }
         }
         self.buffers.keep(buffers);
-        self.end_step(work, maps, started)
+        clock.shot();
+        let stats = self.end_step(work, maps, started);
+        self.phase_times.push(clock.finished());
+        stats
     }
 
     /// The mirror maps an iteration's shooting reads and writes, taken out of the propagation,
@@ -680,4 +714,60 @@ where
         },
     );
     area.into_iter().map(|a| a[0]).collect()
+}
+
+/// Times an iteration's phases ([`PhaseTimes`]) as they follow each other, each inside a
+/// tracing span of its name: plan, then shooting interleaved with reductions, then the end.
+struct PhaseClock {
+    times: PhaseTimes,
+    /// When the current phase began, and its span.
+    since: Instant,
+    span: Option<tracing::span::EnteredSpan>,
+}
+
+impl PhaseClock {
+    fn start(started: Instant) -> PhaseClock {
+        PhaseClock {
+            times: PhaseTimes::default(),
+            since: started,
+            span: Some(tracing::debug_span!("plan").entered()),
+        }
+    }
+
+    /// Seconds since the last mark, and a new span `name` from now.
+    fn lap(&mut self, name: &'static str) -> f64 {
+        self.span = None;
+        let now = Instant::now();
+        let seconds = now.duration_since(self.since).as_secs_f64();
+        self.since = now;
+        self.span = Some(match name {
+            "shoot" => tracing::debug_span!("shoot").entered(),
+            "reduce" => tracing::debug_span!("reduce").entered(),
+            _ => tracing::debug_span!("finish").entered(),
+        });
+        seconds
+    }
+
+    fn planned(&mut self) {
+        self.times.plan += self.lap("shoot");
+    }
+
+    fn reducing(&mut self) {
+        self.times.shoot += self.lap("reduce");
+    }
+
+    fn reduced(&mut self) {
+        self.times.reduce += self.lap("shoot");
+    }
+
+    /// Shooting (and reducing) is over; the end begins.
+    fn shot(&mut self) {
+        self.times.shoot += self.lap("finish");
+    }
+
+    fn finished(mut self) -> PhaseTimes {
+        self.span = None;
+        self.times.finish += self.since.elapsed().as_secs_f64();
+        self.times
+    }
 }

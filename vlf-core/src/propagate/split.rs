@@ -170,11 +170,13 @@ impl Propagation {
         mut progress: impl FnMut(Progress),
     ) -> crate::Result<(IterationStats, Vec<f64>)> {
         let started = Instant::now();
+        let mut clock = super::PhaseClock::start(started);
         let mut work = self.iteration_work();
         let batches = work.batches();
         check_homes(homes, batches, threads.count())?;
         let l = self.directions.len();
         let mut maps = self.gathered_maps(&work);
+        clock.planned();
         let mut costs = vec![0.0; batches];
         let passes = work.passes();
         let (iteration, total) = (work.index, passes.len() * l);
@@ -192,6 +194,7 @@ impl Propagation {
                 })
                 .expect("batches of this process's own work are well-formed");
             drop(io);
+            clock.reducing();
             for (home, sums) in homes.iter().zip(shot) {
                 for (batch, (sum, cost)) in home.clone().zip(sums) {
                     work.absorb(pass, batch..batch + 1, sum)
@@ -199,8 +202,12 @@ impl Propagation {
                     costs[batch] = cost;
                 }
             }
+            clock.reduced();
         }
-        Ok((self.end_step(work, maps, started), costs))
+        clock.shot();
+        let stats = self.end_step(work, maps, started);
+        self.phase_times.push(clock.finished());
+        Ok((stats, costs))
     }
 }
 
