@@ -184,7 +184,8 @@ impl<'a> Gatherer<'a> {
     /// without computing what the CPU needs for them (the shadows per texel and the objects'
     /// light cost `texels × objects × K` rays): for a gatherer that only lays the objects out
     /// for the GPU, which computes its own (`vlf_viewer::FieldRenderer::with_objects`). Its own
-    /// CPU gather then reads the field as if both were off.
+    /// CPU gather then reads the field as if both were off. Call it last: the other builders
+    /// compute what the settings ask for.
     pub fn with_gpu_lighting(mut self, gather_shadows: bool, bounce_light: bool) -> Self {
         (self.sees_shadows, self.bounces) = (gather_shadows, bounce_light);
         (self.gather_shadows, self.object_light) = (None, None);
