@@ -26,7 +26,7 @@
 //! | 0..16 | header: `n`, `l`, mirrors, resolution `N`, offsets of lattice, vectors, directions, windows, cells; rotation (9 floats, column-major) from word 16 |
 //! | lattice | `(2n+1)²` words: line direction index, bit 31 set for `−ω`; `NONE` outside |
 //! | vectors | 3 floats per line direction: its unrotated unit vector |
-//! | directions | 6 words per line direction: PSF frame `u`, `v` (3 floats each) |
+//! | directions | 8 words per line direction: PSF frame `u`, `v` (3 floats each), then the ray lattice's phase `shift` (2 floats) |
 //! | windows | 5 words per (direction, mirror): `x0`, `y0`, width, height, first cell |
 //! | cells | two words per ray cell of a window: the part holding the ray and its index in the part, or `NONE`, `NONE` |
 
@@ -89,6 +89,7 @@ impl RayTables {
         for sub in spec.subfields.iter() {
             words.extend(sub.frame.u.to_array().map(f));
             words.extend(sub.frame.v.to_array().map(f));
+            words.extend(sub.frame.shift.to_array().map(f));
         }
 
         // Windows: the rectangle of ray cells each mirror covers in each direction.

@@ -387,6 +387,23 @@ impl DirectionSet {
         &self.directions[i]
     }
 
+    /// The frame of line direction `i`'s subfield: its vector, and the phase of its ray
+    /// lattice ([`crate::psf::PsfFrame::shift`]) from the 2-D golden-ratio (R2) sequence in
+    /// the index, `shift_i = frac(½ + i·(1/g, 1/g²)) − ½` with `g³ = g + 1`. Any phase is
+    /// exact for one direction; what matters is that the phases of the `l` directions fill
+    /// the cell evenly, so that the rays' errors in a polygon's area cancel over the set
+    /// rather than add up. Line direction 0 keeps the paper's grid. A rotated copy of the set
+    /// ([`DirectionSet::rotated`]) keeps the phases.
+    pub fn frame(&self, i: usize) -> crate::psf::PsfFrame {
+        // The plastic number g, the real root of g³ = g + 1.
+        const G: f64 = 1.324_717_957_244_746;
+        let phase = |a: f64| (0.5 + i as f64 * a).fract() - 0.5;
+        crate::psf::PsfFrame::with_shift(
+            self.directions[i].vector,
+            glam::DVec2::new(phase(1.0 / G), phase(1.0 / (G * G))),
+        )
+    }
+
     /// The lattice point `(i, j)` that line direction `index` was made from.
     /// Panics if `index >= len()`.
     pub fn lattice_point(&self, index: usize) -> [i32; 2] {

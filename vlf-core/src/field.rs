@@ -215,16 +215,21 @@ impl Propagation {
 
     /// Outgoing diffuse radiance of every texel as it stands, `Total_t / T_t`
     /// (emitted plus reflected so far), with texels no ray crosses filled
-    /// from their neighbours: what rendering reads.
+    /// from their neighbours: what rendering reads. An emitter's rays carry
+    /// `k_c·Le` (`Propagation::emission_scale`), its look `Le`: the
+    /// difference `(k_c − 1)·Le` is taken off.
     pub fn diffuse_radiance(&self) -> Vec<[f32; 3]> {
         let covered: Vec<bool> = self.projected_area.iter().map(|&a| a > 0.0).collect();
         let mut radiance: Vec<[f32; 3]> = self
             .total
             .iter()
             .zip(&self.projected_area)
-            .map(|(t, &a)| {
+            .zip(&self.owners)
+            .map(|((t, &a), &c)| {
                 if a > 0.0 {
-                    [(t[0] / a) as f32, (t[1] / a) as f32, (t[2] / a) as f32]
+                    let le = self.scene.materials[self.atlas.chart_material[c as usize] as usize].emission;
+                    let extra = self.emission_scale[c as usize] - 1.0;
+                    std::array::from_fn(|k| (t[k] / a - le[k] * extra).max(0.0) as f32)
                 } else {
                     [0.0; 3]
                 }

@@ -81,9 +81,13 @@ fn enclosure_follows_the_geometric_series() {
     assert!((p.unshot_fraction() - rho.powi(k as i32)).abs() < 1e-9);
 }
 
-/// The furnace: all walls emit Le and reflect ρ. The exact solution is
-/// uniform radiance Le/(1 − ρ); with exact discrete areas every texel holds
-/// Le·(1 + ρ + … + ρ^K) = Le·(1 − ρ^(K+1))/(1 − ρ) after K iterations, to rounding.
+/// The furnace: all walls emit Le and reflect ρ. The exact solution is uniform radiance
+/// Le/(1 − ρ), Le·(1 + ρ + … + ρ^K) = Le·(1 − ρ^(K+1))/(1 − ρ) after K iterations. Each wall
+/// emits its true power, so its rays carry `k_c·Le` where its rays over- or under-count its
+/// area by `1/k_c`; every texel then shows Le plus reflected light scaled by a mixture of the
+/// walls' factors, `Le + (want − Le)·k` with `k` between the smallest and the largest `k_c`,
+/// to rounding. (The factors are within the cosine quadrature's error of 1: 2–4 % with 33
+/// directions, a fraction of a per cent from 513 on.)
 #[test]
 fn furnace_is_uniform_texel_by_texel() {
     let (rho, le) = (0.5, 1.0);
@@ -96,18 +100,14 @@ fn furnace_is_uniform_texel_by_texel() {
     let k = 12;
     let mut p = Propagation::new(scene, options(33, 32, 8, k)).unwrap();
     p.run(|_| {});
+    let band = emission_band(&p);
+    println!("the walls' emission factors: {band:?}");
+    // 33 directions integrate a wall's cosine, Σ Δω·|cos θ| = π, to a few per cent.
+    assert!(band.0 > 0.95 && band.1 < 1.05, "{band:?}");
     let field = p.into_field();
     let want = le * (1.0 - rho.powi(k as i32 + 1)) / (1.0 - rho);
-    let mut checked = 0;
-    for (t, l) in field.radiance.iter().enumerate() {
-        if !field.covered[t] {
-            continue;
-        }
-        for c in l {
-            assert!(((*c as f64) - want).abs() / want < 1e-5, "texel {t}: {c} vs {want}");
-        }
-        checked += 1;
-    }
+    let (checked, worst) = assert_furnace(&field, le, want, band, 1e-5);
+    println!("{checked} texels, reflected light within {worst:.1e} of the furnace's");
     assert!(checked > 1000, "too few texels checked: {checked}");
 }
 

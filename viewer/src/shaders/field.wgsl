@@ -393,8 +393,9 @@ fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec4<f32> 
             continue;
         }
         let d = index[t];
-        let dir = rays[6u] + 6u * d;
-        let g = vec2<f32>((dot(p, ray_vec3(dir)) + 1.0) * half_n, (dot(p, ray_vec3(dir + 3u)) + 1.0) * half_n) - 0.5;
+        let dir = rays[6u] + 8u * d;
+        let shift = vec2<f32>(ray_f32(dir + 6u), ray_f32(dir + 7u));
+        let g = vec2<f32>((dot(p, ray_vec3(dir)) + 1.0) * half_n, (dot(p, ray_vec3(dir + 3u)) + 1.0) * half_n) - shift - 0.5;
         let g0 = floor(g);
         let f = g - g0;
         var value = vec3<f32>(0.0);

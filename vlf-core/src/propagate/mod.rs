@@ -308,6 +308,8 @@ pub struct Propagation {
     albedo: Arc<[Rgb]>,
     /// Discrete projected area `T_t` of every texel (see module docs).
     pub projected_area: Vec<f64>,
+    /// Per chart, `k_c` of [`emission_scales`] (1 for a chart that does not emit).
+    pub emission_scale: Vec<f64>,
     /// Unshot power per texel (the paper's Current map).
     pub current: Vec<Rgb>,
     /// Power leaving each texel over all iterations so far (emitted + reflected).
@@ -323,7 +325,7 @@ pub struct Propagation {
     pub plan: Plan,
     stacking: Vec<u32>,
     /// The chart of every texel.
-    owners: Vec<u32>,
+    pub(crate) owners: Vec<u32>,
     /// A chunk's per-direction texel buffers, kept from one block or step to the next.
     buffers: work::KeptBuffers,
     /// The threads of [`Propagation::step`]'s homes and what each batch cost last time.
@@ -414,11 +416,10 @@ impl Propagation {
         let grid = options.grid;
         let footprints = Arc::new(Footprints::new(&scene, &atlas.plane_rep));
         let albedo: Arc<[Rgb]> = crate::maps::albedo::texel_albedo(&scene, &atlas).into();
-        let subfields: Vec<Subfield> = directions
-            .directions()
-            .par_iter()
+        let subfields: Vec<Subfield> = (0..directions.len())
+            .into_par_iter()
             .map_init(RasterScratch::default, |scratch, d| {
-                Subfield::build_with(&footprints, d.vector, grid, scratch)
+                Subfield::build_with(&footprints, directions.frame(d), grid, scratch)
             })
             .collect();
         let stacking = shoot::stacking(&scene, &atlas.chart_areas(&scene));
@@ -429,12 +430,14 @@ impl Propagation {
         };
         let projected_area = discrete_areas(geometry, &directions, |d| std::borrow::Cow::Borrowed(&subfields[d]));
         let owners = atlas.owners();
-        // Emission: Φ_t = π·Le·A_t = Le·T_t (in cell-area units).
+        let emission_scale = emission_scales(&scene, &atlas, &projected_area, grid.cell_area());
+        // Emission: Φ_t = Le·T_t·k_c (in cell-area units), each emitter's true power π·Le·A.
         let current: Vec<Rgb> = projected_area
             .iter()
             .zip(&owners)
             .map(|(&t, &c)| {
                 let le = scene.materials[atlas.chart_material[c as usize] as usize].emission;
+                let t = t * emission_scale[c as usize];
                 [le[0] * t, le[1] * t, le[2] * t]
             })
             .collect();
@@ -465,6 +468,7 @@ impl Propagation {
             footprints,
             albedo,
             projected_area,
+            emission_scale,
             current,
             emitted,
             stats: Vec::new(),
@@ -693,6 +697,38 @@ pub(crate) fn radiance_of(power: &[Rgb], area: &[f64]) -> Vec<Rgb> {
                 [p[0] / a, p[1] / a, p[2] / a]
             } else {
                 [0.0; 3]
+            }
+        })
+        .collect()
+}
+
+/// The factor `k_c = π·A_c / T_c` by which each emitting chart's rays carry more (or less)
+/// than its radiance `Le`, so that it emits its true power `π·Le·A_c` (`A_c` its area in ray
+/// cells, `T_c = Σ_t T_t` over its texels); 1 for a chart that does not emit.
+///
+/// Why: the power an emitter puts into the field is `Le·T_c`, the rays that cross it. The
+/// lattice phases ([`crate::psf::PsfFrame::shift`]) make `T_c` an unbiased estimate of
+/// `π·A_c`, but for a lamp a few rays across it is still a noisy one (±1.5 % for a lamp of
+/// 6.4 ray spacings over 129 directions), and every watt of that error is carried into
+/// every wall's brightness. The receivers need no such factor: a texel's radiance is what
+/// its own rays bring, divided by its own rays `T_t`, so its counting errors cancel. Nor
+/// does the emitter's look: it shows `Le` ([`Propagation::diffuse_radiance`]).
+pub(crate) fn emission_scales(scene: &Scene, atlas: &TexelAtlas, projected_area: &[f64], cell_area: f64) -> Vec<f64> {
+    let mut rays = vec![0.0; atlas.charts.len()];
+    for (c, g) in atlas.charts.iter().enumerate() {
+        rays[c] = projected_area[g.first..g.first + g.len()].iter().sum::<f64>();
+    }
+    let mut area = vec![0.0; atlas.charts.len()];
+    for (s, &c) in atlas.chart_of.iter().enumerate() {
+        area[c as usize] += scene.surfaces[s].area;
+    }
+    (0..atlas.charts.len())
+        .map(|c| {
+            let emits = scene.materials[atlas.chart_material[c] as usize].is_emitter();
+            if emits && rays[c] > 0.0 {
+                std::f64::consts::PI * area[c] / cell_area / rays[c]
+            } else {
+                1.0
             }
         })
         .collect()

@@ -535,7 +535,7 @@ impl Propagation {
                 .map_init(
                     Default::default,
                     |(scratch, raster): &mut (Scratch, RasterScratch), (d, buf)| {
-                        let sub = Subfield::build_with(&self.footprints, set.get(d).vector, self.options.grid, raster);
+                        let sub = Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster);
                         clear(buf);
                         kernel(&sub, set.get(d).weight, buf, scratch)
                     },

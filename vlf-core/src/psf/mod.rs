@@ -24,12 +24,27 @@ use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};
 
 /// The orthonormal frame of a subfield: rays travel along `w`; `u`, `v` span
-/// the grid plane. Built deterministically from `w` alone.
+/// the grid plane, built deterministically from `w` alone; the lattice of rays
+/// sits on that plane at the phase `shift`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct PsfFrame {
     pub u: DVec3,
     pub v: DVec3,
     pub w: DVec3,
+    /// Offset of the ray lattice from the grid of the paper's equation 1, in ray spacings, in
+    /// `[−½, ½)²`: ray `(i, j)` starts at `x = (2i + 1 + 2·shift.x)/N − 1` (and `y` alike).
+    ///
+    /// Why: the rays that cross a polygon are its area as the field sees it (its discrete
+    /// area, see [`crate::propagate`]), and on a lattice at a fixed phase that count errs the
+    /// same way in every direction whose lattice lines up with the polygon's edges — an
+    /// axis-aligned lamp on the near-axis lattices, where it errs by up to a row of rays. The
+    /// errors then add up over the directions into a bias (a lamp of 6.4 ray spacings read
+    /// 2.4 % too large over 513 directions). A lattice at its own phase per direction
+    /// ([`crate::directions::DirectionSet::frame`]) turns that into errors of both signs
+    /// that average out: the count is an unbiased estimate of the projected area when the
+    /// phase is uniform.
+    #[serde(default)]
+    pub shift: DVec2,
 }
 
 impl PsfFrame {
@@ -45,13 +60,30 @@ impl PsfFrame {
         };
         let u = a.cross(w).normalize();
         let v = w.cross(u);
-        PsfFrame { u, v, w }
+        PsfFrame {
+            u,
+            v,
+            w,
+            shift: DVec2::ZERO,
+        }
+    }
+
+    /// The frame of [`PsfFrame::new`] with its ray lattice at phase `shift` (ray spacings).
+    pub fn with_shift(w: DVec3, shift: DVec2) -> Self {
+        PsfFrame { shift, ..Self::new(w) }
+    }
+
+    /// Where the ray through grid coordinates `(x, y)` (cell centres at `i + ½`) starts, on the
+    /// plane through the origin perpendicular to `w`, for an `n × n` grid.
+    pub fn ray_origin(&self, x: f64, y: f64, n: u32) -> DVec3 {
+        let step = 2.0 / n as f64;
+        -self.u - self.v + self.u * ((x + self.shift.x) * step) + self.v * ((y + self.shift.y) * step)
     }
 
     /// Projects a VLF-frame point into grid units of an `n × n` grid.
     pub fn to_grid(&self, p: DVec3, n: u32) -> DVec2 {
         let half = n as f64 * 0.5;
-        DVec2::new((p.dot(self.u) + 1.0) * half, (p.dot(self.v) + 1.0) * half)
+        DVec2::new((p.dot(self.u) + 1.0) * half, (p.dot(self.v) + 1.0) * half) - self.shift
     }
 }
 
@@ -134,21 +166,20 @@ pub struct Subfield {
 }
 
 impl Subfield {
-    /// Rasterises every surface of the scene, prepared as `footprints`, into the subfield of
-    /// direction `w`.
+    /// Rasterises every surface of the scene, prepared as `footprints`, into the subfield whose
+    /// rays run along `frame.w` at the lattice phase `frame.shift`.
     ///
     /// Coplanar neighbours of one diffuse chart are the same hit for a ray, so they share one
     /// entry, their representative's ([`crate::maps::TexelAtlas::plane_rep`]), rasterised by
     /// the group's outline ([`footprint`]): a wall cut into 3 200 triangles then costs a tile
     /// one entry and a direction one outline, as a plain quad does. (An entry's row may hold
     /// several spans, where a chart is not convex.)
-    pub fn build(footprints: &Footprints, w: DVec3, grid: GridSize) -> Self {
-        Self::build_with(footprints, w, grid, &mut RasterScratch::default())
+    pub fn build(footprints: &Footprints, frame: PsfFrame, grid: GridSize) -> Self {
+        Self::build_with(footprints, frame, grid, &mut RasterScratch::default())
     }
 
     /// [`Subfield::build`] with the caller's working memory.
-    pub fn build_with(footprints: &Footprints, w: DVec3, grid: GridSize, scratch: &mut RasterScratch) -> Self {
-        let frame = PsfFrame::new(w);
+    pub fn build_with(footprints: &Footprints, frame: PsfFrame, grid: GridSize, scratch: &mut RasterScratch) -> Self {
         let n = grid.resolution;
         let m = grid.tile;
         let per_side = grid.tiles_per_side() as usize;
@@ -312,7 +343,7 @@ impl Subfield {
 /// ray's grid coordinates `(x, y)` (cell centres at `i + ½`):
 /// `depth = d0 + dx·x + dy·y` along `w`, and the hit point
 /// `p = p0 + px·x + py·y`. Derivation: the ray origin is
-/// `r = −u − v + x·(2/N)u + y·(2/N)v`; the plane `n·p = c` gives
+/// `r = r0 + x·(2/N)u + y·(2/N)v` ([`PsfFrame::ray_origin`]); the plane `n·p = c` gives
 /// `depth = (c − n·r)/(n·w)`, affine in `(x, y)`.
 #[derive(Clone, Copy, Debug)]
 pub struct SurfaceProjection {
@@ -325,7 +356,7 @@ pub struct SurfaceProjection {
 impl SurfaceProjection {
     pub fn new(frame: &PsfFrame, n: u32, normal: DVec3, offset: f64) -> Self {
         let step = 2.0 / n as f64;
-        let r0 = -frame.u - frame.v;
+        let r0 = frame.ray_origin(0.0, 0.0, n);
         let (ru, rv) = (frame.u * step, frame.v * step);
         let nw = normal.dot(frame.w);
         let d0 = (offset - normal.dot(r0)) / nw;
@@ -420,7 +451,8 @@ mod tests {
             let grid = GridSize::new(n, m).unwrap();
             let w = DVec3::new(0.2, 0.3, 0.9).normalize();
             let reps: Vec<u32> = (0..scene.surfaces.len() as u32).collect();
-            let sub = Subfield::build(&Footprints::new(&scene, &reps), w, grid);
+            let frame = PsfFrame::with_shift(w, DVec2::new(0.37, -0.21));
+            let sub = Subfield::build(&Footprints::new(&scene, &reps), frame, grid);
             assert_eq!(sub.tile_count(), ((n / m) * (n / m)) as usize);
             let mut per_surface = vec![0u64; scene.surfaces.len()];
             for k in 0..sub.tile_count() {
@@ -467,13 +499,13 @@ mod tests {
     fn projection_hits_the_plane_on_the_ray() {
         let scene = scene();
         let n = 64;
-        let frame = PsfFrame::new(DVec3::new(-0.4, 0.1, 0.7));
+        let frame = PsfFrame::with_shift(DVec3::new(-0.4, 0.1, 0.7), DVec2::new(-0.5, 0.3));
         for s in &scene.surfaces {
             let p = SurfaceProjection::new(&frame, n, s.normal, s.offset);
             for (x, y) in [(0.5, 0.5), (10.5, 40.5), (63.5, 2.5)] {
                 let hit = p.point_at(x, y);
                 assert!((s.normal.dot(hit) - s.offset).abs() < 1e-9);
-                let origin = -frame.u - frame.v + frame.u * (x * 2.0 / n as f64) + frame.v * (y * 2.0 / n as f64);
+                let origin = frame.ray_origin(x, y, n);
                 assert!((origin + frame.w * p.depth_at(x, y) - hit).length() < 1e-9);
             }
         }

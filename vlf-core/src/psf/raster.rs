@@ -41,7 +41,8 @@ fn snap(x: f64) -> i64 {
     let y = x * SUBPIXELS as f64;
     // `f64::round` is a library call on the baseline x86-64 target, and this runs for every
     // vertex of every polygon in every direction: for y ≥ 0 (grid coordinates of a scene inside
-    // the unit sphere always are) round-half-up by truncation instead, which is the same
+    // the unit sphere are, but within a lattice phase of the grid's low edges) round-half-up by
+    // truncation instead, which is the same
     // integer but where y + ½ rounds up in floating point (within 2⁻⁵³ of a half step).
     if y >= 0.0 { (y + 0.5) as i64 } else { y.round() as i64 }
 }

@@ -117,3 +117,42 @@ pub fn mirror_room() -> Scene {
     }
     scene
 }
+
+/// The range `[k_min, k_max]` of the factors by which the emitters' rays carry more than their
+/// radiance so that each emits its true power (`Propagation::emission_scale`).
+pub fn emission_band(p: &vlf_core::propagate::Propagation) -> (f64, f64) {
+    let emitting =
+        (0..p.atlas.charts.len()).filter(|&c| p.scene.materials[p.atlas.chart_material[c] as usize].is_emitter());
+    emitting
+        .map(|c| p.emission_scale[c])
+        .fold((f64::MAX, f64::MIN), |(lo, hi), k| (lo.min(k), hi.max(k)))
+}
+
+/// Checks a furnace (every wall emits `le`, reflects ρ) after the iterations that give `want`
+/// in the exact solution: every covered texel shows `le` plus reflected light that the walls'
+/// factors `band` scale, `le + (want − le)·k` with `k` in the band, to `tolerance` (f32 maps).
+/// Returns the texels checked and the largest `|k − 1|` seen.
+pub fn assert_furnace(
+    field: &vlf_core::field::LightField,
+    le: f64,
+    want: f64,
+    band: (f64, f64),
+    tolerance: f64,
+) -> (usize, f64) {
+    let (mut checked, mut worst) = (0, 0.0f64);
+    for (t, l) in field.radiance.iter().enumerate() {
+        if !field.covered[t] {
+            continue;
+        }
+        for &c in l {
+            let k = (c as f64 - le) / (want - le);
+            worst = worst.max((k - 1.0).abs());
+            assert!(
+                k >= band.0 - tolerance && k <= band.1 + tolerance,
+                "texel {t}: {c} is le + (want − le)·{k}, outside the walls' factors {band:?} (want {want})"
+            );
+        }
+        checked += 1;
+    }
+    (checked, worst)
+}
