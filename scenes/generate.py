@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Generates the bundled scenes (cornell.obj, office.obj and their MTL files).
+"""Generates the bundled scenes (cornell, office, mirrors, cube: OBJ and MTL files).
 
 Every face is a convex quad wound counter-clockwise about its front normal
 (the VLF convention); boxes face outwards, rooms face inwards. Run from this
@@ -188,7 +188,29 @@ def mirrors():
     return write("mirrors", groups, mats)
 
 
+def cube():
+    """A closed grey cube (every surface ρ = 0.8, the lamp too) lit by a square
+    lamp a fifth of the ceiling's side across, in a hole at the ceiling's
+    centre (four trapezoids around it: no vertex on another face's edge). Its
+    walls' mean reflected radiance is known exactly, ρ·Le·A_lamp / ((1 − ρ)·A),
+    which makes it the bias test of `docs/accuracy.md`."""
+    L, a = 500.0, 50.0
+    c = L / 2
+    walls = [f for f in box(0, L, 0, L, 0, L, inward=True) if f[1] != (0, -1, 0)]
+    outer = [(0, L, 0), (L, L, 0), (L, L, L), (0, L, L)]
+    inner = [(c - a, L, c - a), (c + a, L, c - a), (c + a, L, c + a), (c - a, L, c + a)]
+    for k in range(4):
+        walls.append((quad(outer[k], outer[(k + 1) % 4], inner[(k + 1) % 4], inner[k], (0, -1, 0)), (0, -1, 0)))
+    lamp = [(quad(*inner, (0, -1, 0)), (0, -1, 0))]
+    mats = {
+        "grey": {"Kd": "0.8 0.8 0.8"},
+        "lamp": {"Kd": "0.8 0.8 0.8", "Ke": "20 20 20"},
+    }
+    return write("cube", [("grey", walls), ("lamp", lamp)], mats)
+
+
 if __name__ == "__main__":
     print("mirrors:", mirrors(), "faces")
     print("cornell:", cornell(), "faces")
     print("office:", office(), "faces")
+    print("cube:", cube(), "faces")

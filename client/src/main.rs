@@ -251,9 +251,10 @@ pub struct RenderArgs {
     /// Maximum number of mirror bounces when ray tracing.
     #[arg(long, default_value_t = 8)]
     depth: u32,
-    /// Direct light: from the field, or exact (shadow rays to the emitters per pixel, in place
-    /// of the field's direct part; needs the job's snapshot 1).
-    #[arg(long, value_enum, default_value_t = DirectArg::Field)]
+    /// Direct light: exact (shadow rays to the emitters per pixel, in place of the field's
+    /// direct part; needs the job's snapshot 1), from the field, or auto: exact on the CPU
+    /// where the job has snapshot 1, the field's with --gpu (docs/accuracy.md measures both).
+    #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
     /// Quadrature points per emitter for --direct exact.
     #[arg(long, default_value_t = 64)]
@@ -334,6 +335,8 @@ pub struct ViewArgs {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum DirectArg {
+    /// Exact where it can be: on the CPU when the job has snapshot 1.
+    Auto,
     /// Read from the field like all other light.
     Field,
     /// Computed per pixel: sharp shadows, exact to the quadrature.

@@ -23,14 +23,17 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
+    // Auto asks for snapshot 1 and does without it; Exact requires it. The GPU draws the
+    // field's direct light only.
     let exact_direct = args.direct == DirectArg::Exact;
+    let try_exact = exact_direct || (args.direct == DirectArg::Auto && !args.gpu);
     if args.object_shadows_per_texel && !args.gpu {
         bail!("--object-shadows-per-texel draws as vlf view does, on the GPU: add --gpu");
     }
     if args.gpu && exact_direct {
         bail!("--gpu draws the field's direct light only: drop --direct exact, or --gpu");
     }
-    if exact_direct && !(1..=65536).contains(&args.direct_samples) {
+    if try_exact && !(1..=65536).contains(&args.direct_samples) {
         bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
     }
     let Opened {
@@ -38,23 +41,27 @@ pub fn run(args: RenderArgs) -> Result<()> {
         id,
         stage,
         first_store,
-    } = args.source.open("render", exact_direct)?;
+    } = args.source.open("render", try_exact)?;
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
     let stage = stage.unwrap_or_else(|| job.latest_stage());
     let started = Instant::now();
     let mut field = job
         .load(stage)
         .with_context(|| format!("cannot read {} of job {id}", describe(stage)))?;
-    if exact_direct {
+    if try_exact {
         let first_job = match &first_store {
             Some(s) => FieldJob::open(s, &id).with_context(|| format!("cannot open job {id}"))?,
             None => job,
         };
-        let first = first_job
-            .load(Stage::Iteration(1))
-            .with_context(|| format!("exact direct light needs snapshot 1 of job {id}"))?;
-        field.use_exact_direct(&first, args.direct_samples)?;
+        match first_job.load(Stage::Iteration(1)) {
+            Ok(first) => field.use_exact_direct(&first, args.direct_samples)?,
+            Err(e) if exact_direct => {
+                return Err(e).with_context(|| format!("exact direct light needs snapshot 1 of job {id}"));
+            }
+            Err(e) => tracing::warn!(%e, "no snapshot 1 of job {id}: direct light from the field"),
+        }
     }
+    tracing::info!(exact = field.exact_direct.is_some(), "direct light");
     let loaded = started.elapsed().as_secs_f64();
     let objects = &args.objects;
     let image = match objects.is_empty() {
