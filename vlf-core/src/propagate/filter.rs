@@ -73,8 +73,8 @@ impl Moments {
         self.sxx += kt * dx * dx;
         self.syy += kt * dy * dy;
         self.sxy += kt * dx * dy;
-        for c in 0..3 {
-            let kp = k * power[c];
+        for (c, p) in power.iter().enumerate() {
+            let kp = k * p;
             self.f0[c] += kp;
             self.fx[c] += kp * dx;
             self.fy[c] += kp * dy;
