@@ -85,22 +85,6 @@ fn lamp_polygon() -> [DVec3; 4] {
     ]
 }
 
-/// Lambert's formula: the projected solid angle of a polygon seen from `p` on a surface of
-/// normal `n`, `½·|Σ γ_i n·(a_i × a_i+1)/|a_i × a_i+1||` over its edges (`a_i` unit vectors
-/// to the vertices, `γ_i` the angle between them).
-fn projected_solid_angle(p: DVec3, n: DVec3, polygon: &[DVec3]) -> f64 {
-    let mut sum = 0.0;
-    for i in 0..polygon.len() {
-        let a = (polygon[i] - p).normalize();
-        let b = (polygon[(i + 1) % polygon.len()] - p).normalize();
-        let c = a.cross(b);
-        if c.length() > 1e-15 {
-            sum += a.dot(b).clamp(-1.0, 1.0).acos() * n.dot(c.normalize());
-        }
-    }
-    0.5 * sum.abs()
-}
-
 fn propagate(lamp: Lamp, l: usize, n: u32, stop: Stop) -> Propagation {
     let options = Options {
         directions: l,

@@ -19,21 +19,6 @@ use vlf_core::psf::GridSize;
 const H: f64 = 0.55;
 const RHO: f64 = 0.5;
 
-/// Lambert's formula (see tests/closed_cube.rs): the projected solid angle of `polygon` from
-/// `p` on a surface of normal `n`.
-fn projected_solid_angle(p: DVec3, n: DVec3, polygon: &[DVec3]) -> f64 {
-    let mut sum = 0.0;
-    for i in 0..polygon.len() {
-        let a = (polygon[i] - p).normalize();
-        let b = (polygon[(i + 1) % polygon.len()] - p).normalize();
-        let c = a.cross(b);
-        if c.length() > 1e-15 {
-            sum += a.dot(b).clamp(-1.0, 1.0).acos() * n.dot(c.normalize());
-        }
-    }
-    0.5 * sum.abs()
-}
-
 /// The pattern (RMS of the relative error less its 5 × 5 local mean) and the smooth part (RMS
 /// of that local mean) of the floor's first bounce, over texels at least 3 texels inside.
 fn floor_error(options: Options) -> (f64, f64) {

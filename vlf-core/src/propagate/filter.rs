@@ -239,6 +239,17 @@ mod tests {
         }
     }
 
+    /// An atlas of one `w × h` chart.
+    fn one_chart(w: u32, h: u32) -> TexelAtlas {
+        TexelAtlas {
+            charts: vec![grid(w, h, 0)],
+            chart_of: vec![0],
+            chart_material: vec![0],
+            plane_rep: vec![0],
+            texels: (w * h) as usize,
+        }
+    }
+
     /// Two grids (one narrower than the window), texels that rays miss, an
     /// isolated texel with no valid neighbour, zero and non-zero power.
     fn fixture() -> (TexelAtlas, Vec<f64>, Vec<Rgb>) {
@@ -318,13 +329,7 @@ mod tests {
     #[test]
     fn a_uniform_radiosity_stays_uniform_next_to_partial_texels() {
         let (w, h) = (12u32, 9u32);
-        let atlas = TexelAtlas {
-            charts: vec![grid(w, h, 0)],
-            chart_of: vec![0],
-            chart_material: vec![0],
-            plane_rep: vec![0],
-            texels: (w * h) as usize,
-        };
+        let atlas = one_chart(w, h);
         let area: Vec<f64> = (0..w * h)
             .map(|t| {
                 let (x, y) = (t % w, t / w);
@@ -354,13 +359,7 @@ mod tests {
     #[test]
     fn a_linear_ramp_keeps_its_border() {
         let (w, h) = (12u32, 9u32);
-        let atlas = TexelAtlas {
-            charts: vec![grid(w, h, 0)],
-            chart_of: vec![0],
-            chart_material: vec![0],
-            plane_rep: vec![0],
-            texels: (w * h) as usize,
-        };
+        let atlas = one_chart(w, h);
         let area = vec![1.0; (w * h) as usize];
         let ramp = |t: u32| 1.0 + 0.2 * (t % w) as f64 + 0.05 * (t / w) as f64;
         let mut power: Vec<Rgb> = (0..w * h).map(|t| [ramp(t); 3]).collect();
