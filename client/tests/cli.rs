@@ -104,6 +104,9 @@ fn propagate_then_render_every_format() {
             "39",
             "--size",
             "64x48",
+            // The GPU below draws the field's direct light.
+            "--direct",
+            "field",
             "--out",
             image.to_str().unwrap(),
             "--exposure",
@@ -416,6 +419,9 @@ fn mirrors_scene_plans_propagates_and_renders_both_ways() {
             "48x48",
             "--specular",
             mode,
+            // The GPU below draws the field's direct light.
+            "--direct",
+            "field",
             "--out",
             image.to_str().unwrap(),
         ]);
@@ -986,7 +992,10 @@ fn render_draws_a_dynamic_object_lit_by_the_field() {
     let render = |extra: &[&str], image: &str| {
         let path = out.join(image);
         let mut args = [&["render", out.to_str().unwrap()][..], &CORNELL_VIEW[..]].concat();
-        args.extend(["--size", "48x48", "--samples", "1", "--out", path.to_str().unwrap()]);
+        // The field's direct light: with exact direct light, shadow rays would see the cube
+        // even without its soft shadows.
+        args.extend(["--size", "48x48", "--samples", "1", "--direct", "field"]);
+        args.extend(["--out", path.to_str().unwrap()]);
         args.extend(extra);
         let o = vlf(&args);
         (o, path)
