@@ -90,7 +90,18 @@ pub fn run(args: RenderArgs) -> Result<()> {
             }
         }
         true if args.gpu => gpu_render(&field, &camera, args.samples, mode)?,
-        true => field.render(&camera, args.samples, mode),
+        true => {
+            // Exact direct light costs a second or more per frame: show the rows going by.
+            let bar = indicatif::ProgressBar::new(camera.height as u64);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template("rendering [{bar:40}] {pos}/{len} rows {elapsed}")
+                    .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                    .progress_chars("=> "),
+            );
+            let image = field.render_with_progress(&camera, args.samples, mode, &|| bar.inc(1));
+            bar.finish_and_clear();
+            image
+        }
     };
     image
         .save(&args.out, args.exposure)

@@ -14,7 +14,7 @@
 //!     and read its map (sharp reflections; cost grows with depth).
 
 use crate::field::LightField;
-use crate::render::{Bvh, Camera, Hit, Image, render};
+use crate::render::{Bvh, Camera, Hit, Image};
 use crate::scene::Rgb;
 use glam::DVec3;
 use serde::{Deserialize, Serialize};
@@ -285,10 +285,23 @@ impl LightField {
     /// casting, then [`LightField::shade`]. `samples` per pixel axis (box
     /// filter).
     pub fn render(&self, camera: &Camera, samples: u32, mode: SpecularMode) -> Image {
+        self.render_with_progress(camera, samples, mode, &|| {})
+    }
+
+    /// [`LightField::render`], calling `row_done` as each row of pixels is finished.
+    pub fn render_with_progress(
+        &self,
+        camera: &Camera,
+        samples: u32,
+        mode: SpecularMode,
+        row_done: &(dyn Fn() + Sync),
+    ) -> Image {
         let bvh = Bvh::build(&self.scene);
-        render(&self.scene, &bvh, camera, samples, |hit: &Hit, dir| {
-            self.shade(&bvh, hit, dir, mode)
-        })
+        let shade = |origin: DVec3, dir: DVec3| match bvh.intersect(&self.scene, origin, dir, 0.0, f64::INFINITY) {
+            Some(hit) => self.shade(&bvh, &hit, dir, mode),
+            None => [0.0; 3],
+        };
+        crate::render::render_rays_with_progress(&self.scene, camera, samples, shade, row_done)
     }
 
     /// The paper's backward ray-traced re-sampling of mirror totals: every

@@ -57,6 +57,22 @@ pub fn render_rays<F>(scene: &Scene, camera: &Camera, samples_per_axis: u32, rad
 where
     F: Fn(DVec3, DVec3) -> [f64; 3] + Sync,
 {
+    render_rays_with_progress(scene, camera, samples_per_axis, radiance, &|| {})
+}
+
+/// [`render_rays`], calling `row_done` as each row of pixels is finished (from the rendering
+/// threads, in no particular order): for a progress bar where shading is slow (exact direct
+/// light).
+pub fn render_rays_with_progress<F>(
+    scene: &Scene,
+    camera: &Camera,
+    samples_per_axis: u32,
+    radiance: F,
+    row_done: &(dyn Fn() + Sync),
+) -> Image
+where
+    F: Fn(DVec3, DVec3) -> [f64; 3] + Sync,
+{
     let n = samples_per_axis.max(1);
     let samples = n as f64 * n as f64;
     let mut image = Image::new(camera.width, camera.height);
@@ -80,6 +96,7 @@ where
                 });
                 *pixel = sum.map(|s| (s / samples) as f32);
             }
+            row_done();
         });
     tracing::debug!(
         width = camera.width,
