@@ -252,8 +252,9 @@ pub struct RenderArgs {
     #[arg(long, default_value_t = 8)]
     depth: u32,
     /// Direct light: exact (shadow rays to the emitters per pixel, in place of the field's
-    /// direct part; needs the job's snapshot 1), from the field, or auto: exact on the CPU
-    /// where the job has snapshot 1, the field's with --gpu (docs/accuracy.md measures both).
+    /// direct part; needs the job's snapshot 1), from the field, or auto: exact where the job
+    /// has snapshot 1 and the renderer can (the GPU not yet among --object; docs/accuracy.md
+    /// measures both).
     #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
     /// Quadrature points per emitter for --direct exact.

@@ -23,15 +23,16 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
-    // Auto asks for snapshot 1 and does without it; Exact requires it. The GPU draws the
-    // field's direct light only.
+    // Auto asks for snapshot 1 and does without it; Exact requires it. The GPU does not draw
+    // exact direct light among dynamic objects yet: auto takes the field's there.
     let exact_direct = args.direct == DirectArg::Exact;
-    let try_exact = exact_direct || (args.direct == DirectArg::Auto && !args.gpu);
+    let gpu_objects = args.gpu && !args.objects.is_empty();
+    let try_exact = exact_direct || (args.direct == DirectArg::Auto && !gpu_objects);
     if args.object_shadows_per_texel && !args.gpu {
         bail!("--object-shadows-per-texel draws as vlf view does, on the GPU: add --gpu");
     }
-    if args.gpu && exact_direct {
-        bail!("--gpu draws the field's direct light only: drop --direct exact, or --gpu");
+    if gpu_objects && exact_direct {
+        bail!("--gpu does not draw exact direct light among dynamic objects yet: drop --direct exact, or --gpu");
     }
     if try_exact && !(1..=65536).contains(&args.direct_samples) {
         bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
@@ -59,6 +60,14 @@ pub fn run(args: RenderArgs) -> Result<()> {
                 return Err(e).with_context(|| format!("exact direct light needs snapshot 1 of job {id}"));
             }
             Err(e) => tracing::warn!(%e, "no snapshot 1 of job {id}: direct light from the field"),
+        }
+        // What the GPU cannot draw exactly (albedo textures) auto draws with the field's.
+        if args.gpu
+            && !exact_direct
+            && let Err(e) = vlf_viewer::direct::check_scene(&field.scene)
+        {
+            tracing::warn!(%e, "direct light from the field");
+            field.exact_direct = None;
         }
     }
     tracing::info!(exact = field.exact_direct.is_some(), "direct light");

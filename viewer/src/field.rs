@@ -14,6 +14,7 @@
 //! polygon becomes a triangle fan whose vertices carry their texel coordinates in the polygon's
 //! grid, computed in f64 (see `shaders/field.wgsl`).
 
+use crate::direct::{DirectParts, EmitterBuffers};
 use crate::objects::{ObjectData, ObjectGeometry, ObjectsUniform, StaticCounts};
 use crate::pass::{READ_ONLY, bind_entry, buffer_entry, color_pass, uniform_buffer};
 use crate::rays::{NONE, RayTables};
@@ -22,6 +23,7 @@ use crate::{Gpu, ViewerError};
 use bytemuck::{Pod, Zeroable};
 use glam::{DMat4, DVec3, Mat4, Vec3};
 use std::cell::Cell;
+use vlf_core::direct::Emitters;
 use vlf_core::dynamic::PlacedObject;
 use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::field::LightField;
@@ -118,7 +120,9 @@ struct ViewUniform {
     eye: [f32; 4],
     depth: u32,
     mode: u32,
-    _pad: [u32; 2],
+    /// The first direct part, `NONE` without exact direct light.
+    direct_parts: u32,
+    emitter_groups: u32,
 }
 
 /// Where the field is seen from, as the shader needs it.
@@ -180,6 +184,9 @@ pub struct FieldRenderer {
     /// moved, parts arrived), and the mirror mode they were computed for.
     shadows_stale: Cell<bool>,
     shadows_mode: Cell<Option<MirrorMode>>,
+    /// With exact direct light: where its direct parts are, and the emitting surfaces.
+    direct: Option<DirectParts>,
+    emitter_groups: u32,
 }
 
 /// Buffers of the field and its objects, bound at 0..BINDINGS.
@@ -286,6 +293,9 @@ impl FieldCompute {
 
 impl FieldRenderer {
     /// Uploads `field`'s surfaces, materials and BVH, and all of its radiance.
+    ///
+    /// A field that shades with exact direct light ([`LightField::use_exact_direct`]) is drawn
+    /// with it: its emitters' points and its direct maps are uploaded too (see [`crate::direct`]).
     pub fn new(gpu: &Gpu, field: &LightField) -> Result<FieldRenderer, ViewerError> {
         FieldRenderer::complete(gpu, field, None)
     }
@@ -293,7 +303,20 @@ impl FieldRenderer {
     /// Uploads `field`'s surfaces, materials and BVH (its radiance is not read) with a pool of
     /// `capacity` RGB values and no part resident: radiance comes with [`FieldRenderer::upload`].
     pub fn streaming(gpu: &Gpu, field: &LightField, capacity: usize) -> Result<FieldRenderer, ViewerError> {
-        FieldRenderer::build(gpu, field, capacity, None)
+        FieldRenderer::build(gpu, field, capacity, None, None)
+    }
+
+    /// [`FieldRenderer::streaming`] drawn with exact direct light from `emitters`' points: the
+    /// direct parts ([`FieldRenderer::direct_parts`]) come with [`FieldRenderer::upload`] like
+    /// the others, and a surface shows the field's own direct light until its direct part is
+    /// resident.
+    pub fn streaming_exact(
+        gpu: &Gpu,
+        field: &LightField,
+        capacity: usize,
+        emitters: &Emitters,
+    ) -> Result<FieldRenderer, ViewerError> {
+        FieldRenderer::build(gpu, field, capacity, None, Some(emitters))
     }
 
     /// [`FieldRenderer::streaming`] with the dynamic objects of `gatherer`, as
@@ -306,7 +329,7 @@ impl FieldRenderer {
         capacity: usize,
         gatherer: &Gatherer,
     ) -> Result<FieldRenderer, ViewerError> {
-        FieldRenderer::build(gpu, field, capacity, Some(gatherer))
+        FieldRenderer::build(gpu, field, capacity, Some(gatherer), None)
     }
 
     /// [`FieldRenderer::new`] with the dynamic objects of `gatherer` (which must be over
@@ -319,11 +342,19 @@ impl FieldRenderer {
 
     fn complete(gpu: &Gpu, field: &LightField, gatherer: Option<&Gatherer>) -> Result<FieldRenderer, ViewerError> {
         let catalog = PartCatalog::new(field);
-        let renderer = FieldRenderer::build(gpu, field, catalog.total_values(), gatherer)?;
+        let exact = field.exact_direct.as_ref();
+        let capacity = catalog.total_values() + exact.map_or(0, |e| e.direct().len());
+        let renderer = FieldRenderer::build(gpu, field, capacity, gatherer, exact.map(|e| e.emitters()))?;
         let mut base = 0;
         for i in 0..catalog.len() as u32 {
             renderer.upload(gpu, i, base, field.part_values(&catalog, i))?;
             base += catalog.values(i);
+        }
+        if let (Some(exact), Some(direct)) = (exact, renderer.direct) {
+            for c in 0..direct.chunks {
+                renderer.upload(gpu, direct.of_chunk(c), base, &exact.direct()[catalog.range(c)])?;
+                base += catalog.values(c);
+            }
         }
         Ok(renderer)
     }
@@ -333,8 +364,19 @@ impl FieldRenderer {
         field: &LightField,
         capacity: usize,
         gatherer: Option<&Gatherer>,
+        exact: Option<&Emitters>,
     ) -> Result<FieldRenderer, ViewerError> {
         let scene = &field.scene;
+        if exact.is_some() {
+            crate::direct::check_scene(scene)?;
+            if gatherer.is_some() {
+                return Err(ViewerError::Unsupported(
+                    "exact direct light and dynamic objects are not drawn together on the GPU yet: \
+                     render on the CPU (drop --gpu) or take the field's direct light (--direct field)"
+                        .into(),
+                ));
+            }
+        }
         let atlas = &field.atlas;
         if atlas.chart_of.len() != scene.surfaces.len() || field.radiance.len() != atlas.texels {
             return Err(ViewerError::Unsupported(format!(
@@ -346,6 +388,8 @@ impl FieldRenderer {
             )));
         }
         let catalog = PartCatalog::new(field);
+        let direct = exact.map(|_| DirectParts::new(&catalog));
+        let table_len = direct.map_or(catalog.len(), |d| d.table_len());
         let rays = RayTables::new(field, &catalog);
         // Per surface: its fan for the rasteriser, its polygon, grid and material for the shader.
         let mut vertices = Vec::new();
@@ -406,6 +450,14 @@ impl FieldRenderer {
             primitives: primitives.len(),
         };
         let objects = ObjectData::new(scene, gatherer, counts);
+        // The emitters' points: exact direct light's, or the objects' shadows' (never both).
+        let emitters = match exact {
+            Some(e) => EmitterBuffers::new(scene, e),
+            None => EmitterBuffers {
+                points: objects.emitters.points.clone(),
+                groups: objects.emitters.groups.clone(),
+            },
+        };
         let moving = &objects.geometry;
         surfaces.extend_from_slice(&moving.surfaces);
         polygon_vertices.extend_from_slice(&moving.polygon_vertices);
@@ -419,7 +471,7 @@ impl FieldRenderer {
             .min(gpu.limits.max_buffer_size);
         for (what, bytes) in [
             ("radiance pool", capacity * 12),
-            ("part table", catalog.len() * 4),
+            ("part table", table_len * 4),
             ("mirror rays", std::mem::size_of_val(rays.words.as_slice())),
             ("surfaces", std::mem::size_of_val(surfaces.as_slice())),
             ("polygon vertices", std::mem::size_of_val(polygon_vertices.as_slice())),
@@ -463,7 +515,7 @@ impl FieldRenderer {
             });
             let parts = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("part table"),
-                contents: &nonempty(bytemuck::cast_slice(&vec![NONE; catalog.len()]), 256),
+                contents: &nonempty(bytemuck::cast_slice(&vec![NONE; table_len]), 256),
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_DST,
             });
             let rays = storage("mirror rays", bytemuck::cast_slice(&rays.words));
@@ -497,8 +549,8 @@ impl FieldRenderer {
             });
             let spheres = storage("object spheres", bytemuck::cast_slice(&moving.spheres));
             let directions = storage("gather directions", bytemuck::cast_slice(&objects.directions));
-            let emitter_points = storage("emitter points", bytemuck::cast_slice(&objects.emitter_points));
-            let emitter_groups = storage("emitter groups", bytemuck::cast_slice(&objects.emitter_groups));
+            let emitter_points = storage("emitter points", bytemuck::cast_slice(&emitters.points));
+            let emitter_groups = storage("emitter groups", bytemuck::cast_slice(&emitters.groups));
             // Without objects, the field's shader alone (see `shaders/field.wgsl`).
             let (source, fragment) = match gatherer {
                 Some(_) => (shader_source(&[]), "fs_objects"),
@@ -601,6 +653,8 @@ impl FieldRenderer {
                 texel_shadows: None,
                 shadows_stale: Cell::new(true),
                 shadows_mode: Cell::new(None),
+                direct,
+                emitter_groups: if exact.is_some() { emitters.group_count() } else { 0 },
             }
         })?;
         // The gather sees the objects' shadows per texel, or the shadows give back the objects'
@@ -742,6 +796,22 @@ impl FieldRenderer {
         &self.catalog
     }
 
+    /// Where the direct parts of exact direct light are in the part table (numbers
+    /// [`FieldRenderer::upload`] takes after the catalog's), `None` when it is off.
+    pub fn direct_parts(&self) -> Option<DirectParts> {
+        self.direct
+    }
+
+    /// Values of part `part` of the part table: a catalog part's, or a direct part's (its
+    /// chunk's); `None` for a number beyond the table.
+    pub fn part_len(&self, part: u32) -> Option<usize> {
+        if (part as usize) < self.catalog.len() {
+            return Some(self.catalog.values(part));
+        }
+        let chunk = self.direct?.chunk(part)?;
+        Some(self.catalog.values(chunk))
+    }
+
     /// RGB values the pool holds.
     pub fn capacity(&self) -> usize {
         self.capacity
@@ -752,7 +822,7 @@ impl FieldRenderer {
     /// evicted and another uploaded where it was, in that order, leave the pool consistent.
     pub fn upload(&self, gpu: &Gpu, part: u32, base: usize, values: &[[f32; 3]]) -> Result<(), ViewerError> {
         let fits = base.checked_add(values.len()).is_some_and(|end| end <= self.capacity);
-        if part as usize >= self.catalog.len() || values.len() != self.catalog.values(part) || !fits {
+        if self.part_len(part) != Some(values.len()) || !fits {
             return Err(ViewerError::Unsupported(format!(
                 "part {part} of {} values at {base} does not fit (catalog of {}, pool of {} values)",
                 values.len(),
@@ -773,7 +843,7 @@ impl FieldRenderer {
 
     /// Makes part `part` non-resident (its place in the pool may be reused).
     pub fn evict(&self, gpu: &Gpu, part: u32) {
-        if (part as usize) < self.catalog.len() {
+        if self.part_len(part).is_some() {
             gpu.queue
                 .write_buffer(&self.parts, part as u64 * 4, bytemuck::bytes_of(&NONE));
         }
@@ -832,7 +902,8 @@ impl FieldRenderer {
                 MirrorMode::Rays => 0,
             },
             mode: (viewpoint.mirrors == MirrorMode::Rays) as u32,
-            _pad: [0; 2],
+            direct_parts: self.direct.map_or(NONE, |d| d.first),
+            emitter_groups: self.emitter_groups,
         };
         gpu.queue.write_buffer(&self.view, 0, bytemuck::bytes_of(&uniform));
         // Before the view in the same submission: it reads them.

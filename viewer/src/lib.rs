@@ -12,6 +12,7 @@
 //!   pipeline that draws them.
 //! * [`gather`]: the dynamic objects' gather as a compute shader, the twin of
 //!   `vlf_core::dynamic::gather`.
+//! * [`direct`]: exact direct light, per fragment, as `vlf_core::direct` computes it.
 //! * [`headless`]: `vlf render --gpu`: the same sample positions and box filter
 //!   as the CPU renderer, into an [`vlf_core::render::Image`].
 //!
@@ -23,6 +24,7 @@
 //! Mirrors are drawn both ways of the CPU renderer: from the field's rays, or
 //! ray traced through the scene's BVH.
 
+pub mod direct;
 pub mod field;
 pub mod frame;
 pub mod gather;

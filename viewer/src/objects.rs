@@ -7,6 +7,7 @@
 //! to point into the same arrays: the shader's one traversal (`trace_from`) serves both, from
 //! two roots.
 
+use crate::direct::EmitterBuffers;
 use crate::field::{GpuNode, GpuSurface, Vertex};
 use crate::rays::NONE;
 use bytemuck::{Pod, Zeroable};
@@ -51,11 +52,8 @@ pub(crate) struct ObjectData {
     pub uniform: ObjectsUniform,
     /// Per gather direction: unit vector and weight.
     pub directions: Vec<[f32; 4]>,
-    /// Per emitter point: position, then power.
-    pub emitter_points: Vec<[f32; 4]>,
-    /// Per emitting surface: four vec4 (see `emitter_groups` in the shader), floats by their
-    /// bits.
-    pub emitter_groups: Vec<[u32; 4]>,
+    /// The gatherer's emitter points, for the shadows.
+    pub emitters: EmitterBuffers,
 }
 
 /// What moves with the objects: their surfaces, their BVH, their triangles for the rasteriser
@@ -95,8 +93,7 @@ impl ObjectData {
             },
             geometry,
             directions: Vec::new(),
-            emitter_points: Vec::new(),
-            emitter_groups: Vec::new(),
+            emitters: EmitterBuffers::default(),
         };
         let Some(gatherer) = gatherer else {
             return data;
@@ -110,31 +107,8 @@ impl ObjectData {
             .collect();
         data.uniform.directions = set.len() as u32;
         data.uniform.shadow_cells = gatherer.shadow_samples();
-        // Emitter points, grouped by surface, with each surface's centroid, area, normal,
-        // emission, index, count and first point.
-        let points: Vec<_> = gatherer.emitters().points().collect();
-        for group in points.chunk_by(|a, b| a.3 == b.3) {
-            let (surface, first) = (group[0].3, data.emitter_points.len() / 2);
-            let s = &scene.surfaces[surface];
-            let centroid = s.vertices.iter().sum::<DVec3>() / s.vertices.len() as f64;
-            let emission = scene.material(surface).emission.map(|c| c as f32);
-            let bits = |v: glam::Vec3| v.to_array().map(f32::to_bits);
-            let [cx, cy, cz] = bits(centroid.as_vec3());
-            let [nx, ny, nz] = bits(s.normal.as_vec3());
-            let [ex, ey, ez] = emission.map(f32::to_bits);
-            data.emitter_groups.extend([
-                [cx, cy, cz, (s.area as f32).to_bits()],
-                [nx, ny, nz, surface as u32],
-                [ex, ey, ez, group.len() as u32],
-                [first as u32, 0, 0, 0],
-            ]);
-            for &(point, _, power, _) in group {
-                data.emitter_points.push(point.as_vec3().extend(0.0).to_array());
-                data.emitter_points
-                    .push([power[0] as f32, power[1] as f32, power[2] as f32, 0.0]);
-            }
-        }
-        data.uniform.emitter_groups = (data.emitter_groups.len() / 4) as u32;
+        data.emitters = EmitterBuffers::new(scene, gatherer.emitters());
+        data.uniform.emitter_groups = data.emitters.group_count();
         data
     }
 }

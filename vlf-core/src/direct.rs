@@ -167,16 +167,14 @@ impl ExactDirect {
     pub fn new(first: &LightField, samples_per_emitter: u32) -> crate::Result<ExactDirect> {
         let samples = Emitters::new(&first.scene, samples_per_emitter)?;
         let mut direct = first.radiance.clone();
-        for (grid, &material) in first.atlas.charts.iter().zip(&first.atlas.chart_material) {
-            let le = first.scene.materials[material as usize].emission;
-            let n = grid.width as usize * grid.height as usize;
-            for t in &mut direct[grid.first..grid.first + n] {
-                for c in 0..3 {
-                    t[c] = (t[c] - le[c] as f32).max(0.0);
-                }
-            }
-        }
+        first.remove_emission(0, &mut direct);
         Ok(ExactDirect { direct, samples })
+    }
+
+    /// `D_t` for every texel, laid out like the field's radiance: what a renderer elsewhere
+    /// (the GPU) subtracts.
+    pub fn direct(&self) -> &[[f32; 3]] {
+        &self.direct
     }
 
     /// The emitters' quadrature points.
@@ -255,6 +253,26 @@ fn emitter_samples(scene: &Scene, per_emitter: u32) -> Vec<Sample> {
 }
 
 impl LightField {
+    /// Turns `values`, the radiance of this field's texels from `first` on after the first
+    /// iteration, into their direct part `D_t`: each texel loses its chart's own emission
+    /// (clamped at zero). Works on any run of texels, so a viewer can turn one part of
+    /// snapshot 1 at a time.
+    pub fn remove_emission(&self, first: usize, values: &mut [[f32; 3]]) {
+        let end = first + values.len();
+        for (grid, &material) in self.atlas.charts.iter().zip(&self.atlas.chart_material) {
+            let (from, to) = (grid.first.max(first), (grid.first + grid.len()).min(end));
+            if from >= to {
+                continue;
+            }
+            let le = self.scene.materials[material as usize].emission;
+            for t in &mut values[from - first..to - first] {
+                for c in 0..3 {
+                    t[c] = (t[c] - le[c] as f32).max(0.0);
+                }
+            }
+        }
+    }
+
     /// Shades this field's diffuse surfaces with exact direct light from now
     /// on (see the module docs). `first` is the same job's field after its
     /// first iteration: the same scene and options, else a

@@ -20,6 +20,12 @@
 // not resident (a viewer streaming the field), the mirror is ray traced instead, FALLBACK_DEPTH
 // deep: the diffuse maps come first, so the reflection is right long before the tiles arrive.
 //
+// Exact direct light (`vlf_core::direct`), where `view.direct_parts` is not NONE: a diffuse point
+// seen by the camera (or through a traced mirror) sends `L − D + ρd/π·E(p)`, with `D` the
+// field's direct part read bilinearly from its chunk's *direct part* (part `view.direct_parts`
+// + the chunk's number: more parts of the same pool) and `E(p)` summed over the emitters'
+// quadrature points, one shadow ray each (`direct_irradiance`). See `crate::direct`.
+//
 // Back faces are drawn black: they still hide what lies behind them, as a back-face hit does for
 // the CPU renderer's rays.
 //
@@ -37,8 +43,10 @@ struct View {
     depth: u32,
     // How mirrors are drawn: 0 ray traced (`depth` deep), 1 from the field's rays.
     mode: u32,
-    _pad1: u32,
-    _pad2: u32,
+    // Exact direct light: the part number of chunk 0's direct part, NONE when off.
+    direct_parts: u32,
+    // Emitting surfaces in `emitter_groups` (0 when exact direct light is off).
+    emitter_groups: u32,
 };
 
 struct Surface {
@@ -87,6 +95,15 @@ struct Node {
 @group(0) @binding(6) var<storage, read> rays: array<u32>;
 // Per part: its first value in the pool, NONE while it is not resident.
 @group(0) @binding(7) var<storage, read> parts: array<u32>;
+// The emitters' quadrature points (`vlf_core::direct::Emitters`), two vec4 each: the point
+// (xyz) and its power Le·A (rgb in the second's xyz), whose normal is its group's. Read by
+// exact direct light and by the objects' shadows (objects.wgsl).
+@group(0) @binding(11) var<storage, read> emitter_points: array<vec4<f32>>;
+// Per emitting surface, four vec4: its centroid (xyz) and area (w); its normal (xyz) and
+// index among the surfaces (w); its emission (xyz) and point count (w); its first point (x).
+// Integers and floats share the vec4s, so they are stored as u32 (floats by their bits: read as
+// f32, a small integer's bits would be a denormal, which a GPU may flush to zero).
+@group(0) @binding(12) var<storage, read> emitter_groups: array<vec4<u32>>;
 
 // Secondary rays start this far off the mirror and ignore hits closer than it (VLF frame, where
 // the scene spans 2): f32 keeps about 10⁻⁷ there.
@@ -98,6 +115,10 @@ const STACK_SIZE: u32 = 64u;
 const NONE: u32 = 0xffffffffu;
 // How deep a mirror is traced while the tiles of its rays are not resident.
 const FALLBACK_DEPTH: u32 = 8u;
+const PI: f32 = 3.14159265358979;
+// Emitter points' shadow rays stop this much short of them (relative): more than the CPU's
+// 10⁻⁶, which is below f32's error in where the ray meets the emitter it aims at.
+const SHADOW_SHORTEN: f32 = 1e-4;
 
 struct VertexIn {
     @location(0) position: vec3<f32>,
@@ -156,6 +177,11 @@ fn bilinear(s: Surface, c: vec2<f32>) -> vec3<f32> {
     if (base == NONE) {
         return vec3<f32>(0.0);
     }
+    return bilinear_at(s, base, c);
+}
+
+// Bilinear at `c` in the values of surface `s`'s chunk laid out from pool value `base` on.
+fn bilinear_at(s: Surface, base: u32, c: vec2<f32>) -> vec3<f32> {
     let t = taps(s, base, c);
     return pool_rgb(t.at.x) * t.w.x + pool_rgb(t.at.y) * t.w.y + pool_rgb(t.at.z) * t.w.z + pool_rgb(t.at.w) * t.w.w;
 }
@@ -228,6 +254,17 @@ fn trace(o: vec3<f32>, d: vec3<f32>, t_min: f32) -> Hit {
 // static scene, the dynamic objects' root after it (their nodes follow the scene's, with
 // indices into the same arrays).
 fn trace_from(root: u32, o: vec3<f32>, d: vec3<f32>, t_min: f32, t_max: f32) -> Hit {
+    return traverse(root, o, d, t_min, t_max, false);
+}
+
+// Whether a static surface lies on `o + t·d` within [0, t_max]: a shadow ray (the first hit
+// found ends the traversal).
+fn blocked(o: vec3<f32>, d: vec3<f32>, t_max: f32) -> bool {
+    return traverse(0u, o, d, 0.0, t_max, true).surface != NONE;
+}
+
+// `trace_from`, or with `any_hit` the first hit found rather than the nearest.
+fn traverse(root: u32, o: vec3<f32>, d: vec3<f32>, t_min: f32, t_max: f32, any_hit: bool) -> Hit {
     var best = Hit(NONE, t_max, false);
     // Components below 1e-30 become 1e-30, so the slab test never divides by zero (for a ray that
     // parallel to a slab, the sign of its huge inverse does not change the interval).
@@ -247,6 +284,9 @@ fn trace_from(root: u32, o: vec3<f32>, d: vec3<f32>, t_min: f32, t_max: f32) -> 
                 let t = intersect_surface(s, o, d, t_min, best.t);
                 if (t >= 0.0 && (t < best.t || (t == best.t && s < best.surface))) {
                     best = Hit(s, t, dot(surfaces[s].normal, d) < 0.0);
+                    if (any_hit) {
+                        return best;
+                    }
                 }
             }
         } else {
@@ -437,14 +477,64 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) ve
         return vec4<f32>(0.0, 0.0, 0.0, 1.0);
     }
     let s = surfaces[in.surface];
-    let l = shade(s, in.position, normalize(in.position - view.eye.xyz), bilinear(s, in.texel), view.mode, view.depth);
+    let diffuse = with_exact_direct(s, in.position, in.texel, bilinear(s, in.texel));
+    let l = shade(s, in.position, normalize(in.position - view.eye.xyz), diffuse, view.mode, view.depth, true);
     return vec4<f32>(l, 1.0);
+}
+
+// ---- Exact direct light (`vlf_core::direct`) ----
+
+// `E(p)`: the irradiance straight from the emitters at `p` on a surface of front normal `n`,
+// Σ Le·A cos θ_p cos θ_s / r² over the quadrature points in front of it that no static surface
+// hides (`Emitters::irradiance`).
+fn direct_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    let origin = p + n * RAY_EPSILON;
+    var e = vec3<f32>(0.0);
+    for (var g = 0u; g < view.emitter_groups; g++) {
+        let normal = bitcast<vec3<f32>>(emitter_groups[4u * g + 1u].xyz);
+        let count = emitter_groups[4u * g + 2u].w;
+        let first = emitter_groups[4u * g + 3u].x;
+        for (var i = first; i < first + count; i++) {
+            let to = emitter_points[2u * i].xyz - p;
+            let r2 = dot(to, to);
+            if (r2 <= 0.0) {
+                continue;
+            }
+            let r = sqrt(r2);
+            let w = to / r;
+            let cos_p = dot(n, w);
+            let cos_s = -dot(normal, w);
+            if (cos_p <= 0.0 || cos_s <= 0.0 || blocked(origin, w, r * (1.0 - SHADOW_SHORTEN))) {
+                continue;
+            }
+            e += emitter_points[2u * i + 1u].xyz * (cos_p * cos_s / r2);
+        }
+    }
+    return e;
+}
+
+// The diffuse radiance `l` of surface `s` at `p` (texel coordinates `c`, shifted by ½) with
+// its direct part exact: `l − D + ρd/π·E(p)`, clamped at zero as on the CPU. `l` as it is
+// where exact direct light is off, the surface reflects nothing, or its direct part is not
+// resident (the field's own direct light then shows until it arrives).
+fn with_exact_direct(s: Surface, p: vec3<f32>, c: vec2<f32>, l: vec3<f32>) -> vec3<f32> {
+    if (view.direct_parts == NONE || !any(s.diffuse > vec3<f32>(0.0))) {
+        return l;
+    }
+    let base = parts[view.direct_parts + s.part];
+    if (base == NONE) {
+        return l;
+    }
+    let d = bilinear_at(s, base, c);
+    return max(l - d + s.diffuse / PI * direct_irradiance(p, s.normal), vec3<f32>(0.0));
 }
 
 // The radiance the front of surface `s` sends from `p` back along the unit direction `d` it
 // is seen along: `l`, its diffuse radiance, plus a mirror's reflection — from the field's rays
-// (`mode` 1) or ray traced at most `depth` mirrors deep (`mode` 0).
-fn shade(first: Surface, position: vec3<f32>, incoming: vec3<f32>, diffuse: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+// (`mode` 1) or ray traced at most `depth` mirrors deep (`mode` 0), the diffuse surfaces it
+// meets with exact direct light when `exact` (a camera's path; a gather reads the maps alone,
+// as `LightField::shade_from_maps` does).
+fn shade(first: Surface, position: vec3<f32>, incoming: vec3<f32>, diffuse: vec3<f32>, mode: u32, depth: u32, exact: bool) -> vec3<f32> {
     var s = first;
     var l = diffuse;
     if (s.mirror == 0u) {
@@ -475,7 +565,11 @@ fn shade(first: Surface, position: vec3<f32>, incoming: vec3<f32>, diffuse: vec3
         }
         p = origin + hit.t * d;
         s = surfaces[hit.surface];
-        l += weight * diffuse_at(s, p);
+        var seen = diffuse_at(s, p);
+        if (exact) {
+            seen = with_exact_direct(s, p, texel_coords(s, p), seen);
+        }
+        l += weight * seen;
         remaining -= 1u;
         if (s.mirror == 0u || remaining == 0u) {
             break;

@@ -37,14 +37,6 @@ struct Objects {
 @group(0) @binding(9) var<storage, read> spheres: array<vec4<f32>>;
 // Per line direction of the gather: its unit vector (xyz) and weight Δω (w).
 @group(0) @binding(10) var<storage, read> gather_directions: array<vec4<f32>>;
-// The emitters' quadrature points (`vlf_core::direct::Emitters`), two vec4 each: the point
-// (xyz) and its power Le·A (rgb in the second's xyz), whose normal is its group's.
-@group(0) @binding(11) var<storage, read> emitter_points: array<vec4<f32>>;
-// Per emitting surface, four vec4: its centroid (xyz) and area (w); its normal (xyz) and
-// index among the surfaces (w); its emission (xyz) and point count (w); its first point (x).
-// Integers and floats share the vec4s, so they are stored as u32 (floats by their bits: read as
-// f32, a small integer's bits would be a denormal, which a GPU may flush to zero).
-@group(0) @binding(12) var<storage, read> emitter_groups: array<vec4<u32>>;
 // Per value of the radiance pool: the radiance its texel loses to the objects (RGB, three
 // floats), when `objects.shadow_texels` is set. Written by `shadow_texels_main`, read here.
 @group(0) @binding(13) var<storage, read_write> shadow_pool: array<f32>;
@@ -52,11 +44,7 @@ struct Objects {
 // three floats), gathered at its centroid by `object_light_main` (shadow_texels.wgsl).
 @group(0) @binding(14) var<storage, read_write> object_light: array<f32>;
 
-const PI: f32 = 3.14159265358979;
 const GOLDEN_ANGLE: f32 = 2.39996322972865;
-// Emitter points' shadow rays stop this much short of them (relative): more than the CPU's
-// 10⁻⁶, which is below f32's error in where the ray meets the emitter it aims at.
-const SHADOW_SHORTEN: f32 = 1e-4;
 
 // The nearest object along `o + t·d` before t_max (NONE when none).
 fn nearest_object(o: vec3<f32>, d: vec3<f32>, t_max: f32) -> Hit {
@@ -83,7 +71,7 @@ fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
     if (objects.gather_shadows != 0u) {
         diffuse = max(diffuse - shadow_from_texels(s, p), vec3<f32>(0.0));
     }
-    return vec4<f32>(shade(s, p, d, diffuse, mode, depth), known);
+    return vec4<f32>(shade(s, p, d, diffuse, mode, depth, false), known);
 }
 
 // The cosine-weighted mean radiance arriving at `p` over the hemisphere of unit `n`, over the
@@ -323,7 +311,7 @@ fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32
         }
         let s = surfaces[hit.surface];
         let q = origin + hit.t * w;
-        var l = shade(s, q, w, diffuse_at(s, q), mode, depth);
+        var l = shade(s, q, w, diffuse_at(s, q), mode, depth, false);
         let eg = emitter_group(hit.surface);
         if (eg != NONE && !on_cells(eg, p, cell_max)) {
             l = max(l - bitcast<vec3<f32>>(emitter_groups[4u * eg + 2u].xyz), vec3<f32>(0.0));

@@ -33,6 +33,25 @@ pub fn bundled_field(scene: &str, directions: usize, iterations: u32) -> LightFi
 /// [`bundled_field`] with texels of `texel_cells` ray spacings.
 #[allow(dead_code)] // not every test binary uses both
 pub fn bundled_field_with_texel(scene: &str, directions: usize, iterations: u32, texel_cells: f64) -> LightField {
+    let mut p = bundled_propagation(scene, directions, iterations, texel_cells);
+    p.run(|_| {});
+    p.into_field()
+}
+
+/// [`bundled_field`] after one iteration and after `iterations`, with the final field shading
+/// with exact direct light (`samples` points per emitter).
+#[allow(dead_code)] // not every test binary uses both
+pub fn bundled_field_exact(scene: &str, directions: usize, iterations: u32, samples: u32) -> LightField {
+    let mut p = bundled_propagation(scene, directions, iterations, 1.0);
+    p.step(|_| {});
+    let first = p.field_now();
+    p.run(|_| {});
+    let mut field = p.into_field();
+    field.use_exact_direct(&first, samples).expect("exact direct light");
+    field
+}
+
+fn bundled_propagation(scene: &str, directions: usize, iterations: u32, texel_cells: f64) -> Propagation {
     let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes").join(scene);
     let (scene, _) = load_obj(&path, &ImportOptions::default()).expect("bundled scene");
     let options = Options {
@@ -42,7 +61,5 @@ pub fn bundled_field_with_texel(scene: &str, directions: usize, iterations: u32,
         texel_cells,
         ..Options::default()
     };
-    let mut p = Propagation::new(scene, options).expect("propagation");
-    p.run(|_| {});
-    p.into_field()
+    Propagation::new(scene, options).expect("propagation")
 }

@@ -1,0 +1,128 @@
+//! Exact direct light on the GPU: the twin of `vlf_core::direct`.
+//!
+//! A diffuse point seen by the camera sends `L − D + ρd/π·E(p)` (see `vlf_core::direct`): `L`
+//! the field's radiance, `D` its direct part (snapshot 1's radiance less the surfaces' own
+//! emission, per texel), `E(p)` the irradiance straight from the emitters, summed per fragment
+//! over their quadrature points with one shadow ray each through the scene's BVH
+//! (`direct_irradiance` in `shaders/field.wgsl`). The quadrature points are the CPU's, so
+//! the two renderers differ by f32 rounding only.
+//!
+//! **`D` is more parts.** The direct map of diffuse chunk `c` is part `catalog.len() + c` of the
+//! renderer's part table ([`DirectParts`]): it lives in the same pool as the radiance, is
+//! fetched, kept resident and evicted like any other part (a streaming viewer fetches it from
+//! snapshot 1 next to the chunk itself), and a surface whose direct part is not resident yet
+//! shows the field's own direct light, as a mirror whose tiles are missing is traced. One
+//! mechanism, no second pool: the cache's size covers both.
+
+use crate::ViewerError;
+use glam::DVec3;
+use vlf_core::direct::Emitters;
+use vlf_core::parts::PartCatalog;
+use vlf_core::scene::Scene;
+
+/// Where the direct parts sit in a renderer's part table: after the field's own parts, one per
+/// diffuse chunk, in chunk order.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct DirectParts {
+    /// The part number of chunk 0's direct part (the field's part count).
+    pub first: u32,
+    /// Diffuse chunks, hence direct parts.
+    pub chunks: u32,
+}
+
+impl DirectParts {
+    pub fn new(catalog: &PartCatalog) -> DirectParts {
+        DirectParts {
+            first: catalog.len() as u32,
+            chunks: catalog.chunks() as u32,
+        }
+    }
+
+    /// The direct part of chunk `chunk`.
+    pub fn of_chunk(&self, chunk: u32) -> u32 {
+        self.first + chunk
+    }
+
+    /// The chunk whose direct part `part` is, `None` for the field's own parts.
+    pub fn chunk(&self, part: u32) -> Option<u32> {
+        part.checked_sub(self.first).filter(|&c| c < self.chunks)
+    }
+
+    /// Parts of the table: the field's and the direct ones.
+    pub fn table_len(&self) -> usize {
+        (self.first + self.chunks) as usize
+    }
+}
+
+/// The emitters' quadrature points as `shaders/field.wgsl` reads them (`emitter_points`,
+/// `emitter_groups`): per point its position and power; per emitting surface its centroid and
+/// area, normal and index, emission and point count, and first point.
+#[derive(Default)]
+pub(crate) struct EmitterBuffers {
+    pub points: Vec<[f32; 4]>,
+    pub groups: Vec<[u32; 4]>,
+}
+
+impl EmitterBuffers {
+    pub fn new(scene: &Scene, emitters: &Emitters) -> EmitterBuffers {
+        let mut out = EmitterBuffers::default();
+        let points: Vec<_> = emitters.points().collect();
+        for group in points.chunk_by(|a, b| a.3 == b.3) {
+            let (surface, first) = (group[0].3, out.points.len() / 2);
+            let s = &scene.surfaces[surface];
+            let centroid = s.vertices.iter().sum::<DVec3>() / s.vertices.len() as f64;
+            let emission = scene.material(surface).emission.map(|c| c as f32);
+            let bits = |v: glam::Vec3| v.to_array().map(f32::to_bits);
+            let [cx, cy, cz] = bits(centroid.as_vec3());
+            let [nx, ny, nz] = bits(s.normal.as_vec3());
+            let [ex, ey, ez] = emission.map(f32::to_bits);
+            out.groups.extend([
+                [cx, cy, cz, (s.area as f32).to_bits()],
+                [nx, ny, nz, surface as u32],
+                [ex, ey, ez, group.len() as u32],
+                [first as u32, 0, 0, 0],
+            ]);
+            for &(point, _, power, _) in group {
+                out.points.push(point.as_vec3().extend(0.0).to_array());
+                out.points
+                    .push([power[0] as f32, power[1] as f32, power[2] as f32, 0.0]);
+            }
+        }
+        out
+    }
+
+    /// Emitting surfaces.
+    pub fn group_count(&self) -> u32 {
+        (self.groups.len() / 4) as u32
+    }
+}
+
+/// Why `scene` cannot be drawn with exact direct light on the GPU, if it cannot: the shader's
+/// `ρd` is the material's, so albedo textures (which the CPU reads per point) are refused
+/// rather than drawn wrong.
+pub fn check_scene(scene: &Scene) -> Result<(), ViewerError> {
+    let textured = (0..scene.surfaces.len()).find(|&s| scene.material(s).albedo_texture.is_some());
+    match textured {
+        Some(s) => Err(ViewerError::Unsupported(format!(
+            "exact direct light on the GPU reads each material's ρd, and material {:?} has an albedo \
+             texture: render on the CPU (drop --gpu) or take the field's direct light (--direct field)",
+            scene.material(s).name
+        ))),
+        None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn direct_parts_follow_the_fields_and_map_back_to_their_chunks() {
+        let parts = DirectParts { first: 7, chunks: 3 };
+        assert_eq!(parts.of_chunk(0), 7);
+        assert_eq!(parts.chunk(9), Some(2));
+        assert_eq!(parts.chunk(6), None);
+        assert_eq!(parts.chunk(10), None);
+        assert_eq!(parts.table_len(), 10);
+    }
+}
