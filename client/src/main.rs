@@ -318,6 +318,14 @@ pub struct ViewArgs {
     /// for what the view needs.
     #[arg(long, default_value_t = 256.0)]
     cache_mb: f64,
+    /// Direct light: exact (shadow rays to the emitters per pixel, the field's direct part
+    /// streamed from snapshot 1), from the field, or auto: exact where the job has snapshot 1
+    /// and nothing stands in the way (dynamic objects, albedo textures).
+    #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
+    direct: DirectArg,
+    /// Quadrature points per emitter for exact direct light.
+    #[arg(long, default_value_t = 64)]
+    direct_samples: u32,
     /// A scripted walk over --frames: turn this many degrees (to the left) …
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]
     turn: f64,
@@ -336,7 +344,8 @@ pub struct ViewArgs {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum DirectArg {
-    /// Exact where it can be: on the CPU when the job has snapshot 1.
+    /// Exact where it can be: when the job has snapshot 1 (and, on the GPU, no dynamic
+    /// objects or albedo textures are in the way).
     Auto,
     /// Read from the field like all other light.
     Field,

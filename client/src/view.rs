@@ -2,15 +2,17 @@
 //! streamed part by part as the view needs it (`vlf_viewer::stream`): read straight from a
 //! store, or fetched over a coordinator's tile stream (`--server`).
 
-use crate::{FieldSource, SpecularArg, ViewArgs};
+use crate::{DirectArg, SpecularArg, ViewArgs};
 use anyhow::{Context, Result, bail};
 use glam::DVec3;
 use std::sync::Arc;
 use std::time::Duration;
+use vlf_core::direct::Emitters;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
 use vlf_core::parts::PartCatalog;
 use vlf_store::{FieldJob, JobId, Stage, StageParts, Store};
+use vlf_viewer::direct::DirectSource;
 use vlf_viewer::{Loader, PartSource, StreamConfig, Switch, ViewOptions, Walk};
 
 pub fn run(args: ViewArgs) -> Result<()> {
@@ -76,6 +78,8 @@ pub fn run(args: ViewArgs) -> Result<()> {
         }
     };
     let geometry = source.geometry().clone();
+    let remote = args.source.remote("view")?.map(|(target, _)| target);
+    let (exact, first) = exact_direct(&args, remote.as_ref(), source.store(), &id, &geometry)?.unzip();
     // The scene spans about 2 / scale scene units (the VLF frame is [-1, 1]³).
     let n = geometry.scene.normalisation;
     let size = 2.0 / n.scale;
@@ -92,12 +96,21 @@ pub fn run(args: ViewArgs) -> Result<()> {
         walk.script(args.to.unwrap_or(eye), args.turn, frames)?;
     }
     let catalog = PartCatalog::new(&geometry);
-    let (field_values, cache_values) = (catalog.total_values(), (args.cache_mb * 1e6 / 12.0) as usize);
+    // Exact direct light streams a direct map for every chunk too.
+    let direct_values = exact.as_ref().map_or(0, |_| geometry.atlas.texels);
+    let (field_values, cache_values) = (
+        catalog.total_values() + direct_values,
+        (args.cache_mb * 1e6 / 12.0) as usize,
+    );
     println!(
-        "streaming {} of job {id}: {} parts, {:.2} MB of radiance; cache {:.2} MB{}",
+        "streaming {} of job {id}: {} parts, {:.2} MB of radiance{}; cache {:.2} MB{}",
         crate::render::describe(stage),
-        catalog.len(),
+        catalog.len() + exact.as_ref().map_or(0, |_| catalog.chunks()),
         field_values as f64 * 12e-6,
+        match exact {
+            Some(_) => " (direct maps from snapshot 1 included: exact direct light)",
+            None => "",
+        },
         args.cache_mb,
         if cache_values >= field_values {
             " (holds it all)"
@@ -110,11 +123,12 @@ pub fn run(args: ViewArgs) -> Result<()> {
         ..StreamConfig::with_megabytes(args.cache_mb)
     };
     let loader = snapshot_loader(
-        &args.source,
+        remote.clone(),
         source.store().clone(),
         id.clone(),
         stage,
         geometry.clone(),
+        exact.is_some(),
     );
     let objects = match args.objects.is_empty() {
         true => None,
@@ -148,8 +162,13 @@ pub fn run(args: ViewArgs) -> Result<()> {
         stream,
         settle: args.frames.is_some(),
         objects,
+        exact_direct: exact,
     };
-    let stats = vlf_viewer::view(geometry, source.into_part_source(), options)?;
+    let mut source = source.into_part_source();
+    if let Some(first) = first {
+        source = Box::new(DirectSource::new(source, first, geometry.clone()));
+    }
+    let stats = vlf_viewer::view(geometry, source, options)?;
     if stats.frames > 0 {
         let first = stats.first_frame_seconds.unwrap_or(0.0);
         let drawing = stats.seconds - first - stats.settle_seconds;
@@ -202,6 +221,59 @@ pub fn run(args: ViewArgs) -> Result<()> {
         println!("screenshot → {}", path.display());
     }
     Ok(())
+}
+
+/// Exact direct light's emitter points and snapshot 1's parts, if the view draws it
+/// (`--direct`): auto where the job has snapshot 1 and the GPU can draw the scene exactly,
+/// without objects.
+fn exact_direct(
+    args: &ViewArgs,
+    remote: Option<&vlf_proto::Target>,
+    store: &Store,
+    id: &JobId,
+    geometry: &Arc<LightField>,
+) -> Result<Option<(Emitters, Box<dyn PartSource>)>> {
+    if args.direct == DirectArg::Field {
+        return Ok(None);
+    }
+    let emitters = Emitters::new(&geometry.scene, args.direct_samples).context("--direct-samples")?;
+    let first = if !args.objects.is_empty() {
+        Err("the GPU does not draw exact direct light among dynamic objects yet".to_string())
+    } else if let Err(e) = vlf_viewer::direct::check_scene(&geometry.scene) {
+        Err(e.to_string())
+    } else {
+        first_snapshot(remote, store, id, geometry)
+            .map_err(|e| format!("exact direct light needs snapshot 1 of job {id}: {e:#}"))
+    };
+    match (first, args.direct) {
+        (Ok(first), _) => Ok(Some((emitters, first))),
+        (Err(why), DirectArg::Exact) => bail!("--direct exact: {why}"),
+        (Err(why), _) => {
+            tracing::warn!("{why}: direct light from the field");
+            Ok(None)
+        }
+    }
+}
+
+/// Snapshot 1's parts (what exact direct light's direct parts are made of), from the store or
+/// the coordinator.
+fn first_snapshot(
+    remote: Option<&vlf_proto::Target>,
+    store: &Store,
+    id: &JobId,
+    geometry: &Arc<LightField>,
+) -> Result<Box<dyn PartSource>> {
+    let first = Stage::Iteration(1);
+    Ok(match remote {
+        Some(target) => {
+            let remote = Remote::new(target.clone(), id.to_string())?;
+            Box::new(RemoteParts::open(remote, first, Some(geometry.clone()))?)
+        }
+        None => {
+            let job = FieldJob::open(store, id)?;
+            Box::new(StoreParts::new(StageParts::open(job, first)?, Some(geometry.clone()))?)
+        }
+    })
 }
 
 fn title(id: &JobId, stage: Stage) -> String {
@@ -456,17 +528,13 @@ fn step(current: Stage, finished: &[u32], field: bool, switch: Switch) -> Option
 /// manifest each time (a running job finishes new ones), or from `--server` over a new
 /// connection. The geometry is the job's, whatever the stage.
 fn snapshot_loader(
-    source: &FieldSource,
+    remote: Option<vlf_proto::Target>,
     store: Store,
     id: JobId,
     mut current: Stage,
     geometry: Arc<LightField>,
+    exact: bool,
 ) -> Loader {
-    let remote = source.server.clone().map(|url| vlf_proto::Target {
-        url,
-        token: source.token.clone(),
-        ca_cert: source.ca_cert.clone(),
-    });
     Box::new(move |switch| {
         let mut found = || -> Result<Option<(Box<dyn PartSource>, String)>> {
             let (finished, done) = match &remote {
@@ -483,7 +551,7 @@ fn snapshot_loader(
             let Some(next) = step(current, &finished, done, switch) else {
                 return Ok(None);
             };
-            let source: Box<dyn PartSource> = match &remote {
+            let mut source: Box<dyn PartSource> = match &remote {
                 Some(target) => {
                     let remote = Remote::new(target.clone(), id.to_string())?;
                     Box::new(RemoteParts::open(remote, next, Some(geometry.clone()))?)
@@ -493,6 +561,10 @@ fn snapshot_loader(
                     Box::new(StoreParts::new(StageParts::open(job, next)?, Some(geometry.clone()))?)
                 }
             };
+            if exact {
+                let first = first_snapshot(remote.as_ref(), &store, &id, &geometry)?;
+                source = Box::new(DirectSource::new(source, first, geometry.clone()));
+            }
             current = next;
             Ok(Some((source, title(&id, next))))
         };

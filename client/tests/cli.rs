@@ -118,23 +118,37 @@ fn propagate_then_render_every_format() {
     let img = vlf_core::render::Image::load_pfm(out.join("view.pfm")).unwrap();
     assert_eq!((img.width, img.height), (64, 48));
     // The same view on the GPU: the same image up to edge pixels (the viewer's tests bound it).
+    // Exact direct light too: the GPU's (what auto takes there) is the CPU's.
     let gpu_image = out.join("gpu.pfm");
-    let mut args = [&["render", out.to_str().unwrap()][..], &CORNELL_VIEW[..]].concat();
-    args.extend(["--size", "64x48", "--gpu", "--out", gpu_image.to_str().unwrap()]);
-    if gpu_available(&vlf(&args)) {
-        let gpu = vlf_core::render::Image::load_pfm(&gpu_image).unwrap();
-        let (a, b) = (img.mean(), gpu.mean());
-        assert!(
-            (0..3).all(|c| (a[c] - b[c]).abs() < 1e-3 * a[c]),
-            "CPU {a:?} vs GPU {b:?}"
-        );
+    let cpu_exact = out.join("exact.pfm");
+    let args = [
+        &["render", out.to_str().unwrap()][..],
+        &CORNELL_VIEW[..],
+        &["--size", "64x48"][..],
+    ]
+    .concat();
+    let o = vlf(&[&args[..], &["--direct", "exact", "--out", cpu_exact.to_str().unwrap()]].concat());
+    assert!(o.status.success(), "{}", stderr(&o));
+    let exact = vlf_core::render::Image::load_pfm(&cpu_exact).unwrap();
+    for (direct, cpu) in [("field", &img), ("exact", &exact), ("auto", &exact)] {
+        let o = vlf(&[
+            &args[..],
+            &["--gpu", "--direct", direct, "--out", gpu_image.to_str().unwrap()],
+        ]
+        .concat());
+        if gpu_available(&o) {
+            let gpu = vlf_core::render::Image::load_pfm(&gpu_image).unwrap();
+            let (a, b) = (cpu.mean(), gpu.mean());
+            assert!(
+                (0..3).all(|c| (a[c] - b[c]).abs() < 1e-3 * a[c]),
+                "--direct {direct}: CPU {a:?} vs GPU {b:?}"
+            );
+        }
     }
-    args.extend(["--direct", "exact"]);
-    let o = vlf(&args);
+    let (a, b) = (img.mean()[0], exact.mean()[0]);
     assert!(
-        !o.status.success() && stderr(&o).contains("--direct exact"),
-        "{}",
-        stderr(&o)
+        (a - b).abs() > 1e-3 * a,
+        "exact direct light changes the image: {a} vs {b}"
     );
     let mean = img.mean();
     assert!(
@@ -436,7 +450,7 @@ fn mirrors_scene_plans_propagates_and_renders_both_ways() {
     let view = [
         &["render", out.to_str().unwrap()][..],
         &CORNELL_VIEW[..],
-        &["--size", "48x48", "--gpu"][..],
+        &["--size", "48x48", "--gpu", "--direct", "field"][..],
     ]
     .concat();
     let image = out.join("gpu.pfm");

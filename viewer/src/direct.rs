@@ -14,9 +14,11 @@
 //! shows the field's own direct light, as a mirror whose tiles are missing is traced. One
 //! mechanism, no second pool: the cache's size covers both.
 
-use crate::ViewerError;
+use crate::{PartSource, ViewerError};
 use glam::DVec3;
+use std::sync::Arc;
 use vlf_core::direct::Emitters;
+use vlf_core::field::LightField;
 use vlf_core::parts::PartCatalog;
 use vlf_core::scene::Scene;
 
@@ -109,6 +111,65 @@ pub fn check_scene(scene: &Scene) -> Result<(), ViewerError> {
             scene.material(s).name
         ))),
         None => Ok(()),
+    }
+}
+
+/// A [`PartSource`] that serves the direct parts too: the field's own parts from `field`, and
+/// the direct part of chunk `c` from `first` (the same job's snapshot 1) as its chunk `c` less
+/// the surfaces' own emission ([`LightField::remove_emission`]). What a streaming viewer with
+/// exact direct light reads from.
+pub struct DirectSource {
+    field: Box<dyn PartSource>,
+    first: Box<dyn PartSource>,
+    geometry: Arc<LightField>,
+    catalog: PartCatalog,
+    direct: DirectParts,
+}
+
+impl DirectSource {
+    /// `geometry` is the job's field without radiance (any stage's).
+    pub fn new(field: Box<dyn PartSource>, first: Box<dyn PartSource>, geometry: Arc<LightField>) -> DirectSource {
+        let catalog = PartCatalog::new(&geometry);
+        DirectSource {
+            direct: DirectParts::new(&catalog),
+            field,
+            first,
+            geometry,
+            catalog,
+        }
+    }
+}
+
+impl PartSource for DirectSource {
+    fn fetch(&mut self, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, String> {
+        let chunks: Vec<u32> = parts.iter().filter_map(|&p| self.direct.chunk(p)).collect();
+        let own: Vec<u32> = parts
+            .iter()
+            .copied()
+            .filter(|&p| self.direct.chunk(p).is_none())
+            .collect();
+        let mut own = self.field.fetch(&own)?.into_iter();
+        let mut direct = self.first.fetch(&chunks)?.into_iter().zip(&chunks);
+        parts
+            .iter()
+            .map(|&p| {
+                let values = match self.direct.chunk(p) {
+                    None => own.next(),
+                    Some(_) => direct.next().map(|(mut values, &c)| {
+                        let start = self.catalog.range(c).start;
+                        if values.len() == self.catalog.values(c) {
+                            self.geometry.remove_emission(start, &mut values);
+                        }
+                        values
+                    }),
+                };
+                values.ok_or_else(|| format!("the source gave fewer parts than the {} asked for", parts.len()))
+            })
+            .collect()
+    }
+
+    fn bytes(&self) -> u64 {
+        self.field.bytes() + self.first.bytes()
     }
 }
 

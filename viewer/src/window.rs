@@ -101,6 +101,10 @@ pub struct ViewOptions {
     pub settle: bool,
     /// Dynamic objects to draw and move.
     pub objects: Option<ViewObjects>,
+    /// Exact direct light from these emitter points ([`crate::direct`]): the sources (the first
+    /// and the loader's) must then serve the direct parts too ([`crate::direct::DirectSource`]).
+    /// Not with objects.
+    pub exact_direct: Option<vlf_core::direct::Emitters>,
 }
 
 /// The dynamic objects of a view and how they are shaded.
@@ -306,7 +310,10 @@ impl App {
             config.capacity = limit as usize;
         }
         let renderer = match &self.options.objects {
-            None => FieldRenderer::streaming(gpu, &self.geometry, config.capacity)?,
+            None => match &self.options.exact_direct {
+                Some(emitters) => FieldRenderer::streaming_exact(gpu, &self.geometry, config.capacity, emitters)?,
+                None => FieldRenderer::streaming(gpu, &self.geometry, config.capacity)?,
+            },
             Some(o) => {
                 let mode = match self.options.mirrors {
                     MirrorMode::Rays => SpecularMode::Rays,
@@ -325,6 +332,7 @@ impl App {
                 renderer
             }
         };
+        config.direct = renderer.direct_parts();
         let streamer = Streamer::start(self.geometry.clone(), source, config);
         Ok((renderer, streamer))
     }

@@ -363,6 +363,7 @@ fn a_streamed_view_fetches_what_its_objects_read_and_follows_their_moves() {
             batch_values: 1 << 16,
             batch_parts: 16,
             backoff: Duration::from_millis(1),
+            direct: None,
         };
         let streamer = Streamer::start(field.clone(), Box::new(FieldParts::new(field.clone())), config);
         streamer.look_around(camera, MirrorMode::Rays, spheres);

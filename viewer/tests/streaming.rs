@@ -10,7 +10,7 @@
 
 mod common;
 
-use common::{bundled_field_with_texel, gpu};
+use common::{bundled_field_with_texel, bundled_first_and_last, gpu};
 use glam::DVec3;
 use std::collections::BTreeSet;
 use std::sync::{Arc, Mutex};
@@ -19,6 +19,7 @@ use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
 use vlf_core::parts::PartCatalog;
 use vlf_core::render::{Camera, Image};
+use vlf_viewer::direct::DirectSource;
 use vlf_viewer::stream::{FieldParts, StreamConfig, Streamer};
 use vlf_viewer::{FieldRenderer, Gpu, MirrorMode, PartSource};
 
@@ -118,6 +119,7 @@ fn config(capacity: usize) -> StreamConfig {
         batch_values: 4096,
         batch_parts: 16,
         backoff: Duration::from_millis(1),
+        direct: None,
     }
 }
 
@@ -327,4 +329,81 @@ fn parts_of_the_wrong_size_are_refused_and_fetched_again() {
     assert_eq!(stats.retries, 1, "{stats:?}");
     assert_eq!(stats.fetched as usize, need.len(), "{stats:?}");
     assert_eq!((stats.missing, stats.resident), (0, need.len()), "{stats:?}");
+}
+
+/// Exact direct light streamed: the direct parts come from snapshot 1 through a
+/// [`DirectSource`], each after its chunk, and every view then draws what the complete exact
+/// renderer draws. Until a surface's direct part is resident it shows the field's own direct
+/// light: with only the field's parts uploaded, the image is the plain field's.
+#[test]
+fn exact_direct_light_streams_its_direct_parts_from_snapshot_one() {
+    let Some(gpu) = gpu() else { return };
+    let (first, last) = bundled_first_and_last("mirrors.obj", 129, 3, 0.1);
+    let mut exact = last.clone();
+    exact.use_exact_direct(&first, 64).expect("exact direct light");
+    let complete = FieldRenderer::new(&gpu, &exact).expect("upload");
+    let plain = FieldRenderer::new(&gpu, &last).expect("upload");
+    let geometry = Arc::new(geometry(&last));
+    let catalog = PartCatalog::new(&geometry);
+    let emitters = vlf_core::direct::Emitters::new(&geometry.scene, 64).unwrap();
+    let capacity = catalog.total_values() + geometry.atlas.texels;
+    let [a, b, c] = views();
+
+    // The field's parts alone: the field's direct light.
+    let renderer = FieldRenderer::streaming_exact(&gpu, &geometry, capacity, &emitters).expect("pool");
+    let direct = renderer.direct_parts().expect("direct parts");
+    assert_eq!(direct.chunks as usize, catalog.chunks());
+    let mut base = 0;
+    for p in 0..catalog.len() as u32 {
+        renderer.upload(&gpu, p, base, last.part_values(&catalog, p)).unwrap();
+        base += catalog.values(p);
+    }
+    let image = vlf_viewer::render(&gpu, &renderer, &c, 1, SpecularMode::Rays).unwrap();
+    let expected = vlf_viewer::render(&gpu, &plain, &c, 1, SpecularMode::Rays).unwrap();
+    assert_eq!(differing(&image, &expected), 0, "without direct parts: the plain field");
+    // A direct part of the wrong size is refused.
+    assert!(renderer.upload(&gpu, direct.of_chunk(0), base, &[[0.0; 3]]).is_err());
+
+    // Streamed: the direct parts come after their chunks, and every view is the exact one.
+    let renderer = FieldRenderer::streaming_exact(&gpu, &geometry, capacity, &emitters).expect("pool");
+    let asked = Arc::new(Mutex::new(Vec::new()));
+    let field_parts = Recording {
+        inner: FieldParts::new(Arc::new(last)),
+        asked: asked.clone(),
+        calls: 0,
+        fail_every: 0,
+    };
+    let source = DirectSource::new(
+        Box::new(field_parts),
+        Box::new(FieldParts::new(Arc::new(first))),
+        geometry.clone(),
+    );
+    let config = StreamConfig {
+        direct: renderer.direct_parts(),
+        ..config(capacity)
+    };
+    let streamer = Streamer::start(geometry.clone(), Box::new(source), config);
+    for (k, camera) in [a, b, c].into_iter().enumerate() {
+        let image = draw(&gpu, &renderer, &streamer, &camera);
+        let expected = vlf_viewer::render(&gpu, &complete, &camera, 1, SpecularMode::Rays).unwrap();
+        let off = differing(&image, &expected);
+        eprintln!(
+            "{off} of {} pixels differ from the complete exact field's",
+            image.pixels.len()
+        );
+        assert!(off * 200 <= image.pixels.len(), "{off} pixels differ");
+        let unexact = vlf_viewer::render(&gpu, &plain, &camera, 1, SpecularMode::Rays).unwrap();
+        let changed = differing(&image, &unexact);
+        eprintln!("{changed} pixels differ from the plain field's");
+        // The first view sees the wall mirror alone (ρd = 0, reflections from the rays: nothing
+        // exact about it); the others see diffuse walls.
+        assert!(
+            k == 0 || changed * 4 > image.pixels.len(),
+            "exact direct light is drawn: {changed} pixels changed"
+        );
+    }
+    // The field's source was never asked for a direct part.
+    assert!(asked.lock().unwrap().iter().all(|&p| (p as usize) < catalog.len()));
+    let stats = streamer.stats();
+    assert!(stats.resident > catalog.chunks() && stats.missing == 0, "{stats:?}");
 }

@@ -24,6 +24,7 @@
 
 pub mod residency;
 
+use crate::direct::DirectParts;
 use crate::{FieldRenderer, Gpu, MirrorMode, ViewerError};
 use glam::DVec3;
 pub use residency::Residency;
@@ -98,6 +99,9 @@ pub struct StreamConfig {
     pub batch_parts: usize,
     /// First wait after a failed fetch; doubled per failure up to 32 times this.
     pub backoff: Duration,
+    /// With exact direct light: the renderer's direct parts ([`FieldRenderer::direct_parts`]),
+    /// each fetched right after its chunk (the source serves them: [`crate::direct::DirectSource`]).
+    pub direct: Option<DirectParts>,
 }
 
 impl StreamConfig {
@@ -108,6 +112,7 @@ impl StreamConfig {
             batch_values: 1 << 19,
             batch_parts: 256,
             backoff: Duration::from_millis(100),
+            direct: None,
         }
     }
 }
@@ -268,7 +273,8 @@ struct Worker {
 
 impl Worker {
     fn run(mut self) {
-        let sizes = (0..self.catalog.len() as u32).map(|i| self.catalog.values(i)).collect();
+        let parts = self.config.direct.map_or(self.catalog.len(), |d| d.table_len());
+        let sizes = (0..parts as u32).map(|i| self.size(i)).collect();
         let mut residency = Residency::new(sizes, self.config.capacity);
         while let Some((camera, mirrors, objects)) = self.next_view() {
             self.plan(&mut residency, &camera, mirrors, &objects);
@@ -315,8 +321,15 @@ impl Worker {
             let seen: std::collections::HashSet<u32> = needed.iter().copied().collect();
             needed.extend(self.catalog.needed(&around).into_iter().filter(|p| !seen.contains(p)));
         }
+        if let Some(direct) = self.config.direct {
+            // Each chunk's direct part right after it: the two make its surfaces exact.
+            needed = (needed.iter())
+                .flat_map(|&p| [Some(p), (p < direct.chunks).then(|| direct.of_chunk(p))])
+                .flatten()
+                .collect();
+        }
         let planning = started.elapsed().as_secs_f64();
-        let needed_values: usize = needed.iter().map(|&p| self.catalog.values(p)).sum();
+        let needed_values: usize = needed.iter().map(|&p| self.size(p)).sum();
         residency.touch(&needed);
         let missing: Vec<u32> = needed.iter().copied().filter(|&p| !residency.is_resident(p)).collect();
         self.update_stats(residency, |s| {
@@ -342,7 +355,7 @@ impl Worker {
             let mut evicted = Vec::new();
             let mut full = false;
             for &p in rest {
-                let size = self.catalog.values(p);
+                let size = self.size(p);
                 if !batch.is_empty()
                     && (batch.len() >= self.config.batch_parts || values + size > self.config.batch_values)
                 {
@@ -373,10 +386,7 @@ impl Worker {
             match self.source.fetch(&batch) {
                 Ok(fetched)
                     if fetched.len() == batch.len()
-                        && batch
-                            .iter()
-                            .zip(&fetched)
-                            .all(|(&p, v)| v.len() == self.catalog.values(p)) =>
+                        && batch.iter().zip(&fetched).all(|(&p, v)| v.len() == self.size(p)) =>
                 {
                     for (&part, values) in batch.iter().zip(fetched) {
                         let base = residency.base(part).unwrap_or(0);
@@ -423,6 +433,14 @@ impl Worker {
                     }
                 }
             }
+        }
+    }
+
+    /// Values of part `p`: a catalog part's, or a direct part's (its chunk's).
+    fn size(&self, p: u32) -> usize {
+        match self.config.direct.and_then(|d| d.chunk(p)) {
+            Some(chunk) => self.catalog.values(chunk),
+            None => self.catalog.values(p),
         }
     }
 

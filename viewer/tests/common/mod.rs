@@ -42,13 +42,24 @@ pub fn bundled_field_with_texel(scene: &str, directions: usize, iterations: u32,
 /// with exact direct light (`samples` points per emitter).
 #[allow(dead_code)] // not every test binary uses both
 pub fn bundled_field_exact(scene: &str, directions: usize, iterations: u32, samples: u32) -> LightField {
-    let mut p = bundled_propagation(scene, directions, iterations, 1.0);
+    let (first, mut field) = bundled_first_and_last(scene, directions, iterations, 1.0);
+    field.use_exact_direct(&first, samples).expect("exact direct light");
+    field
+}
+
+/// [`bundled_field_with_texel`] after one iteration (snapshot 1) and after `iterations`.
+#[allow(dead_code)] // not every test binary uses both
+pub fn bundled_first_and_last(
+    scene: &str,
+    directions: usize,
+    iterations: u32,
+    texel_cells: f64,
+) -> (LightField, LightField) {
+    let mut p = bundled_propagation(scene, directions, iterations, texel_cells);
     p.step(|_| {});
     let first = p.field_now();
     p.run(|_| {});
-    let mut field = p.into_field();
-    field.use_exact_direct(&first, samples).expect("exact direct light");
-    field
+    (first, p.into_field())
 }
 
 fn bundled_propagation(scene: &str, directions: usize, iterations: u32, texel_cells: f64) -> Propagation {
