@@ -598,24 +598,13 @@ mod tests {
         (store, job.id().clone(), p)
     }
 
-    fn source() -> FieldSource {
-        FieldSource {
-            store: None,
-            server: None,
-            token: None,
-            ca_cert: None,
-            job: None,
-            snapshot: None,
-        }
-    }
-
     #[test]
     fn the_loader_walks_a_running_jobs_snapshots() {
         let (store, id, mut p) = running_job();
         let job = FieldJob::open(&store, &id).unwrap();
         let geometry = Arc::new(StageParts::open(job, Stage::Iteration(1)).unwrap().geometry().unwrap());
         let catalog = PartCatalog::new(&geometry);
-        let mut loader = snapshot_loader(&source(), store.clone(), id.clone(), Stage::Iteration(1), geometry);
+        let mut loader = snapshot_loader(None, store.clone(), id.clone(), Stage::Iteration(1), geometry, false);
         // The stage a switch opens, told by its title and checked by its parts: every one is the
         // stage's, read whole.
         let mut stage_of = |switch| -> Option<String> {
@@ -646,6 +635,47 @@ mod tests {
         job.finish(&p.field_now(), false).unwrap();
         let title = stage_of(Switch::Next).expect("the final field");
         assert!(title.ends_with("the final field"), "{title}");
+    }
+
+    /// With exact direct light, every stage the loader opens serves the direct parts too: snapshot
+    /// 1's chunks less the emitters' own emission, whatever the stage shown.
+    #[test]
+    fn an_exact_loader_serves_the_direct_parts_from_snapshot_one() {
+        let (store, id, _) = running_job();
+        let job = FieldJob::open(&store, &id).unwrap();
+        let geometry = Arc::new(
+            StageParts::open(job.clone(), Stage::Iteration(2))
+                .unwrap()
+                .geometry()
+                .unwrap(),
+        );
+        let catalog = PartCatalog::new(&geometry);
+        let mut loader = snapshot_loader(
+            None,
+            store.clone(),
+            id.clone(),
+            Stage::Iteration(2),
+            geometry.clone(),
+            true,
+        );
+        let (mut parts, title) = loader(Switch::Previous).unwrap().expect("snapshot 1");
+        assert!(title.ends_with("snapshot 1"), "{title}");
+        let first = job.load(Stage::Iteration(1)).unwrap();
+        let exact = vlf_core::direct::ExactDirect::new(&first, 4).unwrap();
+        let direct: Vec<u32> = (0..catalog.chunks() as u32).map(|c| catalog.len() as u32 + c).collect();
+        // Asked together with a field part, in any order.
+        let asked: Vec<u32> = std::iter::once(0).chain(direct.iter().copied()).collect();
+        let values = parts.fetch(&asked).unwrap();
+        assert!(values[0].as_slice() == first.part_values(&catalog, 0));
+        for (c, v) in values[1..].iter().enumerate() {
+            assert!(
+                v.as_slice() == &exact.direct()[catalog.range(c as u32)],
+                "direct part of chunk {c}"
+            );
+        }
+        // The lamp's texels lose its emission: its direct part is far below its radiance.
+        let sum = |v: &[[f32; 3]]| v.iter().map(|t| t[0] as f64).sum::<f64>();
+        assert!(sum(exact.direct()) < sum(&first.radiance));
     }
 
     #[test]
