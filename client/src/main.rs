@@ -169,9 +169,11 @@ pub struct JobFlags {
     /// backward ray tracing (sharper reflections when rendering from the rays).
     #[arg(long)]
     resample: bool,
-    /// Gaussian filter of the Next maps, σ in texels (0 = off).
-    #[arg(long, default_value_t = defaults::FILTER_SIGMA)]
-    filter: f64,
+    /// Gaussian filter of the Next maps, σ in texels (0 = off); by default σ = 1 where the
+    /// scene's mirrors receive light and off elsewhere (docs/accuracy.md: where direct light is
+    /// exact, as renders make it by default, the filter costs accuracy).
+    #[arg(long)]
+    filter: Option<f64>,
 }
 
 /// How to reach a coordinator.

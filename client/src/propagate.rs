@@ -215,7 +215,7 @@ impl JobFlags {
             defer: self.defer,
             perturb: Some(self.perturb),
             perturb_count: Some(self.perturb_count),
-            filter: Some(self.filter),
+            filter: self.filter,
             resample: self.resample,
             encoding: match self.encoding {
                 EncodingArg::F32 => WireEncoding::F32,

@@ -108,7 +108,7 @@ pub fn run(args: ViewArgs) -> Result<()> {
         catalog.len() + exact.as_ref().map_or(0, |_| catalog.chunks()),
         field_values as f64 * 12e-6,
         match exact {
-            Some(_) => " (direct maps from snapshot 1 included: exact direct light)",
+            Some(_) => ", direct maps for exact direct light included",
             None => "",
         },
         args.cache_mb,
@@ -163,6 +163,8 @@ pub fn run(args: ViewArgs) -> Result<()> {
         settle: args.frames.is_some(),
         objects,
         exact_direct: exact,
+        // Auto leaves a software adapter the field's direct light; exact asked for is drawn.
+        exact_on_software: args.direct == DirectArg::Exact,
     };
     let mut source = source.into_part_source();
     if let Some(first) = first {
@@ -177,11 +179,12 @@ pub fn run(args: ViewArgs) -> Result<()> {
             fps => format!("{:.2} s a frame", 1.0 / fps.max(1e-12)),
         };
         println!(
-            "{} frames in {:.2} s ({}) on {}; first frame after {:.2} s; after it {} drawing ({:.2} s waiting for parts left out)",
+            "{} frames in {:.2} s ({}) on {}, direct light {}; first frame after {:.2} s; after it {} drawing ({:.2} s waiting for parts left out)",
             stats.frames,
             stats.seconds,
             rate(stats.frames as f64, stats.seconds),
             stats.adapter,
+            if stats.exact_direct { "exact" } else { "from the field" },
             stats.first_frame_seconds.unwrap_or(f64::NAN),
             rate((stats.frames - 1) as f64, drawing),
             stats.settle_seconds

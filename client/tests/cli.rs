@@ -926,7 +926,9 @@ fn view_draws_in_a_window_what_render_draws() {
             [
                 &["view", out.to_str().unwrap()][..],
                 &camera[..],
-                &["--frames", "3", "--no-vsync", "--screenshot", shot.to_str().unwrap()],
+                // Exact direct light, streamed from snapshot 1 (auto would leave it to a real GPU).
+                &["--frames", "3", "--no-vsync", "--direct", "exact"][..],
+                &["--screenshot", shot.to_str().unwrap()],
             ]
             .concat(),
         )
@@ -937,7 +939,10 @@ fn view_draws_in_a_window_what_render_draws() {
         return;
     }
     let stdout = String::from_utf8_lossy(&o.stdout);
-    assert!(stdout.contains("3 frames"), "{stdout}");
+    assert!(
+        stdout.contains("3 frames") && stdout.contains("direct light exact"),
+        "{stdout}"
+    );
     // It streamed the parts the view needs, no more than the field has.
     let number_after = |prefix: &str, word: &str| -> Option<usize> {
         let line = stdout.lines().find(|l| l.starts_with(prefix))?;
@@ -956,7 +961,15 @@ fn view_draws_in_a_window_what_render_draws() {
     let o = vlf(&[
         &["render", out.to_str().unwrap()][..],
         &camera[..],
-        &["--gpu", "--samples", "1", "--out", rendered.to_str().unwrap()],
+        &[
+            "--gpu",
+            "--samples",
+            "1",
+            "--direct",
+            "exact",
+            "--out",
+            rendered.to_str().unwrap(),
+        ],
     ]
     .concat());
     assert!(o.status.success(), "{}", stderr(&o));
@@ -965,6 +978,27 @@ fn view_draws_in_a_window_what_render_draws() {
     assert_eq!((a.width, a.height), (96, 72));
     assert!(a.pixels == b.pixels, "the window's frame differs from vlf render --gpu");
     assert!(a.mean()[0] > 0.01, "{:?}", a.mean());
+    // By default a software adapter draws the field's direct light, a real GPU the exact one.
+    let o = Command::new(env!("CARGO_BIN_EXE_vlf"))
+        .args(
+            [
+                &["view", out.to_str().unwrap()][..],
+                &camera[..],
+                &["--frames", "1", "--no-vsync"],
+            ]
+            .concat(),
+        )
+        .env("DISPLAY", &display.name)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let software = stdout.contains(", Cpu)");
+    let want = if software {
+        "direct light from the field"
+    } else {
+        "direct light exact"
+    };
+    assert!(o.status.success() && stdout.contains(want), "{stdout}{}", stderr(&o));
     let _ = std::fs::remove_dir_all(&out);
 }
 

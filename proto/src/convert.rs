@@ -34,7 +34,6 @@ impl JobSpec {
             },
             (None, None) => d.stop,
         };
-        let filter = p.filter.or(d.filter_sigma).unwrap_or(0.0);
         let options = Options {
             directions: p.directions.map_or(d.directions, |l| l as usize),
             grid: GridSize::new(p.resolution.unwrap_or(d.grid.resolution), p.tile.unwrap_or(d.grid.tile))?,
@@ -45,7 +44,9 @@ impl JobSpec {
                 iterations: p.perturb.unwrap_or(d.perturbation.iterations),
                 count: p.perturb_count.unwrap_or(d.perturbation.count),
             },
-            filter_sigma: (filter != 0.0).then_some(filter),
+            // Unset: the recommended filter, only where mirrors are; given: wherever it is.
+            filter_sigma: p.filter.map_or(d.filter_sigma, |f| (f != 0.0).then_some(f)),
+            filter_only_with_mirrors: p.filter.is_none() && d.filter_only_with_mirrors,
         };
         options.validate()?;
         let encoding = match v1::Encoding::try_from(p.encoding) {
@@ -136,7 +137,19 @@ mod tests {
             }
         );
         assert_eq!(spec.options.filter_sigma, Some(1.0));
+        assert!(spec.options.filter_only_with_mirrors);
         assert_eq!(spec.encoding, Encoding::F16);
+        // A filter asked for runs wherever it is; 0 turns it off.
+        let asked = |f| {
+            JobSpec::from_parameters(&Parameters {
+                filter: Some(f),
+                ..Default::default()
+            })
+            .unwrap()
+        };
+        let on = asked(0.5).options;
+        assert_eq!((on.filter_sigma, on.filter_only_with_mirrors), (Some(0.5), false));
+        assert_eq!(asked(0.0).options.filter_sigma, None);
     }
 
     #[test]

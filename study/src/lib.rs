@@ -97,7 +97,8 @@ pub fn run(study: &Study, progress: &mut dyn FnMut(usize, usize, &str)) -> Resul
     let fit = PathTracerFit::new(&reference, study.block, pixels)?;
     let modes = render_modes(study, has_mirrors);
 
-    let runs = sweep::plan(&study.base, &study.sweep);
+    // The toggles vary what the plan decides for this scene (the filter, by its mirrors).
+    let runs = sweep::plan(&study.base.resolved_for(&scene), &study.sweep);
     let total = runs.len() + usize::from(study.sweep.iterations);
     let mut rows = Vec::new();
     let mut files = Vec::new();

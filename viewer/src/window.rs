@@ -105,6 +105,10 @@ pub struct ViewOptions {
     /// and the loader's) must then serve the direct parts too ([`crate::direct::DirectSource`]).
     /// Not with objects.
     pub exact_direct: Option<vlf_core::direct::Emitters>,
+    /// Draw exact direct light on a software adapter (Mesa's lavapipe) too. Its shadow rays
+    /// per pixel take a CPU seconds per frame at a window's size, so where this is off a
+    /// software adapter draws the field's direct light and only a real GPU the exact one.
+    pub exact_on_software: bool,
 }
 
 /// The dynamic objects of a view and how they are shaded.
@@ -132,6 +136,8 @@ pub struct ViewStats {
     pub settle_seconds: f64,
     /// Object moves refused (into a wall, out of the scene).
     pub refused_moves: u64,
+    /// Whether direct light was drawn exact (else the field's).
+    pub exact_direct: bool,
 }
 
 /// Opens the window on `geometry` (a field whose radiance is not read: it streams from
@@ -272,6 +278,7 @@ impl App {
         let tonemap = Tonemap::new(&gpu, format, &frame);
         let status = Overlay::new(&gpu, format);
         self.stats.adapter = gpu.describe();
+        self.stats.exact_direct = renderer.direct_parts().is_some();
         tracing::info!(adapter = %gpu.describe(), ?format, "viewer window");
         Ok(State {
             window,
@@ -309,8 +316,20 @@ impl App {
             );
             config.capacity = limit as usize;
         }
+        let software = gpu.info.device_type == wgpu::DeviceType::Cpu;
+        let exact = match &self.options.exact_direct {
+            Some(_) if software && !self.options.exact_on_software => {
+                tracing::warn!(
+                    "{} is a software adapter: direct light from the field (--direct exact draws it exact, at \
+                     seconds a frame)",
+                    gpu.describe()
+                );
+                None
+            }
+            exact => exact.as_ref(),
+        };
         let renderer = match &self.options.objects {
-            None => match &self.options.exact_direct {
+            None => match exact {
                 Some(emitters) => FieldRenderer::streaming_exact(gpu, &self.geometry, config.capacity, emitters)?,
                 None => FieldRenderer::streaming(gpu, &self.geometry, config.capacity)?,
             },

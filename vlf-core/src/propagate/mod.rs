@@ -102,6 +102,13 @@ pub struct Options {
     pub perturbation: Perturbation,
     /// σ (in texels) of the Gaussian filter applied to Next maps.
     pub filter_sigma: Option<f64>,
+    /// Filter only where mirrors receive light (the plan decides, as it does for perturbation):
+    /// the filter's smoothing pays where the field's own light is what a view shows —
+    /// reflections and caustics — and costs accuracy where renders compute direct light
+    /// exactly, as they do by default (`docs/accuracy.md`, *Choosing the defaults*). Off: the
+    /// filter runs wherever `filter_sigma` is set.
+    #[serde(default)]
+    pub filter_only_with_mirrors: bool,
 }
 
 /// The settings a job gets where its user names none: the one table that the command line
@@ -119,8 +126,9 @@ pub mod defaults {
     pub const MAX_ITERATIONS: u32 = 1000;
     /// Texel edge in ray spacings.
     pub const TEXEL_CELLS: f64 = 1.0;
-    /// The paper's remedies for holes: perturbed iterations and copies, and the Next maps'
-    /// filter σ in texels (issue 30 measures what they cost in bias).
+    /// The paper's remedies for holes: perturbed iterations and copies (the plan drops them
+    /// where mirrors are), and the Next maps' filter σ in texels (applied only where mirrors
+    /// are: [`super::Options::filter_only_with_mirrors`]); issue 30 measured what each costs.
     pub const PERTURB_ITERATIONS: u32 = 2;
     pub const PERTURB_COUNT: u32 = 4;
     pub const FILTER_SIGMA: f64 = 1.0;
@@ -145,6 +153,7 @@ impl Default for Options {
             deferral: None,
             perturbation: Perturbation::default(),
             filter_sigma: None,
+            filter_only_with_mirrors: false,
         }
     }
 }
@@ -159,7 +168,26 @@ impl Options {
                 count: defaults::PERTURB_COUNT,
             },
             filter_sigma: Some(defaults::FILTER_SIGMA),
+            filter_only_with_mirrors: true,
             ..Options::default()
+        }
+    }
+
+    /// The filter σ a scene gets: `filter_sigma`, unless it applies only with mirrors and
+    /// `mirrors` (mirrors that receive light) is false.
+    pub fn filter_for(&self, mirrors: bool) -> Option<f64> {
+        self.filter_sigma.filter(|_| mirrors || !self.filter_only_with_mirrors)
+    }
+
+    /// These options with what the plan would decide for `scene` made explicit (the filter, by
+    /// whether the scene has mirrors): a starting point to vary one setting from, as a study
+    /// does, where "the filter toggled" must mean the filter the scene actually gets.
+    pub fn resolved_for(&self, scene: &Scene) -> Options {
+        let mirrors = scene.materials.iter().any(|m| m.is_mirror());
+        Options {
+            filter_sigma: self.filter_for(mirrors),
+            filter_only_with_mirrors: false,
+            ..self.clone()
         }
     }
 }
@@ -455,6 +483,7 @@ impl Propagation {
             .as_ref()
             .map_or(0, |s| s.layouts.iter().map(|l| l.len as usize).sum());
         plan.perturbation = options.perturbation.iterations > 0 && options.perturbation.count > 0 && specular.is_none();
+        plan.filter = options.filter_for(specular.is_some());
         Ok(Propagation {
             specular,
             plan,
@@ -639,7 +668,7 @@ impl Propagation {
         let mut next: Vec<Rgb> = (work.received.iter().zip(self.albedo.iter()))
             .map(|(r, rho)| [r[0] * rho[0], r[1] * rho[1], r[2] * rho[2]])
             .collect();
-        if let Some(sigma) = self.options.filter_sigma {
+        if let Some(sigma) = self.plan.filter {
             filter::gaussian(&self.atlas, &self.projected_area, &mut next, sigma);
         }
         for ((n, total), carried) in next.iter_mut().zip(&mut self.total).zip(&work.carried) {

@@ -31,6 +31,9 @@ pub struct Plan {
     /// Whether perturbation is applied (it is not with mirrors: directional
     /// maps exist only for the true directions).
     pub perturbation: bool,
+    /// The σ of the Next maps' filter, if it runs ([`super::Options::filter_for`]).
+    #[serde(default)]
+    pub filter: Option<f64>,
 }
 
 impl Plan {
@@ -163,6 +166,10 @@ impl fmt::Display for Plan {
                 write!(f, " (directional mirror maps exist only on the true directions)")?;
             }
             writeln!(f)?;
+        }
+        match self.filter {
+            Some(sigma) => writeln!(f, "  filter: σ = {sigma} texels (Next maps)")?,
+            None => writeln!(f, "  filter: off")?,
         }
         Ok(())
     }
