@@ -255,8 +255,7 @@ pub struct RenderArgs {
     depth: u32,
     /// Direct light: exact (shadow rays to the emitters per pixel, in place of the field's
     /// direct part; needs the job's snapshot 1), from the field, or auto: exact where the job
-    /// has snapshot 1 and the renderer can (the GPU not yet among --object; docs/accuracy.md
-    /// measures both).
+    /// has snapshot 1 (not with --object-shadows-per-texel; docs/accuracy.md measures both).
     #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
     /// Quadrature points per emitter for --direct exact.
@@ -346,8 +345,8 @@ pub struct ViewArgs {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum DirectArg {
-    /// Exact where it can be: when the job has snapshot 1 (and, on the GPU, no dynamic
-    /// objects or albedo textures are in the way).
+    /// Exact where it can be: when the job has snapshot 1 (and, on the GPU, no albedo textures
+    /// or shadows per texel are in the way).
     Auto,
     /// Read from the field like all other light.
     Field,

@@ -23,16 +23,19 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
-    // Auto asks for snapshot 1 and does without it; Exact requires it. The GPU does not draw
-    // exact direct light among dynamic objects yet: auto takes the field's there.
+    // Auto asks for snapshot 1 and does without it; Exact requires it. The objects' shadows
+    // per texel leave no room for exact direct light: auto takes the field's there.
     let exact_direct = args.direct == DirectArg::Exact;
-    let gpu_objects = args.gpu && !args.objects.is_empty();
-    let try_exact = exact_direct || (args.direct == DirectArg::Auto && !gpu_objects);
+    let per_texel = args.object_shadows_per_texel;
+    let try_exact = exact_direct || (args.direct == DirectArg::Auto && !per_texel);
     if args.object_shadows_per_texel && !args.gpu {
         bail!("--object-shadows-per-texel draws as vlf view does, on the GPU: add --gpu");
     }
-    if gpu_objects && exact_direct {
-        bail!("--gpu does not draw exact direct light among dynamic objects yet: drop --direct exact, or --gpu");
+    if per_texel && exact_direct {
+        bail!(
+            "--object-shadows-per-texel leaves direct light to the field: drop --direct exact, or \
+             --object-shadows-per-texel"
+        );
     }
     if try_exact && !(1..=65536).contains(&args.direct_samples) {
         bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
@@ -77,9 +80,13 @@ pub fn run(args: RenderArgs) -> Result<()> {
         false => {
             let bvh = Bvh::build(&field.scene);
             let placed = objects.place(args.view.up(), &field.scene, &bvh)?;
-            let gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, objects.directions(&field))
+            let mut gatherer = Gatherer::with_directions(&field, &bvh, &placed, mode, objects.directions(&field))
                 .context("--object-directions")?
                 .with_shadow_samples(objects.object_shadow_samples);
+            if field.exact_direct.is_some() {
+                // The objects' shadows and exact direct light share their emitter points.
+                gatherer = gatherer.with_direct_samples(args.direct_samples)?;
+            }
             // The gather sees the objects' shadows, and the shadows give back the objects'
             // light: on the GPU its passes compute them, on the CPU the gatherer does.
             let gatherer = match args.gpu {

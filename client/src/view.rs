@@ -241,7 +241,8 @@ fn exact_direct(
     }
     let emitters = Emitters::new(&geometry.scene, args.direct_samples).context("--direct-samples")?;
     let first = if !args.objects.is_empty() {
-        Err("the GPU does not draw exact direct light among dynamic objects yet".to_string())
+        // The view casts the objects' shadows per texel, which hold their direct part.
+        Err("the view's objects cast their shadows per texel, direct part included".to_string())
     } else if let Err(e) = vlf_viewer::direct::check_scene(&geometry.scene) {
         Err(e.to_string())
     } else {

@@ -1174,6 +1174,45 @@ fn render_draws_a_dynamic_object_lit_by_the_field() {
             "{off} pixels differ between the GPU and the CPU"
         );
     }
+    // Exact direct light among the objects (shadow rays that see the cube): the GPU's is the
+    // CPU's too, and not the field's.
+    let exact = |gpu: &[&str], image: &str| {
+        let path = out.join(image);
+        let mut args = [
+            &["render", out.to_str().unwrap()][..],
+            &CORNELL_VIEW[..],
+            &object[..],
+            gpu,
+        ]
+        .concat();
+        args.extend(["--size", "48x48", "--samples", "1", "--direct", "exact"]);
+        args.extend(["--out", path.to_str().unwrap()]);
+        (vlf(&args), path)
+    };
+    let (o, cpu_path) = exact(&[], "exact.pfm");
+    assert!(o.status.success(), "{}", stderr(&o));
+    let cpu = load(&cpu_path);
+    assert!((cpu.mean()[0] - shadowed.mean()[0]).abs() > 1e-3 * shadowed.mean()[0]);
+    let (o, gpu_path) = exact(&["--gpu"], "exact-gpu.pfm");
+    if gpu_available(&o) {
+        let gpu = load(&gpu_path);
+        let off = (0..cpu.pixels.len())
+            .filter(|&i| {
+                (0..3).any(|c| (gpu.pixels[i][c] - cpu.pixels[i][c]).abs() > 1e-2 * cpu.pixels[i][c].abs() + 1e-6)
+            })
+            .count();
+        assert!(
+            off * 20 <= cpu.pixels.len(),
+            "{off} pixels differ between the GPU and the CPU"
+        );
+    }
+    // Shadows per texel hold their direct part: not with exact direct light, said so.
+    let (o, _) = exact(&["--gpu", "--object-shadows-per-texel"], "x.pfm");
+    assert!(
+        !o.status.success() && stderr(&o).contains("--object-shadows-per-texel"),
+        "{}",
+        stderr(&o)
+    );
 }
 
 /// `vlf view --object`: a cube moved by a script (`--object-to`) over the frames is drawn at

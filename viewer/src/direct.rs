@@ -186,4 +186,34 @@ mod tests {
         assert_eq!(parts.chunk(10), None);
         assert_eq!(parts.table_len(), 10);
     }
+
+    #[test]
+    fn albedo_textures_are_refused_by_name() {
+        use vlf_core::scene::{FaceOrigin, ImportOptions, Material};
+        let square = |z: f64| {
+            let v = [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)].map(|(x, y)| DVec3::new(x, y, z));
+            if z > 0.0 {
+                v.into_iter().rev().collect()
+            } else {
+                v.to_vec()
+            }
+        };
+        let material = |name: &str, emission: f64| Material {
+            name: name.into(),
+            diffuse: [0.5; 3],
+            specular: [0.0; 3],
+            emission: [emission; 3],
+            albedo_texture: None,
+        };
+        let polygons = [
+            (square(0.0), 0, FaceOrigin { line: 0, face: 0 }),
+            (square(1.0), 1, FaceOrigin { line: 0, face: 1 }),
+        ];
+        let materials = vec![material("brick", 0.0), material("lamp", 1.0)];
+        let (mut scene, _) = Scene::from_polygons(&polygons, materials, &ImportOptions::default()).unwrap();
+        assert!(check_scene(&scene).is_ok());
+        scene.materials[0].albedo_texture = Some(0);
+        let e = check_scene(&scene).unwrap_err().to_string();
+        assert!(e.contains("\"brick\"") && e.contains("albedo texture"), "{e}");
+    }
 }

@@ -122,7 +122,7 @@ struct ViewUniform {
     mode: u32,
     /// The first direct part, `NONE` without exact direct light.
     direct_parts: u32,
-    emitter_groups: u32,
+    _pad: u32,
 }
 
 /// Where the field is seen from, as the shader needs it.
@@ -184,9 +184,8 @@ pub struct FieldRenderer {
     /// moved, parts arrived), and the mirror mode they were computed for.
     shadows_stale: Cell<bool>,
     shadows_mode: Cell<Option<MirrorMode>>,
-    /// With exact direct light: where its direct parts are, and the emitting surfaces.
+    /// With exact direct light: where its direct parts are.
     direct: Option<DirectParts>,
-    emitter_groups: u32,
 }
 
 /// Buffers of the field and its objects, bound at 0..BINDINGS.
@@ -228,15 +227,19 @@ pub(crate) struct FieldCompute {
     layout: wgpu::BindGroupLayout,
     pipeline_layout: wgpu::PipelineLayout,
     shader: wgpu::ShaderModule,
+    /// Whether the field is drawn with exact direct light (the shader's `EXACT_DIRECT`).
+    exact: bool,
 }
 
 impl FieldCompute {
-    /// The pass's own buffers are of the types `extra`, bound at `BINDINGS`, `BINDINGS + 1`, …
+    /// The pass's own buffers are of the types `extra`, bound at `BINDINGS`, `BINDINGS + 1`, …;
+    /// `exact`: the field is drawn with exact direct light, which the gather then adds too.
     pub(crate) fn new(
         device: &wgpu::Device,
         label: &str,
         source: &str,
         extra: &[wgpu::BufferBindingType],
+        exact: bool,
     ) -> FieldCompute {
         let compute = wgpu::ShaderStages::COMPUTE;
         let mut entries = binding_layout(compute);
@@ -258,6 +261,7 @@ impl FieldCompute {
             layout,
             pipeline_layout,
             shader,
+            exact,
         }
     }
 
@@ -268,7 +272,7 @@ impl FieldCompute {
             layout: Some(&self.pipeline_layout),
             module: &self.shader,
             entry_point: Some(entry),
-            compilation_options: Default::default(),
+            compilation_options: exact_direct_constant(self.exact),
             cache: None,
         })
     }
@@ -288,6 +292,15 @@ impl FieldCompute {
             layout: &self.layout,
             entries: &entries,
         })
+    }
+}
+
+/// The shader's `EXACT_DIRECT` override: set where exact direct light is drawn, so that
+/// elsewhere the driver drops its code.
+fn exact_direct_constant(exact: bool) -> wgpu::PipelineCompilationOptions<'static> {
+    wgpu::PipelineCompilationOptions {
+        constants: if exact { &[("EXACT_DIRECT", 1.0)] } else { &[] },
+        ..Default::default()
     }
 }
 
@@ -369,13 +382,16 @@ impl FieldRenderer {
         let scene = &field.scene;
         if exact.is_some() {
             crate::direct::check_scene(scene)?;
-            if gatherer.is_some() {
-                return Err(ViewerError::Unsupported(
-                    "exact direct light and dynamic objects are not drawn together on the GPU yet: \
-                     render on the CPU (drop --gpu) or take the field's direct light (--direct field)"
-                        .into(),
-                ));
-            }
+        }
+        // One set of emitter points serves exact direct light and the objects' shadows.
+        if let (Some(e), Some(g)) = (exact, gatherer)
+            && g.emitters() != e
+        {
+            return Err(ViewerError::Unsupported(
+                "exact direct light and the objects' shadows must share their emitter points: give the \
+                 gatherer the field's direct light samples (Gatherer::with_direct_samples)"
+                    .into(),
+            ));
         }
         let atlas = &field.atlas;
         if atlas.chart_of.len() != scene.surfaces.len() || field.radiance.len() != atlas.texels {
@@ -450,7 +466,8 @@ impl FieldRenderer {
             primitives: primitives.len(),
         };
         let objects = ObjectData::new(scene, gatherer, counts);
-        // The emitters' points: exact direct light's, or the objects' shadows' (never both).
+        // The emitters' points: exact direct light's, which are the objects' shadows' too where
+        // both are drawn (checked above).
         let emitters = match exact {
             Some(e) => EmitterBuffers::new(scene, e),
             None => EmitterBuffers {
@@ -626,7 +643,7 @@ impl FieldRenderer {
                 fragment: Some(wgpu::FragmentState {
                     module: &shader,
                     entry_point: Some(fragment),
-                    compilation_options: Default::default(),
+                    compilation_options: exact_direct_constant(direct.is_some()),
                     targets: &[Some(wgpu::ColorTargetState {
                         format: COLOR_FORMAT,
                         blend: None,
@@ -654,7 +671,6 @@ impl FieldRenderer {
                 shadows_stale: Cell::new(true),
                 shadows_mode: Cell::new(None),
                 direct,
-                emitter_groups: if exact.is_some() { emitters.group_count() } else { 0 },
             }
         })?;
         // The gather sees the objects' shadows per texel, or the shadows give back the objects'
@@ -722,9 +738,19 @@ impl FieldRenderer {
     /// still then pays nothing for their shadows, and a moving object pays per texel, not per
     /// pixel; the shadow is as sharp as the radiance maps (the field's own resolution), where
     /// per fragment it is as sharp as the pixels. A renderer without objects is left as it is.
+    ///
+    /// Not with exact direct light, whose shadow rays see the objects per fragment: a texel's
+    /// shadow holds its direct part too, for the gather, which reads the maps.
     pub fn shadows_per_texel(&mut self, gpu: &Gpu, field: &LightField) -> Result<(), ViewerError> {
         if self.objects_uniform.count == 0 || self.objects_uniform.shadow_texels == 1 {
             return Ok(());
+        }
+        if self.direct.is_some() {
+            return Err(ViewerError::Unsupported(
+                "the objects' shadows per texel and exact direct light are not drawn together: take \
+                 the field's direct light (--direct field) or shadows per fragment"
+                    .into(),
+            ));
         }
         if self.texel_shadows.is_none() {
             self.texel_shadows = Some(self.new_texel_shadows(gpu, field)?);
@@ -744,6 +770,7 @@ impl FieldRenderer {
             field,
             surfaces,
             self.objects_uniform.bounce_light != 0,
+            self.direct.is_some(),
         )
     }
 
@@ -903,7 +930,7 @@ impl FieldRenderer {
             },
             mode: (viewpoint.mirrors == MirrorMode::Rays) as u32,
             direct_parts: self.direct.map_or(NONE, |d| d.first),
-            emitter_groups: self.emitter_groups,
+            _pad: 0,
         };
         gpu.queue.write_buffer(&self.view, 0, bytemuck::bytes_of(&uniform));
         // Before the view in the same submission: it reads them.

@@ -55,6 +55,7 @@ impl GpuGather {
                     READ_ONLY,
                     wgpu::BufferBindingType::Storage { read_only: false },
                 ],
+                field.direct_parts().is_some(),
             );
             GpuGather {
                 pipeline: compute.pipeline(device, "gather_main"),

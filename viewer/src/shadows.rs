@@ -49,6 +49,7 @@ impl TexelShadows {
         field: &LightField,
         object_surfaces: u32,
         bounce: bool,
+        exact: bool,
     ) -> Result<TexelShadows, ViewerError> {
         // A work item per 64 texels of each static chart with a diffuse reflectance, for the
         // first of its surfaces (a chart's surfaces share its plane and material).
@@ -78,6 +79,7 @@ impl TexelShadows {
                 "shadow texels",
                 include_str!("shaders/shadow_texels.wgsl"),
                 &[READ_ONLY, wgpu::BufferBindingType::Uniform],
+                exact,
             );
             let work = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("texel work"),

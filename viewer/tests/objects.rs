@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{bundled_field, gpu};
+use common::{bundled_field, bundled_field_exact, gpu};
 use glam::DVec3;
 use vlf_core::dynamic::gather::Gatherer;
 use vlf_core::dynamic::{DynamicObject, PlacedObject, Pose};
@@ -57,9 +57,12 @@ fn points(field: &LightField, c: DVec3, h: f64) -> Vec<(DVec3, DVec3)> {
     out
 }
 
-fn compare(scene: &str, c: DVec3, h: f64, modes: &[SpecularMode], gather_shadows: bool) {
+fn compare(scene: &str, c: DVec3, h: f64, modes: &[SpecularMode], gather_shadows: bool, exact: bool) {
     let Some(gpu) = gpu() else { return };
-    let field = bundled_field(scene, 129, 3);
+    let field = match exact {
+        true => bundled_field_exact(scene, 129, 3, 64),
+        false => bundled_field(scene, 129, 3),
+    };
     let bvh = Bvh::build(&field.scene);
     let placed: Vec<PlacedObject> = vec![cube(c, h).place(&Pose::IDENTITY, &field.scene.normalisation).unwrap()];
     let points = points(&field, c, h);
@@ -87,7 +90,7 @@ fn compare(scene: &str, c: DVec3, h: f64, modes: &[SpecularMode], gather_shadows
         }
         let mean = total / (3 * got.len()) as f64;
         println!(
-            "{scene} {mode:?}, gather shadows {gather_shadows}: GPU vs CPU gather, mean {mean:.2e}, worst {worst:.2e} of the brightest point"
+            "{scene} {mode:?}, gather shadows {gather_shadows}, exact {exact}: GPU vs CPU gather, mean {mean:.2e}, worst {worst:.2e} of the brightest point"
         );
         assert!(mean < 1e-4, "{mean}");
     }
@@ -104,8 +107,23 @@ fn the_gpu_gathers_what_the_cpu_gathers() {
             50.0,
             &[SpecularMode::Rays],
             gather_shadows,
+            false,
         );
     }
+}
+
+/// With exact direct light the gather takes the emitters' light by shadow rays, which the
+/// objects stop too, and the rest from the maps less the emitters' own emission.
+#[test]
+fn the_gpu_gathers_exact_direct_light_as_the_cpu_does() {
+    compare(
+        "cornell.obj",
+        DVec3::new(420.0, 60.0, 120.0),
+        50.0,
+        &[SpecularMode::Rays],
+        true,
+        true,
+    );
 }
 
 #[test]
@@ -116,6 +134,7 @@ fn the_gpu_gathers_mirrors_as_the_cpu_does() {
         60.0,
         &[SpecularMode::Trace { depth: 3 }, SpecularMode::Rays],
         true,
+        false,
     );
 }
 
@@ -160,9 +179,12 @@ fn differing(a: &vlf_core::render::Image, b: &vlf_core::render::Image, rel: f32)
 /// A view with two cubes (one on the floor, one in the air) drawn by `render --gpu` and by the
 /// CPU's `render_with_objects`: the same pixels but for a few at polygon edges, in the cubes,
 /// their shadows and the mirrors; and the cubes change the view (their shadows darken it).
-fn view_matches(scene: &str, modes: &[SpecularMode]) {
+fn view_matches(scene: &str, modes: &[SpecularMode], exact: bool) {
     let Some(gpu) = gpu() else { return };
-    let field = bundled_field(scene, 33, 3);
+    let field = match exact {
+        true => bundled_field_exact(scene, 33, 3, 64),
+        false => bundled_field(scene, 33, 3),
+    };
     let bvh = Bvh::build(&field.scene);
     let placed = two_cubes(&field);
     let camera = vlf_core::render::Camera::new(
@@ -188,8 +210,8 @@ fn view_matches(scene: &str, modes: &[SpecularMode]) {
         let way_off = differing(&want, &got, 0.5);
         let (m, g) = (want.mean(), got.mean());
         println!(
-            "{scene} {mode:?}: the cubes change {changed} of {pixels} pixels; GPU vs CPU: {off} differ by 1 %, \
-             {way_off} by half; means {m:?} vs {g:?}"
+            "{scene} {mode:?}, exact {exact}: the cubes change {changed} of {pixels} pixels; GPU vs CPU: {off} \
+             differ by 1 %, {way_off} by half; means {m:?} vs {g:?}"
         );
         assert!(changed > pixels / 10, "{changed}");
         assert!(off * 20 <= pixels, "{off} of {pixels} pixels differ by more than 1 %");
@@ -208,12 +230,53 @@ fn view_matches(scene: &str, modes: &[SpecularMode]) {
 
 #[test]
 fn the_gpu_draws_objects_and_their_shadows_as_the_cpu_does() {
-    view_matches("cornell.obj", &[SpecularMode::Rays]);
+    view_matches("cornell.obj", &[SpecularMode::Rays], false);
 }
 
 #[test]
 fn the_gpu_draws_objects_in_mirrors_as_the_cpu_does() {
-    view_matches("mirrors.obj", &[SpecularMode::Trace { depth: 4 }, SpecularMode::Rays]);
+    view_matches(
+        "mirrors.obj",
+        &[SpecularMode::Trace { depth: 4 }, SpecularMode::Rays],
+        false,
+    );
+}
+
+/// Exact direct light among objects: their sharp shadows by shadow rays that see them, the
+/// cells' shadows without the emitters' light, the objects lit by shadow rays too; in mirrors
+/// traced and read from the rays (whose light keeps the field's direct part and its shadow).
+#[test]
+fn the_gpu_draws_objects_with_exact_direct_light_as_the_cpu_does() {
+    view_matches("cornell.obj", &[SpecularMode::Rays], true);
+    view_matches(
+        "mirrors.obj",
+        &[SpecularMode::Trace { depth: 4 }, SpecularMode::Rays],
+        true,
+    );
+}
+
+/// The objects' shadows per texel hold their direct part (the gather reads them with the
+/// maps): not drawn with exact direct light, and said so.
+#[test]
+fn shadows_per_texel_refuse_exact_direct_light() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field_exact("cornell.obj", 33, 2, 16);
+    let bvh = Bvh::build(&field.scene);
+    let placed = two_cubes(&field);
+    let cpu = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33)
+        .unwrap()
+        .with_direct_samples(16)
+        .unwrap();
+    let mut renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
+    let e = renderer.shadows_per_texel(&gpu, &field).unwrap_err().to_string();
+    assert!(e.contains("per texel") && e.contains("exact direct light"), "{e}");
+    // Emitter points other than exact direct light's are refused too.
+    let other = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33).unwrap();
+    let e = FieldRenderer::with_objects(&gpu, &field, &other)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(e.contains("emitter points"), "{e}");
 }
 
 /// Shadows at 64 points of the floor around two cubes (one on it, one in the air), GPU against

@@ -224,34 +224,52 @@ impl LightField {
     /// Radiance arriving at `origin` from direction `-dir` (i.e. seen looking
     /// along `dir`), by tracing through mirrors at most `depth` deep.
     pub fn traced_radiance(&self, bvh: &Bvh, origin: DVec3, dir: DVec3, depth: u32) -> Rgb {
+        self.traced_by(bvh, origin, dir, depth, &|surface, p| {
+            self.diffuse_radiance_at(bvh, surface, p)
+        })
+    }
+
+    /// [`LightField::traced_radiance`] with the diffuse part of every surface met given by
+    /// `diffuse`, however deep.
+    fn traced_by(
+        &self,
+        bvh: &Bvh,
+        origin: DVec3,
+        dir: DVec3,
+        depth: u32,
+        diffuse: &dyn Fn(usize, DVec3) -> Rgb,
+    ) -> Rgb {
         match bvh.intersect(&self.scene, origin, dir, RAY_EPSILON, f64::INFINITY) {
-            Some(hit) => self.shade(bvh, &hit, dir, SpecularMode::Trace { depth }),
+            Some(hit) => self.shade_by(bvh, &hit, dir, SpecularMode::Trace { depth }, diffuse, diffuse),
             None => [0.0; 3],
         }
     }
 
     /// Radiance leaving `hit` towards the viewer looking along `dir`.
     pub fn shade(&self, bvh: &Bvh, hit: &Hit, dir: DVec3, mode: SpecularMode) -> Rgb {
-        self.shade_by(bvh, hit, dir, mode, |surface, p| {
-            self.diffuse_radiance_at(bvh, surface, p)
-        })
+        let exact = |surface, p| self.diffuse_radiance_at(bvh, surface, p);
+        self.shade_by(bvh, hit, dir, mode, &exact, &exact)
     }
 
     /// [`LightField::shade`] with the diffuse part read from the field's maps even when exact
-    /// direct light is on: for light gathered over many directions at once (dynamic objects),
-    /// where the maps' resolution is enough and a shadow ray per emitter sample and direction
-    /// is not affordable.
+    /// direct light is on, in the mirrors traced too: for light gathered over many directions
+    /// at once (dynamic objects), where the maps' resolution is enough and a shadow ray per
+    /// emitter sample and direction is not affordable.
     pub fn shade_from_maps(&self, bvh: &Bvh, hit: &Hit, dir: DVec3, mode: SpecularMode) -> Rgb {
-        self.shade_by(bvh, hit, dir, mode, |surface, p| self.radiance_at(surface, p))
+        let maps = |surface, p| self.radiance_at(surface, p);
+        self.shade_by(bvh, hit, dir, mode, &maps, &maps)
     }
 
+    /// [`LightField::shade`] with the diffuse part of the surface hit given by `diffuse`, and
+    /// that of every surface its traced mirrors meet by `traced`.
     pub(crate) fn shade_by(
         &self,
         bvh: &Bvh,
         hit: &Hit,
         dir: DVec3,
         mode: SpecularMode,
-        diffuse: impl Fn(usize, DVec3) -> Rgb,
+        diffuse: &dyn Fn(usize, DVec3) -> Rgb,
+        traced: &dyn Fn(usize, DVec3) -> Rgb,
     ) -> Rgb {
         if !hit.front {
             return [0.0; 3];
@@ -267,7 +285,7 @@ impl LightField {
             SpecularMode::Rays => self.mirror_radiance_from_rays(hit.surface, hit.point, -dir),
             SpecularMode::Trace { depth: 0 } => [0.0; 3],
             SpecularMode::Trace { depth } => {
-                let l = self.traced_radiance(bvh, hit.point + n * RAY_EPSILON, reflected, depth - 1);
+                let l = self.traced_by(bvh, hit.point + n * RAY_EPSILON, reflected, depth - 1, traced);
                 [
                     l[0] * material.specular[0],
                     l[1] * material.specular[1],

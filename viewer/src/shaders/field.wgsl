@@ -45,8 +45,7 @@ struct View {
     mode: u32,
     // Exact direct light: the part number of chunk 0's direct part, NONE when off.
     direct_parts: u32,
-    // Emitting surfaces in `emitter_groups` (0 when exact direct light is off).
-    emitter_groups: u32,
+    _pad: u32,
 };
 
 struct Surface {
@@ -102,7 +101,8 @@ struct Node {
 // Per emitting surface, four vec4: its centroid (xyz) and area (w); its normal (xyz) and
 // index among the surfaces (w); its emission (xyz) and point count (w); its first point (x).
 // Integers and floats share the vec4s, so they are stored as u32 (floats by their bits: read as
-// f32, a small integer's bits would be a denormal, which a GPU may flush to zero).
+// f32, a small integer's bits would be a denormal, which a GPU may flush to zero). The buffer's
+// zero padding reads as groups of no points.
 @group(0) @binding(12) var<storage, read> emitter_groups: array<vec4<u32>>;
 
 // Secondary rays start this far off the mirror and ignore hits closer than it (VLF frame, where
@@ -119,6 +119,10 @@ const PI: f32 = 3.14159265358979;
 // Emitter points' shadow rays stop this much short of them (relative): more than the CPU's
 // 10⁻⁶, which is below f32's error in where the ray meets the emitter it aims at.
 const SHADOW_SHORTEN: f32 = 1e-4;
+// Whether the pipeline draws exact direct light at all: set where it does, so that without it
+// the driver drops the code (present but skipped, its loop cost a software rasteriser a
+// quarter of its frame rate).
+override EXACT_DIRECT: bool = false;
 
 struct VertexIn {
     @location(0) position: vec3<f32>,
@@ -477,7 +481,7 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) ve
         return vec4<f32>(0.0, 0.0, 0.0, 1.0);
     }
     let s = surfaces[in.surface];
-    let diffuse = with_exact_direct(s, in.position, in.texel, bilinear(s, in.texel));
+    let diffuse = with_exact_direct(s, in.position, in.texel, bilinear(s, in.texel), NONE);
     let l = shade(s, in.position, normalize(in.position - view.eye.xyz), diffuse, view.mode, view.depth, true);
     return vec4<f32>(l, 1.0);
 }
@@ -486,11 +490,12 @@ fn fs_main(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0) ve
 
 // `E(p)`: the irradiance straight from the emitters at `p` on a surface of front normal `n`,
 // Σ Le·A cos θ_p cos θ_s / r² over the quadrature points in front of it that no static surface
-// hides (`Emitters::irradiance`).
-fn direct_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+// hides (`Emitters::irradiance`), nor a dynamic object where `objects_root` is their BVH's root
+// (`ExactDirect::irradiance_past`; NONE: none).
+fn direct_irradiance(p: vec3<f32>, n: vec3<f32>, objects_root: u32) -> vec3<f32> {
     let origin = p + n * RAY_EPSILON;
     var e = vec3<f32>(0.0);
-    for (var g = 0u; g < view.emitter_groups; g++) {
+    for (var g = 0u; g < arrayLength(&emitter_groups) / 4u; g++) {
         let normal = bitcast<vec3<f32>>(emitter_groups[4u * g + 1u].xyz);
         let count = emitter_groups[4u * g + 2u].w;
         let first = emitter_groups[4u * g + 3u].x;
@@ -504,7 +509,11 @@ fn direct_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
             let w = to / r;
             let cos_p = dot(n, w);
             let cos_s = -dot(normal, w);
-            if (cos_p <= 0.0 || cos_s <= 0.0 || blocked(origin, w, r * (1.0 - SHADOW_SHORTEN))) {
+            let t_max = r * (1.0 - SHADOW_SHORTEN);
+            if (cos_p <= 0.0 || cos_s <= 0.0 || blocked(origin, w, t_max)) {
+                continue;
+            }
+            if (objects_root != NONE && traverse(objects_root, origin, w, 0.0, t_max, true).surface != NONE) {
                 continue;
             }
             e += emitter_points[2u * i + 1u].xyz * (cos_p * cos_s / r2);
@@ -516,9 +525,10 @@ fn direct_irradiance(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
 // The diffuse radiance `l` of surface `s` at `p` (texel coordinates `c`, shifted by ½) with
 // its direct part exact: `l − D + ρd/π·E(p)`, clamped at zero as on the CPU. `l` as it is
 // where exact direct light is off, the surface reflects nothing, or its direct part is not
-// resident (the field's own direct light then shows until it arrives).
-fn with_exact_direct(s: Surface, p: vec3<f32>, c: vec2<f32>, l: vec3<f32>) -> vec3<f32> {
-    if (view.direct_parts == NONE || !any(s.diffuse > vec3<f32>(0.0))) {
+// resident (the field's own direct light then shows until it arrives). Shadow rays see the
+// dynamic objects under `objects_root` (NONE: none).
+fn with_exact_direct(s: Surface, p: vec3<f32>, c: vec2<f32>, l: vec3<f32>, objects_root: u32) -> vec3<f32> {
+    if (!EXACT_DIRECT || view.direct_parts == NONE || !any(s.diffuse > vec3<f32>(0.0))) {
         return l;
     }
     let base = parts[view.direct_parts + s.part];
@@ -526,7 +536,7 @@ fn with_exact_direct(s: Surface, p: vec3<f32>, c: vec2<f32>, l: vec3<f32>) -> ve
         return l;
     }
     let d = bilinear_at(s, base, c);
-    return max(l - d + s.diffuse / PI * direct_irradiance(p, s.normal), vec3<f32>(0.0));
+    return max(l - d + s.diffuse / PI * direct_irradiance(p, s.normal, objects_root), vec3<f32>(0.0));
 }
 
 // The radiance the front of surface `s` sends from `p` back along the unit direction `d` it
@@ -567,7 +577,7 @@ fn shade(first: Surface, position: vec3<f32>, incoming: vec3<f32>, diffuse: vec3
         s = surfaces[hit.surface];
         var seen = diffuse_at(s, p);
         if (exact) {
-            seen = with_exact_direct(s, p, texel_coords(s, p), seen);
+            seen = with_exact_direct(s, p, texel_coords(s, p), seen, NONE);
         }
         l += weight * seen;
         remaining -= 1u;

@@ -38,5 +38,5 @@ fn shadow_main(@builtin(global_invocation_id) id: vec3<u32>) {
     let p = gather_points[3u * i].xyz;
     let n = normalize(gather_points[3u * i + 1u].xyz);
     let rho = gather_points[3u * i + 2u].xyz;
-    gathered[i] = shadow_loss(p, n, rho, gather_params.mode, gather_params.depth, objects.bounce_light != 0u);
+    gathered[i] = shadow_loss(p, n, rho, gather_params.mode, gather_params.depth, objects.bounce_light != 0u, true);
 }

@@ -55,10 +55,11 @@ fn nearest_object(o: vec3<f32>, d: vec3<f32>, t_max: f32) -> Hit {
 }
 
 // Radiance arriving at `o` from −d (xyz): the static surface's (shaded as the field holds it),
-// or nothing where an object is nearer or nothing is hit. w is 0 where the surface's radiance
-// map is not resident (a streaming view): the gather leaves such directions out of its mean
-// until they arrive, so that an object is lit by the light known so far rather than drawn
-// darker.
+// or nothing where an object is nearer or nothing is hit; with exact direct light, less the
+// surface's own emission (the shadow rays of `gathered_direct` count it). w is 0 where the
+// surface's radiance map is not resident (a streaming view): the gather leaves such directions
+// out of its mean until they arrive, so that an object is lit by the light known so far rather
+// than drawn darker.
 fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
     let hit = trace_from(0u, o, d, 0.0, 3.4e38);
     if (hit.surface == NONE || !hit.front || nearest_object(o, d, hit.t).surface != NONE) {
@@ -71,7 +72,23 @@ fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
     if (objects.gather_shadows != 0u) {
         diffuse = max(diffuse - shadow_from_texels(s, p), vec3<f32>(0.0));
     }
-    return vec4<f32>(shade(s, p, d, diffuse, mode, depth, false), known);
+    var l = shade(s, p, d, diffuse, mode, depth, false);
+    if (EXACT_DIRECT) {
+        let eg = emitter_group(hit.surface);
+        if (eg != NONE) {
+            l = max(l - bitcast<vec3<f32>>(emitter_groups[4u * eg + 2u].xyz), vec3<f32>(0.0));
+        }
+    }
+    return vec4<f32>(l, known);
+}
+
+// What exact direct light adds to the gather's mean at `p` (normal `n`): `E(p)/π`, its shadow
+// rays stopped by the objects too (`Gatherer::incident`); nothing without it.
+fn gathered_direct(p: vec3<f32>, n: vec3<f32>) -> vec3<f32> {
+    if (!EXACT_DIRECT) {
+        return vec3<f32>(0.0);
+    }
+    return direct_irradiance(p, n, objects.root) / PI;
 }
 
 // The cosine-weighted mean radiance arriving at `p` over the hemisphere of unit `n`, over the
@@ -95,7 +112,7 @@ fn incident(p: vec3<f32>, n: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
     if (weights > 0.0) {
         sum /= weights;
     }
-    return sum;
+    return sum + gathered_direct(p, n);
 }
 
 // Radiance the front of object surface `index` sends from `p` back along `incoming`: ρd times
@@ -133,11 +150,11 @@ fn object_radiance(index: u32, p: vec3<f32>, incoming: vec3<f32>, mode: u32, dep
             mirrored = l.xyz;
         }
     }
-    var out = s.specular * mirrored;
+    var gathered = gathered_direct(p, n);
     if (weights > 0.0) {
-        out += s.diffuse * (sum / weights);
+        gathered += sum / weights;
     }
-    return out;
+    return s.specular * mirrored + s.diffuse * gathered;
 }
 
 // ---- Shadows (`vlf_core::dynamic::shadow`) ----
@@ -203,8 +220,10 @@ fn emitter_group(surface: u32) -> u32 {
 // The radiance a static diffuse point at `p` (normal `n`, reflectance `rho`) loses to the
 // objects (`Gatherer::shadow_loss`); w is 1 when any object takes light from it. The cones'
 // cells and the emitters' points are visited by one loop (cells first), each a ray traced once
-// through the objects and once through the scene.
-fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32, bounce: bool) -> vec4<f32> {
+// through the objects and once through the scene. Without `direct`, direct light is left to
+// exact direct light's shadow rays: no emitter's points, and every emitter's emission left out
+// of the cells (`Gatherer::diffuse_with_shadows`).
+fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32, bounce: bool, direct: bool) -> vec4<f32> {
     let k = objects.shadow_cells;
     if (k == 0u || objects.count == 0u || !any(rho > vec3<f32>(0.0))) {
         return vec4<f32>(0.0);
@@ -257,7 +276,7 @@ fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32
                 continue;
             }
         } else {
-            if (g >= objects.emitter_groups) {
+            if (!direct || g >= objects.emitter_groups) {
                 break;
             }
             let count = emitter_groups[4u * g + 2u].w;
@@ -313,7 +332,7 @@ fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32
         let q = origin + hit.t * w;
         var l = shade(s, q, w, diffuse_at(s, q), mode, depth, false);
         let eg = emitter_group(hit.surface);
-        if (eg != NONE && !on_cells(eg, p, cell_max)) {
+        if (eg != NONE && (!direct || !on_cells(eg, p, cell_max))) {
             l = max(l - bitcast<vec3<f32>>(emitter_groups[4u * eg + 2u].xyz), vec3<f32>(0.0));
         }
         lost += l * weight;
@@ -378,7 +397,10 @@ fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, 
                 let texels = shadow_from_texels(q, shadow_point);
                 loss = vec4<f32>(texels, select(0.0, 1.0, any(texels != vec3<f32>(0.0))));
             } else {
-                loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth, objects.bounce_light != 0u);
+                // A point seen (or traced to) has exact direct light's shadow rays see the
+                // objects; one read from a mirror's rays has the field's direct light.
+                let direct = !EXACT_DIRECT || last;
+                loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth, objects.bounce_light != 0u, direct);
             }
             if (loss.w != 0.0) {
                 value = max(base - scale * loss.xyz, vec3<f32>(0.0));
@@ -421,7 +443,7 @@ fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, 
         index = hit.surface;
         p = origin + hit.t * reflected;
         d = reflected;
-        base = diffuse_at(surfaces[index], p);
+        base = with_exact_direct(surfaces[index], p, texel_coords(surfaces[index], p), diffuse_at(surfaces[index], p), objects.root);
         scale = vec3<f32>(1.0);
         shadow_surface = index;
         shadow_point = p;
@@ -436,7 +458,8 @@ fn fs_objects(in: VertexOut, @builtin(front_facing) front: bool) -> @location(0)
     }
     var diffuse = vec3<f32>(0.0);
     if (in.surface < objects.first_surface) {
-        diffuse = bilinear(surfaces[in.surface], in.texel);
+        let s = surfaces[in.surface];
+        diffuse = with_exact_direct(s, in.position, in.texel, bilinear(s, in.texel), objects.root);
     }
     let incoming = normalize(in.position - view.eye.xyz);
     return vec4<f32>(radiance_among_objects(in.surface, in.position, incoming, diffuse, view.mode, view.depth), 1.0);

@@ -34,7 +34,7 @@ fn shadow_texels_main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_in
     let x = f32(t % s.width) + 0.5;
     let y = f32(t / s.width) + 0.5;
     let p = s.grid_origin + (s.axis_u * x + s.axis_v * y) / s.inv_texel;
-    let loss = shadow_loss(p, s.normal, s.diffuse, texel_params.mode, texel_params.depth, texel_params.bounce != 0u).xyz;
+    let loss = shadow_loss(p, s.normal, s.diffuse, texel_params.mode, texel_params.depth, texel_params.bounce != 0u, true).xyz;
     let i = (base + s.texel_offset + t) * 3u;
     shadow_pool[i] = loss.x;
     shadow_pool[i + 1u] = loss.y;

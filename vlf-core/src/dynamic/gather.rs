@@ -365,10 +365,17 @@ impl<'a> Gatherer<'a> {
         let field = self.field;
         let mut l = match shadows {
             None => field.shade_from_maps(self.bvh, hit, dir, self.mode),
-            Some(shadows) => field.shade_by(self.bvh, hit, dir, self.mode, |surface, p| {
-                let (l, loss) = (field.radiance_at(surface, p), field.bilinear(shadows, surface, p));
-                [0, 1, 2].map(|c| (l[c] - loss[c]).max(0.0))
-            }),
+            Some(shadows) => field.shade_by(
+                self.bvh,
+                hit,
+                dir,
+                self.mode,
+                &|surface, p| {
+                    let (l, loss) = (field.radiance_at(surface, p), field.bilinear(shadows, surface, p));
+                    [0, 1, 2].map(|c| (l[c] - loss[c]).max(0.0))
+                },
+                &|surface, p| field.radiance_at(surface, p),
+            ),
         };
         if no_emission && hit.front {
             let le = self.field.scene.material(hit.surface).emission;

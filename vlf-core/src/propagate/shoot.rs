@@ -280,10 +280,10 @@ const SILHOUETTE_GAP: f64 = 0.05;
 /// first where they form a convex one (a solid's edge).
 #[cold]
 fn silhouette_order(scene: &Scene, frame: &PsfFrame, n: u32, a: &RayHit, b: &RayHit) -> Option<bool> {
-    let (sa, sb) = (&scene.surfaces[a.surface as usize], &scene.surfaces[b.surface as usize]);
-    if sa.normal.dot(sb.normal).abs() >= 1.0 - 1e-9 {
+    if parallel(scene, a.surface, b.surface) {
         return None;
     }
+    let (sa, sb) = (&scene.surfaces[a.surface as usize], &scene.surfaces[b.surface as usize]);
     let (pa, pb) = (
         SurfaceProjection::new(frame, n, sa.normal, sa.offset),
         SurfaceProjection::new(frame, n, sb.normal, sb.offset),
