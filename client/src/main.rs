@@ -255,7 +255,7 @@ pub struct RenderArgs {
     depth: u32,
     /// Direct light: exact (shadow rays to the emitters per pixel, in place of the field's
     /// direct part; needs the job's snapshot 1), from the field, or auto: exact where the job
-    /// has snapshot 1 (not with --object-shadows-per-texel; docs/accuracy.md measures both).
+    /// has snapshot 1 (docs/accuracy.md measures both).
     #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
     /// Quadrature points per emitter for --direct exact.
@@ -320,8 +320,8 @@ pub struct ViewArgs {
     #[arg(long, default_value_t = 256.0)]
     cache_mb: f64,
     /// Direct light: exact (shadow rays to the emitters per pixel, the field's direct part
-    /// streamed from snapshot 1), from the field, or auto: exact where the job has snapshot 1
-    /// and nothing stands in the way (dynamic objects, albedo textures).
+    /// streamed from snapshot 1), from the field, or auto: exact where the job has snapshot 1,
+    /// the adapter is a real GPU and no albedo texture stands in the way.
     #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
     /// Quadrature points per emitter for exact direct light.
@@ -345,8 +345,8 @@ pub struct ViewArgs {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
 pub enum DirectArg {
-    /// Exact where it can be: when the job has snapshot 1 (and, on the GPU, no albedo textures
-    /// or shadows per texel are in the way).
+    /// Exact where it can be: when the job has snapshot 1 (and, on the GPU, no albedo texture
+    /// is in the way).
     Auto,
     /// Read from the field like all other light.
     Field,

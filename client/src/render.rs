@@ -23,19 +23,11 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
-    // Auto asks for snapshot 1 and does without it; Exact requires it. The objects' shadows
-    // per texel leave no room for exact direct light: auto takes the field's there.
+    // Auto asks for snapshot 1 and does without it; Exact requires it.
     let exact_direct = args.direct == DirectArg::Exact;
-    let per_texel = args.object_shadows_per_texel;
-    let try_exact = exact_direct || (args.direct == DirectArg::Auto && !per_texel);
+    let try_exact = exact_direct || args.direct == DirectArg::Auto;
     if args.object_shadows_per_texel && !args.gpu {
         bail!("--object-shadows-per-texel draws as vlf view does, on the GPU: add --gpu");
-    }
-    if per_texel && exact_direct {
-        bail!(
-            "--object-shadows-per-texel leaves direct light to the field: drop --direct exact, or \
-             --object-shadows-per-texel"
-        );
     }
     if try_exact && !(1..=65536).contains(&args.direct_samples) {
         bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);

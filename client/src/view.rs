@@ -240,10 +240,7 @@ fn exact_direct(
         return Ok(None);
     }
     let emitters = Emitters::new(&geometry.scene, args.direct_samples).context("--direct-samples")?;
-    let first = if !args.objects.is_empty() {
-        // The view casts the objects' shadows per texel, which hold their direct part.
-        Err("the view's objects cast their shadows per texel, direct part included".to_string())
-    } else if let Err(e) = vlf_viewer::direct::check_scene(&geometry.scene) {
+    let first = if let Err(e) = vlf_viewer::direct::check_scene(&geometry.scene) {
         Err(e.to_string())
     } else {
         first_snapshot(remote, store, id, geometry)

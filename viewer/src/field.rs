@@ -332,6 +332,19 @@ impl FieldRenderer {
         FieldRenderer::build(gpu, field, capacity, None, Some(emitters))
     }
 
+    /// [`FieldRenderer::streaming`] with the objects of `gatherer` if any, and exact direct
+    /// light from `exact`'s points if given (the gatherer's must be the same:
+    /// `Gatherer::with_emitters`).
+    pub fn streaming_with(
+        gpu: &Gpu,
+        field: &LightField,
+        capacity: usize,
+        gatherer: Option<&Gatherer>,
+        exact: Option<&Emitters>,
+    ) -> Result<FieldRenderer, ViewerError> {
+        FieldRenderer::build(gpu, field, capacity, gatherer, exact)
+    }
+
     /// [`FieldRenderer::streaming`] with the dynamic objects of `gatherer`, as
     /// [`FieldRenderer::with_objects`] draws them; they move with
     /// [`FieldRenderer::move_objects`]. While a surface the gather reads is not resident, the
@@ -465,7 +478,12 @@ impl FieldRenderer {
             nodes: nodes.len(),
             primitives: primitives.len(),
         };
-        let objects = ObjectData::new(scene, gatherer, counts);
+        let mut objects = ObjectData::new(scene, gatherer, counts);
+        // With exact direct light, the camera's shadows per texel follow the gather's.
+        let camera_shadows = exact.is_some() && gatherer.is_some();
+        if camera_shadows {
+            objects.uniform.camera_shadows = (capacity * 3) as u32;
+        }
         // The emitters' points: exact direct light's, which are the objects' shadows' too where
         // both are drawn (checked above).
         let emitters = match exact {
@@ -488,6 +506,7 @@ impl FieldRenderer {
             .min(gpu.limits.max_buffer_size);
         for (what, bytes) in [
             ("radiance pool", capacity * 12),
+            ("objects' shadow pool", if camera_shadows { capacity * 24 } else { 0 }),
             ("part table", table_len * 4),
             ("mirror rays", std::mem::size_of_val(rays.words.as_slice())),
             ("surfaces", std::mem::size_of_val(surfaces.as_slice())),
@@ -550,10 +569,9 @@ impl FieldRenderer {
             // As large as the pool where objects cast shadows per texel; a stub without objects.
             let shadow_pool = device.create_buffer(&wgpu::BufferDescriptor {
                 label: Some("shadow pool"),
-                size: if gatherer.is_some() {
-                    (capacity as u64 * 12).max(256)
-                } else {
-                    256
+                size: match gatherer {
+                    Some(_) => (capacity as u64 * if camera_shadows { 24 } else { 12 }).max(256),
+                    None => 256,
                 },
                 usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
                 mapped_at_creation: false,
@@ -739,18 +757,12 @@ impl FieldRenderer {
     /// pixel; the shadow is as sharp as the radiance maps (the field's own resolution), where
     /// per fragment it is as sharp as the pixels. A renderer without objects is left as it is.
     ///
-    /// Not with exact direct light, whose shadow rays see the objects per fragment: a texel's
-    /// shadow holds its direct part too, for the gather, which reads the maps.
+    /// With exact direct light each texel holds two shadows: the gather's, which reads the
+    /// maps and so loses direct light too, and the camera's, which leaves direct light to the
+    /// shadow rays (those see the objects).
     pub fn shadows_per_texel(&mut self, gpu: &Gpu, field: &LightField) -> Result<(), ViewerError> {
         if self.objects_uniform.count == 0 || self.objects_uniform.shadow_texels == 1 {
             return Ok(());
-        }
-        if self.direct.is_some() {
-            return Err(ViewerError::Unsupported(
-                "the objects' shadows per texel and exact direct light are not drawn together: take \
-                 the field's direct light (--direct field) or shadows per fragment"
-                    .into(),
-            ));
         }
         if self.texel_shadows.is_none() {
             self.texel_shadows = Some(self.new_texel_shadows(gpu, field)?);
@@ -798,8 +810,22 @@ impl FieldRenderer {
     }
 
     /// What every value of the pool loses to the objects' shadows, as last computed per texel
-    /// (zeros before): for tests.
+    /// (zeros before), as the gather reads it: for tests.
     pub fn texel_shadows(&self, gpu: &Gpu) -> Result<Vec<[f32; 3]>, ViewerError> {
+        self.read_shadows(gpu, 0)
+    }
+
+    /// [`FieldRenderer::texel_shadows`] as the camera reads them with exact direct light
+    /// (`Gatherer::shadow_loss_seen`), `None` without: for tests.
+    pub fn texel_shadows_seen(&self, gpu: &Gpu) -> Result<Option<Vec<[f32; 3]>>, ViewerError> {
+        match self.objects_uniform.camera_shadows {
+            0 => Ok(None),
+            _ => self.read_shadows(gpu, self.capacity as u64 * 12).map(Some),
+        }
+    }
+
+    /// The pool's worth of shadows from byte `offset` of the shadow pool.
+    fn read_shadows(&self, gpu: &Gpu, offset: u64) -> Result<Vec<[f32; 3]>, ViewerError> {
         let size = (self.capacity * 12) as u64;
         let readback = gpu.checked(|| {
             let readback = gpu.device.create_buffer(&wgpu::BufferDescriptor {
@@ -809,7 +835,8 @@ impl FieldRenderer {
                 mapped_at_creation: false,
             });
             let mut encoder = gpu.device.create_command_encoder(&Default::default());
-            encoder.copy_buffer_to_buffer(&self.bindings[13], 0, &readback, 0, size.min(self.bindings[13].size()));
+            let available = self.bindings[13].size().saturating_sub(offset);
+            encoder.copy_buffer_to_buffer(&self.bindings[13], offset, &readback, 0, size.min(available));
             gpu.queue.submit([encoder.finish()]);
             readback
         })?;

@@ -33,7 +33,10 @@ pub(crate) struct ObjectsUniform {
     pub gather_shadows: u32,
     /// 1 where shadows give back the objects' own light.
     pub bounce_light: u32,
-    _pad: [u32; 3],
+    /// Where the camera's shadows per texel start in the shadow pool, in floats (0: none; see
+    /// `camera_shadows` in the shader).
+    pub camera_shadows: u32,
+    _pad: [u32; 2],
 }
 
 /// Where the static scene's arrays end: the objects' entries go after.
@@ -89,7 +92,8 @@ impl ObjectData {
                 shadow_texels: 0,
                 gather_shadows: gatherer.is_some_and(|g| g.gather_shadows()) as u32,
                 bounce_light: gatherer.is_some_and(|g| g.bounce_light()) as u32,
-                _pad: [0; 3],
+                camera_shadows: 0,
+                _pad: [0; 2],
             },
             geometry,
             directions: Vec::new(),

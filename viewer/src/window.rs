@@ -103,7 +103,7 @@ pub struct ViewOptions {
     pub objects: Option<ViewObjects>,
     /// Exact direct light from these emitter points ([`crate::direct`]): the sources (the first
     /// and the loader's) must then serve the direct parts too ([`crate::direct::DirectSource`]).
-    /// Not with objects.
+    /// The objects' shadows take the same points.
     pub exact_direct: Option<vlf_core::direct::Emitters>,
     /// Draw exact direct light on a software adapter (Mesa's lavapipe) too. Its shadow rays
     /// per pixel take a CPU seconds per frame at a window's size, so where this is off a
@@ -329,10 +329,7 @@ impl App {
             exact => exact.as_ref(),
         };
         let renderer = match &self.options.objects {
-            None => match exact {
-                Some(emitters) => FieldRenderer::streaming_exact(gpu, &self.geometry, config.capacity, emitters)?,
-                None => FieldRenderer::streaming(gpu, &self.geometry, config.capacity)?,
-            },
+            None => FieldRenderer::streaming_with(gpu, &self.geometry, config.capacity, None, exact)?,
             Some(o) => {
                 let mode = match self.options.mirrors {
                     MirrorMode::Rays => SpecularMode::Rays,
@@ -344,8 +341,13 @@ impl App {
                         .with_shadow_samples(o.shadow_samples)
                         // The GPU computes both: nothing for the CPU to compute here.
                         .with_gpu_lighting(true, true);
+                // The objects' shadows take exact direct light's points.
+                let gatherer = match exact {
+                    Some(e) => gatherer.with_emitters(e.clone()),
+                    None => gatherer,
+                };
                 let mut renderer =
-                    FieldRenderer::streaming_with_objects(gpu, &self.geometry, config.capacity, &gatherer)?;
+                    FieldRenderer::streaming_with(gpu, &self.geometry, config.capacity, Some(&gatherer), exact)?;
                 // Shadows per texel: a walk pays for them when objects move, not every frame.
                 renderer.shadows_per_texel(gpu, &self.geometry)?;
                 renderer

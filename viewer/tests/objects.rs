@@ -255,23 +255,62 @@ fn the_gpu_draws_objects_with_exact_direct_light_as_the_cpu_does() {
     );
 }
 
-/// The objects' shadows per texel hold their direct part (the gather reads them with the
-/// maps): not drawn with exact direct light, and said so.
+/// With exact direct light each texel holds two shadows: the gather's (it reads the maps, so
+/// it loses direct light too) and the camera's, which leaves direct light to the shadow rays:
+/// `Gatherer::shadow_loss_seen` at the texel centres. Emitter points other than exact direct
+/// light's are refused.
 #[test]
-fn shadows_per_texel_refuse_exact_direct_light() {
+fn shadows_per_texel_with_exact_direct_light_leave_it_to_the_shadow_rays() {
     let Some(gpu) = gpu() else { return };
-    let field = bundled_field_exact("cornell.obj", 33, 2, 16);
+    let field = bundled_field_exact("cornell.obj", 33, 3, 64);
     let bvh = Bvh::build(&field.scene);
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
     let placed = two_cubes(&field);
     let cpu = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33)
         .unwrap()
+        .with_gather_shadows(true);
+    let mut renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
+    renderer.shadows_per_texel(&gpu, &field).unwrap();
+    renderer.refresh_shadows(&gpu, vlf_viewer::MirrorMode::Rays).unwrap();
+    let seen = renderer
+        .texel_shadows_seen(&gpu)
+        .unwrap()
+        .expect("the camera's shadows");
+    let gathered = renderer.texel_shadows(&gpu).unwrap();
+    // The pool holds the parts in catalog order (`FieldRenderer::with_objects`).
+    let mut bases = vec![0usize; catalog.len()];
+    for i in 1..catalog.len() {
+        bases[i] = bases[i - 1] + catalog.values(i as u32 - 1);
+    }
+    let (mut worst, mut scale, mut less) = (0.0f64, 0.0f64, 0);
+    for (i, s) in field.scene.surfaces.iter().enumerate() {
+        let grid = field.atlas.grid(i);
+        let part = catalog.chunk_of_surface(i);
+        let first = bases[part as usize] + grid.first - catalog.range(part).start;
+        let rho = field.scene.material(i).diffuse;
+        for t in (0..(grid.width * grid.height) as usize).step_by(5) {
+            let (x, y) = (
+                (t % grid.width as usize) as f64 + 0.5,
+                (t / grid.width as usize) as f64 + 0.5,
+            );
+            let p = grid.origin + (grid.axis_u * x + grid.axis_v * y) * grid.texel;
+            let want = cpu.shadow_loss_seen(p, s.normal, rho).unwrap_or([0.0; 3]);
+            let (have, full) = (seen[first + t], gathered[first + t]);
+            less += (full[0] > have[0] * 1.05 + 1e-6) as usize;
+            for c in 0..3 {
+                scale = scale.max(want[c].abs());
+                worst = worst.max((have[c] as f64 - want[c]).abs());
+            }
+        }
+    }
+    println!("camera's shadows per texel against the CPU: worst {worst:.2e} of {scale:.2e}; {less} texels lose less");
+    assert!(scale > 0.0 && worst < 1e-3 * scale, "worst {worst} of {scale}");
+    assert!(less > 0, "the camera's shadows leave the direct part out somewhere");
+    // Emitter points other than exact direct light's are refused.
+    let other = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33)
+        .unwrap()
         .with_direct_samples(16)
         .unwrap();
-    let mut renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
-    let e = renderer.shadows_per_texel(&gpu, &field).unwrap_err().to_string();
-    assert!(e.contains("per texel") && e.contains("exact direct light"), "{e}");
-    // Emitter points other than exact direct light's are refused too.
-    let other = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33).unwrap();
     let e = FieldRenderer::with_objects(&gpu, &field, &other)
         .err()
         .expect("refused")

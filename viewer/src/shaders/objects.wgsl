@@ -27,7 +27,10 @@ struct Objects {
     // 1: shadows give back the light the objects reflect (`object_light`,
     // `Gatherer::with_bounce_light`).
     bounce_light: u32,
-    _pad0: u32,
+    // With exact direct light and shadows per texel: where in `shadow_pool` the camera's
+    // shadows start (in floats; 0: none). They leave direct light to the shadow rays, where the
+    // gather's, from 0 on, hold it (the gather reads the maps).
+    camera_shadows: u32,
     _pad1: u32,
     _pad2: u32,
 };
@@ -70,7 +73,7 @@ fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
     let known = select(0.0, 1.0, parts[s.part] != NONE);
     var diffuse = diffuse_at(s, p);
     if (objects.gather_shadows != 0u) {
-        diffuse = max(diffuse - shadow_from_texels(s, p), vec3<f32>(0.0));
+        diffuse = max(diffuse - shadow_from_texels(s, p, 0u), vec3<f32>(0.0));
     }
     var l = shade(s, p, d, diffuse, mode, depth, false);
     if (EXACT_DIRECT) {
@@ -345,17 +348,19 @@ fn shadow_loss(p: vec3<f32>, n: vec3<f32>, rho: vec3<f32>, mode: u32, depth: u32
 
 // The objects' shadow at `p` on static surface `s` from the texels' (`shadow_pool`), bilinear
 // between texel centres as its radiance is (`bilinear`); none while its map is not resident.
-fn shadow_from_texels(s: Surface, p: vec3<f32>) -> vec3<f32> {
+// `start`: the float where the shadows read start (0, or `objects.camera_shadows`).
+fn shadow_from_texels(s: Surface, p: vec3<f32>, start: u32) -> vec3<f32> {
     let base = parts[s.part];
     if (base == NONE) {
         return vec3<f32>(0.0);
     }
     let t = taps(s, base, texel_coords(s, p));
-    return shadow_rgb(t.at.x) * t.w.x + shadow_rgb(t.at.y) * t.w.y + shadow_rgb(t.at.z) * t.w.z + shadow_rgb(t.at.w) * t.w.w;
+    return shadow_rgb(t.at.x, start) * t.w.x + shadow_rgb(t.at.y, start) * t.w.y + shadow_rgb(t.at.z, start) * t.w.z
+        + shadow_rgb(t.at.w, start) * t.w.w;
 }
 
-fn shadow_rgb(value: u32) -> vec3<f32> {
-    let i = value * 3u;
+fn shadow_rgb(value: u32, start: u32) -> vec3<f32> {
+    let i = start + value * 3u;
     return vec3<f32>(shadow_pool[i], shadow_pool[i + 1u], shadow_pool[i + 2u]);
 }
 
@@ -393,13 +398,13 @@ fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, 
         if (shadow_surface != NONE) {
             let q = surfaces[shadow_surface];
             var loss: vec4<f32>;
+            // A point seen (or traced to) has exact direct light's shadow rays see the objects;
+            // one read from a mirror's rays has the field's direct light.
+            let direct = !EXACT_DIRECT || last;
             if (objects.shadow_texels != 0u) {
-                let texels = shadow_from_texels(q, shadow_point);
+                let texels = shadow_from_texels(q, shadow_point, select(objects.camera_shadows, 0u, direct));
                 loss = vec4<f32>(texels, select(0.0, 1.0, any(texels != vec3<f32>(0.0))));
             } else {
-                // A point seen (or traced to) has exact direct light's shadow rays see the
-                // objects; one read from a mirror's rays has the field's direct light.
-                let direct = !EXACT_DIRECT || last;
                 loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth, objects.bounce_light != 0u, direct);
             }
             if (loss.w != 0.0) {

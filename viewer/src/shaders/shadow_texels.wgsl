@@ -34,11 +34,17 @@ fn shadow_texels_main(@builtin(workgroup_id) group: vec3<u32>, @builtin(local_in
     let x = f32(t % s.width) + 0.5;
     let y = f32(t / s.width) + 0.5;
     let p = s.grid_origin + (s.axis_u * x + s.axis_v * y) / s.inv_texel;
-    let loss = shadow_loss(p, s.normal, s.diffuse, texel_params.mode, texel_params.depth, texel_params.bounce != 0u, true).xyz;
-    let i = (base + s.texel_offset + t) * 3u;
-    shadow_pool[i] = loss.x;
-    shadow_pool[i + 1u] = loss.y;
-    shadow_pool[i + 2u] = loss.z;
+    let bounce = texel_params.bounce != 0u;
+    // The gather's shadow, and with exact direct light the camera's too, without the direct
+    // part (one call site: the driver inlines `shadow_loss` once).
+    let kinds = select(1u, 2u, objects.camera_shadows != 0u);
+    for (var k = 0u; k < kinds; k++) {
+        let loss = shadow_loss(p, s.normal, s.diffuse, texel_params.mode, texel_params.depth, bounce, k == 0u).xyz;
+        let i = select(objects.camera_shadows, 0u, k == 0u) + (base + s.texel_offset + t) * 3u;
+        shadow_pool[i] = loss.x;
+        shadow_pool[i + 1u] = loss.y;
+        shadow_pool[i + 2u] = loss.z;
+    }
 }
 
 // The light each object surface sends (`Gatherer::object_light`): ρd times the gather at its

@@ -138,6 +138,13 @@ impl<'a> Gatherer<'a> {
         Ok(self.prepared())
     }
 
+    /// Takes `emitters` (the field's own, built for it) as the points of the objects' shadows:
+    /// where exact direct light's points serve both, as on the GPU.
+    pub fn with_emitters(mut self, emitters: Emitters) -> Self {
+        self.emitters = emitters;
+        self.prepared()
+    }
+
     pub fn emitters(&self) -> &Emitters {
         &self.emitters
     }

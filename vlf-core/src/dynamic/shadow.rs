@@ -125,6 +125,12 @@ impl Gatherer<'_> {
         self.loss(p, n, rho, true)
     }
 
+    /// `ΔL` as a point the camera sees loses it: [`Gatherer::shadow_loss`], less its direct
+    /// part where the field shades with exact direct light (whose shadow rays see the objects).
+    pub fn shadow_loss_seen(&self, p: DVec3, n: DVec3, rho: Rgb) -> Option<Rgb> {
+        self.loss(p, n, rho, self.field().exact_direct.is_none())
+    }
+
     /// `ΔL`: the indirect part over the objects' cones, and the direct part when `direct`
     /// (without it when exact direct light's shadow rays already see the objects), each
     /// emitter's over the cone's cells or its own points, whichever are finer.
@@ -237,8 +243,7 @@ impl Gatherer<'_> {
         let field = self.field();
         let mut l = field.diffuse_radiance_past(self.bvh(), surface, p, |o, d, t| self.occluded(o, d, t));
         let n = field.scene.surfaces[surface].normal;
-        let direct = field.exact_direct.is_none();
-        if let Some(loss) = self.loss(p, n, field.scene.albedo_at(surface, p), direct) {
+        if let Some(loss) = self.shadow_loss_seen(p, n, field.scene.albedo_at(surface, p)) {
             for c in 0..3 {
                 l[c] = (l[c] - loss[c]).max(0.0);
             }
