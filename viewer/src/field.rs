@@ -319,22 +319,11 @@ impl FieldRenderer {
         FieldRenderer::build(gpu, field, capacity, None, None)
     }
 
-    /// [`FieldRenderer::streaming`] drawn with exact direct light from `emitters`' points: the
-    /// direct parts ([`FieldRenderer::direct_parts`]) come with [`FieldRenderer::upload`] like
-    /// the others, and a surface shows the field's own direct light until its direct part is
-    /// resident.
-    pub fn streaming_exact(
-        gpu: &Gpu,
-        field: &LightField,
-        capacity: usize,
-        emitters: &Emitters,
-    ) -> Result<FieldRenderer, ViewerError> {
-        FieldRenderer::build(gpu, field, capacity, None, Some(emitters))
-    }
-
     /// [`FieldRenderer::streaming`] with the objects of `gatherer` if any, and exact direct
     /// light from `exact`'s points if given (the gatherer's must be the same:
-    /// `Gatherer::with_emitters`).
+    /// `Gatherer::with_emitters`). With exact direct light the direct parts
+    /// ([`FieldRenderer::direct_parts`]) come with [`FieldRenderer::upload`] like the others,
+    /// and a surface shows the field's own direct light until its direct part is resident.
     pub fn streaming_with(
         gpu: &Gpu,
         field: &LightField,
@@ -488,10 +477,7 @@ impl FieldRenderer {
         // both are drawn (checked above).
         let emitters = match exact {
             Some(e) => EmitterBuffers::new(scene, e),
-            None => EmitterBuffers {
-                points: objects.emitters.points.clone(),
-                groups: objects.emitters.groups.clone(),
-            },
+            None => std::mem::take(&mut objects.emitters),
         };
         let moving = &objects.geometry;
         surfaces.extend_from_slice(&moving.surfaces);

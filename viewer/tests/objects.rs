@@ -255,6 +255,35 @@ fn the_gpu_draws_objects_with_exact_direct_light_as_the_cpu_does() {
     );
 }
 
+/// Every `step`-th texel of every static surface of a complete renderer's pool (parts in
+/// catalog order, `FieldRenderer::with_objects`): the surface, the texel's place in the pool
+/// and its centre on the surface's plane (VLF frame).
+fn pool_texels(field: &LightField, step: usize) -> Vec<(usize, usize, DVec3)> {
+    let catalog = vlf_core::parts::PartCatalog::new(field);
+    let mut bases = vec![0usize; catalog.len()];
+    for i in 1..catalog.len() {
+        bases[i] = bases[i - 1] + catalog.values(i as u32 - 1);
+    }
+    let mut out = Vec::new();
+    for i in 0..field.scene.surfaces.len() {
+        let grid = field.atlas.grid(i);
+        let part = catalog.chunk_of_surface(i);
+        let first = bases[part as usize] + grid.first - catalog.range(part).start;
+        for t in (0..(grid.width * grid.height) as usize).step_by(step) {
+            let (x, y) = (
+                (t % grid.width as usize) as f64 + 0.5,
+                (t / grid.width as usize) as f64 + 0.5,
+            );
+            out.push((
+                i,
+                first + t,
+                grid.origin + (grid.axis_u * x + grid.axis_v * y) * grid.texel,
+            ));
+        }
+    }
+    out
+}
+
 /// With exact direct light each texel holds two shadows: the gather's (it reads the maps, so
 /// it loses direct light too) and the camera's, which leaves direct light to the shadow rays:
 /// `Gatherer::shadow_loss_seen` at the texel centres. Emitter points other than exact direct
@@ -264,7 +293,6 @@ fn shadows_per_texel_with_exact_direct_light_leave_it_to_the_shadow_rays() {
     let Some(gpu) = gpu() else { return };
     let field = bundled_field_exact("cornell.obj", 33, 3, 64);
     let bvh = Bvh::build(&field.scene);
-    let catalog = vlf_core::parts::PartCatalog::new(&field);
     let placed = two_cubes(&field);
     let cpu = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33)
         .unwrap()
@@ -277,30 +305,15 @@ fn shadows_per_texel_with_exact_direct_light_leave_it_to_the_shadow_rays() {
         .unwrap()
         .expect("the camera's shadows");
     let gathered = renderer.texel_shadows(&gpu).unwrap();
-    // The pool holds the parts in catalog order (`FieldRenderer::with_objects`).
-    let mut bases = vec![0usize; catalog.len()];
-    for i in 1..catalog.len() {
-        bases[i] = bases[i - 1] + catalog.values(i as u32 - 1);
-    }
     let (mut worst, mut scale, mut less) = (0.0f64, 0.0f64, 0);
-    for (i, s) in field.scene.surfaces.iter().enumerate() {
-        let grid = field.atlas.grid(i);
-        let part = catalog.chunk_of_surface(i);
-        let first = bases[part as usize] + grid.first - catalog.range(part).start;
-        let rho = field.scene.material(i).diffuse;
-        for t in (0..(grid.width * grid.height) as usize).step_by(5) {
-            let (x, y) = (
-                (t % grid.width as usize) as f64 + 0.5,
-                (t / grid.width as usize) as f64 + 0.5,
-            );
-            let p = grid.origin + (grid.axis_u * x + grid.axis_v * y) * grid.texel;
-            let want = cpu.shadow_loss_seen(p, s.normal, rho).unwrap_or([0.0; 3]);
-            let (have, full) = (seen[first + t], gathered[first + t]);
-            less += (full[0] > have[0] * 1.05 + 1e-6) as usize;
-            for c in 0..3 {
-                scale = scale.max(want[c].abs());
-                worst = worst.max((have[c] as f64 - want[c]).abs());
-            }
+    for (i, at, p) in pool_texels(&field, 5) {
+        let (normal, rho) = (field.scene.surfaces[i].normal, field.scene.material(i).diffuse);
+        let want = cpu.shadow_loss_seen(p, normal, rho).unwrap_or([0.0; 3]);
+        let (have, full) = (seen[at], gathered[at]);
+        less += (full[0] > have[0] * 1.05 + 1e-6) as usize;
+        for c in 0..3 {
+            scale = scale.max(want[c].abs());
+            worst = worst.max((have[c] as f64 - want[c]).abs());
         }
     }
     println!("camera's shadows per texel against the CPU: worst {worst:.2e} of {scale:.2e}; {less} texels lose less");
@@ -513,7 +526,6 @@ fn shadows_per_texel_are_the_cpu_shadow_at_texel_centres_and_follow_moves() {
     let Some(gpu) = gpu() else { return };
     let field = bundled_field("cornell.obj", 129, 3);
     let bvh = Bvh::build(&field.scene);
-    let catalog = vlf_core::parts::PartCatalog::new(&field);
     let n = field.scene.normalisation;
     let at = |c: DVec3| vec![cube(c, 50.0).place(&Pose::IDENTITY, &n).unwrap()];
     let (here, there) = (at(DVec3::new(400.0, 51.0, 150.0)), at(DVec3::new(170.0, 380.0, 260.0)));
@@ -538,35 +550,21 @@ fn shadows_per_texel_are_the_cpu_shadow_at_texel_centres_and_follow_moves() {
     let per_fragment = FieldRenderer::with_objects(&gpu, &field, &g).unwrap();
     let mut renderer = FieldRenderer::with_objects(&gpu, &field, &g).unwrap();
     renderer.shadows_per_texel(&gpu, &field).unwrap();
-    // The pool holds the parts in catalog order (`FieldRenderer::with_objects`).
-    let mut bases = vec![0usize; catalog.len()];
-    for i in 1..catalog.len() {
-        bases[i] = bases[i - 1] + catalog.values(i as u32 - 1);
-    }
+    let texels = pool_texels(&field, 7);
     let check = |placed: &[PlacedObject]| {
         let cpu = full(&field, &bvh, placed);
         let got = renderer.texel_shadows(&gpu).unwrap();
         let (mut worst, mut scale, mut shadowed) = (0.0f64, 0.0f64, 0);
         let (mut total, mut count) = (0.0f64, 0usize);
-        for (i, s) in field.scene.surfaces.iter().enumerate() {
-            let grid = field.atlas.grid(i);
-            let part = catalog.chunk_of_surface(i);
-            let first = bases[part as usize] + grid.first - catalog.range(part).start;
-            let rho = field.scene.material(i).diffuse;
-            for t in (0..(grid.width * grid.height) as usize).step_by(7) {
-                let (x, y) = (
-                    (t % grid.width as usize) as f64 + 0.5,
-                    (t / grid.width as usize) as f64 + 0.5,
-                );
-                let p = grid.origin + (grid.axis_u * x + grid.axis_v * y) * grid.texel;
-                let want = cpu.shadow_loss(p, s.normal, rho).unwrap_or([0.0; 3]);
-                let have = got[first + t];
-                shadowed += (want[0] != 0.0) as usize;
-                for c in 0..3 {
-                    scale = scale.max(want[c].abs());
-                    worst = worst.max((have[c] as f64 - want[c]).abs());
-                    (total, count) = (total + (have[c] as f64 - want[c]).abs(), count + 1);
-                }
+        for &(i, at, p) in &texels {
+            let (normal, rho) = (field.scene.surfaces[i].normal, field.scene.material(i).diffuse);
+            let want = cpu.shadow_loss(p, normal, rho).unwrap_or([0.0; 3]);
+            let have = got[at];
+            shadowed += (want[0] != 0.0) as usize;
+            for c in 0..3 {
+                scale = scale.max(want[c].abs());
+                worst = worst.max((have[c] as f64 - want[c]).abs());
+                (total, count) = (total + (have[c] as f64 - want[c]).abs(), count + 1);
             }
         }
         let mean = total / count as f64;

@@ -350,7 +350,7 @@ fn exact_direct_light_streams_its_direct_parts_from_snapshot_one() {
     let [a, b, c] = views();
 
     // The field's parts alone: the field's direct light.
-    let renderer = FieldRenderer::streaming_exact(&gpu, &geometry, capacity, &emitters).expect("pool");
+    let renderer = FieldRenderer::streaming_with(&gpu, &geometry, capacity, None, Some(&emitters)).expect("pool");
     let direct = renderer.direct_parts().expect("direct parts");
     assert_eq!(direct.chunks as usize, catalog.chunks());
     let mut base = 0;
@@ -365,7 +365,7 @@ fn exact_direct_light_streams_its_direct_parts_from_snapshot_one() {
     assert!(renderer.upload(&gpu, direct.of_chunk(0), base, &[[0.0; 3]]).is_err());
 
     // Streamed: the direct parts come after their chunks, and every view is the exact one.
-    let renderer = FieldRenderer::streaming_exact(&gpu, &geometry, capacity, &emitters).expect("pool");
+    let renderer = FieldRenderer::streaming_with(&gpu, &geometry, capacity, None, Some(&emitters)).expect("pool");
     let asked = Arc::new(Mutex::new(Vec::new()));
     let field_parts = Recording {
         inner: FieldParts::new(Arc::new(last)),

@@ -251,3 +251,39 @@ fn field_rebuilds_from_its_radiance_and_refuses_misfits() {
     let mirrors = Some(vec![vec![[0.0f32; 3]; 4]; 9]);
     assert!(LightField::from_radiance(fresh(), stats, radiance, mirrors).is_err());
 }
+
+/// The recommended filter runs where mirrors receive light and nowhere else (the plan decides,
+/// as it does for perturbation); asked for explicitly, it runs anywhere. What runs is what the
+/// field holds: a filtered diffuse scene differs from the recommended one.
+#[test]
+fn the_recommended_filter_runs_only_where_mirrors_are() {
+    let load = |name: &str| {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../scenes")
+            .join(name);
+        vlf_core::scene::load_obj(&path, &vlf_core::scene::ImportOptions::default())
+            .unwrap()
+            .0
+    };
+    let options = |o: Options| Options {
+        directions: 9,
+        grid: GridSize::new(16, 8).unwrap(),
+        stop: Stop::Iterations(2),
+        ..o
+    };
+    let recommended = options(Options::recommended());
+    let diffuse = Propagation::new(load("cornell.obj"), recommended.clone()).unwrap();
+    assert_eq!(diffuse.plan.filter, None);
+    let mirrors = Propagation::new(load("mirrors.obj"), recommended.clone()).unwrap();
+    assert_eq!(mirrors.plan.filter, Some(1.0));
+    let asked = Options {
+        filter_only_with_mirrors: false,
+        ..recommended
+    };
+    let mut filtered = Propagation::new(load("cornell.obj"), asked).unwrap();
+    assert_eq!(filtered.plan.filter, Some(1.0));
+    let mut plain = diffuse;
+    plain.run(|_| {});
+    filtered.run(|_| {});
+    assert_ne!(plain.field_now().radiance, filtered.field_now().radiance);
+}
