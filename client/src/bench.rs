@@ -22,6 +22,8 @@
 //! of every iteration, and the work each iteration moved through the store (blobs and MB). Every
 //! service run's last checkpoint is checked bit for bit against the in-process one.
 
+mod scaling;
+
 use crate::JobFlags;
 use crate::run::{Embedded, EmbeddedJob, Follow, Workers, embedded};
 use anyhow::{Context, Result, bail};
@@ -69,6 +71,18 @@ pub struct BenchArgs {
     /// job is deleted once it is measured.
     #[arg(long, value_name = "URL")]
     store: Option<String>,
+    /// Print the scaling tables instead (`bench/scaling.rs`): the in-process loop on 1, 2, 4, …
+    /// threads up to all cores, and the service with each `--workers` count of
+    /// `--worker-threads` threads each; speed-up, efficiency and Amdahl's serial fraction.
+    #[arg(long)]
+    scaling: bool,
+    /// Thread counts of `--scaling`'s in-process runs, comma-separated (default: 1, 2, 4, … and
+    /// all cores).
+    #[arg(long, value_delimiter = ',', requires = "scaling")]
+    scale_threads: Vec<usize>,
+    /// Threads of each worker in `--scaling`'s service runs.
+    #[arg(long, default_value_t = 2, requires = "scaling")]
+    worker_threads: usize,
 }
 
 /// The store every run of the bench writes into: `--store`, else `memory://` with `--latency`'s
@@ -204,6 +218,14 @@ pub fn run(args: BenchArgs) -> Result<()> {
         .build()
         .context("cannot start the async runtime")?;
 
+    if args.scaling {
+        let report = scaling::run(&args, &store_url(&args), &scene, &spec, &runtime, threads)?;
+        print!("{report}");
+        if let Some(path) = &args.out {
+            std::fs::write(path, &report).with_context(|| format!("cannot write {}", path.display()))?;
+        }
+        return Ok(());
+    }
     let ways: Vec<Way> = std::iter::once(Way::InProcess)
         .chain(args.workers.iter().filter(|&&w| w > 1).map(|&w| Way::Split(w)))
         .chain(args.workers.iter().map(|&w| Way::Service(w)))
@@ -429,18 +451,21 @@ impl Way {
     }
 }
 
-/// The Markdown report.
-fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>], plain_after: usize) -> String {
-    let mut out = String::new();
-    let cpu = cpu_name().unwrap_or_else(|| "unknown CPU".into());
-    let _ = writeln!(
-        out,
-        "# vlf bench: {} (l = {}, N = {}, m = {})\n",
+/// A report's title: the command, the scene and the job's shape.
+fn heading(args: &BenchArgs, command: &str) -> String {
+    format!(
+        "# {command}: {} (l = {}, N = {}, m = {})\n\n",
         args.scene.display(),
         args.job.directions,
         args.job.resolution,
         args.job.tile
-    );
+    )
+}
+
+/// The Markdown report.
+fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>], plain_after: usize) -> String {
+    let mut out = heading(args, "vlf bench");
+    let cpu = cpu_name().unwrap_or_else(|| "unknown CPU".into());
     let _ = writeln!(
         out,
         "{threads} threads on {cpu}; `{}` store; median of {} runs each, interleaved. \

@@ -259,7 +259,7 @@ pub struct RenderArgs {
     #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
     /// Quadrature points per emitter for --direct exact.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = vlf_core::direct::DEFAULT_SAMPLES)]
     direct_samples: u32,
     /// Draw with the GPU (wgpu; a software adapter such as Mesa's lavapipe will do), with the
     /// same sample positions and filter as the CPU, mirrors either way.
@@ -324,8 +324,10 @@ pub struct ViewArgs {
     /// the adapter is a real GPU and no albedo texture stands in the way.
     #[arg(long, value_enum, default_value_t = DirectArg::Auto)]
     direct: DirectArg,
-    /// Quadrature points per emitter for exact direct light.
-    #[arg(long, default_value_t = 64)]
+    /// Quadrature points per emitter for exact direct light: fewer than `render`'s 64 by
+    /// default, a quarter of the frame's cost at an accuracy the study cannot tell apart on the
+    /// bundled scenes (docs/gpu.md).
+    #[arg(long, default_value_t = vlf_core::direct::WALK_SAMPLES)]
     direct_samples: u32,
     /// A scripted walk over --frames: turn this many degrees (to the left) …
     #[arg(long, default_value_t = 0.0, allow_hyphen_values = true)]

@@ -65,7 +65,7 @@ pub struct StudyArgs {
     #[arg(long, default_value_t = 8)]
     depth: u32,
     /// Quadrature points per emitter for exact direct light.
-    #[arg(long, default_value_t = 64)]
+    #[arg(long, default_value_t = vlf_core::direct::DEFAULT_SAMPLES)]
     direct_samples: u32,
     /// Block edge in pixels of the block error.
     #[arg(long, default_value_t = 16)]

@@ -956,8 +956,10 @@ fn view_draws_in_a_window_what_render_draws() {
         matches!((parts, fetched), (Some(p), Some(f)) if f > 0 && f <= p),
         "{stdout}"
     );
-    // The window's frame is the headless GPU render's with one sample, bit for bit.
+    // The window's frame is the headless GPU render's with one sample, bit for bit (with the
+    // walkthrough's quadrature points: fewer than render's by default).
     let rendered = out.join("render.pfm");
+    let walk_samples = vlf_core::direct::WALK_SAMPLES.to_string();
     let o = vlf(&[
         &["render", out.to_str().unwrap()][..],
         &camera[..],
@@ -967,6 +969,8 @@ fn view_draws_in_a_window_what_render_draws() {
             "1",
             "--direct",
             "exact",
+            "--direct-samples",
+            &walk_samples,
             "--out",
             rendered.to_str().unwrap(),
         ],
@@ -1228,8 +1232,14 @@ fn view_moves_objects_as_render_places_them() {
     assert!(o.status.success(), "{}", stderr(&o));
     write_cube(&out);
     let cube = out.join("cube.obj");
-    // Exact direct light, which a software adapter's view draws only when asked for.
-    let camera = [&CORNELL_VIEW[..], &["--size", "64x48", "--direct", "exact"][..]].concat();
+    // Exact direct light, which a software adapter's view draws only when asked for, with the
+    // same quadrature points in the view and the render (their defaults differ).
+    let samples = vlf_core::direct::WALK_SAMPLES.to_string();
+    let camera = [
+        &CORNELL_VIEW[..],
+        &["--size", "64x48", "--direct", "exact", "--direct-samples", &samples][..],
+    ]
+    .concat();
     let object = ["--object", cube.to_str().unwrap(), "--object-at", "278,260,200"];
     let o = vlf(&[
         &["view", out.to_str().unwrap()][..],

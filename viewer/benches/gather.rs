@@ -14,6 +14,8 @@
 //!
 //! Skips (with a message) where there is no adapter; lavapipe takes minutes a frame.
 
+mod common;
+
 use criterion::{Criterion, criterion_group, criterion_main};
 use glam::DVec3;
 use vlf_core::dynamic::gather::Gatherer;
@@ -77,15 +79,7 @@ fn bench(c: &mut Criterion) {
     });
     group.finish();
     // Frames with 1 and 10 cubes of 3 072 triangles (side 60, 16 × 16 quads a face).
-    let camera = vlf_core::render::Camera::new(
-        DVec3::new(278.0, 273.0, -800.0),
-        DVec3::new(278.0, 273.0, 0.0),
-        DVec3::Y,
-        39.0,
-        1280,
-        720,
-    )
-    .expect("camera");
+    let camera = common::readme_camera(1280, 720);
     let mut group = c.benchmark_group(format!("GPU frame 1280x720 on {}", gpu.describe()));
     group.sample_size(10);
     for count in [1usize, 10] {

@@ -10,7 +10,7 @@ use common::*;
 use std::collections::HashMap;
 use vlf_core::propagate::{
     BatchOutput, Checkpoint, HomeThreads, MapBatch, Options, Pass, Perturbation, Propagation, ShootingState, StateHead,
-    Stop, Totals, cut_homes, reduce,
+    Stop, Totals, reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -270,25 +270,30 @@ fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts
             "homes {homes:?} changed the bits"
         );
     }
-    // `step` on pools of 1 to 4 threads: the shared loop on 1 (and where homes would be too
-    // small), a home per thread for the others; the same bits.
-    let batches = vlf_core::propagate::work::batch_count(options.directions);
-    for threads in 1..=4 {
+    // `step` on pools of 1 to 7 threads (directions claimed one at a time, each batch summed
+    // in direction order as they come in, whichever thread shot them): the same bits.
+    for threads in [1, 2, 3, 4, 7] {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         let mut auto = Propagation::new(scene.clone(), options.clone()).unwrap();
-        pool.install(|| auto.run(|_| {}));
-        let homes = cut_homes(threads, batches);
+        let mut heard = Vec::new();
+        pool.install(|| auto.run(|p| heard.push(p)));
         assert!(
             without_times(auto.checkpoint()) == want,
-            "step on {threads} threads ({homes} homes) changed the bits"
+            "step on {threads} threads changed the bits"
         );
+        // Progress only grows within an iteration, up to all of it.
+        for it in heard.chunk_by(|a, b| a.iteration == b.iteration) {
+            assert!(it.windows(2).all(|w| w[0].directions_done < w[1].directions_done));
+            let last = it.last().unwrap();
+            assert_eq!(last.directions_done, last.directions_total);
+        }
     }
 }
 
 #[test]
 fn a_block_cut_among_a_replicas_threads_gives_the_same_bits() {
-    // Whole-pass blocks of 16 batches on pools of 1 to 4 threads: a replica shoots a block
-    // with its threads sharing every batch (1 thread) or a home of batches each (2 to 4).
+    // Whole-pass blocks of 16 batches on pools of 1 to 4 threads: a replica's threads claim the
+    // block's directions one at a time.
     let options = Options {
         directions: 513,
         stop: Stop::Iterations(3),
@@ -303,18 +308,14 @@ fn a_block_cut_among_a_replicas_threads_gives_the_same_bits() {
     for threads in 1..=4 {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         let (main, stored) = pool.install(|| run_distributed_in_blocks(&mirror_room(), &options, 1, true, batches));
-        let homes = cut_homes(threads, batches);
-        assert!(
-            without_times(stored) == want,
-            "{threads} threads ({homes} homes) changed the bits"
-        );
+        assert!(without_times(stored) == want, "{threads} threads changed the bits");
         assert!(without_times(main.checkpoint()) == want);
     }
 }
 
 #[test]
 fn a_cut_blocks_batch_costs_add_up_to_no_more_than_the_block_took() {
-    // A whole-pass block on 2 threads is cut into two homes shot at once: each batch's cost is
+    // A whole-pass block on 2 threads, its directions shot two at a time: each batch's cost is
     // its share of the block's time, so that a worker's report does not count its threads'
     // time twice (before that, they added up to about twice the block's time).
     let options = Options {
@@ -327,7 +328,6 @@ fn a_cut_blocks_batch_costs_add_up_to_no_more_than_the_block_took() {
         let mut p = Propagation::new(mirror_room(), options).unwrap();
         let work = p.iteration_work();
         let n = work.batches();
-        assert_eq!(cut_homes(2, n), 2);
         let started = std::time::Instant::now();
         let (_, _, costs) = p.compute_block_costed(&work, Pass::Shoot, 0..n).unwrap();
         let took = started.elapsed().as_secs_f64();

@@ -63,7 +63,7 @@ pub const DEFAULT_SHADOW_SAMPLES: u32 = 128;
 
 /// Points per emitter for the direct part of shadows, unless set
 /// ([`Gatherer::with_direct_samples`]); as many as `render --direct-samples` takes by default.
-pub const DEFAULT_DIRECT_SAMPLES: u32 = 64;
+pub const DEFAULT_DIRECT_SAMPLES: u32 = crate::direct::DEFAULT_SAMPLES;
 
 thread_local! {
     static RAYS: std::cell::Cell<u64> = const { std::cell::Cell::new(0) };

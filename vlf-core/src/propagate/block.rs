@@ -149,29 +149,20 @@ impl Propagation {
         let gathered = gathering.elapsed().as_secs_f64() / batches.len() as f64;
         let mut tree = TreeSum::new(batches.len());
         let mut costs = Vec::with_capacity(batches.len());
-        // With a few threads and a long block, each thread shoots a home of its batches (as
-        // `Propagation::step` cuts a pass); else they share every batch. The same leaves.
-        match self.shoot_block_cut(work, pass, batches.clone(), maps.as_deref_mut())? {
-            Some(shot) => {
-                for (i, (leaf, cost)) in shot.into_iter().enumerate() {
-                    tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
-                    costs.push(gathered + cost);
-                }
-            }
-            None => {
-                let mut buffers = self.buffers.take();
-                for (i, batch) in batches.clone().enumerate() {
-                    let started = std::time::Instant::now();
-                    let range = work.batch_range(batch, self.directions.len());
-                    let own = maps
-                        .as_deref_mut()
-                        .map(|m| &mut m[range.start - directions.start..range.end - directions.start]);
-                    let leaf = self.run_batch_with(work, pass, batch, own, &mut buffers)?;
-                    tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
-                    costs.push(gathered + started.elapsed().as_secs_f64());
-                }
-                self.buffers.keep(buffers);
-            }
+        // The block's directions claimed one at a time by the replica's threads, as
+        // `Propagation::step` shoots a pass: the same leaves.
+        let shooting = std::time::Instant::now();
+        let shot = self.shoot_claimed(work, pass, batches.clone(), maps.as_deref_mut(), |_| {})?;
+        // The threads shot at once, so the batches' thread seconds add up to more than the block
+        // took: each batch is given its share of the block's time instead, which keeps their
+        // proportions (what the coordinator cuts homes by) and adds up to the worker's time, as a
+        // report's seconds must.
+        let threads_time: f64 = shot.iter().map(|(_, seconds)| seconds).sum();
+        let wall = shooting.elapsed().as_secs_f64();
+        let share = if threads_time > 0.0 { wall / threads_time } else { 0.0 };
+        for (i, (leaf, cost)) in shot.into_iter().enumerate() {
+            tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
+            costs.push(gathered + cost * share);
         }
         drop(maps);
         let power_in = spec.zip(incident.as_ref()).map(|(spec, incident)| {

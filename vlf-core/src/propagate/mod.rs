@@ -27,12 +27,14 @@
 //!
 //! ## An iteration
 //! 1. every texel with unshot power is a sender: `radiance_t = Φ_t / T_t`;
-//! 2. for every direction (in parallel), walk each ray's sorted hits: two
-//!    consecutive surfaces facing each other exchange `radiance·Δω`; a back
-//!    face blocks; nothing beyond the first/last surface means escape;
+//! 2. for every direction (claimed by whichever thread is free, `claim`),
+//!    walk each ray's sorted hits: two consecutive surfaces facing each other
+//!    exchange `radiance·Δω`; a back face blocks; nothing beyond the
+//!    first/last surface means escape;
 //! 3. the received power is reduced over directions **in direction order**
-//!    (fixed batches, so the bits do not depend on the thread count), times
-//!    `ρd` it becomes Next and is added to Total.
+//!    (fixed batches, each summed in direction order, so the bits do not
+//!    depend on the thread or worker count), times `ρd` it becomes Next and
+//!    is added to Total.
 //!
 //! Options: deferred propagation (charts with negligible unshot power wait),
 //! perturbation (the paper's remedy for holes: shoot the first iterations
@@ -41,6 +43,7 @@
 
 mod block;
 pub mod checkpoint;
+mod claim;
 mod filter;
 mod perturb;
 pub mod plan;
@@ -56,7 +59,7 @@ pub use plan::Plan;
 pub use shoot::Flow;
 pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
-pub use split::{HOME_BATCHES, HomeThreads, cut_homes, split_by_cost};
+pub use split::{HomeThreads, split_by_cost};
 pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
@@ -354,10 +357,8 @@ pub struct Propagation {
     stacking: Vec<u32>,
     /// The chart of every texel.
     pub(crate) owners: Vec<u32>,
-    /// A chunk's per-direction texel buffers, kept from one block or step to the next.
+    /// The per-direction texel buffers, kept from one block or step to the next.
     buffers: work::KeptBuffers,
-    /// The threads of [`Propagation::step`]'s homes and what each batch cost last time.
-    cut: split::KeptCut,
 }
 
 fn sum_rgb(v: &[Rgb]) -> Rgb {
@@ -503,7 +504,6 @@ impl Propagation {
             stats: Vec::new(),
             owners,
             buffers: work::KeptBuffers::default(),
-            cut: split::KeptCut::default(),
             phase_times: Vec::new(),
         })
     }
@@ -550,23 +550,68 @@ impl Propagation {
     }
 
     /// Performs one iteration in this process with the threads of the current rayon pool: every
-    /// batch of every pass (see [`work`]), absorbed in order. With a few threads and many
-    /// batches (`split::cut_homes`) each thread takes a home of whole batches
-    /// ([`Propagation::step_split`], cut by what the batches cost last time); else the threads
-    /// share every batch's directions ([`Propagation::step_shared`]). The same bits either way.
-    pub fn step(&mut self, progress: impl FnMut(Progress)) -> IterationStats {
-        let threads = rayon::current_num_threads();
-        let batches = work::batch_count(self.directions.len());
-        match split::cut_homes(threads, batches) {
-            0 | 1 => self.step_shared(progress),
-            homes => self.step_cut(homes, threads / homes, progress),
-        }
+    /// pass's directions claimed one at a time by whichever thread is free, each batch summed in
+    /// direction order as its directions come in (`claim`), the batch sums absorbed in order.
+    /// The same bits on any number of threads, and as any split across workers.
+    pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
+        self.step_by(|prop, work, pass, maps, clock, heard| {
+            let mut io = maps.map(|m| work::mirror_io(m));
+            let shot = prop
+                .shoot_claimed(work, pass, 0..work.batches(), io.as_deref_mut(), |done| {
+                    progress(heard(done))
+                })
+                .expect("batches of this process's own work are well-formed");
+            drop(io);
+            clock.reducing();
+            for (batch, (sum, _)) in shot.into_iter().enumerate() {
+                work.absorb(pass, batch..batch + 1, sum)
+                    .expect("this process absorbs its batches in order");
+            }
+            clock.reduced();
+        })
     }
 
-    /// Performs one iteration in this process, every batch's directions shared among the
-    /// current pool's threads, CHUNK at a time: what [`Propagation::step`] does when batches are
-    /// too few to give each thread a home.
+    /// Performs one iteration in this process, each batch in turn, its directions shared among
+    /// the current pool's threads CHUNK at a time (they meet at the end of every chunk): the
+    /// plainest schedule, which the others are held to (`tests/distributed.rs`).
     pub fn step_shared(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
+        let mut buffers = self.buffers.take();
+        let l = self.directions.len();
+        let stats = self.step_by(|prop, work, pass, mut maps, clock, heard| {
+            for batch in 0..work.batches() {
+                let range = work.batch_range(batch, l);
+                let mut own = maps.as_mut().map(|m| work::mirror_io(&mut m[range.clone()]));
+                let sum = prop
+                    .run_batch_with(work, pass, batch, own.as_deref_mut(), &mut buffers)
+                    .expect("batches of this process's own work are well-formed");
+                clock.reducing();
+                work.absorb(pass, batch..batch + 1, sum)
+                    .expect("this process absorbs its batches in order");
+                clock.reduced();
+                progress(heard(range.end));
+            }
+        });
+        self.buffers.keep(buffers);
+        stats
+    }
+
+    /// One iteration in this process around `shoot`, which shoots and absorbs one pass: the
+    /// iteration's work and mirror maps set up, every pass in order, then the end of the
+    /// iteration and its phase times. `shoot` gets the pass's work, the mirror maps, the phase
+    /// clock and a function that turns the directions done in the pass into the iteration's
+    /// progress.
+    #[allow(clippy::type_complexity)]
+    fn step_by(
+        &mut self,
+        mut shoot: impl FnMut(
+            &Propagation,
+            &mut IterationWork,
+            Pass,
+            Option<&mut Vec<specular::DirectionMaps>>,
+            &mut PhaseClock,
+            &dyn Fn(usize) -> Progress,
+        ),
+    ) -> IterationStats {
         let started = Instant::now();
         let mut clock = PhaseClock::start(started);
         let mut work = self.iteration_work();
@@ -574,26 +619,15 @@ impl Propagation {
         let l = self.directions.len();
         let mut maps = self.gathered_maps(&work);
         clock.planned();
-        let mut buffers = self.buffers.take();
         for (p, &pass) in passes.iter().enumerate() {
-            for batch in 0..work.batches() {
-                let range = work.batch_range(batch, l);
-                let mut own = maps.as_mut().map(|m| work::mirror_io(&mut m[range.clone()]));
-                let sum = self
-                    .run_batch_with(&work, pass, batch, own.as_deref_mut(), &mut buffers)
-                    .expect("batches of this process's own work are well-formed");
-                clock.reducing();
-                work.absorb(pass, batch..batch + 1, sum)
-                    .expect("this process absorbs its batches in order");
-                clock.reduced();
-                progress(Progress {
-                    iteration: work.index,
-                    directions_done: p * l + range.end,
-                    directions_total: passes.len() * l,
-                });
-            }
+            let iteration = work.index;
+            let heard = |done: usize| Progress {
+                iteration,
+                directions_done: p * l + done,
+                directions_total: passes.len() * l,
+            };
+            shoot(self, &mut work, pass, maps.as_mut(), &mut clock, &heard);
         }
-        self.buffers.keep(buffers);
         clock.shot();
         let stats = self.end_step(work, maps, started);
         self.phase_times.push(clock.finished());

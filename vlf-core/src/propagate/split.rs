@@ -3,20 +3,12 @@
 //! own, the batch sums absorbed in batch order afterwards. The bits are those of
 //! [`Propagation::step`], whose batch sums are absorbed in the same order (`tests/distributed.rs`).
 //!
-//! Why it exists: in [`Propagation::step_shared`] every batch's directions are shared among all
-//! the threads, CHUNK at a time, and the threads meet at the end of every chunk (its buffers
-//! are then added up in direction order): each meeting waits for the slowest direction of the
-//! chunk. A thread that owns whole batches never waits within a pass; what it risks instead is
-//! ending the pass before the others, as a batch is the smallest piece that can move. The
-//! homes are cut by what each batch cost the last time ([`split_by_cost`]), which batches
-//! repeat closely from one iteration to the next. On two threads the cut is the faster
-//! (×0.97 of the shared loop's time per iteration for the mirror scene, ×0.92 for the office,
-//! `docs/bench`), so [`Propagation::step`] cuts when every thread gets a home of a few
-//! batches ([`cut_homes`]), and so does a worker's replica with a long block of its lease
-//! (`Propagation::compute_block`).
-//!
-//! It is also the distributed run's cut without the service: workers take homes by the same
-//! rule, so `vlf bench` runs this to tell what the cut costs from what the service adds.
+//! Why it exists: it is the distributed run's cut without the service. The coordinator cuts a
+//! pass into the workers' homes by what each batch cost the last time ([`split_by_cost`]), and
+//! a worker's threads cannot help another worker: `vlf bench` runs this to tell what the cut
+//! costs from what the service adds. Within one process, [`Propagation::step`] does better
+//! (directions claimed one at a time, `super::claim`): a home is a whole batch at least, so a
+//! thread that ends its home early waits for the others.
 
 use super::work::{self, BatchSum, IterationWork, MirrorIo, Pass};
 use super::{IterationStats, Progress, Propagation};
@@ -24,28 +16,13 @@ use crate::scene::Rgb;
 use std::ops::Range;
 use std::time::Instant;
 
-/// Batches a home must have, at least, for [`Propagation::step`] to cut a pass into homes:
-/// enough that the split by cost can even out batches whose costs differ twofold (the mirror
-/// scene's first quarter shoots in half the time of its last).
-pub const HOME_BATCHES: usize = 4;
-
-/// How many homes [`Propagation::step`] cuts a pass of `batches` batches into on `threads`
-/// threads: one per thread when each then holds at least [`HOME_BATCHES`] batches, else 1 (the
-/// threads share every batch).
-pub fn cut_homes(threads: usize, batches: usize) -> usize {
-    match threads > 1 && batches >= HOME_BATCHES * threads {
-        true => threads,
-        false => 1,
-    }
-}
-
 /// A pass of `batches` batches split into `parts` runs of consecutive batches of equal cost, in
 /// order (some empty when there are more parts than batches). A batch costs the `seconds` last
 /// measured for it, or the mean of those measured (all alike before any): batches differ — the
 /// mirror scene's first quarter shoots in half the time of its last — and equal runs had one of
 /// two workers wait for the other every iteration. Part `r` starts at the batch boundary nearest
 /// to `r / parts` of the total cost. The coordinator cuts a shooting pass into the workers'
-/// homes by this rule, and [`Propagation::step`] into its threads'.
+/// homes by this rule.
 pub fn split_by_cost(seconds: &[f64], batches: usize, parts: usize) -> Vec<Range<usize>> {
     let measured: Vec<f64> = seconds.iter().copied().filter(|s| *s > 0.0).collect();
     let mean = match measured.len() {
@@ -66,54 +43,6 @@ pub fn split_by_cost(seconds: &[f64], batches: usize, parts: usize) -> Vec<Range
             .unwrap_or(0)
     };
     (0..parts).map(|r| start(r)..start(r + 1)).collect()
-}
-
-/// What a propagation keeps from one cut to the next: its home threads and what each batch of
-/// a pass cost when last shot (by [`Propagation::step`] or in a worker's block). Behind a lock,
-/// as a worker's block is shot through `&self`. A clone of the propagation starts without
-/// (threads are not copied).
-#[derive(Default)]
-pub(crate) struct KeptCut(std::sync::Mutex<CutState>);
-
-#[derive(Default)]
-struct CutState {
-    threads: Option<HomeThreads>,
-    costs: Vec<f64>,
-}
-
-impl Clone for KeptCut {
-    fn clone(&self) -> Self {
-        KeptCut::default()
-    }
-}
-
-impl KeptCut {
-    fn lock(&self) -> std::sync::MutexGuard<'_, CutState> {
-        self.0.lock().unwrap_or_else(|p| p.into_inner())
-    }
-
-    /// Threads for `homes` homes of `per_home` threads (those kept, if they are that many), and
-    /// the costs kept, per batch (0 where none is known).
-    fn take(&self, homes: usize, per_home: usize) -> crate::Result<(HomeThreads, Vec<f64>)> {
-        let mut state = self.lock();
-        let threads = match state.threads.take() {
-            Some(t) if t.count() == homes && t.per_home() == per_home => t,
-            _ => HomeThreads::new(homes, per_home)?,
-        };
-        Ok((threads, state.costs.clone()))
-    }
-
-    /// Keeps `threads` for the next cut, and what the batches just shot cost.
-    fn keep(&self, threads: HomeThreads, costs: impl IntoIterator<Item = (usize, f64)>) {
-        let mut state = self.lock();
-        state.threads = Some(threads);
-        for (batch, cost) in costs {
-            if state.costs.len() <= batch {
-                state.costs.resize(batch + 1, 0.0);
-            }
-            state.costs[batch] = cost;
-        }
-    }
 }
 
 /// The compute threads of each home (a rayon pool per home, as each worker has its own), and the
@@ -231,61 +160,6 @@ fn check_homes(homes: &[Range<usize>], batches: usize, threads: usize) -> crate:
 }
 
 impl Propagation {
-    /// [`Propagation::step`] cut into `homes` homes of `per_home` threads each, by what the
-    /// batches cost when last shot (evenly the first time).
-    pub(super) fn step_cut(&mut self, homes: usize, per_home: usize, progress: impl FnMut(Progress)) -> IterationStats {
-        let (mut threads, known) = (self.cut.take(homes, per_home)).expect("the current pool's threads, at most 1024");
-        let cut = split_by_cost(&known, work::batch_count(self.directions.len()), homes);
-        let (stats, costs) = self
-            .step_split(&cut, &mut threads, progress)
-            .expect("homes cut by split_by_cost cover the pass in order");
-        self.cut.keep(threads, costs.into_iter().enumerate());
-        stats
-    }
-
-    /// Shoots the aligned block `batches` of `pass` cut into a home per thread of the current
-    /// pool, when each gets a few batches ([`cut_homes`]), by what they cost when last shot:
-    /// each batch's sum and its share of the block's time, in batch order. `None` when the block is not worth cutting (the
-    /// caller shoots it with the threads sharing every batch). What a worker with several threads
-    /// does with a block of its lease, as [`Propagation::step`] does with a pass.
-    pub(super) fn shoot_block_cut(
-        &self,
-        work: &IterationWork,
-        pass: Pass,
-        batches: Range<usize>,
-        maps: Option<&mut [MirrorIo]>,
-    ) -> crate::Result<Option<Vec<(BatchSum, f64)>>> {
-        let threads = rayon::current_num_threads();
-        let homes = cut_homes(threads, batches.len());
-        if homes < 2 {
-            return Ok(None);
-        }
-        let (mut pools, known) = self.cut.take(homes, threads / homes)?;
-        let block_costs: Vec<f64> = batches.clone().map(|b| known.get(b).copied().unwrap_or(0.0)).collect();
-        let cut: Vec<Range<usize>> = split_by_cost(&block_costs, batches.len(), homes)
-            .into_iter()
-            .map(|h| h.start + batches.start..h.end + batches.start)
-            .collect();
-        let started = Instant::now();
-        let shot = self.shoot_homes(work, pass, &cut, maps, &mut pools, |_| {});
-        let wall = started.elapsed().as_secs_f64();
-        let shot: Vec<(BatchSum, f64)> = match shot {
-            Ok(shot) => shot.into_iter().flatten().collect(),
-            Err(e) => {
-                self.cut.keep(pools, []);
-                return Err(e);
-            }
-        };
-        self.cut.keep(pools, batches.zip(shot.iter().map(|(_, cost)| *cost)));
-        // The homes ran at once, so their batches' times add up to more than the block took:
-        // each batch is given its share of the block's time instead, which keeps the costs'
-        // proportions (what homes are cut by) and makes them add up to the worker's time, as a
-        // report's seconds must.
-        let threads_time: f64 = shot.iter().map(|(_, cost)| cost).sum();
-        let share = if threads_time > 0.0 { wall / threads_time } else { 0.0 };
-        Ok(Some(shot.into_iter().map(|(sum, cost)| (sum, cost * share)).collect()))
-    }
-
     /// Shoots the batches of `pass` in `homes` (consecutive runs, in order), each home on a pool
     /// of `threads` (one per home), its batches left to right into the home's own chunk
     /// buffers. `maps` are the mirror maps of the homes' directions, from the first home's first
@@ -367,17 +241,5 @@ mod tests {
         // More parts than batches: some are empty.
         assert_eq!(split_by_cost(&[], 2, 4), [0..0, 0..1, 1..1, 1..2]);
         assert_eq!(split_by_cost(&[], 0, 2), [0..0, 0..0]);
-    }
-
-    #[test]
-    fn a_pass_is_cut_only_when_every_thread_gets_a_few_batches() {
-        assert_eq!(cut_homes(1, 16), 1, "one thread: nothing to cut");
-        assert_eq!(cut_homes(2, 16), 2);
-        assert_eq!(cut_homes(4, 16), 4);
-        assert_eq!(cut_homes(5, 16), 1, "homes of 3 batches could not even out their costs");
-        assert_eq!(cut_homes(16, 16), 1);
-        assert_eq!(cut_homes(16, 64), 16);
-        assert_eq!(cut_homes(2, 4), 1);
-        assert_eq!(cut_homes(0, 16), 1);
     }
 }

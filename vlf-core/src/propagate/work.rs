@@ -118,6 +118,14 @@ impl Clone for KeptBuffers {
     }
 }
 
+/// What one thread keeps from one direction to the next: the ray walk's scratch and, for
+/// rotated copies, the subfield raster's.
+#[derive(Default)]
+pub(crate) struct DirectionScratch {
+    shoot: Scratch,
+    raster: RasterScratch,
+}
+
 /// The output of one batch of a pass.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct BatchSum {
@@ -479,6 +487,77 @@ impl Propagation {
         }
     }
 
+    /// Shoots direction `d` of `pass` into `buf`, cleared first to the field's texels: what the
+    /// direction delivers to each texel (received power, or its discrete area for
+    /// [`Pass::Areas`]) and where its power went. `maps` are its mirror maps when the pass
+    /// shoots them ([`IterationWork::uses_mirror_maps`]): the incident radiance is added to
+    /// them. A rotated copy's subfield is built here, in `scratch` (a copy serves one iteration,
+    /// so its subfields are not kept). The one kernel of every schedule: a batch shot CHUNK
+    /// directions at a time ([`Propagation::run_batch`]) and directions claimed one by one
+    /// (`super::claim`) compute exactly this, so they get the same bits.
+    pub(crate) fn shoot_direction(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        d: usize,
+        maps: Option<&mut MirrorIo>,
+        buf: &mut Vec<Rgb>,
+        scratch: &mut DirectionScratch,
+    ) -> crate::Result<Flow> {
+        let geometry = shoot::Geometry {
+            scene: &self.scene,
+            atlas: &self.atlas,
+            stacking: &self.stacking,
+        };
+        buf.clear();
+        buf.resize(self.atlas.texels, [0.0; 3]);
+        let DirectionScratch { shoot: walk, raster } = scratch;
+        match (pass, &work.mode) {
+            (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
+                let beam = shoot::Beam {
+                    sub: &self.subfields[d],
+                    weight: self.directions.get(d).weight,
+                };
+                let io = match (mirrors, maps, self.specular.as_ref()) {
+                    (false, _, _) => None,
+                    (true, Some(m), Some(spec)) => Some(shoot::SpecularIo {
+                        mirror_base: &spec.layouts[d].entry_base,
+                        unshot: m.unshot,
+                        incident: &mut *m.incident,
+                    }),
+                    (true, _, _) => {
+                        return Err(crate::Error::Parameter(format!("direction {d} needs its mirror maps")));
+                    }
+                };
+                Ok(shoot::shoot(geometry, beam, radiance, buf, io, walk))
+            }
+            (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
+                let set = &copies[copy as usize];
+                let sub = Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster);
+                shoot::count(geometry, &sub, set.get(d).weight, buf, walk);
+                Ok(Flow::default())
+            }
+            (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. }) if (copy as usize) < copies.len() => {
+                let Some(radiance) = &radiance[copy as usize] else {
+                    return Err(crate::Error::Parameter(format!(
+                        "{pass:?} before the areas of copy {copy} are absorbed"
+                    )));
+                };
+                let set = &copies[copy as usize];
+                let sub = Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster);
+                let beam = shoot::Beam {
+                    sub: &sub,
+                    weight: set.get(d).weight,
+                };
+                Ok(shoot::shoot(geometry, beam, radiance, buf, None, walk))
+            }
+            _ => Err(crate::Error::Parameter(format!(
+                "{pass:?} is not a pass of iteration {}",
+                work.index
+            ))),
+        }
+    }
+
     /// Computes batch `batch` of `pass` of `work`. `maps` are the mirror maps
     /// of the batch's directions, in order, when [`Pass::Shoot`] uses them
     /// ([`IterationWork::uses_mirror_maps`]); they receive the incident
@@ -514,104 +593,29 @@ impl Propagation {
                 work.batches()
             )));
         }
-        let geometry = shoot::Geometry {
-            scene: &self.scene,
-            atlas: &self.atlas,
-            stacking: &self.stacking,
-        };
-        let texels = self.atlas.texels;
-        let clear = |buf: &mut Vec<Rgb>| {
-            buf.clear();
-            buf.resize(texels, [0.0; 3]);
-        };
-        // The directions `range` of a rotated copy, in parallel, each into its
-        // own cleared buffer: their subfields are built on the fly (a copy is
-        // used for one iteration only, so they are not kept).
-        type Kernel<'k> = dyn Fn(&Subfield, f64, &mut [Rgb], &mut Scratch) -> Flow + Sync + 'k;
-        let rotated = |set: &DirectionSet, range: Range<usize>, bufs: &mut [Vec<Rgb>], kernel: &Kernel| -> Vec<Flow> {
-            range
-                .into_par_iter()
-                .zip(bufs.par_iter_mut())
-                .map_init(
-                    Default::default,
-                    |(scratch, raster): &mut (Scratch, RasterScratch), (d, buf)| {
-                        let sub = Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster);
-                        clear(buf);
-                        kernel(&sub, set.get(d).weight, buf, scratch)
-                    },
-                )
-                .collect()
-        };
         // The batch's directions, CHUNK at a time: each chunk's directions in
         // parallel, each into its own buffer, then added to the sum in
         // direction order.
         let compute =
             |range: Range<usize>, maps: Option<&mut [MirrorIo]>, bufs: &mut [Vec<Rgb>]| -> crate::Result<Vec<Flow>> {
-                Ok(match (pass, &work.mode) {
-                    (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
-                        let layouts = self.specular.as_ref().map(|s| &s.layouts);
-                        let run = |d: usize, maps: Option<&mut MirrorIo>, buf: &mut Vec<Rgb>, scratch: &mut Scratch| {
-                            let sub = &self.subfields[d];
-                            let beam = shoot::Beam {
-                                sub,
-                                weight: self.directions.get(d).weight,
-                            };
-                            clear(buf);
-                            let io = maps.zip(layouts).map(|(m, layouts)| shoot::SpecularIo {
-                                mirror_base: &layouts[d].entry_base,
-                                unshot: m.unshot,
-                                incident: &mut *m.incident,
-                            });
-                            shoot::shoot(geometry, beam, radiance, buf, io, scratch)
-                        };
-                        match (mirrors, maps) {
-                            (true, Some(maps)) => maps
-                                .par_iter_mut()
-                                .zip(bufs.par_iter_mut())
-                                .enumerate()
-                                .map_init(Scratch::default, |scratch, (i, (m, buf))| {
-                                    run(range.start + i, Some(m), buf, scratch)
-                                })
-                                .collect(),
-                            (true, None) => {
-                                return Err(crate::Error::Parameter(format!(
-                                    "batch {batch} needs the mirror maps of its directions"
-                                )));
-                            }
-                            (false, _) => range
-                                .clone()
-                                .into_par_iter()
-                                .zip(bufs.par_iter_mut())
-                                .map_init(Scratch::default, |scratch, (d, buf)| run(d, None, buf, scratch))
-                                .collect(),
-                        }
-                    }
-                    (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
-                        rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
-                            shoot::count(geometry, sub, weight, buf, scratch);
-                            Flow::default()
+                match maps {
+                    Some(maps) => maps
+                        .par_iter_mut()
+                        .zip(bufs.par_iter_mut())
+                        .enumerate()
+                        .map_init(DirectionScratch::default, |scratch, (i, (m, buf))| {
+                            self.shoot_direction(work, pass, range.start + i, Some(m), buf, scratch)
                         })
-                    }
-                    (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. })
-                        if (copy as usize) < copies.len() =>
-                    {
-                        let Some(radiance) = &radiance[copy as usize] else {
-                            return Err(crate::Error::Parameter(format!(
-                                "{pass:?} before the areas of copy {copy} are absorbed"
-                            )));
-                        };
-                        rotated(&copies[copy as usize], range, bufs, &|sub, weight, buf, scratch| {
-                            let beam = shoot::Beam { sub, weight };
-                            shoot::shoot(geometry, beam, radiance, buf, None, scratch)
+                        .collect(),
+                    None => range
+                        .clone()
+                        .into_par_iter()
+                        .zip(bufs.par_iter_mut())
+                        .map_init(DirectionScratch::default, |scratch, (d, buf)| {
+                            self.shoot_direction(work, pass, d, None, buf, scratch)
                         })
-                    }
-                    _ => {
-                        return Err(crate::Error::Parameter(format!(
-                            "{pass:?} is not a pass of iteration {}",
-                            work.index
-                        )));
-                    }
-                })
+                        .collect(),
+                }
             };
         if let (Pass::Shoot, Mode::Direct { mirrors: true, .. }) = (pass, &work.mode)
             && maps.as_ref().is_none_or(|m| m.len() != range.len())
@@ -626,7 +630,7 @@ impl Propagation {
         }
         // Σ over the batch's directions in direction order, from zero; texel
         // blocks in parallel (each texel's additions stay in order).
-        let mut sum = vec![[0.0; 3]; texels];
+        let mut sum = vec![[0.0; 3]; self.atlas.texels];
         let mut flow = Flow::default();
         let mut maps = maps;
         let mut start = range.start;

@@ -1,0 +1,326 @@
+//! How one process's threads shoot a run of batches: every thread **claims** the next direction
+//! the moment it is done with one, and each batch adds its directions up **in direction order**
+//! as they arrive.
+//!
+//! Why: the bits of an iteration are fixed by its batch sums, each `Σ_d buf_d` over the batch's
+//! directions in direction order from zero (see [`super::work`]). The first schedules kept that
+//! order by meeting: the threads shared a batch CHUNK directions at a time and waited at the end
+//! of every chunk for its slowest direction (with 16 threads, one direction each: every chunk
+//! waited for the slowest of 16), or each thread took a home of whole batches cut by what they
+//! cost the iteration before (too few batches for more than four threads, and wrong after a
+//! pass of another shape). Here nothing waits for a direction but the sum of its own batch:
+//!
+//! - **Claiming.** The directions are dealt in a fixed order ([`claim_order`]) through one
+//!   atomic counter; a thread computes its direction into a buffer of its own
+//!   (`Propagation::shoot_direction`, the kernel every schedule shares).
+//! - **Adding in order.** A finished direction is handed to its batch. Whichever thread hands
+//!   over the batch's next direction in order adds it, and any that were waiting behind it,
+//!   into the batch's sum (one thread at a time per batch; the others leave theirs and go on
+//!   claiming). So each texel's additions happen in direction order, and the sums are the bits
+//!   of every other schedule, on any number of threads.
+//! - **Several batches at once.** One batch takes one addition at a time, so the threads claim
+//!   round-robin across a group of up to `threads` batches: each batch then receives a
+//!   direction every `threads / width` directions' time, and its additions (a pass over the
+//!   texels, a fraction of a direction's shooting) keep up.
+//! - **Bounded memory.** A direction that finished ahead of an earlier one of its batch waits
+//!   with its buffer; at most `2 · threads` buffers are out at once (a thread that would take
+//!   another waits for one to come back, which the thread shooting the oldest direction of
+//!   every batch always makes possible). So a pass holds `width` sums and `2 · threads`
+//!   texel-sized buffers, whatever its length.
+
+use super::Propagation;
+use super::shoot::Flow;
+use super::work::{BatchSum, DirectionScratch, IterationWork, MirrorIo, Pass, add_into};
+use crate::scene::Rgb;
+use std::collections::BTreeMap;
+use std::ops::Range;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::{Condvar, Mutex, MutexGuard};
+use std::time::Instant;
+
+/// The order in which threads claim the directions of consecutive batches `ranges` (each a
+/// non-empty run of directions): the batches in groups of `width`, and within a group
+/// round-robin, the first direction of each batch, then the second of each, and so on. Each
+/// entry is (batch index within `ranges`, direction).
+pub(crate) fn claim_order(ranges: &[Range<usize>], width: usize) -> Vec<(usize, usize)> {
+    let width = width.max(1);
+    let mut order = Vec::with_capacity(ranges.iter().map(|r| r.len()).sum());
+    for (g, group) in ranges.chunks(width).enumerate() {
+        let longest = group.iter().map(|r| r.len()).max().unwrap_or(0);
+        for k in 0..longest {
+            for (i, range) in group.iter().enumerate() {
+                if k < range.len() {
+                    order.push((g * width + i, range.start + k));
+                }
+            }
+        }
+    }
+    order
+}
+
+/// A direction shot, waiting to be added to its batch's sum.
+struct Shot {
+    buf: Vec<Rgb>,
+    flow: Flow,
+    seconds: f64,
+}
+
+/// One batch's sum as it grows.
+struct Sum {
+    /// The direction to add next.
+    next: usize,
+    /// Directions shot ahead of `next`.
+    waiting: BTreeMap<usize, Shot>,
+    /// Σ of the directions before `next`, from zero; out while `adding`.
+    texels: Option<Vec<Rgb>>,
+    flow: Flow,
+    /// Seconds the batch's directions took to shoot, added up over the threads.
+    seconds: f64,
+    /// A thread is adding to `texels`.
+    adding: bool,
+}
+
+/// The texel-sized buffers lent to the threads: at most `cap` out at once.
+struct Buffers {
+    free: Vec<Vec<Rgb>>,
+    out: usize,
+}
+
+/// What the threads share while they shoot a run of batches.
+struct Claims<'m, 'x> {
+    order: Vec<(usize, usize)>,
+    next: AtomicUsize,
+    /// Directions added to their sums so far (what progress reports).
+    added: AtomicUsize,
+    sums: Vec<Mutex<Sum>>,
+    buffers: Mutex<Buffers>,
+    returned: Condvar,
+    cap: usize,
+    texels: usize,
+    /// Per direction of the run (from `first`), its mirror maps until claimed.
+    maps: Vec<Mutex<Option<&'m mut MirrorIo<'x>>>>,
+    first: usize,
+    failed: AtomicBool,
+    error: Mutex<Option<crate::Error>>,
+}
+
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+impl Claims<'_, '_> {
+    /// A buffer for the next direction, waiting while `cap` are out; `None` once a thread failed.
+    fn borrow(&self) -> Option<Vec<Rgb>> {
+        let mut b = lock(&self.buffers);
+        while b.out >= self.cap && !self.failed.load(Ordering::Acquire) {
+            b = self.returned.wait(b).unwrap_or_else(|p| p.into_inner());
+        }
+        if self.failed.load(Ordering::Acquire) {
+            return None;
+        }
+        b.out += 1;
+        Some(b.free.pop().unwrap_or_default())
+    }
+
+    fn give_back(&self, buf: Vec<Rgb>) {
+        let mut b = lock(&self.buffers);
+        b.out -= 1;
+        b.free.push(buf);
+        self.returned.notify_one();
+    }
+
+    fn fail(&self, e: crate::Error) {
+        lock(&self.error).get_or_insert(e);
+        self.failed.store(true, Ordering::Release);
+        let _guard = lock(&self.buffers);
+        self.returned.notify_all();
+    }
+
+    /// Hands direction `d`'s shot to batch `batch`, and adds whatever is next in order.
+    fn deliver(&self, batch: usize, d: usize, shot: Shot) {
+        let mut sum = lock(&self.sums[batch]);
+        sum.waiting.insert(d, shot);
+        if sum.adding {
+            return; // the thread adding will find it
+        }
+        sum.adding = true;
+        loop {
+            let next = sum.next;
+            let Some(shot) = sum.waiting.remove(&next) else {
+                sum.adding = false;
+                return;
+            };
+            sum.next += 1;
+            let mut texels = sum.texels.take().unwrap_or_else(|| vec![[0.0; 3]; self.texels]);
+            drop(sum);
+            add_into(&mut texels, &shot.buf);
+            self.give_back(shot.buf);
+            self.added.fetch_add(1, Ordering::Relaxed);
+            sum = lock(&self.sums[batch]);
+            sum.texels = Some(texels);
+            sum.flow.add(&shot.flow);
+            sum.seconds += shot.seconds;
+        }
+    }
+
+    /// Claims, shoots and delivers directions until none is left (or a thread failed).
+    fn work(&self, prop: &Propagation, work: &IterationWork, pass: Pass, mut heard: impl FnMut(usize)) {
+        let mut scratch = DirectionScratch::default();
+        loop {
+            if self.failed.load(Ordering::Acquire) {
+                return;
+            }
+            let Some(mut buf) = self.borrow() else { return };
+            let k = self.next.fetch_add(1, Ordering::Relaxed);
+            let Some(&(batch, d)) = self.order.get(k) else {
+                self.give_back(buf);
+                return;
+            };
+            let maps = match self.maps.get(d - self.first) {
+                Some(slot) => lock(slot).take(),
+                None => None,
+            };
+            let started = Instant::now();
+            match prop.shoot_direction(work, pass, d, maps, &mut buf, &mut scratch) {
+                Ok(flow) => {
+                    let seconds = started.elapsed().as_secs_f64();
+                    self.deliver(batch, d, Shot { buf, flow, seconds });
+                    heard(self.added.load(Ordering::Relaxed));
+                }
+                Err(e) => {
+                    self.give_back(buf);
+                    self.fail(e);
+                    return;
+                }
+            }
+        }
+    }
+}
+
+impl Propagation {
+    /// Shoots batches `batches` of `pass` on the current rayon pool's threads, directions
+    /// claimed one at a time (see the module docs): per batch its sum (the bits of
+    /// [`Propagation::run_batch`]) and the seconds its directions took to shoot, added up over
+    /// the threads. `maps` are the mirror maps of the batches' directions, in order, when the
+    /// pass shoots them. `progress` hears, on the calling thread, how many directions are
+    /// added to their sums so far.
+    pub(crate) fn shoot_claimed(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        batches: Range<usize>,
+        maps: Option<&mut [MirrorIo]>,
+        mut progress: impl FnMut(usize),
+    ) -> crate::Result<Vec<(BatchSum, f64)>> {
+        let l = self.directions.len();
+        let ranges: Vec<Range<usize>> = batches.clone().map(|b| work.batch_range(b, l)).collect();
+        if let Some(b) = ranges.iter().position(|r| r.is_empty()) {
+            return Err(crate::Error::Parameter(format!(
+                "batch {} out of range ({} batches)",
+                batches.start + b,
+                work.batches()
+            )));
+        }
+        let (first, count) = match (ranges.first(), ranges.last()) {
+            (Some(a), Some(b)) => (a.start, b.end - a.start),
+            _ => return Ok(Vec::new()),
+        };
+        if let (Pass::Shoot, true) = (pass, work.uses_mirror_maps())
+            && maps.as_ref().is_none_or(|m| m.len() != count)
+        {
+            return Err(crate::Error::Parameter(format!(
+                "batches {batches:?} need the mirror maps of their {count} directions"
+            )));
+        }
+        let threads = rayon::current_num_threads().max(1);
+        let claims = Claims {
+            order: claim_order(&ranges, threads),
+            next: AtomicUsize::new(0),
+            added: AtomicUsize::new(0),
+            sums: ranges
+                .iter()
+                .map(|r| {
+                    Mutex::new(Sum {
+                        next: r.start,
+                        waiting: BTreeMap::new(),
+                        texels: None,
+                        flow: Flow::default(),
+                        seconds: 0.0,
+                        adding: false,
+                    })
+                })
+                .collect(),
+            buffers: Mutex::new(Buffers {
+                free: self.buffers.take(),
+                out: 0,
+            }),
+            returned: Condvar::new(),
+            cap: 2 * threads,
+            texels: self.atlas.texels,
+            maps: maps
+                .map(|m| m.iter_mut().map(|io| Mutex::new(Some(io))).collect())
+                .unwrap_or_default(),
+            first,
+            failed: AtomicBool::new(false),
+            error: Mutex::new(None),
+        };
+        let mut reported = 0;
+        rayon::in_place_scope(|scope| {
+            for _ in 1..threads {
+                scope.spawn(|_| claims.work(self, work, pass, |_| {}));
+            }
+            // The calling thread claims too, and passes the progress on.
+            claims.work(self, work, pass, |added| {
+                if added > reported {
+                    reported = added;
+                    progress(added);
+                }
+            });
+        });
+        if let Some(e) = lock(&claims.error).take() {
+            return Err(e);
+        }
+        let Claims { sums, buffers, .. } = claims;
+        self.buffers
+            .keep(buffers.into_inner().unwrap_or_else(|p| p.into_inner()).free);
+        let out: Vec<(BatchSum, f64)> = (sums.into_iter().zip(&ranges))
+            .map(|(sum, range)| {
+                let sum = sum.into_inner().unwrap_or_else(|p| p.into_inner());
+                debug_assert_eq!(sum.next, range.end, "every direction of the batch was added");
+                let texels = sum.texels.unwrap_or_else(|| vec![[0.0; 3]; self.atlas.texels]);
+                let batch = BatchSum {
+                    texels,
+                    flow: sum.flow.into(),
+                };
+                (batch, sum.seconds)
+            })
+            .collect();
+        if count > reported {
+            progress(count);
+        }
+        Ok(out)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn claims_go_round_robin_within_groups_of_batches() {
+        let ranges = [0..3, 3..5, 5..9];
+        assert_eq!(
+            claim_order(&ranges, 2),
+            [(0, 0), (1, 3), (0, 1), (1, 4), (0, 2), (2, 5), (2, 6), (2, 7), (2, 8)]
+        );
+        // One thread: plain direction order.
+        let one: Vec<usize> = claim_order(&ranges, 1).into_iter().map(|(_, d)| d).collect();
+        assert_eq!(one, (0..9).collect::<Vec<_>>());
+        // Every direction exactly once, whatever the width.
+        for width in 1..6 {
+            let mut all: Vec<usize> = claim_order(&ranges, width).into_iter().map(|(_, d)| d).collect();
+            all.sort();
+            assert_eq!(all, (0..9).collect::<Vec<_>>(), "width {width}");
+        }
+    }
+}
