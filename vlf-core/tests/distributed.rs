@@ -573,3 +573,35 @@ fn a_block_takes_its_totals_along_and_is_computed_again_only_once_they_are_resto
     assert_eq!(out2.to_bytes(), out.to_bytes());
     assert_eq!(block2.unwrap(), block);
 }
+
+/// The big configurations' shape (l = 8193, the largest direction set: 16 batches of 512
+/// directions) at a size CI affords (N = 8): the same bits from the in-process step on 1 and 2
+/// threads, from 1, 2 and 3 workers, with mirrors and with perturbation.
+#[test]
+fn the_largest_direction_set_gives_the_same_bits_on_any_split() {
+    for (scene, perturb) in [(mirror_room(), 0), (lit_box(), 1)] {
+        let options = Options {
+            directions: 8193,
+            grid: GridSize::new(8, 4).unwrap(),
+            stop: Stop::Iterations(2),
+            ..options(perturb)
+        };
+        assert_eq!(vlf_core::propagate::work::batch_count(8193), 16);
+        let mut want = None;
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
+            let mut p = Propagation::new(scene.clone(), options.clone()).unwrap();
+            pool.install(|| p.run(|_| {}));
+            let got = without_times(p.checkpoint());
+            match &want {
+                None => want = Some(got),
+                Some(w) => assert!(got == *w, "{threads} threads changed the bits"),
+            }
+        }
+        let want = want.unwrap();
+        for workers in [1, 2, 3] {
+            let (_, stored) = run_distributed(&scene, &options, workers, false);
+            assert!(without_times(stored) == want, "{workers} workers changed the bits");
+        }
+    }
+}

@@ -19,14 +19,22 @@
 //!   claiming). So each texel's additions happen in direction order, and the sums are the bits
 //!   of every other schedule, on any number of threads.
 //! - **Several batches at once.** One batch takes one addition at a time, so the threads claim
-//!   round-robin across a group of up to `threads` batches: each batch then receives a
-//!   direction every `threads / width` directions' time, and its additions (a pass over the
-//!   texels, a fraction of a direction's shooting) keep up.
+//!   round-robin across a group of up to `threads` batches: with as many batches as threads,
+//!   each batch receives about one direction per direction's time, and its additions (a pass
+//!   over the texels, a fraction of a direction's shooting) keep up.
 //! - **Bounded memory.** A direction that finished ahead of an earlier one of its batch waits
 //!   with its buffer; at most `2 · threads` buffers are out at once (a thread that would take
-//!   another waits for one to come back, which the thread shooting the oldest direction of
-//!   every batch always makes possible). So a pass holds `width` sums and `2 · threads`
-//!   texel-sized buffers, whatever its length.
+//!   another waits for one to come back). A pass holds its batches' sums (16 from l = 513 on,
+//!   as the homes did) and those buffers, whatever its length.
+//! - **Why it cannot stall.** A thread borrows its buffer before it claims, and within a batch
+//!   the directions are claimed in order: so whenever a direction waits, the oldest unadded
+//!   direction of its batch is already claimed, and the thread shooting it holds its buffer
+//!   and is not waiting. That holds as long as shooting a direction never blocks nor yields to
+//!   other rayon work (no `join`, `scope` or parallel iterator inside
+//!   `Propagation::shoot_direction`): a thread that did could pick up another claiming loop and
+//!   wait for a buffer while its own direction stays unfinished. The factor 2 is for
+//!   throughput; any cap of at least one buffer a thread is live. A thread that fails or panics
+//!   wakes the waiting ones, which then stop.
 
 use super::Propagation;
 use super::shoot::Flow;
@@ -71,7 +79,8 @@ struct Sum {
     next: usize,
     /// Directions shot ahead of `next`.
     waiting: BTreeMap<usize, Shot>,
-    /// Σ of the directions before `next`, from zero; out while `adding`.
+    /// Σ of the directions before `next`, from zero (`None` before the first, and while the
+    /// adding thread adds to it outside the lock).
     texels: Option<Vec<Rgb>>,
     flow: Flow,
     /// Seconds the batch's directions took to shoot, added up over the threads.
@@ -131,6 +140,11 @@ impl Claims<'_, '_> {
 
     fn fail(&self, e: crate::Error) {
         lock(&self.error).get_or_insert(e);
+        self.stop();
+    }
+
+    /// Stops every thread: none claims again, and those waiting for a buffer wake.
+    fn stop(&self) {
         self.failed.store(true, Ordering::Release);
         let _guard = lock(&self.buffers);
         self.returned.notify_all();
@@ -165,6 +179,9 @@ impl Claims<'_, '_> {
 
     /// Claims, shoots and delivers directions until none is left (or a thread failed).
     fn work(&self, prop: &Propagation, work: &IterationWork, pass: Pass, mut heard: impl FnMut(usize)) {
+        // A panic here must not leave the others waiting for the buffer it held: they stop,
+        // and the scope passes the panic on.
+        let _unwinding = StopOnPanic(self);
         let mut scratch = DirectionScratch::default();
         loop {
             if self.failed.load(Ordering::Acquire) {
@@ -197,13 +214,25 @@ impl Claims<'_, '_> {
     }
 }
 
+/// Stops the claims when dropped by a panic.
+struct StopOnPanic<'c, 'm, 'x>(&'c Claims<'m, 'x>);
+
+impl Drop for StopOnPanic<'_, '_, '_> {
+    fn drop(&mut self) {
+        if std::thread::panicking() {
+            self.0.stop();
+        }
+    }
+}
+
 impl Propagation {
     /// Shoots batches `batches` of `pass` on the current rayon pool's threads, directions
     /// claimed one at a time (see the module docs): per batch its sum (the bits of
     /// [`Propagation::run_batch`]) and the seconds its directions took to shoot, added up over
     /// the threads. `maps` are the mirror maps of the batches' directions, in order, when the
     /// pass shoots them. `progress` hears, on the calling thread, how many directions are
-    /// added to their sums so far.
+    /// added to their sums so far: between the directions that thread shoots, and once more at
+    /// the end with all of them.
     pub(crate) fn shoot_claimed(
         &self,
         work: &IterationWork,
@@ -277,12 +306,16 @@ impl Propagation {
                 }
             });
         });
-        if let Some(e) = lock(&claims.error).take() {
+        let error = lock(&claims.error).take();
+        let Claims { sums, buffers, cap, .. } = claims;
+        // Kept for the next pass, no more than it may lend (a pool of fewer threads next time
+        // leaves the rest to be freed).
+        let mut free = buffers.into_inner().unwrap_or_else(|p| p.into_inner()).free;
+        free.truncate(cap);
+        self.buffers.keep(free);
+        if let Some(e) = error {
             return Err(e);
         }
-        let Claims { sums, buffers, .. } = claims;
-        self.buffers
-            .keep(buffers.into_inner().unwrap_or_else(|p| p.into_inner()).free);
         let out: Vec<(BatchSum, f64)> = (sums.into_iter().zip(&ranges))
             .map(|(sum, range)| {
                 let sum = sum.into_inner().unwrap_or_else(|p| p.into_inner());

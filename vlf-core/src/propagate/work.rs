@@ -92,9 +92,10 @@ pub enum Pass {
     ShootCopy { copy: u32 },
 }
 
-/// The per-direction texel buffers of a chunk ([`CHUNK`] of them, one
-/// colour per texel each: tens of megabytes at l = 513), kept by a
-/// [`Propagation`] from one block or step to the next. Allocated afresh each
+/// The per-direction texel buffers (one colour per texel each: a chunk's
+/// [`CHUNK`] in the plain loop, up to two per thread when directions are
+/// claimed, `super::claim`), kept by a [`Propagation`] from one block or step
+/// to the next. Allocated afresh each
 /// time, their pages are zeroed by the kernel each time: a worker computing
 /// its lease in single-batch blocks paid about 0.5 ms per block for it. Taken
 /// by one block at a time (a second one meanwhile gets fresh buffers); a clone
