@@ -258,11 +258,8 @@ mod tests {
             origin,
         ));
         let material = |name: &str, emission: f64| Material {
-            name: name.into(),
-            diffuse: [0.5; 3],
-            specular: [0.0; 3],
             emission: [emission; 3],
-            albedo_texture: None,
+            ..Material::grey(name, 0.5)
         };
         let (scene, _) = Scene::from_polygons(
             &polygons,
