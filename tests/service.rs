@@ -167,9 +167,16 @@ fn one_two_and_four_worker_processes_give_propagates_bits() {
     let expected = reference(dir, &["--iterations", "3"]);
     for workers in [1, 2, 4] {
         let store = dir.join(format!("store-{workers}"));
-        let (_server, url) = serve(dir, &store, "127.0.0.1:0", &[]);
+        // With two workers, they and the coordinator hold a few subfields each
+        // (`--subfield-memory`): built when needed, dropped, built again; the same field.
+        let budget: &[&str] = if workers == 2 {
+            &["--subfield-memory", "64KiB"]
+        } else {
+            &[]
+        };
+        let (_server, url) = serve(dir, &store, "127.0.0.1:0", budget);
         let _workers: Vec<Proc> = (0..workers)
-            .map(|w| worker(dir, &format!("worker-{workers}-{w}"), &url, &[]))
+            .map(|w| worker(dir, &format!("worker-{workers}-{w}"), &url, budget))
             .collect();
         let id = submit(&url, &["--iterations", "3"]);
         let watched = watch(&url, &id);

@@ -247,8 +247,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
                     .build()
                     .context("cannot start the compute threads")?
                     .install(|| in_process(&url, &scene, &spec))?,
-                Way::Split(count) => in_process_split(&url, &scene, &spec, Workers { count, threads })?,
-                Way::Service(count) => service(&runtime, &url, &scene, &spec, Workers { count, threads })?,
+                Way::Split(count) => in_process_split(&url, &scene, &spec, Workers::new(count, threads))?,
+                Way::Service(count) => service(&runtime, &url, &scene, &spec, Workers::new(count, threads))?,
             };
             let last = without_times(last);
             match &reference {

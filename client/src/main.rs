@@ -119,13 +119,18 @@ pub struct PropagateArgs {
     #[arg(long, visible_alias = "out", value_name = "URL")]
     store: String,
     /// Resume job JOB of the store from its last finished snapshot (its scene and parameters
-    /// are the job's; only --threads and --resample apply). Gives the same bits as a run that
-    /// never stopped.
+    /// are the job's; only --threads, --subfield-memory and --resample apply). Gives the same
+    /// bits as a run that never stopped.
     #[arg(long, value_name = "JOB", conflicts_with = "scene")]
     resume: Option<String>,
     /// Worker threads (default: all cores). Results are the same bits for any value.
     #[arg(long)]
     threads: Option<usize>,
+    /// Hold at most this much of the subfields (e.g. 512MiB, 2GB), building the others when
+    /// a direction is shot: the same bits in less memory, at the cost of rebuilding (see
+    /// docs/scaling.md). Default: all held.
+    #[arg(long, value_name = "SIZE")]
+    subfield_memory: Option<bytesize::ByteSize>,
     #[command(flatten)]
     job: JobFlags,
 }

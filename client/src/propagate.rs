@@ -53,6 +53,7 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     outcome?;
 
     let field_bytes = prop.field_bytes();
+    let subfields = prop.subfields.memory();
     let geometry = format!(
         "{} polygons in {} charts, {} texels",
         prop.scene.surfaces.len(),
@@ -78,6 +79,15 @@ pub fn run(args: PropagateArgs) -> Result<()> {
         (total - setup_seconds - store_seconds).max(0.0)
     );
     println!("  geometry        {geometry}");
+    if let Some(budget) = subfields.budget {
+        println!(
+            "  subfields       budget {:.1} MB, at most {:.1} MB held at once, {} built for {} directions",
+            budget as f64 / 1e6,
+            subfields.peak as f64 / 1e6,
+            subfields.builds,
+            job.options().directions
+        );
+    }
     Ok(())
 }
 
@@ -90,7 +100,7 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
             let store = Store::open_existing(&args.store)?;
             let mut job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
             let prop = pool
-                .install(|| job.resume())
+                .install(|| job.resume_within(args.subfield_budget()))
                 .with_context(|| format!("cannot resume job {id}"))?;
             println!(
                 "resuming job {id} in {} after {} iterations",
@@ -112,7 +122,7 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
                 "scene imported"
             );
             let prop = pool
-                .install(|| Propagation::new(scene, spec.options))
+                .install(|| Propagation::with_subfield_budget(scene, spec.options, args.subfield_budget()))
                 .context("cannot set up the light field")?;
             let store = Store::open(&args.store)?;
             let job = pool.install(|| FieldJob::create(&store, &prop, spec.encoding))?;
@@ -186,6 +196,14 @@ pub fn print_summary(
     }
     println!("  job             {} in {}", job.id(), args.store);
     Ok(())
+}
+
+impl PropagateArgs {
+    /// `--subfield-memory` in bytes.
+    pub fn subfield_budget(&self) -> Option<usize> {
+        self.subfield_memory
+            .map(|b| usize::try_from(b.as_u64()).unwrap_or(usize::MAX))
+    }
 }
 
 /// The thread pool `--threads` asks for (default: all cores).

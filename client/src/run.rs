@@ -53,6 +53,7 @@ pub fn run(args: RunArgs) -> Result<()> {
         Workers {
             count: workers,
             threads,
+            subfield_budget: args.subfield_budget(),
         },
         Follow::Progress,
     ))?;
@@ -74,6 +75,20 @@ pub enum EmbeddedJob {
 pub struct Workers {
     pub count: usize,
     pub threads: usize,
+    /// Subfield bytes the process holds at most (the coordinator's propagation, which its
+    /// workers share); `None`: all.
+    pub subfield_budget: Option<usize>,
+}
+
+impl Workers {
+    /// `count` workers sharing `threads`, holding every subfield.
+    pub fn new(count: usize, threads: usize) -> Workers {
+        Workers {
+            count,
+            threads,
+            subfield_budget: None,
+        }
+    }
 }
 
 /// How to wait for the job.
@@ -111,6 +126,7 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
     let prototypes = Prototypes::new(workers.count);
     let config = ServeConfig {
         prototypes: Some(prototypes.clone()),
+        subfield_budget: workers.subfield_budget,
         ..ServeConfig::new(url.clone(), loopback)
     };
     let server = Server::start_with_store(config, store.clone())
@@ -129,6 +145,7 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
                 store: StoreChoice::Handle(store.clone()),
                 hang_after: None,
                 prototypes: Some(prototypes.clone()),
+                subfield_budget: workers.subfield_budget,
             };
             let mut stop = stop_rx.clone();
             tokio::spawn(vlf_worker::run(config, async move {

@@ -310,6 +310,10 @@ fn bad_input_gets_a_clear_error() {
             "threads",
         ),
         (
+            vec!["propagate", &cornell, "--out", &o_str, "--subfield-memory", "lots"],
+            "subfield-memory",
+        ),
+        (
             vec!["propagate", &cornell, "--out", &o_str, "--resolution", "100000"],
             "resolution",
         ),

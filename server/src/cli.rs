@@ -38,6 +38,10 @@ pub struct ServeArgs {
     /// Largest scene upload accepted, bytes.
     #[arg(long, default_value_t = ServeConfig::MAX_UPLOAD_BYTES)]
     pub max_upload_bytes: u64,
+    /// Hold at most this much of a job's subfields (e.g. 256MiB): the coordinator reads them
+    /// only to set a job up and, with mirrors, to write its field. Default: all held.
+    #[arg(long, value_name = "SIZE")]
+    pub subfield_memory: Option<bytesize::ByteSize>,
 }
 
 impl ServeArgs {
@@ -67,6 +71,9 @@ impl ServeArgs {
             },
             max_upload_bytes: self.max_upload_bytes,
             prototypes: None,
+            subfield_budget: self
+                .subfield_memory
+                .map(|b| usize::try_from(b.as_u64()).unwrap_or(usize::MAX)),
         })
     }
 }

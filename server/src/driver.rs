@@ -35,9 +35,9 @@ pub enum SubmitError {
 /// Creates a job for `scene` with `spec` in the scheduler's store (snapshot 0 written), and
 /// starts driving it. Returns its first status.
 pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Result<JobStatus, SubmitError> {
-    let store = sched.store().clone();
+    let (store, budget) = (sched.store().clone(), sched.subfield_budget());
     let created = vlf_store::blocking(move || -> Result<_, SubmitError> {
-        let prop = Propagation::new(scene, spec.options).map_err(SubmitError::Invalid)?;
+        let prop = Propagation::with_subfield_budget(scene, spec.options, budget).map_err(SubmitError::Invalid)?;
         let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
         if spec.resample {
             job.set_resample(true)?;
@@ -65,13 +65,13 @@ pub async fn recover(sched: &Arc<Scheduler>) -> Result<usize, StoreError> {
         if sched.has_job(&id) {
             continue;
         }
-        let store = sched.store().clone();
+        let (store, budget) = (sched.store().clone(), sched.subfield_budget());
         let opened = {
             let id = id.clone();
             vlf_store::blocking(move || -> Result<Result<Coordinator, JobStatus>, StoreError> {
                 let job = FieldJob::open(&store, &id)?;
                 match job.job().manifest().state {
-                    JobState::Queued | JobState::Propagating { .. } => Ok(Ok(Coordinator::resume(job)?)),
+                    JobState::Queued | JobState::Propagating { .. } => Ok(Ok(Coordinator::resume_within(job, budget)?)),
                     _ => Ok(Err(stored_status(&job))),
                 }
             })

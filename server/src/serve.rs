@@ -42,6 +42,9 @@ pub struct ServeConfig {
     /// Workers in this process take their jobs' geometry from here instead of building it
     /// (`vlf run`).
     pub prototypes: Option<Prototypes>,
+    /// At most this many bytes of a job's subfields held by the coordinator (and by workers in
+    /// this process, which share its propagation); `None`: all.
+    pub subfield_budget: Option<usize>,
 }
 
 impl ServeConfig {
@@ -58,6 +61,7 @@ impl ServeConfig {
             timing: Timing::default(),
             max_upload_bytes: Self::MAX_UPLOAD_BYTES,
             prototypes: None,
+            subfield_budget: None,
         }
     }
 }
@@ -110,7 +114,7 @@ impl Server {
             }
             t => t.clone(),
         };
-        let scheduler = Scheduler::new(store, config.timing, config.prototypes.clone());
+        let scheduler = Scheduler::new(store, config.timing, config.prototypes.clone(), config.subfield_budget);
         let resumed = driver::recover(&scheduler).await?;
         if resumed > 0 {
             tracing::info!(resumed, "took up unfinished jobs of the store");

@@ -419,7 +419,7 @@ mod tests {
     /// A scheduler over a `memory://` store with one propagating job, its iteration started.
     fn scheduler_with_a_job() -> (Arc<Scheduler>, JobId) {
         let store = vlf_store::Store::open("memory://").unwrap();
-        let sched = Scheduler::new(store, Timing::default(), None);
+        let sched = Scheduler::new(store, Timing::default(), None, None);
         let id = JobId::generate();
         sched
             .add_job(v1::JobStatus {

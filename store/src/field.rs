@@ -267,6 +267,12 @@ impl FieldJob {
     /// The propagation as it stood after the last finished snapshot, ready to step on with the
     /// same bits as a run that never stopped. A finished job cannot be resumed.
     pub fn resume(&mut self) -> Result<Propagation, StoreError> {
+        self.resume_within(None)
+    }
+
+    /// [`FieldJob::resume`], holding at most `budget` bytes of subfields when one is given
+    /// ([`Propagation::with_subfield_budget`]).
+    pub fn resume_within(&mut self, budget: Option<usize>) -> Result<Propagation, StoreError> {
         if self.job.manifest().state == JobState::Finished {
             return Err(self.job_error("the job is finished; nothing to resume".into()));
         }
@@ -275,7 +281,7 @@ impl FieldJob {
             .last_finished()
             .ok_or_else(|| self.job_error("no finished snapshot to resume from".into()))?;
         let checkpoint = self.checkpoint(k)?;
-        let p = Propagation::resume(self.scene.clone(), self.options.clone(), checkpoint)
+        let p = Propagation::resume_within(self.scene.clone(), self.options.clone(), checkpoint, budget)
             .map_err(|e| self.field_error(e))?;
         self.job.set_state(JobState::Propagating { iteration: k + 1 })?;
         Ok(p)

@@ -631,6 +631,82 @@ fn runs_computed_in_steps(o: &Opener) {
     assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
 }
 
+/// A job whose subfields do not fit one worker's budget completes across three workers, each
+/// holding at most its budget (plus what its threads read: `budget + 2 · threads · largest`
+/// bytes alive), with the bits of the in-process run. Each worker keeps a home of batches, as
+/// the scheduler keeps them: once its home's subfields are built (the first iteration), a
+/// diffuse scene's later iterations build none; a mirror scene's gathers also read the routes'
+/// source directions, which a budget may have to rebuild.
+fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
+    let store = Store::open("memory://").unwrap();
+    let reference = in_process(&store, &scene, &options);
+    let p = Propagation::new(scene, options).unwrap();
+    let all = p.subfields.memory().live;
+    let largest = p.subfields.map(|_, s| s.memory_bytes()).into_iter().max().unwrap();
+    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    drop(p);
+    let mut coordinator = Coordinator::resume(job).unwrap();
+    let budget = all * 45 / 100;
+    let mut workers: Vec<Replica> = (0..3)
+        .map(|_| Replica::within(FieldJob::open(&store, &id).unwrap(), Some(budget)).unwrap())
+        .collect();
+    let mut builds_after_first = Vec::new();
+    while !coordinator.finished() {
+        let k = coordinator.iteration();
+        while let Some((pass, batches)) = coordinator.pending_pass() {
+            // Homes of contiguous batches: 3, 3 and 2 of 8.
+            std::thread::scope(|s| {
+                for (w, worker) in workers.iter_mut().enumerate() {
+                    let home: Vec<usize> = (0..batches).filter(|b| b * 3 / batches == w).collect();
+                    s.spawn(move || {
+                        for b in home {
+                            worker.compute(k, pass, b..b + 1).unwrap();
+                        }
+                    });
+                }
+            });
+            coordinator.absorb_pass().unwrap();
+        }
+        coordinator.finish_iteration().unwrap();
+        if k == 0 {
+            builds_after_first = workers.iter().map(|w| w.subfield_memory().builds).collect();
+        }
+    }
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+    let threads = rayon::current_num_threads();
+    for (w, worker) in workers.iter().enumerate() {
+        let held = worker.subfield_memory();
+        assert!(
+            held.peak <= budget + 2 * threads * largest,
+            "worker {w}: {} bytes alive, over {budget} + 2·{threads}·{largest}",
+            held.peak
+        );
+        assert!(
+            held.peak < all,
+            "worker {w} held the whole field ({all} bytes): {held:?}"
+        );
+        if steady {
+            assert_eq!(
+                held.builds, builds_after_first[w],
+                "worker {w} rebuilt its home: {held:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_diffuse_job_larger_than_a_workers_budget_completes_across_three() {
+    across_workers_within_budgets(bundled("cornell.obj"), options(0, 129), true);
+}
+
+#[test]
+fn a_mirror_job_larger_than_a_workers_budget_completes_across_three() {
+    across_workers_within_budgets(bundled("mirrors.obj"), options(0, 129), false);
+}
+
 per_backend! {
     runs_computed_in_steps_give_the_same_bits => crate::runs_computed_in_steps,
     a_lease_reads_only_what_it_needs => crate::a_lease_reads_only_what_it_needs,

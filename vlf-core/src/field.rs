@@ -134,7 +134,7 @@ impl LightField {
             totals,
             layouts: s.layouts,
             directions: p.directions,
-            subfields: p.subfields,
+            subfields: p.subfields.all(),
         });
         LightField {
             specular,
@@ -195,7 +195,7 @@ impl Propagation {
             .zip(self.mirror_totals())
             .map(|(s, totals)| SpecularField {
                 directions: self.directions.clone(),
-                subfields: self.subfields.clone(),
+                subfields: self.subfields.all(),
                 layouts: s.layouts.clone(),
                 totals,
             });

@@ -9,41 +9,14 @@ mod common;
 use common::*;
 use std::collections::HashMap;
 use vlf_core::propagate::{
-    BatchOutput, Checkpoint, HomeThreads, MapBatch, Options, Pass, Perturbation, Propagation, ShootingState, StateHead,
-    Stop, Totals, reduce,
+    BatchOutput, Checkpoint, HomeThreads, MapBatch, Options, Pass, Propagation, ShootingState, StateHead, Stop, Totals,
+    reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
 fn options(perturb: u32) -> Options {
-    Options {
-        directions: 129,
-        grid: GridSize::new(16, 4).unwrap(),
-        stop: Stop::Iterations(4),
-        perturbation: Perturbation {
-            iterations: perturb,
-            count: 3,
-        },
-        filter_sigma: Some(0.8),
-        ..Options::default()
-    }
-}
-
-/// A closed box of diffuse walls with one lamp: the perturbed tests' scene.
-fn lit_box() -> Scene {
-    closed_box(
-        0.6,
-        2,
-        &[3],
-        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
-    )
-}
-
-fn without_times(mut c: Checkpoint) -> Checkpoint {
-    for s in &mut c.stats {
-        s.seconds = 0.0;
-    }
-    c
+    split_options(perturb)
 }
 
 /// A fixed permutation of `0..n` that is far from the identity.

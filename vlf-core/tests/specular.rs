@@ -69,7 +69,7 @@ fn gathered_maps_carry_the_settled_power() {
     let (scene, directions, subfields) = (p.scene.clone(), p.directions.clone(), p.subfields.clone());
     let spec = p.specular.as_mut().unwrap();
     let pending = spec.pending.clone().expect("arrivals wait to be reflected");
-    let settled = spec.unshot_power(&scene, &directions, &subfields);
+    let settled = spec.unshot_power(&scene, &directions);
     assert!(lum(&settled) > 0.0);
     assert_eq!(settled, p.stats[1].specular_unshot);
     let read = |d: usize| spec.maps[d].incident.as_slice();
@@ -83,7 +83,7 @@ fn gathered_maps_carry_the_settled_power() {
     );
     spec.gather_all(&scene, &directions, &subfields);
     assert!(spec.pending.is_none());
-    let gathered = spec.unshot_power(&scene, &directions, &subfields);
+    let gathered = spec.unshot_power(&scene, &directions);
     for c in 0..3 {
         assert!(
             (gathered[c] - settled[c]).abs() <= 1e-9 * settled[c],

@@ -25,6 +25,12 @@ pub struct WorkerArgs {
     /// Name in the coordinator's logs (default: host name and process id).
     #[arg(long)]
     pub name: Option<String>,
+    /// Hold at most this much of a job's subfields (e.g. 512MiB, 2GB): the subfields of the
+    /// directions this worker shoots are kept, others are built when needed and dropped. The
+    /// same bits; a job whose field does not fit one machine completes across several.
+    /// Default: all of them.
+    #[arg(long, env = "VLF_SUBFIELD_MEMORY", value_name = "SIZE")]
+    pub subfield_memory: Option<bytesize::ByteSize>,
     /// Test hook: stall with a lease after this many leases.
     #[arg(long, hide = true)]
     pub hang_after_leases: Option<u64>,
@@ -55,6 +61,9 @@ impl WorkerArgs {
             },
             hang_after: self.hang_after_leases,
             prototypes: None,
+            subfield_budget: self
+                .subfield_memory
+                .map(|b| usize::try_from(b.as_u64()).unwrap_or(usize::MAX)),
         })
     }
 }

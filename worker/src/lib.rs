@@ -48,6 +48,10 @@ pub struct WorkerConfig {
     pub hang_after: Option<u64>,
     /// Propagations offered by a coordinator in this process: cloned instead of built.
     pub prototypes: Option<vlf_store::Prototypes>,
+    /// At most this many bytes of a job's subfields held ([`Replica::within`]): the worker
+    /// keeps those of its home's directions rather than the whole field's. `None`: all held.
+    /// (A prototype from a coordinator in this process comes with the coordinator's.)
+    pub subfield_budget: Option<usize>,
 }
 
 /// Why a worker stopped.
@@ -77,6 +81,7 @@ struct Replicas {
     store: Option<(String, Store)>,
     jobs: Vec<(JobId, Replica)>,
     prototypes: Option<vlf_store::Prototypes>,
+    subfield_budget: Option<usize>,
 }
 
 const CACHED_JOBS: usize = 2;
@@ -109,7 +114,7 @@ impl Replicas {
                 let opened = FieldJob::open(store, job)?;
                 let replica = match self.prototypes.as_ref().and_then(|p| p.take(job)) {
                     Some(prop) => Replica::at_snapshot(opened, prop),
-                    None => Replica::new(opened)?,
+                    None => Replica::within(opened, self.subfield_budget)?,
                 };
                 self.jobs.insert(0, (job.clone(), replica));
                 self.jobs.truncate(CACHED_JOBS);
@@ -145,6 +150,7 @@ pub async fn run(
         store: None,
         jobs: Vec::new(),
         prototypes: config.prototypes.clone(),
+        subfield_budget: config.subfield_budget,
     }));
     let mut stats = WorkerStats::default();
     let mut backoff = Duration::from_millis(50);

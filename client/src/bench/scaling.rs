@@ -92,16 +92,9 @@ pub(super) fn run(
                     .build()
                     .context("cannot start the compute threads")?
                     .install(|| in_process(url, scene, spec))?,
-                Setting::Workers { count, threads_each } => service(
-                    runtime,
-                    url,
-                    scene,
-                    spec,
-                    Workers {
-                        count,
-                        threads: count * threads_each,
-                    },
-                )?,
+                Setting::Workers { count, threads_each } => {
+                    service(runtime, url, scene, spec, Workers::new(count, count * threads_each))?
+                }
             };
             let last = without_times(last);
             match &reference {

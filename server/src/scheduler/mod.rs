@@ -177,6 +177,9 @@ pub struct Scheduler {
     timing: Timing,
     /// Where jobs' propagations are offered to workers in this process, if any share it.
     prototypes: Option<Prototypes>,
+    /// At most this many bytes of a job's subfields held by its coordinator (see
+    /// [`vlf_core::psf::Subfields`]); `None`: all.
+    subfield_budget: Option<usize>,
     state: Mutex<State>,
     /// Woken when batches become pending (a pass starts, a lease expires or fails).
     work_ready: Notify,
@@ -266,12 +269,19 @@ const MAX_BATCH_FAILURES: u32 = 3;
 
 impl Scheduler {
     /// A scheduler over `store`; with `prototypes`, every job's propagation is offered there to
-    /// workers of this process (see [`Prototypes`]).
-    pub fn new(store: Store, timing: Timing, prototypes: Option<Prototypes>) -> Arc<Scheduler> {
+    /// workers of this process (see [`Prototypes`]); with `subfield_budget`, a job's
+    /// propagation holds at most that many bytes of subfields.
+    pub fn new(
+        store: Store,
+        timing: Timing,
+        prototypes: Option<Prototypes>,
+        subfield_budget: Option<usize>,
+    ) -> Arc<Scheduler> {
         Arc::new(Scheduler {
             store,
             timing,
             prototypes,
+            subfield_budget,
             state: Mutex::new(State {
                 jobs: HashMap::new(),
                 workers: HashMap::new(),
@@ -288,6 +298,11 @@ impl Scheduler {
 
     pub fn prototypes(&self) -> Option<&Prototypes> {
         self.prototypes.as_ref()
+    }
+
+    /// The subfield budget of the jobs' propagations held here, if any.
+    pub fn subfield_budget(&self) -> Option<usize> {
+        self.subfield_budget
     }
 
     pub fn timing(&self) -> Timing {

@@ -15,6 +15,7 @@ fn scheduler(lease_ms: u64) -> Arc<Scheduler> {
             max_lease_batches: 1024,
         },
         None,
+        None,
     )
 }
 

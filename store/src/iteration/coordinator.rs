@@ -69,8 +69,14 @@ pub struct Coordinator {
 
 impl Coordinator {
     /// Takes over a job from its last finished snapshot.
-    pub fn resume(mut job: FieldJob) -> Result<Coordinator, StoreError> {
-        let prop = job.resume()?;
+    pub fn resume(job: FieldJob) -> Result<Coordinator, StoreError> {
+        Coordinator::resume_within(job, None)
+    }
+
+    /// [`Coordinator::resume`], holding at most `budget` bytes of subfields when one is given
+    /// (a coordinator reads them only to set the job up and, with mirrors, to write the field).
+    pub fn resume_within(mut job: FieldJob, budget: Option<usize>) -> Result<Coordinator, StoreError> {
+        let prop = job.resume_within(budget)?;
         Ok(Coordinator::new(job, prop))
     }
 

@@ -107,8 +107,22 @@ struct Current {
 impl Replica {
     /// Opens `job` and builds its geometry.
     pub fn new(job: FieldJob) -> Result<Replica, StoreError> {
-        let prop = Propagation::new(job.scene().clone(), job.options().clone()).map_err(|e| job.field_error(e))?;
+        Replica::within(job, None)
+    }
+
+    /// Opens `job` and builds its geometry, holding at most `budget` bytes of subfields when
+    /// one is given ([`Propagation::with_subfield_budget`]): a worker then holds the subfields
+    /// of the directions its leases shoot (its home, which stays put from one iteration to the
+    /// next), not the whole field's, and computes the same bits.
+    pub fn within(job: FieldJob, budget: Option<usize>) -> Result<Replica, StoreError> {
+        let prop = Propagation::with_subfield_budget(job.scene().clone(), job.options().clone(), budget)
+            .map_err(|e| job.field_error(e))?;
         Ok(Replica::with_propagation(job, prop))
+    }
+
+    /// What this replica's subfields hold and held ([`vlf_core::psf::SubfieldMemory`]).
+    pub fn subfield_memory(&self) -> vlf_core::psf::SubfieldMemory {
+        self.prop.subfields.memory()
     }
 
     /// A replica of `job` over `prop`, a propagation of the same scene and options (built by

@@ -120,7 +120,7 @@ impl Propagation {
                 "the mirror totals of direction {d} are not restored (a block computed before took them)"
             )));
         }
-        let (scene, dirs, subfields) = (&self.scene, &self.directions, &self.subfields[..]);
+        let (scene, dirs, subfields) = (&self.scene, &self.directions, &*self.subfields);
         let unshot: Option<Vec<Cow<[Rgb]>>> = spec.map(|spec| match &spec.pending {
             Some(pending) => {
                 let read = |d: usize| spec.maps[d].incident.as_slice();
@@ -169,7 +169,7 @@ impl Propagation {
             directions
                 .clone()
                 .zip(incident)
-                .map(|(d, m)| spec.power_in_of(dirs, subfields, d, m))
+                .map(|(d, m)| spec.power_in_of(dirs, &subfields.get(d), d, m))
                 .collect()
         });
         let output = BatchOutput {

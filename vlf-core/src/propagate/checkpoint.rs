@@ -297,7 +297,18 @@ impl Propagation {
     /// `checkpoint` into it: stepping on gives the same bits as the run the
     /// checkpoint was taken from.
     pub fn resume(scene: Scene, options: Options, checkpoint: Checkpoint) -> crate::Result<Propagation> {
-        let mut p = Propagation::new(scene, options)?;
+        Propagation::resume_within(scene, options, checkpoint, None)
+    }
+
+    /// [`Propagation::resume`] holding at most `budget` bytes of subfields, when one is given
+    /// ([`Propagation::with_subfield_budget`]).
+    pub fn resume_within(
+        scene: Scene,
+        options: Options,
+        checkpoint: Checkpoint,
+        budget: Option<usize>,
+    ) -> crate::Result<Propagation> {
+        let mut p = Propagation::with_subfield_budget(scene, options, budget)?;
         p.restore(checkpoint)?;
         Ok(p)
     }

@@ -64,7 +64,7 @@ pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
-use crate::psf::{Footprints, GridSize, RasterScratch, Subfield};
+use crate::psf::{Footprints, GridSize, Subfield, Subfields};
 use crate::scene::{Rgb, Scene};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -331,8 +331,9 @@ pub struct Propagation {
     pub options: Options,
     pub directions: DirectionSet,
     pub atlas: TexelAtlas,
-    /// Shared: a clone of the propagation (a worker's replica) does not copy them.
-    pub subfields: Arc<[Subfield]>,
+    /// Held whole, or built on demand within a budget ([`Subfields`]). Shared: a clone of the
+    /// propagation (a worker's replica) does not copy them.
+    pub subfields: Arc<Subfields>,
     /// What the subfields rasterise, for the rotated copies built on the fly.
     footprints: Arc<Footprints>,
     /// Diffuse reflectance `ρ_t` of every texel ([`crate::maps::albedo`]).
@@ -439,25 +440,33 @@ impl Propagation {
     /// Builds the field's geometry (directions, subfields, texel grids,
     /// discrete areas) and loads the emitters' power as unshot.
     pub fn new(scene: Scene, options: Options) -> crate::Result<Self> {
+        Propagation::with_subfield_budget(scene, options, None)
+    }
+
+    /// [`Propagation::new`], holding at most `budget` bytes of subfields when one is given
+    /// (built on demand, least recently used dropped first: [`Subfields::within`]): the same
+    /// bits, in the memory a worker needs for the directions it shoots rather than for the
+    /// whole field. Set-up still reads every subfield once (two or three passes over the
+    /// directions, each rebuilding what the budget did not keep).
+    pub fn with_subfield_budget(scene: Scene, options: Options, budget: Option<usize>) -> crate::Result<Self> {
         options.validate()?;
         let directions = DirectionSet::new(options.directions)?;
         let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing())?;
         let grid = options.grid;
         let footprints = Arc::new(Footprints::new(&scene, &atlas.plane_rep));
         let albedo: Arc<[Rgb]> = crate::maps::albedo::texel_albedo(&scene, &atlas).into();
-        let subfields: Vec<Subfield> = (0..directions.len())
-            .into_par_iter()
-            .map_init(RasterScratch::default, |scratch, d| {
-                Subfield::build_with(&footprints, directions.frame(d), grid, scratch)
-            })
-            .collect();
+        let frames = (0..directions.len()).map(|d| directions.frame(d)).collect();
+        let subfields = match budget {
+            None => Subfields::build_all(footprints.clone(), frames, grid),
+            Some(bytes) => Subfields::within(footprints.clone(), frames, grid, bytes),
+        };
         let stacking = shoot::stacking(&scene, &atlas.chart_areas(&scene));
         let geometry = shoot::Geometry {
             scene: &scene,
             atlas: &atlas,
             stacking: &stacking,
         };
-        let projected_area = discrete_areas(geometry, &directions, |d| std::borrow::Cow::Borrowed(&subfields[d]));
+        let projected_area = discrete_areas(geometry, &directions, |d| subfields.get(d));
         let owners = atlas.owners();
         let emission_scale = emission_scales(&scene, &atlas, &projected_area, grid.cell_area());
         // Emission: Φ_t = Le·T_t·k_c (in cell-area units), each emitter's true power π·Le·A.
@@ -494,7 +503,7 @@ impl Propagation {
             options,
             directions,
             atlas,
-            subfields: subfields.into(),
+            subfields: Arc::new(subfields),
             footprints,
             albedo,
             projected_area,
@@ -517,7 +526,7 @@ impl Propagation {
     pub fn unshot_power(&self) -> Rgb {
         let mut p = sum_rgb(&self.current);
         if let Some(s) = &self.specular {
-            let q = s.unshot_power(&self.scene, &self.directions, &self.subfields);
+            let q = s.unshot_power(&self.scene, &self.directions);
             for c in 0..3 {
                 p[c] += q[c];
             }
@@ -667,7 +676,7 @@ impl Propagation {
             let (directions, subfields) = (&self.directions, &self.subfields);
             work.power_in = (0..l)
                 .into_par_iter()
-                .map(|d| spec.power_in_of(directions, subfields, d, &spec.maps[d].incident))
+                .map(|d| spec.power_in_of(directions, &subfields.get(d), d, &spec.maps[d].incident))
                 .collect();
         }
         self.finish_iteration(work, started)
@@ -693,7 +702,7 @@ impl Propagation {
         let (exchange, settled) = match self.specular.as_mut() {
             Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
                 let power_in = std::mem::take(&mut work.power_in);
-                let exchange = spec.settle(scene, &self.subfields, &power_in);
+                let exchange = spec.settle(scene, &power_in);
                 spec.pending = Some(specular::Pending { power_in });
                 (exchange, true)
             }
@@ -714,7 +723,7 @@ impl Propagation {
         self.current = next;
         let specular_unshot = match &self.specular {
             Some(_) if settled => exchange.reflected,
-            Some(s) => s.unshot_power(&self.scene, &self.directions, &self.subfields),
+            Some(s) => s.unshot_power(&self.scene, &self.directions),
             None => [0.0; 3],
         };
         let stats = IterationStats {
@@ -730,7 +739,7 @@ impl Propagation {
         stats
     }
 
-    /// Bytes held by the field: subfield tables, the radiance maps of the
+    /// Bytes held by the field: subfield tables (those held, within a budget), the radiance maps of the
     /// texels and, with mirrors, their layouts and directional totals (f32).
     pub fn field_bytes(&self) -> usize {
         let specular = self.specular.as_ref().map_or(0, |s| {
@@ -739,7 +748,7 @@ impl Propagation {
                 .map(|l| l.entry_base.len() * 4 + l.entries.len() * 12 + l.len as usize * 12)
                 .sum()
         });
-        self.subfields.iter().map(Subfield::memory_bytes).sum::<usize>()
+        self.subfields.memory().live
             + self.atlas.texels * (std::mem::size_of::<[f32; 3]>() + std::mem::size_of::<f32>())
             + specular
     }
@@ -799,9 +808,10 @@ pub(crate) fn emission_scales(scene: &Scene, atlas: &TexelAtlas, projected_area:
 
 /// Computes `T_t = Σ_ω Δω · n_t(ω)` for a direction set whose subfields are
 /// given by `subfield(d)` (stored or built on the fly).
-pub(crate) fn discrete_areas<'a, F>(geometry: shoot::Geometry, directions: &DirectionSet, subfield: F) -> Vec<f64>
+pub(crate) fn discrete_areas<F, S>(geometry: shoot::Geometry, directions: &DirectionSet, subfield: F) -> Vec<f64>
 where
-    F: Fn(usize) -> std::borrow::Cow<'a, Subfield> + Sync,
+    F: Fn(usize) -> S + Sync,
+    S: std::ops::Deref<Target = Subfield>,
 {
     let (area, _) = map_reduce_directions(
         directions.len(),

@@ -11,7 +11,7 @@
 //! specular work entirely.
 
 use super::shoot::{Geometry, Scratch, for_each_ray};
-use crate::psf::Subfield;
+use crate::psf::Subfields;
 use crate::scene::Scene;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -48,7 +48,7 @@ impl Plan {
     }
 
     /// Counts surfaces by kind; finds which mirrors light reaches, and when.
-    pub(crate) fn new(scene: &Scene, geometry: Geometry, subfields: &[Subfield]) -> Plan {
+    pub(crate) fn new(scene: &Scene, geometry: Geometry, subfields: &Subfields) -> Plan {
         let kinds = |f: fn(&crate::scene::Material) -> bool| {
             (0..scene.surfaces.len()).filter(|&s| f(scene.material(s))).count()
         };
@@ -103,10 +103,11 @@ impl Plan {
 
 /// All (sender, receiver) surface pairs that face each other along some ray
 /// of some subfield, sorted.
-fn sends_to(geometry: Geometry, subfields: &[Subfield]) -> Vec<(u32, u32)> {
-    let mut edges: Vec<(u32, u32)> = subfields
-        .par_iter()
-        .map_init(Scratch::default, |scratch, sub| {
+fn sends_to(geometry: Geometry, subfields: &Subfields) -> Vec<(u32, u32)> {
+    let mut edges: Vec<(u32, u32)> = (0..subfields.len())
+        .into_par_iter()
+        .map_init(Scratch::default, |scratch, d| {
+            let sub = &subfields.get(d);
             let mut pairs = Vec::new();
             for_each_ray(geometry, sub, None, scratch, |hits| {
                 for w in hits.windows(2) {

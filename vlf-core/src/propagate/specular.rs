@@ -46,7 +46,7 @@
 
 use super::shoot::NO_SLOT;
 use crate::directions::DirectionSet;
-use crate::psf::{Subfield, SurfaceProjection};
+use crate::psf::{Subfield, Subfields, SurfaceProjection};
 use crate::scene::{Rgb, Scene};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -201,6 +201,10 @@ pub struct Specular {
     /// The chart of every surface ([`crate::maps::TexelAtlas::chart_of`]): the polygons of a
     /// tessellated mirror read each other's rays.
     chart_of: Vec<u32>,
+    /// `slotted[d][k]`: does some ray of direction `d` cross mirror `k` (by ordinal)? What the
+    /// exchange's bookkeeping asks of every route, known without the subfields (which a
+    /// coordinator need not hold).
+    slotted: Vec<Vec<bool>>,
 }
 
 /// The last iteration's arrivals on mirrors, waiting to be reflected.
@@ -226,7 +230,7 @@ impl Specular {
     pub fn new(
         scene: &Scene,
         directions: &DirectionSet,
-        subfields: &[Subfield],
+        subfields: &Subfields,
         mirrors: Vec<u32>,
         chart_of: Vec<u32>,
     ) -> Self {
@@ -236,7 +240,17 @@ impl Specular {
             has_maps[m as usize] = true;
             ordinal[m as usize] = k as u32;
         }
-        let layouts: Vec<MirrorLayout> = subfields.par_iter().map(|s| MirrorLayout::new(s, &has_maps)).collect();
+        let (layouts, slotted): (Vec<MirrorLayout>, Vec<Vec<bool>>) = subfields
+            .map(|_, sub| {
+                let layout = MirrorLayout::new(sub, &has_maps);
+                let mut slotted = vec![false; mirrors.len()];
+                for &(s, _, e) in &layout.entries {
+                    slotted[ordinal[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
+                }
+                (layout, slotted)
+            })
+            .into_iter()
+            .unzip();
         let maps = layouts
             .iter()
             .map(|l| DirectionMaps {
@@ -278,6 +292,7 @@ impl Specular {
             pending: None,
             ordinal,
             chart_of,
+            slotted,
         }
     }
 
@@ -285,9 +300,9 @@ impl Specular {
     /// while arrivals are [`Pending`], the power the exchange reflects into
     /// them ([`Specular::settle`]: the gather scales each route to carry
     /// exactly that).
-    pub fn unshot_power(&self, scene: &Scene, directions: &DirectionSet, subfields: &[Subfield]) -> Rgb {
+    pub fn unshot_power(&self, scene: &Scene, directions: &DirectionSet) -> Rgb {
         if let Some(pending) = &self.pending {
-            return self.settle(scene, subfields, &pending.power_in).reflected;
+            return self.settle(scene, &pending.power_in).reflected;
         }
         let mut p = [0.0; 3];
         for (d, maps) in self.maps.iter().enumerate() {
@@ -326,16 +341,9 @@ impl Specular {
 
     /// `Φ_in(P, ω)` of direction `d` for every mirror `P` (by ordinal): the
     /// power its incident map `incident` holds, `Σ_slots I · Δω`.
-    pub fn power_in_of(
-        &self,
-        directions: &DirectionSet,
-        subfields: &[Subfield],
-        d: usize,
-        incident: &[Rgb],
-    ) -> Vec<Rgb> {
+    pub fn power_in_of(&self, directions: &DirectionSet, sub: &Subfield, d: usize, incident: &[Rgb]) -> Vec<Rgb> {
         let mut p = vec![[0.0; 3]; self.mirrors.len()];
         let w = directions.get(d).weight;
-        let sub = &subfields[d];
         for &(s, _, e) in &self.layouts[d].entries {
             let base = self.layouts[d].entry_base[e as usize] as usize;
             let acc = &mut p[self.ordinal[s as usize] as usize];
@@ -353,7 +361,7 @@ impl Specular {
     /// (`b·ρs·Φ_in` per route that has slots to fill) — the same sums, in
     /// the same order, as [`Specular::gather`] adds up, so a coordinator that
     /// never sees a map knows the exchange's power exactly.
-    pub fn settle(&self, scene: &Scene, subfields: &[Subfield], power_in: &[Vec<Rgb>]) -> Exchange {
+    pub fn settle(&self, scene: &Scene, power_in: &[Vec<Rgb>]) -> Exchange {
         let mut exchange = Exchange::default();
         for v in power_in.iter().flatten() {
             add(&mut exchange.incident, v);
@@ -362,7 +370,7 @@ impl Specular {
             let mut reflected = [0.0; 3];
             for route in routes {
                 let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
-                if pin.iter().all(|&p| p <= 0.0) || !self.has_slots(subfields, i, route.mirror) {
+                if pin.iter().all(|&p| p <= 0.0) || !self.slotted[i][self.ordinal[route.mirror as usize] as usize] {
                     continue;
                 }
                 let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
@@ -376,15 +384,6 @@ impl Specular {
             add(&mut exchange.reflected, &reflected);
         }
         exchange
-    }
-
-    /// Whether any ray of direction `i` crosses `mirror`.
-    fn has_slots(&self, subfields: &[Subfield], i: usize, mirror: u32) -> bool {
-        let entries = &subfields[i].entries;
-        self.layouts[i]
-            .entries_of(mirror)
-            .iter()
-            .any(|&(_, _, e)| entries[e as usize].rays > 0)
     }
 
     /// The source directions whose arrivals the gather of `targets` reads:
@@ -409,7 +408,7 @@ impl Specular {
     /// into new unshot maps and clears the incident maps: the exchange, as
     /// one process does it at the start of the iteration that shoots them.
     /// Nothing happens when no arrivals are pending.
-    pub fn gather_all(&mut self, scene: &Scene, directions: &DirectionSet, subfields: &[Subfield]) {
+    pub fn gather_all(&mut self, scene: &Scene, directions: &DirectionSet, subfields: &Subfields) {
         let Some(pending) = self.pending.take() else {
             return;
         };
@@ -439,13 +438,13 @@ impl Specular {
         &self,
         scene: &Scene,
         directions: &DirectionSet,
-        subfields: &[Subfield],
+        subfields: &Subfields,
         incident: &(dyn Fn(usize) -> &'a [Rgb] + Sync),
         power_in: &[Vec<Rgb>],
         i: usize,
     ) -> Vec<Rgb> {
         let layout = &self.layouts[i];
-        let sub = &subfields[i];
+        let sub = &subfields.get(i);
         let n = sub.grid.resolution;
         let weight_i = directions.get(i).weight;
         let mut out = vec![[0.0; 3]; layout.len as usize];
@@ -458,7 +457,7 @@ impl Specular {
             let surface = &scene.surfaces[route.mirror as usize];
             let rho = scene.materials[surface.material].specular;
             let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
-            let source = &subfields[route.source as usize];
+            let source = &subfields.get(route.source as usize);
             let source_layout = &self.layouts[route.source as usize];
             let source_incident = incident(route.source as usize);
             // Backward mapping: every slot of P in i reads the incident

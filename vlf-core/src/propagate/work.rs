@@ -515,8 +515,9 @@ impl Propagation {
         let DirectionScratch { shoot: walk, raster } = scratch;
         match (pass, &work.mode) {
             (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
+                let sub = self.subfields.get(d);
                 let beam = shoot::Beam {
-                    sub: &self.subfields[d],
+                    sub: &sub,
                     weight: self.directions.get(d).weight,
                 };
                 let io = match (mirrors, maps, self.specular.as_ref()) {

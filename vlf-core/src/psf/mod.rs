@@ -17,8 +17,10 @@
 
 pub mod footprint;
 pub mod raster;
+pub mod subfields;
 
 pub use footprint::{Footprints, RasterScratch};
+pub use subfields::{SubfieldMemory, SubfieldRef, Subfields};
 
 use glam::{DVec2, DVec3};
 use serde::{Deserialize, Serialize};

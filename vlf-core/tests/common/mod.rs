@@ -172,3 +172,39 @@ pub fn projected_solid_angle(p: DVec3, n: DVec3, polygon: &[DVec3]) -> f64 {
     }
     0.5 * sum.abs()
 }
+
+/// A small propagation split into 8 batches a pass (l = 129, N = 16, 4 iterations, the filter
+/// on), the first `perturb` iterations perturbed through 3 copies: what the tests of a split
+/// iteration (workers, threads, budgets) compare against one process.
+pub fn split_options(perturb: u32) -> vlf_core::propagate::Options {
+    use vlf_core::propagate::{Options, Perturbation, Stop};
+    Options {
+        directions: 129,
+        grid: vlf_core::psf::GridSize::new(16, 4).unwrap(),
+        stop: Stop::Iterations(4),
+        perturbation: Perturbation {
+            iterations: perturb,
+            count: 3,
+        },
+        filter_sigma: Some(0.8),
+        ..Options::default()
+    }
+}
+
+/// A closed box of diffuse walls with one lamp: the perturbed tests' scene.
+pub fn lit_box() -> Scene {
+    closed_box(
+        0.6,
+        2,
+        &[3],
+        vec![material("wall", 0.6, 0.0), material("lamp", 0.2, 1.0)],
+    )
+}
+
+/// A checkpoint without its wall-clock times, which are not the field's bits.
+pub fn without_times(mut c: vlf_core::propagate::Checkpoint) -> vlf_core::propagate::Checkpoint {
+    for s in &mut c.stats {
+        s.seconds = 0.0;
+    }
+    c
+}
