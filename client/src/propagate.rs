@@ -53,7 +53,8 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     outcome?;
 
     let field_bytes = prop.field_bytes();
-    let subfields = prop.subfields.memory();
+    // Read at the end: writing the field's mirror tiles reads subfields too.
+    let subfields = prop.subfields.clone();
     let geometry = format!(
         "{} polygons in {} charts, {} texels",
         prop.scene.surfaces.len(),
@@ -79,6 +80,7 @@ pub fn run(args: PropagateArgs) -> Result<()> {
         (total - setup_seconds - store_seconds).max(0.0)
     );
     println!("  geometry        {geometry}");
+    let subfields = subfields.memory();
     if let Some(budget) = subfields.budget {
         println!(
             "  subfields       budget {:.1} MB, at most {:.1} MB held at once, {} built for {} directions",

@@ -25,20 +25,22 @@ BUDGET=${4:-40MB}
 SCENE=${SCENE:-scenes/cornell.obj}
 FLAGS=(--directions 8193 --resolution 128 --iterations 4 --encoding f32)
 WORK=$(mktemp -d /tmp/vlf-memory-XXXXXX)
-PIDS=()
-CGROUPS=()
+# The coordinators' process ids and the cgroups made, for the clean-up (set in this shell, not
+# in command substitutions' subshells).
+SERVERS=""
+CGROUPS=""
 
 cleanup() {
-    for p in "${PIDS[@]}"; do kill "$p" 2>/dev/null || true; done
-    for g in "${CGROUPS[@]}"; do
+    for p in $SERVERS; do kill "$p" 2>/dev/null || true; done
+    for g in $CGROUPS; do
         while read -r p; do kill -KILL "$p" 2>/dev/null || true; done < "$g/cgroup.procs"
     done
     wait 2>/dev/null || true
-    for g in "${CGROUPS[@]}"; do rmdir "$g" 2>/dev/null || true; done
+    for g in $CGROUPS; do rmdir "$g" 2>/dev/null || true; done
 }
 trap cleanup EXIT
 
-# A cgroup limited to LIMIT_MB; prints its directory.
+# A cgroup limited to LIMIT_MB, into $group.
 limited_cgroup() {
     local name=vlf-$1-$$ dir
     if [ -d /sys/fs/cgroup/memory ]; then
@@ -51,8 +53,8 @@ limited_cgroup() {
         echo $((LIMIT_MB << 20)) > "$dir/memory.max"
         echo 0 > "$dir/memory.swap.max" 2>/dev/null || true
     fi
-    CGROUPS+=("$dir")
-    echo "$dir"
+    CGROUPS="$CGROUPS $dir"
+    group=$dir
 }
 
 # Runs "$@" in cgroup $1 (the rest: the command), under GNU time into $WORK/$2.time.
@@ -74,52 +76,68 @@ grep -E "field memory|time split" "$WORK/reference.log"
 echo "   peak resident $(( $(cat "$WORK/reference.time") / 1024 )) MB"
 want=$(field_digest "$WORK/reference")
 
-# A coordinator on a free port over store $WORK/$1 (the rest: its flags); prints its URL.
+# A coordinator on a free port over store $WORK/$1 (the rest: its flags); its URL into $url,
+# its process id into $server.
 serve() {
     local store=$1
     shift
     "$VLF" serve --store "$WORK/$store" --listen 127.0.0.1:0 "$@" > "$WORK/$store-serve.log" 2>&1 &
-    PIDS+=($!)
+    server=$!
+    SERVERS="$SERVERS $server"
+    url=""
     for _ in $(seq 100); do
-        grep -q "listening on" "$WORK/$store-serve.log" && break
+        url=$(sed -n 's/^listening on //p' "$WORK/$store-serve.log")
+        [ -n "$url" ] && return
         sleep 0.1
     done
-    sed -n 's/^listening on //p' "$WORK/$store-serve.log"
+    echo "FAIL: the coordinator did not start"; cat "$WORK/$store-serve.log"; exit 1
+}
+
+# The first line of `vlf submit`'s output (the job id).
+submit() {
+    "$VLF" submit "$SCENE" --server "$url" "${FLAGS[@]}" > "$WORK/submit.log"
+    head -1 "$WORK/submit.log"
 }
 
 echo "== one worker limited to $LIMIT_MB MB, all subfields held"
-url=$(serve whole)
-group=$(limited_cgroup whole)
+serve whole
+limited_cgroup whole
 in_cgroup "$group" whole "$VLF" worker --server "$url" --threads 2 --name whole &
 worker=$!
-id=$("$VLF" submit "$SCENE" --server "$url" "${FLAGS[@]}" | head -1)
-if wait "$worker"; then
+id=$(submit)
+# Until the worker dies or the job ends (a worker does not exit when a job ends).
+"$VLF" watch "$id" --server "$url" > "$WORK/whole-watch.log" 2>&1 &
+watch=$!
+while kill -0 "$worker" 2>/dev/null && kill -0 "$watch" 2>/dev/null; do sleep 1; done
+if kill -0 "$worker" 2>/dev/null; then
     echo "FAIL: the unbudgeted worker ran within $LIMIT_MB MB: raise the job's size or lower the limit"
     exit 1
 fi
+kill "$watch" 2>/dev/null || true
+wait "$watch" 2>/dev/null || true
+wait "$worker" || true
 echo "   the worker was killed, as expected: $(head -1 "$WORK/whole.time")"
 echo "   the job: $("$VLF" status "$id" --server "$url" | head -1)"
 
 echo "== $WORKERS workers limited to $LIMIT_MB MB each, --subfield-memory $BUDGET"
-url=$(serve budget --subfield-memory "$BUDGET")
-workers=()
+serve budget --subfield-memory "$BUDGET"
+workers=""
 for w in $(seq "$WORKERS"); do
-    group=$(limited_cgroup "w$w")
+    limited_cgroup "w$w"
     in_cgroup "$group" "w$w" "$VLF" worker --server "$url" --threads 1 --name "w$w" --subfield-memory "$BUDGET" &
-    workers+=($!)
-    PIDS+=($!)
+    workers="$workers $!"
 done
-id=$("$VLF" submit "$SCENE" --server "$url" "${FLAGS[@]}" | head -1)
+id=$(submit)
 start=$SECONDS
 "$VLF" watch "$id" --server "$url" > "$WORK/watch.log" 2>&1 || { cat "$WORK/watch.log"; exit 1; }
 echo "   finished in $((SECONDS - start)) s"
 # SIGTERM to the workers themselves (not to GNU time, which then reports their peak).
 for w in $(seq "$WORKERS"); do pkill -TERM -f "^$VLF worker .*--name w$w( |$)" || true; done
-for p in "${workers[@]}"; do wait "$p" || true; done
+for p in $workers; do wait "$p" || true; done
 for w in $(seq "$WORKERS"); do
     echo "   worker $w peak resident $(( $(tail -1 "$WORK/w$w.time") / 1024 )) MB"
 done
-echo "   coordinator peak resident so far $(( $(grep VmHWM "/proc/$(pgrep -f "^$VLF serve --store $WORK/budget")/status" | awk '{print $2}') / 1024 )) MB"
+echo "   coordinator peak resident so far $(( $(awk '/VmHWM/ {print $2}' "/proc/$server/status") / 1024 )) MB"
 got=$(field_digest "$WORK/budget")
 if [ "$got" != "$want" ]; then
     echo "FAIL: the stored field differs from the reference"

@@ -56,7 +56,7 @@ use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{
     Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Totals,
 };
-use vlf_core::psf::Subfield;
+use vlf_core::psf::Subfields;
 use vlf_core::scene::{Rgb, Scene};
 
 /// What a stored stage is: read by renderers and progress reports without the radiance.
@@ -80,7 +80,7 @@ pub struct Summary {
 
 /// Mirror radiance to store: the subfields and layouts that place it, and its values.
 struct Mirrors<'a> {
-    subfields: &'a [Subfield],
+    subfields: &'a Subfields,
     layouts: &'a [MirrorLayout],
     totals: &'a [Vec<[f32; 3]>],
 }
@@ -647,11 +647,10 @@ pub fn radiance_unit(scene: &Scene) -> f64 {
 }
 
 /// Every (direction, tile index, slot range) that holds mirror radiance: the tile blobs of a stage.
-fn mirror_tiles(layouts: &[MirrorLayout], subfields: &[Subfield]) -> Vec<(usize, u32, std::ops::Range<usize>)> {
+fn mirror_tiles(layouts: &[MirrorLayout], subfields: &Subfields) -> Vec<(usize, u32, std::ops::Range<usize>)> {
     layouts
         .iter()
-        .zip(subfields)
         .enumerate()
-        .flat_map(|(d, (l, sub))| l.tile_slots(sub).into_iter().map(move |(k, r)| (d, k, r)))
+        .flat_map(|(d, l)| l.tile_slots(&subfields.get(d)).into_iter().map(move |(k, r)| (d, k, r)))
         .collect()
 }

@@ -646,8 +646,11 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
     let id = job.id().clone();
     drop(p);
-    let mut coordinator = Coordinator::resume(job).unwrap();
     let budget = all * 45 / 100;
+    // The coordinator within the same budget: it reads subfields to set up and, with mirrors,
+    // to write the field's tiles.
+    let mut coordinator = Coordinator::resume_within(job, Some(budget)).unwrap();
+    let coordinator_subfields = coordinator.propagation().subfields.clone();
     let mut workers: Vec<Replica> = (0..3)
         .map(|_| Replica::within(FieldJob::open(&store, &id).unwrap(), Some(budget)).unwrap())
         .collect();
@@ -677,6 +680,11 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
     assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
     let threads = rayon::current_num_threads();
+    let held = coordinator_subfields.memory();
+    assert!(
+        held.peak <= budget + 2 * threads * largest && held.peak < all,
+        "the coordinator held {held:?} of {all}"
+    );
     for (w, worker) in workers.iter().enumerate() {
         let held = worker.subfield_memory();
         assert!(

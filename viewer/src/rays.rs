@@ -63,7 +63,7 @@ impl RayTables {
         };
         let (n, rotation, lattice, vectors) = spec.directions.lookup_tables();
         let l = spec.subfields.len();
-        let resolution = spec.subfields.first().map_or(0, |s| s.grid.resolution);
+        let resolution = spec.subfields.grid().resolution;
         let f = |v: f64| (v as f32).to_bits();
         words[0] = n as u32;
         words[1] = l as u32;
@@ -86,16 +86,18 @@ impl RayTables {
         words.extend(vectors.iter().flat_map(|v| v.to_array().map(f)));
 
         words[6] = words.len() as u32;
-        for sub in spec.subfields.iter() {
-            words.extend(sub.frame.u.to_array().map(f));
-            words.extend(sub.frame.v.to_array().map(f));
-            words.extend(sub.frame.shift.to_array().map(f));
+        for d in 0..l {
+            let frame = spec.subfields.frame(d);
+            words.extend(frame.u.to_array().map(f));
+            words.extend(frame.v.to_array().map(f));
+            words.extend(frame.shift.to_array().map(f));
         }
 
         // Windows: the rectangle of ray cells each mirror covers in each direction.
         let mut windows = Vec::with_capacity(l * mirrors as usize);
         let mut cells = Vec::new();
-        for (d, (sub, layout)) in spec.subfields.iter().zip(&spec.layouts).enumerate() {
+        for (d, layout) in spec.layouts.iter().enumerate() {
+            let sub = &spec.subfields.get(d);
             let (tile_size, per_side) = (sub.grid.tile, sub.grid.tiles_per_side());
             // The part holding the ray of cell (x, y) at `slot`, and the ray's index in it.
             let place = |x: u32, y: u32, slot: u32| {

@@ -16,14 +16,13 @@ use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
 use crate::propagate::specular::MirrorLayout;
 use crate::propagate::{IterationStats, Options, Propagation};
-use crate::psf::Subfield;
+use crate::psf::Subfields;
 use crate::scene::{Rgb, Scene};
 use glam::DVec3;
-use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
 /// A propagated virtual light field.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct LightField {
     pub scene: Scene,
     pub options: Options,
@@ -39,17 +38,18 @@ pub struct LightField {
     /// Directional radiance of mirrors; `None` for a scene without mirrors.
     pub specular: Option<SpecularField>,
     /// Set by [`LightField::use_exact_direct`]: shade with exact direct light.
-    #[serde(default)]
     pub exact_direct: Option<crate::direct::ExactDirect>,
 }
 
 /// The directional part of the field: for every direction, the radiance
 /// leaving each mirror along each ray of its subfield that crosses it (the
 /// paper's tile radiance maps), with what is needed to find a ray again.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct SpecularField {
     pub directions: DirectionSet,
-    pub subfields: Arc<[Subfield]>,
+    /// The propagation's, whole or within its budget (the field's look-ups read them by
+    /// direction: [`Subfields::get`]).
+    pub subfields: Arc<Subfields>,
     pub layouts: Vec<MirrorLayout>,
     /// `totals[d][slot]`: radiance leaving the mirror along direction `d`.
     pub totals: Vec<Vec<[f32; 3]>>,
@@ -134,7 +134,7 @@ impl LightField {
             totals,
             layouts: s.layouts,
             directions: p.directions,
-            subfields: p.subfields.all(),
+            subfields: p.subfields,
         });
         LightField {
             specular,
@@ -195,7 +195,7 @@ impl Propagation {
             .zip(self.mirror_totals())
             .map(|(s, totals)| SpecularField {
                 directions: self.directions.clone(),
-                subfields: self.subfields.all(),
+                subfields: self.subfields.clone(),
                 layouts: s.layouts.clone(),
                 totals,
             });

@@ -126,7 +126,7 @@ impl LightField {
                 continue;
             }
             let d = o.index as usize;
-            let sub = &spec.subfields[d];
+            let sub = &spec.subfields.get(d);
             let layout = &spec.layouts[d];
             let n = sub.grid.resolution;
             // Bilinear between the four rays around p's projection.
@@ -339,7 +339,7 @@ impl LightField {
         let totals: Vec<Vec<[f32; 3]>> = (0..spec.directions.len())
             .into_par_iter()
             .map(|d| {
-                let sub = &spec.subfields[d];
+                let sub = &spec.subfields.get(d);
                 let layout = &spec.layouts[d];
                 let mut out = spec.totals[d].clone();
                 let w = spec.directions.get(d).vector;

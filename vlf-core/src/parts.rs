@@ -82,8 +82,8 @@ impl PartCatalog {
             .map(|&c| chunk_of_chart[c as usize])
             .collect();
         if let Some(spec) = &field.specular {
-            for (d, (layout, sub)) in spec.layouts.iter().zip(spec.subfields.iter()).enumerate() {
-                for (k, range) in layout.tile_slots(sub) {
+            for (d, layout) in spec.layouts.iter().enumerate() {
+                for (k, range) in layout.tile_slots(&spec.subfields.get(d)) {
                     parts.push(Part::Tile {
                         direction: d as u32,
                         tile: k,

@@ -40,6 +40,25 @@ fn same_bits_within_a_quarter(scene: Scene, options: Options, threads: usize) {
             held.peak
         );
         assert!(held.peak < all / 2, "the bound is no bound: {held:?} of {all}");
+        // The finished field reads its mirror tiles' subfields through the same budget.
+        let subfields = bounded.subfields.clone();
+        let (field, reference) = (bounded.into_field(), whole.into_field());
+        assert_eq!(field.radiance, reference.radiance);
+        assert_eq!(
+            field.specular.as_ref().map(|s| &s.totals),
+            reference.specular.as_ref().map(|s| &s.totals)
+        );
+        let parts = vlf_core::parts::PartCatalog::new(&field);
+        assert_eq!(
+            parts,
+            vlf_core::parts::PartCatalog::new(&reference),
+            "another tile layout"
+        );
+        assert!(
+            subfields.memory().peak <= budget + 2 * threads * largest,
+            "the field's assembly held {:?}",
+            subfields.memory()
+        );
     });
 }
 

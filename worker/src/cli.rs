@@ -28,7 +28,8 @@ pub struct WorkerArgs {
     /// Hold at most this much of a job's subfields (e.g. 512MiB, 2GB): the subfields of the
     /// directions this worker shoots are kept, others are built when needed and dropped. The
     /// same bits; a job whose field does not fit one machine completes across several.
-    /// Default: all of them.
+    /// Per job: a worker keeps the geometry of the last two jobs it worked on. Default: all of
+    /// them.
     #[arg(long, env = "VLF_SUBFIELD_MEMORY", value_name = "SIZE")]
     pub subfield_memory: Option<bytesize::ByteSize>,
     /// Test hook: stall with a lease after this many leases.
