@@ -36,7 +36,10 @@ cleanup() {
         while read -r p; do kill -KILL "$p" 2>/dev/null || true; done < "$g/cgroup.procs"
     done
     wait 2>/dev/null || true
-    for g in $CGROUPS; do rmdir "$g" 2>/dev/null || true; done
+    # A killed process leaves its cgroup a moment later.
+    for g in $CGROUPS; do
+        for _ in $(seq 50); do rmdir "$g" 2>/dev/null && break; sleep 0.1; done
+    done
 }
 trap cleanup EXIT
 
