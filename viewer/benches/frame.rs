@@ -15,6 +15,8 @@
 //! 8 deep. Skips (with a message) where there is no adapter; on lavapipe an exact frame takes
 //! seconds.
 
+#[allow(dead_code)]
+#[path = "../tests/common/mod.rs"]
 mod common;
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -22,8 +24,8 @@ use vlf_core::dynamic::gather::DEFAULT_DIRECT_SAMPLES;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::{Options, Propagation};
+use vlf_viewer::FieldRenderer;
 use vlf_viewer::frame::Frame;
-use vlf_viewer::{FieldRenderer, Gpu};
 
 /// A bundled scene propagated at the defaults: the field after the first iteration (snapshot
 /// 1, whose direct light exact rendering replaces) and the final one.
@@ -41,12 +43,8 @@ fn propagated(name: &str) -> (LightField, LightField) {
 }
 
 fn bench(c: &mut Criterion) {
-    let gpu = match Gpu::new() {
-        Ok(gpu) => gpu,
-        Err(e) => {
-            eprintln!("skipped: {e}");
-            return;
-        }
+    let Some(gpu) = common::gpu() else {
+        return;
     };
     let camera = common::readme_camera(1280, 720);
     let frame = Frame::new(&gpu, camera.width, camera.height).expect("a 1280x720 target");

@@ -14,6 +14,8 @@
 //!
 //! Skips (with a message) where there is no adapter; lavapipe takes minutes a frame.
 
+#[allow(dead_code)]
+#[path = "../tests/common/mod.rs"]
 mod common;
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -24,7 +26,7 @@ use vlf_core::lookup::SpecularMode;
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Material;
-use vlf_viewer::{FieldRenderer, Gpu, GpuGather, Placement};
+use vlf_viewer::{FieldRenderer, GpuGather, Placement};
 
 /// A grey cube of half-size `h` around `c`, each face split into `split × split` squares.
 fn cube(c: DVec3, h: f64, split: usize) -> DynamicObject {
@@ -33,12 +35,8 @@ fn cube(c: DVec3, h: f64, split: usize) -> DynamicObject {
 }
 
 fn bench(c: &mut Criterion) {
-    let gpu = match Gpu::new() {
-        Ok(gpu) => gpu,
-        Err(e) => {
-            eprintln!("skipped: {e}");
-            return;
-        }
+    let Some(gpu) = common::gpu() else {
+        return;
     };
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cornell.obj");
     let (scene, _) = vlf_core::scene::load_scene(&path, &Default::default()).expect("the bundled Cornell box");

@@ -12,7 +12,7 @@
 
 mod common;
 
-use common::{bundled_field, bundled_field_exact, gpu};
+use common::{bundled_field, bundled_field_exact, gpu, readme_camera};
 use glam::DVec3;
 use vlf_core::field::LightField;
 use vlf_core::lookup::SpecularMode;
@@ -21,18 +21,6 @@ use vlf_viewer::{FieldRenderer, Gpu, ViewerError};
 
 fn field(scene: &str, iterations: u32) -> LightField {
     bundled_field(scene, 33, iterations)
-}
-
-fn camera(width: u32, height: u32) -> Camera {
-    Camera::new(
-        DVec3::new(278.0, 273.0, -800.0),
-        DVec3::new(278.0, 273.0, 0.0),
-        DVec3::Y,
-        39.0,
-        width,
-        height,
-    )
-    .expect("camera")
 }
 
 /// Pixels whose channels differ by more than `rel` of the larger value (and 10⁻⁶ absolute).
@@ -77,8 +65,14 @@ fn compare(gpu: &Gpu, field: &LightField, camera: &Camera, samples: u32, mode: S
 fn cornell_box_matches_the_cpu_renderer() {
     let Some(gpu) = gpu() else { return };
     let field = field("cornell.obj", 4);
-    compare(&gpu, &field, &camera(128, 96), 1, SpecularMode::Rays);
-    compare(&gpu, &field, &camera(64, 48), 3, SpecularMode::Trace { depth: 8 });
+    compare(&gpu, &field, &readme_camera(128, 96), 1, SpecularMode::Rays);
+    compare(
+        &gpu,
+        &field,
+        &readme_camera(64, 48),
+        3,
+        SpecularMode::Trace { depth: 8 },
+    );
 }
 
 #[test]
@@ -86,7 +80,7 @@ fn mirror_scene_matches_the_cpu_renderer_both_ways() {
     let Some(gpu) = gpu() else { return };
     let field = field("mirrors.obj", 3);
     assert!(field.specular.is_some(), "the scene has mirrors");
-    let cam = camera(128, 96);
+    let cam = readme_camera(128, 96);
     for depth in [0, 1, 8] {
         compare(&gpu, &field, &cam, 2, SpecularMode::Trace { depth });
     }
@@ -142,13 +136,13 @@ fn exact_direct_light_matches_the_cpu_renderer() {
         let from_field = vlf_viewer::render(
             &gpu,
             &FieldRenderer::new(&gpu, &plain).unwrap(),
-            &camera(96, 72),
+            &readme_camera(96, 72),
             1,
             modes[0],
         )
         .expect("GPU render");
         for &mode in modes {
-            let cam = camera(96, 72);
+            let cam = readme_camera(96, 72);
             let cpu = exact.render(&cam, 1, mode);
             let renderer = FieldRenderer::new(&gpu, &exact).expect("upload");
             let gpu_image = vlf_viewer::render(&gpu, &renderer, &cam, 1, mode).expect("GPU render");
@@ -184,7 +178,7 @@ fn an_image_samples_the_field_not_a_constant() {
     // with every map zero renders black.
     let Some(gpu) = gpu() else { return };
     let mut field = field("cornell.obj", 2);
-    let cam = camera(48, 36);
+    let cam = readme_camera(48, 36);
     let base = vlf_viewer::render(
         &gpu,
         &FieldRenderer::new(&gpu, &field).unwrap(),
@@ -318,7 +312,7 @@ fn the_screen_shows_what_a_png_would() {
     let renderer = FieldRenderer::new(&gpu, &field).unwrap();
     let (w, h) = (64, 48);
     let frame = vlf_viewer::frame::Frame::new(&gpu, w, h).unwrap();
-    let viewpoint = renderer.viewpoint(&camera(w, h), (0.0, 0.0), vlf_viewer::MirrorMode::Rays);
+    let viewpoint = renderer.viewpoint(&readme_camera(w, h), (0.0, 0.0), vlf_viewer::MirrorMode::Rays);
     let mut encoder = gpu.device.create_command_encoder(&Default::default());
     renderer.draw(&gpu, &mut encoder, &viewpoint, &frame.color_view, &frame.depth_view);
     gpu.queue.submit([encoder.finish()]);

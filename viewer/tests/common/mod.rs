@@ -1,9 +1,12 @@
-//! What the viewer's GPU tests share: an adapter (or a skip) and a bundled scene's field.
+//! What the viewer's GPU tests and benches share: an adapter (or a skip), a bundled scene's
+//! field and the README's viewpoint.
 
+use glam::DVec3;
 use std::path::Path;
 use vlf_core::field::LightField;
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
+use vlf_core::render::Camera;
 use vlf_core::scene::{ImportOptions, load_obj};
 use vlf_viewer::Gpu;
 
@@ -73,4 +76,19 @@ fn bundled_propagation(scene: &str, directions: usize, iterations: u32, texel_ce
         ..Options::default()
     };
     Propagation::new(scene, options).expect("propagation")
+}
+
+/// The README's view of the bundled scenes (from the open side of the box, 39° vertically), at
+/// `width × height`.
+#[allow(dead_code)] // not every test binary uses it
+pub fn readme_camera(width: u32, height: u32) -> Camera {
+    Camera::new(
+        DVec3::new(278.0, 273.0, -800.0),
+        DVec3::new(278.0, 273.0, 0.0),
+        DVec3::Y,
+        39.0,
+        width,
+        height,
+    )
+    .expect("a valid camera")
 }
