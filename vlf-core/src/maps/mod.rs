@@ -52,10 +52,14 @@ impl TexelGrid {
     /// Atlas index of the texel containing continuous coordinates `c`
     /// (clamped onto the grid: points of the polygon are always inside it,
     /// up to rounding).
+    ///
+    /// `x as u32` is `⌊x⌋` clamped to `[0, u32::MAX]` for every `x` (Rust's float-to-integer
+    /// casts truncate toward zero and saturate, NaN to 0), so no call to `floor` is needed:
+    /// without SSE4.1 that is a library call, a tenth of the propagation's time.
     #[inline]
     pub fn index(&self, c: DVec2) -> usize {
-        let s = (c.x.floor().max(0.0) as u32).min(self.width - 1);
-        let t = (c.y.floor().max(0.0) as u32).min(self.height - 1);
+        let s = (c.x as u32).min(self.width - 1);
+        let t = (c.y as u32).min(self.height - 1);
         self.first + (t * self.width + s) as usize
     }
 
@@ -216,5 +220,52 @@ impl TexelAtlas {
             chunks.push(start as u32..self.charts.len() as u32);
         }
         chunks
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `index` is the texel whose cell `[s, s+1) × [t, t+1)` holds the coordinates, clamped
+    /// onto the grid: the same as flooring first, for every float, edge cases included.
+    #[test]
+    fn a_texel_index_is_the_floored_coordinates_clamped() {
+        let grid = TexelGrid {
+            origin: DVec3::ZERO,
+            axis_u: DVec3::X,
+            axis_v: DVec3::Y,
+            texel: 0.5,
+            width: 7,
+            height: 5,
+            first: 100,
+        };
+        let floored = |c: DVec2| {
+            let s = (c.x.floor().max(0.0) as u32).min(grid.width - 1);
+            let t = (c.y.floor().max(0.0) as u32).min(grid.height - 1);
+            grid.first + (t * grid.width + s) as usize
+        };
+        let mut values = vec![
+            f64::NAN,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            -0.0,
+            0.0,
+            -1e-300,
+            1e-300,
+            f64::MAX,
+            -f64::MAX,
+            4.0e9,
+            -4.0e9,
+        ];
+        values.extend((-40..=120).map(|k| k as f64 * 0.0625));
+        values.extend((0..=8).flat_map(|k| [k as f64, (k as f64).next_down(), (k as f64).next_up()]));
+        for &x in &values {
+            for &y in &values {
+                let c = DVec2::new(x, y);
+                assert_eq!(grid.index(c), floored(c), "{c:?}");
+            }
+        }
+        assert_eq!(grid.index(DVec2::new(2.99, 1.0)), 100 + 7 + 2);
     }
 }

@@ -38,7 +38,7 @@
 
 use super::Propagation;
 use super::shoot::Flow;
-use super::work::{BatchSum, DirectionScratch, IterationWork, MirrorIo, Pass, add_into};
+use super::work::{BatchSum, DirectionScratch, IterationWork, MirrorIo, Pass, add_and_clear, cleared};
 use crate::scene::Rgb;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -89,7 +89,9 @@ struct Sum {
     adding: bool,
 }
 
-/// The texel-sized buffers lent to the threads: at most `cap` out at once.
+/// The texel-sized buffers lent to the threads: at most `cap` out at once. Every buffer in
+/// `free` holds the field's texels, all zero: a direction's buffer is cleared as it is added to
+/// its batch's sum ([`add_and_clear`]), so the next direction need not clear it again.
 struct Buffers {
     free: Vec<Vec<Rgb>>,
     out: usize,
@@ -128,9 +130,12 @@ impl Claims<'_, '_> {
             return None;
         }
         b.out += 1;
-        Some(b.free.pop().unwrap_or_default())
+        let free = b.free.pop();
+        drop(b);
+        Some(free.unwrap_or_else(|| vec![[0.0; 3]; self.texels]))
     }
 
+    /// Returns a buffer to the pool; it must be clear (see [`Buffers`]).
     fn give_back(&self, buf: Vec<Rgb>) {
         let mut b = lock(&self.buffers);
         b.out -= 1;
@@ -167,8 +172,9 @@ impl Claims<'_, '_> {
             sum.next += 1;
             let mut texels = sum.texels.take().unwrap_or_else(|| vec![[0.0; 3]; self.texels]);
             drop(sum);
-            add_into(&mut texels, &shot.buf);
-            self.give_back(shot.buf);
+            let mut buf = shot.buf;
+            add_and_clear(&mut texels, &mut buf);
+            self.give_back(buf);
             self.added.fetch_add(1, Ordering::Relaxed);
             sum = lock(&self.sums[batch]);
             sum.texels = Some(texels);
@@ -205,6 +211,7 @@ impl Claims<'_, '_> {
                     heard(self.added.load(Ordering::Relaxed));
                 }
                 Err(e) => {
+                    cleared(&mut buf, self.texels);
                     self.give_back(buf);
                     self.fail(e);
                     return;
@@ -280,7 +287,15 @@ impl Propagation {
                 })
                 .collect(),
             buffers: Mutex::new(Buffers {
-                free: self.buffers.take(),
+                free: self
+                    .buffers
+                    .take()
+                    .into_iter()
+                    .map(|mut b| {
+                        cleared(&mut b, self.atlas.texels);
+                        b
+                    })
+                    .collect(),
                 out: 0,
             }),
             returned: Condvar::new(),

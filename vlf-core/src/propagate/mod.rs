@@ -355,7 +355,7 @@ pub struct Propagation {
     pub specular: Option<Specular>,
     /// What this propagation simulates (see [`Plan`]).
     pub plan: Plan,
-    stacking: Vec<u32>,
+    stacking: shoot::Stacking,
     /// The chart of every texel.
     pub(crate) owners: Vec<u32>,
     /// The per-direction texel buffers, kept from one block or step to the next.
@@ -460,7 +460,7 @@ impl Propagation {
             None => Subfields::build_all(footprints.clone(), frames, grid),
             Some(bytes) => Subfields::within(footprints.clone(), frames, grid, bytes),
         };
-        let stacking = shoot::stacking(&scene, &atlas.chart_areas(&scene));
+        let stacking = shoot::Stacking::new(&scene, &atlas);
         let geometry = shoot::Geometry {
             scene: &scene,
             atlas: &atlas,

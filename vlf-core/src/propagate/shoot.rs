@@ -8,7 +8,7 @@
 
 use crate::maps::TexelAtlas;
 use crate::psf::raster::SUBPIXELS;
-use crate::psf::{PsfFrame, Subfield, SurfaceProjection};
+use crate::psf::{Subfield, SurfaceProjection};
 use crate::scene::{Rgb, Scene};
 use glam::DVec2;
 
@@ -42,13 +42,13 @@ impl RayHit {
 /// Marks a hit on a surface without directional (mirror) maps.
 pub(crate) const NO_SLOT: u32 = u32::MAX;
 
-/// The static inputs of a walk: the scene, where its texels are, and which
-/// of two coplanar surfaces lies on top ([`stacking`]).
+/// The static inputs of a walk: the scene, where its texels are, and how
+/// coplanar surfaces stack ([`Stacking`]).
 #[derive(Clone, Copy)]
 pub(crate) struct Geometry<'a> {
     pub scene: &'a Scene,
     pub atlas: &'a TexelAtlas,
-    pub stacking: &'a [u32],
+    pub stacking: &'a Stacking,
 }
 
 /// Depths closer than this (VLF frame, where the scene spans 2) are a tie:
@@ -56,25 +56,91 @@ pub(crate) struct Geometry<'a> {
 /// its ceiling.
 const DEPTH_TIE: f64 = 1e-9;
 
-/// The stacking order of coplanar surfaces: a higher rank lies on top
-/// (is seen first from the front). Emitters lie on top of what they are
-/// flush with, then smaller charts on top of larger ones (a decal on a wall,
-/// however the wall is cut: `chart_area` is each surface's chart's area),
-/// then later surfaces.
-pub(crate) fn stacking(scene: &Scene, chart_area: &[f64]) -> Vec<u32> {
-    let mut order: Vec<usize> = (0..scene.surfaces.len()).collect();
-    order.sort_by(|&a, &b| {
-        let ea = scene.material(a).is_emitter();
-        let eb = scene.material(b).is_emitter();
-        ea.cmp(&eb)
-            .then(chart_area[b].total_cmp(&chart_area[a]))
-            .then(a.cmp(&b))
-    });
-    let mut rank = vec![0u32; order.len()];
-    for (r, s) in order.into_iter().enumerate() {
-        rank[s] = r as u32;
+/// How surfaces that share a plane lie on each other: which one a ray meets
+/// first, and which surfaces can be hidden at all.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Stacking {
+    /// Per surface, its rank among coplanar ones: a higher rank lies on top
+    /// (is seen first from the front). Emitters lie on top of what they are
+    /// flush with, then smaller charts on top of larger ones (a decal on a
+    /// wall, however the wall is cut), then later surfaces.
+    pub rank: Vec<u32>,
+    /// Per surface, whether another surface facing the same way lies in
+    /// (nearly) its plane: only such a pair can tie in depth along a ray and
+    /// hide one another ([`drop_hidden`]). A ray whose hits are all on other
+    /// surfaces needs no such check, and a direction's discrete areas over
+    /// them need no walk at all ([`count`]).
+    pub shares_plane: Vec<bool>,
+}
+
+impl Stacking {
+    pub(crate) fn new(scene: &Scene, atlas: &TexelAtlas) -> Stacking {
+        let chart_area = atlas.chart_areas(scene);
+        let n = scene.surfaces.len();
+        let mut order: Vec<usize> = (0..n).collect();
+        order.sort_by(|&a, &b| {
+            let ea = scene.material(a).is_emitter();
+            let eb = scene.material(b).is_emitter();
+            ea.cmp(&eb)
+                .then(chart_area[b].total_cmp(&chart_area[a]))
+                .then(a.cmp(&b))
+        });
+        let mut rank = vec![0u32; n];
+        for (r, s) in order.into_iter().enumerate() {
+            rank[s] = r as u32;
+        }
+        Stacking {
+            rank,
+            shares_plane: shares_plane(scene, &atlas.plane_rep),
+        }
     }
-    rank
+}
+
+/// [`Stacking::shares_plane`]. Subfields hold a planar group (a wall however it is cut) as
+/// its representative surface `plane_rep[s]`, so only representatives meet along a ray:
+/// each is compared with the others, either facing (two hits [`parallel`] and facing the
+/// same way can tie), and the other surfaces take their representative's answer.
+///
+/// Two planes whose normals are [`parallel`] are at most 4.5·10⁻⁵ rad apart, so where
+/// their offsets differ by `Δ` (as oriented alike) they are at least `Δ − 4.5·10⁻⁵·R`
+/// apart at every point within `R` of the origin, and a ray's depths on them differ by at
+/// least that: above `10⁻⁴ + 5·10⁻⁵·R` they can never tie (to [`DEPTH_TIE`]). Sorted by
+/// `|offset|`, a surface's candidates lie within that gap of it.
+fn shares_plane(scene: &Scene, plane_rep: &[u32]) -> Vec<bool> {
+    let radius = scene
+        .surfaces
+        .iter()
+        .flat_map(|s| s.vertices.iter())
+        .map(|v| v.length())
+        .fold(0.0, f64::max);
+    let gap = 1e-4 + 5e-5 * radius;
+    let mut reps: Vec<usize> = (0..scene.surfaces.len())
+        .filter(|&s| plane_rep.get(s).is_none_or(|&r| r as usize == s))
+        .collect();
+    reps.sort_by(|&a, &b| (scene.surfaces[a].offset.abs()).total_cmp(&scene.surfaces[b].offset.abs()));
+    let mut shares = vec![false; scene.surfaces.len()];
+    for (i, &a) in reps.iter().enumerate() {
+        let sa = &scene.surfaces[a];
+        for &b in &reps[i + 1..] {
+            let sb = &scene.surfaces[b];
+            if sb.offset.abs() - sa.offset.abs() > gap {
+                break;
+            }
+            let dot = sa.normal.dot(sb.normal);
+            let apart = if dot > 0.0 {
+                sa.offset - sb.offset
+            } else {
+                sa.offset + sb.offset
+            };
+            if dot.abs() >= 1.0 - 1e-9 && apart.abs() <= gap {
+                shares[a] = true;
+                shares[b] = true;
+            }
+        }
+    }
+    (0..scene.surfaces.len())
+        .map(|s| shares[plane_rep.get(s).map_or(s, |&r| r as usize)])
+        .collect()
 }
 
 /// Reusable buffers of one worker thread.
@@ -83,16 +149,80 @@ pub(crate) struct Scratch {
     offsets: Vec<u32>,
     fill: Vec<u32>,
     hits: Vec<RayHit>,
+    projections: Projections,
+}
+
+/// Each surface's [`TexelProjection`] in the subfield being walked, computed the first time
+/// one of its tile entries comes up: a surface crosses many tiles (a wall, a few hundred),
+/// and a projection costs a few dozen multiplications and a division.
+#[derive(Default)]
+struct Projections {
+    /// The walk being made: entries stamped with another one are stale.
+    walk: u64,
+    /// Per surface, the walk it was computed in and the projection.
+    of: Vec<(u64, TexelProjection)>,
+}
+
+impl Projections {
+    /// Starts the walk of a subfield of a scene of `surfaces` surfaces.
+    fn begin(&mut self, surfaces: usize) {
+        self.walk += 1;
+        if self.of.len() != surfaces {
+            self.of.clear();
+            self.of.resize(surfaces, (0, TexelProjection::default()));
+        }
+    }
+
+    /// `surface`'s projection in this walk's subfield `sub`.
+    #[inline]
+    fn get(&mut self, geometry: Geometry, sub: &Subfield, surface: u32) -> TexelProjection {
+        let slot = &mut self.of[surface as usize];
+        if slot.0 != self.walk {
+            *slot = (self.walk, TexelProjection::new(geometry, sub, surface));
+        }
+        slot.1
+    }
+
+    /// `surface`'s projection, computed in this walk already.
+    #[inline]
+    fn computed(&self, surface: u32) -> &TexelProjection {
+        let (walk, projection) = &self.of[surface as usize];
+        debug_assert_eq!(*walk, self.walk, "surface {surface} met before its projection");
+        projection
+    }
 }
 
 /// Texel lookup as an affine function of grid coordinates: the texel
-/// coordinates of the hit of ray `(x, y)` are `c0 + cx·x + cy·y`.
-#[derive(Clone, Copy)]
+/// coordinates of the hit of ray `(x, y)` are `c0 + cx·x + cy·y`; its depth is
+/// `depth[0] + depth[1]·x + depth[2]·y`.
+#[derive(Clone, Copy, Default)]
 struct TexelProjection {
     depth: [f64; 3],
     c0: DVec2,
     cx: DVec2,
     cy: DVec2,
+}
+
+impl TexelProjection {
+    /// Where the rays of `sub` meet surface `surface`'s plane: depth and texel coordinates.
+    fn new(geometry: Geometry, sub: &Subfield, surface: u32) -> TexelProjection {
+        let s = &geometry.scene.surfaces[surface as usize];
+        let grid = geometry.atlas.grid(surface as usize);
+        let proj = SurfaceProjection::new(&sub.frame, sub.grid.resolution, s.normal, s.offset);
+        TexelProjection {
+            depth: proj.depth,
+            c0: grid.coords(proj.p0),
+            cx: grid.coords(proj.p0 + proj.px) - grid.coords(proj.p0),
+            cy: grid.coords(proj.p0 + proj.py) - grid.coords(proj.p0),
+        }
+    }
+
+    /// The atlas index of the texel hit by the ray at grid coordinates `(gx, gy)` (the ray's
+    /// centre): the one formula of every walk, so that they agree to the bit.
+    #[inline]
+    fn texel(&self, grid: &crate::maps::TexelGrid, gx: f64, gy: f64) -> u32 {
+        grid.index(self.c0 + self.cx * gx + self.cy * gy) as u32
+    }
 }
 
 /// Calls `visit` for every ray of `sub` that crosses at least one surface,
@@ -101,108 +231,117 @@ struct TexelProjection {
 /// `mirror_base[e]` is the first mirror slot of tile entry `e` (or
 /// [`NO_SLOT`]); without it no hit has a mirror slot.
 pub(crate) fn for_each_ray(
-    Geometry { scene, atlas, stacking }: Geometry,
+    geometry: Geometry,
     sub: &Subfield,
     mirror_base: Option<&[u32]>,
     scratch: &mut Scratch,
     mut visit: impl FnMut(&[RayHit]),
 ) {
+    scratch.projections.begin(geometry.scene.surfaces.len());
+    for k in 0..sub.tile_count() {
+        walk_tile(geometry, sub, k, mirror_base, scratch, &mut visit);
+    }
+}
+
+/// [`for_each_ray`] over the rays of tile `k` (`scratch`'s projections begun for `sub`).
+fn walk_tile(
+    geometry: Geometry,
+    sub: &Subfield,
+    k: usize,
+    mirror_base: Option<&[u32]>,
+    scratch: &mut Scratch,
+    visit: &mut impl FnMut(&[RayHit]),
+) {
+    let Geometry { scene, atlas, stacking } = geometry;
+    let entries = sub.tile(k);
+    if entries.is_empty() {
+        return;
+    }
     let m = sub.grid.tile as usize;
     let per_side = sub.grid.tiles_per_side() as usize;
-    let n = sub.grid.resolution;
-    for k in 0..sub.tile_count() {
-        let entries = sub.tile(k);
-        if entries.is_empty() {
+    let (tile_x, tile_y) = ((k % per_side * m) as f64, (k / per_side * m) as f64);
+    // Counting sort of hits by ray: count, prefix-sum, fill.
+    scratch.offsets.clear();
+    scratch.offsets.resize(m * m + 1, 0);
+    for e in entries {
+        for s in sub.spans_of(e) {
+            for x in s.start..s.end {
+                scratch.offsets[s.row as usize * m + x as usize + 1] += 1;
+            }
+        }
+    }
+    for r in 0..m * m {
+        scratch.offsets[r + 1] += scratch.offsets[r];
+    }
+    let total = scratch.offsets[m * m] as usize;
+    scratch.hits.clear();
+    scratch.hits.resize(
+        total,
+        RayHit {
+            depth: 0.0,
+            surface: 0,
+            texel: 0,
+            mirror: NO_SLOT,
+            tie: 0,
+        },
+    );
+    scratch.fill.clear();
+    scratch.fill.extend_from_slice(&scratch.offsets[..m * m]);
+    let fill = &mut scratch.fill;
+    let first_entry = sub.tile_start[k] as usize;
+    for (local, e) in entries.iter().enumerate() {
+        let mut mirror = mirror_base.map_or(NO_SLOT, |b| b[first_entry + local]);
+        // At equal depth, surfaces facing −w (met from their front when
+        // travelling along +w) come first; among same-facing ones the top
+        // of the stack is met first from its front side.
+        let rank = stacking.rank[e.surface as usize];
+        let tie = if scene.surfaces[e.surface as usize].normal.dot(sub.frame.w) < 0.0 {
+            u32::MAX / 2 - rank
+        } else {
+            u32::MAX / 2 + 1 + rank
+        };
+        let grid = atlas.grid(e.surface as usize);
+        let tp = scratch.projections.get(geometry, sub, e.surface);
+        for s in sub.spans_of(e) {
+            let y = tile_y + s.row as f64 + 0.5;
+            for x in s.start..s.end {
+                let gx = tile_x + x as f64 + 0.5;
+                let ray = s.row as usize * m + x as usize;
+                let slot = fill[ray] as usize;
+                fill[ray] += 1;
+                scratch.hits[slot] = RayHit {
+                    depth: tp.depth[0] + tp.depth[1] * gx + tp.depth[2] * y,
+                    surface: e.surface,
+                    texel: tp.texel(grid, gx, y),
+                    mirror,
+                    tie,
+                };
+                if mirror != NO_SLOT {
+                    mirror += 1;
+                }
+            }
+        }
+    }
+    // Only surfaces that share a plane can hide one another (`Stacking::shares_plane`).
+    let may_hide = entries.iter().any(|e| stacking.shares_plane[e.surface as usize]);
+    let projections = &scratch.projections;
+    for r in 0..m * m {
+        let (a, b) = (scratch.offsets[r] as usize, scratch.offsets[r + 1] as usize);
+        if a == b {
             continue;
         }
-        let (tile_x, tile_y) = ((k % per_side * m) as f64, (k / per_side * m) as f64);
-        // Counting sort of hits by ray: count, prefix-sum, fill.
-        scratch.offsets.clear();
-        scratch.offsets.resize(m * m + 1, 0);
-        for e in entries {
-            for s in sub.spans_of(e) {
-                for x in s.start..s.end {
-                    scratch.offsets[s.row as usize * m + x as usize + 1] += 1;
-                }
+        let hits = &mut scratch.hits[a..b];
+        // Few hits per ray: insertion sort beats a general sort here.
+        for i in 1..hits.len() {
+            let mut j = i;
+            while j > 0 && before(scene, projections, &hits[j], &hits[j - 1]) {
+                hits.swap(j, j - 1);
+                j -= 1;
             }
         }
-        for r in 0..m * m {
-            scratch.offsets[r + 1] += scratch.offsets[r];
-        }
-        let total = scratch.offsets[m * m] as usize;
-        scratch.hits.clear();
-        scratch.hits.resize(
-            total,
-            RayHit {
-                depth: 0.0,
-                surface: 0,
-                texel: 0,
-                mirror: NO_SLOT,
-                tie: 0,
-            },
-        );
-        scratch.fill.clear();
-        scratch.fill.extend_from_slice(&scratch.offsets[..m * m]);
-        let fill = &mut scratch.fill;
-        let first_entry = sub.tile_start[k] as usize;
-        for (local, e) in entries.iter().enumerate() {
-            let mut mirror = mirror_base.map_or(NO_SLOT, |b| b[first_entry + local]);
-            // At equal depth, surfaces facing −w (met from their front when
-            // travelling along +w) come first; among same-facing ones the top
-            // of the stack is met first from its front side.
-            let rank = stacking[e.surface as usize];
-            let tie = if scene.surfaces[e.surface as usize].normal.dot(sub.frame.w) < 0.0 {
-                u32::MAX / 2 - rank
-            } else {
-                u32::MAX / 2 + 1 + rank
-            };
-            let surface = &scene.surfaces[e.surface as usize];
-            let grid = atlas.grid(e.surface as usize);
-            let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
-            let tp = TexelProjection {
-                depth: proj.depth,
-                c0: grid.coords(proj.p0),
-                cx: grid.coords(proj.p0 + proj.px) - grid.coords(proj.p0),
-                cy: grid.coords(proj.p0 + proj.py) - grid.coords(proj.p0),
-            };
-            for s in sub.spans_of(e) {
-                let y = tile_y + s.row as f64 + 0.5;
-                for x in s.start..s.end {
-                    let gx = tile_x + x as f64 + 0.5;
-                    let ray = s.row as usize * m + x as usize;
-                    let slot = fill[ray] as usize;
-                    fill[ray] += 1;
-                    scratch.hits[slot] = RayHit {
-                        depth: tp.depth[0] + tp.depth[1] * gx + tp.depth[2] * y,
-                        surface: e.surface,
-                        texel: grid.index(tp.c0 + tp.cx * gx + tp.cy * y) as u32,
-                        mirror,
-                        tie,
-                    };
-                    if mirror != NO_SLOT {
-                        mirror += 1;
-                    }
-                }
-            }
-        }
-        for r in 0..m * m {
-            let (a, b) = (scratch.offsets[r] as usize, scratch.offsets[r + 1] as usize);
-            if a == b {
-                continue;
-            }
-            let hits = &mut scratch.hits[a..b];
-            // Few hits per ray: insertion sort beats a general sort here.
-            for i in 1..hits.len() {
-                let mut j = i;
-                while j > 0 && before(scene, &sub.frame, n, &hits[j], &hits[j - 1]) {
-                    hits.swap(j, j - 1);
-                    j -= 1;
-                }
-            }
-            let seen = drop_hidden(scene, hits);
-            if seen > 0 {
-                visit(&hits[..seen]);
-            }
+        let seen = if may_hide { drop_hidden(scene, hits) } else { hits.len() };
+        if seen > 0 {
+            visit(&hits[..seen]);
         }
     }
 }
@@ -215,6 +354,11 @@ pub(crate) fn for_each_ray(
 /// shot goes from the top surface straight to the next surface, whose back the top surface's
 /// back blocks as it would.
 fn drop_hidden(scene: &Scene, hits: &mut [RayHit]) -> usize {
+    // The first hit hidden is tied with a neighbour in `hits` as sorted (the last kept is the
+    // one before it until then): without two neighbours at one depth, none is.
+    if hits.windows(2).all(|w| (w[0].depth - w[1].depth).abs() > DEPTH_TIE) {
+        return hits.len();
+    }
     let tied = |a: &RayHit, b: &RayHit| {
         (a.depth - b.depth).abs() <= DEPTH_TIE
             && a.faces_backward() == b.faces_backward()
@@ -246,14 +390,14 @@ fn drop_hidden(scene: &Scene, hits: &mut [RayHit]) -> usize {
 /// put the facet facing `−w` first and let the ray escape through the fold;
 /// near a silhouette edge, see [`silhouette_order`].
 #[inline]
-fn before(scene: &Scene, frame: &PsfFrame, n: u32, a: &RayHit, b: &RayHit) -> bool {
+fn before(scene: &Scene, projections: &Projections, a: &RayHit, b: &RayHit) -> bool {
     let gap = (a.depth - b.depth).abs();
     if gap <= DEPTH_TIE && parallel(scene, a.surface, b.surface) {
         return a.tie < b.tie;
     }
     if gap <= SILHOUETTE_GAP
         && a.faces_backward() != b.faces_backward()
-        && let Some(a_first) = silhouette_order(scene, frame, n, a, b)
+        && let Some(a_first) = silhouette_order(scene, projections, a, b)
     {
         return a_first;
     }
@@ -279,15 +423,12 @@ const SILHOUETTE_GAP: f64 = 0.05;
 /// a concave corner (each in front of the other: a room's corner), the one facing `−w`
 /// first where they form a convex one (a solid's edge).
 #[cold]
-fn silhouette_order(scene: &Scene, frame: &PsfFrame, n: u32, a: &RayHit, b: &RayHit) -> Option<bool> {
+fn silhouette_order(scene: &Scene, projections: &Projections, a: &RayHit, b: &RayHit) -> Option<bool> {
     if parallel(scene, a.surface, b.surface) {
         return None;
     }
     let (sa, sb) = (&scene.surfaces[a.surface as usize], &scene.surfaces[b.surface as usize]);
-    let (pa, pb) = (
-        SurfaceProjection::new(frame, n, sa.normal, sa.offset),
-        SurfaceProjection::new(frame, n, sb.normal, sb.offset),
-    );
+    let (pa, pb) = (projections.computed(a.surface), projections.computed(b.surface));
     let slope = DVec2::new(pb.depth[1] - pa.depth[1], pb.depth[2] - pa.depth[2]).length();
     if (a.depth - b.depth).abs() > slope / SUBPIXELS as f64 + DEPTH_TIE {
         return None;
@@ -444,10 +585,265 @@ pub(crate) fn shoot(
 
 /// Adds `weight` to `area[t]` for every ray crossing texel `t`: one direction's
 /// share of the texels' discrete areas `T_t`.
+///
+/// Every ray that crosses a surface counts, whatever lies in front of it, unless a surface
+/// sharing its plane hides it ([`drop_hidden`]). So a tile without such surfaces needs no
+/// walk along its rays (no sort by depth): each surface's spans add up on their own. The
+/// bits are the walk's, since every term added to `area` here is the same `weight`, and
+/// from zero such sums do not depend on their order.
 pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut [Rgb], scratch: &mut Scratch) {
-    for_each_ray(geometry, sub, None, scratch, |hits| {
-        for h in hits {
-            area[h.texel as usize][0] += weight;
+    let m = sub.grid.tile as usize;
+    let per_side = sub.grid.tiles_per_side() as usize;
+    scratch.projections.begin(geometry.scene.surfaces.len());
+    for k in 0..sub.tile_count() {
+        let entries = sub.tile(k);
+        if entries
+            .iter()
+            .any(|e| geometry.stacking.shares_plane[e.surface as usize])
+        {
+            walk_tile(geometry, sub, k, None, scratch, &mut |hits: &[RayHit]| {
+                for h in hits {
+                    area[h.texel as usize][0] += weight;
+                }
+            });
+            continue;
         }
-    });
+        let (tile_x, tile_y) = ((k % per_side * m) as f64, (k / per_side * m) as f64);
+        for e in entries {
+            let grid = geometry.atlas.grid(e.surface as usize);
+            let tp = scratch.projections.get(geometry, sub, e.surface);
+            for s in sub.spans_of(e) {
+                let y = tile_y + s.row as f64 + 0.5;
+                for x in s.start..s.end {
+                    let gx = tile_x + x as f64 + 0.5;
+                    area[tp.texel(grid, gx, y) as usize][0] += weight;
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::directions::DirectionSet;
+    use crate::psf::{Footprints, GridSize};
+    use crate::scene::{FaceOrigin, Material, Normalisation, Surface};
+    use glam::DVec3;
+
+    /// The rectangle `c ± a ± b` facing `normal`.
+    fn rect(c: DVec3, a: DVec3, b: DVec3, normal: DVec3, material: usize) -> Surface {
+        let mut vertices = vec![c - a - b, c + a - b, c + a + b, c - a + b];
+        if (a.cross(b)).dot(normal) < 0.0 {
+            vertices.reverse();
+        }
+        let n = normal.normalize();
+        Surface {
+            offset: n.dot(c),
+            normal: n,
+            area: 4.0 * a.cross(b).length(),
+            vertices,
+            material,
+            origin: FaceOrigin { line: 0, face: 0 },
+            uv: None,
+        }
+    }
+
+    fn material(name: &str, diffuse: f64, emission: f64) -> Material {
+        Material {
+            name: name.into(),
+            diffuse: [diffuse; 3],
+            specular: [0.0; 3],
+            emission: [emission; 3],
+            albedo_texture: None,
+        }
+    }
+
+    /// A room facing in, its walls each cut into 2 × 2 quads (one plane each: not hideable),
+    /// with a lamp flush on its ceiling and a poster on its back wall (each sharing a plane
+    /// with what it lies on), a panel of two back-to-back faces in one plane, and a block
+    /// standing free. Returns the scene and which surfaces share a plane.
+    fn room() -> (Scene, Vec<bool>) {
+        let h = 0.8;
+        let mut surfaces = Vec::new();
+        let mut shared = Vec::new();
+        let axes = [DVec3::X, DVec3::Y, DVec3::Z];
+        for face in 0..6 {
+            let axis = axes[face / 2];
+            let sign = if face % 2 == 0 { -1.0 } else { 1.0 };
+            let (ta, tb) = (
+                axes[(face / 2 + 1) % 3] * (h / 2.0),
+                axes[(face / 2 + 2) % 3] * (h / 2.0),
+            );
+            for (i, j) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
+                let c = axis * sign * h + ta * i + tb * j;
+                surfaces.push(rect(c, ta, tb, -axis * sign, 0));
+                // The ceiling (+y) and the back wall (−z) carry the lamp and the poster.
+                shared.push(face == 3 || face == 4);
+            }
+        }
+        surfaces.push(rect(DVec3::Y * h, DVec3::X * 0.15, DVec3::Z * 0.15, -DVec3::Y, 1));
+        shared.push(true);
+        let poster = DVec3::new(0.3, 0.1, -h);
+        surfaces.push(rect(poster, DVec3::X * 0.2, DVec3::Y * 0.25, DVec3::Z, 2));
+        shared.push(true);
+        let panel = DVec3::new(-0.3, -0.2, 0.1);
+        let (pa, pb) = (DVec3::new(0.2, 0.0, 0.1), DVec3::Y * 0.3);
+        let n = pa.cross(pb).normalize();
+        surfaces.push(rect(panel, pa, pb, n, 0));
+        surfaces.push(rect(panel, pa, pb, -n, 0));
+        shared.extend([true, true]);
+        // A block: a parallel face 0.05 from the floor does not share its plane.
+        let block = DVec3::new(0.35, -h + 0.05, 0.3);
+        surfaces.push(rect(block, DVec3::X * 0.1, DVec3::Z * 0.1, DVec3::Y, 0));
+        surfaces.push(rect(
+            block + DVec3::X * 0.1 - DVec3::Y * 0.025,
+            DVec3::Z * 0.1,
+            DVec3::Y * 0.025,
+            DVec3::X,
+            0,
+        ));
+        shared.extend([false, false]);
+        let scene = Scene {
+            surfaces,
+            materials: vec![
+                material("wall", 0.7, 0.0),
+                material("lamp", 0.7, 1.0),
+                material("poster", 0.3, 0.0),
+            ],
+            normalisation: Normalisation {
+                center: DVec3::ZERO,
+                scale: 1.0,
+            },
+            textures: Vec::new(),
+        };
+        (scene, shared)
+    }
+
+    struct Setup {
+        scene: Scene,
+        atlas: TexelAtlas,
+        stacking: Stacking,
+        subfields: Vec<Subfield>,
+        weights: Vec<f64>,
+    }
+
+    fn setup() -> (Setup, Vec<bool>) {
+        let (scene, shared) = room();
+        let grid = GridSize::new(32, 8).unwrap();
+        let atlas = TexelAtlas::new(&scene, grid.ray_spacing(), grid.ray_spacing()).unwrap();
+        let footprints = Footprints::new(&scene, &atlas.plane_rep);
+        let directions = DirectionSet::new(33).unwrap();
+        let subfields = (0..directions.len())
+            .map(|d| Subfield::build(&footprints, directions.frame(d), grid))
+            .collect();
+        let weights = (0..directions.len()).map(|d| directions.get(d).weight).collect();
+        let stacking = Stacking::new(&scene, &atlas);
+        let setup = Setup {
+            scene,
+            atlas,
+            stacking,
+            subfields,
+            weights,
+        };
+        (setup, shared)
+    }
+
+    impl Setup {
+        fn geometry<'a>(&'a self, stacking: &'a Stacking) -> Geometry<'a> {
+            Geometry {
+                scene: &self.scene,
+                atlas: &self.atlas,
+                stacking,
+            }
+        }
+    }
+
+    /// What every surface would be if any could hide another: the walk and its check on
+    /// every ray.
+    fn all_shared(stacking: &Stacking) -> Stacking {
+        Stacking {
+            rank: stacking.rank.clone(),
+            shares_plane: vec![true; stacking.rank.len()],
+        }
+    }
+
+    #[test]
+    fn only_surfaces_that_share_a_plane_with_another_are_marked() {
+        let (setup, shared) = setup();
+        // A wall cut in four is one plane in the subfields: its quads are marked only where
+        // something else lies in that plane.
+        assert_eq!(setup.stacking.shares_plane, shared);
+    }
+
+    #[test]
+    fn areas_counted_over_spans_are_the_walks_bits() {
+        let (setup, _) = setup();
+        let walked = all_shared(&setup.stacking);
+        let texels = setup.atlas.texels;
+        let mut scratch = Scratch::default();
+        let (mut fast_tiles, mut walked_tiles) = (0, 0);
+        for (sub, &w) in setup.subfields.iter().zip(&setup.weights) {
+            let mut fast = vec![[0.0; 3]; texels];
+            let mut slow = vec![[0.0; 3]; texels];
+            count(setup.geometry(&setup.stacking), sub, w, &mut fast, &mut scratch);
+            count(setup.geometry(&walked), sub, w, &mut slow, &mut scratch);
+            let bits = |v: &[Rgb]| v.iter().map(|t| t[0].to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&fast), bits(&slow), "direction {:?}", sub.frame.w);
+            assert!(slow.iter().any(|t| t[0] > 0.0));
+            for k in 0..sub.tile_count() {
+                let entries = sub.tile(k);
+                match entries.iter().any(|e| setup.stacking.shares_plane[e.surface as usize]) {
+                    true => walked_tiles += 1,
+                    false if !entries.is_empty() => fast_tiles += 1,
+                    false => {}
+                }
+            }
+        }
+        // The scene takes both paths.
+        assert!(fast_tiles > 0 && walked_tiles > 0, "{fast_tiles} / {walked_tiles}");
+        // And the hidden ceiling under the lamp takes no rays: the check still runs there.
+        let ceiling_under_lamp = {
+            let lamp = &setup.scene.surfaces[24];
+            let ceiling = setup.atlas.grid(12);
+            let centre = lamp.vertices.iter().copied().sum::<DVec3>() / 4.0;
+            ceiling.index(ceiling.coords(centre))
+        };
+        let mut area = vec![[0.0; 3]; texels];
+        for (sub, &w) in setup.subfields.iter().zip(&setup.weights) {
+            count(setup.geometry(&setup.stacking), sub, w, &mut area, &mut scratch);
+        }
+        assert_eq!(area[ceiling_under_lamp][0], 0.0);
+    }
+
+    #[test]
+    fn shooting_checks_hidden_hits_only_where_they_can_be() {
+        let (setup, _) = setup();
+        let walked = all_shared(&setup.stacking);
+        let texels = setup.atlas.texels;
+        let radiance: Vec<Rgb> = (0..texels)
+            .map(|t| {
+                let x = (t as f64 * 0.618_033_988_7).fract();
+                [x, 0.5 * x + 0.1, 1.0 - x]
+            })
+            .collect();
+        let mut scratch = Scratch::default();
+        for (sub, &weight) in setup.subfields.iter().zip(&setup.weights) {
+            let beam = Beam { sub, weight };
+            let mut fast = vec![[0.0; 3]; texels];
+            let mut slow = vec![[0.0; 3]; texels];
+            let f = shoot(
+                setup.geometry(&setup.stacking),
+                beam,
+                &radiance,
+                &mut fast,
+                None,
+                &mut scratch,
+            );
+            let s = shoot(setup.geometry(&walked), beam, &radiance, &mut slow, None, &mut scratch);
+            assert_eq!(f, s);
+            let bits = |v: &[Rgb]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&fast), bits(&slow));
+        }
+    }
 }

@@ -488,9 +488,11 @@ impl Propagation {
         }
     }
 
-    /// Shoots direction `d` of `pass` into `buf`, cleared first to the field's texels: what the
-    /// direction delivers to each texel (received power, or its discrete area for
-    /// [`Pass::Areas`]) and where its power went. `maps` are its mirror maps when the pass
+    /// Shoots direction `d` of `pass` into `buf`, which holds the field's texels, all zero
+    /// ([`cleared`]): what the direction delivers to each texel (received power, or its
+    /// discrete area for [`Pass::Areas`]) and where its power went. The caller clears it,
+    /// so that one who has just read the buffer through (to add it to a sum) clears it in the
+    /// same pass ([`add_and_clear`]) rather than in one more pass over a few hundred kB here. `maps` are its mirror maps when the pass
     /// shoots them ([`IterationWork::uses_mirror_maps`]): the incident radiance is added to
     /// them. A rotated copy's subfield is built here, in `scratch` (a copy serves one iteration,
     /// so its subfields are not kept). The one kernel of every schedule: a batch shot CHUNK
@@ -502,7 +504,7 @@ impl Propagation {
         pass: Pass,
         d: usize,
         maps: Option<&mut MirrorIo>,
-        buf: &mut Vec<Rgb>,
+        buf: &mut [Rgb],
         scratch: &mut DirectionScratch,
     ) -> crate::Result<Flow> {
         let geometry = shoot::Geometry {
@@ -510,8 +512,7 @@ impl Propagation {
             atlas: &self.atlas,
             stacking: &self.stacking,
         };
-        buf.clear();
-        buf.resize(self.atlas.texels, [0.0; 3]);
+        debug_assert_eq!(buf.len(), self.atlas.texels, "a cleared buffer of the field's texels");
         let DirectionScratch { shoot: walk, raster } = scratch;
         match (pass, &work.mode) {
             (Pass::Shoot, Mode::Direct { radiance, mirrors }) => {
@@ -606,6 +607,7 @@ impl Propagation {
                         .zip(bufs.par_iter_mut())
                         .enumerate()
                         .map_init(DirectionScratch::default, |scratch, (i, (m, buf))| {
+                            cleared(buf, self.atlas.texels);
                             self.shoot_direction(work, pass, range.start + i, Some(m), buf, scratch)
                         })
                         .collect(),
@@ -614,6 +616,7 @@ impl Propagation {
                         .into_par_iter()
                         .zip(bufs.par_iter_mut())
                         .map_init(DirectionScratch::default, |scratch, (d, buf)| {
+                            cleared(buf, self.atlas.texels);
                             self.shoot_direction(work, pass, d, None, buf, scratch)
                         })
                         .collect(),
@@ -688,4 +691,22 @@ pub(crate) fn add_into(acc: &mut [Rgb], v: &[Rgb]) {
         a[1] += b[1];
         a[2] += b[2];
     }
+}
+
+/// `acc += v`, then `v = 0`, texel by texel: a shot direction's buffer added to its batch's
+/// sum and left [`cleared`] for the next direction in the one pass that reads it (the same
+/// additions as [`add_into`]).
+pub(crate) fn add_and_clear(acc: &mut [Rgb], v: &mut [Rgb]) {
+    for (a, b) in acc.iter_mut().zip(v) {
+        a[0] += b[0];
+        a[1] += b[1];
+        a[2] += b[2];
+        *b = [0.0; 3];
+    }
+}
+
+/// Makes `buf` `texels` zeros, as [`Propagation::shoot_direction`] takes it.
+pub(crate) fn cleared(buf: &mut Vec<Rgb>, texels: usize) {
+    buf.clear();
+    buf.resize(texels, [0.0; 3]);
 }
