@@ -287,15 +287,7 @@ impl Propagation {
                 })
                 .collect(),
             buffers: Mutex::new(Buffers {
-                free: self
-                    .buffers
-                    .take()
-                    .into_iter()
-                    .map(|mut b| {
-                        cleared(&mut b, self.atlas.texels);
-                        b
-                    })
-                    .collect(),
+                free: self.buffers.take_cleared(self.atlas.texels),
                 out: 0,
             }),
             returned: Condvar::new(),
@@ -327,7 +319,7 @@ impl Propagation {
         // leaves the rest to be freed).
         let mut free = buffers.into_inner().unwrap_or_else(|p| p.into_inner()).free;
         free.truncate(cap);
-        self.buffers.keep(free);
+        self.buffers.keep_clean(free);
         if let Some(e) = error {
             return Err(e);
         }

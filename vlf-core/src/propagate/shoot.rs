@@ -10,7 +10,8 @@ use crate::maps::TexelAtlas;
 use crate::psf::raster::SUBPIXELS;
 use crate::psf::{Subfield, SurfaceProjection};
 use crate::scene::{Rgb, Scene};
-use glam::DVec2;
+use glam::{DVec2, DVec3};
+use std::collections::HashMap;
 
 /// One ray–surface intersection.
 #[derive(Clone, Copy, Debug)]
@@ -65,9 +66,9 @@ pub(crate) struct Stacking {
     /// flush with, then smaller charts on top of larger ones (a decal on a
     /// wall, however the wall is cut), then later surfaces.
     pub rank: Vec<u32>,
-    /// Per surface, whether another surface facing the same way lies in
-    /// (nearly) its plane: only such a pair can tie in depth along a ray and
-    /// hide one another ([`drop_hidden`]). A ray whose hits are all on other
+    /// Per surface, whether another surface lies in (nearly) its plane, facing
+    /// either way: only such a pair can tie in depth along a ray and hide one
+    /// another ([`drop_hidden`]). A ray whose hits are all on other
     /// surfaces needs no such check, and a direction's discrete areas over
     /// them need no walk at all ([`count`]).
     pub shares_plane: Vec<bool>,
@@ -104,9 +105,17 @@ impl Stacking {
 /// Two planes whose normals are [`parallel`] are at most 4.5·10⁻⁵ rad apart, so where
 /// their offsets differ by `Δ` (as oriented alike) they are at least `Δ − 4.5·10⁻⁵·R`
 /// apart at every point within `R` of the origin, and a ray's depths on them differ by at
-/// least that: above `10⁻⁴ + 5·10⁻⁵·R` they can never tie (to [`DEPTH_TIE`]). Sorted by
-/// `|offset|`, a surface's candidates lie within that gap of it.
+/// least that: above `gap = 10⁻⁴ + 5·10⁻⁵·R` they can never tie (to [`DEPTH_TIE`]). `R`
+/// bounds the scene's vertices; a hit lies on its polygon up to half a rasteriser sub-pixel
+/// (about 10⁻⁴ at N = 4096), which the first term covers.
+///
+/// Candidates are found in a grid over (normal, offset) with cells wider than both
+/// tolerances, each surface filed under its plane both ways (`(n, o)` and `(−n, −o)`), so a
+/// surface looks at the 27 cells around its normal and, in each, at the offsets within
+/// `gap` of its own: linear in the surfaces, however many share an offset (a sphere
+/// about the origin) or a normal (a floor of separate tiles).
 fn shares_plane(scene: &Scene, plane_rep: &[u32]) -> Vec<bool> {
+    const NORMAL_CELL: f64 = 1e-4;
     let radius = scene
         .surfaces
         .iter()
@@ -114,29 +123,51 @@ fn shares_plane(scene: &Scene, plane_rep: &[u32]) -> Vec<bool> {
         .map(|v| v.length())
         .fold(0.0, f64::max);
     let gap = 1e-4 + 5e-5 * radius;
-    let mut reps: Vec<usize> = (0..scene.surfaces.len())
+    let cell = |n: DVec3| (n / NORMAL_CELL).floor().as_i64vec3().to_array();
+    let reps: Vec<usize> = (0..scene.surfaces.len())
         .filter(|&s| plane_rep.get(s).is_none_or(|&r| r as usize == s))
         .collect();
-    reps.sort_by(|&a, &b| (scene.surfaces[a].offset.abs()).total_cmp(&scene.surfaces[b].offset.abs()));
-    let mut shares = vec![false; scene.surfaces.len()];
-    for (i, &a) in reps.iter().enumerate() {
-        let sa = &scene.surfaces[a];
-        for &b in &reps[i + 1..] {
-            let sb = &scene.surfaces[b];
-            if sb.offset.abs() - sa.offset.abs() > gap {
-                break;
-            }
-            let dot = sa.normal.dot(sb.normal);
-            let apart = if dot > 0.0 {
-                sa.offset - sb.offset
-            } else {
-                sa.offset + sb.offset
-            };
-            if dot.abs() >= 1.0 - 1e-9 && apart.abs() <= gap {
-                shares[a] = true;
-                shares[b] = true;
-            }
+    let mut cells: HashMap<[i64; 3], Vec<(f64, u32)>> = HashMap::new();
+    for &r in &reps {
+        let s = &scene.surfaces[r];
+        for sign in [1.0, -1.0] {
+            cells
+                .entry(cell(s.normal * sign))
+                .or_default()
+                .push((s.offset * sign, r as u32));
         }
+    }
+    for filed in cells.values_mut() {
+        filed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    }
+    let shares_with_another = |a: usize| {
+        let sa = &scene.surfaces[a];
+        let [x, y, z] = cell(sa.normal);
+        (-1..=1)
+            .flat_map(|i| (-1..=1).flat_map(move |j| (-1..=1).map(move |k| [x + i, y + j, z + k])))
+            .any(|c| {
+                let Some(filed) = cells.get(&c) else {
+                    return false;
+                };
+                let from = filed.partition_point(|(o, _)| *o < sa.offset - gap);
+                filed[from..]
+                    .iter()
+                    .take_while(|(o, _)| *o <= sa.offset + gap)
+                    .any(|&(_, b)| {
+                        let sb = &scene.surfaces[b as usize];
+                        let dot = sa.normal.dot(sb.normal);
+                        let apart = if dot > 0.0 {
+                            sa.offset - sb.offset
+                        } else {
+                            sa.offset + sb.offset
+                        };
+                        b as usize != a && dot.abs() >= 1.0 - 1e-9 && apart.abs() <= gap
+                    })
+            })
+    };
+    let mut shares = vec![false; scene.surfaces.len()];
+    for &r in &reps {
+        shares[r] = shares_with_another(r);
     }
     (0..scene.surfaces.len())
         .map(|s| shares[plane_rep.get(s).map_or(s, |&r| r as usize)])
@@ -152,50 +183,62 @@ pub(crate) struct Scratch {
     projections: Projections,
 }
 
-/// Each surface's [`TexelProjection`] in the subfield being walked, computed the first time
+/// Surfaces' [`TexelProjection`]s in the subfield being walked, each computed the first time
 /// one of its tile entries comes up: a surface crosses many tiles (a wall, a few hundred),
-/// and a projection costs a few dozen multiplications and a division.
-#[derive(Default)]
+/// and a projection costs a few dozen multiplications and a division. A small direct-mapped
+/// cache (surface `s` in slot `s` mod 1024), so that its memory does not grow with the
+/// scene: a surface pushed out by another is computed again, to the same bits.
 struct Projections {
-    /// The walk being made: entries stamped with another one are stale.
+    /// The walk being made: slots stamped with another one are stale.
     walk: u64,
-    /// Per surface, the walk it was computed in and the projection.
-    of: Vec<(u64, TexelProjection)>,
+    /// Per slot: the walk it was filled in, its surface, and that surface's projection.
+    slots: Vec<(u64, u32, TexelProjection)>,
+}
+
+impl Default for Projections {
+    fn default() -> Self {
+        Projections::with_slots(1024)
+    }
 }
 
 impl Projections {
-    /// Starts the walk of a subfield of a scene of `surfaces` surfaces.
-    fn begin(&mut self, surfaces: usize) {
-        self.walk += 1;
-        if self.of.len() != surfaces {
-            self.of.clear();
-            self.of.resize(surfaces, (0, TexelProjection::default()));
+    fn with_slots(slots: usize) -> Projections {
+        Projections {
+            walk: 0,
+            slots: vec![(0, 0, TexelProjection::default()); slots.max(1)],
         }
     }
 
-    /// `surface`'s projection in this walk's subfield `sub`.
+    /// Starts the walk of another subfield.
+    fn begin(&mut self) {
+        self.walk += 1;
+    }
+
+    /// `surface`'s projection in this walk's subfield `sub`, kept for the next time.
     #[inline]
     fn get(&mut self, geometry: Geometry, sub: &Subfield, surface: u32) -> TexelProjection {
-        let slot = &mut self.of[surface as usize];
-        if slot.0 != self.walk {
-            *slot = (self.walk, TexelProjection::new(geometry, sub, surface));
+        let slots = self.slots.len();
+        let slot = &mut self.slots[surface as usize % slots];
+        if (slot.0, slot.1) != (self.walk, surface) {
+            *slot = (self.walk, surface, TexelProjection::new(geometry, sub, surface));
         }
-        slot.1
+        slot.2
     }
 
-    /// `surface`'s projection, computed in this walk already.
+    /// `surface`'s projection in this walk's subfield `sub`, from the cache or computed.
     #[inline]
-    fn computed(&self, surface: u32) -> &TexelProjection {
-        let (walk, projection) = &self.of[surface as usize];
-        debug_assert_eq!(*walk, self.walk, "surface {surface} met before its projection");
-        projection
+    fn read(&self, geometry: Geometry, sub: &Subfield, surface: u32) -> TexelProjection {
+        match self.slots[surface as usize % self.slots.len()] {
+            (walk, s, projection) if (walk, s) == (self.walk, surface) => projection,
+            _ => TexelProjection::new(geometry, sub, surface),
+        }
     }
 }
 
 /// Texel lookup as an affine function of grid coordinates: the texel
 /// coordinates of the hit of ray `(x, y)` are `c0 + cx·x + cy·y`; its depth is
 /// `depth[0] + depth[1]·x + depth[2]·y`.
-#[derive(Clone, Copy, Default)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 struct TexelProjection {
     depth: [f64; 3],
     c0: DVec2,
@@ -237,7 +280,7 @@ pub(crate) fn for_each_ray(
     scratch: &mut Scratch,
     mut visit: impl FnMut(&[RayHit]),
 ) {
-    scratch.projections.begin(geometry.scene.surfaces.len());
+    scratch.projections.begin();
     for k in 0..sub.tile_count() {
         walk_tile(geometry, sub, k, mirror_base, scratch, &mut visit);
     }
@@ -324,7 +367,11 @@ fn walk_tile(
     }
     // Only surfaces that share a plane can hide one another (`Stacking::shares_plane`).
     let may_hide = entries.iter().any(|e| stacking.shares_plane[e.surface as usize]);
-    let projections = &scratch.projections;
+    let order = Order {
+        geometry,
+        sub,
+        projections: &scratch.projections,
+    };
     for r in 0..m * m {
         let (a, b) = (scratch.offsets[r] as usize, scratch.offsets[r + 1] as usize);
         if a == b {
@@ -334,7 +381,7 @@ fn walk_tile(
         // Few hits per ray: insertion sort beats a general sort here.
         for i in 1..hits.len() {
             let mut j = i;
-            while j > 0 && before(scene, projections, &hits[j], &hits[j - 1]) {
+            while j > 0 && order.before(&hits[j], &hits[j - 1]) {
                 hits.swap(j, j - 1);
                 j -= 1;
             }
@@ -359,6 +406,11 @@ fn drop_hidden(scene: &Scene, hits: &mut [RayHit]) -> usize {
     if hits.windows(2).all(|w| (w[0].depth - w[1].depth).abs() > DEPTH_TIE) {
         return hits.len();
     }
+    drop_tied(scene, hits)
+}
+
+/// [`drop_hidden`] without its shortcut.
+fn drop_tied(scene: &Scene, hits: &mut [RayHit]) -> usize {
     let tied = |a: &RayHit, b: &RayHit| {
         (a.depth - b.depth).abs() <= DEPTH_TIE
             && a.faces_backward() == b.faces_backward()
@@ -381,6 +433,25 @@ fn drop_hidden(scene: &Scene, hits: &mut [RayHit]) -> usize {
     kept
 }
 
+/// What ordering a ray's hits reads: the scene, the subfield walked and its surfaces'
+/// projections so far.
+struct Order<'a> {
+    geometry: Geometry<'a>,
+    sub: &'a Subfield,
+    projections: &'a Projections,
+}
+
+impl Order<'_> {
+    #[inline]
+    fn before(&self, a: &RayHit, b: &RayHit) -> bool {
+        before(self, a, b)
+    }
+
+    fn projection(&self, surface: u32) -> TexelProjection {
+        self.projections.read(self.geometry, self.sub, surface)
+    }
+}
+
 /// Hit order along `+w`: by depth, and for (near-)coincident *parallel*
 /// surfaces by their tie key, so that a flush lamp is met before its ceiling
 /// from below and two back-to-back polygons never exchange light through
@@ -390,14 +461,15 @@ fn drop_hidden(scene: &Scene, hits: &mut [RayHit]) -> usize {
 /// put the facet facing `−w` first and let the ray escape through the fold;
 /// near a silhouette edge, see [`silhouette_order`].
 #[inline]
-fn before(scene: &Scene, projections: &Projections, a: &RayHit, b: &RayHit) -> bool {
+fn before(order: &Order, a: &RayHit, b: &RayHit) -> bool {
+    let scene = order.geometry.scene;
     let gap = (a.depth - b.depth).abs();
     if gap <= DEPTH_TIE && parallel(scene, a.surface, b.surface) {
         return a.tie < b.tie;
     }
     if gap <= SILHOUETTE_GAP
         && a.faces_backward() != b.faces_backward()
-        && let Some(a_first) = silhouette_order(scene, projections, a, b)
+        && let Some(a_first) = silhouette_order(order, a, b)
     {
         return a_first;
     }
@@ -423,12 +495,13 @@ const SILHOUETTE_GAP: f64 = 0.05;
 /// a concave corner (each in front of the other: a room's corner), the one facing `−w`
 /// first where they form a convex one (a solid's edge).
 #[cold]
-fn silhouette_order(scene: &Scene, projections: &Projections, a: &RayHit, b: &RayHit) -> Option<bool> {
+fn silhouette_order(order: &Order, a: &RayHit, b: &RayHit) -> Option<bool> {
+    let scene = order.geometry.scene;
     if parallel(scene, a.surface, b.surface) {
         return None;
     }
     let (sa, sb) = (&scene.surfaces[a.surface as usize], &scene.surfaces[b.surface as usize]);
-    let (pa, pb) = (projections.computed(a.surface), projections.computed(b.surface));
+    let (pa, pb) = (order.projection(a.surface), order.projection(b.surface));
     let slope = DVec2::new(pb.depth[1] - pa.depth[1], pb.depth[2] - pa.depth[2]).length();
     if (a.depth - b.depth).abs() > slope / SUBPIXELS as f64 + DEPTH_TIE {
         return None;
@@ -594,7 +667,7 @@ pub(crate) fn shoot(
 pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut [Rgb], scratch: &mut Scratch) {
     let m = sub.grid.tile as usize;
     let per_side = sub.grid.tiles_per_side() as usize;
-    scratch.projections.begin(geometry.scene.surfaces.len());
+    scratch.projections.begin();
     for k in 0..sub.tile_count() {
         let entries = sub.tile(k);
         if entries
@@ -649,16 +722,6 @@ mod tests {
         }
     }
 
-    fn material(name: &str, diffuse: f64, emission: f64) -> Material {
-        Material {
-            name: name.into(),
-            diffuse: [diffuse; 3],
-            specular: [0.0; 3],
-            emission: [emission; 3],
-            albedo_texture: None,
-        }
-    }
-
     /// A room facing in, its walls each cut into 2 × 2 quads (one plane each: not hideable),
     /// with a lamp flush on its ceiling and a poster on its back wall (each sharing a plane
     /// with what it lies on), a panel of two back-to-back faces in one plane, and a block
@@ -707,9 +770,12 @@ mod tests {
         let scene = Scene {
             surfaces,
             materials: vec![
-                material("wall", 0.7, 0.0),
-                material("lamp", 0.7, 1.0),
-                material("poster", 0.3, 0.0),
+                Material::grey("wall", 0.7),
+                Material {
+                    emission: [1.0; 3],
+                    ..Material::grey("lamp", 0.7)
+                },
+                Material::grey("poster", 0.3),
             ],
             normalisation: Normalisation {
                 center: DVec3::ZERO,
@@ -776,6 +842,98 @@ mod tests {
         assert_eq!(setup.stacking.shares_plane, shared);
     }
 
+    /// Many surfaces about the origin at one offset (a sphere's facets: none shares a plane),
+    /// and many in one plane (tiles of a floor, each its own plane representative, with
+    /// their opposite faces: all share it), against every pair compared.
+    #[test]
+    fn planes_are_found_shared_as_by_comparing_every_pair() {
+        let mut surfaces = Vec::new();
+        for i in 0..40 {
+            for j in 0..20 {
+                let (theta, phi) = (
+                    (j as f64 + 0.5) / 20.0 * std::f64::consts::PI,
+                    i as f64 / 40.0 * std::f64::consts::TAU,
+                );
+                let n = DVec3::new(theta.sin() * phi.cos(), theta.cos(), theta.sin() * phi.sin());
+                let (a, b) = (
+                    n.any_orthonormal_vector() * 0.02,
+                    n.cross(n.any_orthonormal_vector()) * 0.02,
+                );
+                surfaces.push(rect(n * 0.7, a, b, n, 0));
+            }
+        }
+        for i in 0..12 {
+            for j in 0..12 {
+                let c = DVec3::new(i as f64 * 0.1 - 0.6, -0.5, j as f64 * 0.1 - 0.6);
+                let up = (i + j) % 3 != 0;
+                surfaces.push(rect(
+                    c,
+                    DVec3::X * 0.04,
+                    DVec3::Z * 0.04,
+                    if up { DVec3::Y } else { -DVec3::Y },
+                    0,
+                ));
+            }
+        }
+        // One tile alone in a plane a hair above the others' (still the same plane) and one
+        // clearly above (not).
+        surfaces.push(rect(
+            DVec3::new(0.9, -0.5 + 1e-7, 0.0),
+            DVec3::X * 0.04,
+            DVec3::Z * 0.04,
+            DVec3::Y,
+            0,
+        ));
+        surfaces.push(rect(
+            DVec3::new(0.9, -0.45, 0.3),
+            DVec3::X * 0.04,
+            DVec3::Z * 0.04,
+            DVec3::Y,
+            0,
+        ));
+        let scene = Scene {
+            surfaces,
+            materials: vec![Material::grey("m", 0.5)],
+            normalisation: Normalisation {
+                center: DVec3::ZERO,
+                scale: 1.0,
+            },
+            textures: Vec::new(),
+        };
+        let n = scene.surfaces.len();
+        let identity: Vec<u32> = (0..n as u32).collect();
+        let gap = 1e-4
+            + 5e-5
+                * scene
+                    .surfaces
+                    .iter()
+                    .flat_map(|s| &s.vertices)
+                    .map(|v| v.length())
+                    .fold(0.0, f64::max);
+        let every_pair: Vec<bool> = (0..n)
+            .map(|a| {
+                let sa = &scene.surfaces[a];
+                (0..n).any(|b| {
+                    let sb = &scene.surfaces[b];
+                    let dot = sa.normal.dot(sb.normal);
+                    let apart = if dot > 0.0 {
+                        sa.offset - sb.offset
+                    } else {
+                        sa.offset + sb.offset
+                    };
+                    a != b && dot.abs() >= 1.0 - 1e-9 && apart.abs() <= gap
+                })
+            })
+            .collect();
+        let found = shares_plane(&scene, &identity);
+        assert_eq!(found, every_pair);
+        assert_eq!(
+            found.iter().filter(|&&s| s).count(),
+            144 + 1,
+            "the floor's tiles and the one a hair above"
+        );
+    }
+
     #[test]
     fn areas_counted_over_spans_are_the_walks_bits() {
         let (setup, _) = setup();
@@ -787,7 +945,7 @@ mod tests {
             let mut fast = vec![[0.0; 3]; texels];
             let mut slow = vec![[0.0; 3]; texels];
             count(setup.geometry(&setup.stacking), sub, w, &mut fast, &mut scratch);
-            count(setup.geometry(&walked), sub, w, &mut slow, &mut scratch);
+            count(setup.geometry(&walked), sub, w, &mut slow, &mut Scratch::default());
             let bits = |v: &[Rgb]| v.iter().map(|t| t[0].to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&fast), bits(&slow), "direction {:?}", sub.frame.w);
             assert!(slow.iter().any(|t| t[0] > 0.0));
@@ -827,23 +985,87 @@ mod tests {
                 [x, 0.5 * x + 0.1, 1.0 - x]
             })
             .collect();
+        // One scratch kept from direction to direction, and one whose projection cache of 3
+        // slots keeps almost nothing, against a fresh one each time.
         let mut scratch = Scratch::default();
+        let mut tiny = Scratch {
+            projections: Projections::with_slots(3),
+            ..Scratch::default()
+        };
+        let bits = |v: &[Rgb]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
         for (sub, &weight) in setup.subfields.iter().zip(&setup.weights) {
             let beam = Beam { sub, weight };
-            let mut fast = vec![[0.0; 3]; texels];
             let mut slow = vec![[0.0; 3]; texels];
-            let f = shoot(
-                setup.geometry(&setup.stacking),
+            let s = shoot(
+                setup.geometry(&walked),
                 beam,
                 &radiance,
-                &mut fast,
+                &mut slow,
                 None,
-                &mut scratch,
+                &mut Scratch::default(),
             );
-            let s = shoot(setup.geometry(&walked), beam, &radiance, &mut slow, None, &mut scratch);
-            assert_eq!(f, s);
-            let bits = |v: &[Rgb]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();
-            assert_eq!(bits(&fast), bits(&slow));
+            for scratch in [&mut scratch, &mut tiny] {
+                let mut fast = vec![[0.0; 3]; texels];
+                let f = shoot(
+                    setup.geometry(&setup.stacking),
+                    beam,
+                    &radiance,
+                    &mut fast,
+                    None,
+                    scratch,
+                );
+                assert_eq!(f, s);
+                assert_eq!(bits(&fast), bits(&slow));
+            }
         }
+    }
+
+    /// Hits at given depths along one ray, on surfaces `(depth, surface)`.
+    fn hits(scene: &Scene, list: &[(f64, u32)]) -> Vec<RayHit> {
+        let w = DVec3::new(0.3, 0.4, 0.866).normalize();
+        list.iter()
+            .map(|&(depth, surface)| {
+                let backward = scene.surfaces[surface as usize].normal.dot(w) < 0.0;
+                RayHit {
+                    depth,
+                    surface,
+                    texel: 0,
+                    mirror: NO_SLOT,
+                    tie: if backward {
+                        u32::MAX / 2 - surface
+                    } else {
+                        u32::MAX / 2 + 1 + surface
+                    },
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_ray_without_two_hits_at_one_depth_hides_none() {
+        let (setup, _) = setup();
+        let scene = &setup.scene;
+        // The lamp (24) on the ceiling (12), the poster (25) on the back wall (16), the two
+        // faces of the panel (26, 27), a floor quad (8) and the block (28): every pair at
+        // every pair of depths, ties included, gives what the full loop gives.
+        let surfaces = [24, 12, 25, 16, 26, 27, 8, 28];
+        let depths = [0.1, 0.1 + 1e-10, 0.1 + 5e-10, 0.3, 0.3 + 2e-9, 0.7];
+        let kept = |h: &[RayHit]| h.iter().map(|h| (h.depth.to_bits(), h.surface)).collect::<Vec<_>>();
+        let mut hidden = 0;
+        for &a in &surfaces {
+            for &b in &surfaces {
+                for (i, &da) in depths.iter().enumerate() {
+                    for &db in &depths[i..] {
+                        let list = [(da, a), (db, b), (0.9, 8)];
+                        let mut short = hits(scene, &list);
+                        let mut full = short.clone();
+                        let (n, m) = (drop_hidden(scene, &mut short), drop_tied(scene, &mut full));
+                        assert_eq!(kept(&short[..n]), kept(&full[..m]), "{list:?}");
+                        hidden += 3 - n;
+                    }
+                }
+            }
+        }
+        assert!(hidden > 0, "some hits are hidden");
     }
 }

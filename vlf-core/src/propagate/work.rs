@@ -99,17 +99,46 @@ pub enum Pass {
 /// time, their pages are zeroed by the kernel each time: a worker computing
 /// its lease in single-batch blocks paid about 0.5 ms per block for it. Taken
 /// by one block at a time (a second one meanwhile gets fresh buffers); a clone
-/// of the propagation starts without.
+/// of the propagation starts without. Kept `clean` when every buffer holds only zeros (as the
+/// claimed schedule leaves them), so the next one need not clear them again.
 #[derive(Default)]
-pub(crate) struct KeptBuffers(std::sync::Mutex<Vec<Vec<Rgb>>>);
+pub(crate) struct KeptBuffers(std::sync::Mutex<Kept>);
+
+#[derive(Default)]
+struct Kept {
+    buffers: Vec<Vec<Rgb>>,
+    clean: bool,
+}
 
 impl KeptBuffers {
-    pub(crate) fn take(&self) -> Vec<Vec<Rgb>> {
+    fn take_kept(&self) -> Kept {
         std::mem::take(&mut *self.0.lock().unwrap_or_else(|p| p.into_inner()))
     }
 
+    /// The buffers kept, as they were left.
+    pub(crate) fn take(&self) -> Vec<Vec<Rgb>> {
+        self.take_kept().buffers
+    }
+
+    /// The buffers kept, each [`cleared`] to `texels` zeros (unless they were kept clean).
+    pub(crate) fn take_cleared(&self, texels: usize) -> Vec<Vec<Rgb>> {
+        let Kept { mut buffers, clean } = self.take_kept();
+        for b in &mut buffers {
+            if !clean || b.len() != texels {
+                cleared(b, texels);
+            }
+        }
+        buffers
+    }
+
+    /// Keeps `buffers`, whatever they hold.
     pub(crate) fn keep(&self, buffers: Vec<Vec<Rgb>>) {
-        *self.0.lock().unwrap_or_else(|p| p.into_inner()) = buffers;
+        *self.0.lock().unwrap_or_else(|p| p.into_inner()) = Kept { buffers, clean: false };
+    }
+
+    /// Keeps `buffers`, which hold only zeros.
+    pub(crate) fn keep_clean(&self, buffers: Vec<Vec<Rgb>>) {
+        *self.0.lock().unwrap_or_else(|p| p.into_inner()) = Kept { buffers, clean: true };
     }
 }
 
