@@ -248,10 +248,7 @@ fn as_earlier_build(store: &Store, id: &JobId, k: u32, whole: bool) -> Checkpoin
     let job = FieldJob::open(store, id).unwrap();
     let current = job.checkpoint(k).unwrap();
     let mut p = Propagation::resume(job.scene().clone(), job.options().clone(), current).unwrap();
-    p.specular
-        .as_mut()
-        .unwrap()
-        .gather_all(&p.scene, &p.directions, &p.subfields);
+    p.specular.as_mut().unwrap().gather_all(&p.scene, &p.directions);
     let gathered = p.checkpoint();
     let (shooting, totals) = gathered.clone().split();
     let (head, unshot) = shooting.into_parts();

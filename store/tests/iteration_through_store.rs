@@ -632,7 +632,7 @@ fn runs_computed_in_steps(o: &Opener) {
 }
 
 /// A job whose subfields do not fit one worker's budget completes across three workers, each
-/// holding at most its budget (plus what its threads read: `budget + 2 · threads · largest`
+/// holding at most its budget (plus what its threads read: `budget + threads · largest`
 /// bytes alive), with the bits of the in-process run. Each worker keeps a home of batches, as
 /// the scheduler keeps them: once its home's subfields are built (the first iteration), a
 /// diffuse scene's later iterations build none; a mirror scene's gathers also read the routes'
@@ -682,13 +682,13 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let threads = rayon::current_num_threads();
     let held = coordinator_subfields.memory();
     assert!(
-        held.peak <= budget + 2 * threads * largest && held.peak < all,
+        held.peak <= budget + threads * largest && held.peak < all,
         "the coordinator held {held:?} of {all}"
     );
     for (w, worker) in workers.iter().enumerate() {
         let held = worker.subfield_memory();
         assert!(
-            held.peak <= budget + 2 * threads * largest,
+            held.peak <= budget + threads * largest,
             "worker {w}: {} bytes alive, over {budget} + 2·{threads}·{largest}",
             held.peak
         );

@@ -1,6 +1,6 @@
 //! A propagation within a subfield budget (`Propagation::with_subfield_budget`): the subfields
 //! built on demand and dropped when the budget is full give the same bits as the whole set
-//! held, and what is alive stays within the stated bound, `budget + 2 · threads · largest`.
+//! held, and what is alive stays within the stated bound, `budget + threads · largest`.
 
 mod common;
 
@@ -35,7 +35,7 @@ fn same_bits_within_a_quarter(scene: Scene, options: Options, threads: usize) {
             "a quarter's budget rebuilds every iteration: {held:?}"
         );
         assert!(
-            held.peak <= budget + 2 * threads * largest,
+            held.peak <= budget + threads * largest,
             "{} bytes alive at once, over {budget} + 2·{threads}·{largest}",
             held.peak
         );
@@ -55,7 +55,7 @@ fn same_bits_within_a_quarter(scene: Scene, options: Options, threads: usize) {
             "another tile layout"
         );
         assert!(
-            subfields.memory().peak <= budget + 2 * threads * largest,
+            subfields.memory().peak <= budget + threads * largest,
             "the field's assembly held {:?}",
             subfields.memory()
         );

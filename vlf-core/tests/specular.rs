@@ -66,7 +66,7 @@ fn gathered_maps_carry_the_settled_power() {
     for _ in 0..2 {
         p.step(|_| {});
     }
-    let (scene, directions, subfields) = (p.scene.clone(), p.directions.clone(), p.subfields.clone());
+    let (scene, directions) = (p.scene.clone(), p.directions.clone());
     let spec = p.specular.as_mut().unwrap();
     let pending = spec.pending.clone().expect("arrivals wait to be reflected");
     let settled = spec.unshot_power(&scene, &directions);
@@ -75,13 +75,13 @@ fn gathered_maps_carry_the_settled_power() {
     let read = |d: usize| spec.maps[d].incident.as_slice();
     let one: Vec<_> = [0, 40, 128]
         .into_iter()
-        .map(|i| spec.gather(&scene, &directions, &subfields, &read, &pending.power_in, i))
+        .map(|i| spec.gather(&scene, &directions, &read, &pending.power_in, i))
         .collect();
     assert!(
         one.iter().flatten().any(|v| v[0] > 0.0),
         "nothing reflected into these directions"
     );
-    spec.gather_all(&scene, &directions, &subfields);
+    spec.gather_all(&scene, &directions);
     assert!(spec.pending.is_none());
     let gathered = spec.unshot_power(&scene, &directions);
     for c in 0..3 {
@@ -298,4 +298,32 @@ fn mirror_propagation_is_deterministic_across_threads() {
         one == run(2) && one == run(3),
         "mirror propagation differs between thread counts"
     );
+}
+
+/// What the exchange reads of a direction, its mirror entries alone (`MirrorView`), finds
+/// every grid cell's mirror slot where the whole subfield does, and nothing elsewhere: the
+/// gathers read their sources through it without building the sources' subfields.
+#[test]
+fn a_mirror_view_locates_the_slots_of_the_whole_subfield() {
+    let p = Propagation::new(mirror_room(), options(33, 32, 8, 1)).unwrap();
+    let spec = p.specular.as_ref().unwrap();
+    let chart_of = p.atlas.chart_of.clone();
+    let mut found = 0;
+    for d in 0..p.directions.len() {
+        let (sub, layout) = (p.subfields.get(d), &spec.layouts[d]);
+        let view = &spec.views[d];
+        assert_eq!(view.layout.len, layout.len, "direction {d}");
+        assert!(view.sub.entries.len() < sub.entries.len());
+        let n = sub.grid.resolution;
+        for &m in &spec.mirrors {
+            for y in 0..n {
+                for x in 0..n {
+                    let whole = layout.locate_in_chart(&sub, &chart_of, m, x, y);
+                    assert_eq!(view.layout.locate_in_chart(&view.sub, &chart_of, m, x, y), whole);
+                    found += whole.is_some() as usize;
+                }
+            }
+        }
+    }
+    assert!(found > 0);
 }

@@ -120,14 +120,14 @@ impl Propagation {
                 "the mirror totals of direction {d} are not restored (a block computed before took them)"
             )));
         }
-        let (scene, dirs, subfields) = (&self.scene, &self.directions, &*self.subfields);
+        let (scene, dirs) = (&self.scene, &self.directions);
         let unshot: Option<Vec<Cow<[Rgb]>>> = spec.map(|spec| match &spec.pending {
             Some(pending) => {
                 let read = |d: usize| spec.maps[d].incident.as_slice();
                 directions
                     .clone()
                     .into_par_iter()
-                    .map(|i| Cow::Owned(spec.gather(scene, dirs, subfields, &read, &pending.power_in, i)))
+                    .map(|i| Cow::Owned(spec.gather(scene, dirs, &read, &pending.power_in, i)))
                     .collect()
             }
             None => directions
@@ -169,7 +169,7 @@ impl Propagation {
             directions
                 .clone()
                 .zip(incident)
-                .map(|(d, m)| spec.power_in_of(dirs, &subfields.get(d), d, m))
+                .map(|(d, m)| spec.power_in_of(dirs, d, m))
                 .collect()
         });
         let output = BatchOutput {

@@ -649,7 +649,7 @@ impl Propagation {
     fn gathered_maps(&mut self, work: &IterationWork) -> Option<Vec<specular::DirectionMaps>> {
         match (&mut self.specular, work.uses_mirror_maps()) {
             (Some(spec), true) => {
-                spec.gather_all(&self.scene, &self.directions, &self.subfields);
+                spec.gather_all(&self.scene, &self.directions);
                 Some(std::mem::take(&mut spec.maps))
             }
             _ => None,
@@ -673,10 +673,10 @@ impl Propagation {
             spec.maps
                 .par_iter_mut()
                 .for_each(|m| work::add_into(&mut m.total, &m.unshot));
-            let (directions, subfields) = (&self.directions, &self.subfields);
+            let directions = &self.directions;
             work.power_in = (0..l)
                 .into_par_iter()
-                .map(|d| spec.power_in_of(directions, &subfields.get(d), d, &spec.maps[d].incident))
+                .map(|d| spec.power_in_of(directions, d, &spec.maps[d].incident))
                 .collect();
         }
         self.finish_iteration(work, started)

@@ -185,12 +185,36 @@ pub struct Exchange {
     pub reflected: Rgb,
 }
 
+/// One direction's subfield restricted to the surfaces with mirror maps ([`Subfield::only`]),
+/// with its slots laid out as the whole subfield's ([`MirrorLayout`] numbers mirror slots tile
+/// by tile, entry by entry, counting only mirror entries: the view has them in the same
+/// order). What the exchange reads of a direction, the gather of its own unshot map and of
+/// its sources' arrivals, and its `Φ_in`: kept for every direction, it spares a process
+/// within a subfield budget rebuilding whole subfields to gather (a mirror's spans are a
+/// small part of a subfield, and its maps, kept anyway, hold more).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MirrorView {
+    pub sub: Subfield,
+    pub layout: MirrorLayout,
+}
+
+impl MirrorView {
+    fn new(sub: &Subfield, has_maps: &[bool]) -> MirrorView {
+        let sub = sub.only(|s| has_maps[s as usize]);
+        let layout = MirrorLayout::new(&sub, has_maps);
+        MirrorView { sub, layout }
+    }
+}
+
 /// The specular state of a propagation.
 #[derive(Clone, Debug)]
 pub struct Specular {
     /// Surfaces with directional maps (mirrors that light can reach).
     pub mirrors: Vec<u32>,
+    /// Per direction, its mirror slots in its whole subfield (what shooting reads).
     pub layouts: Vec<MirrorLayout>,
+    /// Per direction, its mirror entries alone (what the exchange reads).
+    pub views: Vec<MirrorView>,
     pub maps: Vec<DirectionMaps>,
     /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
     pub routes: Vec<Vec<Route>>,
@@ -240,17 +264,20 @@ impl Specular {
             has_maps[m as usize] = true;
             ordinal[m as usize] = k as u32;
         }
-        let (layouts, slotted): (Vec<MirrorLayout>, Vec<Vec<bool>>) = subfields
-            .map(|_, sub| {
-                let layout = MirrorLayout::new(sub, &has_maps);
-                let mut slotted = vec![false; mirrors.len()];
-                for &(s, _, e) in &layout.entries {
-                    slotted[ordinal[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
-                }
-                (layout, slotted)
-            })
-            .into_iter()
-            .unzip();
+        let per_direction: Vec<(MirrorLayout, MirrorView, Vec<bool>)> = subfields.map(|_, sub| {
+            let layout = MirrorLayout::new(sub, &has_maps);
+            let mut slotted = vec![false; mirrors.len()];
+            for &(s, _, e) in &layout.entries {
+                slotted[ordinal[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
+            }
+            (layout, MirrorView::new(sub, &has_maps), slotted)
+        });
+        let (mut layouts, mut views, mut slotted) = (Vec::new(), Vec::new(), Vec::new());
+        for (layout, view, s) in per_direction {
+            layouts.push(layout);
+            views.push(view);
+            slotted.push(s);
+        }
         let maps = layouts
             .iter()
             .map(|l| DirectionMaps {
@@ -287,6 +314,7 @@ impl Specular {
         Specular {
             mirrors,
             layouts,
+            views,
             maps,
             routes,
             pending: None,
@@ -341,11 +369,12 @@ impl Specular {
 
     /// `Φ_in(P, ω)` of direction `d` for every mirror `P` (by ordinal): the
     /// power its incident map `incident` holds, `Σ_slots I · Δω`.
-    pub fn power_in_of(&self, directions: &DirectionSet, sub: &Subfield, d: usize, incident: &[Rgb]) -> Vec<Rgb> {
+    pub fn power_in_of(&self, directions: &DirectionSet, d: usize, incident: &[Rgb]) -> Vec<Rgb> {
         let mut p = vec![[0.0; 3]; self.mirrors.len()];
         let w = directions.get(d).weight;
-        for &(s, _, e) in &self.layouts[d].entries {
-            let base = self.layouts[d].entry_base[e as usize] as usize;
+        let MirrorView { sub, layout } = &self.views[d];
+        for &(s, _, e) in &layout.entries {
+            let base = layout.entry_base[e as usize] as usize;
             let acc = &mut p[self.ordinal[s as usize] as usize];
             for v in &incident[base..base + sub.entries[e as usize].rays as usize] {
                 for c in 0..3 {
@@ -408,7 +437,7 @@ impl Specular {
     /// into new unshot maps and clears the incident maps: the exchange, as
     /// one process does it at the start of the iteration that shoots them.
     /// Nothing happens when no arrivals are pending.
-    pub fn gather_all(&mut self, scene: &Scene, directions: &DirectionSet, subfields: &Subfields) {
+    pub fn gather_all(&mut self, scene: &Scene, directions: &DirectionSet) {
         let Some(pending) = self.pending.take() else {
             return;
         };
@@ -423,7 +452,7 @@ impl Specular {
         let read = |d: usize| incident[d].as_slice();
         let gathered: Vec<Vec<Rgb>> = (0..directions.len())
             .into_par_iter()
-            .map(|i| self.gather(scene, directions, subfields, &read, &pending.power_in, i))
+            .map(|i| self.gather(scene, directions, &read, &pending.power_in, i))
             .collect();
         for (maps, unshot) in self.maps.iter_mut().zip(gathered) {
             maps.unshot = unshot;
@@ -438,13 +467,11 @@ impl Specular {
         &self,
         scene: &Scene,
         directions: &DirectionSet,
-        subfields: &Subfields,
         incident: &(dyn Fn(usize) -> &'a [Rgb] + Sync),
         power_in: &[Vec<Rgb>],
         i: usize,
     ) -> Vec<Rgb> {
-        let layout = &self.layouts[i];
-        let sub = &subfields.get(i);
+        let MirrorView { sub, layout } = &self.views[i];
         let n = sub.grid.resolution;
         let weight_i = directions.get(i).weight;
         let mut out = vec![[0.0; 3]; layout.len as usize];
@@ -457,8 +484,10 @@ impl Specular {
             let surface = &scene.surfaces[route.mirror as usize];
             let rho = scene.materials[surface.material].specular;
             let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
-            let source = &subfields.get(route.source as usize);
-            let source_layout = &self.layouts[route.source as usize];
+            let MirrorView {
+                sub: source,
+                layout: source_layout,
+            } = &self.views[route.source as usize];
             let source_incident = incident(route.source as usize);
             // Backward mapping: every slot of P in i reads the incident
             // radiance of the source ray through the same point of P.

@@ -20,10 +20,11 @@
 //!   every subfield is rebuilt every time: `docs/scaling.md`).
 //!
 //! **The bound.** Besides the cache's `budget`, a subfield is alive while someone reads it:
-//! a thread shooting a direction holds one, and a thread gathering a direction's mirror maps
-//! holds two (the target's and a source's). So the subfield bytes alive never exceed
-//! `budget + 2 · threads · largest subfield` — what [`SubfieldMemory::peak`] counts, every
-//! subfield built being counted until it is dropped.
+//! a thread shooting a direction (or passing over it at set-up, or writing its mirror tiles)
+//! holds one; gathering a direction's mirror maps reads the mirror entries alone, which the
+//! specular state keeps (`crate::propagate::specular::MirrorView`), and holds none. So the
+//! subfield bytes alive never exceed `budget + threads · largest subfield` — what
+//! [`SubfieldMemory::peak`] counts, every subfield built being counted until it is dropped.
 
 use super::{Footprints, GridSize, PsfFrame, RasterScratch, Subfield};
 use rayon::prelude::*;
@@ -313,8 +314,8 @@ mod tests {
             "a budget of a fifth keeps few: {m:?}"
         );
         assert!(
-            m.peak <= budget + 2 * threads * largest,
-            "alive {} > budget {budget} + 2·{threads}·{largest}",
+            m.peak <= budget + threads * largest,
+            "alive {} > budget {budget} + {threads}·{largest}",
             m.peak
         );
         assert!(m.live <= budget + largest, "at rest only the cache holds them: {m:?}");
