@@ -270,10 +270,7 @@ fn checkpoints_of_earlier_builds_still_read_and_resume_with_the_same_bits() {
     let mut p = Propagation::new(scene.clone(), options(5, 0)).unwrap();
     p.step(|_| {});
     p.step(|_| {});
-    p.specular
-        .as_mut()
-        .unwrap()
-        .gather_all(&p.scene, &p.directions, &p.subfields);
+    p.specular.as_mut().unwrap().gather_all(&p.scene, &p.directions);
     let gathered = p.checkpoint();
     assert!(gathered.pending.is_none());
     let mirrors = gathered.mirrors.as_ref().unwrap();
