@@ -36,7 +36,7 @@ fn same_bits_within_a_quarter(scene: Scene, options: Options, threads: usize) {
         );
         assert!(
             held.peak <= budget + threads * largest,
-            "{} bytes alive at once, over {budget} + 2·{threads}·{largest}",
+            "{} bytes alive at once, over {budget} + {threads}·{largest}",
             held.peak
         );
         assert!(held.peak < all / 2, "the bound is no bound: {held:?} of {all}");

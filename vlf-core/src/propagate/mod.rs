@@ -740,13 +740,13 @@ impl Propagation {
     }
 
     /// Bytes held by the field: subfield tables (those held, within a budget), the radiance maps of the
-    /// texels and, with mirrors, their layouts and directional totals (f32).
+    /// texels and, with mirrors, their layouts, mirror views and directional totals (f32).
     pub fn field_bytes(&self) -> usize {
+        let layout = |l: &specular::MirrorLayout| l.entry_base.len() * 4 + l.entries.len() * 12;
         let specular = self.specular.as_ref().map_or(0, |s| {
-            s.layouts
-                .iter()
-                .map(|l| l.entry_base.len() * 4 + l.entries.len() * 12 + l.len as usize * 12)
-                .sum()
+            let layouts: usize = s.layouts.iter().map(|l| layout(l) + l.len as usize * 12).sum();
+            let views: usize = s.views.iter().map(|v| v.sub.memory_bytes() + layout(&v.layout)).sum();
+            layouts + views
         });
         self.subfields.memory().live
             + self.atlas.texels * (std::mem::size_of::<[f32; 3]>() + std::mem::size_of::<f32>())

@@ -185,10 +185,13 @@ pub struct Exchange {
     pub reflected: Rgb,
 }
 
-/// One direction's subfield restricted to the surfaces with mirror maps ([`Subfield::only`]),
-/// with its slots laid out as the whole subfield's ([`MirrorLayout`] numbers mirror slots tile
-/// by tile, entry by entry, counting only mirror entries: the view has them in the same
-/// order). What the exchange reads of a direction, the gather of its own unshot map and of
+/// One direction's subfield restricted to the surfaces of charts that hold a mirror with maps
+/// ([`Subfield::only`]), with its slots laid out as the whole subfield's ([`MirrorLayout`]
+/// numbers mirror slots tile by tile, entry by entry, counting only mirror entries: the view
+/// has them in the same order). A look-up on a mirror reads that mirror's entries and, where
+/// its ray misses it, its chart's others ([`MirrorLayout::locate_in_chart`]), mapped or not
+/// (an unmapped one answers "no slot"): all of them are in the view, so every look-up
+/// answers as on the whole subfield. What the exchange reads of a direction, the gather of its own unshot map and of
 /// its sources' arrivals, and its `Φ_in`: kept for every direction, it spares a process
 /// within a subfield budget rebuilding whole subfields to gather (a mirror's spans are a
 /// small part of a subfield, and its maps, kept anyway, hold more).
@@ -199,8 +202,10 @@ pub struct MirrorView {
 }
 
 impl MirrorView {
-    fn new(sub: &Subfield, has_maps: &[bool]) -> MirrorView {
-        let sub = sub.only(|s| has_maps[s as usize]);
+    /// The view of `sub` on the surfaces `in_view` accepts, whose mirror slots are those of
+    /// the surfaces that `has_maps`.
+    fn new(sub: &Subfield, in_view: &[bool], has_maps: &[bool]) -> MirrorView {
+        let sub = sub.only(|s| in_view[s as usize]);
         let layout = MirrorLayout::new(&sub, has_maps);
         MirrorView { sub, layout }
     }
@@ -264,13 +269,23 @@ impl Specular {
             has_maps[m as usize] = true;
             ordinal[m as usize] = k as u32;
         }
+        // The surfaces of the charts of mirrors with maps (see `MirrorView`).
+        let mut mapped_chart = vec![false; chart_of.iter().max().map_or(0, |&c| c as usize + 1)];
+        for &m in &mirrors {
+            if let Some(&c) = chart_of.get(m as usize) {
+                mapped_chart[c as usize] = true;
+            }
+        }
+        let in_view: Vec<bool> = (0..scene.surfaces.len())
+            .map(|s| has_maps[s] || chart_of.get(s).is_some_and(|&c| mapped_chart[c as usize]))
+            .collect();
         let per_direction: Vec<(MirrorLayout, MirrorView, Vec<bool>)> = subfields.map(|_, sub| {
             let layout = MirrorLayout::new(sub, &has_maps);
             let mut slotted = vec![false; mirrors.len()];
             for &(s, _, e) in &layout.entries {
                 slotted[ordinal[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
             }
-            (layout, MirrorView::new(sub, &has_maps), slotted)
+            (layout, MirrorView::new(sub, &in_view, &has_maps), slotted)
         });
         let (mut layouts, mut views, mut slotted) = (Vec::new(), Vec::new(), Vec::new());
         for (layout, view, s) in per_direction {
