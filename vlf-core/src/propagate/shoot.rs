@@ -665,8 +665,6 @@ pub(crate) fn shoot(
 /// bits are the walk's, since every term added to `area` here is the same `weight`, and
 /// from zero such sums do not depend on their order.
 pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut [Rgb], scratch: &mut Scratch) {
-    let m = sub.grid.tile as usize;
-    let per_side = sub.grid.tiles_per_side() as usize;
     scratch.projections.begin();
     for k in 0..sub.tile_count() {
         let entries = sub.tile(k);
@@ -681,17 +679,13 @@ pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut 
             });
             continue;
         }
-        let (tile_x, tile_y) = ((k % per_side * m) as f64, (k / per_side * m) as f64);
         for e in entries {
             let grid = geometry.atlas.grid(e.surface as usize);
             let tp = scratch.projections.get(geometry, sub, e.surface);
-            for s in sub.spans_of(e) {
-                let y = tile_y + s.row as f64 + 0.5;
-                for x in s.start..s.end {
-                    let gx = tile_x + x as f64 + 0.5;
-                    area[tp.texel(grid, gx, y) as usize][0] += weight;
-                }
-            }
+            // Grid coordinates are whole numbers, so `x + ½` is the walk's `tile_x + col + ½`.
+            sub.rays_of(k, e, |_, x, y| {
+                area[tp.texel(grid, x as f64 + 0.5, y as f64 + 0.5) as usize][0] += weight;
+            });
         }
     }
 }
