@@ -179,6 +179,12 @@ pub struct JobFlags {
     /// exact, as renders make it by default, the filter costs accuracy).
     #[arg(long)]
     filter: Option<f64>,
+    /// Batches each pass is cut into (a power of two up to 1024; a batch holds at least 16
+    /// directions, so l = 513 gets at most 32): the unit of work a worker leases and of the
+    /// reduction, so part of the field's bits. More balance more workers, and cost more
+    /// outputs through the store (docs/scaling.md, *Finer batches*).
+    #[arg(long, default_value_t = defaults::PASS_BATCHES)]
+    pass_batches: u32,
 }
 
 /// How to reach a coordinator.

@@ -236,6 +236,7 @@ impl JobFlags {
             perturb: Some(self.perturb),
             perturb_count: Some(self.perturb_count),
             filter: self.filter,
+            pass_batches: Some(self.pass_batches),
             resample: self.resample,
             encoding: match self.encoding {
                 EncodingArg::F32 => WireEncoding::F32,

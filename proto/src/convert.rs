@@ -47,6 +47,7 @@ impl JobSpec {
             // Unset: the recommended filter, only where mirrors are; given: wherever it is.
             filter_sigma: p.filter.map_or(d.filter_sigma, |f| (f != 0.0).then_some(f)),
             filter_only_with_mirrors: p.filter.is_none() && d.filter_only_with_mirrors,
+            pass_batches: p.pass_batches.unwrap_or(d.pass_batches),
         };
         options.validate()?;
         let encoding = match v1::Encoding::try_from(p.encoding) {
@@ -180,6 +181,15 @@ mod tests {
             },
             "iterations",
         );
+        for pass_batches in [0, 3, 2048] {
+            bad(
+                Parameters {
+                    pass_batches: Some(pass_batches),
+                    ..Default::default()
+                },
+                "batches per pass",
+            );
+        }
         bad(
             Parameters {
                 iterations: Some(2),

@@ -1,7 +1,7 @@
 //! The VLF coordinator: a thin gRPC layer over `vlf-store`'s iteration protocol.
 //!
 //! A job's iteration is a list of passes, each cut into batches of directions
-//! (`vlf_core::propagate::work::batch_count`) whose sums add up along a fixed tree
+//! (`vlf_core::propagate::Batching`, the job's `pass_batches`) whose sums add up along a fixed tree
 //! (`vlf_core::propagate::reduce`). The coordinator hands aligned blocks of batches out as
 //! **leases** with a deadline; a worker computes its block from the store and writes the block's
 //! node sum back into the store; the coordinator reads the blocks back *in order* as they are

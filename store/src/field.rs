@@ -123,6 +123,13 @@ impl FieldJob {
             source,
         };
         let scene = Scene::from_bytes(&job.scene()?).map_err(field_error)?;
+        // From format 4 on the parameters name the cut of a pass; only format 3 may leave it to
+        // the default that reads its 16 batches (see `MANIFEST_FORMAT`).
+        if job.manifest().format >= 4 && job.manifest().parameters.get("pass_batches").is_none() {
+            return Err(field_error(vlf_core::Error::Decode(
+                "the job's parameters do not say how many batches a pass is cut into (pass_batches)".into(),
+            )));
+        }
         let options: Options = serde_json::from_value(job.manifest().parameters.clone()).map_err(|e| {
             field_error(vlf_core::Error::Decode(format!(
                 "the job's parameters are not propagation options: {e}"

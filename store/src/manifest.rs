@@ -17,7 +17,14 @@ use std::time::{SystemTime, UNIX_EPOCH};
 /// * 1: texel grids per polygon, diffuse maps one blob per polygon.
 /// * 2: texel grids per chart (`vlf_core::maps::charts`), diffuse maps in chunks of charts.
 /// * 3: the stored scene carries albedo textures and texture coordinates.
-pub const MANIFEST_FORMAT: u32 = 3;
+/// * 4: the parameters say how many batches a pass is cut into (`pass_batches`), which fixes
+///   the bits and the snapshots' batches of mirror maps. A job of format 3 is read as what it
+///   was, 16 batches a pass (the parameters' default), so that it renders and resumes as it ran;
+///   a build that reads 3 at most refuses format 4 rather than cut its maps wrongly.
+pub const MANIFEST_FORMAT: u32 = 4;
+
+/// The oldest format this build reads ([`MANIFEST_FORMAT`]'s list says what changed).
+pub const OLDEST_READABLE_FORMAT: u32 = 3;
 
 /// Where a job stands.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -98,10 +105,10 @@ impl Manifest {
 
     /// Checks the invariants a stored manifest must satisfy.
     pub fn validate(&self) -> Result<(), String> {
-        if self.format < MANIFEST_FORMAT {
+        if self.format < OLDEST_READABLE_FORMAT {
             return Err(format!(
                 "the job was made by an older version of vlf (store format {}, this version reads \
-                 {MANIFEST_FORMAT}): its scene and maps are laid out otherwise (format 1: texels per \
+                 {OLDEST_READABLE_FORMAT} to {MANIFEST_FORMAT}): its scene and maps are laid out otherwise (format 1: texels per \
                  polygon; 2: no albedo textures); propagate the scene again",
                 self.format
             ));
@@ -109,7 +116,7 @@ impl Manifest {
         if self.format > MANIFEST_FORMAT {
             return Err(format!(
                 "the job was made by a newer version of vlf (store format {}, this version reads \
-                 {MANIFEST_FORMAT}): upgrade vlf to read it",
+                 {OLDEST_READABLE_FORMAT} to {MANIFEST_FORMAT}): upgrade vlf to read it",
                 self.format
             ));
         }
@@ -179,5 +186,21 @@ mod tests {
         assert!(Manifest::from_json(&serde_json::to_vec(&m).unwrap()).is_err());
         assert!(Manifest::from_json(b"{}").is_err());
         assert!(Manifest::from_json(b"\xff").is_err());
+    }
+
+    #[test]
+    fn formats_from_the_oldest_readable_to_this_one_are_read_and_no_others() {
+        let m = Manifest::new(JobId::generate(), "ab", serde_json::json!({}), Encoding::F16);
+        let with = |format: u32| Manifest::from_json(&serde_json::to_vec(&Manifest { format, ..m.clone() }).unwrap());
+        for format in OLDEST_READABLE_FORMAT..=MANIFEST_FORMAT {
+            assert!(with(format).is_ok(), "format {format}");
+        }
+        let older = with(OLDEST_READABLE_FORMAT - 1).unwrap_err();
+        assert!(
+            older.contains("older version") && older.contains("propagate the scene again"),
+            "{older}"
+        );
+        let newer = with(MANIFEST_FORMAT + 1).unwrap_err();
+        assert!(newer.contains("newer version") && newer.contains("upgrade"), "{newer}");
     }
 }

@@ -152,9 +152,7 @@ impl StageParts {
 
     /// The batch of directions `direction` is in.
     fn batch_of(&self, direction: u32) -> usize {
-        let l = self.job.options().directions;
-        let size = vlf_core::propagate::work::batch_size(l);
-        (direction as usize / size).min(vlf_core::propagate::work::batch_count(l) - 1)
+        self.job.options().batching().batch_of(direction as usize)
     }
 
     /// The distinct keys holding `parts`, in first-needed order.
@@ -265,7 +263,7 @@ impl StageParts {
         let first = match self.mirrors {
             MirrorSource::Batches => {
                 let batch = self.batch_of(direction);
-                vlf_core::propagate::work::batch_range(batch, self.job.options().directions).start
+                self.job.options().batching().range(batch).start
             }
             _ => 0,
         };

@@ -251,7 +251,7 @@ fn as_earlier_build(store: &Store, id: &JobId, k: u32, whole: bool) -> Checkpoin
     p.specular.as_mut().unwrap().gather_all(&p.scene, &p.directions);
     let gathered = p.checkpoint();
     let (shooting, totals) = gathered.clone().split();
-    let (head, unshot) = shooting.into_parts();
+    let (head, unshot) = shooting.into_parts(job.options().batching());
     let put = |key: &str, bytes: &[u8]| {
         store
             .put(key, blob::encode_bytes(BlobKind::Snapshot, bytes).unwrap())
@@ -319,6 +319,85 @@ fn jobs_stopped_by_earlier_builds_resume_with_the_same_bits() {
     }
 }
 
+/// A job stored before passes were cut by `pass_batches` (manifest format 3, parameters
+/// without it) was cut into 16 batches: it reads as such, its snapshots' mirror maps by the
+/// batches it wrote, and it resumes to the bits of a run that never stopped — where this
+/// build's default cut (64 a pass, fewer at this l) gives other bits.
+#[test]
+fn jobs_of_format_3_read_and_resume_as_they_ran() {
+    use vlf_core::propagate::defaults::LEGACY_PASS_BATCHES;
+    let store = Store::open("memory://").unwrap();
+    let scene = bundled("mirrors.obj");
+    let legacy = Options {
+        directions: 513,
+        pass_batches: LEGACY_PASS_BATCHES,
+        ..options(4)
+    };
+    assert_ne!(
+        legacy.batching(),
+        Options {
+            pass_batches: vlf_core::propagate::defaults::PASS_BATCHES,
+            ..legacy.clone()
+        }
+        .batching(),
+        "the test needs an l whose cut the option changes"
+    );
+    let mut straight = Propagation::new(scene.clone(), legacy.clone()).unwrap();
+    straight.run(|_| {});
+
+    // Two snapshots written by the cut of 16, then the manifest made what format 3 wrote.
+    let mut p = Propagation::new(scene.clone(), legacy.clone()).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    for _ in 0..2 {
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+    }
+    let id = job.id().clone();
+    let viewed = job.load(Stage::Iteration(2)).unwrap();
+    let mut manifest = job.job().manifest().clone();
+    manifest.format = 3;
+    manifest
+        .parameters
+        .as_object_mut()
+        .unwrap()
+        .remove("pass_batches")
+        .unwrap();
+    store.put(&layout::manifest(&id), manifest.to_blob().unwrap()).unwrap();
+
+    // Format 4 must name the cut: without it, the job is refused rather than read as 16.
+    let mut unnamed = manifest.clone();
+    unnamed.format = 4;
+    store.put(&layout::manifest(&id), unnamed.to_blob().unwrap()).unwrap();
+    let refused = match FieldJob::open(&store, &id) {
+        Ok(_) => panic!("format 4 without pass_batches was read"),
+        Err(e) => e.to_string(),
+    };
+    assert!(refused.contains("pass_batches"), "{refused}");
+    store.put(&layout::manifest(&id), manifest.to_blob().unwrap()).unwrap();
+
+    let old = FieldJob::open(&store, &id).unwrap();
+    assert_eq!(old.job().manifest().format, 3);
+    assert_eq!(old.options(), &legacy, "format 3 parameters read as 16 batches a pass");
+    let back = old.load(Stage::Iteration(2)).unwrap();
+    assert_eq!(back.radiance, viewed.radiance);
+    assert_eq!(back.specular.unwrap().totals, viewed.specular.unwrap().totals);
+
+    // A coordinator and a worker take it up and end where the straight run did.
+    let mut coordinator = vlf_store::Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
+    let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    while !coordinator.finished() {
+        let k = coordinator.iteration();
+        while let Some((pass, batches)) = coordinator.pending_pass() {
+            assert_eq!(batches, 16, "l = 513 cut into 16 batches, not the 32 of the default");
+            replica.compute(k, pass, 0..batches).unwrap();
+            coordinator.absorb_pass().unwrap();
+        }
+        coordinator.finish_iteration().unwrap();
+    }
+    let done = coordinator.finish(false).unwrap();
+    assert!(without_times(done.checkpoint(4).unwrap()) == without_times(straight.checkpoint()));
+}
+
 /// Jobs of earlier builds hold a snapshot's checkpoint whole in `state.blob` (the first builds)
 /// or as a version 2 head whose unshot maps are in `unshot/BBBBB.blob` and whose mirror totals
 /// are in `totals.blob` whole; both hold the arrivals already reflected (unshot maps), none
@@ -347,7 +426,7 @@ fn snapshots_of_earlier_builds_still_read() {
 
     // A worker shoots the iteration after snapshot 2 from this build's parts.
     let pass = vlf_core::propagate::Pass::Shoot;
-    let batches = vlf_core::propagate::work::batch_count(33);
+    let batches = job.options().batching().count();
     let shoot = || {
         let mut replica = vlf_store::Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
         replica.compute(2, pass, 0..batches).unwrap();

@@ -150,7 +150,7 @@ fn the_needed_keys_are_all_a_view_reads() {
         // A snapshot's mirror radiance is read by batch of directions: those the view sees.
         if let Stage::Iteration(_) = stage {
             let batches = keys.iter().filter(|k| k.contains("/mirror-totals/")).count();
-            let all = vlf_core::propagate::work::batch_count(129);
+            let all = job.options().batching().count();
             eprintln!("close-up of snapshot: {batches} of {all} batches of mirror totals");
             assert!(batches > 0 && batches < all, "{batches} of {all}");
         }

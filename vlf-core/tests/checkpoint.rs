@@ -178,8 +178,8 @@ fn halves_are_the_whole_split_into_parts() {
     assert_eq!(totals.iterations, 2);
     // Serialised straight from the propagation: the same bytes as the parts.
     let bytes = p.snapshot_bytes(true);
-    let (head, batches) = state.clone().into_parts();
-    let (diffuse_totals, total_batches) = totals.clone().into_parts();
+    let (head, batches) = state.clone().into_parts(options(3, 0).batching());
+    let (diffuse_totals, total_batches) = totals.clone().into_parts(options(3, 0).batching());
     assert!(batches.len() > 1, "{} batches", batches.len());
     assert_eq!(total_batches.len(), batches.len());
     assert!(diffuse_totals.mirrors.is_none());
@@ -224,7 +224,7 @@ fn halves_are_the_whole_split_into_parts() {
     let restored = r.checkpoint();
     assert_eq!(restored.pending, whole.pending);
     let (got, want) = (restored.mirrors.unwrap(), whole.mirrors.unwrap());
-    let batch1 = vlf_core::propagate::work::batch_range(1, want.len());
+    let batch1 = options(3, 0).batching().range(1);
     let mut lit = false;
     for (d, (got, want)) in got.iter().zip(&want).enumerate() {
         if batch1.contains(&d) {
@@ -299,7 +299,7 @@ fn checkpoints_of_earlier_builds_still_read_and_resume_with_the_same_bits() {
     );
     // Its head in parts (version 2), with the unshot maps by batch.
     let (shooting, _) = gathered.split();
-    let (head, batches) = shooting.clone().into_parts();
+    let (head, batches) = shooting.clone().into_parts(options(3, 0).batching());
     let v2 = bincode::serialize(&HeadV2 {
         version: 2,
         stats: &head.stats,
@@ -344,7 +344,7 @@ fn mismatched_or_damaged_halves_are_refused() {
     t.total.pop();
     refused(Checkpoint::join(state2.clone(), t), "texel");
     // Truncated parts.
-    let (head2, batches2) = state2.clone().into_parts();
+    let (head2, batches2) = state2.clone().into_parts(options(3, 0).batching());
     let (head_bytes, batch_bytes) = (head2.to_bytes(), batches2[0].to_bytes());
     let totals_bytes = totals2.to_bytes();
     assert!(StateHead::from_bytes(&head_bytes[..head_bytes.len() / 2]).is_err());
@@ -361,7 +361,7 @@ fn mismatched_or_damaged_halves_are_refused() {
     swapped.swap(0, 1);
     parts_refused(swapped, "belongs");
     let mut foreign = batches2.clone();
-    foreign[0] = state1.clone().into_parts().1[0].clone();
+    foreign[0] = state1.clone().into_parts(options(3, 0).batching()).1[0].clone();
     parts_refused(foreign, "belongs");
     // A batch that does not fit is refused by the replica, which stays as it was.
     let mut r = Propagation::new(scene.clone(), options(3, 0)).unwrap();
@@ -376,7 +376,7 @@ fn mismatched_or_damaged_halves_are_refused() {
     assert!(r.restore_shooting_batch(bad.clone()).is_err());
     assert!(r.restore_totals_batch(bad).is_err());
     assert!(
-        r.restore_shooting_batch(state1.clone().into_parts().1[1].clone())
+        r.restore_shooting_batch(state1.clone().into_parts(options(3, 0).batching()).1[1].clone())
             .is_err()
     );
     assert!(r.checkpoint() == before);

@@ -140,7 +140,7 @@ fn run_distributed_in_blocks(
                 let (out, block) = replicas[w].compute_block(&works[w], pass, blocks[b].clone()).unwrap();
                 if let Some(block) = block {
                     blocks_of_maps.push(block.clone());
-                    for (b, s, t) in block.batch_bytes(main.directions.len()) {
+                    for (b, s, t) in block.batch_bytes(main.batching()) {
                         maps.put(k + 1, b as usize, s, t);
                     }
                 }
@@ -183,14 +183,15 @@ fn batches_from_several_workers_in_any_order_give_the_same_bits_with_mirrors() {
 
 #[test]
 fn batches_of_several_chunks_keep_each_directions_mirror_maps() {
-    // l = 513: batches of 32 directions (the last 33), computed 16 at a
+    // l = 513 cut into 16 batches: batches of 32 directions (the last 33), computed 16 at a
     // time, so a batch's mirror maps are split between chunks.
     let options = Options {
         directions: 513,
         stop: Stop::Iterations(3),
+        pass_batches: 16,
         ..options(0)
     };
-    assert_eq!(vlf_core::propagate::work::batch_size(513), 32);
+    assert_eq!(options.batching().size(), 32);
     let p = Propagation::new(mirror_room(), options.clone()).unwrap();
     assert_eq!(p.iteration_work().batches(), 16);
     // (That each chunk gets its own directions' maps is checked by physics:
@@ -265,7 +266,7 @@ fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts
 
 #[test]
 fn a_block_cut_among_a_replicas_threads_gives_the_same_bits() {
-    // Whole-pass blocks of 16 batches on pools of 1 to 4 threads: a replica's threads claim the
+    // Whole-pass blocks of 32 batches on pools of 1 to 4 threads: a replica's threads claim the
     // block's directions one at a time.
     let options = Options {
         directions: 513,
@@ -277,7 +278,8 @@ fn a_block_cut_among_a_replicas_threads_gives_the_same_bits() {
         straight.step_shared(|_| {});
     }
     let want = without_times(straight.checkpoint());
-    let batches = vlf_core::propagate::work::batch_count(513);
+    let batches = options.batching().count();
+    assert_eq!(batches, 32);
     for threads in 1..=4 {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         let (main, stored) = pool.install(|| run_distributed_in_blocks(&mirror_room(), &options, 1, true, batches));
@@ -353,25 +355,48 @@ fn homes_that_do_not_cover_the_pass_in_order_are_refused() {
 
 #[test]
 fn batches_partition_the_directions_into_whole_chunks() {
-    use vlf_core::propagate::work::{CHUNK, batch_count, batch_range};
-    for l in [9, 33, 129, 513, 2049, 8193] {
-        let count = batch_count(l);
-        assert!((1..=16).contains(&count), "l = {l}: {count} batches");
-        let mut next = 0;
-        for b in 0..count {
-            let r = batch_range(b, l);
-            assert_eq!(r.start, next, "l = {l}, batch {b}");
-            assert!(!r.is_empty());
-            if b + 1 < count {
-                assert_eq!(r.len() % CHUNK, 0, "l = {l}, batch {b} of {} directions", r.len());
+    use vlf_core::propagate::Batching;
+    use vlf_core::propagate::work::CHUNK;
+    for per_pass in (0..=10).map(|k| 1u32 << k) {
+        for l in [9, 33, 129, 513, 2049, 8193] {
+            let batching = Batching::new(l, per_pass);
+            let count = batching.count();
+            // A power of two (the reduction tree's leaves), the target wherever `l` has
+            // CHUNK directions for each, never more.
+            assert!(
+                count.is_power_of_two() && count <= per_pass as usize,
+                "l = {l}: {count} of {per_pass}"
+            );
+            if (l - 1) / per_pass as usize >= CHUNK {
+                assert_eq!(count, per_pass as usize, "l = {l}");
             }
-            next = r.end;
+            let mut next = 0;
+            for b in 0..count {
+                let r = batching.range(b);
+                assert_eq!(r.start, next, "l = {l}, batch {b}");
+                assert!(!r.is_empty());
+                if b + 1 < count {
+                    assert_eq!(r.len() % CHUNK, 0, "l = {l}, batch {b} of {} directions", r.len());
+                }
+                assert!(r.clone().all(|d| batching.batch_of(d) == b), "l = {l}, batch {b}");
+                next = r.end;
+            }
+            assert_eq!(next, l, "l = {l}: batches end at {next}");
+            assert!(batching.range(count).is_empty());
+            assert_eq!(batching.directions_of(0..count), 0..l);
         }
-        assert_eq!(next, l, "l = {l}: batches end at {next}");
-        assert!(batch_range(count, l).is_empty());
     }
-    assert_eq!((batch_count(513), batch_range(15, 513)), (16, 480..513));
-    assert_eq!((batch_count(33), batch_range(1, 33)), (2, 16..33));
+    // The legacy cut (jobs stored before the option) and the default.
+    let legacy = Batching::new(513, 16);
+    assert_eq!((legacy.count(), legacy.range(15)), (16, 480..513));
+    assert_eq!(Batching::new(33, 16).range(1), 16..33);
+    let default = Options::default().batching();
+    assert_eq!((default.count(), default.size()), (32, 16), "l = 513 at the default");
+    let big = Batching::new(2049, vlf_core::propagate::defaults::PASS_BATCHES);
+    assert_eq!((big.count(), big.range(63)), (64, 2016..2049));
+    // A target that is not a power of two (refused by the options) is the one below it.
+    assert_eq!(Batching::new(2049, 48), Batching::new(2049, 32));
+    assert_eq!(Batching::new(2049, 0), Batching::new(2049, 1));
 }
 
 /// A coordinator opens an iteration's passes before it builds the iteration's work
@@ -498,7 +523,7 @@ fn a_block_takes_its_totals_along_and_is_computed_again_only_once_they_are_resto
     let (out, block) = p.compute_block(&work, Pass::Shoot, 0..1).unwrap();
     let block = block.unwrap();
     let spec = p.specular.as_ref().unwrap();
-    let first = work.batch_range(0, p.directions.len());
+    let first = work.batch_range(0);
     let slots: usize = first.clone().map(|d| spec.layouts[d].len as usize).sum();
     assert!(slots > 0, "the batch has mirror slots");
     assert!(
@@ -506,7 +531,7 @@ fn a_block_takes_its_totals_along_and_is_computed_again_only_once_they_are_resto
         "the totals moved into the block"
     );
     // Its other directions keep theirs.
-    let next = work.batch_range(1, p.directions.len());
+    let next = work.batch_range(1);
     assert!(
         next.clone()
             .all(|d| spec.maps[d].total.len() == spec.layouts[d].len as usize)
@@ -540,7 +565,7 @@ fn a_block_takes_its_totals_along_and_is_computed_again_only_once_they_are_resto
     assert_eq!(block2.unwrap(), block);
 }
 
-/// The big configurations' shape (l = 8193, the largest direction set: 16 batches of 512
+/// The big configurations' shape (l = 8193, the largest direction set: 64 batches of 128
 /// directions) at a size CI affords (N = 8): the same bits from the in-process step on 1 and 2
 /// threads, from 1, 2 and 3 workers, with mirrors and with perturbation.
 #[test]
@@ -552,7 +577,7 @@ fn the_largest_direction_set_gives_the_same_bits_on_any_split() {
             stop: Stop::Iterations(2),
             ..options(perturb)
         };
-        assert_eq!(vlf_core::propagate::work::batch_count(8193), 16);
+        assert_eq!(options.batching().count(), 64);
         let mut want = None;
         for threads in [1, 2] {
             let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();

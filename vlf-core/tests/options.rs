@@ -209,6 +209,18 @@ fn absurd_parameters_are_refused() {
             ..base(1)
         },
         Options {
+            pass_batches: 0,
+            ..base(1)
+        },
+        Options {
+            pass_batches: 48,
+            ..base(1)
+        },
+        Options {
+            pass_batches: 2048,
+            ..base(1)
+        },
+        Options {
             perturbation: Perturbation {
                 iterations: 1,
                 count: 0,

@@ -113,8 +113,8 @@ impl PassRun {
     /// that no other registered worker shot. Else — rather than wait — the first pending batch.
     ///
     /// Homes matter for mirrors: a direction gathers what arrived from the directions that
-    /// reflect into it, which are near it in direction order (the bundled mirror scene's 16
-    /// batches read from at most their neighbours' neighbours). Two workers that shoot the halves
+    /// reflect into it, which are near it in direction order (cut into 16 batches, the bundled
+    /// mirror scene's read from at most their neighbours' neighbours). Two workers that shoot the halves
     /// of the pass read 4 batches of each other's arrivals; leased blocks in the order asked,
     /// they interleave and read nearly everything. As homes stay put while the workers do, a
     /// worker shoots the same batches from iteration to iteration and keeps their maps.

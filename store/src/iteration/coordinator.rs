@@ -13,7 +13,6 @@ use crate::manifest::JobState;
 use std::collections::HashSet;
 use std::ops::Range;
 use std::time::Instant;
-use vlf_core::propagate::work::batch_count;
 use vlf_core::propagate::{IterationStats, IterationWork, Pass, Propagation};
 
 /// What an iteration moved through the store: the batch outputs workers wrote and the
@@ -162,7 +161,7 @@ impl Coordinator {
             }
         };
         let passes = passes.into_iter().map(|p| (p, p.prerequisites())).collect();
-        (passes, batch_count(self.prop.directions.len()))
+        (passes, self.prop.batching().count())
     }
 
     /// The blocks of every pass of the current iteration already in the store, in
@@ -307,7 +306,7 @@ impl Coordinator {
     pub fn finish(mut self, resample: bool) -> Result<FieldJob, StoreError> {
         if self.prop.specular.is_some() && !self.maps_held {
             let k = self.iteration();
-            let all: Vec<usize> = (0..batch_count(self.prop.directions.len())).collect();
+            let all: Vec<usize> = (0..self.prop.batching().count()).collect();
             for part in self.job.released_maps(k, MapPart::Totals, &all)? {
                 self.prop
                     .restore_totals_batch(part)

@@ -13,7 +13,6 @@ use std::collections::HashSet;
 use std::ops::Range;
 use std::time::Instant;
 use vlf_core::propagate::reduce::RunOutputs;
-use vlf_core::propagate::work::batch_count;
 use vlf_core::propagate::{BatchOutput, IterationWork, MapBatch, MirrorBlock, Pass, Propagation};
 
 /// A worker's copy of a job's propagation: the geometry is built once; each iteration restores
@@ -439,10 +438,9 @@ impl Replica {
         if let Some(block) = block {
             // The block took its directions' totals with it: computing it again reads them.
             batches.for_each(|b| current.totals[b] = false);
-            let l = self.prop.directions.len();
             let job = self.job.job();
             let puts = block
-                .batch_bytes(l)
+                .batch_bytes(self.prop.batching())
                 .par_iter()
                 .flat_map_iter(|(b, shooting, totals)| {
                     [
@@ -482,7 +480,7 @@ impl Replica {
             .filter(|&(part, b)| !ahead.iter().any(|(p, m)| (*p, m.batch as usize) == (part, b)))
             .collect();
         if self.holds_snapshot.take() == Some(k) {
-            let all = vec![true; batch_count(self.prop.directions.len())];
+            let all = vec![true; self.prop.batching().count()];
             self.current = Some(Current {
                 k,
                 work: self.prop.iteration_work(),
@@ -530,7 +528,7 @@ impl Replica {
             earlier => {
                 let checkpoint = self.job.released_checkpoint(k, earlier)?;
                 self.prop.restore(checkpoint).map_err(|e| self.job.field_error(e))?;
-                let all = vec![true; batch_count(self.prop.directions.len())];
+                let all = vec![true; self.prop.batching().count()];
                 (all.clone(), all)
             }
         };

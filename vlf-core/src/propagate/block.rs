@@ -11,10 +11,8 @@
 //! and absorbing what comes back). The in-process loop needs none of it.
 
 use super::Propagation;
-use super::reduce::{TreeSum, is_aligned_block};
-use super::work::{
-    BatchOutput, IterationWork, MirrorBlock, MirrorIo, Pass, add_into, batch_count, batch_range, batch_size,
-};
+use super::reduce::is_aligned_block;
+use super::work::{BatchOutput, IterationWork, MirrorBlock, MirrorIo, Pass, add_into};
 use crate::scene::Rgb;
 use rayon::prelude::*;
 use std::borrow::Cow;
@@ -147,23 +145,18 @@ impl Propagation {
                 .collect()
         });
         let gathered = gathering.elapsed().as_secs_f64() / batches.len() as f64;
-        let mut tree = TreeSum::new(batches.len());
-        let mut costs = Vec::with_capacity(batches.len());
         // The block's directions claimed one at a time by the replica's threads, as
-        // `Propagation::step` shoots a pass: the same leaves.
+        // `Propagation::step` shoots a pass: the same leaves, folded into the block's node.
         let shooting = std::time::Instant::now();
-        let shot = self.shoot_claimed(work, pass, batches.clone(), maps.as_deref_mut(), |_| {})?;
+        let (sum, seconds) = self.shoot_claimed(work, pass, batches.clone(), maps.as_deref_mut(), |_| {})?;
         // The threads shot at once, so the batches' thread seconds add up to more than the block
         // took: each batch is given its share of the block's time instead, which keeps their
         // proportions (what the coordinator cuts homes by) and adds up to the worker's time, as a
         // report's seconds must.
-        let threads_time: f64 = shot.iter().map(|(_, seconds)| seconds).sum();
+        let threads_time: f64 = seconds.iter().sum();
         let wall = shooting.elapsed().as_secs_f64();
         let share = if threads_time > 0.0 { wall / threads_time } else { 0.0 };
-        for (i, (leaf, cost)) in shot.into_iter().enumerate() {
-            tree.push(i..i + 1, leaf).map_err(crate::Error::Parameter)?;
-            costs.push(gathered + cost * share);
-        }
+        let costs: Vec<f64> = seconds.iter().map(|cost| gathered + cost * share).collect();
         drop(maps);
         let power_in = spec.zip(incident.as_ref()).map(|(spec, incident)| {
             directions
@@ -176,7 +169,7 @@ impl Propagation {
             iteration: work.index,
             pass,
             batches: batches.start as u32..batches.end as u32,
-            sum: tree.finish().expect("every leaf of the block was pushed"),
+            sum,
             power_in,
         };
         // Gathered maps are the block's own; restored ones are copied (only
@@ -206,12 +199,11 @@ impl Propagation {
         };
         let shooting = match &spec.pending {
             Some(pending) => {
-                let size = batch_size(self.directions.len());
-                let last = work.batches() - 1;
+                let batching = work.batching();
                 let mut b: Vec<usize> = spec
                     .sources(directions, &pending.power_in)
                     .into_iter()
-                    .map(|d| (d / size).min(last))
+                    .map(|d| batching.batch_of(d))
                     .collect();
                 b.dedup();
                 b
@@ -229,8 +221,7 @@ impl Propagation {
                 work.batches()
             )));
         }
-        let l = self.directions.len();
-        Ok(work.batch_range(batches.start, l).start..work.batch_range(batches.end - 1, l).end)
+        Ok(work.batching().directions_of(batches.clone()))
     }
 
     /// Absorbs a worker's block output into `work`: what the coordinator
@@ -287,12 +278,12 @@ impl Propagation {
     /// [`Propagation::compute_block`] made them from checked inputs (maps
     /// from bytes go through [`Propagation::restore_shooting_batch`]).
     pub fn adopt_mirrors(&mut self, block: MirrorBlock) -> crate::Result<()> {
-        let l = self.directions.len();
+        let batching = self.batching();
         let batches = block.batches.start as usize..block.batches.end as usize;
-        if batches.is_empty() || batches.end > batch_count(l) {
+        if batches.is_empty() || batches.end > batching.count() {
             return Err(crate::Error::Parameter(format!("mirror maps of batches {batches:?}")));
         }
-        let range = batch_range(batches.start, l).start..batch_range(batches.end - 1, l).end;
+        let range = batching.directions_of(batches.clone());
         if block.iterations != self.iterations_done()
             || block.shooting.len() != range.len()
             || block.total.len() != range.len()

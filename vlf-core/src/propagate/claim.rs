@@ -24,8 +24,13 @@
 //!   over the texels, a fraction of a direction's shooting) keep up.
 //! - **Bounded memory.** A direction that finished ahead of an earlier one of its batch waits
 //!   with its buffer; at most `2 · threads` buffers are out at once (a thread that would take
-//!   another waits for one to come back). A pass holds its batches' sums (16 from l = 513 on,
-//!   as the homes did) and those buffers, whatever its length.
+//!   another waits for one to come back). A batch's sum folds into the run's reduction tree as
+//!   soon as it is complete, merged with its sibling node once that is complete too
+//!   ([`Nodes`]: the bits of absorbing the batches one by one, in any order of completion). So
+//!   a run holds the sums of the batches being added (about one per thread), the complete
+//!   nodes whose siblings still miss a batch (at most `log2(batches)` per incomplete batch;
+//!   the batches are claimed group by group, so few are incomplete at once), and the buffers:
+//!   not one sum per batch, however many batches a pass is cut into.
 //! - **Why it cannot stall.** A thread borrows its buffer before it claims, and within a batch
 //!   the directions are claimed in order: so whenever a direction waits, the oldest unadded
 //!   direction of its batch is already claimed, and the thread shooting it holds its buffer
@@ -37,6 +42,7 @@
 //!   wakes the waiting ones, which then stop.
 
 use super::Propagation;
+use super::reduce::{Nodes, is_aligned_block};
 use super::shoot::Flow;
 use super::work::{BatchSum, DirectionScratch, IterationWork, MirrorIo, Pass, add_and_clear, cleared};
 use crate::scene::Rgb;
@@ -87,6 +93,16 @@ struct Sum {
     seconds: f64,
     /// A thread is adding to `texels`.
     adding: bool,
+    /// One past the batch's last direction.
+    end: usize,
+}
+
+/// The run's complete batch sums, folded into its reduction tree as they complete.
+struct Fold {
+    /// The tree's complete nodes over the run's batches (indices within the run).
+    nodes: Nodes,
+    /// Per batch of the run, the seconds its directions took to shoot, over the threads.
+    seconds: Vec<f64>,
 }
 
 /// The texel-sized buffers lent to the threads: at most `cap` out at once. Every buffer in
@@ -104,6 +120,7 @@ struct Claims<'m, 'x> {
     /// Directions added to their sums so far (what progress reports).
     added: AtomicUsize,
     sums: Vec<Mutex<Sum>>,
+    fold: Mutex<Fold>,
     buffers: Mutex<Buffers>,
     returned: Condvar,
     cap: usize,
@@ -180,6 +197,43 @@ impl Claims<'_, '_> {
             sum.texels = Some(texels);
             sum.flow.add(&shot.flow);
             sum.seconds += shot.seconds;
+            if sum.next == sum.end {
+                // Complete: no direction of the batch is left to wait, nor to add.
+                let done = BatchSum {
+                    texels: sum.texels.take().unwrap_or_else(|| vec![[0.0; 3]; self.texels]),
+                    flow: sum.flow.into(),
+                };
+                let seconds = sum.seconds;
+                sum.adding = false;
+                drop(sum);
+                self.complete(batch, done, seconds);
+                return;
+            }
+        }
+    }
+
+    /// Folds batch `batch`'s complete sum into the run's tree: merged with its sibling if that
+    /// is complete, and so on up ([`Nodes`]). The additions happen outside the lock, so the
+    /// threads whose batches complete together do not queue behind one another's.
+    fn complete(&self, batch: usize, sum: BatchSum, seconds: f64) {
+        let mut fold = lock(&self.fold);
+        fold.seconds[batch] = seconds;
+        let mut next = fold.nodes.put(batch..batch + 1, sum);
+        loop {
+            match next {
+                Ok(None) => return,
+                Ok(Some(pair)) => {
+                    drop(fold);
+                    let (block, sum) = pair.merge();
+                    fold = lock(&self.fold);
+                    next = fold.nodes.put(block, sum);
+                }
+                Err(e) => {
+                    drop(fold);
+                    self.fail(crate::Error::Parameter(e));
+                    return;
+                }
+            }
         }
     }
 
@@ -233,10 +287,10 @@ impl Drop for StopOnPanic<'_, '_, '_> {
 }
 
 impl Propagation {
-    /// Shoots batches `batches` of `pass` on the current rayon pool's threads, directions
-    /// claimed one at a time (see the module docs): per batch its sum (the bits of
-    /// [`Propagation::run_batch`]) and the seconds its directions took to shoot, added up over
-    /// the threads. `maps` are the mirror maps of the batches' directions, in order, when the
+    /// Shoots the aligned block `batches` of `pass` on the current rayon pool's threads,
+    /// directions claimed one at a time (see the module docs): the block's node sum (the bits
+    /// of absorbing each batch's [`Propagation::run_batch`] in order) and per batch the seconds
+    /// its directions took to shoot, added up over the threads. `maps` are the mirror maps of the batches' directions, in order, when the
     /// pass shoots them. `progress` hears, on the calling thread, how many directions are
     /// added to their sums so far: between the directions that thread shoots, and once more at
     /// the end with all of them.
@@ -247,9 +301,14 @@ impl Propagation {
         batches: Range<usize>,
         maps: Option<&mut [MirrorIo]>,
         mut progress: impl FnMut(usize),
-    ) -> crate::Result<Vec<(BatchSum, f64)>> {
-        let l = self.directions.len();
-        let ranges: Vec<Range<usize>> = batches.clone().map(|b| work.batch_range(b, l)).collect();
+    ) -> crate::Result<(BatchSum, Vec<f64>)> {
+        if !is_aligned_block(&batches, work.batches()) {
+            return Err(crate::Error::Parameter(format!(
+                "batches {batches:?} are not an aligned block of the {} batches",
+                work.batches()
+            )));
+        }
+        let ranges: Vec<Range<usize>> = batches.clone().map(|b| work.batch_range(b)).collect();
         if let Some(b) = ranges.iter().position(|r| r.is_empty()) {
             return Err(crate::Error::Parameter(format!(
                 "batch {} out of range ({} batches)",
@@ -259,7 +318,7 @@ impl Propagation {
         }
         let (first, count) = match (ranges.first(), ranges.last()) {
             (Some(a), Some(b)) => (a.start, b.end - a.start),
-            _ => return Ok(Vec::new()),
+            _ => unreachable!("an aligned block holds a batch"),
         };
         if let (Pass::Shoot, true) = (pass, work.uses_mirror_maps())
             && maps.as_ref().is_none_or(|m| m.len() != count)
@@ -283,9 +342,14 @@ impl Propagation {
                         flow: Flow::default(),
                         seconds: 0.0,
                         adding: false,
+                        end: r.end,
                     })
                 })
                 .collect(),
+            fold: Mutex::new(Fold {
+                nodes: Nodes::new(ranges.len()),
+                seconds: vec![0.0; ranges.len()],
+            }),
             buffers: Mutex::new(Buffers {
                 free: self.buffers.take_cleared(self.atlas.texels),
                 out: 0,
@@ -314,7 +378,7 @@ impl Propagation {
             });
         });
         let error = lock(&claims.error).take();
-        let Claims { sums, buffers, cap, .. } = claims;
+        let Claims { fold, buffers, cap, .. } = claims;
         // Kept for the next pass, no more than it may lend (a pool of fewer threads next time
         // leaves the rest to be freed).
         let mut free = buffers.into_inner().unwrap_or_else(|p| p.into_inner()).free;
@@ -323,22 +387,16 @@ impl Propagation {
         if let Some(e) = error {
             return Err(e);
         }
-        let out: Vec<(BatchSum, f64)> = (sums.into_iter().zip(&ranges))
-            .map(|(sum, range)| {
-                let sum = sum.into_inner().unwrap_or_else(|p| p.into_inner());
-                debug_assert_eq!(sum.next, range.end, "every direction of the batch was added");
-                let texels = sum.texels.unwrap_or_else(|| vec![[0.0; 3]; self.atlas.texels]);
-                let batch = BatchSum {
-                    texels,
-                    flow: sum.flow.into(),
-                };
-                (batch, sum.seconds)
-            })
-            .collect();
+        let Fold { nodes, seconds } = fold.into_inner().unwrap_or_else(|p| p.into_inner());
+        let Some(root) = nodes.root() else {
+            return Err(crate::Error::Parameter(format!(
+                "batches {batches:?} of {pass:?}: not every batch was shot"
+            )));
+        };
         if count > reported {
             progress(count);
         }
-        Ok(out)
+        Ok((root, seconds))
     }
 }
 

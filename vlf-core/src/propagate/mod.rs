@@ -60,7 +60,7 @@ pub use shoot::Flow;
 pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
 pub use split::{HomeThreads, split_by_cost};
-pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
+pub use work::{BatchOutput, BatchSum, Batching, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
@@ -112,6 +112,12 @@ pub struct Options {
     /// filter runs wherever `filter_sigma` is set.
     #[serde(default)]
     pub filter_only_with_mirrors: bool,
+    /// Batches a pass is cut into where `l` allows ([`work::Batching`]): the unit of leases
+    /// and of the reduction, so part of the bits. A power of two. Jobs stored before it was an
+    /// option were cut into [`defaults::LEGACY_PASS_BATCHES`], which is what their parameters
+    /// read as, so that they render and resume as they ran.
+    #[serde(default = "defaults::legacy_pass_batches")]
+    pub pass_batches: u32,
 }
 
 /// The settings a job gets where its user names none: the one table that the command line
@@ -135,6 +141,16 @@ pub mod defaults {
     pub const PERTURB_ITERATIONS: u32 = 2;
     pub const PERTURB_COUNT: u32 = 4;
     pub const FILTER_SIGMA: f64 = 1.0;
+    /// Batches per pass ([`super::work::Batching`]): 64, so that 8 workers get 8 each and the
+    /// last quarter of each one's run can go to whichever worker is idle (issue 31).
+    pub const PASS_BATCHES: u32 = 64;
+    /// What passes were cut into before [`super::Options::pass_batches`] existed.
+    pub const LEGACY_PASS_BATCHES: u32 = 16;
+
+    /// [`LEGACY_PASS_BATCHES`], for options stored without `pass_batches`.
+    pub fn legacy_pass_batches() -> u32 {
+        LEGACY_PASS_BATCHES
+    }
 }
 
 impl Default for Options {
@@ -157,6 +173,7 @@ impl Default for Options {
             perturbation: Perturbation::default(),
             filter_sigma: None,
             filter_only_with_mirrors: false,
+            pass_batches: defaults::PASS_BATCHES,
         }
     }
 }
@@ -245,7 +262,18 @@ impl Options {
         {
             return bad(format!("filter sigma must be in (0, 16] texels, got {s}"));
         }
+        if !(self.pass_batches.is_power_of_two() && self.pass_batches <= 1024) {
+            return bad(format!(
+                "batches per pass must be a power of two up to 1024, got {}",
+                self.pass_batches
+            ));
+        }
         Ok(())
+    }
+
+    /// How this job's passes are cut into batches.
+    pub fn batching(&self) -> work::Batching {
+        work::Batching::new(self.directions, self.pass_batches)
     }
 
     /// Texel edge length in the VLF frame.
@@ -281,7 +309,8 @@ pub struct PhaseTimes {
     pub plan: f64,
     /// The directions' batches shot, every thread at work, less the reduction.
     pub shoot: f64,
-    /// The batches' sums added into the iteration's totals, in batch order.
+    /// The pass's sum added into the iteration's totals. (The batches' sums fold into the
+    /// pass's reduction tree as they complete, while the threads shoot: that is in `shoot`.)
     pub reduce: f64,
     /// The end: mirror totals and power in, then [`Propagation::finish_iteration`] (the Next
     /// maps filtered and swapped, convergence, statistics).
@@ -517,6 +546,11 @@ impl Propagation {
         })
     }
 
+    /// How this propagation's passes are cut into batches ([`Options::pass_batches`]).
+    pub fn batching(&self) -> Batching {
+        self.options.batching()
+    }
+
     /// Unshot power as a fraction of the emitted power.
     pub fn unshot_fraction(&self) -> f64 {
         luminance(&self.unshot_power()) / luminance(&self.emitted)
@@ -565,17 +599,14 @@ impl Propagation {
     pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         self.step_by(|prop, work, pass, maps, clock, heard| {
             let mut io = maps.map(|m| work::mirror_io(m));
-            let shot = prop
-                .shoot_claimed(work, pass, 0..work.batches(), io.as_deref_mut(), |done| {
-                    progress(heard(done))
-                })
+            let all = 0..work.batches();
+            let (sum, _) = prop
+                .shoot_claimed(work, pass, all.clone(), io.as_deref_mut(), |done| progress(heard(done)))
                 .expect("batches of this process's own work are well-formed");
             drop(io);
             clock.reducing();
-            for (batch, (sum, _)) in shot.into_iter().enumerate() {
-                work.absorb(pass, batch..batch + 1, sum)
-                    .expect("this process absorbs its batches in order");
-            }
+            work.absorb(pass, all, sum)
+                .expect("the whole pass is the root of its tree");
             clock.reduced();
         })
     }
@@ -585,10 +616,9 @@ impl Propagation {
     /// plainest schedule, which the others are held to (`tests/distributed.rs`).
     pub fn step_shared(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let mut buffers = self.buffers.take();
-        let l = self.directions.len();
         let stats = self.step_by(|prop, work, pass, mut maps, clock, heard| {
             for batch in 0..work.batches() {
-                let range = work.batch_range(batch, l);
+                let range = work.batch_range(batch);
                 let mut own = maps.as_mut().map(|m| work::mirror_io(&mut m[range.clone()]));
                 let sum = prop
                     .run_batch_with(work, pass, batch, own.as_deref_mut(), &mut buffers)

@@ -1,8 +1,8 @@
 //! The fixed reduction tree of a pass: how the batch sums of a pass are added
 //! up, so that the bits never depend on who computed what.
 //!
-//! A pass has `n` batches (`n` a power of two for every supported `l`: 1, 2,
-//! 8 or 16). Their sums are the leaves of a perfect binary tree, and every
+//! A pass has `n` batches (`n` a power of two for every supported `l` and
+//! [`super::Options::pass_batches`]: see [`super::Batching`]). Their sums are the leaves of a perfect binary tree, and every
 //! inner node is `left + right`, texel by texel (and flow by flow):
 //!
 //! ```text
@@ -19,7 +19,9 @@
 //! pass for one worker, quarters for two) without changing the field.
 //!
 //! [`TreeSum`] takes the blocks in order and merges them like a binary
-//! counter: it keeps at most `log2(n) + 1` partial sums.
+//! counter: it keeps at most `log2(n) + 1` partial sums. [`Nodes`] takes them
+//! in any order, merging each with its sibling once both are in: what a
+//! process's threads use, whose batches complete in no fixed order.
 
 use super::FlowRecord;
 use super::work::{BatchOutput, BatchSum, add_into};
@@ -198,6 +200,103 @@ impl TreeSum {
     }
 }
 
+/// Complete nodes of a run's reduction tree, taken in any order: a node whose sibling is in
+/// too is merged with it (`left + right`, as [`TreeSum`] adds them), and so on up. So the
+/// root has the bits of the leaves pushed in order into a [`TreeSum`]. What waits is bounded by
+/// the leaves still missing, not by the order they come in: a node is held only while its
+/// sibling's subtree misses a leaf, so each missing leaf holds at most `log2(n)` nodes (one
+/// per level on its way to the root) — `log2(n)` sums when the last leaf is late, where taking
+/// the leaves in order would hold the `n − 1` that came before it.
+///
+/// The merges themselves happen outside: [`Nodes::put`] hands back the pair to merge, so a
+/// caller that keeps `Nodes` under a lock adds the texels without holding it.
+#[derive(Debug)]
+pub struct Nodes {
+    leaves: usize,
+    /// Complete nodes not yet merged, by first leaf: (leaves, sum).
+    done: std::collections::BTreeMap<usize, (usize, BatchSum)>,
+}
+
+/// Two sibling nodes, to be added up into their parent ([`Pair::merge`]) and put back.
+#[derive(Debug)]
+pub struct Pair {
+    parent: Range<usize>,
+    left: BatchSum,
+    right: BatchSum,
+}
+
+impl Pair {
+    /// The parent node: its leaves and `left + right`.
+    pub fn merge(self) -> (Range<usize>, BatchSum) {
+        let Pair {
+            parent,
+            mut left,
+            right,
+        } = self;
+        merge(&mut left, &right);
+        (parent, left)
+    }
+}
+
+impl Nodes {
+    /// The nodes of a tree over `leaves` leaves (a power of two).
+    pub fn new(leaves: usize) -> Nodes {
+        Nodes {
+            leaves,
+            done: Default::default(),
+        }
+    }
+
+    /// Takes the complete node `block` (an aligned block of the leaves, given once): the pair to
+    /// merge when its sibling is in too (merge it and put the parent back), else `None`.
+    pub fn put(&mut self, block: Range<usize>, sum: BatchSum) -> Result<Option<Pair>, String> {
+        if !is_aligned_block(&block, self.leaves) || self.done.contains_key(&block.start) {
+            return Err(format!(
+                "batches {block:?} are not a new aligned block of {} batches",
+                self.leaves
+            ));
+        }
+        let len = block.len();
+        if len == self.leaves {
+            self.done.insert(block.start, (len, sum));
+            return Ok(None);
+        }
+        let sibling = match block.start.is_multiple_of(2 * len) {
+            true => block.end,
+            false => block.start - len,
+        };
+        if self.done.get(&sibling).is_none_or(|(l, _)| *l != len) {
+            self.done.insert(block.start, (len, sum));
+            return Ok(None);
+        }
+        let (_, other) = self.done.remove(&sibling).expect("looked up above");
+        let start = block.start.min(sibling);
+        let (left, right) = if sibling < block.start {
+            (other, sum)
+        } else {
+            (sum, other)
+        };
+        Ok(Some(Pair {
+            parent: start..start + 2 * len,
+            left,
+            right,
+        }))
+    }
+
+    /// Sums held apart, waiting for a sibling (or the root).
+    pub fn held(&self) -> usize {
+        self.done.len()
+    }
+
+    /// The root, once every leaf is in and merged.
+    pub fn root(mut self) -> Option<BatchSum> {
+        match self.done.remove(&0) {
+            Some((len, sum)) if len == self.leaves => Some(sum),
+            _ => None,
+        }
+    }
+}
+
 /// `left += right`: texels and flow.
 fn merge(left: &mut BatchSum, right: &BatchSum) {
     add_into(&mut left.texels, &right.texels);
@@ -284,6 +383,67 @@ mod tests {
             fold.to_bits(),
             "the test values must tell the orders apart"
         );
+    }
+
+    #[test]
+    fn nodes_in_any_order_give_the_bits_of_the_tree_and_hold_one_per_level() {
+        let leaves: Vec<f64> = (0..32)
+            .map(|i| match i % 4 {
+                0 => 1e16,
+                2 => -1e16,
+                _ => 1.0 + i as f64 * 0.37,
+            })
+            .collect();
+        let ones: Vec<Range<usize>> = (0..32).map(|i| i..i + 1).collect();
+        let reference = root(32, &ones, &leaves);
+        // Orders: in order, reversed, the first last, and pseudo-random shuffles.
+        let mut orders: Vec<Vec<usize>> =
+            vec![(0..32).collect(), (0..32).rev().collect(), (1..32).chain([0]).collect()];
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        for _ in 0..20 {
+            let mut o: Vec<usize> = (0..32).collect();
+            for i in (1..o.len()).rev() {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                o.swap(i, (state % (i as u64 + 1)) as usize);
+            }
+            orders.push(o);
+        }
+        for order in &orders {
+            let mut nodes = Nodes::new(32);
+            for (k, &i) in order.iter().enumerate() {
+                let mut pair = nodes.put(i..i + 1, leaf(leaves[i])).unwrap();
+                while let Some(p) = pair {
+                    let (block, sum) = p.merge();
+                    pair = nodes.put(block, sum).unwrap();
+                }
+                let missing = 31 - k;
+                assert!(
+                    nodes.held() <= (5 * missing).max(1),
+                    "{} sums held with {missing} leaves missing",
+                    nodes.held()
+                );
+            }
+            let r = nodes.root().unwrap();
+            assert_eq!(r.texels[0][0].to_bits(), reference.to_bits(), "{order:?}");
+            assert_eq!(r.flow.shot[0].to_bits(), reference.to_bits());
+        }
+        // The first leaf last: everything else merged into one node per level.
+        let mut nodes = Nodes::new(32);
+        for (i, &v) in leaves.iter().enumerate().skip(1) {
+            let mut pair = nodes.put(i..i + 1, leaf(v)).unwrap();
+            while let Some(p) = pair {
+                let (block, sum) = p.merge();
+                pair = nodes.put(block, sum).unwrap();
+            }
+        }
+        assert_eq!(nodes.held(), 5, "1, 2..4, 4..8, 8..16, 16..32");
+        // Blocks that are not new aligned blocks are refused; an incomplete tree has no root.
+        assert!(nodes.put(1..2, leaf(0.0)).is_err());
+        assert!(nodes.put(0..3, leaf(0.0)).is_err());
+        assert!(Nodes::new(4).put(4..5, leaf(0.0)).is_err());
+        assert!(nodes.root().is_none());
     }
 
     /// The output of `block`, summed over its own subtree of `leaves`, with

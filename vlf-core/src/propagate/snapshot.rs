@@ -6,7 +6,7 @@
 //!
 //! * a [`StateHead`]: the iteration statistics, Current and the pending
 //!   `Φ_in` of every direction — what every lease reads (small);
-//! * per batch of directions (`work::batch_range`), two [`MapBatch`]es: the
+//! * per batch of directions ([`super::Batching`]), two [`MapBatch`]es: the
 //!   directions' shooting maps (the arrivals to gather, or the unshot maps)
 //!   and their total maps — read by the leases that shoot those directions,
 //!   and the shooting maps also by leases that gather from them;
@@ -31,7 +31,7 @@
 
 use super::checkpoint::{HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, misfit, version_of};
 use super::specular::Pending;
-use super::work::{MirrorBlock, batch_count, batch_range};
+use super::work::{Batching, MirrorBlock};
 use super::{IterationStats, Propagation};
 use crate::error::Error;
 use crate::scene::Rgb;
@@ -130,15 +130,14 @@ impl MapBatch {
 }
 
 /// Cuts per-direction maps into one [`MapBatch`] per batch of directions.
-fn cut(iterations: u32, mut maps: Vec<Vec<Rgb>>) -> Vec<MapBatch> {
-    let l = maps.len();
-    let mut parts: Vec<MapBatch> = (0..batch_count(l))
+fn cut(iterations: u32, mut maps: Vec<Vec<Rgb>>, batching: Batching) -> Vec<MapBatch> {
+    let mut parts: Vec<MapBatch> = (0..batching.count())
         .rev()
         .map(|b| MapBatch {
             version: SPLIT_VERSION,
             iterations,
             batch: b as u32,
-            maps: maps.split_off(batch_range(b, l).start),
+            maps: maps.split_off(batching.range(b).start),
         })
         .collect();
     parts.reverse();
@@ -162,10 +161,10 @@ fn uncut(iterations: u32, batches: Vec<MapBatch>, what: &str) -> crate::Result<V
 
 impl ShootingState {
     /// Cuts the state into its head and one part per batch of its
-    /// directions.
-    pub fn into_parts(self) -> (StateHead, Vec<MapBatch>) {
+    /// directions (cut by the job's `batching`).
+    pub fn into_parts(self, batching: Batching) -> (StateHead, Vec<MapBatch>) {
         let iterations = self.iterations();
-        let batches = self.mirrors.map(|maps| cut(iterations, maps));
+        let batches = self.mirrors.map(|maps| cut(iterations, maps, batching));
         let head = StateHead {
             version: HEAD_VERSION,
             stats: self.stats,
@@ -200,13 +199,13 @@ impl ShootingState {
 }
 
 impl Totals {
-    /// Cuts the mirror totals out, one part per batch of directions (none
-    /// without mirrors).
-    pub fn into_parts(mut self) -> (Totals, Vec<MapBatch>) {
+    /// Cuts the mirror totals out, one part per batch of directions (cut by the job's
+    /// `batching`; none without mirrors).
+    pub fn into_parts(mut self, batching: Batching) -> (Totals, Vec<MapBatch>) {
         let batches = self
             .mirrors
             .take()
-            .map_or(Vec::new(), |maps| cut(self.iterations, maps));
+            .map_or(Vec::new(), |maps| cut(self.iterations, maps, batching));
         (self, batches)
     }
 
@@ -228,13 +227,13 @@ impl MirrorBlock {
     /// The block's parts of the next snapshot, serialised in parallel: per
     /// batch, its number and the [`MapBatch::to_bytes`] of its shooting maps
     /// and of its totals (from the block's maps, without copying them).
-    pub fn batch_bytes(&self, directions: usize) -> Vec<(u32, Vec<u8>, Vec<u8>)> {
-        let first = batch_range(self.batches.start as usize, directions).start;
+    pub fn batch_bytes(&self, batching: Batching) -> Vec<(u32, Vec<u8>, Vec<u8>)> {
+        let first = batching.range(self.batches.start as usize).start;
         self.batches
             .clone()
             .into_par_iter()
             .map(|b| {
-                let range = batch_range(b as usize, directions);
+                let range = batching.range(b as usize);
                 let range = range.start - first..range.end - first;
                 let part = |maps: &[Vec<Rgb>]| {
                     encode(&MapBatchRef {
@@ -301,12 +300,12 @@ impl Propagation {
         let spec = self.specular.as_ref();
         let pending = spec.and_then(|s| s.pending.as_ref());
         let iterations = self.iterations_done();
-        let l = self.directions.len();
+        let batching = self.batching();
         let head = StateHeadRef {
             version: HEAD_VERSION,
             stats: &self.stats,
             current: &self.current,
-            mirror_batches: spec.map(|_| batch_count(l) as u32),
+            mirror_batches: spec.map(|_| batching.count() as u32),
             pending,
         };
         let totals = TotalsRef {
@@ -316,7 +315,7 @@ impl Propagation {
             mirrors: None,
         };
         let part = |b: usize, map: &(dyn Fn(&super::specular::DirectionMaps) -> &[Rgb] + Sync)| {
-            let maps = spec.map_or(Vec::new(), |s| s.maps[batch_range(b, l)].iter().map(map).collect());
+            let maps = spec.map_or(Vec::new(), |s| s.maps[batching.range(b)].iter().map(map).collect());
             encode(&MapBatchRef {
                 version: SPLIT_VERSION,
                 iterations,
@@ -324,7 +323,7 @@ impl Propagation {
                 maps,
             })
         };
-        let batches = if maps && spec.is_some() { batch_count(l) } else { 0 };
+        let batches = if maps && spec.is_some() { batching.count() } else { 0 };
         let ((head, totals), (shooting, mirror_totals)) = rayon::join(
             || rayon::join(|| encode(&head), || encode(&totals)),
             || {
@@ -355,10 +354,7 @@ impl Propagation {
     /// only. On error the state is unchanged.
     pub fn restore_head(&mut self, head: StateHead) -> crate::Result<()> {
         self.check_unshot_texels(&head.current, &head.stats)?;
-        let expected = self
-            .specular
-            .as_ref()
-            .map(|_| batch_count(self.directions.len()) as u32);
+        let expected = self.specular.as_ref().map(|_| self.batching().count() as u32);
         if head.mirror_batches != expected {
             return misfit(format!(
                 "{:?} batches of mirror maps, the scene has {expected:?}",
@@ -404,20 +400,20 @@ impl Propagation {
     /// The directions of a batch of mirror maps that fits this propagation's
     /// state, or why it does not.
     fn check_batch(&self, part: &MapBatch) -> crate::Result<std::ops::Range<usize>> {
-        let l = self.directions.len();
+        let batching = self.batching();
         let iterations = self.iterations_done();
         if self.specular.is_none() {
             return misfit("mirror maps for a scene without mirrors".into());
         }
         let b = part.batch as usize;
-        if b >= batch_count(l) || part.iterations != iterations {
+        if b >= batching.count() || part.iterations != iterations {
             return misfit(format!(
                 "mirror maps of batch {b} after {} iterations, for a state after {iterations} with {} batches",
                 part.iterations,
-                batch_count(l)
+                batching.count()
             ));
         }
-        let range = batch_range(b, l);
+        let range = batching.range(b);
         if part.maps.len() != range.len() {
             return misfit(format!(
                 "batch {b}: {} mirror maps for {} directions",

@@ -175,11 +175,7 @@ impl Propagation {
         threads: &mut HomeThreads,
         mut finished: impl FnMut(usize),
     ) -> crate::Result<Vec<Vec<(BatchSum, f64)>>> {
-        let l = self.directions.len();
-        let span = |home: &Range<usize>| match home.is_empty() {
-            true => 0..0,
-            false => work.batch_range(home.start, l).start..work.batch_range(home.end - 1, l).end,
-        };
+        let span = |home: &Range<usize>| work.batching().directions_of(home.clone());
         let (done, hear) = std::sync::mpsc::channel::<usize>();
         let shot: Vec<crate::Result<Vec<(BatchSum, f64)>>> = std::thread::scope(|scope| {
             // Each home's mirror maps, apart: the homes' directions are consecutive.
@@ -198,7 +194,7 @@ impl Propagation {
                         pool.install(|| {
                             home.clone()
                                 .map(|batch| {
-                                    let range = work.batch_range(batch, l);
+                                    let range = work.batch_range(batch);
                                     let at = range.start - span.start..range.end - span.start;
                                     let io = own.as_deref_mut().map(|m| &mut m[at]);
                                     let shooting = Instant::now();

@@ -13,7 +13,7 @@
 //! copy's areas at once and start shooting copy 0 while the others' areas
 //! are still out: no barrier between passes that do not depend on each other.
 //!
-//! A pass is cut into [`batch_count`] batches of consecutive directions. A batch is
+//! A pass is cut into batches of consecutive directions ([`Batching`]). A batch is
 //! a pure function of the iteration's inputs ([`IterationWork`], derived
 //! deterministically from the propagation's state), the pass results already
 //! absorbed, and — for [`Pass::Shoot`] — the mirror maps of its own
@@ -51,33 +51,76 @@ use std::ops::Range;
 /// texel-sized buffer, so this bounds the memory of a batch, not its size.
 pub const CHUNK: usize = 16;
 
-/// Directions per batch, the unit of work and of reduction: `(l − 1) / 16`
-/// rounded down to a multiple of [`CHUNK`] (so every chunk of a batch keeps
-/// all threads busy), at least [`CHUNK`]; the last batch also takes the
-/// remainder (see [`batch_range`]). That makes 16 batches per pass for l ≥
-/// 513 (8 for l = 129, 2 for l = 33). A function of `l` alone (not of a
-/// thread or worker count), so the summation order, and therefore the bits,
-/// never depend on how the work is spread. Fewer, larger batches cost fewer
-/// leases, blobs and absorbs (each batch's output is a dense texel-sized sum
-/// written through the store), while 16 of them still balance a few workers.
-pub fn batch_size(directions: usize) -> usize {
-    (directions.saturating_sub(1) / 16 / CHUNK * CHUNK).max(CHUNK)
+/// How the directions of a pass are cut into batches, the unit of work and of reduction.
+///
+/// A batch holds `size = max(CHUNK, ⌊(l − 1) / B / CHUNK⌋ · CHUNK)` consecutive directions,
+/// `B` being the job's [`super::Options::pass_batches`] (a power of two), and the last batch
+/// also takes the remainder: `count = l / size` batches, so `B` of them wherever `l` allows
+/// (64 for l ≥ 2049 at the default B = 64; 32 for l = 513, 8 for 129, 2 for 33). Sizes are
+/// multiples of [`CHUNK`], so every chunk of a batch keeps all threads busy, and the count is
+/// a power of two for every supported `l` and `B` (as the reduction tree wants: `l − 1` is
+/// `2·4^k`). A function of the job's options alone, never of a thread or worker count, so the
+/// summation order, and therefore the bits, never depend on how the work is spread.
+///
+/// What `B` trades: each batch's output is a dense texel-sized sum, so more batches cost more
+/// node sums through the store and more leases; fewer leave workers unbalanced. With 16 a
+/// pass, 8 workers got 2 batches each, and a run of fewer than 4 batches has no last quarter to
+/// hand to an idle worker (`server::scheduler`), so the slowest batch set the pace (a balance
+/// of 0.77 at 8 workers, docs/scaling.md). In one process the count costs nothing: a pass's
+/// batch sums fold into its reduction tree as they complete ([`super::claim`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Batching {
+    directions: usize,
+    size: usize,
+    count: usize,
 }
 
-/// Batches per pass: `l / batch_size(l)`, at least one.
-pub fn batch_count(directions: usize) -> usize {
-    (directions / batch_size(directions)).max(1)
-}
+impl Batching {
+    /// The batches of `directions` directions for a target of `per_pass` batches (a power of
+    /// two, as [`super::Options::validate`] requires; any other is taken as the power of two
+    /// below it, so that the count stays one).
+    pub fn new(directions: usize, per_pass: u32) -> Batching {
+        let per_pass = 1usize << (per_pass.max(1).ilog2());
+        let size = (directions.saturating_sub(1) / per_pass / CHUNK * CHUNK).max(CHUNK);
+        Batching {
+            directions,
+            size,
+            count: (directions / size).max(1),
+        }
+    }
 
-/// The directions of batch `batch`: `batch_size(l)` of them from `batch ·
-/// batch_size(l)`, the last batch running to `l` (empty past the last).
-pub fn batch_range(batch: usize, directions: usize) -> Range<usize> {
-    let (size, count) = (batch_size(directions), batch_count(directions));
-    let start = (batch * size).min(directions);
-    match batch + 1 {
-        n if n < count => start..start + size,
-        n if n == count => start..directions,
-        _ => directions..directions,
+    /// Directions per batch (the last one takes the remainder as well).
+    pub fn size(&self) -> usize {
+        self.size
+    }
+
+    /// Batches per pass.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// The directions of batch `batch`: `size` of them from `batch · size`, the last batch
+    /// running to `l` (empty past the last).
+    pub fn range(&self, batch: usize) -> Range<usize> {
+        let start = (batch * self.size).min(self.directions);
+        match batch + 1 {
+            n if n < self.count => start..start + self.size,
+            n if n == self.count => start..self.directions,
+            _ => self.directions..self.directions,
+        }
+    }
+
+    /// The directions of the run of batches `batches` (empty for an empty run).
+    pub fn directions_of(&self, batches: Range<usize>) -> Range<usize> {
+        match batches.is_empty() {
+            true => 0..0,
+            false => self.range(batches.start).start..self.range(batches.end - 1).end,
+        }
+    }
+
+    /// The batch direction `d` is in.
+    pub fn batch_of(&self, d: usize) -> usize {
+        (d / self.size).min(self.count - 1)
     }
 }
 
@@ -227,7 +270,7 @@ pub struct IterationWork {
     /// The pass being absorbed (its index) and its partial sums.
     cursor: usize,
     tree: TreeSum,
-    batches: usize,
+    batching: Batching,
 }
 
 enum Mode {
@@ -318,7 +361,7 @@ impl IterationWork {
             return Ok(());
         }
         let texels = self.received.len();
-        let mut tree = TreeSum::new(self.batches);
+        let mut tree = TreeSum::new(self.batching.count());
         for (batches, sum) in blocks {
             check_sum(pass, &batches, &sum, texels)?;
             tree.push(batches, sum)
@@ -327,7 +370,7 @@ impl IterationWork {
         let Some(root) = tree.finish() else {
             return Err(crate::Error::Decode(format!(
                 "{pass:?}: the blocks given do not cover its {} batches",
-                self.batches
+                self.batching.count()
             )));
         };
         self.finish_pass(pass, root.texels);
@@ -336,7 +379,12 @@ impl IterationWork {
 
     /// Batches per pass.
     pub fn batches(&self) -> usize {
-        self.batches
+        self.batching.count()
+    }
+
+    /// How the passes are cut into batches (the job's [`Batching`]).
+    pub fn batching(&self) -> Batching {
+        self.batching
     }
 
     /// Whether the true directions' mirror maps take part (then batches of
@@ -367,7 +415,7 @@ impl IterationWork {
             .push(batches, sum)
             .map_err(|e| crate::Error::Parameter(format!("{pass:?}: {e}")))?;
         if self.tree.is_complete() {
-            let tree = std::mem::replace(&mut self.tree, TreeSum::new(self.batches));
+            let tree = std::mem::replace(&mut self.tree, TreeSum::new(self.batching.count()));
             let root = tree.finish().expect("a complete tree has a root");
             if !matches!(pass, Pass::Areas { .. }) {
                 let f = &root.flow;
@@ -399,9 +447,9 @@ impl IterationWork {
         }
     }
 
-    /// The directions of batch `batch` (see [`batch_range`]).
-    pub fn batch_range(&self, batch: usize, directions: usize) -> Range<usize> {
-        batch_range(batch, directions)
+    /// The directions of batch `batch` (see [`Batching::range`]).
+    pub fn batch_range(&self, batch: usize) -> Range<usize> {
+        self.batching.range(batch)
     }
 }
 
@@ -512,8 +560,8 @@ impl Propagation {
             },
             mode,
             cursor: 0,
-            tree: TreeSum::new(batch_count(self.directions.len())),
-            batches: batch_count(self.directions.len()),
+            tree: TreeSum::new(self.batching().count()),
+            batching: self.batching(),
         }
     }
 
@@ -618,7 +666,7 @@ impl Propagation {
         maps: Option<&mut [MirrorIo]>,
         buffers: &mut Vec<Vec<Rgb>>,
     ) -> crate::Result<BatchSum> {
-        let range = work.batch_range(batch, self.directions.len());
+        let range = work.batch_range(batch);
         if range.is_empty() {
             return Err(crate::Error::Parameter(format!(
                 "batch {batch} out of range ({} batches)",
