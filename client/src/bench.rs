@@ -451,10 +451,12 @@ impl Way {
     }
 }
 
-/// A report's title: the command, the scene and the job's shape.
+/// A report's title: the command, the scene and the job's shape, with the batches a pass is
+/// cut into (what the workers' balance depends on).
 fn heading(args: &BenchArgs, command: &str) -> String {
+    let batches = vlf_core::propagate::Batching::new(args.job.directions, args.job.pass_batches).count();
     format!(
-        "# {command}: {} (l = {}, N = {}, m = {})\n\n",
+        "# {command}: {} (l = {}, N = {}, m = {}, {batches} batches a pass)\n\n",
         args.scene.display(),
         args.job.directions,
         args.job.resolution,

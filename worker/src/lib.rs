@@ -114,7 +114,19 @@ impl Replicas {
                 let opened = FieldJob::open(store, job)?;
                 let replica = match self.prototypes.as_ref().and_then(|p| p.take(job)) {
                     Some(prop) => Replica::at_snapshot(opened, prop),
-                    None => Replica::within(opened, self.subfield_budget)?,
+                    None => {
+                        // Every worker process builds the job's geometry (directions, subfields
+                        // within its budget, discrete areas, mirror layouts) for itself: time that
+                        // more workers do not shorten (docs/scaling.md), so it is logged.
+                        let started = Instant::now();
+                        let replica = Replica::within(opened, self.subfield_budget)?;
+                        tracing::info!(
+                            job = %job,
+                            setup_s = format!("{:.2}", started.elapsed().as_secs_f64()),
+                            "job geometry built"
+                        );
+                        replica
+                    }
                 };
                 self.jobs.insert(0, (job.clone(), replica));
                 self.jobs.truncate(CACHED_JOBS);
