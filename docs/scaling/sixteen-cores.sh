@@ -1,0 +1,30 @@
+#!/usr/bin/env bash
+# The issue-31 figures on a many-core host, in one call (docs/scaling.md, "Finer batches"):
+# threads 1..all cores in one process, and 1, 2, 4, 8 worker processes of 2 threads each, with
+# passes cut into 64 batches (the default) and into 16 (the cut before), so that the two are
+# compared on the same machine, in the same session.
+#
+#   bash docs/scaling/sixteen-cores.sh [VLF] [OUT] [L] [N]
+#
+# VLF is a release build of `vlf` (default target/release/vlf), OUT a folder for the two
+# Markdown reports (default .), L and N the job's shape (default 2049 and 128: the Cornell box
+# at the issue's settings; about 6 minutes on 16 cores). Every run of a report is checked to
+# give the first run's bits; the reports give medians, speed-ups and Amdahl's serial fraction.
+set -euo pipefail
+VLF=${1:-target/release/vlf}
+OUT=${2:-.}
+L=${3:-2049}
+N=${4:-128}
+ROOT=$(cd "$(dirname "$0")/../.." && pwd)
+mkdir -p "$OUT"
+shape=(--directions "$L" --resolution "$N")
+
+echo "== 64 batches a pass: threads, and 1, 2, 4, 8 workers"
+"$VLF" bench "$ROOT/scenes/cornell.obj" "${shape[@]}" --scaling --workers 1,2,4,8 \
+    --worker-threads 2 --repeat 3 --pass-batches 64 --out "$OUT/scaling-64-batches.md"
+
+echo "== 16 batches a pass: 1 and 8 workers (the cut before)"
+"$VLF" bench "$ROOT/scenes/cornell.obj" "${shape[@]}" --scaling --scale-threads 1 --workers 1,8 \
+    --worker-threads 2 --repeat 3 --pass-batches 16 --out "$OUT/scaling-16-batches.md"
+
+echo "== reports in $OUT"
