@@ -347,16 +347,30 @@ mod tests {
         r.texels[0][0]
     }
 
-    #[test]
-    fn any_cover_by_aligned_blocks_gives_the_same_bits() {
-        // Values whose sum depends on the order of additions.
-        let leaves: Vec<f64> = (0..16)
+    /// `n` values whose sum depends on the order of additions.
+    fn order_sensitive(n: usize) -> Vec<f64> {
+        (0..n)
             .map(|i| match i % 4 {
                 0 => 1e16,
                 2 => -1e16,
                 _ => 1.0 + i as f64 * 0.37,
             })
-            .collect();
+            .collect()
+    }
+
+    /// Puts leaf `i` of value `v` into `nodes` and merges what it completes, as
+    /// `claim` does.
+    fn put_leaf(nodes: &mut Nodes, i: usize, v: f64) {
+        let mut pair = nodes.put(i..i + 1, leaf(v)).unwrap();
+        while let Some(p) = pair {
+            let (block, sum) = p.merge();
+            pair = nodes.put(block, sum).unwrap();
+        }
+    }
+
+    #[test]
+    fn any_cover_by_aligned_blocks_gives_the_same_bits() {
+        let leaves = order_sensitive(16);
         let ones: Vec<Range<usize>> = (0..16).map(|i| i..i + 1).collect();
         let reference = root(16, &ones, &leaves);
         for len in [2, 4, 8, 16] {
@@ -386,14 +400,8 @@ mod tests {
     }
 
     #[test]
-    fn nodes_in_any_order_give_the_bits_of_the_tree_and_hold_one_per_level() {
-        let leaves: Vec<f64> = (0..32)
-            .map(|i| match i % 4 {
-                0 => 1e16,
-                2 => -1e16,
-                _ => 1.0 + i as f64 * 0.37,
-            })
-            .collect();
+    fn nodes_in_any_order_give_the_bits_of_the_tree_and_hold_few_per_missing_leaf() {
+        let leaves = order_sensitive(32);
         let ones: Vec<Range<usize>> = (0..32).map(|i| i..i + 1).collect();
         let reference = root(32, &ones, &leaves);
         // Orders: in order, reversed, the first last, and pseudo-random shuffles.
@@ -413,11 +421,7 @@ mod tests {
         for order in &orders {
             let mut nodes = Nodes::new(32);
             for (k, &i) in order.iter().enumerate() {
-                let mut pair = nodes.put(i..i + 1, leaf(leaves[i])).unwrap();
-                while let Some(p) = pair {
-                    let (block, sum) = p.merge();
-                    pair = nodes.put(block, sum).unwrap();
-                }
+                put_leaf(&mut nodes, i, leaves[i]);
                 let missing = 31 - k;
                 assert!(
                     nodes.held() <= (5 * missing).max(1),
@@ -432,11 +436,7 @@ mod tests {
         // The first leaf last: everything else merged into one node per level.
         let mut nodes = Nodes::new(32);
         for (i, &v) in leaves.iter().enumerate().skip(1) {
-            let mut pair = nodes.put(i..i + 1, leaf(v)).unwrap();
-            while let Some(p) = pair {
-                let (block, sum) = p.merge();
-                pair = nodes.put(block, sum).unwrap();
-            }
+            put_leaf(&mut nodes, i, v);
         }
         assert_eq!(nodes.held(), 5, "1, 2..4, 4..8, 8..16, 16..32");
         // Blocks that are not new aligned blocks are refused; an incomplete tree has no root.
