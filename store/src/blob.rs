@@ -79,11 +79,13 @@ pub enum BlobKind {
     /// The output of one block of batches of directions of one pass of an iteration (caller's
     /// serialisation).
     BatchOutput = 9,
+    /// What setting a job up learns over all its directions (caller's serialisation).
+    Survey = 10,
 }
 
 impl BlobKind {
     /// Every kind, in numeric order.
-    pub const ALL: [BlobKind; 9] = [
+    pub const ALL: [BlobKind; 10] = [
         BlobKind::Manifest,
         BlobKind::Scene,
         BlobKind::Snapshot,
@@ -93,6 +95,7 @@ impl BlobKind {
         BlobKind::Raw,
         BlobKind::Summary,
         BlobKind::BatchOutput,
+        BlobKind::Survey,
     ];
 
     /// The number stored in the header.

@@ -5,6 +5,7 @@
 //! | what | where | representation |
 //! |---|---|---|
 //! | the normalised scene | `jobs/J/scene.blob` | `Scene::to_bytes`, exact |
+//! | what set-up learns over all directions: the discrete areas `T_t`, the mirrors light reaches | `jobs/J/survey.blob` | `Survey::to_bytes`, exact |
 //! | the propagation options | the manifest's `parameters` | JSON of `Options` (floats round-trip exactly) |
 //! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (the shooting state's head), per batch B of directions `shooting/BBBBB.blob` and `mirror-totals/BBBBB.blob` (its mirror maps), and `totals.blob` (diffuse) | `Propagation::snapshot_bytes`: f64, exact (see below for jobs of earlier builds) |
 //! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
@@ -39,7 +40,7 @@
 //!
 //! Blobs of a stage are written in parallel; the manifest commit comes last (see [`crate::job`]).
 
-use crate::blob::Encoding;
+use crate::blob::{self, BlobKind, Encoding};
 use crate::error::StoreError;
 use crate::id::JobId;
 use crate::job::Job;
@@ -54,7 +55,7 @@ use vlf_core::maps::TexelAtlas;
 use vlf_core::parts::diffuse_chunks;
 use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{
-    Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Totals,
+    Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Survey, Totals,
 };
 use vlf_core::psf::Subfields;
 use vlf_core::scene::{Rgb, Scene};
@@ -110,8 +111,50 @@ impl FieldJob {
             scene: p.scene.clone(),
             options: p.options.clone(),
         };
+        field_job.put_survey(&p.survey())?;
         field_job.write_snapshot(p)?;
         Ok(field_job)
+    }
+
+    /// Stores what setting the job up learnt over all its directions: whoever opens the job
+    /// later ([`FieldJob::propagation`]) reads it rather than passing over them again.
+    fn put_survey(&self, survey: &Survey) -> Result<(), StoreError> {
+        let key = layout::survey(self.id());
+        let blob = blob::encode_bytes(BlobKind::Survey, &survey.to_bytes()).map_err(|source| StoreError::Blob {
+            url: self.job.store().url().to_string(),
+            key: key.clone(),
+            source,
+        })?;
+        self.job.store().put_new(&key, blob)?;
+        Ok(())
+    }
+
+    /// The job's stored survey; `None` for a job stored before surveys were (or created by a
+    /// coordinator that stopped before writing it), whose geometry is then built whole. A
+    /// survey that is there but unreadable is an error, not a reason to learn it again.
+    pub fn stored_survey(&self) -> Result<Option<Survey>, StoreError> {
+        let key = layout::survey(self.id());
+        match self.job.store().get_bytes_blob(&key, BlobKind::Survey) {
+            Ok(bytes) => Survey::from_bytes(&bytes)
+                .map(Some)
+                .map_err(|e| self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))),
+            Err(StoreError::NotFound { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
+    /// The job's propagation at snapshot 0 — its geometry, holding at most `budget` bytes of
+    /// subfields when one is given ([`Propagation::with_subfield_budget`]). With the job's
+    /// [stored survey](FieldJob::stored_survey) no subfield is built up front
+    /// ([`Propagation::with_survey`]): a worker builds those of the directions it shoots. The
+    /// geometry is the job's to the bit, whoever builds it.
+    pub fn propagation(&self, budget: Option<usize>) -> Result<Propagation, StoreError> {
+        let (scene, options) = (self.scene.clone(), self.options.clone());
+        match self.stored_survey()? {
+            Some(survey) => Propagation::with_survey(scene, options, budget, survey),
+            None => Propagation::with_subfield_budget(scene, options, budget),
+        }
+        .map_err(|e| self.field_error(e))
     }
 
     /// Opens job `id`, reading its manifest, scene and options.
@@ -288,8 +331,8 @@ impl FieldJob {
             .last_finished()
             .ok_or_else(|| self.job_error("no finished snapshot to resume from".into()))?;
         let checkpoint = self.checkpoint(k)?;
-        let p = Propagation::resume_within(self.scene.clone(), self.options.clone(), checkpoint, budget)
-            .map_err(|e| self.field_error(e))?;
+        let mut p = self.propagation(budget)?;
+        p.restore(checkpoint).map_err(|e| self.field_error(e))?;
         self.job.set_state(JobState::Propagating { iteration: k + 1 })?;
         Ok(p)
     }

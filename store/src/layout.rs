@@ -60,6 +60,12 @@ pub fn scene(job: &JobId) -> String {
     format!("{JOBS_PREFIX}{job}/scene.blob")
 }
 
+/// `jobs/J/survey.blob`: what setting the job up learns over all its directions
+/// (`vlf_core::propagate::Survey`), written with the job.
+pub fn survey(job: &JobId) -> String {
+    format!("{JOBS_PREFIX}{job}/survey.blob")
+}
+
 /// `jobs/J/iters/KKKKK/` or `jobs/J/field/`: everything of a stage.
 pub fn stage_prefix(job: &JobId, stage: Stage) -> Result<String, StoreError> {
     match stage {

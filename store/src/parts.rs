@@ -16,7 +16,6 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use vlf_core::field::LightField;
 use vlf_core::parts::{Part, PartCatalog};
-use vlf_core::propagate::Propagation;
 
 /// Mirror radiance per direction (of a batch, or of all) and slot.
 type MirrorTotals = Vec<Vec<[f32; 3]>>;
@@ -124,7 +123,7 @@ impl StageParts {
     /// draws from while the parts arrive, and where [`StageParts::read`] puts them.
     pub fn geometry(&self) -> Result<LightField, StoreError> {
         let job = &self.job;
-        let p = Propagation::new(job.scene().clone(), job.options().clone()).map_err(|e| job.field_error(e))?;
+        let p = job.propagation(None)?;
         let radiance = vec![[0.0f32; 3]; p.atlas.texels];
         let totals = p
             .specular

@@ -11,7 +11,7 @@ use suite::Opener;
 use vlf_core::propagate::{Checkpoint, Options, Pass, Perturbation, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
-use vlf_store::blob::Encoding;
+use vlf_store::blob::{BlobKind, Encoding};
 use vlf_store::{Coordinator, FieldJob, JobId, MapPart, ReadAhead, Replica, Stage, Store, StoreError, layout};
 
 fn bundled(name: &str) -> Scene {
@@ -641,6 +641,7 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let store = Store::open("memory://").unwrap();
     let reference = in_process(&store, &scene, &options);
     let p = Propagation::new(scene, options).unwrap();
+    let (l, mirrors) = (p.directions.len() as u64, p.specular.is_some());
     let all = p.subfields.memory().live;
     let largest = p.subfields.map(|_, s| s.memory_bytes()).into_iter().max().unwrap();
     let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
@@ -679,6 +680,11 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let job = coordinator.finish(false).unwrap();
     assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
     assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+    if !mirrors {
+        // The job's survey is stored, so no worker passed over the whole field at set-up: each
+        // built its home's subfields, once, and together they built the field's once.
+        assert_eq!(builds_after_first.iter().sum::<u64>(), l, "{builds_after_first:?}");
+    }
     let threads = rayon::current_num_threads();
     let held = coordinator_subfields.memory();
     assert!(
@@ -702,6 +708,67 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
                 "worker {w} rebuilt its home: {held:?}"
             );
         }
+    }
+}
+
+/// A job's survey is stored with it (`FieldJob::propagation`): a replica of a diffuse job builds
+/// no subfield until it shoots, then only those of its lease. A job stored before surveys were
+/// (no survey blob) computes as before, its replicas building the whole geometry, to the same
+/// bits; a survey blob that is damaged or does not fit is an error naming it, not a reason to
+/// learn it again.
+#[test]
+fn replicas_read_the_jobs_survey() {
+    let (scene, options) = (bundled("cornell.obj"), options(0, 129));
+    let store = Store::open("memory://").unwrap();
+    let reference = in_process(&store, &scene, &options);
+    let p = Propagation::new(scene, options).unwrap();
+    let l = p.directions.len() as u64;
+    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    assert!(job.stored_survey().unwrap() == Some(p.survey()));
+
+    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    assert_eq!(replica.subfield_memory().builds, 0, "set-up built subfields");
+    replica.compute(0, Pass::Shoot, 2..4).unwrap();
+    let shot = p.batching().directions_of(2..4).len() as u64;
+    assert_eq!(replica.subfield_memory().builds, shot);
+
+    // As a job of an earlier build: its replicas pass over the whole field, and write the
+    // block computed above again with the same bytes (create-only: different ones are refused).
+    let key = layout::survey(&id);
+    store.delete(&key).unwrap();
+    let job = FieldJob::open(&store, &id).unwrap();
+    assert!(job.stored_survey().unwrap().is_none());
+    let mut coordinator = Coordinator::resume(job).unwrap();
+    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    assert_eq!(replica.subfield_memory().builds, l);
+    while !coordinator.finished() {
+        compute_iteration(&mut coordinator, &mut replica);
+        coordinator.finish_iteration().unwrap();
+    }
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+
+    let blob = |kind, bytes: &[u8]| vlf_store::blob::encode_bytes(kind, bytes).unwrap();
+    let valid = blob(BlobKind::Survey, &p.survey().to_bytes());
+    let mut flipped = valid.clone();
+    flipped[60] ^= 4;
+    let mut other = p.survey();
+    other.projected_area.truncate(3);
+    for (bytes, says) in [
+        (flipped, "checksum"),
+        (valid[..40].to_vec(), "survey.blob"),
+        (blob(BlobKind::Survey, &[1, 0, 0, 0, 7]), "survey.blob"),
+        (blob(BlobKind::Survey, &other.to_bytes()), "3 areas"),
+        (blob(BlobKind::Scene, &p.survey().to_bytes()), "survey.blob"),
+    ] {
+        store.put(&key, bytes).unwrap();
+        let error = Replica::new(FieldJob::open(&store, &id).unwrap())
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(error.contains(says), "{error}");
     }
 }
 

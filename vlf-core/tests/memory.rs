@@ -5,7 +5,7 @@
 mod common;
 
 use common::*;
-use vlf_core::propagate::{Options, Propagation};
+use vlf_core::propagate::{Options, Pass, Propagation, Survey};
 use vlf_core::scene::Scene;
 
 /// Runs `scene` holding every subfield and within a quarter of them, on `threads` threads;
@@ -72,4 +72,111 @@ fn diffuse_and_perturbed_within_a_budget() {
 fn mirrors_within_a_budget() {
     // The gather reads a source direction's subfield for every route: two alive per thread.
     same_bits_within_a_quarter(mirror_room(), split_options(0), 2);
+}
+
+/// With the survey known (stored with a job: `Propagation::with_survey`), set-up builds no
+/// subfield of a diffuse scene: a block builds those of its own directions when it shoots them,
+/// and a whole run builds each once and steps with the same bits as the geometry built whole.
+#[test]
+fn a_known_survey_builds_only_the_subfields_shot() {
+    for perturb in [0, 2] {
+        let options = split_options(perturb);
+        let mut whole = Propagation::new(lit_box(), options.clone()).unwrap();
+        let survey = Survey::from_bytes(&whole.survey().to_bytes()).unwrap();
+        assert_eq!(survey, whole.survey());
+        let l = whole.directions.len() as u64;
+
+        let mut part = Propagation::with_survey(lit_box(), options.clone(), None, survey.clone()).unwrap();
+        assert_eq!(part.subfields.memory().builds, 0, "set-up built subfields");
+        if perturb == 0 {
+            let work = part.iteration_work();
+            let (_, none) = part.compute_block(&work, Pass::Shoot, 2..4).unwrap();
+            assert!(none.is_none());
+            let shot = part.batching().directions_of(2..4).len() as u64;
+            let held = part.subfields.memory();
+            assert_eq!(held.builds, shot, "a block of {shot} directions built {held:?}");
+            assert_eq!(held.budget, None);
+        }
+
+        let mut known = Propagation::with_survey(lit_box(), options, None, survey).unwrap();
+        while !whole.finished() {
+            whole.step(|_| {});
+            known.step(|_| {});
+            assert_eq!(
+                without_times(known.checkpoint()),
+                without_times(whole.checkpoint()),
+                "iteration {} differs with the survey known (perturbed {perturb})",
+                whole.iterations_done()
+            );
+        }
+        assert_eq!(known.subfields.memory().builds, l, "each subfield built once");
+        assert_eq!(known.into_field().radiance, whole.into_field().radiance);
+    }
+}
+
+/// With mirrors, the survey also says which mirrors light reaches (the plan's search over every
+/// subfield); set-up still builds every subfield once, for the mirror layouts. The same plan and
+/// the same bits.
+#[test]
+fn a_known_survey_with_mirrors_gives_the_same_bits() {
+    let options = split_options(0);
+    let mut whole = Propagation::new(mirror_room(), options.clone()).unwrap();
+    let survey = whole.survey();
+    assert!(!survey.lit_mirrors.is_empty());
+    let mut known = Propagation::with_survey(mirror_room(), options, None, survey).unwrap();
+    assert_eq!(known.plan, whole.plan);
+    while !whole.finished() {
+        whole.step(|_| {});
+        known.step(|_| {});
+    }
+    assert_eq!(without_times(known.checkpoint()), without_times(whole.checkpoint()));
+}
+
+/// A survey that does not fit the scene is refused with what is wrong with it, never used; bytes
+/// that are not a survey are refused when read.
+#[test]
+fn surveys_that_do_not_fit_are_refused() {
+    let options = split_options(0);
+    let survey = Propagation::new(mirror_room(), options.clone()).unwrap().survey();
+    let texels = survey.projected_area.len();
+    let refused = |s: Survey| {
+        Propagation::with_survey(mirror_room(), options.clone(), None, s)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default()
+    };
+    let with_areas = |areas: Vec<f64>| Survey::new(areas, survey.lit_mirrors.clone());
+    let short = refused(with_areas(survey.projected_area[1..].to_vec()));
+    assert!(short.contains(&format!("{} areas", texels - 1)), "{short}");
+    for bad in [f64::NAN, f64::INFINITY, -1.0] {
+        let mut wrong = survey.projected_area.clone();
+        wrong[7] = bad;
+        let message = refused(with_areas(wrong));
+        assert!(message.contains("texel 7"), "{bad}: {message}");
+    }
+    let dark = refused(with_areas(vec![0.0; texels]));
+    assert!(dark.contains("no emitter"), "{dark}");
+    let (m, k) = survey.lit_mirrors[0];
+    let wall = (0..mirror_room().surfaces.len() as u32)
+        .find(|&s| !mirror_room().material(s as usize).is_mirror())
+        .unwrap();
+    for (lit, says) in [
+        (vec![(wall, k)], "not a mirror"),
+        (vec![(99, k)], "not a mirror"),
+        (vec![(m, k), (m, k)], "out of order or twice"),
+    ] {
+        let message = refused(Survey::new(survey.projected_area.clone(), lit));
+        assert!(message.contains(says), "{message}");
+    }
+
+    let bytes = survey.to_bytes();
+    for (bytes, says) in [
+        (bytes[..bytes.len() - 3].to_vec(), "survey"),
+        ([bytes.as_slice(), &[0]].concat(), "trailing"),
+        ([&[9, 0, 0, 0][..], &bytes[4..]].concat(), "version 9"),
+        (bytes[..2].to_vec(), "too short"),
+    ] {
+        let message = Survey::from_bytes(&bytes).unwrap_err().to_string();
+        assert!(message.contains(says), "{message}");
+    }
 }

@@ -115,9 +115,11 @@ impl Replicas {
                 let replica = match self.prototypes.as_ref().and_then(|p| p.take(job)) {
                     Some(prop) => Replica::at_snapshot(opened, prop),
                     None => {
-                        // Every worker process builds the job's geometry (directions, subfields
-                        // within its budget, discrete areas, mirror layouts) for itself: time that
-                        // more workers do not shorten (docs/scaling.md), so it is logged.
+                        // Every worker process builds the job's geometry for itself: the texel
+                        // grids and directions; the subfields of what it shoots, as it shoots
+                        // them (the discrete areas are the job's, stored with it); with mirrors,
+                        // a pass over every subfield for their layouts. Time that more workers do
+                        // not shorten (docs/scaling.md), so it is logged.
                         let started = Instant::now();
                         let replica = Replica::within(opened, self.subfield_budget)?;
                         tracing::info!(

@@ -52,6 +52,7 @@ pub(crate) mod shoot;
 pub mod snapshot;
 pub mod specular;
 mod split;
+pub mod survey;
 pub mod work;
 
 pub use checkpoint::{Checkpoint, ShootingState, Totals};
@@ -60,6 +61,7 @@ pub use shoot::Flow;
 pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
 pub use split::{HomeThreads, split_by_cost};
+pub use survey::Survey;
 pub use work::{BatchOutput, BatchSum, Batching, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
@@ -478,16 +480,48 @@ impl Propagation {
     /// whole field. Set-up still reads every subfield once (two or three passes over the
     /// directions, each rebuilding what the budget did not keep).
     pub fn with_subfield_budget(scene: Scene, options: Options, budget: Option<usize>) -> crate::Result<Self> {
+        Propagation::set_up(scene, options, budget, None)
+    }
+
+    /// [`Propagation::with_subfield_budget`] where the [`Survey`] is known — what set-up
+    /// otherwise learns by passing over every direction (the discrete areas `T_t`, the mirrors
+    /// light reaches), learnt by whoever created the job and stored with it
+    /// ([`Propagation::survey`]). No subfield is then built up front: each is built when first
+    /// asked for — by a worker, when it shoots the direction — and kept within `budget` (all
+    /// kept without one). A worker of a cluster so spends on set-up what its share of the
+    /// directions costs rather than what the whole field does, and holds only its share's
+    /// subfields. A scene with mirrors still builds every subfield once, for the mirror
+    /// layouts. The same bits as learning the survey again: it is the same numbers.
+    ///
+    /// Refuses a survey that does not fit the scene ([`Survey::check`]).
+    pub fn with_survey(scene: Scene, options: Options, budget: Option<usize>, survey: Survey) -> crate::Result<Self> {
+        Propagation::set_up(scene, options, budget, Some(survey))
+    }
+
+    /// What this propagation's set-up learnt over all directions, for whoever builds the same
+    /// propagation next ([`Propagation::with_survey`]).
+    pub fn survey(&self) -> Survey {
+        Survey::new(self.projected_area.clone(), self.plan.lit_mirrors.clone())
+    }
+
+    /// Builds the geometry, and learns the survey unless it is `known`.
+    fn set_up(scene: Scene, options: Options, budget: Option<usize>, known: Option<Survey>) -> crate::Result<Self> {
         options.validate()?;
+        let started = Instant::now();
         let directions = DirectionSet::new(options.directions)?;
         let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing())?;
+        if let Some(survey) = &known {
+            survey.check(&scene, atlas.texels)?;
+        }
         let grid = options.grid;
         let footprints = Arc::new(Footprints::new(&scene, &atlas.plane_rep));
         let albedo: Arc<[Rgb]> = crate::maps::albedo::texel_albedo(&scene, &atlas).into();
         let frames = (0..directions.len()).map(|d| directions.frame(d)).collect();
-        let subfields = match budget {
-            None => Subfields::build_all(footprints.clone(), frames, grid),
-            Some(bytes) => Subfields::within(footprints.clone(), frames, grid, bytes),
+        let atlas_s = started.elapsed().as_secs_f64();
+        let subfields = match (budget, &known) {
+            (Some(bytes), _) => Subfields::within(footprints.clone(), frames, grid, bytes),
+            (None, None) => Subfields::build_all(footprints.clone(), frames, grid),
+            (None, Some(_)) => Subfields::on_demand(footprints.clone(), frames, grid),
         };
         let stacking = shoot::Stacking::new(&scene, &atlas);
         let geometry = shoot::Geometry {
@@ -495,7 +529,15 @@ impl Propagation {
             atlas: &atlas,
             stacking: &stacking,
         };
-        let projected_area = discrete_areas(geometry, &directions, |d| subfields.get(d));
+        let subfields_s = started.elapsed().as_secs_f64() - atlas_s;
+        let (projected_area, mut plan) = match known {
+            Some(survey) => (survey.projected_area, Plan::surveyed(&scene, survey.lit_mirrors)),
+            None => (
+                discrete_areas(geometry, &directions, |d| subfields.get(d)),
+                Plan::new(&scene, geometry, &subfields),
+            ),
+        };
+        let survey_s = started.elapsed().as_secs_f64() - atlas_s - subfields_s;
         let owners = atlas.owners();
         let emission_scale = emission_scales(&scene, &atlas, &projected_area, grid.cell_area());
         // Emission: Φ_t = Le·T_t·k_c (in cell-area units), each emitter's true power π·Le·A.
@@ -514,7 +556,6 @@ impl Propagation {
                 "no emitter is hit by any ray: the emitters are too small for this resolution (raise N)".into(),
             ));
         }
-        let mut plan = Plan::new(&scene, geometry, &subfields);
         let mirrors = plan.mapped_mirrors();
         let specular = (!mirrors.is_empty())
             .then(|| Specular::new(&scene, &directions, &subfields, mirrors, atlas.chart_of.clone()));
@@ -523,6 +564,17 @@ impl Propagation {
             .map_or(0, |s| s.layouts.iter().map(|l| l.len as usize).sum());
         plan.perturbation = options.perturbation.iterations > 0 && options.perturbation.count > 0 && specular.is_none();
         plan.filter = options.filter_for(specular.is_some());
+        tracing::debug!(
+            atlas_s = format!("{atlas_s:.3}"),
+            subfields_s = format!("{subfields_s:.3}"),
+            survey_s = format!("{survey_s:.3}"),
+            mirrors_s = format!(
+                "{:.3}",
+                started.elapsed().as_secs_f64() - atlas_s - subfields_s - survey_s
+            ),
+            subfields_built = subfields.memory().builds,
+            "propagation set up"
+        );
         Ok(Propagation {
             specular,
             plan,

@@ -49,18 +49,8 @@ impl Plan {
 
     /// Counts surfaces by kind; finds which mirrors light reaches, and when.
     pub(crate) fn new(scene: &Scene, geometry: Geometry, subfields: &Subfields) -> Plan {
-        let kinds = |f: fn(&crate::scene::Material) -> bool| {
-            (0..scene.surfaces.len()).filter(|&s| f(scene.material(s))).count()
-        };
-        let mirrors = kinds(|m| m.is_mirror());
-        let mut plan = Plan {
-            surfaces: scene.surfaces.len(),
-            emitters: kinds(|m| m.is_emitter()),
-            diffuse: kinds(|m| m.is_diffuse()),
-            mirrors,
-            ..Plan::default()
-        };
-        if mirrors == 0 {
+        let mut plan = Plan::counted(scene);
+        if plan.mirrors == 0 {
             return plan;
         }
         let edges = sends_to(geometry, subfields);
@@ -98,6 +88,31 @@ impl Plan {
             .map(|s| (s, lit[s as usize]))
             .collect();
         plan
+    }
+}
+
+impl Plan {
+    /// The plan of `scene` with the mirrors light reaches known (a job's survey,
+    /// [`super::survey::Survey::lit_mirrors`]): no pass over the subfields.
+    pub(crate) fn surveyed(scene: &Scene, lit_mirrors: Vec<(u32, u32)>) -> Plan {
+        Plan {
+            lit_mirrors,
+            ..Plan::counted(scene)
+        }
+    }
+
+    /// The surfaces of `scene` counted by kind; nothing decided yet.
+    fn counted(scene: &Scene) -> Plan {
+        let kinds = |f: fn(&crate::scene::Material) -> bool| {
+            (0..scene.surfaces.len()).filter(|&s| f(scene.material(s))).count()
+        };
+        Plan {
+            surfaces: scene.surfaces.len(),
+            emitters: kinds(|m| m.is_emitter()),
+            diffuse: kinds(|m| m.is_diffuse()),
+            mirrors: kinds(|m| m.is_mirror()),
+            ..Plan::default()
+        }
     }
 }
 

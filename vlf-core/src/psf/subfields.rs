@@ -7,7 +7,7 @@
 //! at l = 8193 and N = 256 the subfields of the Cornell box are 696 MB, every one of which a
 //! worker would otherwise build and keep, though it shoots only its share.
 //!
-//! [`Subfields`] holds them one of two ways:
+//! [`Subfields`] holds them one of three ways:
 //!
 //! - **whole** ([`Subfields::build_all`]): every subfield built at once and kept, the fastest
 //!   when they fit (a single process, a small job);
@@ -17,7 +17,10 @@
 //!   keeps each worker's home) builds its home's subfields once and keeps them, as long as the
 //!   home fits the budget; a smaller budget still gives the same field, at the cost of
 //!   rebuilding (nothing measurable at N = 128, 15 % more propagation time at N = 256 when
-//!   every subfield is rebuilt every time: `docs/scaling.md`).
+//!   every subfield is rebuilt every time: `docs/scaling.md`);
+//! - **on demand** ([`Subfields::on_demand`]): built when first asked for and kept, a budget
+//!   without a bound — a worker that need not pass over the whole field at set-up (the job's
+//!   discrete areas are stored) builds only the subfields of the directions it shoots.
 //!
 //! **The bound.** Besides the cache's `budget`, a subfield is alive while someone reads it:
 //! a thread shooting a direction (or passing over it at set-up, or writing its mirror tiles)
@@ -77,7 +80,7 @@ struct Counter {
 /// What a [`Subfields`] holds and has held, in bytes of [`Subfield::memory_bytes`].
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub struct SubfieldMemory {
-    /// The budget, if any (`None`: all held).
+    /// The budget, if any (`None`: all held, or built on demand and kept).
     pub budget: Option<usize>,
     /// Subfield bytes alive now: cached, or read by someone.
     pub live: usize,
@@ -150,6 +153,13 @@ impl Subfields {
         }
     }
 
+    /// No subfield built yet: each is built when first asked for and kept — a budget with no
+    /// bound. What a worker holds when the job's discrete areas are stored
+    /// (`Propagation::with_areas`): the subfields of the directions it shoots, not the field's.
+    pub fn on_demand(footprints: Arc<Footprints>, frames: Vec<PsfFrame>, grid: GridSize) -> Subfields {
+        Subfields::within(footprints, frames, grid, usize::MAX)
+    }
+
     /// Number of directions.
     pub fn len(&self) -> usize {
         self.frames.len()
@@ -210,7 +220,7 @@ impl Subfields {
         SubfieldMemory {
             budget: match &self.held {
                 Held::All(_) => None,
-                Held::Budget { bytes, .. } => Some(*bytes),
+                Held::Budget { bytes, .. } => Some(*bytes).filter(|&b| b != usize::MAX),
             },
             live: self.counter.live.load(Ordering::Relaxed),
             peak: self.counter.peak.load(Ordering::Relaxed),
