@@ -83,6 +83,12 @@ pub struct BenchArgs {
     /// Threads of each worker in `--scaling`'s service runs.
     #[arg(long, default_value_t = 2, requires = "scaling")]
     worker_threads: usize,
+    /// Run the service's workers as processes of their own (`vlf worker`, this program), as a
+    /// cluster's are, rather than in this process: each builds the job's geometry and opens the
+    /// store itself. Needs a `--store` they can open (a directory: `/dev/shm/vlf-bench` keeps
+    /// it in memory). CPU times then add the worker processes'.
+    #[arg(long)]
+    worker_processes: bool,
 }
 
 /// The store every run of the bench writes into: `--store`, else `memory://` with `--latency`'s
@@ -211,6 +217,11 @@ pub fn run(args: BenchArgs) -> Result<()> {
         Some(t) => bail!("--threads must be between 1 and 1024, got {t}"),
         None => std::thread::available_parallelism().map_or(1, |n| n.get()),
     };
+    if args.worker_processes && store_url(&args).starts_with("memory://") {
+        bail!(
+            "--worker-processes needs a --store that the worker processes can open: a directory              (/dev/shm/vlf-bench keeps it in memory) or an object store"
+        );
+    }
     let spec = args.job.spec()?;
     let scene = crate::propagate::import(&args.scene)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -248,7 +259,10 @@ pub fn run(args: BenchArgs) -> Result<()> {
                     .context("cannot start the compute threads")?
                     .install(|| in_process(&url, &scene, &spec))?,
                 Way::Split(count) => in_process_split(&url, &scene, &spec, Workers::new(count, threads))?,
-                Way::Service(count) => service(&runtime, &url, &scene, &spec, Workers::new(count, threads))?,
+                Way::Service(count) => {
+                    let workers = Workers::new(count, threads).processes(args.worker_processes);
+                    service(&runtime, &url, &scene, &spec, workers)?
+                }
             };
             let last = without_times(last);
             match &reference {
@@ -345,10 +359,16 @@ fn service(
     let started = Started::now();
     let store = Store::open(url)?;
     let job = EmbeddedJob::New(scene.clone(), spec.clone());
-    let Embedded { id, store, iterations } = runtime.block_on(embedded(store, job, workers, Follow::Quiet))?;
+    let Embedded {
+        id,
+        store,
+        iterations,
+        worker_process_cpu_seconds,
+    } = runtime.block_on(embedded(store, job, workers, Follow::Quiet))?;
     let count = iterations.len() as u32;
     // Taken before the check below reads the store.
-    let sample = Sample::ended(started, iterations, &store);
+    let mut sample = Sample::ended(started, iterations, &store);
+    sample.cpu_seconds += worker_process_cpu_seconds;
     let last = FieldJob::open(&store, &id)?.checkpoint(count)?;
     forget(&store, &id)?;
     Ok((sample, last))
@@ -471,11 +491,17 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>
     let _ = writeln!(
         out,
         "{threads} threads on {cpu}; `{}` store; median of {} runs each, interleaved. \
-         Every run gave the in-process bits.{}\n",
+         Every run gave the in-process bits.{}{}\n",
         store_url(args),
         args.repeat,
         if args.cotenant {
             " With a co-tenant: a thread computing 30 ms of every 60 throughout (`--cotenant`)."
+        } else {
+            ""
+        },
+        if args.worker_processes {
+            " The service's workers are processes of their own (`--worker-processes`), each \
+             building the job's geometry; their CPU time is added to the runs'."
         } else {
             ""
         }

@@ -10,6 +10,7 @@ use vlf_core::propagate::defaults;
 
 mod bench;
 mod objects;
+mod processes;
 mod propagate;
 mod remote;
 mod render;

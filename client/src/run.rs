@@ -9,6 +9,7 @@
 //! (the coordinator's recovery), and follows JOB to its end.
 
 use crate::RunArgs;
+use crate::processes::WorkerProcesses;
 use crate::propagate::{import, print_summary};
 use crate::remote;
 use anyhow::{Context, Result, bail};
@@ -54,6 +55,7 @@ pub fn run(args: RunArgs) -> Result<()> {
             count: workers,
             threads,
             subfield_budget: args.subfield_budget(),
+            processes: false,
         },
         Follow::Progress,
     ))?;
@@ -78,6 +80,10 @@ pub struct Workers {
     /// Subfield bytes the process holds at most (the coordinator's propagation, which its
     /// workers share); `None`: all.
     pub subfield_budget: Option<usize>,
+    /// Run each worker as a process of its own (`crate::processes`), `threads / count` threads
+    /// each, rather than in this process: each builds the job's geometry and opens the store
+    /// itself, as a cluster's workers do.
+    pub processes: bool,
 }
 
 impl Workers {
@@ -87,7 +93,13 @@ impl Workers {
             count,
             threads,
             subfield_budget: None,
+            processes: false,
         }
+    }
+
+    /// The same workers, each a process of its own when `processes` is set.
+    pub fn processes(self, processes: bool) -> Workers {
+        Workers { processes, ..self }
     }
 }
 
@@ -107,6 +119,9 @@ pub struct Embedded {
     /// Per iteration: seconds from its start to its snapshot's commit, and the work it moved
     /// through the store.
     pub iterations: Vec<vlf_server::scheduler::IterationRecord>,
+    /// CPU seconds of the worker processes ([`Workers::processes`]), which this process's CPU
+    /// clock does not count: 0 when the workers ran in this process, NaN where unknown.
+    pub worker_process_cpu_seconds: f64,
 }
 
 /// Runs `job` to its end on a coordinator and `workers` in this process, over `store`, talking
@@ -122,10 +137,10 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
     let per_worker = (workers.threads / workers.count).max(1);
     let url = store.url().to_string();
     let loopback = "127.0.0.1:0".parse().context("loopback address")?;
-    // The coordinator offers every job's geometry to the workers: built once per process.
+    // The coordinator offers every job's geometry to the workers of this process: built once.
     let prototypes = Prototypes::new(workers.count);
     let config = ServeConfig {
-        prototypes: Some(prototypes.clone()),
+        prototypes: (!workers.processes).then(|| prototypes.clone()),
         subfield_budget: workers.subfield_budget,
         ..ServeConfig::new(url.clone(), loopback)
     };
@@ -136,7 +151,18 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
 
     // The workers first: leases are sized to the workers alive when they ask.
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let mut processes = match workers.processes {
+        true => Some(WorkerProcesses::start(
+            workers.count,
+            per_worker,
+            &target.url,
+            &url,
+            workers.subfield_budget,
+        )?),
+        false => None,
+    };
     let handles: Vec<_> = (0..workers.count)
+        .filter(|_| processes.is_none())
         .map(|w| {
             let config = WorkerConfig {
                 target: target.clone(),
@@ -155,7 +181,17 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
         .collect();
     let registering = Instant::now();
     while server.scheduler().workers_alive() < workers.count as u32 && registering.elapsed() < Duration::from_secs(10) {
+        if let Some(exited) = processes.as_mut().and_then(|p| p.exited()) {
+            bail!("{exited}");
+        }
         tokio::time::sleep(Duration::from_millis(2)).await;
+    }
+    if processes.is_some() && server.scheduler().workers_alive() < workers.count as u32 {
+        bail!(
+            "only {} of {} worker processes registered within 10 s",
+            server.scheduler().workers_alive(),
+            workers.count
+        );
     }
 
     let id = match job {
@@ -190,6 +226,11 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
         },
         Follow::Quiet => wait_quietly(&server, &id).await,
     };
+    let worker_process_cpu_seconds = match processes.take() {
+        // Read before they are stopped: a killed process's clock is gone with it.
+        Some(p) => p.cpu_seconds().unwrap_or(f64::NAN),
+        None => 0.0,
+    };
     let _ = stop_tx.send(true);
     for handle in handles {
         match handle.await {
@@ -201,7 +242,12 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
     let iterations = server.scheduler().iterations(&id).unwrap_or_default();
     server.shutdown().await;
     followed?;
-    Ok(Embedded { id, store, iterations })
+    Ok(Embedded {
+        id,
+        store,
+        iterations,
+        worker_process_cpu_seconds,
+    })
 }
 
 /// Waits for the job's last status; an error unless it finished.

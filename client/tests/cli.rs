@@ -756,6 +756,96 @@ fn bench_reports_every_way_and_iteration_and_refuses_absurd_counts() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// `--worker-processes`: the service's workers as `vlf worker` processes of their own, each
+/// building the job's geometry from its stored survey and opening the store itself — the bits
+/// of one process, on the Cornell box and on the mirror scene, in the bench and in its scaling
+/// tables; their CPU is counted. Without a store they can open, a clear refusal.
+#[test]
+fn bench_runs_workers_as_processes_of_their_own() {
+    let dir = temp("bench-processes");
+    std::fs::create_dir_all(&dir).unwrap();
+    let store = dir.join("store");
+    let (cornell, mirrors) = (scene("cornell.obj"), scene("mirrors.obj"));
+    for scene in [&cornell, &mirrors] {
+        let args = [
+            "bench",
+            scene.as_str(),
+            "--directions",
+            "33",
+            "--resolution",
+            "16",
+            "--tile",
+            "4",
+            "--iterations",
+            "3",
+            "--repeat",
+            "1",
+            "--workers",
+            "2",
+            "--worker-processes",
+            "--store",
+            store.to_str().unwrap(),
+        ];
+        let o = vlf(&args);
+        assert!(o.status.success(), "{}", stderr(&o));
+        let printed = String::from_utf8_lossy(&o.stdout).into_owned();
+        assert!(
+            printed.contains("Every run gave the in-process bits. The service's workers are processes of their own"),
+            "{printed}"
+        );
+        let cpu = printed
+            .split("CPU per run")
+            .nth(1)
+            .and_then(|rest| rest.split("\n\n").nth(1))
+            .unwrap_or_else(|| panic!("no CPU table:\n{printed}"));
+        let row = cpu
+            .lines()
+            .find(|l| l.starts_with("| service, 2 workers | "))
+            .unwrap_or_else(|| panic!("{printed}"));
+        let seconds: f64 = row.split('|').nth(2).and_then(|c| c.trim().parse().ok()).unwrap();
+        assert!(seconds > 0.0, "{row}");
+    }
+    let scaling = [
+        "bench",
+        cornell.as_str(),
+        "--directions",
+        "33",
+        "--resolution",
+        "16",
+        "--tile",
+        "4",
+        "--iterations",
+        "2",
+        "--repeat",
+        "1",
+        "--scaling",
+        "--scale-threads",
+        "1",
+        "--workers",
+        "1,2",
+        "--worker-threads",
+        "1",
+        "--worker-processes",
+        "--store",
+        store.to_str().unwrap(),
+    ];
+    let o = vlf(&scaling);
+    assert!(o.status.success(), "{}", stderr(&o));
+    let printed = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(
+        printed.contains("## Worker processes (`vlf worker`), 1 thread each"),
+        "{printed}"
+    );
+    assert!(!printed.contains("embedded service"), "{printed}");
+    let o = vlf(&scaling[..scaling.len() - 2]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("--worker-processes needs a --store"),
+        "{}",
+        stderr(&o)
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// The Mitsuba 3 reference of the bundled Cornell box at 64×48 (see `study/tests/tiny_study.rs`).
 fn cornell_reference() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../study/tests/data/cornell-64x48.pfm")

@@ -1,15 +1,17 @@
 #!/usr/bin/env bash
 # The issue-31 figures on a many-core host, in one call (docs/scaling.md, "Finer batches"):
-# threads 1..all cores in one process, and 1, 2, 4, 8 worker processes of 2 threads each, with
-# passes cut into 64 batches (the default) and into 16 (the cut before), so that the two are
-# compared on the same machine, in the same session.
+# threads 1..all cores in one process, and 1, 2, 4, 8 workers of 2 threads each, with passes
+# cut into 64 batches (the default) and into 16 (the cut before), so that the two are compared
+# on the same machine, in the same session; then 1, 2, 4, 8 workers as processes of their own
+# (`--worker-processes`), as the issue measured them, each building the job's geometry itself.
 #
 #   bash docs/scaling/sixteen-cores.sh [VLF] [OUT] [L] [N]
 #
-# VLF is a release build of `vlf` (default target/release/vlf), OUT a folder for the two
+# VLF is a release build of `vlf` (default target/release/vlf), OUT a folder for the three
 # Markdown reports (default .), L and N the job's shape (default 2049 and 128: the Cornell box
-# at the issue's settings; about 6 minutes on 16 cores). Every run of a report is checked to
-# give the first run's bits; the reports give medians, speed-ups and Amdahl's serial fraction.
+# at the issue's settings; about 8 minutes on 16 cores, an estimate). Every run of a report is
+# checked to give the first run's bits; the reports give medians, speed-ups and Amdahl's serial
+# fraction.
 set -euo pipefail
 VLF=${1:-target/release/vlf}
 OUT=${2:-.}
@@ -26,5 +28,13 @@ echo "== 64 batches a pass: threads, and 1, 2, 4, 8 workers"
 echo "== 16 batches a pass: 1 and 8 workers (the cut before)"
 "$VLF" bench "$ROOT/scenes/cornell.obj" "${shape[@]}" --scaling --scale-threads 1 --workers 1,8 \
     --worker-threads 2 --repeat 3 --pass-batches 16 --out "$OUT/scaling-16-batches.md"
+
+echo "== 64 batches a pass: 1, 2, 4, 8 worker processes (each building its own geometry)"
+# The workers open the store themselves: a directory, in memory where /dev/shm is.
+STORE=$(mktemp -d /dev/shm/vlf-bench-XXXXXX 2>/dev/null || mktemp -d)
+trap 'rm -rf "$STORE"' EXIT
+"$VLF" bench "$ROOT/scenes/cornell.obj" "${shape[@]}" --scaling --scale-threads 1 --workers 1,2,4,8 \
+    --worker-threads 2 --repeat 2 --worker-processes --store "$STORE" \
+    --out "$OUT/scaling-worker-processes.md"
 
 echo "== reports in $OUT"

@@ -33,10 +33,12 @@
 //! checkpoint (the first builds) or a version 2 head whose unshot maps are in `unshot/BBBBB.blob`
 //! and whose mirror totals are in `totals.blob` whole.
 //!
-//! **Only what is stored is radiance.** Directions, subfields, texel grids and mirror layouts are
-//! a deterministic function of the scene and the options, so a reader rebuilds them
-//! (`Propagation::new`) and uses them to put each stored value back in place; a blob whose shape
-//! does not match is an error naming its key. A diffuse-only scene has no tile blobs at all.
+//! **Only what is stored is radiance** (and the survey). Directions, subfields, texel grids and
+//! mirror layouts are a deterministic function of the scene and the options, so a reader
+//! rebuilds them ([`FieldJob::propagation`], which reads the job's survey rather than passing
+//! over every subfield to learn it again) and uses them to put each stored value back in place;
+//! a blob whose shape does not match is an error naming its key. A diffuse-only scene has no
+//! tile blobs at all.
 //!
 //! Blobs of a stage are written in parallel; the manifest commit comes last (see [`crate::job`]).
 
@@ -151,7 +153,10 @@ impl FieldJob {
     pub fn propagation(&self, budget: Option<usize>) -> Result<Propagation, StoreError> {
         let (scene, options) = (self.scene.clone(), self.options.clone());
         match self.stored_survey()? {
-            Some(survey) => Propagation::with_survey(scene, options, budget, survey),
+            Some(survey) => Propagation::with_survey(scene, options, budget, survey).map_err(|e| match e {
+                vlf_core::Error::Decode(m) => vlf_core::Error::Decode(format!("`{}`: {m}", layout::survey(self.id()))),
+                e => e,
+            }),
             None => Propagation::with_subfield_budget(scene, options, budget),
         }
         .map_err(|e| self.field_error(e))

@@ -6,6 +6,7 @@
 //! |---|---|---|
 //! | `jobs/J/manifest.blob` | Manifest | JSON [`crate::Manifest`]; written last, the commit point |
 //! | `jobs/J/scene.blob` | Scene | the normalised scene (caller's bytes) |
+//! | `jobs/J/survey.blob` | Survey | what setting the job up learnt over all its directions (caller's bytes), so that nobody learns it again |
 //! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | the head of what shooting the iteration after K reads (or, in jobs written before the split, all that resuming needs) |
 //! | `jobs/J/iters/KKKKK/shooting/BBBBB.blob` | Snapshot | what batch B of the directions shoots next: the mirror arrivals to gather (or unshot maps) |
 //! | `jobs/J/iters/KKKKK/mirror-totals/BBBBB.blob` | Snapshot | the total mirror maps of batch B of the directions |

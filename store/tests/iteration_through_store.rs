@@ -655,6 +655,13 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let mut workers: Vec<Replica> = (0..3)
         .map(|_| Replica::within(FieldJob::open(&store, &id).unwrap(), Some(budget)).unwrap())
         .collect();
+    // The job's survey is stored: set-up passes over no subfield of a diffuse job, and over
+    // each once with mirrors, for their layouts (learning the survey would be two passes more,
+    // each rebuilding what the budget did not keep).
+    for worker in &workers {
+        let built = worker.subfield_memory().builds;
+        assert_eq!(built, if mirrors { l } else { 0 }, "set-up built {built} subfields");
+    }
     let mut builds_after_first = Vec::new();
     while !coordinator.finished() {
         let k = coordinator.iteration();

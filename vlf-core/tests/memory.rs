@@ -145,7 +145,7 @@ fn surveys_that_do_not_fit_are_refused() {
             .map(|e| e.to_string())
             .unwrap_or_default()
     };
-    let with_areas = |areas: Vec<f64>| Survey::new(areas, survey.lit_mirrors.clone());
+    let with_areas = |areas: Vec<f64>| Survey::new(survey.of.clone(), areas, survey.lit_mirrors.clone());
     let short = refused(with_areas(survey.projected_area[1..].to_vec()));
     assert!(short.contains(&format!("{} areas", texels - 1)), "{short}");
     for bad in [f64::NAN, f64::INFINITY, -1.0] {
@@ -164,10 +164,22 @@ fn surveys_that_do_not_fit_are_refused() {
         (vec![(wall, k)], "not a mirror"),
         (vec![(99, k)], "not a mirror"),
         (vec![(m, k), (m, k)], "out of order or twice"),
+        (vec![(m, 1000)], "iteration 1000"),
     ] {
-        let message = refused(Survey::new(survey.projected_area.clone(), lit));
+        let message = refused(Survey::new(survey.of.clone(), survey.projected_area.clone(), lit));
         assert!(message.contains(says), "{message}");
     }
+    // Learnt for other options or another scene: refused even where the texels would match
+    // (the number of directions leaves them as they are).
+    let fewer = Options {
+        directions: 33,
+        ..options.clone()
+    };
+    let other = Propagation::new(mirror_room(), fewer).unwrap().survey();
+    assert_eq!(other.projected_area.len(), texels);
+    assert!(refused(other).contains("learnt for l = 33"));
+    let other = Propagation::new(lit_box(), options.clone()).unwrap().survey();
+    assert!(refused(other).contains("learnt for another scene"));
 
     let bytes = survey.to_bytes();
     for (bytes, says) in [

@@ -93,7 +93,8 @@ pub(super) fn run(
                     .context("cannot start the compute threads")?
                     .install(|| in_process(url, scene, spec))?,
                 Setting::Workers { count, threads_each } => {
-                    service(runtime, url, scene, spec, Workers::new(count, count * threads_each))?
+                    let workers = Workers::new(count, count * threads_each).processes(args.worker_processes);
+                    service(runtime, url, scene, spec, workers)?
                 }
             };
             let last = without_times(last);
@@ -135,15 +136,26 @@ fn report(args: &super::BenchArgs, cores: usize, settings: &[Setting], samples: 
     }
     if let Some(&first) = workers.first() {
         let each = match settings[first] {
-            Setting::Workers { threads_each, .. } => threads_each,
-            Setting::Threads(_) => 0,
+            Setting::Workers { threads_each: 1, .. } => "1 thread".to_string(),
+            Setting::Workers { threads_each, .. } => format!("{threads_each} threads"),
+            Setting::Threads(_) => String::new(),
         };
-        let _ = writeln!(
-            out,
-            "\n## Workers of the embedded service (`vlf run`), {each} threads each\n\n\
-             A coordinator and the workers in one process, gRPC on loopback, every batch output \
-             through the store.\n"
-        );
+        let _ = match args.worker_processes {
+            false => writeln!(
+                out,
+                "\n## Workers of the embedded service (`vlf run`), {each} each\n\n\
+                 A coordinator and the workers in one process, gRPC on loopback, every batch \
+                 output through the store.\n"
+            ),
+            true => writeln!(
+                out,
+                "\n## Worker processes (`vlf worker`), {each} each\n\n\
+                 A coordinator in this process and every worker a process of its own, as a \
+                 cluster's: each builds the job's geometry and opens the store itself; gRPC on \
+                 loopback, every batch output through the store. CPU s adds the workers' \
+                 processes.\n"
+            ),
+        };
         table(&mut out, "workers", settings, samples, &workers);
     }
     out

@@ -112,7 +112,7 @@ impl Replica {
     /// Opens `job` and builds its geometry ([`FieldJob::propagation`]), holding at most `budget`
     /// bytes of subfields when one is given: a worker then holds the subfields of the directions
     /// its leases shoot (its home, which stays put from one iteration to the next), not the
-    /// whole field's, and computes the same bits. With the job's stored areas it also builds
+    /// whole field's, and computes the same bits. With the job's stored survey it also builds
     /// only those, as it shoots them: its set-up is its share of the field's, not all of it.
     pub fn within(job: FieldJob, budget: Option<usize>) -> Result<Replica, StoreError> {
         let prop = job.propagation(budget)?;

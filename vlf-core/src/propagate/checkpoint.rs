@@ -4,8 +4,9 @@
 //! Everything else a [`Propagation`] holds — directions, subfields, texel
 //! grids, discrete areas, mirror layouts and reflection routes — is a
 //! deterministic function of the scene and the [`Options`], so it is rebuilt
-//! rather than stored. What remains is small and exact (f64, never a lossy
-//! encoding):
+//! rather than stored (a job stores its [survey](super::survey) as well, the
+//! part that costs a pass over every subfield to learn). What remains is
+//! small and exact (f64, never a lossy encoding):
 //!
 //! * the diffuse Current (unshot) and Total maps, per texel;
 //! * with mirrors, every direction's total map over its mirror slots and

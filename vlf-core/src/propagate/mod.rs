@@ -490,10 +490,12 @@ impl Propagation {
     /// asked for — by a worker, when it shoots the direction — and kept within `budget` (all
     /// kept without one). A worker of a cluster so spends on set-up what its share of the
     /// directions costs rather than what the whole field does, and holds only its share's
-    /// subfields. A scene with mirrors still builds every subfield once, for the mirror
-    /// layouts. The same bits as learning the survey again: it is the same numbers.
+    /// subfields. A scene with mirrors light reaches still builds every subfield, for the
+    /// mirror layouts (all at once without a budget, as [`Propagation::new`] does). The same
+    /// bits as learning the survey again: it is the same numbers.
     ///
-    /// Refuses a survey that does not fit the scene ([`Survey::check`]).
+    /// Refuses a survey that does not fit the scene and options ([`Survey::check`]), with an
+    /// [`Error::Decode`](crate::Error::Decode) that says why (the caller adds where it was read).
     pub fn with_survey(scene: Scene, options: Options, budget: Option<usize>, survey: Survey) -> crate::Result<Self> {
         Propagation::set_up(scene, options, budget, Some(survey))
     }
@@ -501,7 +503,11 @@ impl Propagation {
     /// What this propagation's set-up learnt over all directions, for whoever builds the same
     /// propagation next ([`Propagation::with_survey`]).
     pub fn survey(&self) -> Survey {
-        Survey::new(self.projected_area.clone(), self.plan.lit_mirrors.clone())
+        Survey::new(
+            survey::Surveyed::of(&self.scene, &self.options),
+            self.projected_area.clone(),
+            self.plan.lit_mirrors.clone(),
+        )
     }
 
     /// Builds the geometry, and learns the survey unless it is `known`.
@@ -511,7 +517,7 @@ impl Propagation {
         let directions = DirectionSet::new(options.directions)?;
         let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing())?;
         if let Some(survey) = &known {
-            survey.check(&scene, atlas.texels)?;
+            survey.check(&scene, &options, atlas.texels)?;
         }
         let grid = options.grid;
         let footprints = Arc::new(Footprints::new(&scene, &atlas.plane_rep));
@@ -520,8 +526,12 @@ impl Propagation {
         let atlas_s = started.elapsed().as_secs_f64();
         let subfields = match (budget, &known) {
             (Some(bytes), _) => Subfields::within(footprints.clone(), frames, grid, bytes),
-            (None, None) => Subfields::build_all(footprints.clone(), frames, grid),
-            (None, Some(_)) => Subfields::on_demand(footprints.clone(), frames, grid),
+            // With mirrors light reaches, the layouts need every subfield anyway: held whole,
+            // reading one takes no lock (a renderer's look-ups read them ray by ray).
+            (None, Some(survey)) if survey.lit_mirrors.is_empty() => {
+                Subfields::on_demand(footprints.clone(), frames, grid)
+            }
+            (None, _) => Subfields::build_all(footprints.clone(), frames, grid),
         };
         let stacking = shoot::Stacking::new(&scene, &atlas);
         let geometry = shoot::Geometry {

@@ -17,7 +17,9 @@
 //! layouts). The survey is a pure function of the scene and the options, so reading it rather
 //! than learning it again changes no bit of the field.
 
+use super::Options;
 use super::checkpoint::{encode, version_of};
+use crate::psf::GridSize;
 use crate::scene::Scene;
 use serde::{Deserialize, Serialize};
 
@@ -28,6 +30,8 @@ const SURVEY_VERSION: u32 = 1;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Survey {
     version: u32,
+    /// What it was learnt for.
+    pub of: Surveyed,
     /// Discrete projected area `T_t` of every texel, in cell-area units.
     pub projected_area: Vec<f64>,
     /// Mirrors light can reach, as (surface, first iteration it arrives), by surface
@@ -35,10 +39,33 @@ pub struct Survey {
     pub lit_mirrors: Vec<(u32, u32)>,
 }
 
+/// What a survey was learnt for: the scene, by its content hash, and the options the field's
+/// geometry depends on. A survey is only ever used for the same — another number of directions
+/// with the same texels would otherwise pass for this one, with the wrong areas.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Surveyed {
+    pub scene_hash: String,
+    pub directions: usize,
+    pub grid: GridSize,
+    pub texel_cells: f64,
+}
+
+impl Surveyed {
+    pub fn of(scene: &Scene, options: &Options) -> Surveyed {
+        Surveyed {
+            scene_hash: scene.content_hash(),
+            directions: options.directions,
+            grid: options.grid,
+            texel_cells: options.texel_cells,
+        }
+    }
+}
+
 impl Survey {
-    pub fn new(projected_area: Vec<f64>, lit_mirrors: Vec<(u32, u32)>) -> Survey {
+    pub fn new(of: Surveyed, projected_area: Vec<f64>, lit_mirrors: Vec<(u32, u32)>) -> Survey {
         Survey {
             version: SURVEY_VERSION,
+            of,
             projected_area,
             lit_mirrors,
         }
@@ -64,12 +91,24 @@ impl Survey {
         Ok(survey)
     }
 
-    /// Whether this survey can be `scene`'s with `texels` texels: one finite, non-negative
-    /// area per texel, and lit mirrors that are mirror surfaces of the scene, each once, in
-    /// order. (Not a proof that it is that scene's survey — the store checks the scene's hash —
-    /// but a survey of another scene, or garbage, is refused here rather than propagated.)
-    pub fn check(&self, scene: &Scene, texels: usize) -> crate::Result<()> {
-        let misfit = |m: String| Err(crate::Error::Parameter(format!("the survey {m}")));
+    /// Whether this survey can be that of `scene` with `options` (and `texels` texels): learnt
+    /// for them ([`Surveyed`]), one finite, non-negative area per texel, lit mirrors that are
+    /// mirror surfaces of the scene, each once, in order, first lit within as many iterations
+    /// as the scene has surfaces (the plan's search goes one surface further an iteration). A
+    /// survey of another job, or garbage, is refused here rather than propagated.
+    pub fn check(&self, scene: &Scene, options: &Options, texels: usize) -> crate::Result<()> {
+        let misfit = |m: String| Err(crate::Error::Decode(format!("the survey {m}")));
+        let here = Surveyed::of(scene, options);
+        if self.of != here {
+            let what = match &self.of {
+                of if of.scene_hash != here.scene_hash => "another scene".to_string(),
+                of => format!(
+                    "l = {}, {:?}, texels of {} cells (this job: l = {}, {:?}, {} cells)",
+                    of.directions, of.grid, of.texel_cells, here.directions, here.grid, here.texel_cells
+                ),
+            };
+            return misfit(format!("was learnt for {what}"));
+        }
         let areas = &self.projected_area;
         if areas.len() != texels {
             return misfit(format!("has {} areas for the scene's {texels} texels", areas.len()));
@@ -81,9 +120,14 @@ impl Survey {
             ));
         }
         let surfaces = scene.surfaces.len();
-        for (i, &(m, _)) in self.lit_mirrors.iter().enumerate() {
+        for (i, &(m, k)) in self.lit_mirrors.iter().enumerate() {
             if m as usize >= surfaces || !scene.material(m as usize).is_mirror() {
                 return misfit(format!("lights surface {m}, which is not a mirror of the scene"));
+            }
+            if k as usize >= surfaces {
+                return misfit(format!(
+                    "lights mirror {m} first in iteration {k}, past any path of the scene's {surfaces} surfaces"
+                ));
             }
             if i > 0 && self.lit_mirrors[i - 1].0 >= m {
                 return misfit("lists its lit mirrors out of order or twice".into());

@@ -20,7 +20,7 @@
 //!   every subfield is rebuilt every time: `docs/scaling.md`);
 //! - **on demand** ([`Subfields::on_demand`]): built when first asked for and kept, a budget
 //!   without a bound — a worker that need not pass over the whole field at set-up (the job's
-//!   discrete areas are stored) builds only the subfields of the directions it shoots.
+//!   survey is stored with the job) builds only the subfields of the directions it shoots.
 //!
 //! **The bound.** Besides the cache's `budget`, a subfield is alive while someone reads it:
 //! a thread shooting a direction (or passing over it at set-up, or writing its mirror tiles)
@@ -154,8 +154,8 @@ impl Subfields {
     }
 
     /// No subfield built yet: each is built when first asked for and kept — a budget with no
-    /// bound. What a worker holds when the job's discrete areas are stored
-    /// (`Propagation::with_areas`): the subfields of the directions it shoots, not the field's.
+    /// bound. What a worker of a diffuse job holds when the job's survey is stored
+    /// (`Propagation::with_survey`): the subfields of the directions it shoots, not the field's.
     pub fn on_demand(footprints: Arc<Footprints>, frames: Vec<PsfFrame>, grid: GridSize) -> Subfields {
         Subfields::within(footprints, frames, grid, usize::MAX)
     }
