@@ -166,6 +166,9 @@ fn start(sched: &Arc<Scheduler>, coordinator: Coordinator, origin: Origin) {
     if let Some(prototypes) = sched.prototypes() {
         prototypes.insert(coordinator.job().id().clone(), coordinator.propagation().clone());
     }
+    // What the workers of this process took shares them; the coordinator itself reads none.
+    let mut coordinator = coordinator;
+    coordinator.release_subfields();
     let resample = coordinator.job().job().manifest().resample;
     let driver = Driver {
         sched: sched.clone(),

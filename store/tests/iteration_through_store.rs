@@ -779,6 +779,39 @@ fn replicas_read_the_jobs_survey() {
     }
 }
 
+/// The coordinator of a diffuse job reads no subfield (it absorbs what workers shoot, perturbed
+/// copies' areas included): once it lets them go it builds none to the job's end, and the field
+/// is the in-process run's. With mirrors it keeps them, for the field's mirror tiles.
+#[test]
+fn a_diffuse_jobs_coordinator_lets_its_subfields_go() {
+    let (scene, options) = (bundled("cornell.obj"), options(2, 129));
+    let store = Store::open("memory://").unwrap();
+    let reference = in_process(&store, &scene, &options);
+    let p = Propagation::new(scene, options.clone()).unwrap();
+    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    let mut coordinator = Coordinator::new(job, p);
+    assert!(coordinator.propagation().subfields.memory().live > 0);
+    coordinator.release_subfields();
+    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    while !coordinator.finished() {
+        compute_iteration(&mut coordinator, &mut replica);
+        coordinator.finish_iteration().unwrap();
+    }
+    let held = coordinator.propagation().subfields.memory();
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+    assert_eq!((held.live, held.builds), (0, 0), "{held:?}");
+
+    let p = Propagation::new(bundled("mirrors.obj"), options).unwrap();
+    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let all = p.subfields.memory().live;
+    let mut coordinator = Coordinator::new(job, p);
+    coordinator.release_subfields();
+    assert_eq!(coordinator.propagation().subfields.memory().live, all);
+}
+
 #[test]
 fn a_diffuse_job_larger_than_a_workers_budget_completes_across_three() {
     across_workers_within_budgets(bundled("cornell.obj"), options(0, 129), true);

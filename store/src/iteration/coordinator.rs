@@ -94,6 +94,14 @@ impl Coordinator {
         }
     }
 
+    /// Lets go of the subfields where the coordinator reads none (a diffuse job: it absorbs
+    /// what workers shoot): [`Propagation::release_subfields`]. Once the job's propagation has
+    /// been handed to whoever shares this process (`crate::Prototypes`), the coordinator of a
+    /// diffuse job needs no more memory for them.
+    pub fn release_subfields(&mut self) {
+        self.prop.release_subfields();
+    }
+
     /// Work blobs and bytes of every iteration this coordinator finished, in order.
     pub fn traffic(&self) -> &[WorkTraffic] {
         &self.traffic

@@ -160,6 +160,13 @@ impl Subfields {
         Subfields::within(footprints, frames, grid, usize::MAX)
     }
 
+    /// The same directions with none held: each built again when asked for and kept
+    /// ([`Subfields::on_demand`]). What one that no longer reads them swaps its set for
+    /// (`Propagation::release_subfields`); whoever shares this set keeps it.
+    pub fn released(&self) -> Subfields {
+        Subfields::on_demand(self.footprints.clone(), self.frames.clone(), self.grid)
+    }
+
     /// Number of directions.
     pub fn len(&self) -> usize {
         self.frames.len()
