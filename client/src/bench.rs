@@ -219,7 +219,8 @@ pub fn run(args: BenchArgs) -> Result<()> {
     };
     if args.worker_processes && store_url(&args).starts_with("memory://") {
         bail!(
-            "--worker-processes needs a --store that the worker processes can open: a directory              (/dev/shm/vlf-bench keeps it in memory) or an object store"
+            "--worker-processes needs a --store that the worker processes can open: a directory \
+             (/dev/shm/vlf-bench keeps it in memory) or an object store"
         );
     }
     let spec = args.job.spec()?;
@@ -501,7 +502,8 @@ fn report(args: &BenchArgs, threads: usize, ways: &[Way], samples: &[Vec<Sample>
         },
         if args.worker_processes {
             " The service's workers are processes of their own (`--worker-processes`), each \
-             building the job's geometry; their CPU time is added to the runs'."
+             building the job's geometry; a run's times include starting them and their set-up, \
+             and their CPU time is added to the runs'."
         } else {
             ""
         }

@@ -44,6 +44,7 @@ impl WorkerProcesses {
                 command.env("RUST_LOG", "warn");
             }
             command.stdin(Stdio::null()).stdout(Stdio::null());
+            die_with_this_thread(&mut command);
             let child = command
                 .spawn()
                 .with_context(|| format!("cannot start worker process {w} ({})", exe.display()))?;
@@ -53,7 +54,8 @@ impl WorkerProcesses {
     }
 
     /// The first process that has exited, and how: a worker runs until it is stopped, so one
-    /// that exits has failed (a refused registration, a store it cannot open).
+    /// that exits — successfully or not — has failed its run (a refused registration, a store it
+    /// cannot open, a crash).
     pub fn exited(&mut self) -> Option<String> {
         self.children.iter_mut().enumerate().find_map(|(w, child)| {
             let status = child.try_wait().ok()??;
@@ -77,6 +79,27 @@ impl Drop for WorkerProcesses {
         }
     }
 }
+
+/// Has the child killed when the thread that starts it ends — this program stopped by a signal
+/// it does not catch (`kill`, the OOM killer) included, where `Drop` never runs: a worker left
+/// behind would retry registering forever, and could register with a later run's coordinator on
+/// the same port. Linux only; elsewhere they are stopped by `Drop` alone.
+#[cfg(target_os = "linux")]
+fn die_with_this_thread(command: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: the closure runs in the child between fork and exec, where only async-signal-safe
+    // calls are allowed: it makes one `prctl(PR_SET_PDEATHSIG)` system call, allocates nothing,
+    // takes no lock and touches no state shared with the parent.
+    unsafe {
+        command.pre_exec(|| {
+            rustix::process::set_parent_process_death_signal(Some(rustix::process::Signal::KILL))
+                .map_err(std::io::Error::from)
+        });
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn die_with_this_thread(_: &mut Command) {}
 
 /// CPU seconds process `pid` has used, user and system, from `/proc/PID/stat`: fields 14 and 15
 /// (`utime`, `stime`) in clock ticks. The second field, the command's name in parentheses, may

@@ -72,13 +72,14 @@ pub enum EmbeddedJob {
     Resume(JobId),
 }
 
-/// Worker replicas in this process, sharing `threads` compute threads.
+/// The workers of an embedded run, sharing `threads` compute threads: replicas in this process,
+/// or processes of their own.
 #[derive(Clone, Copy, Debug)]
 pub struct Workers {
     pub count: usize,
     pub threads: usize,
     /// Subfield bytes the process holds at most (the coordinator's propagation, which its
-    /// workers share); `None`: all.
+    /// workers share), and each worker process when they are processes; `None`: all.
     pub subfield_budget: Option<usize>,
     /// Run each worker as a process of its own (`crate::processes`), `threads / count` threads
     /// each, rather than in this process: each builds the job's geometry and opens the store
@@ -124,8 +125,8 @@ pub struct Embedded {
     pub worker_process_cpu_seconds: f64,
 }
 
-/// Runs `job` to its end on a coordinator and `workers` in this process, over `store`, talking
-/// gRPC on a loopback port.
+/// Runs `job` to its end on a coordinator in this process and `workers` (in it, or processes
+/// of their own), over `store`, talking gRPC on a loopback port.
 pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: Follow) -> Result<Embedded> {
     if !(1..=64).contains(&workers.count) {
         bail!("--workers must be between 1 and 64, got {}", workers.count);
@@ -219,12 +220,23 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
         }
     };
 
-    let followed = match follow {
-        Follow::Progress => match remote::connect(&target).await {
-            Ok(mut clients) => remote::follow(&mut clients, id.as_str()).await.map(|_| ()),
-            Err(e) => Err(e),
+    let following = async {
+        match follow {
+            Follow::Progress => match remote::connect(&target).await {
+                Ok(mut clients) => remote::follow(&mut clients, id.as_str()).await.map(|_| ()),
+                Err(e) => Err(e),
+            },
+            Follow::Quiet => wait_quietly(&server, &id).await,
+        }
+    };
+    // A worker process that stops (a store it cannot open, a crash) would leave the job waiting
+    // for its leases to expire, over and over: the run fails instead.
+    let followed = match processes.as_mut() {
+        None => following.await,
+        Some(running) => tokio::select! {
+            followed = following => followed,
+            exited = first_exit(running) => Err(anyhow::anyhow!(exited)),
         },
-        Follow::Quiet => wait_quietly(&server, &id).await,
     };
     let worker_process_cpu_seconds = match processes.take() {
         // Read before they are stopped: a killed process's clock is gone with it.
@@ -248,6 +260,16 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
         iterations,
         worker_process_cpu_seconds,
     })
+}
+
+/// How the first of `running` to stop stopped, once one has.
+async fn first_exit(running: &mut WorkerProcesses) -> String {
+    loop {
+        if let Some(exited) = running.exited() {
+            return exited;
+        }
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
 }
 
 /// Waits for the job's last status; an error unless it finished.

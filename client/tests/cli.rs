@@ -846,6 +846,53 @@ fn bench_runs_workers_as_processes_of_their_own() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// A bench killed outright (SIGKILL: no handler, no `Drop`) leaves no worker process behind:
+/// each dies with the thread that started it, rather than retrying to register forever.
+#[test]
+#[cfg(target_os = "linux")]
+fn a_killed_bench_leaves_no_worker_process() {
+    let dir = temp("bench-killed");
+    std::fs::create_dir_all(&dir).unwrap();
+    let store = dir.join("store");
+    let store = store.to_str().unwrap();
+    let cornell = scene("cornell.obj");
+    let mut bench = Command::new(env!("CARGO_BIN_EXE_vlf"))
+        .args(["bench", cornell.as_str(), "--directions", "2049", "--resolution", "64"])
+        .args(["--repeat", "3", "--workers", "2", "--worker-processes", "--store", store])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    // The workers of this bench: processes whose command line names its store.
+    let workers = || -> Vec<u32> {
+        std::fs::read_dir("/proc")
+            .unwrap()
+            .flatten()
+            .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
+            .filter(|pid| {
+                let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+                let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
+                let zombie = stat.rsplit(')').next().is_some_and(|s| s.trim_start().starts_with('Z'));
+                let cmdline = String::from_utf8_lossy(&cmdline);
+                !zombie && cmdline.contains("worker") && cmdline.contains(store)
+            })
+            .collect()
+    };
+    let wait_for = |what: &str, done: &dyn Fn() -> bool| {
+        for _ in 0..1200 {
+            if done() {
+                return;
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        panic!("{what}");
+    };
+    wait_for("the bench started no worker process", &|| !workers().is_empty());
+    bench.kill().unwrap();
+    bench.wait().unwrap();
+    wait_for("worker processes outlived the bench", &|| workers().is_empty());
+}
+
 /// The Mitsuba 3 reference of the bundled Cornell box at 64×48 (see `study/tests/tiny_study.rs`).
 fn cornell_reference() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../study/tests/data/cornell-64x48.pfm")

@@ -166,7 +166,8 @@ fn start(sched: &Arc<Scheduler>, coordinator: Coordinator, origin: Origin) {
     if let Some(prototypes) = sched.prototypes() {
         prototypes.insert(coordinator.job().id().clone(), coordinator.propagation().clone());
     }
-    // What the workers of this process took shares them; the coordinator itself reads none.
+    // The prototype keeps the subfields for the workers of this process; the coordinator of a
+    // diffuse job reads none (with mirrors it keeps them, for the field's tiles).
     let mut coordinator = coordinator;
     coordinator.release_subfields();
     let resample = coordinator.job().job().manifest().resample;

@@ -131,15 +131,14 @@ impl FieldJob {
         Ok(())
     }
 
-    /// The job's stored survey; `None` for a job stored before surveys were (or created by a
-    /// coordinator that stopped before writing it), whose geometry is then built whole. A
+    /// The job's stored survey; `None` for a job stored before surveys were, or with one of an
+    /// earlier layout (`Survey::read_stored`), or created by a coordinator that stopped before
+    /// writing it: its geometry is then built whole. A
     /// survey that is there but unreadable is an error, not a reason to learn it again.
     pub fn stored_survey(&self) -> Result<Option<Survey>, StoreError> {
         let key = layout::survey(self.id());
         match self.job.store().get_bytes_blob(&key, BlobKind::Survey) {
-            Ok(bytes) => Survey::from_bytes(&bytes)
-                .map(Some)
-                .map_err(|e| self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))),
+            Ok(bytes) => Survey::read_stored(&bytes).map_err(|e| self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))),
             Err(StoreError::NotFound { .. }) => Ok(None),
             Err(e) => Err(e),
         }

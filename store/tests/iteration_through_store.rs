@@ -766,7 +766,7 @@ fn replicas_read_the_jobs_survey() {
     for (bytes, says) in [
         (flipped, "checksum"),
         (valid[..40].to_vec(), "survey.blob"),
-        (blob(BlobKind::Survey, &[1, 0, 0, 0, 7]), "survey.blob"),
+        (blob(BlobKind::Survey, &[2, 0, 0, 0, 7]), "survey.blob"),
         (blob(BlobKind::Survey, &other.to_bytes()), "3 areas"),
         (blob(BlobKind::Scene, &p.survey().to_bytes()), "survey.blob"),
     ] {

@@ -190,5 +190,12 @@ fn surveys_that_do_not_fit_are_refused() {
     ] {
         let message = Survey::from_bytes(&bytes).unwrap_err().to_string();
         assert!(message.contains(says), "{message}");
+        assert!(Survey::read_stored(&bytes).is_err(), "{says}");
     }
+    // A survey of the earlier layout (version 1, which did not say what it was learnt for) is
+    // passed over when stored: the job learns it again.
+    assert_eq!(Survey::read_stored(&bytes).unwrap(), Some(survey.clone()));
+    let unkeyed = [&[1, 0, 0, 0][..], &bytes[4..]].concat();
+    assert_eq!(Survey::read_stored(&unkeyed).unwrap(), None);
+    assert!(Survey::from_bytes(&unkeyed).is_err());
 }

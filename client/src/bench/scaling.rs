@@ -152,8 +152,8 @@ fn report(args: &super::BenchArgs, cores: usize, settings: &[Setting], samples: 
                 "\n## Worker processes (`vlf worker`), {each} each\n\n\
                  A coordinator in this process and every worker a process of its own, as a \
                  cluster's: each builds the job's geometry and opens the store itself; gRPC on \
-                 loopback, every batch output through the store. CPU s adds the workers' \
-                 processes.\n"
+                 loopback, every batch output through the store. `whole s` includes starting \
+                 them and their set-up; CPU s adds the workers' processes.\n"
             ),
         };
         table(&mut out, "workers", settings, samples, &workers);

@@ -23,8 +23,11 @@ use crate::psf::GridSize;
 use crate::scene::Scene;
 use serde::{Deserialize, Serialize};
 
-/// The version [`Survey::to_bytes`] writes first.
-const SURVEY_VERSION: u32 = 1;
+/// The version [`Survey::to_bytes`] writes first. Version 2 records what the survey was learnt
+/// for ([`Surveyed`]); version 1 did not.
+const SURVEY_VERSION: u32 = 2;
+/// The layout before, which [`Survey::read_stored`] passes over.
+const UNKEYED_VERSION: u32 = 1;
 
 /// What set-up learns over all directions: see the module docs.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -89,6 +92,16 @@ impl Survey {
             return Err(bad("trailing bytes".into()));
         }
         Ok(survey)
+    }
+
+    /// Reads a survey stored with a job: `None` for one of the earlier layout (version 1), which
+    /// does not say what it was learnt for — whoever opens the job learns it again rather than
+    /// trust it. Anything else that is not a survey is an error, as in [`Survey::from_bytes`].
+    pub fn read_stored(bytes: &[u8]) -> crate::Result<Option<Survey>> {
+        match version_of(bytes) {
+            Some(UNKEYED_VERSION) => Ok(None),
+            _ => Survey::from_bytes(bytes).map(Some),
+        }
     }
 
     /// Whether this survey can be that of `scene` with `options` (and `texels` texels): learnt

@@ -160,11 +160,15 @@ impl Subfields {
         Subfields::within(footprints, frames, grid, usize::MAX)
     }
 
-    /// The same directions with none held: each built again when asked for and kept
-    /// ([`Subfields::on_demand`]). What one that no longer reads them swaps its set for
+    /// The same directions with none held: each built again when asked for and kept, within
+    /// this set's budget if it has one. What one that no longer reads them swaps its set for
     /// (`Propagation::release_subfields`); whoever shares this set keeps it.
     pub fn released(&self) -> Subfields {
-        Subfields::on_demand(self.footprints.clone(), self.frames.clone(), self.grid)
+        let (footprints, frames) = (self.footprints.clone(), self.frames.clone());
+        match &self.held {
+            Held::Budget { bytes, .. } => Subfields::within(footprints, frames, self.grid, *bytes),
+            Held::All(_) => Subfields::on_demand(footprints, frames, self.grid),
+        }
     }
 
     /// Number of directions.
