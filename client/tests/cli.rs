@@ -858,12 +858,20 @@ fn a_killed_bench_leaves_no_worker_process() {
     let cornell = scene("cornell.obj");
     let mut bench = Command::new(env!("CARGO_BIN_EXE_vlf"))
         .args(["bench", cornell.as_str(), "--directions", "2049", "--resolution", "64"])
-        .args(["--repeat", "3", "--workers", "2", "--worker-processes", "--store", store])
+        .args([
+            "--repeat",
+            "3",
+            "--workers",
+            "2",
+            "--worker-processes",
+            "--store",
+            store,
+        ])
         .stdout(std::process::Stdio::null())
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
-    // The workers of this bench: processes whose command line names its store.
+    // The workers of this bench: `vlf worker` processes whose command line names its store.
     let workers = || -> Vec<u32> {
         std::fs::read_dir("/proc")
             .unwrap()
@@ -874,7 +882,8 @@ fn a_killed_bench_leaves_no_worker_process() {
                 let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).unwrap_or_default();
                 let zombie = stat.rsplit(')').next().is_some_and(|s| s.trim_start().starts_with('Z'));
                 let cmdline = String::from_utf8_lossy(&cmdline);
-                !zombie && cmdline.contains("worker") && cmdline.contains(store)
+                let args: Vec<&str> = cmdline.split('\0').collect();
+                !zombie && args.get(1) == Some(&"worker") && args.contains(&store)
             })
             .collect()
     };

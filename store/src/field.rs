@@ -138,7 +138,8 @@ impl FieldJob {
     pub fn stored_survey(&self) -> Result<Option<Survey>, StoreError> {
         let key = layout::survey(self.id());
         match self.job.store().get_bytes_blob(&key, BlobKind::Survey) {
-            Ok(bytes) => Survey::read_stored(&bytes).map_err(|e| self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))),
+            Ok(bytes) => Survey::read_stored(&bytes)
+                .map_err(|e| self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))),
             Err(StoreError::NotFound { .. }) => Ok(None),
             Err(e) => Err(e),
         }
