@@ -766,27 +766,30 @@ fn bench_runs_workers_as_processes_of_their_own() {
     std::fs::create_dir_all(&dir).unwrap();
     let store = dir.join("store");
     let (cornell, mirrors) = (scene("cornell.obj"), scene("mirrors.obj"));
-    for scene in [&cornell, &mirrors] {
-        let args = [
+    // A small job, two worker processes, over a directory they open themselves.
+    let bench = |scene: &str, rest: &[&str]| -> Output {
+        let mut args = vec![
             "bench",
-            scene.as_str(),
+            scene,
             "--directions",
             "33",
             "--resolution",
             "16",
             "--tile",
             "4",
-            "--iterations",
-            "3",
+        ];
+        args.extend([
             "--repeat",
             "1",
-            "--workers",
-            "2",
             "--worker-processes",
             "--store",
             store.to_str().unwrap(),
-        ];
-        let o = vlf(&args);
+        ]);
+        args.extend(rest);
+        vlf(&args)
+    };
+    for scene in [&cornell, &mirrors] {
+        let o = bench(scene, &["--iterations", "3", "--workers", "2"]);
         assert!(o.status.success(), "{}", stderr(&o));
         let printed = String::from_utf8_lossy(&o.stdout).into_owned();
         assert!(
@@ -806,30 +809,15 @@ fn bench_runs_workers_as_processes_of_their_own() {
         assert!(seconds > 0.0, "{row}");
     }
     let scaling = [
-        "bench",
-        cornell.as_str(),
-        "--directions",
-        "33",
-        "--resolution",
-        "16",
-        "--tile",
-        "4",
         "--iterations",
         "2",
-        "--repeat",
-        "1",
         "--scaling",
         "--scale-threads",
         "1",
         "--workers",
         "1,2",
-        "--worker-threads",
-        "1",
-        "--worker-processes",
-        "--store",
-        store.to_str().unwrap(),
     ];
-    let o = vlf(&scaling);
+    let o = bench(&cornell, &[&scaling[..], &["--worker-threads", "1"]].concat());
     assert!(o.status.success(), "{}", stderr(&o));
     let printed = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(
@@ -837,7 +825,9 @@ fn bench_runs_workers_as_processes_of_their_own() {
         "{printed}"
     );
     assert!(!printed.contains("embedded service"), "{printed}");
-    let o = vlf(&scaling[..scaling.len() - 2]);
+    let mut without_store = vec!["bench", cornell.as_str(), "--worker-processes"];
+    without_store.extend(scaling);
+    let o = vlf(&without_store);
     assert!(
         !o.status.success() && stderr(&o).contains("--worker-processes needs a --store"),
         "{}",
