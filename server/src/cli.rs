@@ -39,7 +39,8 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = ServeConfig::MAX_UPLOAD_BYTES)]
     pub max_upload_bytes: u64,
     /// Hold at most this much of a job's subfields (e.g. 256MiB): the coordinator reads them
-    /// only to set a job up and, with mirrors, to write its field. Default: all held.
+    /// only to set a job up and, with mirrors, to write its field. Default: none kept for a job
+    /// without mirrors (each built once, to learn the job's survey), all held with mirrors.
     #[arg(long, value_name = "SIZE")]
     pub subfield_memory: Option<bytesize::ByteSize>,
 }

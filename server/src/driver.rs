@@ -35,7 +35,8 @@ pub enum SubmitError {
 /// Creates a job for `scene` with `spec` in the scheduler's store (snapshot 0 written), and
 /// starts driving it. Returns its first status.
 pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Result<JobStatus, SubmitError> {
-    let (store, budget) = (sched.store().clone(), sched.subfield_budget());
+    let budget = set_up_budget(sched.subfield_budget(), sched.prototypes().is_some(), &scene);
+    let store = sched.store().clone();
     let created = vlf_store::blocking(move || -> Result<_, SubmitError> {
         let prop = Propagation::with_subfield_budget(scene, spec.options, budget).map_err(SubmitError::Invalid)?;
         let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
@@ -50,6 +51,21 @@ pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Resu
     tracing::info!(job = %id, "job submitted");
     start(sched, created, Origin::Submitted);
     sched.status(&id).map_err(|e| SubmitError::Internal(e.to_string()))
+}
+
+/// The subfield budget a new job is set up within: the configured one; else, for a scene without
+/// mirrors whose propagation no worker of this process shares, none kept at all. Such a
+/// coordinator builds each subfield once to learn the job's survey and, never shooting, reads
+/// none after, so it need never hold them all (at l = 8193, N = 256 the Cornell box's are
+/// 696 MB): at most one per thread is alive. The same bits: a subfield is a pure function of
+/// the job. With mirrors the field's tiles are cut along the subfields, and the workers of this
+/// process take the propagation whole, so those keep them.
+fn set_up_budget(configured: Option<usize>, shared: bool, scene: &Scene) -> Option<usize> {
+    let mirrors = (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror());
+    match configured {
+        None if !shared && !mirrors => Some(0),
+        budget => budget,
+    }
 }
 
 /// Takes up every job of the store: unfinished ones are resumed from their last snapshot and
@@ -460,4 +476,29 @@ impl Driver {
 
 fn lost() -> Stop {
     Stop::Failed("internal: coordinator lost".into())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::set_up_budget;
+    use vlf_core::scene::{ImportOptions, Scene, load_obj};
+
+    fn bundled(name: &str) -> Scene {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../scenes")
+            .join(name);
+        load_obj(&path, &ImportOptions::default()).expect("bundled scene").0
+    }
+
+    #[test]
+    fn a_standalone_coordinator_of_a_diffuse_scene_keeps_no_subfield() {
+        let (cornell, mirrors) = (bundled("cornell.obj"), bundled("mirrors.obj"));
+        assert_eq!(set_up_budget(None, false, &cornell), Some(0));
+        // Its workers in this process take the propagation whole; mirrors' tiles need them.
+        assert_eq!(set_up_budget(None, true, &cornell), None);
+        assert_eq!(set_up_budget(None, false, &mirrors), None);
+        // A configured budget is the operator's.
+        assert_eq!(set_up_budget(Some(1 << 20), false, &cornell), Some(1 << 20));
+        assert_eq!(set_up_budget(Some(1 << 20), true, &mirrors), Some(1 << 20));
+    }
 }
