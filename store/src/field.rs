@@ -42,7 +42,7 @@
 //!
 //! Blobs of a stage are written in parallel; the manifest commit comes last (see [`crate::job`]).
 
-use crate::blob::{self, BlobKind, Encoding};
+use crate::blob::Encoding;
 use crate::error::StoreError;
 use crate::id::JobId;
 use crate::job::Job;
@@ -113,36 +113,25 @@ impl FieldJob {
             scene: p.scene.clone(),
             options: p.options.clone(),
         };
-        field_job.put_survey(&p.survey())?;
+        field_job.job.put_survey(&p.survey().to_bytes())?;
         field_job.write_snapshot(p)?;
         Ok(field_job)
     }
 
-    /// Stores what setting the job up learnt over all its directions: whoever opens the job
-    /// later ([`FieldJob::propagation`]) reads it rather than passing over them again.
-    fn put_survey(&self, survey: &Survey) -> Result<(), StoreError> {
-        let key = layout::survey(self.id());
-        let blob = blob::encode_bytes(BlobKind::Survey, &survey.to_bytes()).map_err(|source| StoreError::Blob {
-            url: self.job.store().url().to_string(),
-            key: key.clone(),
-            source,
-        })?;
-        self.job.store().put_new(&key, blob)?;
-        Ok(())
-    }
-
-    /// The job's stored survey; `None` for a job stored before surveys were, or with one of an
-    /// earlier layout (`Survey::read_stored`), or created by a coordinator that stopped before
-    /// writing it: its geometry is then built whole. A
-    /// survey that is there but unreadable is an error, not a reason to learn it again.
+    /// The job's stored survey, written when the job was created (what set-up learnt over all
+    /// its directions, which whoever opens the job later reads rather than learning it again);
+    /// `None` for a job stored before surveys were, or with one of an earlier layout
+    /// (`Survey::read_stored`), or created by a coordinator that stopped before writing it: its
+    /// geometry is then built whole. A survey that is there but unreadable is an error, not a
+    /// reason to learn it again.
     pub fn stored_survey(&self) -> Result<Option<Survey>, StoreError> {
-        let key = layout::survey(self.id());
-        match self.job.store().get_bytes_blob(&key, BlobKind::Survey) {
-            Ok(bytes) => Survey::read_stored(&bytes)
-                .map_err(|e| self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))),
-            Err(StoreError::NotFound { .. }) => Ok(None),
-            Err(e) => Err(e),
-        }
+        let Some(bytes) = self.job.survey()? else {
+            return Ok(None);
+        };
+        Survey::read_stored(&bytes).map_err(|e| {
+            let key = layout::survey(self.id());
+            self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))
+        })
     }
 
     /// The job's propagation at snapshot 0 — its geometry, holding at most `budget` bytes of

@@ -151,6 +151,24 @@ impl Job {
         Ok(())
     }
 
+    /// Writes what setting the job up learnt over all its directions (caller's serialisation):
+    /// once, create-only — it is a pure function of the job.
+    pub fn put_survey(&self, survey: &[u8]) -> Result<(), StoreError> {
+        let key = layout::survey(self.id());
+        let bytes = blob::encode_bytes(BlobKind::Survey, survey).map_err(|e| self.blob_error(&key, e))?;
+        self.store.put_new(&key, bytes)?;
+        Ok(())
+    }
+
+    /// The job's survey (caller's serialisation); `None` if it has none.
+    pub fn survey(&self) -> Result<Option<Vec<u8>>, StoreError> {
+        match self.store.get_bytes_blob(&layout::survey(self.id()), BlobKind::Survey) {
+            Ok(bytes) => Ok(Some(bytes)),
+            Err(StoreError::NotFound { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
     /// Writes the resume state of iteration `k` (caller's serialisation).
     pub fn put_state(&self, k: u32, state: &[u8]) -> Result<(), StoreError> {
         let key = layout::state(self.id(), k)?;

@@ -525,7 +525,14 @@ impl Propagation {
     /// Builds the geometry, and learns the survey unless it is `known`.
     fn set_up(scene: Scene, options: Options, budget: Option<usize>, known: Option<Survey>) -> crate::Result<Self> {
         options.validate()?;
-        let started = Instant::now();
+        // Seconds since the last lap: where set-up's time goes, logged at the end.
+        let mut last = Instant::now();
+        let mut lap = move || {
+            let now = Instant::now();
+            let seconds = now.duration_since(last).as_secs_f64();
+            last = now;
+            seconds
+        };
         let directions = DirectionSet::new(options.directions)?;
         let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing())?;
         if let Some(survey) = &known {
@@ -535,7 +542,7 @@ impl Propagation {
         let footprints = Arc::new(Footprints::new(&scene, &atlas.plane_rep));
         let albedo: Arc<[Rgb]> = crate::maps::albedo::texel_albedo(&scene, &atlas).into();
         let frames = (0..directions.len()).map(|d| directions.frame(d)).collect();
-        let atlas_s = started.elapsed().as_secs_f64();
+        let atlas_s = lap();
         let subfields = match (budget, &known) {
             (Some(bytes), _) => Subfields::within(footprints.clone(), frames, grid, bytes),
             // With mirrors light reaches, the layouts need every subfield anyway: held whole,
@@ -551,7 +558,7 @@ impl Propagation {
             atlas: &atlas,
             stacking: &stacking,
         };
-        let subfields_s = started.elapsed().as_secs_f64() - atlas_s;
+        let subfields_s = lap();
         let (projected_area, mut plan) = match known {
             Some(survey) => (survey.projected_area, Plan::surveyed(&scene, survey.lit_mirrors)),
             None => (
@@ -559,7 +566,7 @@ impl Propagation {
                 Plan::new(&scene, geometry, &subfields),
             ),
         };
-        let survey_s = started.elapsed().as_secs_f64() - atlas_s - subfields_s;
+        let survey_s = lap();
         let owners = atlas.owners();
         let emission_scale = emission_scales(&scene, &atlas, &projected_area, grid.cell_area());
         // Emission: Φ_t = Le·T_t·k_c (in cell-area units), each emitter's true power π·Le·A.
@@ -590,10 +597,7 @@ impl Propagation {
             atlas_s = format!("{atlas_s:.3}"),
             subfields_s = format!("{subfields_s:.3}"),
             survey_s = format!("{survey_s:.3}"),
-            mirrors_s = format!(
-                "{:.3}",
-                started.elapsed().as_secs_f64() - atlas_s - subfields_s - survey_s
-            ),
+            mirrors_s = format!("{:.3}", lap()),
             subfields_built = subfields.memory().builds,
             "propagation set up"
         );
