@@ -3,12 +3,14 @@
 //! file and of the Kubernetes manifests is started as a process on loopback, with the
 //! environment the file gives it, and the service they make must take a job to the end. Only
 //! what the runtime provides is replaced: host names by 127.0.0.1, the published port by a free
-//! one, the shared volume by a scratch directory, and the manifests' object store (whose
-//! endpoint and keys are placeholders) by `.ci/run`'s S3 server when there is one.
+//! one, and the files' own object store (MinIO, whose image does not run here) by `.ci/run`'s
+//! S3 server when there is one, else by a scratch directory.
 //!
 //! The files are also checked for agreeing with themselves: the port the coordinator listens
 //! on is the one it is published, probed and reached on; the workers reach it by its service's
-//! name; every key the environment comes from exists; both sides mount the same store.
+//! name; every key the environment comes from exists; the object store is reached by its
+//! service's name and port, with the keys it was given, and its bucket is made before the
+//! coordinator needs it.
 
 #[path = "support/process.rs"]
 mod process;
@@ -203,13 +205,45 @@ fn compose_role(service: &Yaml, vars: &BTreeMap<&str, &str>, what: &str) -> Role
     Role { args, env }
 }
 
-/// Where `service` mounts the named volume `volume`.
-fn mount(service: &Yaml, volume: &str) -> String {
-    let volumes = strings(&service["volumes"], "volumes");
-    let found = volumes.iter().find_map(|v| v.strip_prefix(&format!("{volume}:")));
-    found
-        .unwrap_or_else(|| panic!("no volume {volume} in {volumes:?}"))
-        .to_string()
+/// The store the deployments' services are run against here: `.ci/run`'s S3 server when there
+/// is one (a fresh prefix of its bucket, with its endpoint and keys), else a scratch directory.
+/// Returned as the environment a user would export to point a deployment at a store.
+fn test_store(dir: &Path) -> BTreeMap<String, String> {
+    match std::env::var("VLF_TEST_S3_URL") {
+        Ok(base) => {
+            let unique = format!("deploy-{}-{}", std::process::id(), free_port());
+            let mut vars = BTreeMap::from([(
+                "VLF_STORE".to_string(),
+                format!("{}/{unique}", base.trim_end_matches('/')),
+            )]);
+            for key in [
+                "AWS_ENDPOINT_URL",
+                "AWS_ALLOW_HTTP",
+                "AWS_REGION",
+                "AWS_ACCESS_KEY_ID",
+                "AWS_SECRET_ACCESS_KEY",
+            ] {
+                vars.insert(key.to_string(), std::env::var(key).unwrap_or_default());
+            }
+            vars
+        }
+        Err(_) => {
+            assert!(
+                std::env::var("VLF_REQUIRE_S3").is_err(),
+                "VLF_REQUIRE_S3 is set but VLF_TEST_S3_URL is not"
+            );
+            BTreeMap::from([(
+                "VLF_STORE".to_string(),
+                dir.join("store").to_string_lossy().into_owned(),
+            )])
+        }
+    }
+}
+
+/// The jobs in the store at `url` (an S3 store is opened with the test's `AWS_*`).
+fn jobs_in(url: &str) -> usize {
+    let store = vlf_store::Store::open_existing(url).unwrap_or_else(|e| panic!("{url}: {e}"));
+    vlf_store::Job::list(&store).unwrap().len()
 }
 
 #[test]
@@ -217,6 +251,7 @@ fn the_compose_files_service_takes_a_job_to_its_end() {
     let docs = load("compose.yaml");
     let services = &docs[0]["services"];
     let (coordinator, worker) = (&services["coordinator"], &services["worker"]);
+    let (store, bucket) = (&services["store"], &services["store-bucket"]);
 
     // One image, built by a Dockerfile that exists, from the repository's root.
     assert_eq!(coordinator["image"], worker["image"]);
@@ -230,18 +265,77 @@ fn the_compose_files_service_takes_a_job_to_its_end() {
         "the build context is the workspace"
     );
 
+    // What compose is given: the token and the store's keys, nothing else.
     let token = "compose-token";
-    let vars = BTreeMap::from([("VLF_TOKEN", token)]);
-    let c = compose_role(coordinator, &vars, "coordinator");
-    let w = compose_role(worker, &vars, "worker");
+    let (key, secret) = ("compose-key", "compose-secret");
+    let given = BTreeMap::from([
+        ("VLF_TOKEN", token),
+        ("AWS_ACCESS_KEY_ID", key),
+        ("AWS_SECRET_ACCESS_KEY", secret),
+    ]);
+    let c = compose_role(coordinator, &given, "coordinator");
+    let w = compose_role(worker, &given, "worker");
     assert_eq!(c.env.get("VLF_TOKEN").map(String::as_str), Some(token));
     assert_eq!(w.env.get("VLF_TOKEN").map(String::as_str), Some(token));
 
-    // Without VLF_STORE the coordinator's store is the shared volume, mounted alike by both.
-    let store = flag(&c.args, "--store").to_string();
-    assert_eq!(store, mount(coordinator, "store"));
-    assert_eq!(store, mount(worker, "store"));
-    assert!(!docs[0]["volumes"]["store"].is_badvalue(), "the volume is declared");
+    // The object store: the coordinator's default store is a bucket of the compose file's own
+    // S3 server, which the workers reach the same way, with the keys the server was given.
+    let url = flag(&c.args, "--store").to_string();
+    let bucket_name = url
+        .strip_prefix("s3://")
+        .and_then(|rest| rest.split('/').next())
+        .unwrap_or_else(|| panic!("the default store is an s3:// URL: {url}"));
+    let endpoint = c.env.get("AWS_ENDPOINT_URL").expect("the store's endpoint").clone();
+    let (store_host, store_port) = host_port(&endpoint);
+    assert!(
+        !services[store_host.as_str()].is_badvalue(),
+        "{store_host} is a service"
+    );
+    assert_eq!(
+        services[store_host.as_str()],
+        *store,
+        "the endpoint is the store service"
+    );
+    let store_args = strings(&store["command"], "store command");
+    assert_eq!(
+        host_port(flag(&store_args, "--address")).1,
+        store_port,
+        "the store listens where it is reached"
+    );
+    let store_env = compose_role(store, &given, "store").env;
+    assert_eq!(store_env.get("MINIO_ROOT_USER").map(String::as_str), Some(key));
+    assert_eq!(store_env.get("MINIO_ROOT_PASSWORD").map(String::as_str), Some(secret));
+    for role in [&c, &w] {
+        for var in ["AWS_ENDPOINT_URL", "AWS_ALLOW_HTTP", "AWS_REGION"] {
+            assert_eq!(role.env.get(var), c.env.get(var), "{var}: one store for all");
+        }
+        assert_eq!(role.env.get("AWS_ACCESS_KEY_ID").map(String::as_str), Some(key));
+        assert_eq!(role.env.get("AWS_SECRET_ACCESS_KEY").map(String::as_str), Some(secret));
+    }
+    assert_eq!(
+        c.env.get("AWS_ALLOW_HTTP").map(String::as_str),
+        Some("true"),
+        "{endpoint} is http"
+    );
+    // The bucket is made, on that server, before the coordinator starts.
+    let made = strings(&bucket["command"], "store-bucket command").join(" ");
+    assert!(made.contains(&format!("mc alias set store {endpoint} ")), "{made}");
+    assert!(
+        made.contains(&format!("mc mb --ignore-existing store/{bucket_name}")),
+        "{made}"
+    );
+    assert_eq!(
+        bucket["depends_on"]["store"]["condition"].as_str(),
+        Some("service_healthy")
+    );
+    assert_eq!(
+        coordinator["depends_on"]["store-bucket"]["condition"].as_str(),
+        Some("service_completed_successfully")
+    );
+    assert!(
+        !docs[0]["volumes"]["objects"].is_badvalue(),
+        "the store's volume is declared"
+    );
 
     // The port: listened on, published, probed, and what the workers reach by the service's name.
     let listen = flag(&c.args, "--listen").to_string();
@@ -265,31 +359,31 @@ fn the_compose_files_service_takes_a_job_to_its_end() {
     let replicas = worker["deploy"]["replicas"].as_i64().expect("replicas") as usize;
     assert!(replicas >= 1);
 
-    // Run it: the volume is a scratch directory, the published port a free one.
+    // Run it against this machine's store, pointed at the way a user points the file at another
+    // store (VLF_STORE and the AWS_* variables); the published port is a free one.
     let scratch = tempfile::tempdir().unwrap();
     let dir = scratch.path();
-    let volume = dir.join("volume");
-    std::fs::create_dir(&volume).unwrap();
+    let store_vars = test_store(dir);
+    let mut vars = given.clone();
+    vars.extend(store_vars.iter().map(|(k, v)| (k.as_str(), v.as_str())));
+    let c = compose_role(coordinator, &vars, "coordinator");
+    let w = compose_role(worker, &vars, "worker");
+    let job_store = store_vars["VLF_STORE"].clone();
+    assert_eq!(flag(&c.args, "--store"), job_store, "VLF_STORE names the store");
     let free = free_port();
     let url = format!("http://127.0.0.1:{free}");
     let local = |role: &Role| Role {
         args: replaced(
-            &replaced(
-                &replaced(&role.args, &listen, &format!("127.0.0.1:{free}")),
-                &server_url,
-                &url,
-            ),
-            &store,
-            volume.to_str().unwrap(),
+            &replaced(&role.args, &listen, &format!("127.0.0.1:{free}")),
+            &server_url,
+            &url,
         ),
         env: role.env.clone(),
     };
     let workers = vec![local(&w); replicas];
     let health = replaced(&probe[2..], &probe_url, &url);
     serve_a_job(dir, &local(&c), &workers, &health, &url, token);
-    // The job is in the volume.
-    let jobs = std::fs::read_dir(volume.join("jobs")).unwrap().count();
-    assert_eq!(jobs, 1);
+    assert_eq!(jobs_in(&job_store), 1, "the job is in the store");
 }
 
 /// The Kubernetes objects of the manifests that `kustomization.yaml` lists, by kind and name.
@@ -389,39 +483,72 @@ fn the_kubernetes_manifests_service_takes_a_job_to_its_end() {
     assert_eq!(coordinator["spec"]["replicas"].as_i64(), Some(1));
     assert_eq!(coordinator["spec"]["strategy"]["type"].as_str(), Some("Recreate"));
 
-    // The store: `.ci/run`'s S3 server when there is one (the manifests' endpoint and keys are
-    // placeholders), else a scratch directory.
+    // The object store of store.yaml is the one the config map points the service at: reached
+    // by its Service's name and port, with the keys the coordinator and workers present, its
+    // bucket made by the Job.
+    let config = object(&objects, "ConfigMap", "vlf-store");
+    let endpoint = text(&config["data"]["AWS_ENDPOINT_URL"], "AWS_ENDPOINT_URL");
+    let (store_host, store_port) = host_port(&endpoint);
+    let store_service = object(&objects, "Service", &store_host);
+    assert_eq!(
+        store_service["spec"]["ports"][0]["port"].as_i64(),
+        Some(i64::from(store_port))
+    );
+    let minio = object(&objects, "Deployment", "vlf-store");
+    let minio_container = only_container(minio);
+    let minio_labels = minio["spec"]["template"]["metadata"]["labels"]
+        .as_hash()
+        .expect("labels");
+    for (key, value) in store_service["spec"]["selector"].as_hash().expect("selector") {
+        assert_eq!(
+            minio_labels.get(key),
+            Some(value),
+            "the Service selects the store's pod"
+        );
+    }
+    let minio_port = &minio_container["ports"][0];
+    assert_eq!(store_service["spec"]["ports"][0]["targetPort"], minio_port["name"]);
+    let minio_args = strings(&minio_container["args"], "store args");
+    assert_eq!(
+        host_port(flag(&minio_args, "--address")).1,
+        minio_port["containerPort"].as_i64().expect("containerPort") as u16,
+        "the store listens on its declared port"
+    );
+    let minio_env = k8s_role(&objects, minio_container, &BTreeMap::new()).env;
+    let coordinator_env = k8s_role(&objects, only_container(coordinator), &BTreeMap::new()).env;
+    assert_eq!(
+        minio_env.get("MINIO_ROOT_USER"),
+        coordinator_env.get("AWS_ACCESS_KEY_ID")
+    );
+    assert_eq!(
+        minio_env.get("MINIO_ROOT_PASSWORD"),
+        coordinator_env.get("AWS_SECRET_ACCESS_KEY")
+    );
+    let volume = &minio["spec"]["template"]["spec"]["volumes"][0];
+    let claim = text(&volume["persistentVolumeClaim"]["claimName"], "claim");
+    object(&objects, "PersistentVolumeClaim", &claim);
+    let bucket_job = object(&objects, "Job", "vlf-store-bucket");
+    let mc = &bucket_job["spec"]["template"]["spec"]["containers"][0];
+    let made = strings(&mc["args"], "bucket job args").join(" ");
+    let store_url = text(&config["data"]["VLF_STORE"], "VLF_STORE");
+    let bucket_name = (store_url.strip_prefix("s3://").and_then(|r| r.split('/').next()))
+        .unwrap_or_else(|| panic!("VLF_STORE is an s3:// URL: {store_url}"));
+    assert!(made.contains(&format!("alias set store {endpoint} ")), "{made}");
+    assert!(
+        made.contains(&format!("mb --ignore-existing store/{bucket_name}")),
+        "{made}"
+    );
+    let mc_env = k8s_role(&objects, mc, &BTreeMap::new()).env;
+    assert_eq!(
+        mc_env.get("AWS_ACCESS_KEY_ID"),
+        coordinator_env.get("AWS_ACCESS_KEY_ID")
+    );
+
+    // Run against this machine's store: `.ci/run`'s S3 server when there is one (the
+    // manifests' keys are placeholders, and no MinIO runs here), else a scratch directory.
     let scratch = tempfile::tempdir().unwrap();
     let dir = scratch.path();
-    let mut overrides = BTreeMap::new();
-    match std::env::var("VLF_TEST_S3_URL") {
-        Ok(base) => {
-            let unique = format!("deploy-{}-{}", std::process::id(), free_port());
-            overrides.insert(
-                "VLF_STORE".to_string(),
-                format!("{}/{unique}", base.trim_end_matches('/')),
-            );
-            for key in [
-                "AWS_ENDPOINT_URL",
-                "AWS_ALLOW_HTTP",
-                "AWS_REGION",
-                "AWS_ACCESS_KEY_ID",
-                "AWS_SECRET_ACCESS_KEY",
-            ] {
-                overrides.insert(key.to_string(), std::env::var(key).unwrap_or_default());
-            }
-        }
-        Err(_) => {
-            assert!(
-                std::env::var("VLF_REQUIRE_S3").is_err(),
-                "VLF_REQUIRE_S3 is set but VLF_TEST_S3_URL is not"
-            );
-            overrides.insert(
-                "VLF_STORE".to_string(),
-                dir.join("store").to_string_lossy().into_owned(),
-            );
-        }
-    }
+    let overrides = test_store(dir);
     let c_container = only_container(coordinator);
     let w_container = only_container(worker);
     let c = k8s_role(&objects, c_container, &overrides);

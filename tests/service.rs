@@ -67,8 +67,9 @@ fn temp(name: &str) -> tempfile::TempDir {
         .expect("scratch directory")
 }
 
-/// `vlf propagate`'s field for the mirror scene with `PARAMS` and `extra`.
-fn reference(dir: &Path, extra: &[&str]) -> LightField {
+/// `vlf propagate`'s field for the mirror scene with `PARAMS` and `extra`, and the digest it
+/// printed for it.
+fn reference(dir: &Path, extra: &[&str]) -> (LightField, String) {
     let store = dir.join("reference");
     let mirrors = scene("mirrors.obj");
     let mut args = vec!["propagate", mirrors.as_str(), "--store", store.to_str().unwrap()];
@@ -78,7 +79,15 @@ fn reference(dir: &Path, extra: &[&str]) -> LightField {
     assert!(o.status.success(), "{}", text(&o));
     let store = Store::open_existing(store.to_str().unwrap()).unwrap();
     let id = Job::list(&store).unwrap().pop().unwrap();
-    FieldJob::open(&store, &id).unwrap().load(Stage::Field).unwrap()
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let digest = stdout
+        .lines()
+        .find_map(|l| l.trim().strip_prefix("digest"))
+        .unwrap_or_else(|| panic!("no digest in vlf propagate's report:\n{stdout}"))
+        .trim()
+        .to_string();
+    assert_eq!(digest.len(), 64, "{stdout}");
+    (FieldJob::open(&store, &id).unwrap().load(Stage::Field).unwrap(), digest)
 }
 
 fn field(store: &Path, id: &str) -> LightField {
@@ -164,7 +173,7 @@ fn wait_status(url: &str, id: &str, what: &str, ok: impl Fn(&v1::JobStatus) -> b
 fn one_two_and_four_worker_processes_give_propagates_bits() {
     let scratch = temp("workers");
     let dir = scratch.path();
-    let expected = reference(dir, &["--iterations", "3"]);
+    let (expected, digest) = reference(dir, &["--iterations", "3"]);
     for workers in [1, 2, 4] {
         let store = dir.join(format!("store-{workers}"));
         // With two workers, they and the coordinator hold a few subfields each
@@ -181,9 +190,12 @@ fn one_two_and_four_worker_processes_give_propagates_bits() {
         let id = submit(&url, &["--iterations", "3"]);
         let watched = watch(&url, &id);
         assert_same_field(&expected, &field(&store, &id), &format!("{workers} workers"));
+        // And says so by the digest: `vlf watch` ends on it, the status carries it.
+        assert!(watched.contains(&format!("finished, digest {digest}")), "{watched}");
         // How the last iteration used the workers: some of them computed, never more than the
         // span in which they did holds, and `vlf watch` says so.
         let status = wait_status(&url, &id, "the finished status", |s| s.last_iteration.is_some());
+        assert_eq!(status.digest, digest);
         let used = status.last_iteration.unwrap_or_default();
         assert!((1..=workers).contains(&used.workers), "{used:?}");
         assert!(used.span_seconds > 0.0 && used.span_seconds <= used.seconds, "{used:?}");
@@ -207,7 +219,7 @@ fn one_two_and_four_worker_processes_give_propagates_bits() {
 fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_bits() {
     let scratch = temp("kill");
     let dir = scratch.path();
-    let expected = reference(dir, &["--iterations", "3"]);
+    let (expected, digest) = reference(dir, &["--iterations", "3"]);
     let store = dir.join("store");
     let (_server, url) = serve(
         dir,
@@ -236,8 +248,75 @@ fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_b
     doomed.kill();
     // The lease lasts ten minutes: only the missed heartbeats can hand the batch on.
     let _rescuer = worker(dir, "rescuer", &url, &[]);
-    watch(&url, &id);
+    let watched = watch(&url, &id);
     assert_same_field(&expected, &field(&store, &id), "after a killed worker");
+    assert!(watched.contains(&format!("digest {digest}")), "{watched}");
+}
+
+/// Stops `proc` as a container runtime stops a container (SIGTERM), and waits (a minute at
+/// most) for it to exit; returns how it exited.
+fn terminate(proc: &mut Proc) -> std::process::ExitStatus {
+    let pid = proc.child.id().to_string();
+    let sent = std::process::Command::new("kill").args(["-TERM", &pid]).status();
+    assert!(sent.as_ref().is_ok_and(|s| s.success()), "kill -TERM {pid}: {sent:?}");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some(status) = proc.child.try_wait().unwrap() {
+            return status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "still running a minute after SIGTERM:\n{}",
+            proc.log()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// What `deploy/check.sh` does to a cluster, on processes: workers scaled up while a job runs,
+/// one scaled down (stopped as a runtime stops a container), one killed; the job ends with
+/// `vlf propagate`'s field and digest.
+#[test]
+fn workers_that_join_leave_and_die_while_a_job_runs_give_propagates_digest() {
+    let scratch = temp("scale");
+    let dir = scratch.path();
+    let extra = ["--iterations", "4"];
+    let (expected, digest) = reference(dir, &extra);
+    let store = dir.join("store");
+    let (_server, url) = serve(
+        dir,
+        &store,
+        "127.0.0.1:0",
+        &[
+            "--lease-seconds",
+            "600",
+            "--heartbeat-seconds",
+            "0.2",
+            "--max-lease-batches",
+            "1",
+        ],
+    );
+    let id = submit(&url, &extra);
+    // The first worker computes two batches and stalls holding a third lease, which lasts ten
+    // minutes while it heartbeats: the job cannot end before it is killed, so all that follows
+    // happens while the job runs.
+    let mut doomed = worker(dir, "doomed", &url, &["--hang-after-leases", "2"]);
+    doomed.wait_for_line("stalled holding lease");
+    // Scaled up: two more join and take the job on as far as it goes without that batch.
+    let mut leaving = worker(dir, "leaving", &url, &[]);
+    let _staying = worker(dir, "staying", &url, &[]);
+    let status = wait_status(&url, &id, "three workers", |s| s.workers_alive == 3);
+    assert_eq!(status.state, State::Propagating as i32, "{status:?}");
+    // Scaled down: one is stopped, and leaves cleanly.
+    let stopped = terminate(&mut leaving);
+    assert!(stopped.success(), "{stopped:?}:\n{}", leaving.log());
+    let status = wait_status(&url, &id, "the job still running", |_| true);
+    assert_eq!(status.state, State::Propagating as i32, "{status:?}");
+    // And one dies: its lease goes to the worker left once its heartbeats stop.
+    doomed.kill();
+    let watched = watch(&url, &id);
+    assert_same_field(&expected, &field(&store, &id), "after workers joined, left and died");
+    assert!(watched.contains(&format!("finished, digest {digest}")), "{watched}");
 }
 
 #[test]
@@ -247,7 +326,7 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     // One pass of 2 batches per iteration (l = 33): 3 batches are snapshot 1 and 1 of iteration
     // 2's 2.
     let extra = ["--iterations", "4", "--perturb", "0"];
-    let expected = reference(dir, &extra);
+    let (expected, digest) = reference(dir, &extra);
     let store = dir.join("store");
     let listen = format!("127.0.0.1:{}", free_port());
     let one = ["--max-lease-batches", "1"];
@@ -269,7 +348,7 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     // A worker that starts while no coordinator answers waits for one.
     let _patient = worker(dir, "patient", &url, &[]);
     std::thread::sleep(Duration::from_millis(300));
-    let (_server, url) = serve(dir, &store, &listen, &one);
+    let (mut server, url) = serve(dir, &store, &listen, &one);
     let resumed = wait_status(&url, &id, "the resumed job", |_| true);
     assert!(resumed.snapshots.starts_with(&[0, 1]), "{resumed:?}");
     watch(&url, &id);
@@ -279,6 +358,12 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     let exited = watching.child.wait().unwrap();
     assert!(exited.success(), "{exited:?}:\n{}", watching.log());
     assert!(watching.log().contains("waiting up to"), "{}", watching.log());
+    // A coordinator that finds the job finished in the store reports its digest from there.
+    server.kill();
+    let (_server, url) = serve(dir, &store, &listen, &one);
+    let finished = wait_status(&url, &id, "the finished job", |_| true);
+    assert_eq!(finished.state, State::Finished as i32, "{finished:?}");
+    assert_eq!(finished.digest, digest);
 }
 
 /// Waits (a minute at most) until `proc`'s log holds `needle`.

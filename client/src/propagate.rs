@@ -196,6 +196,10 @@ pub fn print_summary(
     if let Some(peak) = peak_memory_kb() {
         println!("  peak memory     {:.1} MB", peak as f64 / 1024.0);
     }
+    if let Some(digest) = &summary.digest {
+        // What `vlf status` shows for the same field computed by a service.
+        println!("  digest          {digest}");
+    }
     println!("  job             {} in {}", job.id(), args.store);
     Ok(())
 }

@@ -277,6 +277,7 @@ pub fn describe(s: &JobStatus) -> String {
             s.batches_total,
             s.leases_out
         ),
+        State::Finished if !s.digest.is_empty() => format!("finished, digest {}", s.digest),
         State::Finished => "finished".to_string(),
         State::Failed => format!("failed: {}", s.message),
         State::Cancelled => "cancelled".to_string(),

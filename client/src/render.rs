@@ -235,8 +235,15 @@ pub fn jobs(args: JobsArgs) -> Result<()> {
             JobState::Failed { message } => format!("failed: {message}"),
             JobState::Cancelled => "cancelled".to_string(),
         };
+        // A finished job's digest (see `LightField::digest`), to compare with another run's.
+        let digest = match m.state {
+            JobState::Finished => (vlf_store::Summary::read(&job, Stage::Field)?.digest)
+                .map(|d| format!("  digest {d}"))
+                .unwrap_or_default(),
+            _ => String::new(),
+        };
         println!(
-            "{id}  {state:<24} snapshots {:?}  scene {}  {:?}",
+            "{id}  {state:<24} snapshots {:?}  scene {}  {:?}{digest}",
             m.finished_iterations,
             &m.scene_hash[..12.min(m.scene_hash.len())],
             m.encoding

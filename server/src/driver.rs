@@ -17,7 +17,7 @@ use vlf_core::propagate::{Pass, Propagation};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{JobStatus, State as WireState};
-use vlf_store::{Coordinator, FieldJob, Job, JobId, JobState, Store, StoreError, WorkTraffic};
+use vlf_store::{Coordinator, FieldJob, Job, JobId, JobState, Stage, Store, StoreError, WorkTraffic};
 
 /// Why a job could not be created.
 #[derive(Debug, thiserror::Error)]
@@ -127,10 +127,12 @@ pub fn stored_status(job: &FieldJob) -> JobStatus {
         JobState::Failed { message } => (WireState::Failed, message.clone(), 0),
         JobState::Cancelled => (WireState::Cancelled, String::new(), 0),
     };
-    let unshot = job
-        .summary(job.latest_stage())
-        .map(|s| s.unshot_fraction)
-        .unwrap_or(f64::NAN);
+    let summary = job.summary(job.latest_stage()).ok();
+    let unshot = summary.as_ref().map_or(f64::NAN, |s| s.unshot_fraction);
+    let digest = match manifest.state {
+        JobState::Finished => summary.and_then(|s| s.digest).unwrap_or_default(),
+        _ => String::new(),
+    };
     JobStatus {
         job_id: job.id().to_string(),
         state: state as i32,
@@ -142,6 +144,7 @@ pub fn stored_status(job: &FieldJob) -> JobStatus {
         store_url: job.job().store().url().to_string(),
         eta_iteration_seconds: -1.0,
         eta_job_seconds: -1.0,
+        digest,
         ..Default::default()
     }
 }
@@ -413,13 +416,18 @@ impl Driver {
             .take()
             .ok_or_else(|| "internal: coordinator lost".to_string())?;
         let unshot = coordinator.propagation().unshot_fraction();
-        vlf_store::blocking(move || coordinator.finish(resample))
-            .await
-            .map_err(|e| format!("internal: {e}"))?
-            .map_err(|e| format!("cannot write the final field: {e}"))?;
+        // The digest is in the summary it just wrote (a small blob, read back).
+        let digest = vlf_store::blocking(move || {
+            let job = coordinator.finish(resample)?;
+            Ok::<_, StoreError>(job.summary(Stage::Field)?.digest.unwrap_or_default())
+        })
+        .await
+        .map_err(|e| format!("internal: {e}"))?
+        .map_err(|e| format!("cannot write the final field: {e}"))?;
         self.sched.update(&self.id, |s| {
             s.state = WireState::Finished as i32;
             s.unshot_fraction = unshot;
+            s.digest = digest;
         });
         Ok(())
     }

@@ -79,6 +79,24 @@ pub struct Summary {
     pub radiance_unit: f64,
     /// Statistics of every iteration so far.
     pub stats: Vec<IterationStats>,
+    /// The final field's [`LightField::digest`] (SHA-256 of its radiance as propagated, before
+    /// the encoding): the same for every run that gives the same field, however it was split.
+    /// Only the final field's summary has one; so do only jobs finished by builds that know it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub digest: Option<String>,
+}
+
+impl Summary {
+    /// The summary of a committed stage of `job`, without decoding the job's scene (what a
+    /// listing of a store's jobs reads).
+    pub fn read(job: &Job, stage: Stage) -> Result<Summary, StoreError> {
+        let json = job.get_summary(stage)?;
+        serde_json::from_slice(&json).map_err(|e| StoreError::Field {
+            url: job.store().url().to_string(),
+            job: job.id().to_string(),
+            source: vlf_core::Error::Decode(format!("summary of {stage:?}: {e}")),
+        })
+    }
 }
 
 /// Mirror radiance to store: the subfields and layouts that place it, and its values.
@@ -259,6 +277,7 @@ impl FieldJob {
                 resampled: false,
                 radiance_unit: unit,
                 stats: p.stats.clone(),
+                digest: None,
             },
         })
     }
@@ -288,6 +307,7 @@ impl FieldJob {
                 resampled,
                 radiance_unit: unit,
                 stats: field.stats.clone(),
+                digest: Some(field.digest()),
             },
         )?;
         self.job.finish()
@@ -499,9 +519,7 @@ impl FieldJob {
 
     /// The summary of a committed stage.
     pub fn summary(&self, stage: Stage) -> Result<Summary, StoreError> {
-        let json = self.job.get_summary(stage)?;
-        serde_json::from_slice(&json)
-            .map_err(|e| self.field_error(vlf_core::Error::Decode(format!("summary of {stage:?}: {e}"))))
+        Summary::read(&self.job, stage)
     }
 
     /// Reads a committed stage back into a field that renders like the one written (up to the
