@@ -10,11 +10,12 @@
 //! anything anyway), and iterations before the first mirror is lit skip the
 //! specular work entirely.
 
-use super::shoot::{Geometry, Scratch, for_each_ray};
+use super::shoot::{Geometry, RayHit, Scratch, walk_tile};
 use crate::psf::Subfields;
 use crate::scene::Scene;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
 use std::fmt;
 
 /// What will be simulated.
@@ -118,24 +119,52 @@ impl Plan {
 
 /// All (sender, receiver) surface pairs that face each other along some ray
 /// of some subfield, sorted.
+///
+/// A pair is two consecutive hits of a ray, the front one facing along the direction and the
+/// one behind facing back. So the pairs a tile's rays can add are among its surfaces facing
+/// forward × those facing back, and once a direction has found all of those, walking the
+/// tile's rays (a sort by depth per ray) cannot add one: the tile is passed over. The set is
+/// the same as walking every ray's, and it is found much sooner: the same few pairs (floor
+/// and ceiling, wall and mirror) recur over most of a direction's tiles.
 fn sends_to(geometry: Geometry, subfields: &Subfields) -> Vec<(u32, u32)> {
+    /// Tiles with more candidate pairs than this are walked without checking them.
+    const CHECKED: usize = 256;
     let mut edges: Vec<(u32, u32)> = (0..subfields.len())
         .into_par_iter()
         .map_init(Scratch::default, |scratch, d| {
             let sub = &subfields.get(d);
-            let mut pairs = Vec::new();
-            for_each_ray(geometry, sub, None, scratch, |hits| {
-                for w in hits.windows(2) {
-                    let (a, b) = (w[0].surface, w[1].surface);
-                    if w[0].faces_forward() && w[1].faces_backward() {
-                        pairs.push((a, b));
-                        pairs.push((b, a));
+            let w = sub.frame.w;
+            let forward = |s: u32| geometry.scene.surfaces[s as usize].normal.dot(w) >= 0.0;
+            let mut found: HashSet<(u32, u32)> = HashSet::new();
+            let (mut fronts, mut backs) = (Vec::new(), Vec::new());
+            scratch.begin_direction();
+            for k in 0..sub.tile_count() {
+                let entries = sub.tile(k);
+                fronts.clear();
+                backs.clear();
+                for e in entries {
+                    match forward(e.surface) {
+                        true => fronts.push(e.surface),
+                        false => backs.push(e.surface),
                     }
                 }
-            });
-            pairs.sort_unstable();
-            pairs.dedup();
-            pairs
+                let candidates = fronts.len() * backs.len();
+                if candidates == 0
+                    || (candidates <= CHECKED && fronts.iter().all(|&a| backs.iter().all(|&b| found.contains(&(a, b)))))
+                {
+                    continue;
+                }
+                walk_tile(geometry, sub, k, None, scratch, &mut |hits: &[RayHit]| {
+                    for w in hits.windows(2) {
+                        let (a, b) = (w[0].surface, w[1].surface);
+                        if w[0].faces_forward() && w[1].faces_backward() {
+                            found.insert((a, b));
+                            found.insert((b, a));
+                        }
+                    }
+                });
+            }
+            found.into_iter().collect::<Vec<_>>()
         })
         .flatten()
         .collect();
@@ -188,5 +217,64 @@ impl fmt::Display for Plan {
             None => writeln!(f, "  filter: off")?,
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::propagate::shoot::for_each_ray;
+    use crate::propagate::{Options, Propagation, Stop};
+    use crate::psf::GridSize;
+    use crate::scene::{ImportOptions, load_obj};
+
+    /// Every ray of every direction walked, every pair kept: what [`sends_to`] must find.
+    fn walking_every_ray(geometry: Geometry, subfields: &Subfields) -> Vec<(u32, u32)> {
+        let mut scratch = Scratch::default();
+        let mut edges = Vec::new();
+        for d in 0..subfields.len() {
+            for_each_ray(geometry, &subfields.get(d), None, &mut scratch, |hits| {
+                for w in hits.windows(2) {
+                    if w[0].faces_forward() && w[1].faces_backward() {
+                        edges.push((w[0].surface, w[1].surface));
+                        edges.push((w[1].surface, w[0].surface));
+                    }
+                }
+            });
+        }
+        edges.sort_unstable();
+        edges.dedup();
+        edges
+    }
+
+    #[test]
+    fn passing_over_tiles_whose_pairs_are_known_finds_every_pair() {
+        // The mirror scene (boxes in front of mirrors: pairs that only a few tiles hold) and
+        // the Cornell box (a lamp flush with its ceiling: hidden hits), at two resolutions.
+        for (name, n) in [("mirrors.obj", 16), ("mirrors.obj", 64), ("cornell.obj", 32)] {
+            let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+                .join("../scenes")
+                .join(name);
+            let (scene, _) = load_obj(&path, &ImportOptions::default()).unwrap();
+            let options = Options {
+                directions: 129,
+                grid: GridSize::new(n, 8).unwrap(),
+                stop: Stop::Iterations(1),
+                ..Options::default()
+            };
+            let p = Propagation::new(scene, options).unwrap();
+            let geometry = Geometry {
+                scene: &p.scene,
+                atlas: &p.atlas,
+                stacking: &p.stacking,
+            };
+            let found = sends_to(geometry, &p.subfields);
+            assert_eq!(found, walking_every_ray(geometry, &p.subfields), "{name}, N = {n}");
+            assert!(
+                found.len() > 2 * p.scene.surfaces.len(),
+                "{name}: {} pairs",
+                found.len()
+            );
+        }
     }
 }

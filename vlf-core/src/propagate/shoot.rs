@@ -183,6 +183,14 @@ pub(crate) struct Scratch {
     projections: Projections,
 }
 
+impl Scratch {
+    /// Starts a new direction's walk, tile by tile ([`walk_tile`]): forgets the surfaces'
+    /// projections into the last one's subfield.
+    pub(crate) fn begin_direction(&mut self) {
+        self.projections.begin();
+    }
+}
+
 /// Surfaces' [`TexelProjection`]s in the subfield being walked, each computed the first time
 /// one of its tile entries comes up: a surface crosses many tiles (a wall, a few hundred),
 /// and a projection costs a few dozen multiplications and a division. A small direct-mapped
@@ -287,7 +295,7 @@ pub(crate) fn for_each_ray(
 }
 
 /// [`for_each_ray`] over the rays of tile `k` (`scratch`'s projections begun for `sub`).
-fn walk_tile(
+pub(crate) fn walk_tile(
     geometry: Geometry,
     sub: &Subfield,
     k: usize,
@@ -656,15 +664,15 @@ pub(crate) fn shoot(
     flow
 }
 
-/// Adds `weight` to `area[t]` for every ray crossing texel `t`: one direction's
-/// share of the texels' discrete areas `T_t`.
+/// Calls `crossed(t)` once for every ray of `sub` crossing texel `t`: one direction's share of
+/// the texels' discrete areas `T_t` is its weight added at each call (see [`super::discrete_areas`]).
 ///
 /// Every ray that crosses a surface counts, whatever lies in front of it, unless a surface
 /// sharing its plane hides it ([`drop_hidden`]). So a tile without such surfaces needs no
 /// walk along its rays (no sort by depth): each surface's spans add up on their own. The
-/// bits are the walk's, since every term added to `area` here is the same `weight`, and
-/// from zero such sums do not depend on their order.
-pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut [Rgb], scratch: &mut Scratch) {
+/// bits are the walk's, since every term a caller adds is the same weight, and from zero such
+/// sums do not depend on their order.
+pub(crate) fn count(geometry: Geometry, sub: &Subfield, scratch: &mut Scratch, mut crossed: impl FnMut(usize)) {
     scratch.projections.begin();
     for k in 0..sub.tile_count() {
         let entries = sub.tile(k);
@@ -674,7 +682,7 @@ pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut 
         {
             walk_tile(geometry, sub, k, None, scratch, &mut |hits: &[RayHit]| {
                 for h in hits {
-                    area[h.texel as usize][0] += weight;
+                    crossed(h.texel as usize);
                 }
             });
             continue;
@@ -684,7 +692,7 @@ pub(crate) fn count(geometry: Geometry, sub: &Subfield, weight: f64, area: &mut 
             let tp = scratch.projections.get(geometry, sub, e.surface);
             // Grid coordinates are whole numbers, so `x + ½` is the walk's `tile_x + col + ½`.
             sub.rays_of(k, e, |_, x, y| {
-                area[tp.texel(grid, x as f64 + 0.5, y as f64 + 0.5) as usize][0] += weight;
+                crossed(tp.texel(grid, x as f64 + 0.5, y as f64 + 0.5) as usize);
             });
         }
     }
@@ -938,8 +946,10 @@ mod tests {
         for (sub, &w) in setup.subfields.iter().zip(&setup.weights) {
             let mut fast = vec![[0.0; 3]; texels];
             let mut slow = vec![[0.0; 3]; texels];
-            count(setup.geometry(&setup.stacking), sub, w, &mut fast, &mut scratch);
-            count(setup.geometry(&walked), sub, w, &mut slow, &mut Scratch::default());
+            count(setup.geometry(&setup.stacking), sub, &mut scratch, |t| fast[t][0] += w);
+            count(setup.geometry(&walked), sub, &mut Scratch::default(), |t| {
+                slow[t][0] += w
+            });
             let bits = |v: &[Rgb]| v.iter().map(|t| t[0].to_bits()).collect::<Vec<_>>();
             assert_eq!(bits(&fast), bits(&slow), "direction {:?}", sub.frame.w);
             assert!(slow.iter().any(|t| t[0] > 0.0));
@@ -963,7 +973,7 @@ mod tests {
         };
         let mut area = vec![[0.0; 3]; texels];
         for (sub, &w) in setup.subfields.iter().zip(&setup.weights) {
-            count(setup.geometry(&setup.stacking), sub, w, &mut area, &mut scratch);
+            count(setup.geometry(&setup.stacking), sub, &mut scratch, |t| area[t][0] += w);
         }
         assert_eq!(area[ceiling_under_lamp][0], 0.0);
     }

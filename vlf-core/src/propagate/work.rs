@@ -614,7 +614,8 @@ impl Propagation {
             (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
                 let set = &copies[copy as usize];
                 let sub = Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster);
-                shoot::count(geometry, &sub, set.get(d).weight, buf, walk);
+                let weight = set.get(d).weight;
+                shoot::count(geometry, &sub, walk, |t| buf[t][0] += weight);
                 Ok(Flow::default())
             }
             (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. }) if (copy as usize) < copies.len() => {
