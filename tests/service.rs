@@ -37,6 +37,21 @@ fn serve(dir: &Path, store: &Path, listen: &str, extra: &[&str]) -> (Proc, Strin
     (server, url)
 }
 
+/// A coordinator whose leases last ten minutes and go one batch at a time, and which takes a
+/// worker for dead after a few missed heartbeats of 0.2 s: a lease a killed worker held can
+/// only be handed on by its heartbeats stopping.
+fn serve_watching_heartbeats(dir: &Path, store: &Path) -> (Proc, String) {
+    let flags = [
+        "--lease-seconds",
+        "600",
+        "--heartbeat-seconds",
+        "0.2",
+        "--max-lease-batches",
+        "1",
+    ];
+    serve(dir, store, "127.0.0.1:0", &flags)
+}
+
 fn worker(dir: &Path, name: &str, url: &str, extra: &[&str]) -> Proc {
     let mut args = vec!["worker", "--server", url, "--threads", "1", "--name", name];
     args.extend(extra);
@@ -221,19 +236,7 @@ fn a_worker_killed_holding_a_lease_loses_it_and_the_job_finishes_with_the_same_b
     let dir = scratch.path();
     let (expected, digest) = reference(dir, &["--iterations", "3"]);
     let store = dir.join("store");
-    let (_server, url) = serve(
-        dir,
-        &store,
-        "127.0.0.1:0",
-        &[
-            "--lease-seconds",
-            "600",
-            "--heartbeat-seconds",
-            "0.2",
-            "--max-lease-batches",
-            "1",
-        ],
-    );
+    let (_server, url) = serve_watching_heartbeats(dir, &store);
     let id = submit(&url, &["--iterations", "3"]);
     // Leases of one batch, two per iteration (l = 33): the first worker computes 4 batches, then
     // stalls on a fifth lease, in the middle of the third iteration.
@@ -283,19 +286,7 @@ fn workers_that_join_leave_and_die_while_a_job_runs_give_propagates_digest() {
     let extra = ["--iterations", "4"];
     let (expected, digest) = reference(dir, &extra);
     let store = dir.join("store");
-    let (_server, url) = serve(
-        dir,
-        &store,
-        "127.0.0.1:0",
-        &[
-            "--lease-seconds",
-            "600",
-            "--heartbeat-seconds",
-            "0.2",
-            "--max-lease-batches",
-            "1",
-        ],
-    );
+    let (_server, url) = serve_watching_heartbeats(dir, &store);
     let id = submit(&url, &extra);
     // The first worker computes two batches and stalls holding a third lease, which lasts ten
     // minutes while it heartbeats: the job cannot end before it is killed, so all that follows
