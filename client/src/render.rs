@@ -236,10 +236,12 @@ pub fn jobs(args: JobsArgs) -> Result<()> {
             JobState::Cancelled => "cancelled".to_string(),
         };
         // A finished job's digest (see `LightField::digest`), to compare with another run's.
+        // A summary that cannot be read is said so on its job's line; the others are listed.
         let digest = match m.state {
-            JobState::Finished => (vlf_store::Summary::read(&job, Stage::Field)?.digest)
-                .map(|d| format!("  digest {d}"))
-                .unwrap_or_default(),
+            JobState::Finished => match vlf_store::Summary::read(&job, Stage::Field) {
+                Ok(summary) => summary.digest.map(|d| format!("  digest {d}")).unwrap_or_default(),
+                Err(e) => format!("  digest unreadable: {e}"),
+            },
             _ => String::new(),
         };
         println!(

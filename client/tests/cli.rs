@@ -232,6 +232,13 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
         "f32",
     ]);
     assert!(o.status.success(), "{}", stderr(&o));
+    let digest_of = |o: &std::process::Output| {
+        let stdout = String::from_utf8_lossy(&o.stdout).into_owned();
+        let line = stdout.lines().find(|l| l.trim_start().starts_with("digest"));
+        let digest = line.and_then(|l| l.split_whitespace().nth(1)).map(str::to_string);
+        digest.unwrap_or_else(|| panic!("no digest in:\n{stdout}"))
+    };
+    let digest = digest_of(&o);
     let straight = only_job(&dir);
     // The same job, stopped (as by a crash) after one committed snapshot.
     let store = Store::open(url).unwrap();
@@ -244,6 +251,7 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
     let o = vlf(&["propagate", "--store", url, "--resume", &id, "--threads", "1"]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(String::from_utf8_lossy(&o.stdout).contains("after 1 iterations"));
+    assert_eq!(digest_of(&o), digest, "the same bits, the same digest");
     let resumed = FieldJob::open(&store, &JobId::parse(&id).unwrap()).unwrap();
     assert_eq!(resumed.job().manifest().finished_iterations, vec![0, 1, 2, 3]);
     let (a, b) = (
@@ -276,7 +284,31 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
     let o = vlf(&["propagate", "--store", url, "--resume", &id]);
     assert!(!o.status.success() && stderr(&o).contains("finished"), "{}", stderr(&o));
     let o = vlf(&["jobs", url]);
-    assert!(String::from_utf8_lossy(&o.stdout).contains(&id));
+    let listed = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "{}", stderr(&o));
+    for job in [id.clone(), straight.id().to_string()] {
+        let line = listed.lines().find(|l| l.starts_with(&job));
+        assert!(
+            line.is_some_and(|l| l.ends_with(&format!("digest {digest}"))),
+            "{listed}"
+        );
+    }
+    // A job whose final summary is damaged is listed as such; the others as before.
+    let summary = dir.join("jobs").join(&id).join("field").join("summary.blob");
+    assert!(summary.is_file(), "{}", summary.display());
+    std::fs::write(&summary, b"not a blob").unwrap();
+    let o = vlf(&["jobs", url]);
+    let listed = String::from_utf8_lossy(&o.stdout).into_owned();
+    assert!(o.status.success(), "{}", stderr(&o));
+    let damaged = listed.lines().find(|l| l.starts_with(&id)).unwrap_or_default();
+    assert!(
+        damaged.contains("digest unreadable") && damaged.contains("summary"),
+        "{listed}"
+    );
+    assert!(
+        listed.contains(&format!("{}  finished", straight.id())) && listed.contains(&digest),
+        "{listed}"
+    );
     let _ = std::fs::remove_dir_all(&dir);
 }
 
