@@ -41,6 +41,7 @@
 //! through randomly rotated copies of the direction set) and power-preserving
 //! Gaussian filtering of the Next maps.
 
+mod areas;
 mod block;
 pub mod checkpoint;
 mod claim;
@@ -66,7 +67,7 @@ pub use work::{BatchOutput, BatchSum, Batching, IterationWork, MirrorBlock, Pass
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
-use crate::psf::{Footprints, GridSize, Subfield, Subfields};
+use crate::psf::{Footprints, GridSize, Subfields};
 use crate::scene::{Rgb, Scene};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -353,8 +354,6 @@ pub struct Progress {
     pub directions_total: usize,
 }
 
-use work::CHUNK;
-
 /// A propagation in progress: the field's geometry plus the radiosity maps.
 #[derive(Clone)]
 pub struct Propagation {
@@ -496,7 +495,7 @@ impl Propagation {
         let (projected_area, mut plan) = match known {
             Some(survey) => (survey.projected_area, Plan::surveyed(&scene, survey.lit_mirrors)),
             None => (
-                discrete_areas(geometry, &directions, |d| subfields.get(d)),
+                areas::discrete_areas(geometry, &directions, |d| subfields.get(d)),
                 Plan::new(&scene, geometry, &subfields),
             ),
         };
@@ -846,47 +845,6 @@ pub(crate) fn emission_scales(scene: &Scene, atlas: &TexelAtlas, projected_area:
             }
         })
         .collect()
-}
-
-/// Computes `T_t = Σ_ω Δω · n_t(ω)` for a direction set whose subfields are
-/// given by `subfield(d)` (stored or built on the fly).
-///
-/// The sum's order fixes its bits: each direction adds its weight once per crossing ray into
-/// a buffer of its own, from zero ([`shoot::count`]), and the buffers are added texel by texel
-/// in direction order, [`CHUNK`] directions at a time in parallel. The buffers hold one `f64`
-/// a texel, not the [`Rgb`] of the shooting passes: the same additions with a third of the
-/// memory to clear and add (at l = 8193, N = 64 on one thread this was 55 % of the areas'
-/// time).
-pub(crate) fn discrete_areas<F, S>(geometry: shoot::Geometry, directions: &DirectionSet, subfield: F) -> Vec<f64>
-where
-    F: Fn(usize) -> S + Sync,
-    S: std::ops::Deref<Target = Subfield>,
-{
-    let (count, texels) = (directions.len(), geometry.atlas.texels);
-    let mut sum = vec![0.0; texels];
-    let mut buffers: Vec<Vec<f64>> = (0..CHUNK.min(count)).map(|_| vec![0.0; texels]).collect();
-    for start in (0..count).step_by(CHUNK) {
-        let end = (start + CHUNK).min(count);
-        let used = &mut buffers[..end - start];
-        used.par_iter_mut()
-            .enumerate()
-            .for_each_init(shoot::Scratch::default, |scratch, (b, buf)| {
-                buf.fill(0.0);
-                let d = start + b;
-                let weight = directions.get(d).weight;
-                shoot::count(geometry, &subfield(d), scratch, |t| buf[t] += weight);
-            });
-        let used = &buffers[..end - start];
-        sum.par_chunks_mut(4096).enumerate().for_each(|(c, chunk)| {
-            let base = c * 4096;
-            for (i, acc) in chunk.iter_mut().enumerate() {
-                for buf in used {
-                    *acc += buf[base + i];
-                }
-            }
-        });
-    }
-    sum
 }
 
 /// Times an iteration's phases ([`PhaseTimes`]) as they follow each other, each inside a

@@ -665,7 +665,7 @@ pub(crate) fn shoot(
 }
 
 /// Calls `crossed(t)` once for every ray of `sub` crossing texel `t`: one direction's share of
-/// the texels' discrete areas `T_t` is its weight added at each call (see [`super::discrete_areas`]).
+/// the texels' discrete areas `T_t` is its weight added at each call (see [`super::areas`]).
 ///
 /// Every ray that crosses a surface counts, whatever lies in front of it, unless a surface
 /// sharing its plane hides it ([`drop_hidden`]). So a tile without such surfaces needs no
