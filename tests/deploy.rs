@@ -660,3 +660,26 @@ fn the_dockerfile_builds_this_binary_and_copies_what_exists() {
     let proto_build = std::fs::read_to_string(repo().join("proto/build.rs")).unwrap();
     assert!(proto_build.contains("protoc_bin_vendored"));
 }
+
+/// `deploy/check.sh local`: the deployment check's own steps (a reference run, the service
+/// with two workers, scaled to four, one killed, scaled to one, the digests compared) on
+/// processes of this build. Its other runtimes (compose, kind, k3d) differ only in how they
+/// start, scale and kill, and need a Docker engine, which CI lacks.
+#[test]
+fn the_deployment_check_passes_on_local_processes() {
+    let o = std::process::Command::new("bash")
+        .arg(repo().join("deploy/check.sh"))
+        .args(["local", process::VLF])
+        .envs([("L", "2049"), ("N", "32"), ("K", "11")])
+        .env("VLF_CHECK_PORT", free_port().to_string())
+        .env_remove("VLF_TOKEN")
+        .env_remove("VLF_SERVER")
+        .output()
+        .expect("run bash");
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", describe(&o));
+    assert!(stdout.contains("the same bits"), "{}", describe(&o));
+    for step in ["four workers", "one killed", "one worker"] {
+        assert!(stdout.contains(step), "no step {step:?}:\n{}", describe(&o));
+    }
+}
