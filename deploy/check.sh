@@ -14,8 +14,13 @@
 # VLF is the client binary (default: target/release/vlf, built if missing). The job's shape is
 # L directions, N rays a side, K iterations (environment; default 2049, 64, 11: a minute or so
 # on 2 cores, long enough to scale while it runs). Exits 0 when the bits are the same, 1 when
-# they differ, 2 when the check could not run. Needs docker for compose, and kind or k3d with
-# kubectl for those.
+# they differ, 2 when the check could not run. Needs docker for compose (Compose v2, or v1's
+# docker-compose), and kind or k3d with kubectl for those.
+#
+# The service's image is built from the tree (deploy/Dockerfile) unless VLF_CHECK_IMAGE names
+# one to check instead (the published image, or one built elsewhere). VLF_CHECK_COMPOSE_FILES
+# (colon-separated) adds compose files over deploy/compose.yaml, e.g. one that takes the store's
+# image from a registry mirror.
 set -euo pipefail
 RUNTIME=${1:-}
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -41,7 +46,7 @@ case $RUNTIME in
   local) ;;
   compose) need docker ;;
   kind | k3d) need docker; need kubectl; need "$RUNTIME" ;;
-  *) sed -n '2,20p' "$0"; exit 2 ;;
+  *) sed -n '2,23p' "$0"; exit 2 ;;
 esac
 if [ ! -x "$VLF" ]; then
   say "building $VLF"
@@ -82,12 +87,30 @@ local_down() {
   wait 2>/dev/null || true
 }
 
-COMPOSE=(docker compose -f "$ROOT/deploy/compose.yaml" -p vlf-check)
+# Compose v2 (`docker compose`) where the Docker CLI has it, v1 (`docker-compose`) otherwise,
+# on the service's file and the user's (VLF_CHECK_COMPOSE_FILES).
+compose_files() {
+  local f files=(-f "$ROOT/deploy/compose.yaml")
+  local IFS=:
+  for f in ${VLF_CHECK_COMPOSE_FILES:-}; do files+=(-f "$f"); done
+  printf '%s\n' "${files[@]}"
+}
+if [ "$RUNTIME" = compose ]; then
+  if docker compose version >/dev/null 2>&1; then COMPOSE=(docker compose); else need docker-compose; COMPOSE=(docker-compose); fi
+  mapfile -t FILES < <(compose_files)
+  COMPOSE+=("${FILES[@]}" -p vlf-check)
+fi
 compose_up() {
   [ "$PORT" = 7464 ] || say "compose publishes the coordinator on 7464"
   PORT=7464
   URL=http://127.0.0.1:$PORT
-  "${COMPOSE[@]}" up --build -d --wait coordinator
+  if [ -n "${VLF_CHECK_IMAGE:-}" ]; then
+    docker tag "$VLF_CHECK_IMAGE" vlf:latest
+    "${COMPOSE[@]}" up --no-build -d coordinator
+  else
+    "${COMPOSE[@]}" up --build -d coordinator
+  fi
+  "$VLF" health --server "$URL" --wait 120 >/dev/null || fail "the coordinator did not start: $("${COMPOSE[@]}" logs --tail 20 2>&1)"
   compose_scale 2
 }
 compose_scale() { "${COMPOSE[@]}" up -d --no-recreate --scale "worker=$1" worker; }
@@ -103,7 +126,11 @@ k8s_up() {
     k3d cluster list "$CLUSTER" >/dev/null 2>&1 || { k3d cluster create "$CLUSTER"; MADE_CLUSTER=1; }
     kubectl config use-context "k3d-$CLUSTER" >/dev/null
   fi
-  docker build -f "$ROOT/deploy/Dockerfile" -t vlf:check "$ROOT"
+  if [ -n "${VLF_CHECK_IMAGE:-}" ]; then
+    docker tag "$VLF_CHECK_IMAGE" vlf:check
+  else
+    docker build -f "$ROOT/deploy/Dockerfile" -t vlf:check "$ROOT"
+  fi
   if [ "$RUNTIME" = kind ]; then
     kind load docker-image vlf:check --name "$CLUSTER"
   else
