@@ -81,11 +81,15 @@ pub enum BlobKind {
     BatchOutput = 9,
     /// What setting a job up learns over all its directions (caller's serialisation).
     Survey = 10,
+    /// Radiance of every mirror slot of one direction's parallel subfield, tile after tile: a
+    /// final field's mirror radiance, one blob per direction (earlier builds wrote one
+    /// [`BlobKind::TileRadiance`] per tile).
+    DirectionRadiance = 11,
 }
 
 impl BlobKind {
     /// Every kind, in numeric order.
-    pub const ALL: [BlobKind; 10] = [
+    pub const ALL: [BlobKind; 11] = [
         BlobKind::Manifest,
         BlobKind::Scene,
         BlobKind::Snapshot,
@@ -96,6 +100,7 @@ impl BlobKind {
         BlobKind::Summary,
         BlobKind::BatchOutput,
         BlobKind::Survey,
+        BlobKind::DirectionRadiance,
     ];
 
     /// The number stored in the header.

@@ -10,7 +10,7 @@
 //! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (the shooting state's head), per batch B of directions `shooting/BBBBB.blob` and `mirror-totals/BBBBB.blob` (its mirror maps), and `totals.blob` (diffuse) | `Propagation::snapshot_bytes`: f64, exact (see below for jobs of earlier builds) |
 //! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
 //! | outgoing radiance of the charts of diffuse chunk c (`vlf_core::parts`) | `S/diffuse/c.blob` | `[texels, 3]`, the chunk's charts' grids end to end, job encoding |
-//! | radiance leaving mirrors along direction d in tile (s, t) | `field/dirs/d/tile-s-t.blob` | `[slots, 3]` in slot order, job encoding |
+//! | radiance leaving mirrors along direction d, every tile of it | `field/dirs/d.blob` | `[slots, 3]` in slot order (tile after tile), job encoding |
 //!
 //! where `S` is a snapshot or the final field.
 //!
@@ -26,12 +26,15 @@
 //! from its checkpoint's mirror totals, by batch of directions: cutting it into tiles after every
 //! iteration would write thousands of blobs per iteration (6 000 for the bundled mirror scene at
 //! l = 513, N = 64, m = 8) for a state that is superseded by the next one. The final field
-//! (stage `field`) holds radiance only, mirrors per direction and tile, possibly re-sampled (see
-//! `LightField::resample_mirrors`).
+//! (stage `field`) holds radiance only, mirrors per direction, possibly re-sampled (see
+//! `LightField::resample_mirrors`); a viewer fetches the directions whose tiles it needs and
+//! cuts the tiles out ([`crate::StageParts`]).
 //!
 //! **Jobs of earlier builds** still resume and render: their `state.blob` holds the whole
 //! checkpoint (the first builds) or a version 2 head whose unshot maps are in `unshot/BBBBB.blob`
-//! and whose mirror totals are in `totals.blob` whole.
+//! and whose mirror totals are in `totals.blob` whole; their final fields hold mirror radiance
+//! per direction and tile, `field/dirs/d/tile-s-t.blob` (their summaries do not say
+//! [`Summary::mirrors_by_direction`]).
 //!
 //! **Only what is stored is radiance** (and the survey). Directions, subfields, texel grids and
 //! mirror layouts are a deterministic function of the scene and the options, so a reader
@@ -59,7 +62,6 @@ use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{
     Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Survey, Totals,
 };
-use vlf_core::psf::Subfields;
 use vlf_core::scene::{Rgb, Scene};
 
 /// What a stored stage is: read by renderers and progress reports without the radiance.
@@ -84,6 +86,11 @@ pub struct Summary {
     /// Only the final field's summary has one; so do only jobs finished by builds that know it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub digest: Option<String>,
+    /// Whether the stage's mirror radiance is one blob per direction (`dirs/DDDDD.blob`, a final
+    /// field of this build), rather than one per tile (`dirs/DDDDD/tile-SSSS-TTTT.blob`, a
+    /// final field of an earlier build) or the snapshot's mirror totals (an iteration's stage).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub mirrors_by_direction: bool,
 }
 
 impl Summary {
@@ -101,7 +108,6 @@ impl Summary {
 
 /// Mirror radiance to store: the subfields and layouts that place it, and its values.
 struct Mirrors<'a> {
-    subfields: &'a Subfields,
     layouts: &'a [MirrorLayout],
     totals: &'a [Vec<[f32; 3]>],
 }
@@ -278,6 +284,7 @@ impl FieldJob {
                 radiance_unit: unit,
                 stats: p.stats.clone(),
                 digest: None,
+                mirrors_by_direction: false,
             },
         })
     }
@@ -292,7 +299,6 @@ impl FieldJob {
     /// Writes `field` as the job's final field and marks the job finished.
     pub fn finish(&mut self, field: &LightField, resampled: bool) -> Result<(), StoreError> {
         let mirrors = field.specular.as_ref().map(|s| Mirrors {
-            subfields: &s.subfields,
             layouts: &s.layouts,
             totals: &s.totals,
         });
@@ -308,6 +314,7 @@ impl FieldJob {
                 radiance_unit: unit,
                 stats: field.stats.clone(),
                 digest: Some(field.digest()),
+                mirrors_by_direction: true,
             },
         )?;
         self.job.finish()
@@ -545,7 +552,15 @@ impl FieldJob {
         self.job.put_summary(stage, &json)
     }
 
-    /// Writes every diffuse map and every mirror tile of `stage`, in parallel.
+    /// Writes every diffuse map and the mirror radiance of every direction of `stage`, in
+    /// parallel.
+    ///
+    /// A direction's mirror radiance is one blob, its slots tile after tile, although a viewer
+    /// needs only the tiles it sees of it: the 2 781 492 mirror slots of the mirror scene at
+    /// l = 2049, N = 128 lie in 69 467 tiles, a few hundred bytes each once encoded, and writing
+    /// that many objects (a PUT each on an object store, a file each on disk) cost more than
+    /// the field's propagation; one per direction is 2 049 blobs of 6.6 kB on average, which a
+    /// viewer fetches as quickly as one tile, and keeps.
     fn write_radiance(
         &self,
         stage: Stage,
@@ -558,13 +573,11 @@ impl FieldJob {
         let Some(m) = mirrors else {
             return Ok(());
         };
-        let per_side = self.options.grid.tiles_per_side();
-        let tiles = mirror_tiles(m.layouts, m.subfields);
-        self.job.put_encoded(&tiles, |(d, k, range)| {
-            let values = scaled(&m.totals[*d][range.clone()], unit);
-            let (s, t) = (k % per_side, k / per_side);
+        let lit: Vec<usize> = (0..m.layouts.len()).filter(|&d| m.layouts[d].len > 0).collect();
+        self.job.put_encoded(&lit, |&d| {
+            let values = scaled(&m.totals[d], unit);
             self.job
-                .tile_put(stage, *d as u32, s, t, &[range.len() as u32, 3], &values)
+                .direction_put(stage, d as u32, &[m.totals[d].len() as u32, 3], &values)
         })
     }
 
@@ -706,13 +719,4 @@ pub fn radiance_unit(scene: &Scene) -> f64 {
     } else {
         1.0
     }
-}
-
-/// Every (direction, tile index, slot range) that holds mirror radiance: the tile blobs of a stage.
-fn mirror_tiles(layouts: &[MirrorLayout], subfields: &Subfields) -> Vec<(usize, u32, std::ops::Range<usize>)> {
-    layouts
-        .iter()
-        .enumerate()
-        .flat_map(|(d, l)| l.tile_slots(&subfields.get(d)).into_iter().map(move |(k, r)| (d, k, r)))
-        .collect()
 }

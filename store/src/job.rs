@@ -283,6 +283,13 @@ impl Job {
         self.values_put(stage, key, BlobKind::TileRadiance, shape, values)
     }
 
+    /// The blob of every mirror slot of direction `dir` (`shape` `[slots, 3]`), in the job's
+    /// encoding, for [`Store::put_all`].
+    pub fn direction_put(&self, stage: Stage, dir: u32, shape: &[u32], values: &[f32]) -> Result<Put, StoreError> {
+        let key = layout::direction(self.id(), stage, dir)?;
+        self.values_put(stage, key, BlobKind::DirectionRadiance, shape, values)
+    }
+
     /// Marks iteration `k` finished: its snapshot blobs (at least the resume state) must be
     /// written. Iterations are committed in increasing order; committing a listed one again is a
     /// no-op. Sets the state to propagating iteration `k + 1`.

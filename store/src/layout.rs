@@ -189,10 +189,26 @@ pub fn direction_prefix(job: &JobId, stage: Stage, dir: u32) -> Result<String, S
     Ok(format!("{}dirs/{dir:05}/", stage_prefix(job, stage)?))
 }
 
-/// `S/dirs/DDDDD/tile-SSSS-TTTT.blob`: tile (`s`, `t`) of direction `dir`.
+/// `S/dirs/DDDDD.blob`: the radiance of every mirror slot of direction `dir`, tile after tile
+/// (a final field's mirror radiance, as this build writes it).
+pub fn direction(job: &JobId, stage: Stage, dir: u32) -> Result<String, StoreError> {
+    let dir = check("direction", dir, MAX_DIRECTION)?;
+    Ok(format!("{}dirs/{dir:05}.blob", stage_prefix(job, stage)?))
+}
+
+/// `S/dirs/DDDDD/tile-SSSS-TTTT.blob`: tile (`s`, `t`) of direction `dir`, as earlier builds
+/// wrote a final field's mirror radiance (one blob per tile).
 pub fn tile(job: &JobId, stage: Stage, dir: u32, s: u32, t: u32) -> Result<String, StoreError> {
     let (s, t) = (check("tile index", s, MAX_TILE)?, check("tile index", t, MAX_TILE)?);
     Ok(format!("{}tile-{s:04}-{t:04}.blob", direction_prefix(job, stage, dir)?))
+}
+
+/// The direction of a [`direction`] key (`…/dirs/DDDDD.blob`), if `key` is one.
+pub fn parse_direction(key: &str) -> Option<u32> {
+    let mut segments = key.rsplit('/');
+    let name = segments.next()?.strip_suffix(".blob")?;
+    let digits = name.len() == 5 && name.bytes().all(|b| b.is_ascii_digit());
+    (digits && segments.next() == Some("dirs")).then(|| name.parse().ok())?
 }
 
 /// The tile indices `(s, t)` of a tile key (as listed under a direction prefix).
@@ -229,6 +245,13 @@ mod tests {
         assert_eq!(t, "jobs/j1/iters/00003/dirs/00512/tile-0002-0010.blob");
         assert!(t.starts_with(&direction_prefix(&job, Stage::Iteration(3), 512).unwrap()));
         assert_eq!(parse_tile(&t), Some((2, 10)));
+        let d = direction(&job, Stage::Field, 512).unwrap();
+        assert_eq!(d, "jobs/j1/field/dirs/00512.blob");
+        assert_eq!(parse_tile(&d), None);
+        assert_eq!(parse_direction(&d), Some(512));
+        assert_eq!(parse_direction(&t), None);
+        assert_eq!(parse_direction("jobs/j1/field/diffuse/0000012.blob"), None);
+        assert!(!d.starts_with(&direction_prefix(&job, Stage::Field, 512).unwrap()));
         assert!(state(&job, 9).unwrap() < state(&job, 10).unwrap());
         assert!(tile(&job, Stage::Field, 0, 0, 9).unwrap() < tile(&job, Stage::Field, 0, 0, 10).unwrap());
         assert!(matches!(state(&job, 100_000), Err(StoreError::Layout(_))));

@@ -1,10 +1,12 @@
 //! Reading a stage part by part (`vlf_core::parts`): what a viewer streams, and what
 //! [`FieldJob::load_parts`] is built on.
 //!
-//! A final field stores one blob per part. A snapshot stores its diffuse maps the same way but
-//! its mirror radiance in its checkpoint's mirror totals, one blob per batch of directions (see
-//! [`crate::field`]; in jobs of earlier builds, one blob for all): the first tile of a batch asked
-//! for reads them, and its tiles are cut from them from then on.
+//! A stage stores its diffuse maps one blob per chunk (a part). Its mirror radiance is in blobs
+//! that hold many tiles: a final field's, one blob per direction; a snapshot's, its checkpoint's
+//! mirror totals, one blob per batch of directions (see [`crate::field`]; in jobs of earlier
+//! builds, one blob for all). The first tile asked for of a direction (a batch) reads its blob,
+//! and its tiles are cut from it from then on. Final fields of earlier builds stored one blob
+//! per tile, which are read as such.
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;
@@ -17,13 +19,15 @@ use std::sync::{Arc, Mutex};
 use vlf_core::field::LightField;
 use vlf_core::parts::{Part, PartCatalog};
 
-/// Mirror radiance per direction (of a batch, or of all) and slot.
+/// Mirror radiance per direction (one, those of a batch, or all) and slot.
 type MirrorTotals = Vec<Vec<[f32; 3]>>;
 
 /// Where a stage keeps its mirror radiance.
 #[derive(Clone, Debug, PartialEq)]
 enum MirrorSource {
-    /// One blob per tile (the final field).
+    /// One blob per direction (a final field).
+    Directions,
+    /// One blob per tile (a final field of an earlier build).
     Tiles,
     /// A snapshot's mirror totals, one blob per batch of directions.
     Batches,
@@ -40,8 +44,9 @@ pub struct StageParts {
     /// Stored values are radiance in this unit (see [`Summary::radiance_unit`]).
     unit: f32,
     mirrors: MirrorSource,
-    /// A snapshot's mirror totals, by the key read (per batch, or all), once read.
-    snapshot_totals: Mutex<HashMap<String, Arc<MirrorTotals>>>,
+    /// The blobs of many tiles read so far ([`StageParts::is_shared`]: a direction's, a batch's,
+    /// or a snapshot's whole mirror totals), decoded, by key.
+    shared: Mutex<HashMap<String, Arc<MirrorTotals>>>,
     /// Bytes of radiance blobs read so far (as stored).
     bytes: AtomicU64,
 }
@@ -77,6 +82,7 @@ impl StageParts {
                     MirrorSource::Batches
                 }
             }
+            Stage::Field if summary.mirrors_by_direction => MirrorSource::Directions,
             Stage::Field => MirrorSource::Tiles,
         };
         Ok(StageParts {
@@ -85,7 +91,7 @@ impl StageParts {
             summary,
             mirrors,
             unit: unit as f32,
-            snapshot_totals: Mutex::new(HashMap::new()),
+            shared: Mutex::new(HashMap::new()),
             bytes: AtomicU64::new(0),
         })
     }
@@ -102,11 +108,13 @@ impl StageParts {
         &self.summary
     }
 
-    /// Whether `key` holds the radiance of many mirror tiles (a snapshot's mirror totals), so
-    /// that a reader keeps it once fetched.
+    /// Whether `key` holds the radiance of many mirror tiles (a direction's, or a snapshot's
+    /// mirror totals), so that a reader keeps it once fetched.
     pub fn is_shared(&self, key: &str) -> bool {
         match (&self.mirrors, self.stage) {
             (MirrorSource::Whole(whole), _) => key == whole,
+            (MirrorSource::Directions, stage) => layout::parse_direction(key)
+                .is_some_and(|d| layout::direction(self.job.id(), stage, d).is_ok_and(|named| named == key)),
             (MirrorSource::Batches, Stage::Iteration(k)) => layout::map_part(self.job.id(), k, MapPart::Totals, 0)
                 .is_ok_and(|first| key.starts_with(first.trim_end_matches("00000.blob"))),
             _ => false,
@@ -139,6 +147,7 @@ impl StageParts {
         match (catalog.part(part), self.stage, &self.mirrors) {
             (Part::Chunk(c), stage, _) => layout::diffuse(id, stage, c),
             (Part::Tile { .. }, Stage::Iteration(_), MirrorSource::Whole(key)) => Ok(key.clone()),
+            (Part::Tile { direction, .. }, stage, MirrorSource::Directions) => layout::direction(id, stage, direction),
             (Part::Tile { direction, .. }, Stage::Iteration(k), MirrorSource::Batches) => {
                 layout::map_part(id, k, MapPart::Totals, self.batch_of(direction) as u32)
             }
@@ -175,7 +184,7 @@ impl StageParts {
     pub fn read(&self, catalog: &PartCatalog, parts: &[u32]) -> Result<Vec<Vec<[f32; 3]>>, StoreError> {
         let store = self.job.job().store();
         let missing: Vec<String> = {
-            let cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
+            let cached = self.shared.lock().unwrap_or_else(|e| e.into_inner());
             let keys = self.keys(catalog, parts)?;
             keys.into_iter().filter(|k| !cached.contains_key(k)).collect()
         };
@@ -187,11 +196,13 @@ impl StageParts {
             .map(String::as_str)
             .zip(blobs.iter().map(|b| &b[..]))
             .collect();
-        // A snapshot's mirror totals hold many tiles: decoded once, before the tiles are cut.
+        // A direction's mirror radiance, or a snapshot's mirror totals, hold many tiles: decoded
+        // once, before the tiles are cut.
+        let slots = self.direction_slots(catalog, &missing);
         missing
             .par_iter()
             .filter(|key| self.is_shared(key))
-            .try_for_each(|key| self.cache_snapshot_totals(key, fetched[key.as_str()]))?;
+            .try_for_each(|key| self.cache_shared(key, fetched[key.as_str()], &slots))?;
         let blob = |key: &str| {
             fetched.get(key).copied().ok_or_else(|| StoreError::NotFound {
                 url: store.url().to_string(),
@@ -209,24 +220,24 @@ impl StageParts {
                         self.job.check_shape(&shape, &[texels, 3], || Ok(key.clone()))?;
                         self.scaled(&values)
                     }
-                    Part::Tile { direction, tile } => match self.stage {
-                        Stage::Iteration(_) => {
-                            let (totals, first) = self.snapshot_totals(&key, direction)?;
-                            let d = totals.get(direction as usize - first).map_or(&[][..], |t| t.as_slice());
-                            d.get(catalog.range(i))
-                                .ok_or_else(|| {
-                                    self.job.field_error(vlf_core::Error::Decode(format!(
-                                        "the checkpoint of {:?} has no tile {tile} of direction {direction}",
-                                        self.stage
-                                    )))
-                                })?
-                                .to_vec()
-                        }
-                        Stage::Field => {
+                    Part::Tile { direction, tile } => match self.mirrors {
+                        MirrorSource::Tiles => {
                             let (shape, values) = self.values(&key, blob(&key)?, BlobKind::TileRadiance)?;
                             self.job
                                 .check_shape(&shape, &[catalog.values(i) as u32, 3], || Ok(key.clone()))?;
                             self.scaled(&values)
+                        }
+                        _ => {
+                            let (totals, first) = self.shared_totals(&key, direction)?;
+                            let d = totals.get(direction as usize - first).map_or(&[][..], |t| t.as_slice());
+                            d.get(catalog.range(i))
+                                .ok_or_else(|| {
+                                    self.job.field_error(vlf_core::Error::Decode(format!(
+                                        "`{key}` has no tile {tile} of direction {direction} ({:?})",
+                                        self.stage
+                                    )))
+                                })?
+                                .to_vec()
                         }
                     },
                 };
@@ -255,18 +266,19 @@ impl StageParts {
         values.chunks_exact(3).map(|v| [v[0] * u, v[1] * u, v[2] * u]).collect()
     }
 
-    /// The snapshot's mirror totals held by `key` — of the batch of `direction`, or of every
-    /// direction in a job of an earlier build — as [`StageParts::read`] cached them, and the
-    /// first direction they hold.
-    fn snapshot_totals(&self, key: &str, direction: u32) -> Result<(Arc<MirrorTotals>, usize), StoreError> {
+    /// The mirror radiance held by `key` — of `direction`, of its batch, or of every direction
+    /// in a snapshot of an earlier build — as [`StageParts::read`] cached it, and the first
+    /// direction it holds.
+    fn shared_totals(&self, key: &str, direction: u32) -> Result<(Arc<MirrorTotals>, usize), StoreError> {
         let first = match self.mirrors {
+            MirrorSource::Directions => direction as usize,
             MirrorSource::Batches => {
                 let batch = self.batch_of(direction);
                 self.job.options().batching().range(batch).start
             }
             _ => 0,
         };
-        let cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
+        let cached = self.shared.lock().unwrap_or_else(|e| e.into_inner());
         match cached.get(key) {
             Some(totals) => Ok((totals.clone(), first)),
             None => Err(StoreError::NotFound {
@@ -276,17 +288,44 @@ impl StageParts {
         }
     }
 
-    /// Decodes the snapshot's mirror totals `stored`, read from `key` (see
-    /// [`StageParts::snapshot_totals`]), and keeps them.
-    fn cache_snapshot_totals(&self, key: &str, stored: &[u8]) -> Result<(), StoreError> {
-        let Stage::Iteration(k) = self.stage else {
-            return Err(self.job.field_error(vlf_core::Error::Decode(
-                "a final field keeps its mirror radiance in tiles".into(),
-            )));
-        };
-        let bytes = self.job.job().decode_snapshot(key, stored)?;
-        let maps = match self.mirrors {
-            MirrorSource::Batches => {
+    /// The number of mirror slots of each direction whose blob is among `keys`, from `catalog`
+    /// (a direction's tiles number its slots one after the other): what its blob must hold.
+    fn direction_slots(&self, catalog: &PartCatalog, keys: &[String]) -> HashMap<u32, usize> {
+        if self.mirrors != MirrorSource::Directions {
+            return HashMap::new();
+        }
+        let mut slots: HashMap<u32, usize> = keys
+            .iter()
+            .filter_map(|k| layout::parse_direction(k))
+            .map(|d| (d, 0))
+            .collect();
+        for (i, part) in catalog.parts().iter().enumerate().skip(catalog.chunks()) {
+            if let Part::Tile { direction, .. } = part
+                && let Some(n) = slots.get_mut(direction)
+            {
+                *n = (*n).max(catalog.range(i as u32).end);
+            }
+        }
+        slots
+    }
+
+    /// Decodes `stored`, read from `key`, which holds many tiles (see [`StageParts::is_shared`]),
+    /// and keeps it. A direction's blob must hold `slots` of it.
+    fn cache_shared(&self, key: &str, stored: &[u8], slots: &HashMap<u32, usize>) -> Result<(), StoreError> {
+        let maps = match (self.stage, &self.mirrors) {
+            (_, MirrorSource::Directions) => {
+                let (shape, values) = self.values(key, stored, BlobKind::DirectionRadiance)?;
+                let d = layout::parse_direction(key).and_then(|d| slots.get(&d));
+                let Some(&n) = d else {
+                    return Err(self.job.field_error(vlf_core::Error::Decode(format!(
+                        "`{key}` is not the mirror radiance of a direction with mirror tiles"
+                    ))));
+                };
+                self.job.check_shape(&shape, &[n as u32, 3], || Ok(key.to_string()))?;
+                vec![self.scaled(&values)]
+            }
+            (Stage::Iteration(k), MirrorSource::Batches) => {
+                let bytes = self.job.job().decode_snapshot(key, stored)?;
                 // `…/mirror-totals/BBBBB.blob`, as `layout::map_part` names batch B's.
                 let batch = key
                     .rsplit('/')
@@ -299,27 +338,39 @@ impl StageParts {
                             "`{key}` is not a batch of mirror totals"
                         )))
                     })?;
-                self.job.decode_map_part(k, batch as usize, &bytes)?.maps
+                f32_maps(&self.job.decode_map_part(k, batch as usize, &bytes)?.maps)
             }
-            _ => self.job.decode_totals(k, &bytes)?.mirrors.unwrap_or_default(),
+            (Stage::Iteration(k), MirrorSource::Whole(_)) => {
+                let bytes = self.job.job().decode_snapshot(key, stored)?;
+                f32_maps(&self.job.decode_totals(k, &bytes)?.mirrors.unwrap_or_default())
+            }
+            _ => {
+                return Err(self.job.field_error(vlf_core::Error::Decode(format!(
+                    "`{key}` holds no tiles of {:?}",
+                    self.stage
+                ))));
+            }
         };
-        let totals: Arc<MirrorTotals> = Arc::new(
-            maps.iter()
-                .map(|m| m.iter().map(|t| t.map(|c| c as f32)).collect())
-                .collect(),
-        );
-        let mut cached = self.snapshot_totals.lock().unwrap_or_else(|e| e.into_inner());
-        cached.insert(key.to_string(), totals);
+        let mut cached = self.shared.lock().unwrap_or_else(|e| e.into_inner());
+        cached.insert(key.to_string(), Arc::new(maps));
         Ok(())
     }
+}
+
+/// A checkpoint's `f64` mirror maps as the field's `f32` radiance.
+fn f32_maps(maps: &[Vec<vlf_core::scene::Rgb>]) -> MirrorTotals {
+    maps.iter()
+        .map(|m| m.iter().map(|t| t.map(|c| c as f32)).collect())
+        .collect()
 }
 
 impl FieldJob {
     /// Reads what a view needs of a committed stage ([`LightField::view_needs`]), or everything
     /// with `None`: the diffuse maps of the needed surfaces and the needed mirror tiles; the rest
     /// of the field stays zero. A field read this way draws that view with the same bits as the
-    /// whole field. Also returns how many radiance blobs were read (a snapshot's mirror radiance
-    /// is one blob per batch of directions, read when any of its tiles is needed).
+    /// whole field. Also returns how many radiance blobs were read (a final field's mirror
+    /// radiance is one blob per direction, a snapshot's one per batch of directions, read when
+    /// any of its tiles is needed).
     pub fn load_parts(
         &self,
         stage: Stage,

@@ -193,13 +193,8 @@ fn damage_names_the_key(o: &Opener) {
             assert!(m.contains(key) && m.contains(needle), "{m}");
         }
     };
-    // A flipped byte in a mirror tile.
-    let tile = store
-        .list(&layout::direction_prefix(&id, Stage::Field, 5).unwrap())
-        .unwrap()
-        .into_iter()
-        .next()
-        .expect("a tile of direction 5");
+    // A flipped byte in a direction's mirror radiance.
+    let tile = layout::direction(&id, Stage::Field, 5).unwrap();
     let good = store.get(&tile).unwrap().to_vec();
     let mut bad = good.clone();
     let last = bad.len() - 1;
@@ -209,10 +204,21 @@ fn damage_names_the_key(o: &Opener) {
     // Truncated.
     store.put(&tile, good[..good.len() / 2].to_vec()).unwrap();
     expect(job.load(Stage::Field), &tile, "");
-    // A valid blob of the wrong shape.
-    let wrong = blob::encode_values(BlobKind::TileRadiance, Encoding::F16, &[1, 3], &[0.5; 3]).unwrap();
-    store.put(&tile, wrong).unwrap();
-    expect(job.load(Stage::Field), &tile, "shape");
+    // A valid blob of the wrong shape: one slot short, one slot over.
+    let (shape, values) = blob::decode_values(&good, BlobKind::DirectionRadiance).unwrap();
+    for slots in [shape[0] - 1, shape[0] + 1] {
+        let mut values = values.clone();
+        values.resize(3 * slots as usize, 0.5);
+        let wrong = blob::encode_values(BlobKind::DirectionRadiance, Encoding::F16, &[slots, 3], &values).unwrap();
+        store.put(&tile, wrong).unwrap();
+        expect(job.load(Stage::Field), &tile, "shape");
+    }
+    // A tile's blob where a direction's belongs.
+    let tile_kind = blob::encode_values(BlobKind::TileRadiance, Encoding::F16, &shape, &values).unwrap();
+    store.put(&tile, tile_kind).unwrap();
+    expect(job.load(Stage::Field), &tile, "kind");
+    store.put(&tile, good).unwrap();
+    assert!(job.load(Stage::Field).is_ok());
     // A diffuse map of the wrong kind.
     let map = layout::diffuse(&id, Stage::Iteration(2), 0).unwrap();
     let tile_kind = blob::encode_values(BlobKind::TileRadiance, Encoding::F16, &[1, 3], &[0.5; 3]).unwrap();
@@ -234,8 +240,60 @@ fn damage_names_the_key(o: &Opener) {
     assert!(job.load(Stage::Iteration(1)).is_ok());
 }
 
+/// A final field as earlier builds stored it — mirror radiance one blob per direction and tile,
+/// a summary that does not say `mirrors_by_direction` — reads back as this build's does.
+fn earlier_final_fields(o: &Opener) {
+    let store = o.open();
+    let (job, _) = run(&store, &bundled("mirrors.obj"), Encoding::F16);
+    let id = job.id().clone();
+    let now = job.load(Stage::Field).unwrap();
+    let spec = now.specular.as_ref().unwrap();
+    let per_side = job.options().grid.tiles_per_side();
+    let mut tiles = 0;
+    for (d, l) in spec.layouts.iter().enumerate() {
+        let key = layout::direction(&id, Stage::Field, d as u32).unwrap();
+        if l.len == 0 {
+            assert!(
+                !store.exists(&key).unwrap(),
+                "a blob for direction {d}, which has no mirror slot"
+            );
+            continue;
+        }
+        let (_, values) = blob::decode_values(&store.get(&key).unwrap(), BlobKind::DirectionRadiance).unwrap();
+        for (k, range) in l.tile_slots(&spec.subfields.get(d)) {
+            let (s, t) = (k % per_side, k / per_side);
+            let tile = &values[3 * range.start..3 * range.end];
+            job.job()
+                .put_tile(Stage::Field, d as u32, s, t, &[range.len() as u32, 3], tile)
+                .unwrap();
+            tiles += 1;
+        }
+        store.delete(&key).unwrap();
+    }
+    assert!(
+        tiles > spec.layouts.iter().filter(|l| l.len > 0).count(),
+        "several tiles a direction"
+    );
+    let key = layout::summary(&id, Stage::Field).unwrap();
+    let json = blob::decode_bytes(&store.get(&key).unwrap(), BlobKind::Summary).unwrap();
+    let mut summary: serde_json::Value = serde_json::from_slice(&json).unwrap();
+    assert_eq!(summary["mirrors_by_direction"], serde_json::Value::Bool(true));
+    summary.as_object_mut().unwrap().remove("mirrors_by_direction");
+    let json = serde_json::to_vec(&summary).unwrap();
+    store
+        .put(&key, blob::encode_bytes(BlobKind::Summary, &json).unwrap())
+        .unwrap();
+
+    let job = FieldJob::open(&store, &id).unwrap();
+    assert!(!job.summary(Stage::Field).unwrap().mirrors_by_direction);
+    let then = job.load(Stage::Field).unwrap();
+    assert_eq!(then.radiance, now.radiance);
+    assert_eq!(then.specular.as_ref().unwrap().totals, spec.totals);
+}
+
 per_backend! {
     crash_then_resume_gives_the_same_bits => crate::crash_and_resume,
+    earlier_final_fields_read_back => crate::earlier_final_fields,
     encodings_and_snapshots_read_back => crate::encodings_and_snapshots,
     damaged_blobs_name_their_key => crate::damage_names_the_key,
 }
