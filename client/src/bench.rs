@@ -35,7 +35,7 @@ use vlf_core::propagate::{Checkpoint, HomeThreads, PhaseTimes, Propagation, spli
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_server::scheduler::{IterationRecord, IterationUse};
-use vlf_store::{FieldJob, JobId, Store, Traffic};
+use vlf_store::{FieldJob, JobId, SnapshotWriter, Store, Traffic};
 
 #[derive(Args)]
 pub struct BenchArgs {
@@ -327,11 +327,16 @@ fn in_process_with(
     let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
     let mut iterations = Vec::new();
     let mut phases = Vec::new();
+    let mut snapshots = SnapshotWriter::new();
     while !prop.finished() {
         let t = Instant::now();
         step(&mut prop)?;
+        // What the loop waits for: this snapshot encoded, the one before committed.
         let writing = Instant::now();
-        job.write_snapshot(&prop)?;
+        snapshots.write(&mut job, &prop)?;
+        if prop.finished() {
+            snapshots.finish(&mut job)?;
+        }
         let written = writing.elapsed().as_secs_f64();
         iterations.push(IterationRecord {
             seconds: t.elapsed().as_secs_f64(),

@@ -10,7 +10,7 @@ use vlf_core::propagate::Propagation;
 use vlf_core::scene::{ImportOptions, Scene, load_scene};
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{Encoding as WireEncoding, Parameters};
-use vlf_store::{FieldJob, JobId, Stage, Store, Summary};
+use vlf_store::{FieldJob, JobId, SnapshotWriter, Stage, Store, Summary};
 
 pub fn run(args: PropagateArgs) -> Result<()> {
     let pool = thread_pool(&args)?;
@@ -31,7 +31,11 @@ pub fn run(args: PropagateArgs) -> Result<()> {
             .unwrap_or_else(|_| ProgressStyle::default_bar())
             .progress_chars("=> "),
     );
+    // Each snapshot is written while the next iteration runs; `store_seconds` is the time the
+    // propagation waited for the store (encoding a snapshot, and the one before it to be
+    // committed).
     let mut store_seconds = 0.0;
+    let mut snapshots = SnapshotWriter::new();
     let outcome = pool.install(|| -> Result<()> {
         while !prop.finished() {
             let k = prop.iterations_done();
@@ -43,10 +47,16 @@ pub fn run(args: PropagateArgs) -> Result<()> {
                 bar.set_position(p.directions_done as u64);
             });
             let t = Instant::now();
-            job.write_snapshot(&prop)
-                .with_context(|| format!("cannot write snapshot {}", k + 1))?;
+            snapshots
+                .write(&mut job, &prop)
+                .with_context(|| format!("cannot write snapshot {} or {}", k, k + 1))?;
             store_seconds += t.elapsed().as_secs_f64();
         }
+        let t = Instant::now();
+        snapshots
+            .finish(&mut job)
+            .with_context(|| format!("cannot write snapshot {}", prop.iterations_done()))?;
+        store_seconds += t.elapsed().as_secs_f64();
         Ok(())
     });
     bar.finish_and_clear();

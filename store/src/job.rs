@@ -171,9 +171,14 @@ impl Job {
 
     /// Writes the resume state of iteration `k` (caller's serialisation).
     pub fn put_state(&self, k: u32, state: &[u8]) -> Result<(), StoreError> {
+        self.store.put_all(vec![self.state_put(k, state)?])
+    }
+
+    /// [`Job::put_state`]'s blob, encoded, for [`Store::put_all`].
+    pub fn state_put(&self, k: u32, state: &[u8]) -> Result<Put, StoreError> {
         let key = layout::state(self.id(), k)?;
         let bytes = blob::encode_bytes(BlobKind::Snapshot, state).map_err(|e| self.blob_error(&key, e))?;
-        self.write(Stage::Iteration(k), &key, bytes)
+        Ok(self.put_into(Stage::Iteration(k), key, bytes))
     }
 
     /// Mirror maps `part` of batch `batch` of the resume state of iteration `k` (caller's
@@ -470,10 +475,6 @@ impl Job {
             bytes: bytes.into(),
             create_only: self.is_committed(stage),
         }
-    }
-
-    fn write(&self, stage: Stage, key: &str, bytes: Vec<u8>) -> Result<(), StoreError> {
-        self.store.put_all(vec![self.put_into(stage, key.to_string(), bytes)])
     }
 
     fn write_manifest(&mut self, mut manifest: Manifest) -> Result<(), StoreError> {

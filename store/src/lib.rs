@@ -5,7 +5,8 @@
 //! becomes bytes: F32, F16, RGB9E5) → [`backend`] (URL → `object_store` backend) → [`store`]
 //! (keys → bytes, blocking and async) → [`layout`] (the keys of a job) → [`manifest`] and [`job`]
 //! (what a job is, and the commit protocol that keeps it consistent through crashes); [`parts`]
-//! reads a stage part by part, for viewers.
+//! reads a stage part by part, for viewers; [`writer`] writes a propagation's snapshots while it
+//! goes on.
 //!
 //! Everything but [`field`] stores what it is given; [`field`] is the one module that maps
 //! `vlf-core`'s propagations and fields onto a job's keys (what is stored, in which encoding, and
@@ -25,6 +26,7 @@ pub mod layout;
 pub mod manifest;
 pub mod parts;
 pub mod store;
+pub mod writer;
 
 pub use blob::{BlobError, BlobKind, Data, Decoded, Encoding};
 pub use blocking::{Panicked, blocking};
@@ -37,3 +39,4 @@ pub use layout::{MapPart, Stage};
 pub use manifest::{JobState, Manifest};
 pub use parts::StageParts;
 pub use store::{AsyncStore, IN_FLIGHT, Put, PutOutcome, READ_HERE, Store, Traffic, Writing, file_threads};
+pub use writer::SnapshotWriter;

@@ -14,7 +14,7 @@ use vlf_core::propagate::{Checkpoint, Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_store::blob::{self, BlobKind, Encoding};
-use vlf_store::{FieldJob, JobId, MapPart, Stage, Store, StoreError, layout};
+use vlf_store::{FieldJob, JobId, MapPart, SnapshotWriter, Stage, Store, StoreError, layout};
 
 fn bundled(name: &str) -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -291,8 +291,78 @@ fn earlier_final_fields(o: &Opener) {
     assert_eq!(then.specular.as_ref().unwrap().totals, spec.totals);
 }
 
+/// Snapshots written while the next iteration runs ([`SnapshotWriter`]) are the snapshots
+/// written in place, committed in order; one whose write fails is reported, is not listed, and
+/// leaves the ones before it as they were.
+fn snapshots_written_behind(o: &Opener) {
+    let scene = bundled("mirrors.obj");
+    let (in_place, field) = run(&o.open(), &scene, Encoding::F32);
+
+    let store = o.open();
+    let mut p = Propagation::new(scene.clone(), options(4)).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let mut writer = SnapshotWriter::new();
+    while !p.finished() {
+        p.step(|_| {});
+        writer.write(&mut job, &p).unwrap();
+        assert_eq!(writer.writing(), Some(p.iterations_done()));
+        // The one before is committed by now; this one is not yet listed.
+        assert_eq!(job.job().last_finished(), Some(p.iterations_done() - 1));
+    }
+    writer.finish(&mut job).unwrap();
+    assert_eq!(writer.writing(), None);
+    let reopened = FieldJob::open(&store, job.id()).unwrap();
+    assert_eq!(reopened.job().manifest().finished_iterations, vec![0, 1, 2, 3, 4]);
+    for k in 0..=4 {
+        assert_eq!(
+            without_times(reopened.checkpoint(k).unwrap()),
+            without_times(in_place.checkpoint(k).unwrap()),
+            "checkpoint {k}"
+        );
+        let (a, b) = (
+            reopened.load(Stage::Iteration(k)).unwrap(),
+            in_place.load(Stage::Iteration(k)).unwrap(),
+        );
+        assert_eq!(a.radiance, b.radiance, "snapshot {k}");
+        assert_eq!(
+            a.specular.unwrap().totals,
+            b.specular.unwrap().totals,
+            "snapshot {k}'s mirrors"
+        );
+    }
+    job.finish(&field, false).unwrap();
+
+    // A blob of snapshot 2 already there with other bytes: its write fails behind the
+    // propagation, and the failure comes out at the next call.
+    let store = o.open();
+    let mut p = Propagation::new(scene.clone(), options(4)).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let squatter = layout::map_part(job.id(), 2, MapPart::Shooting, 0).unwrap();
+    store
+        .put(
+            &squatter,
+            blob::encode_bytes(BlobKind::Snapshot, b"other bytes").unwrap(),
+        )
+        .unwrap();
+    let mut writer = SnapshotWriter::new();
+    p.step(|_| {});
+    writer.write(&mut job, &p).unwrap();
+    p.step(|_| {});
+    writer.write(&mut job, &p).unwrap();
+    let err = writer.finish(&mut job).unwrap_err();
+    assert!(err.to_string().contains(&squatter), "{err}");
+    let reopened = FieldJob::open(&store, job.id()).unwrap();
+    assert_eq!(reopened.job().manifest().finished_iterations, vec![0, 1]);
+    assert!(reopened.load(Stage::Iteration(1)).is_ok());
+    assert_eq!(
+        without_times(reopened.checkpoint(1).unwrap()),
+        without_times(in_place.checkpoint(1).unwrap())
+    );
+}
+
 per_backend! {
     crash_then_resume_gives_the_same_bits => crate::crash_and_resume,
+    snapshots_written_behind_are_those_written_in_place => crate::snapshots_written_behind,
     earlier_final_fields_read_back => crate::earlier_final_fields,
     encodings_and_snapshots_read_back => crate::encodings_and_snapshots,
     damaged_blobs_name_their_key => crate::damage_names_the_key,
