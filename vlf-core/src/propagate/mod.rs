@@ -519,8 +519,12 @@ impl Propagation {
             ));
         }
         let mirrors = plan.mapped_mirrors();
-        let specular = (!mirrors.is_empty())
-            .then(|| Specular::new(&scene, &directions, &subfields, mirrors, atlas.chart_of.clone()));
+        let specular = (!mirrors.is_empty()).then(|| {
+            let mut spec = Specular::new(&scene, &directions, &subfields, mirrors, atlas.chart_of.clone());
+            // Within a budget, memory is what the process is short of.
+            spec.keep_gather_tables = budget.is_none();
+            spec
+        });
         plan.mirror_slots = specular
             .as_ref()
             .map_or(0, |s| s.layouts.iter().map(|l| l.len as usize).sum());
