@@ -299,6 +299,11 @@ impl StageParts {
             .filter_map(|k| layout::parse_direction(k))
             .map(|d| (d, 0))
             .collect();
+        // A viewer's reads are small and many: the catalog is walked only when a direction's
+        // blob is among them.
+        if slots.is_empty() {
+            return slots;
+        }
         for (i, part) in catalog.parts().iter().enumerate().skip(catalog.chunks()) {
             if let Part::Tile { direction, .. } = part
                 && let Some(n) = slots.get_mut(direction)
