@@ -426,3 +426,41 @@ fn scene_bytes_round_trip_and_refuse_damage() {
     broken.materials[0].diffuse[0] = 1.5;
     assert!(matches!(Scene::from_bytes(&broken.to_bytes()), Err(Error::Decode(_))));
 }
+
+/// Builds before mirror planes held pending `Φ_in` per mirror polygon; such a checkpoint is
+/// summed into planes when read (here each plane's power on its first polygon, so the sums
+/// are exact) and resumes to the bits of a run that never stopped.
+#[test]
+fn pending_power_per_mirror_polygon_of_earlier_builds_is_summed_into_planes() {
+    let scene = mirror_room();
+    let mut straight = Propagation::new(scene.clone(), options(5, 0)).unwrap();
+    straight.run(|_| {});
+    let mut p = Propagation::new(scene.clone(), options(5, 0)).unwrap();
+    p.step(|_| {});
+    p.step(|_| {});
+    let spec = p.specular.as_ref().unwrap();
+    assert_eq!(
+        (spec.mirrors.len(), spec.planes.len()),
+        (8, 2),
+        "two walls of four quads"
+    );
+    let mut old = p.checkpoint();
+    let pending = old.pending.as_mut().expect("arrivals wait to be reflected");
+    assert!(pending.power_in.iter().flatten().any(|v| v[0] > 0.0));
+    for per_plane in &mut pending.power_in {
+        *per_plane = (spec.mirrors.iter())
+            .map(|m| match spec.planes.iter().position(|plane| plane.surfaces[0] == *m) {
+                Some(k) => per_plane[k],
+                None => [0.0; 3],
+            })
+            .collect();
+    }
+    assert_eq!(pending.power_in[0].len(), 8);
+    let mut resumed = Propagation::resume(scene, options(5, 0), old).unwrap();
+    assert_eq!(
+        resumed.specular.as_ref().unwrap().pending,
+        p.specular.as_ref().unwrap().pending
+    );
+    resumed.run(|_| {});
+    assert!(state(&resumed) == state(&straight), "resumed to other bits");
+}

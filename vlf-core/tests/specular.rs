@@ -327,3 +327,62 @@ fn a_mirror_view_locates_the_slots_of_the_whole_subfield() {
     }
     assert!(found > 0);
 }
+
+/// A box whose −x wall is a mirror cut into `split × split` quads (the other walls too, which
+/// charts merge): the mirror's quads are one plane to the exchange.
+fn tessellated_mirror_box(split: usize) -> Propagation {
+    let mut scene = closed_box(
+        0.55,
+        split,
+        &[3],
+        vec![
+            material("wall", 0.5, 0.0),
+            material("lamp", 0.3, 2.0),
+            mirror("glass", 0.0, 0.8),
+        ],
+    );
+    for s in scene.surfaces.iter_mut().take(split * split) {
+        s.material = 2;
+    }
+    Propagation::new(scene, options(129, 32, 8, 4)).unwrap()
+}
+
+/// A mirror wall of one quad and the same wall of 16 × 16 quads, whose quads are a few rays
+/// wide, some crossed by no ray of a grazing direction: the exchange runs per mirror plane, so
+/// both have one plane with the same routes, and both reflect exactly ρs of what arrives every
+/// iteration (per polygon, a quad that a target direction's rays miss dropped the power routed
+/// to it), which is the same power to the rounding of the two tessellations' rasterisation.
+#[test]
+fn a_mirror_reflects_the_same_power_however_it_is_tessellated() {
+    let mut runs = [tessellated_mirror_box(1), tessellated_mirror_box(16)];
+    for p in &mut runs {
+        p.run(|_| {});
+        for s in &p.stats {
+            let x = &s.exchange;
+            assert!(lum(&x.incident) > 0.0);
+            for c in 0..3 {
+                assert!(
+                    (x.reflected[c] - 0.8 * x.incident[c]).abs() <= 1e-9 * x.incident[c],
+                    "iteration {} of {} mirror polygons: reflected {} of {} arrived",
+                    s.index,
+                    p.specular.as_ref().unwrap().mirrors.len(),
+                    x.reflected[c],
+                    x.incident[c]
+                );
+            }
+        }
+    }
+    let [one, many] = &runs;
+    let (a, b) = (one.specular.as_ref().unwrap(), many.specular.as_ref().unwrap());
+    assert_eq!((a.mirrors.len(), b.mirrors.len()), (1, 256));
+    assert_eq!((a.planes.len(), b.planes.len()), (1, 1));
+    assert_eq!(a.routes, b.routes, "one plane, one normal: the same routes");
+    for (s, t) in one.stats.iter().zip(&many.stats) {
+        let (u, v) = (lum(&s.exchange.reflected), lum(&t.exchange.reflected));
+        assert!(
+            (u - v).abs() <= 1e-3 * u,
+            "iteration {}: reflected {u} (one quad) against {v} (256 quads)",
+            s.index
+        );
+    }
+}

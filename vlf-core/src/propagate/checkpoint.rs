@@ -357,7 +357,7 @@ impl Propagation {
     /// On error the state is unchanged.
     pub fn restore_shooting(&mut self, state: ShootingState) -> crate::Result<()> {
         self.check_unshot_texels(&state.current, &state.stats)?;
-        self.check_pending(state.pending.as_ref())?;
+        let pending = self.pending_by_plane(state.pending)?;
         match (&mut self.specular, state.mirrors) {
             (None, None) => {}
             (Some(spec), Some(maps)) => {
@@ -369,11 +369,10 @@ impl Propagation {
                     ));
                 }
                 check_maps(spec, 0, &maps)?;
-                let pending = state.pending.is_some();
                 for (own, saved) in spec.maps.iter_mut().zip(maps) {
-                    own.set_shooting(pending, saved);
+                    own.set_shooting(pending.is_some(), saved);
                 }
-                spec.pending = state.pending;
+                spec.pending = pending;
             }
             (Some(_), None) => return misfit("the scene has mirrors, the checkpoint none".into()),
             (None, Some(_)) => return misfit("the checkpoint has mirror maps, the scene no mirror".into()),
@@ -383,26 +382,32 @@ impl Propagation {
         Ok(())
     }
 
-    /// Refuses pending `Φ_in` that does not fit the directions and mirrors,
-    /// or is negative or not finite.
-    pub(crate) fn check_pending(&self, pending: Option<&Pending>) -> crate::Result<()> {
-        let Some(p) = pending else {
-            return Ok(());
+    /// Pending `Φ_in` as this build holds it, one value per mirror plane:
+    /// earlier builds' per mirror polygon is summed into planes (in mirror
+    /// order; the same values where every plane is one polygon). Refuses
+    /// `Φ_in` that fits neither the directions and planes nor the mirrors, or
+    /// is negative or not finite.
+    pub(crate) fn pending_by_plane(&self, pending: Option<Pending>) -> crate::Result<Option<Pending>> {
+        let Some(mut p) = pending else {
+            return Ok(None);
         };
         let Some(spec) = &self.specular else {
             return misfit("pending mirror arrivals for a scene without mirrors".into());
         };
         let l = self.directions.len();
-        if p.power_in.len() != l || p.power_in.iter().any(|v| v.len() != spec.mirrors.len()) {
+        let (planes, mirrors) = (spec.planes.len(), spec.mirrors.len());
+        let fits = |n: usize| p.power_in.len() == l && p.power_in.iter().all(|v| v.len() == n);
+        if !fits(planes) && fits(mirrors) {
+            p.power_in = p.power_in.iter().map(|v| spec.power_by_plane(v)).collect();
+        } else if !fits(planes) {
             return misfit(format!(
-                "pending mirror power does not fit {l} directions and {} mirrors",
-                spec.mirrors.len()
+                "pending mirror power does not fit {l} directions and {planes} mirror planes"
             ));
         }
         if !p.power_in.iter().all(|v| valid(v)) {
             return misfit("negative or non-finite pending mirror power".into());
         }
-        Ok(())
+        Ok(Some(p))
     }
 
     /// Refuses a Current map and iteration statistics that do not fit: the

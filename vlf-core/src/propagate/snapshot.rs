@@ -361,9 +361,9 @@ impl Propagation {
                 head.mirror_batches
             ));
         }
-        self.check_pending(head.pending.as_ref())?;
+        let pending = self.pending_by_plane(head.pending)?;
         if let Some(spec) = self.specular.as_mut() {
-            spec.pending = head.pending;
+            spec.pending = pending;
         }
         self.current = head.current;
         self.stats = head.stats;

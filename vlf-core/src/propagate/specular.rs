@@ -21,7 +21,7 @@
 //! mirror image `r = ω − 2(ω·n)n`. `r` falls in a spherical triangle of three
 //! directions `i₁, i₂, i₃` with barycentric weights `b_k`; the reflected
 //! power `ρs·Φ_in(P, ω)` is split over them by `b_k`. That is a fixed table,
-//! the [`Route`]s: for each target direction `i`, the (mirror, source
+//! the [`Route`]s: for each target direction `i`, the (mirror plane, source
 //! direction, weight) triples that feed it. Each target gathers its new
 //! unshot map **backwards**, as the paper does: every ray of `i` that crosses
 //! `P` finds the point where it leaves `P`, projects it into the source
@@ -33,6 +33,18 @@
 //!
 //! Targets are computed independently (in parallel) from read-only incident
 //! maps, in a fixed route order, so the result does not depend on threads.
+//!
+//! **Mirror planes.** `P` above is a [`MirrorPlane`]: the mirrors of one
+//! chart, coplanar polygons of one material (see [`crate::maps::charts`]),
+//! not each polygon. They share a normal, so they share their routes, and a
+//! route's power is the same whether a wall is one quad or 3 200 triangles:
+//! `Σ_polygons b·ρs·Φ_in = b·ρs·Φ_in(plane)`. Per polygon, `Φ_in` and the
+//! routes grew with the tessellation (the 19 200-triangle mirror room at
+//! l = 513: 236 MB of `Φ_in` per snapshot, 30 M routes, a sixth of its run
+//! settling them); per plane they are a few numbers per direction and wall.
+//! Polygons also left no power stranded: a triangle no ray of a target
+//! crosses handed its share to nothing; the plane's other slots take it.
+//! A curved mirror keeps a chart per polygon, so a plane per polygon.
 //!
 //! **When.** An iteration ends with its arrivals *pending* ([`Pending`]):
 //! only their power `Φ_in` per direction and mirror is settled
@@ -167,13 +179,53 @@ impl DirectionMaps {
     }
 }
 
-/// One feed of a target direction: light arriving on `mirror` along source
-/// line direction `source` reflects into the target with share `weight`.
+/// One feed of a target direction: light arriving on mirror plane `plane` (an index into
+/// [`Specular::planes`]) along source line direction `source` reflects into the target with
+/// share `weight`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Route {
-    pub mirror: u32,
+    pub plane: u32,
     pub source: u32,
     pub weight: f64,
+}
+
+/// The mirrors of one chart: coplanar polygons of one material, which reflect as one mirror
+/// (see the module docs). Its plane and material are those of its first surface (a chart's
+/// polygons agree on them to 10⁻⁹, [`crate::maps::charts`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct MirrorPlane {
+    /// Its surfaces with maps, ascending.
+    pub surfaces: Vec<u32>,
+    pub normal: glam::DVec3,
+    pub offset: f64,
+    pub material: usize,
+}
+
+impl MirrorPlane {
+    /// The mirrors `mirrors` (ascending) grouped by chart (`chart_of` per surface; a surface
+    /// beyond it is a plane of its own), planes in the order of their first mirror: a
+    /// scene whose mirrors are charts of one polygon each keeps the mirrors' own order.
+    fn group(scene: &Scene, mirrors: &[u32], chart_of: &[u32]) -> Vec<MirrorPlane> {
+        let mut planes: Vec<MirrorPlane> = Vec::new();
+        let mut plane_of_chart = std::collections::HashMap::new();
+        for &m in mirrors {
+            let k = match chart_of.get(m as usize) {
+                Some(&c) => *plane_of_chart.entry(c).or_insert(planes.len()),
+                None => planes.len(),
+            };
+            if k == planes.len() {
+                let s = &scene.surfaces[m as usize];
+                planes.push(MirrorPlane {
+                    surfaces: Vec::new(),
+                    normal: s.normal,
+                    offset: s.offset,
+                    material: s.material,
+                });
+            }
+            planes[k].surfaces.push(m);
+        }
+        planes
+    }
 }
 
 /// Power bookkeeping of one exchange (per channel).
@@ -217,21 +269,24 @@ impl MirrorView {
 pub struct Specular {
     /// Surfaces with directional maps (mirrors that light can reach).
     pub mirrors: Vec<u32>,
+    /// Those mirrors by plane: the unit of the exchange (see the module docs).
+    pub planes: Vec<MirrorPlane>,
     /// Per direction, its mirror slots in its whole subfield (what shooting reads).
     pub layouts: Vec<MirrorLayout>,
     /// Per direction, its mirror entries alone (what the exchange reads).
     pub views: Vec<MirrorView>,
     pub maps: Vec<DirectionMaps>,
-    /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
+    /// `routes[i]`: what feeds target direction `i`, sorted by (plane, source).
     pub routes: Vec<Vec<Route>>,
     /// Arrivals of the last iteration not reflected yet: then the incident
     /// maps hold them and the unshot maps are stale (see [`Pending`]).
     pub pending: Option<Pending>,
-    ordinal: Vec<u32>,
+    /// The plane of every surface with maps, [`NO_SLOT`] for the others.
+    plane_of: Vec<u32>,
     /// The chart of every surface ([`crate::maps::TexelAtlas::chart_of`]): the polygons of a
     /// tessellated mirror read each other's rays.
     chart_of: Vec<u32>,
-    /// `slotted[d][k]`: does some ray of direction `d` cross mirror `k` (by ordinal)? What the
+    /// `slotted[d][k]`: does some ray of direction `d` cross mirror plane `k`? What the
     /// exchange's bookkeeping asks of every route, known without the subfields (which a
     /// coordinator need not hold).
     slotted: Vec<Vec<bool>>,
@@ -265,8 +320,8 @@ type GatherTable = Vec<Vec<(u32, u32)>>;
 /// numbers per direction.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pending {
-    /// `Φ_in(P, ω)`: per direction, per mirror (in the order of
-    /// [`Specular::mirrors`]), the power its incident map holds.
+    /// `Φ_in(P, ω)`: per direction, per mirror plane (in the order of
+    /// [`Specular::planes`]), the power its incident map holds.
     pub power_in: Vec<Vec<Rgb>>,
 }
 
@@ -280,11 +335,14 @@ impl Specular {
         mirrors: Vec<u32>,
         chart_of: Vec<u32>,
     ) -> Self {
+        let planes = MirrorPlane::group(scene, &mirrors, &chart_of);
         let mut has_maps = vec![false; scene.surfaces.len()];
-        let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
-        for (k, &m) in mirrors.iter().enumerate() {
-            has_maps[m as usize] = true;
-            ordinal[m as usize] = k as u32;
+        let mut plane_of = vec![NO_SLOT; scene.surfaces.len()];
+        for (k, plane) in planes.iter().enumerate() {
+            for &m in &plane.surfaces {
+                has_maps[m as usize] = true;
+                plane_of[m as usize] = k as u32;
+            }
         }
         // The surfaces of the charts of mirrors with maps (see `MirrorView`).
         let mut mapped_chart = vec![false; chart_of.iter().max().map_or(0, |&c| c as usize + 1)];
@@ -298,9 +356,9 @@ impl Specular {
             .collect();
         let per_direction: Vec<(MirrorLayout, MirrorView, Vec<bool>)> = subfields.map(|_, sub| {
             let layout = MirrorLayout::new(sub, &has_maps);
-            let mut slotted = vec![false; mirrors.len()];
+            let mut slotted = vec![false; planes.len()];
             for &(s, _, e) in &layout.entries {
-                slotted[ordinal[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
+                slotted[plane_of[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
             }
             (layout, MirrorView::new(sub, &in_view, &has_maps), slotted)
         });
@@ -318,39 +376,40 @@ impl Specular {
                 incident: vec![[0.0; 3]; l.len as usize],
             })
             .collect();
-        // crossed[d][k]: does mirror k have rays in direction d?
+        // crossed[d][k]: does mirror plane k have rays in direction d?
         let crossed: Vec<Vec<bool>> = layouts
             .iter()
             .map(|l| {
-                let mut c = vec![false; mirrors.len()];
+                let mut c = vec![false; planes.len()];
                 for &(s, _, _) in &l.entries {
-                    c[ordinal[s as usize] as usize] = true;
+                    c[plane_of[s as usize] as usize] = true;
                 }
                 c
             })
             .collect();
-        let per_mirror: Vec<Vec<(u32, Route)>> = mirrors
+        let per_plane: Vec<Vec<(u32, Route)>> = planes
             .par_iter()
             .enumerate()
-            .map(|(k, &m)| mirror_routes(scene, directions, &crossed, k, m))
+            .map(|(k, plane)| plane_routes(directions, &crossed, k, plane.normal))
             .collect();
         let mut routes = vec![Vec::new(); directions.len()];
-        for list in per_mirror {
+        for list in per_plane {
             for (target, route) in list {
                 routes[target as usize].push(route);
             }
         }
         for r in &mut routes {
-            r.sort_by_key(|r| (r.mirror, r.source));
+            r.sort_by_key(|r| (r.plane, r.source));
         }
         Specular {
             mirrors,
+            planes,
             layouts,
             views,
             maps,
             routes,
             pending: None,
-            ordinal,
+            plane_of,
             chart_of,
             slotted,
             gather_tables: (0..directions.len()).map(|_| OnceLock::new()).collect(),
@@ -361,7 +420,7 @@ impl Specular {
     /// The backward mapping of target direction `i` ([`GatherTable`]), for the routes `wanted`
     /// (the others' lists left empty): every slot of the route's mirror in `i` reads the source
     /// ray through the same point of the mirror.
-    fn gather_table(&self, scene: &Scene, i: usize, wanted: impl Fn(&Route) -> bool) -> GatherTable {
+    fn gather_table(&self, i: usize, wanted: impl Fn(&Route) -> bool) -> GatherTable {
         let MirrorView { sub, layout } = &self.views[i];
         let n = sub.grid.resolution;
         (self.routes[i].iter())
@@ -370,25 +429,27 @@ impl Specular {
                 if !wanted(route) {
                     return samples;
                 }
-                let surface = &scene.surfaces[route.mirror as usize];
-                let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
+                let plane = &self.planes[route.plane as usize];
+                let proj = SurfaceProjection::new(&sub.frame, n, plane.normal, plane.offset);
                 let MirrorView {
                     sub: source,
                     layout: source_layout,
                 } = &self.views[route.source as usize];
-                for &(_, k, e) in layout.entries_of(route.mirror) {
-                    let base = layout.entry_base[e as usize];
-                    let entry = &sub.entries[e as usize];
-                    sub.rays_of(k as usize, entry, |slot, x, y| {
-                        let p = proj.point_at(x as f64 + 0.5, y as f64 + 0.5);
-                        let g = source.frame.to_grid(p, n);
-                        let read = if g.x >= 0.0 && g.y >= 0.0 {
-                            source_layout.locate_in_chart(source, &self.chart_of, route.mirror, g.x as u32, g.y as u32)
-                        } else {
-                            None
-                        };
-                        samples.push((base + slot - entry.first_ray, read.unwrap_or(NO_SLOT)));
-                    });
+                for &mirror in &plane.surfaces {
+                    for &(_, k, e) in layout.entries_of(mirror) {
+                        let base = layout.entry_base[e as usize];
+                        let entry = &sub.entries[e as usize];
+                        sub.rays_of(k as usize, entry, |slot, x, y| {
+                            let p = proj.point_at(x as f64 + 0.5, y as f64 + 0.5);
+                            let g = source.frame.to_grid(p, n);
+                            let read = if g.x >= 0.0 && g.y >= 0.0 {
+                                source_layout.locate_in_chart(source, &self.chart_of, mirror, g.x as u32, g.y as u32)
+                            } else {
+                                None
+                            };
+                            samples.push((base + slot - entry.first_ray, read.unwrap_or(NO_SLOT)));
+                        });
+                    }
                 }
                 samples
             })
@@ -438,20 +499,31 @@ impl Specular {
         }
     }
 
-    /// `Φ_in(P, ω)` of direction `d` for every mirror `P` (by ordinal): the
-    /// power its incident map `incident` holds, `Σ_slots I · Δω`.
+    /// `Φ_in(P, ω)` of direction `d` for every mirror plane `P`: the power
+    /// its incident map `incident` holds, `Σ_slots I · Δω`.
     pub fn power_in_of(&self, directions: &DirectionSet, d: usize, incident: &[Rgb]) -> Vec<Rgb> {
-        let mut p = vec![[0.0; 3]; self.mirrors.len()];
+        let mut p = vec![[0.0; 3]; self.planes.len()];
         let w = directions.get(d).weight;
         let MirrorView { sub, layout } = &self.views[d];
         for &(s, _, e) in &layout.entries {
             let base = layout.entry_base[e as usize] as usize;
-            let acc = &mut p[self.ordinal[s as usize] as usize];
+            let acc = &mut p[self.plane_of[s as usize] as usize];
             for v in &incident[base..base + sub.entries[e as usize].rays as usize] {
                 for c in 0..3 {
                     acc[c] += v[c] * w;
                 }
             }
+        }
+        p
+    }
+
+    /// `Φ_in` per mirror plane from `Φ_in` per mirror (in the order of
+    /// [`Specular::mirrors`]), as builds before mirror planes held it: summed
+    /// in mirror order.
+    pub fn power_by_plane(&self, per_mirror: &[Rgb]) -> Vec<Rgb> {
+        let mut p = vec![[0.0; 3]; self.planes.len()];
+        for (&m, v) in self.mirrors.iter().zip(per_mirror) {
+            add(&mut p[self.plane_of[m as usize] as usize], v);
         }
         p
     }
@@ -469,11 +541,11 @@ impl Specular {
         for (i, routes) in self.routes.iter().enumerate() {
             let mut reflected = [0.0; 3];
             for route in routes {
-                let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
-                if pin.iter().all(|&p| p <= 0.0) || !self.slotted[i][self.ordinal[route.mirror as usize] as usize] {
+                let pin = power_in[route.source as usize][route.plane as usize];
+                if pin.iter().all(|&p| p <= 0.0) || !self.slotted[i][route.plane as usize] {
                     continue;
                 }
-                let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
+                let rho = scene.materials[self.planes[route.plane as usize].material].specular;
                 for c in 0..3 {
                     let target = route.weight * rho[c] * pin[c];
                     if target > 0.0 {
@@ -492,11 +564,7 @@ impl Specular {
         let mut out: Vec<usize> = self.routes[targets]
             .iter()
             .flatten()
-            .filter(|r| {
-                power_in[r.source as usize][self.ordinal[r.mirror as usize] as usize]
-                    .iter()
-                    .any(|&p| p > 0.0)
-            })
+            .filter(|r| power_in[r.source as usize][r.plane as usize].iter().any(|&p| p > 0.0))
             .map(|r| r.source as usize)
             .collect();
         out.sort_unstable();
@@ -543,7 +611,7 @@ impl Specular {
         i: usize,
     ) -> Vec<Rgb> {
         let lit = |route: &Route| {
-            let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+            let pin = power_in[route.source as usize][route.plane as usize];
             !pin.iter().all(|&p| p <= 0.0)
         };
         // Backward mapping: every slot of P in i reads the incident radiance of the source ray
@@ -552,9 +620,9 @@ impl Specular {
         // iteration), else for the routes that carry power this time.
         let found;
         let table = if self.keep_gather_tables {
-            self.gather_tables[i].get_or_init(|| self.gather_table(scene, i, |_| true))
+            self.gather_tables[i].get_or_init(|| self.gather_table(i, |_| true))
         } else {
-            found = self.gather_table(scene, i, lit);
+            found = self.gather_table(i, lit);
             &found
         };
         let weight_i = directions.get(i).weight;
@@ -564,8 +632,8 @@ impl Specular {
             if !lit(route) {
                 continue;
             }
-            let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
-            let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
+            let pin = power_in[route.source as usize][route.plane as usize];
+            let rho = scene.materials[self.planes[route.plane as usize].material].specular;
             let source_incident = incident(route.source as usize);
             samples.clear();
             samples.extend(reads.iter().map(|&(slot, read)| {
@@ -611,16 +679,9 @@ fn add(acc: &mut Rgb, v: &Rgb) {
     }
 }
 
-/// The routes of mirror `m` (ordinal `k`): for every source line direction
+/// The routes of mirror plane `k` (normal `n`): for every source line direction
 /// whose rays cross it, where its reflection goes, as (target, route).
-fn mirror_routes(
-    scene: &Scene,
-    directions: &DirectionSet,
-    crossed: &[Vec<bool>],
-    k: usize,
-    m: u32,
-) -> Vec<(u32, Route)> {
-    let n = scene.surfaces[m as usize].normal;
+fn plane_routes(directions: &DirectionSet, crossed: &[Vec<bool>], k: usize, n: glam::DVec3) -> Vec<(u32, Route)> {
     let mut out = Vec::new();
     for source in 0..directions.len() {
         if !crossed[source][k] {
@@ -660,7 +721,7 @@ fn mirror_routes(
             out.push((
                 target,
                 Route {
-                    mirror: m,
+                    plane: k as u32,
                     source: source as u32,
                     weight: b / total,
                 },
