@@ -120,6 +120,19 @@ pub struct FieldJob {
     options: Options,
 }
 
+/// Whether a mirror of `scene` is a plane of several polygons, whose mirror slots builds before
+/// store format 5 laid out per polygon (see [`crate::manifest::MANIFEST_FORMAT`]).
+fn has_tessellated_mirror(scene: &Scene, options: &Options) -> bool {
+    let mirrors = (0..scene.surfaces.len())
+        .filter(|&s| scene.material(s).is_mirror())
+        .count();
+    if mirrors < 2 {
+        return false;
+    }
+    let (_, plane_rep) = vlf_core::maps::charts::segment_with_planes(scene, options.texel_size());
+    (plane_rep.iter().enumerate()).any(|(s, &rep)| rep as usize != s && scene.material(s).is_mirror())
+}
+
 impl FieldJob {
     /// Creates a job for the fresh propagation `p` (no iteration done yet) and writes its
     /// snapshot 0. Radiance blobs use `encoding`.
@@ -201,6 +214,14 @@ impl FieldJob {
             return Err(field_error(vlf_core::Error::Decode(
                 "the stored scene does not match the manifest's scene hash".into(),
             )));
+        }
+        if job.manifest().format < 5 && has_tessellated_mirror(&scene, &options) {
+            return Err(field_error(vlf_core::Error::Decode(format!(
+                "the job was made by an older version of vlf (store format {}): its scene has a \
+                 mirror of several polygons, whose maps that version laid out per polygon (this \
+                 version: per mirror plane); propagate the scene again",
+                job.manifest().format
+            ))));
         }
         Ok(FieldJob { job, scene, options })
     }

@@ -21,7 +21,12 @@ use std::time::{SystemTime, UNIX_EPOCH};
 ///   the bits and the snapshots' batches of mirror maps. A job of format 3 is read as what it
 ///   was, 16 batches a pass (the parameters' default), so that it renders and resumes as it ran;
 ///   a build that reads 3 at most refuses format 4 rather than cut its maps wrongly.
-pub const MANIFEST_FORMAT: u32 = 4;
+/// * 5: the polygons of a mirror chart share their plane's mirror slots (one subfield entry per
+///   tile, as a diffuse plane's do), so a mirror's directional maps are laid out per plane, not
+///   per polygon. A job of format 3 or 4 is read as it was unless its scene has a mirror of
+///   several polygons (`FieldJob::open` refuses that one: its maps are laid out otherwise); a
+///   build that reads 4 at most refuses format 5 rather than read a plane's slots per polygon.
+pub const MANIFEST_FORMAT: u32 = 5;
 
 /// The oldest format this build reads ([`MANIFEST_FORMAT`]'s list says what changed).
 pub const OLDEST_READABLE_FORMAT: u32 = 3;

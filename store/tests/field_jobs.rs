@@ -753,3 +753,55 @@ fn a_snapshot_of_thousands_of_polygons_is_a_few_blobs() {
     assert!(e.contains(&key), "{e}");
     assert!(job.load(Stage::Iteration(0)).is_ok());
 }
+
+/// Builds before store format 5 laid out a mirror's slots per polygon, this one per mirror
+/// plane: an earlier job whose scene has a mirror of several polygons is refused with a
+/// message that says to propagate again (its maps would be read into other rays), while one
+/// whose mirrors are single polygons (the bundled mirror scene) still reads as it was.
+#[test]
+fn earlier_jobs_with_a_mirror_of_several_polygons_are_refused() {
+    let scenes = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes");
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(scenes.join("mirrors.mtl"), dir.path().join("mirrors.mtl")).unwrap();
+    // The first mirror quad `f a b c d` as two triangles of one plane.
+    let text = std::fs::read_to_string(scenes.join("mirrors.obj")).unwrap();
+    let at = text.find("usemtl mirror").unwrap();
+    let face = at + text[at..].find("\nf ").unwrap() + 1;
+    let end = face + text[face..].find('\n').unwrap();
+    let v: Vec<&str> = text[face + 2..end].split_whitespace().collect();
+    assert_eq!(v.len(), 4, "the mirror is a quad");
+    let split = format!("f {} {} {}\nf {} {} {}", v[0], v[1], v[2], v[0], v[2], v[3]);
+    std::fs::write(
+        dir.path().join("mirrors.obj"),
+        format!("{}{split}{}", &text[..face], &text[end..]),
+    )
+    .unwrap();
+    let tessellated = load_obj(&dir.path().join("mirrors.obj"), &ImportOptions::default())
+        .unwrap()
+        .0;
+    assert_eq!(tessellated.surfaces.len(), bundled("mirrors.obj").surfaces.len() + 1);
+
+    let store = Store::open("memory://").unwrap();
+    for (scene, refused) in [(bundled("mirrors.obj"), false), (tessellated, true)] {
+        let (job, field) = run(&store, &scene, Encoding::F32);
+        let id = job.id().clone();
+        assert!(FieldJob::open(&store, &id).is_ok(), "this build reads what it wrote");
+        let mut manifest = job.job().manifest().clone();
+        manifest.format = 4;
+        store.put(&layout::manifest(&id), manifest.to_blob().unwrap()).unwrap();
+        match FieldJob::open(&store, &id) {
+            Ok(old) => {
+                assert!(!refused, "a format 4 job with a mirror of two triangles was read");
+                assert!(old.load(Stage::Field).unwrap().radiance == field.radiance);
+            }
+            Err(e) => {
+                let e = e.to_string();
+                assert!(refused, "a format 4 job of single-polygon mirrors was refused: {e}");
+                assert!(
+                    e.contains("mirror of several polygons") && e.contains("propagate the scene again"),
+                    "{e}"
+                );
+            }
+        }
+    }
+}

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # How cost grows with the polygon count, at the defaults: time, peak memory, store size and blob
-# count of `vlf propagate` for the plain vs the 40 × 40 grid room, a tessellated sphere, the
-# Stanford bunny and the Stanford dragon at two resolutions (see make_scenes.py), and where the
-# time goes (set-up: import, charts and subfields; propagation; store writes).
+# count of `vlf propagate` for the plain vs the 40 × 40 grid room (grey, then half mirrors), a
+# tessellated sphere, the Stanford bunny and the Stanford dragon at two resolutions (see
+# make_scenes.py), and where the time goes (set-up: import, charts and subfields; propagation; store writes).
 #
 #   study/meshes/bench.sh [OUT_DIR] [VLF_BINARY]
 #
@@ -29,7 +29,7 @@ python3 "$here/make_scenes.py" "$out/scenes" "${args[@]}"
 
 echo "| scene | faces | charts | texels | set-up s | propagate s | store s | total s | peak MiB | store MiB | blobs |"
 echo "|---|---|---|---|---|---|---|---|---|---|---|"
-for obj in room-plain room-grid sphere bunny dragon-res3-47794 dragon-res2-202520; do
+for obj in room-plain room-grid mirror-plain mirror-grid sphere bunny dragon-res3-47794 dragon-res2-202520; do
   scene="$out/scenes/$obj.obj"
   [ -f "$scene" ] || continue
   store="$out/store-$obj"

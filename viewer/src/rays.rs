@@ -7,8 +7,8 @@
 //!    rotation and the unit vectors are uploaded as they are).
 //! 2. In each direction's subfield the point projects between four rays; each ray's mirror slot
 //!    is read from a dense *window* per (direction, mirror) — the rectangle of ray cells the
-//!    mirror covers and one more on every side, holding where `MirrorLayout::locate_in_chart`
-//!    puts the ray (on the mirror or on another polygon of its chart), or `NONE` — and the
+//!    mirror plane covers (its polygons share it) and one more on every side, holding where
+//!    `MirrorLayout::locate_on_plane` puts the ray, or `NONE` — and the
 //!    rays' radiance is interpolated bilinearly over the rays that exist.
 //! 3. The three are blended by the barycentric weights of the directions that had a ray.
 //!
@@ -27,7 +27,7 @@
 //! | lattice | `(2n+1)²` words: line direction index, bit 31 set for `−ω`; `NONE` outside |
 //! | vectors | 3 floats per line direction: its unrotated unit vector |
 //! | directions | 8 words per line direction: PSF frame `u`, `v` (3 floats each), then the ray lattice's phase `shift` (2 floats) |
-//! | windows | 5 words per (direction, mirror): `x0`, `y0`, width, height, first cell |
+//! | windows | 5 words per (direction, mirror plane): `x0`, `y0`, width, height, first cell |
 //! | cells | two words per ray cell of a window: the part holding the ray and its index in the part, or `NONE`, `NONE` |
 
 use vlf_core::field::LightField;
@@ -37,7 +37,7 @@ use vlf_core::parts::{Part, PartCatalog};
 pub const NONE: u32 = u32::MAX;
 const HEADER_WORDS: usize = 32;
 
-/// The words, and the mirror index of every surface (`NONE` for a non-mirror).
+/// The words, and the mirror plane index of every surface (`NONE` for a non-mirror).
 pub struct RayTables {
     pub words: Vec<u32>,
     pub mirror_index: Vec<u32>,
@@ -48,12 +48,21 @@ impl RayTables {
     /// header only (nothing reads it).
     pub fn new(field: &LightField, catalog: &PartCatalog) -> RayTables {
         let scene = &field.scene;
+        // One window per mirror plane: the polygons of a tessellated mirror share their plane's
+        // rays (`TexelAtlas::plane_rep`), so they share its windows too. Representatives come
+        // first in their plane, so every polygon finds its plane's index already given.
+        let plane_rep = &field.atlas.plane_rep;
         let mut mirror_index = vec![NONE; scene.surfaces.len()];
         let mut mirror_surfaces = Vec::new();
-        for (i, index) in mirror_index.iter_mut().enumerate() {
+        for i in 0..scene.surfaces.len() {
             if scene.material(i).is_mirror() {
-                *index = mirror_surfaces.len() as u32;
-                mirror_surfaces.push(i as u32);
+                let rep = plane_rep.get(i).map_or(i, |&r| r as usize);
+                mirror_index[i] = if rep == i || mirror_index[rep] == NONE {
+                    mirror_surfaces.push(i as u32);
+                    mirror_surfaces.len() as u32 - 1
+                } else {
+                    mirror_index[rep]
+                };
             }
         }
         let mirrors = mirror_surfaces.len() as u32;
@@ -113,7 +122,7 @@ impl RayTables {
             let mut bounds = vec![(u32::MAX, u32::MAX, 0u32, 0u32); mirrors as usize];
             for &(surface, k, entry) in &layout.entries {
                 let m = mirror_index[surface as usize];
-                if m == NONE {
+                if m == NONE || mirror_surfaces[m as usize] != surface {
                     continue;
                 }
                 let b = &mut bounds[m as usize];
@@ -127,8 +136,8 @@ impl RayTables {
                     windows.extend([0, 0, 0, 0, 0]);
                     continue;
                 }
-                // One more ray on every side: a look-up near the mirror's edge may read the
-                // ray of a neighbouring polygon of the same mirror chart.
+                // One more ray on every side: a look-up near the mirror's edge may read a ray
+                // just past it (its point projects between four rays).
                 let (x0, y0) = (x0.saturating_sub(1), y0.saturating_sub(1));
                 let (x1, y1) = ((x1 + 1).min(resolution), (y1 + 1).min(resolution));
                 let surface = mirror_surfaces[m];
@@ -136,7 +145,7 @@ impl RayTables {
                 for y in y0..y1 {
                     for x in x0..x1 {
                         cells.extend(
-                            match layout.locate_in_chart(sub, &field.atlas.chart_of, surface, x, y) {
+                            match layout.locate_on_plane(sub, &field.atlas.plane_rep, surface, x, y) {
                                 Some(slot) => place(x, y, slot),
                                 None => [NONE, NONE],
                             },

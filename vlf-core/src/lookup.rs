@@ -144,7 +144,7 @@ impl LightField {
                     continue;
                 }
                 let (x, y) = (x as u32, y as u32);
-                if let Some(slot) = layout.locate_in_chart(sub, &self.atlas.chart_of, surface as u32, x, y) {
+                if let Some(slot) = layout.locate_on_plane(sub, &self.atlas.plane_rep, surface as u32, x, y) {
                     let m = sub.grid.tile;
                     visit(RayRead {
                         vertex,

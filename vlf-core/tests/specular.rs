@@ -302,12 +302,21 @@ fn mirror_propagation_is_deterministic_across_threads() {
 
 /// What the exchange reads of a direction, its mirror entries alone (`MirrorView`), finds
 /// every grid cell's mirror slot where the whole subfield does, and nothing elsewhere: the
-/// gathers read their sources through it without building the sources' subfields.
+/// gathers read their sources through it without building the sources' subfields. Every
+/// polygon of a mirror finds the slots of its plane.
 #[test]
 fn a_mirror_view_locates_the_slots_of_the_whole_subfield() {
     let p = Propagation::new(mirror_room(), options(33, 32, 8, 1)).unwrap();
     let spec = p.specular.as_ref().unwrap();
-    let chart_of = p.atlas.chart_of.clone();
+    let plane_rep = p.atlas.plane_rep.clone();
+    let polygons: Vec<u32> = (0..p.scene.surfaces.len() as u32)
+        .filter(|&s| p.scene.material(s as usize).is_mirror())
+        .collect();
+    assert_eq!(
+        (polygons.len(), spec.mirrors.len()),
+        (8, 2),
+        "two mirror walls of four quads"
+    );
     let mut found = 0;
     for d in 0..p.directions.len() {
         let (sub, layout) = (p.subfields.get(d), &spec.layouts[d]);
@@ -315,13 +324,23 @@ fn a_mirror_view_locates_the_slots_of_the_whole_subfield() {
         assert_eq!(view.layout.len, layout.len, "direction {d}");
         assert!(view.sub.entries.len() < sub.entries.len());
         let n = sub.grid.resolution;
-        for &m in &spec.mirrors {
+        for &m in &polygons {
             for y in 0..n {
                 for x in 0..n {
-                    let whole = layout.locate_in_chart(&sub, &chart_of, m, x, y);
-                    assert_eq!(view.layout.locate_in_chart(&view.sub, &chart_of, m, x, y), whole);
+                    let whole = layout.locate_on_plane(&sub, &plane_rep, m, x, y);
+                    assert_eq!(view.layout.locate_on_plane(&view.sub, &plane_rep, m, x, y), whole);
+                    assert_eq!(whole, layout.locate(&sub, plane_rep[m as usize], x, y));
                     found += whole.is_some() as usize;
                 }
+            }
+        }
+        // A diffuse wall's rays have entries but no mirror slots.
+        let wall = (0..p.scene.surfaces.len() as u32)
+            .find(|&s| !p.scene.material(s as usize).is_mirror() && plane_rep[s as usize] == s)
+            .unwrap();
+        for y in 0..n {
+            for x in 0..n {
+                assert_eq!(layout.locate(&sub, wall, x, y), None);
             }
         }
     }
@@ -348,10 +367,11 @@ fn tessellated_mirror_box(split: usize) -> Propagation {
 }
 
 /// A mirror wall of one quad and the same wall of 16 × 16 quads, whose quads are a few rays
-/// wide, some crossed by no ray of a grazing direction: the exchange runs per mirror plane, so
-/// both have one plane with the same routes, and both reflect exactly ρs of what arrives every
-/// iteration (per polygon, a quad that a target direction's rays miss dropped the power routed
-/// to it), which is the same power to the rounding of the two tessellations' rasterisation.
+/// wide, some crossed by no ray of a grazing direction: a mirror's polygons share their plane's
+/// slots, so both walls are one mirror with the same routes and slots, and both reflect exactly
+/// ρs of what arrives every iteration, the same power to the rounding of the two
+/// tessellations' rasterisation. (With slots and routes per polygon, the reflected power
+/// differed by 0.26 % in the third iteration.)
 #[test]
 fn a_mirror_reflects_the_same_power_however_it_is_tessellated() {
     let mut runs = [tessellated_mirror_box(1), tessellated_mirror_box(16)];
@@ -374,9 +394,15 @@ fn a_mirror_reflects_the_same_power_however_it_is_tessellated() {
     }
     let [one, many] = &runs;
     let (a, b) = (one.specular.as_ref().unwrap(), many.specular.as_ref().unwrap());
-    assert_eq!((a.mirrors.len(), b.mirrors.len()), (1, 256));
-    assert_eq!((a.planes.len(), b.planes.len()), (1, 1));
+    assert_eq!(a.mirrors.len(), 1);
+    assert_eq!(b.mirrors.len(), 1, "256 quads, one plane: its first quad has the slots");
     assert_eq!(a.routes, b.routes, "one plane, one normal: the same routes");
+    for d in 0..one.directions.len() {
+        assert_eq!(
+            a.layouts[d].len, b.layouts[d].len,
+            "direction {d}: the same rays cross the mirror"
+        );
+    }
     for (s, t) in one.stats.iter().zip(&many.stats) {
         let (u, v) = (lum(&s.exchange.reflected), lum(&t.exchange.reflected));
         assert!(

@@ -89,6 +89,11 @@ fn split_quad(q: [DVec3; 4], split: Split, material: usize, seed: &mut u64) -> V
 /// A closed grey room (ρ = 0.6) with a lamp below its ceiling and a block on the floor, every
 /// wall of the room and face of the block cut by `split`.
 fn room(split: Split) -> Scene {
+    room_of(split, material("grey", 0.6, 0.0))
+}
+
+/// [`room`] with walls and block of material `walls`.
+fn room_of(split: Split, walls: vlf_core::scene::Material) -> Scene {
     let h = 0.55;
     let mut seed = 0x5eed_u64;
     let mut surfaces = Vec::new();
@@ -135,7 +140,7 @@ fn room(split: Split) -> Scene {
         -DVec3::Y,
         1,
     ));
-    scene(surfaces, vec![material("grey", 0.6, 0.0), material("lamp", 0.0, 4.0)])
+    scene(surfaces, vec![walls, material("lamp", 0.0, 4.0)])
 }
 
 /// Propagates to convergence, checking the closed scene's bookkeeping: at most `max_escape` of
@@ -173,6 +178,10 @@ fn propagate(scene: Scene, l: usize, n: u32, max_escape: f64) -> LightField {
 }
 
 fn render(field: &LightField) -> vlf_core::render::Image {
+    render_with(field, SpecularMode::Trace { depth: 2 })
+}
+
+fn render_with(field: &LightField, mode: SpecularMode) -> vlf_core::render::Image {
     let camera = Camera::new(
         DVec3::new(-0.35, 0.1, 0.45),
         DVec3::new(0.3, -0.25, -0.4),
@@ -182,7 +191,7 @@ fn render(field: &LightField) -> vlf_core::render::Image {
         72,
     )
     .unwrap();
-    field.render(&camera, 2, SpecularMode::Trace { depth: 2 })
+    field.render(&camera, 2, mode)
 }
 
 #[test]
@@ -213,6 +222,51 @@ fn a_room_renders_alike_however_its_walls_are_tessellated() {
             "{split:?}: image means differ by {:.4}",
             c.mean_error
         );
+    }
+}
+
+/// The room with every wall and block face a half mirror (ρd 0.3, ρs 0.5), cut as above: a
+/// mirror's polygons share their plane's slots and routes, so the mirrors seen from the rays
+/// (the field's directional maps, `SpecularMode::Rays`) and traced render alike too, with as
+/// many slots (to 10⁻³) however the walls were cut.
+#[test]
+fn a_mirror_room_renders_alike_however_its_walls_are_tessellated() {
+    let (l, n) = (129, 32);
+    let half_mirror = || vlf_core::scene::Material {
+        specular: [0.5; 3],
+        ..material("half mirror", 0.3, 0.0)
+    };
+    let plain = propagate(room_of(Split::Quad, half_mirror()), l, n, 0.0);
+    let modes = [SpecularMode::Rays, SpecularMode::Trace { depth: 2 }];
+    let references = modes.map(|mode| render_with(&plain, mode));
+    let plain_mirrors = plain.specular.as_ref().unwrap();
+    for split in [Split::Grid(16), Split::Irregular] {
+        let scene = room_of(split, half_mirror());
+        let polygons = scene.surfaces.len();
+        let field = propagate(scene, l, n, 0.0);
+        let mirrors = field.specular.as_ref().unwrap();
+        // The same rays cross the mirrors, but for a ray through an edge where the cut walls
+        // meet the block's footprint (there the floor is two planes, as in the diffuse room).
+        let slots = |f: &vlf_core::field::SpecularField| f.layouts.iter().map(|l| l.len as f64).sum::<f64>();
+        let (a, b) = (slots(mirrors), slots(plain_mirrors));
+        assert!((a - b).abs() <= 1e-3 * b, "{split:?}: {a} mirror slots against {b}");
+        for (mode, reference) in modes.iter().zip(&references) {
+            let c = compare(&render_with(&field, *mode), reference, 16, Pixels::default()).unwrap();
+            println!(
+                "{split:?} ({polygons} polygons), {mode:?}: block-16 {:.4}, mean {:+.4}",
+                c.block_error, c.mean_error
+            );
+            assert!(
+                c.block_error <= 0.03,
+                "{split:?}, {mode:?}: block-16 difference {:.4}",
+                c.block_error
+            );
+            assert!(
+                c.mean_error.abs() <= 0.01,
+                "{split:?}, {mode:?}: means differ by {:.4}",
+                c.mean_error
+            );
+        }
     }
 }
 

@@ -74,8 +74,9 @@ pub fn segment(scene: &Scene, texel: f64) -> Vec<Chart> {
 
 /// [`segment`], and for every surface the surface that stands for its plane in the subfields
 /// ([`crate::psf::Subfield::build`]): the first surface of its planar group (coplanar
-/// neighbours of one diffuse material, which share a chart and a plane, so a ray crossing any of
-/// them is the same hit), or the surface itself for a mirror (whose slots are per surface).
+/// neighbours of one material, which share a chart and a plane, so a ray crossing any of them is
+/// the same hit). A mirror's too: its slots are per plane, as its exchange is
+/// ([`crate::propagate::specular`]).
 pub fn segment_with_planes(scene: &Scene, texel: f64) -> (Vec<Chart>, Vec<u32>) {
     let count = scene.surfaces.len();
     let keys: Vec<Vec<[i64; 3]>> = scene
@@ -276,10 +277,8 @@ pub fn segment_with_planes(scene: &Scene, texel: f64) -> (Vec<Chart>, Vec<u32>) 
     charts.sort_by_key(|c| c.surfaces[0]);
     let mut plane_rep: Vec<u32> = (0..count as u32).collect();
     for g in &groups {
-        if !scene.materials[scene.surfaces[g[0] as usize].material].is_mirror() {
-            for &s in g {
-                plane_rep[s as usize] = g[0];
-            }
+        for &s in g {
+            plane_rep[s as usize] = g[0];
         }
     }
     (charts, plane_rep)

@@ -237,14 +237,14 @@ impl Propagation {
         let batches = out.batches.start as usize..out.batches.end as usize;
         let range = self.block_directions(work, &batches)?;
         let wants_power = out.pass == Pass::Shoot && work.uses_mirror_maps();
-        let planes = self.specular.as_ref().map_or(0, |s| s.planes.len());
+        let mirrors = self.specular.as_ref().map_or(0, |s| s.mirrors.len());
         let checked = match (&out.power_in, wants_power) {
             (None, false) => Ok(()),
             (Some(power), true) => {
                 let fits = power.len() == range.len()
                     && power
                         .iter()
-                        .all(|p| p.len() == planes && p.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+                        .all(|p| p.len() == mirrors && p.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
                 if fits {
                     Ok(())
                 } else {

@@ -357,7 +357,7 @@ impl Propagation {
     /// On error the state is unchanged.
     pub fn restore_shooting(&mut self, state: ShootingState) -> crate::Result<()> {
         self.check_unshot_texels(&state.current, &state.stats)?;
-        let pending = self.pending_by_plane(state.pending)?;
+        self.check_pending(state.pending.as_ref())?;
         match (&mut self.specular, state.mirrors) {
             (None, None) => {}
             (Some(spec), Some(maps)) => {
@@ -369,10 +369,11 @@ impl Propagation {
                     ));
                 }
                 check_maps(spec, 0, &maps)?;
+                let pending = state.pending.is_some();
                 for (own, saved) in spec.maps.iter_mut().zip(maps) {
-                    own.set_shooting(pending.is_some(), saved);
+                    own.set_shooting(pending, saved);
                 }
-                spec.pending = pending;
+                spec.pending = state.pending;
             }
             (Some(_), None) => return misfit("the scene has mirrors, the checkpoint none".into()),
             (None, Some(_)) => return misfit("the checkpoint has mirror maps, the scene no mirror".into()),
@@ -382,32 +383,26 @@ impl Propagation {
         Ok(())
     }
 
-    /// Pending `Φ_in` as this build holds it, one value per mirror plane:
-    /// earlier builds' per mirror polygon is summed into planes (in mirror
-    /// order; the same values where every plane is one polygon). Refuses
-    /// `Φ_in` that fits neither the directions and planes nor the mirrors, or
-    /// is negative or not finite.
-    pub(crate) fn pending_by_plane(&self, pending: Option<Pending>) -> crate::Result<Option<Pending>> {
-        let Some(mut p) = pending else {
-            return Ok(None);
+    /// Refuses pending `Φ_in` that does not fit the directions and mirrors,
+    /// or is negative or not finite.
+    pub(crate) fn check_pending(&self, pending: Option<&Pending>) -> crate::Result<()> {
+        let Some(p) = pending else {
+            return Ok(());
         };
         let Some(spec) = &self.specular else {
             return misfit("pending mirror arrivals for a scene without mirrors".into());
         };
         let l = self.directions.len();
-        let (planes, mirrors) = (spec.planes.len(), spec.mirrors.len());
-        let fits = |n: usize| p.power_in.len() == l && p.power_in.iter().all(|v| v.len() == n);
-        if !fits(planes) && fits(mirrors) {
-            p.power_in = p.power_in.iter().map(|v| spec.power_by_plane(v)).collect();
-        } else if !fits(planes) {
+        if p.power_in.len() != l || p.power_in.iter().any(|v| v.len() != spec.mirrors.len()) {
             return misfit(format!(
-                "pending mirror power does not fit {l} directions and {planes} mirror planes"
+                "pending mirror power does not fit {l} directions and {} mirrors",
+                spec.mirrors.len()
             ));
         }
         if !p.power_in.iter().all(|v| valid(v)) {
             return misfit("negative or non-finite pending mirror power".into());
         }
-        Ok(Some(p))
+        Ok(())
     }
 
     /// Refuses a Current map and iteration statistics that do not fit: the

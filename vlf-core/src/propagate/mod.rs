@@ -520,7 +520,7 @@ impl Propagation {
         }
         let mirrors = plan.mapped_mirrors();
         let specular = (!mirrors.is_empty()).then(|| {
-            let mut spec = Specular::new(&scene, &directions, &subfields, mirrors, atlas.chart_of.clone());
+            let mut spec = Specular::new(&scene, &directions, &subfields, mirrors);
             // Within a budget, memory is what the process is short of.
             spec.keep_gather_tables = budget.is_none();
             spec

@@ -361,9 +361,9 @@ impl Propagation {
                 head.mirror_batches
             ));
         }
-        let pending = self.pending_by_plane(head.pending)?;
+        self.check_pending(head.pending.as_ref())?;
         if let Some(spec) = self.specular.as_mut() {
-            spec.pending = pending;
+            spec.pending = head.pending;
         }
         self.current = head.current;
         self.stats = head.stats;

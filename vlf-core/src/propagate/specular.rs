@@ -21,7 +21,7 @@
 //! mirror image `r = ω − 2(ω·n)n`. `r` falls in a spherical triangle of three
 //! directions `i₁, i₂, i₃` with barycentric weights `b_k`; the reflected
 //! power `ρs·Φ_in(P, ω)` is split over them by `b_k`. That is a fixed table,
-//! the [`Route`]s: for each target direction `i`, the (mirror plane, source
+//! the [`Route`]s: for each target direction `i`, the (mirror, source
 //! direction, weight) triples that feed it. Each target gathers its new
 //! unshot map **backwards**, as the paper does: every ray of `i` that crosses
 //! `P` finds the point where it leaves `P`, projects it into the source
@@ -34,17 +34,16 @@
 //! Targets are computed independently (in parallel) from read-only incident
 //! maps, in a fixed route order, so the result does not depend on threads.
 //!
-//! **Mirror planes.** `P` above is a [`MirrorPlane`]: the mirrors of one
-//! chart, coplanar polygons of one material (see [`crate::maps::charts`]),
-//! not each polygon. They share a normal, so they share their routes, and a
-//! route's power is the same whether a wall is one quad or 3 200 triangles:
-//! `Σ_polygons b·ρs·Φ_in = b·ρs·Φ_in(plane)`. Per polygon, `Φ_in` and the
-//! routes grew with the tessellation (the 19 200-triangle mirror room at
-//! l = 513: 236 MB of `Φ_in` per snapshot, 30 M routes, a sixth of its run
-//! settling them); per plane they are a few numbers per direction and wall.
-//! Polygons also left no power stranded: a triangle no ray of a target
-//! crosses handed its share to nothing; the plane's other slots take it.
-//! A curved mirror keeps a chart per polygon, so a plane per polygon.
+//! **A mirror is a plane.** The polygons of a mirror chart (coplanar, one
+//! material: [`crate::maps::charts`]) are one entry per tile in the subfields,
+//! under their first polygon ([`crate::maps::TexelAtlas::plane_rep`]), as a
+//! diffuse plane's are. So "mirror" here — a slot's, a route's, `Φ_in`'s — is
+//! the plane: a wall cut into 3 200 triangles has the slots, routes and
+//! power of its quad, and a look-up on any of its polygons reads the plane's
+//! rays ([`MirrorLayout::locate_on_plane`]). Per polygon, routes and `Φ_in`
+//! grew with the tessellation (19 200 mirror triangles at l = 513: 30 M
+//! routes, 236 MB of `Φ_in` a snapshot) and a polygon narrower than a ray
+//! cell lost the power routed to it.
 //!
 //! **When.** An iteration ends with its arrivals *pending* ([`Pending`]):
 //! only their power `Φ_in` per direction and mirror is settled
@@ -133,21 +132,16 @@ impl MirrorLayout {
     pub fn locate(&self, sub: &Subfield, surface: u32, x: u32, y: u32) -> Option<u32> {
         let (entry, offset) = sub.locate_entry(surface, x, y)?;
         let base = self.entry_base[entry];
-        (base != NO_SLOT).then_some(base + offset)
+        (base != NO_SLOT).then(|| base + offset)
     }
 
-    /// The mirror slot of grid cell `(x, y)` on `surface` or, where its ray misses `surface`,
-    /// on another surface of the same chart (`chart_of` per surface): a mirror tessellated
-    /// into several coplanar polygons is one mirror to its look-ups, so a neighbouring ray
-    /// that crosses the polygon next door is not dropped.
-    pub fn locate_in_chart(&self, sub: &Subfield, chart_of: &[u32], surface: u32, x: u32, y: u32) -> Option<u32> {
-        if let Some(slot) = self.locate(sub, surface, x, y) {
-            return Some(slot);
-        }
-        let chart = chart_of[surface as usize];
-        let (entry, offset) = sub.locate_entry_where(x, y, |s| s != surface && chart_of[s as usize] == chart)?;
-        let base = self.entry_base[entry];
-        (base != NO_SLOT).then_some(base + offset)
+    /// The mirror slot of grid cell `(x, y)` on the plane of `surface`, a polygon of a mirror
+    /// that may be tessellated (`plane_rep` per surface,
+    /// [`crate::maps::TexelAtlas::plane_rep`]): the polygons of a mirror chart share their
+    /// plane's entries, so a look-up on one reads the rays of the whole mirror.
+    pub fn locate_on_plane(&self, sub: &Subfield, plane_rep: &[u32], surface: u32, x: u32, y: u32) -> Option<u32> {
+        let rep = plane_rep.get(surface as usize).copied().unwrap_or(surface);
+        self.locate(sub, rep, x, y)
     }
 }
 
@@ -179,53 +173,13 @@ impl DirectionMaps {
     }
 }
 
-/// One feed of a target direction: light arriving on mirror plane `plane` (an index into
-/// [`Specular::planes`]) along source line direction `source` reflects into the target with
-/// share `weight`.
+/// One feed of a target direction: light arriving on `mirror` along source
+/// line direction `source` reflects into the target with share `weight`.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Route {
-    pub plane: u32,
+    pub mirror: u32,
     pub source: u32,
     pub weight: f64,
-}
-
-/// The mirrors of one chart: coplanar polygons of one material, which reflect as one mirror
-/// (see the module docs). Its plane and material are those of its first surface (a chart's
-/// polygons agree on them to 10⁻⁹, [`crate::maps::charts`]).
-#[derive(Clone, Debug, PartialEq)]
-pub struct MirrorPlane {
-    /// Its surfaces with maps, ascending.
-    pub surfaces: Vec<u32>,
-    pub normal: glam::DVec3,
-    pub offset: f64,
-    pub material: usize,
-}
-
-impl MirrorPlane {
-    /// The mirrors `mirrors` (ascending) grouped by chart (`chart_of` per surface; a surface
-    /// beyond it is a plane of its own), planes in the order of their first mirror: a
-    /// scene whose mirrors are charts of one polygon each keeps the mirrors' own order.
-    fn group(scene: &Scene, mirrors: &[u32], chart_of: &[u32]) -> Vec<MirrorPlane> {
-        let mut planes: Vec<MirrorPlane> = Vec::new();
-        let mut plane_of_chart = std::collections::HashMap::new();
-        for &m in mirrors {
-            let k = match chart_of.get(m as usize) {
-                Some(&c) => *plane_of_chart.entry(c).or_insert(planes.len()),
-                None => planes.len(),
-            };
-            if k == planes.len() {
-                let s = &scene.surfaces[m as usize];
-                planes.push(MirrorPlane {
-                    surfaces: Vec::new(),
-                    normal: s.normal,
-                    offset: s.offset,
-                    material: s.material,
-                });
-            }
-            planes[k].surfaces.push(m);
-        }
-        planes
-    }
 }
 
 /// Power bookkeeping of one exchange (per channel).
@@ -238,13 +192,10 @@ pub struct Exchange {
     pub reflected: Rgb,
 }
 
-/// One direction's subfield restricted to the surfaces of charts that hold a mirror with maps
-/// ([`Subfield::only`]), with its slots laid out as the whole subfield's ([`MirrorLayout`]
-/// numbers mirror slots tile by tile, entry by entry, counting only mirror entries: the view
-/// has them in the same order). A look-up on a mirror reads that mirror's entries and, where
-/// its ray misses it, its chart's others ([`MirrorLayout::locate_in_chart`]), mapped or not
-/// (an unmapped one answers "no slot"): all of them are in the view, so every look-up
-/// answers as on the whole subfield. What the exchange reads of a direction, the gather of its own unshot map and of
+/// One direction's subfield restricted to the mirrors with maps ([`Subfield::only`]), with its
+/// slots laid out as the whole subfield's ([`MirrorLayout`] numbers mirror slots tile by tile,
+/// entry by entry, counting only mirror entries: the view has them in the same order), so every
+/// look-up answers as on the whole subfield. What the exchange reads of a direction, the gather of its own unshot map and of
 /// its sources' arrivals, and its `Φ_in`: kept for every direction, it spares a process
 /// within a subfield budget rebuilding whole subfields to gather (a mirror's spans are a
 /// small part of a subfield, and its maps, kept anyway, hold more).
@@ -255,10 +206,9 @@ pub struct MirrorView {
 }
 
 impl MirrorView {
-    /// The view of `sub` on the surfaces `in_view` accepts, whose mirror slots are those of
-    /// the surfaces that `has_maps`.
-    fn new(sub: &Subfield, in_view: &[bool], has_maps: &[bool]) -> MirrorView {
-        let sub = sub.only(|s| in_view[s as usize]);
+    /// The view of `sub` on the surfaces that `has_maps`.
+    fn new(sub: &Subfield, has_maps: &[bool]) -> MirrorView {
+        let sub = sub.only(|s| has_maps[s as usize]);
         let layout = MirrorLayout::new(&sub, has_maps);
         MirrorView { sub, layout }
     }
@@ -267,26 +217,21 @@ impl MirrorView {
 /// The specular state of a propagation.
 #[derive(Clone, Debug)]
 pub struct Specular {
-    /// Surfaces with directional maps (mirrors that light can reach).
+    /// Surfaces with directional maps (mirrors that light can reach): each the first polygon
+    /// of its mirror plane (see the module docs).
     pub mirrors: Vec<u32>,
-    /// Those mirrors by plane: the unit of the exchange (see the module docs).
-    pub planes: Vec<MirrorPlane>,
     /// Per direction, its mirror slots in its whole subfield (what shooting reads).
     pub layouts: Vec<MirrorLayout>,
     /// Per direction, its mirror entries alone (what the exchange reads).
     pub views: Vec<MirrorView>,
     pub maps: Vec<DirectionMaps>,
-    /// `routes[i]`: what feeds target direction `i`, sorted by (plane, source).
+    /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
     pub routes: Vec<Vec<Route>>,
     /// Arrivals of the last iteration not reflected yet: then the incident
     /// maps hold them and the unshot maps are stale (see [`Pending`]).
     pub pending: Option<Pending>,
-    /// The plane of every surface with maps, [`NO_SLOT`] for the others.
-    plane_of: Vec<u32>,
-    /// The chart of every surface ([`crate::maps::TexelAtlas::chart_of`]): the polygons of a
-    /// tessellated mirror read each other's rays.
-    chart_of: Vec<u32>,
-    /// `slotted[d][k]`: does some ray of direction `d` cross mirror plane `k`? What the
+    ordinal: Vec<u32>,
+    /// `slotted[d][k]`: does some ray of direction `d` cross mirror `k` (by ordinal)? What the
     /// exchange's bookkeeping asks of every route, known without the subfields (which a
     /// coordinator need not hold).
     slotted: Vec<Vec<bool>>,
@@ -320,47 +265,28 @@ type GatherTable = Vec<Vec<(u32, u32)>>;
 /// numbers per direction.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pending {
-    /// `Φ_in(P, ω)`: per direction, per mirror plane (in the order of
-    /// [`Specular::planes`]), the power its incident map holds.
+    /// `Φ_in(P, ω)`: per direction, per mirror (in the order of
+    /// [`Specular::mirrors`]), the power its incident map holds.
     pub power_in: Vec<Vec<Rgb>>,
 }
 
 impl Specular {
     /// Lays out the mirror maps of `mirrors` over every subfield and builds the
     /// reflection routes.
-    pub fn new(
-        scene: &Scene,
-        directions: &DirectionSet,
-        subfields: &Subfields,
-        mirrors: Vec<u32>,
-        chart_of: Vec<u32>,
-    ) -> Self {
-        let planes = MirrorPlane::group(scene, &mirrors, &chart_of);
+    pub fn new(scene: &Scene, directions: &DirectionSet, subfields: &Subfields, mirrors: Vec<u32>) -> Self {
         let mut has_maps = vec![false; scene.surfaces.len()];
-        let mut plane_of = vec![NO_SLOT; scene.surfaces.len()];
-        for (k, plane) in planes.iter().enumerate() {
-            for &m in &plane.surfaces {
-                has_maps[m as usize] = true;
-                plane_of[m as usize] = k as u32;
-            }
+        let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
+        for (k, &m) in mirrors.iter().enumerate() {
+            has_maps[m as usize] = true;
+            ordinal[m as usize] = k as u32;
         }
-        // The surfaces of the charts of mirrors with maps (see `MirrorView`).
-        let mut mapped_chart = vec![false; chart_of.iter().max().map_or(0, |&c| c as usize + 1)];
-        for &m in &mirrors {
-            if let Some(&c) = chart_of.get(m as usize) {
-                mapped_chart[c as usize] = true;
-            }
-        }
-        let in_view: Vec<bool> = (0..scene.surfaces.len())
-            .map(|s| has_maps[s] || chart_of.get(s).is_some_and(|&c| mapped_chart[c as usize]))
-            .collect();
         let per_direction: Vec<(MirrorLayout, MirrorView, Vec<bool>)> = subfields.map(|_, sub| {
             let layout = MirrorLayout::new(sub, &has_maps);
-            let mut slotted = vec![false; planes.len()];
+            let mut slotted = vec![false; mirrors.len()];
             for &(s, _, e) in &layout.entries {
-                slotted[plane_of[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
+                slotted[ordinal[s as usize] as usize] |= sub.entries[e as usize].rays > 0;
             }
-            (layout, MirrorView::new(sub, &in_view, &has_maps), slotted)
+            (layout, MirrorView::new(sub, &has_maps), slotted)
         });
         let (mut layouts, mut views, mut slotted) = (Vec::new(), Vec::new(), Vec::new());
         for (layout, view, s) in per_direction {
@@ -376,41 +302,39 @@ impl Specular {
                 incident: vec![[0.0; 3]; l.len as usize],
             })
             .collect();
-        // crossed[d][k]: does mirror plane k have rays in direction d?
+        // crossed[d][k]: does mirror k have rays in direction d?
         let crossed: Vec<Vec<bool>> = layouts
             .iter()
             .map(|l| {
-                let mut c = vec![false; planes.len()];
+                let mut c = vec![false; mirrors.len()];
                 for &(s, _, _) in &l.entries {
-                    c[plane_of[s as usize] as usize] = true;
+                    c[ordinal[s as usize] as usize] = true;
                 }
                 c
             })
             .collect();
-        let per_plane: Vec<Vec<(u32, Route)>> = planes
+        let per_mirror: Vec<Vec<(u32, Route)>> = mirrors
             .par_iter()
             .enumerate()
-            .map(|(k, plane)| plane_routes(directions, &crossed, k, plane.normal))
+            .map(|(k, &m)| mirror_routes(scene, directions, &crossed, k, m))
             .collect();
         let mut routes = vec![Vec::new(); directions.len()];
-        for list in per_plane {
+        for list in per_mirror {
             for (target, route) in list {
                 routes[target as usize].push(route);
             }
         }
         for r in &mut routes {
-            r.sort_by_key(|r| (r.plane, r.source));
+            r.sort_by_key(|r| (r.mirror, r.source));
         }
         Specular {
             mirrors,
-            planes,
             layouts,
             views,
             maps,
             routes,
             pending: None,
-            plane_of,
-            chart_of,
+            ordinal,
             slotted,
             gather_tables: (0..directions.len()).map(|_| OnceLock::new()).collect(),
             keep_gather_tables: true,
@@ -420,7 +344,7 @@ impl Specular {
     /// The backward mapping of target direction `i` ([`GatherTable`]), for the routes `wanted`
     /// (the others' lists left empty): every slot of the route's mirror in `i` reads the source
     /// ray through the same point of the mirror.
-    fn gather_table(&self, i: usize, wanted: impl Fn(&Route) -> bool) -> GatherTable {
+    fn gather_table(&self, scene: &Scene, i: usize, wanted: impl Fn(&Route) -> bool) -> GatherTable {
         let MirrorView { sub, layout } = &self.views[i];
         let n = sub.grid.resolution;
         (self.routes[i].iter())
@@ -429,27 +353,25 @@ impl Specular {
                 if !wanted(route) {
                     return samples;
                 }
-                let plane = &self.planes[route.plane as usize];
-                let proj = SurfaceProjection::new(&sub.frame, n, plane.normal, plane.offset);
+                let surface = &scene.surfaces[route.mirror as usize];
+                let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
                 let MirrorView {
                     sub: source,
                     layout: source_layout,
                 } = &self.views[route.source as usize];
-                for &mirror in &plane.surfaces {
-                    for &(_, k, e) in layout.entries_of(mirror) {
-                        let base = layout.entry_base[e as usize];
-                        let entry = &sub.entries[e as usize];
-                        sub.rays_of(k as usize, entry, |slot, x, y| {
-                            let p = proj.point_at(x as f64 + 0.5, y as f64 + 0.5);
-                            let g = source.frame.to_grid(p, n);
-                            let read = if g.x >= 0.0 && g.y >= 0.0 {
-                                source_layout.locate_in_chart(source, &self.chart_of, mirror, g.x as u32, g.y as u32)
-                            } else {
-                                None
-                            };
-                            samples.push((base + slot - entry.first_ray, read.unwrap_or(NO_SLOT)));
-                        });
-                    }
+                for &(_, k, e) in layout.entries_of(route.mirror) {
+                    let base = layout.entry_base[e as usize];
+                    let entry = &sub.entries[e as usize];
+                    sub.rays_of(k as usize, entry, |slot, x, y| {
+                        let p = proj.point_at(x as f64 + 0.5, y as f64 + 0.5);
+                        let g = source.frame.to_grid(p, n);
+                        let read = if g.x >= 0.0 && g.y >= 0.0 {
+                            source_layout.locate(source, route.mirror, g.x as u32, g.y as u32)
+                        } else {
+                            None
+                        };
+                        samples.push((base + slot - entry.first_ray, read.unwrap_or(NO_SLOT)));
+                    });
                 }
                 samples
             })
@@ -499,31 +421,20 @@ impl Specular {
         }
     }
 
-    /// `Φ_in(P, ω)` of direction `d` for every mirror plane `P`: the power
-    /// its incident map `incident` holds, `Σ_slots I · Δω`.
+    /// `Φ_in(P, ω)` of direction `d` for every mirror `P` (by ordinal): the
+    /// power its incident map `incident` holds, `Σ_slots I · Δω`.
     pub fn power_in_of(&self, directions: &DirectionSet, d: usize, incident: &[Rgb]) -> Vec<Rgb> {
-        let mut p = vec![[0.0; 3]; self.planes.len()];
+        let mut p = vec![[0.0; 3]; self.mirrors.len()];
         let w = directions.get(d).weight;
         let MirrorView { sub, layout } = &self.views[d];
         for &(s, _, e) in &layout.entries {
             let base = layout.entry_base[e as usize] as usize;
-            let acc = &mut p[self.plane_of[s as usize] as usize];
+            let acc = &mut p[self.ordinal[s as usize] as usize];
             for v in &incident[base..base + sub.entries[e as usize].rays as usize] {
                 for c in 0..3 {
                     acc[c] += v[c] * w;
                 }
             }
-        }
-        p
-    }
-
-    /// `Φ_in` per mirror plane from `Φ_in` per mirror (in the order of
-    /// [`Specular::mirrors`]), as builds before mirror planes held it: summed
-    /// in mirror order.
-    pub fn power_by_plane(&self, per_mirror: &[Rgb]) -> Vec<Rgb> {
-        let mut p = vec![[0.0; 3]; self.planes.len()];
-        for (&m, v) in self.mirrors.iter().zip(per_mirror) {
-            add(&mut p[self.plane_of[m as usize] as usize], v);
         }
         p
     }
@@ -541,11 +452,11 @@ impl Specular {
         for (i, routes) in self.routes.iter().enumerate() {
             let mut reflected = [0.0; 3];
             for route in routes {
-                let pin = power_in[route.source as usize][route.plane as usize];
-                if pin.iter().all(|&p| p <= 0.0) || !self.slotted[i][route.plane as usize] {
+                let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+                if pin.iter().all(|&p| p <= 0.0) || !self.slotted[i][self.ordinal[route.mirror as usize] as usize] {
                     continue;
                 }
-                let rho = scene.materials[self.planes[route.plane as usize].material].specular;
+                let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
                 for c in 0..3 {
                     let target = route.weight * rho[c] * pin[c];
                     if target > 0.0 {
@@ -564,7 +475,11 @@ impl Specular {
         let mut out: Vec<usize> = self.routes[targets]
             .iter()
             .flatten()
-            .filter(|r| power_in[r.source as usize][r.plane as usize].iter().any(|&p| p > 0.0))
+            .filter(|r| {
+                power_in[r.source as usize][self.ordinal[r.mirror as usize] as usize]
+                    .iter()
+                    .any(|&p| p > 0.0)
+            })
             .map(|r| r.source as usize)
             .collect();
         out.sort_unstable();
@@ -611,7 +526,7 @@ impl Specular {
         i: usize,
     ) -> Vec<Rgb> {
         let lit = |route: &Route| {
-            let pin = power_in[route.source as usize][route.plane as usize];
+            let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
             !pin.iter().all(|&p| p <= 0.0)
         };
         // Backward mapping: every slot of P in i reads the incident radiance of the source ray
@@ -620,9 +535,9 @@ impl Specular {
         // iteration), else for the routes that carry power this time.
         let found;
         let table = if self.keep_gather_tables {
-            self.gather_tables[i].get_or_init(|| self.gather_table(i, |_| true))
+            self.gather_tables[i].get_or_init(|| self.gather_table(scene, i, |_| true))
         } else {
-            found = self.gather_table(i, lit);
+            found = self.gather_table(scene, i, lit);
             &found
         };
         let weight_i = directions.get(i).weight;
@@ -632,8 +547,8 @@ impl Specular {
             if !lit(route) {
                 continue;
             }
-            let pin = power_in[route.source as usize][route.plane as usize];
-            let rho = scene.materials[self.planes[route.plane as usize].material].specular;
+            let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+            let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
             let source_incident = incident(route.source as usize);
             samples.clear();
             samples.extend(reads.iter().map(|&(slot, read)| {
@@ -679,9 +594,16 @@ fn add(acc: &mut Rgb, v: &Rgb) {
     }
 }
 
-/// The routes of mirror plane `k` (normal `n`): for every source line direction
+/// The routes of mirror `m` (ordinal `k`): for every source line direction
 /// whose rays cross it, where its reflection goes, as (target, route).
-fn plane_routes(directions: &DirectionSet, crossed: &[Vec<bool>], k: usize, n: glam::DVec3) -> Vec<(u32, Route)> {
+fn mirror_routes(
+    scene: &Scene,
+    directions: &DirectionSet,
+    crossed: &[Vec<bool>],
+    k: usize,
+    m: u32,
+) -> Vec<(u32, Route)> {
+    let n = scene.surfaces[m as usize].normal;
     let mut out = Vec::new();
     for source in 0..directions.len() {
         if !crossed[source][k] {
@@ -721,7 +643,7 @@ fn plane_routes(directions: &DirectionSet, crossed: &[Vec<bool>], k: usize, n: g
             out.push((
                 target,
                 Route {
-                    plane: k as u32,
+                    mirror: m,
                     source: source as u32,
                     weight: b / total,
                 },
