@@ -29,7 +29,8 @@ python3 "$here/make_scenes.py" "$out/scenes" "${args[@]}"
 
 echo "| scene | faces | charts | texels | set-up s | propagate s | store s | total s | peak MiB | store MiB | blobs |"
 echo "|---|---|---|---|---|---|---|---|---|---|---|"
-for obj in room-plain room-grid mirror-plain mirror-grid sphere bunny dragon-res3-47794 dragon-res2-202520; do
+for obj in room-plain room-grid mirror-plain mirror-grid sphere bunny dragon-res3-47794 dragon-res3-47794-mirror \
+  dragon-res2-202520 dragon-res2-202520-mirror; do
   scene="$out/scenes/$obj.obj"
   [ -f "$scene" ] || continue
   store="$out/store-$obj"

@@ -143,14 +143,21 @@ fn damaged_checkpoints_are_refused() {
         good.pending.is_some(),
         "the lamp lights a mirror in the first iteration"
     );
+    // (Sparse: per direction, the mirrors that received power, by increasing number.)
+    let lit = (good.pending.as_ref().unwrap().power_in.iter())
+        .position(|p| p.len() >= 2)
+        .expect("a direction lights both mirrors");
     let mut c = good.clone();
-    c.pending.as_mut().unwrap().power_in[3].pop();
+    c.pending.as_mut().unwrap().power_in[lit].swap(0, 1);
+    expect_refused(c, "pending");
+    let mut c = good.clone();
+    c.pending.as_mut().unwrap().power_in[lit].push((99, [1.0; 3]));
     expect_refused(c, "pending");
     let mut c = good.clone();
     c.pending.as_mut().unwrap().power_in.pop();
     expect_refused(c, "pending");
     let mut c = good.clone();
-    c.pending.as_mut().unwrap().power_in[3][0][0] = f64::NAN;
+    c.pending.as_mut().unwrap().power_in[lit][0].1[0] = f64::NAN;
     expect_refused(c, "pending");
     let mut c = good.clone();
     c.mirrors = None;
@@ -384,7 +391,7 @@ fn mismatched_or_damaged_halves_are_refused() {
     bad_head.mirror_batches = bad_head.mirror_batches.map(|n| n + 1);
     assert!(r.restore_head(bad_head).is_err());
     let mut bad_head = head2.clone();
-    bad_head.pending.as_mut().unwrap().power_in[0].push([0.0; 3]);
+    bad_head.pending.as_mut().unwrap().power_in[0].push((u32::MAX, [0.0; 3]));
     assert!(r.restore_head(bad_head).is_err());
     assert!(r.checkpoint() == before);
     // A shooting state that does not fit the scene is refused, and leaves the
@@ -425,4 +432,34 @@ fn scene_bytes_round_trip_and_refuse_damage() {
     let mut broken = scene;
     broken.materials[0].diffuse[0] = 1.5;
     assert!(matches!(Scene::from_bytes(&broken.to_bytes()), Err(Error::Decode(_))));
+}
+
+/// Builds before sparse `Φ_in` stored pending arrivals dense, a value for every mirror, zeros
+/// included: their whole checkpoints (version 3) and heads (version 4) read as this build's,
+/// and resume to the bits of a run that never stopped.
+#[test]
+fn dense_pending_power_of_earlier_builds_reads_as_sparse() {
+    use vlf_core::propagate::snapshot::earlier;
+    let scene = mirror_room();
+    let mut straight = Propagation::new(scene.clone(), options(5, 0)).unwrap();
+    straight.run(|_| {});
+    let mut p = Propagation::new(scene.clone(), options(5, 0)).unwrap();
+    p.step(|_| {});
+    p.step(|_| {});
+    let c = p.checkpoint();
+    let mirrors = p.specular.as_ref().unwrap().mirrors.len();
+    let pending = c.pending.as_ref().expect("arrivals wait to be reflected");
+    assert!(
+        pending.power_in.iter().any(|v| !v.is_empty() && v.len() < mirrors),
+        "some lit direction misses a mirror: the dense table holds zeros the sparse one leaves out"
+    );
+    let read = Checkpoint::from_bytes(&earlier::whole_dense(&c, mirrors)).unwrap();
+    assert!(read == c, "a version 3 checkpoint read otherwise");
+    let (head, _) = c.clone().split().0.into_parts(options(5, 0).batching());
+    let old_head = StateHead::from_bytes(&earlier::head_dense(&head, mirrors)).unwrap();
+    assert!(old_head.mirror_totals_by_batch());
+    assert!(old_head == head, "a version 4 head read otherwise");
+    let mut resumed = Propagation::resume(scene, options(5, 0), read).unwrap();
+    resumed.run(|_| {});
+    assert!(state(&resumed) == state(&straight), "resumed to other bits");
 }

@@ -491,12 +491,29 @@ fn out_of_order_and_foreign_batches_are_refused() {
     let mut short = out.clone();
     short.power_in.as_mut().unwrap().pop();
     assert!(main.apply_batch(&mut work, short).is_err());
+    // Φ_in is sparse, by increasing mirror: a NaN, a mirror beyond the scene's or one twice is
+    // refused.
+    let lit = (out.power_in.as_ref().unwrap().iter())
+        .position(|p| !p.is_empty())
+        .expect("light on a mirror in the first iteration");
     let mut bad = out.clone();
-    bad.power_in.as_mut().unwrap()[0][0][1] = f64::NAN;
+    bad.power_in.as_mut().unwrap()[lit][0].1[1] = f64::NAN;
     assert!(main.apply_batch(&mut work, bad).is_err());
+    let mut beyond = out.clone();
+    beyond.power_in.as_mut().unwrap()[lit].push((u32::MAX, [1.0; 3]));
+    assert!(main.apply_batch(&mut work, beyond).is_err());
+    let mut twice = out.clone();
+    let first = twice.power_in.as_ref().unwrap()[lit][0];
+    twice.power_in.as_mut().unwrap()[lit].push(first);
+    assert!(main.apply_batch(&mut work, twice).is_err());
     let mut missing = out.clone();
     missing.power_in = None;
     assert!(main.apply_batch(&mut work, missing).is_err());
+    // Stored, it reads back; as an earlier build wrote it (Φ_in dense), it reads as sparse.
+    assert_eq!(BatchOutput::from_bytes(&out.to_bytes()).unwrap(), out);
+    let mirrors = main.specular.as_ref().unwrap().mirrors.len();
+    let dense = vlf_core::propagate::snapshot::earlier::batch_output_dense(&out, mirrors);
+    assert_eq!(BatchOutput::from_bytes(&dense).unwrap(), out);
     // Mirror maps of another snapshot, or that do not fit, are not adopted.
     let block = block.unwrap();
     assert!(

@@ -242,9 +242,7 @@ impl Propagation {
             (None, false) => Ok(()),
             (Some(power), true) => {
                 let fits = power.len() == range.len()
-                    && power
-                        .iter()
-                        .all(|p| p.len() == mirrors && p.iter().flatten().all(|v| v.is_finite() && *v >= 0.0));
+                    && (power.iter()).all(|p| super::checkpoint::mirror_power_fits(p, mirrors as u32));
                 if fits {
                     Ok(())
                 } else {

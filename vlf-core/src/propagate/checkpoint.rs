@@ -25,11 +25,13 @@
 //! [`Checkpoint::join`] puts them back together. How they are stored — the
 //! mirror maps cut further, by batch of directions — is [`super::snapshot`].
 //!
-//! Serialised with bincode behind a version number, one per layout: 3 is the
-//! whole checkpoint in one blob, 4 the shooting state's head, 2 the other
+//! Serialised with bincode behind a version number, one per layout: 5 is the
+//! whole checkpoint in one blob, 6 the shooting state's head, 2 the other
 //! parts. Stores written by earlier builds hold version 1 (a whole
-//! checkpoint without pending arrivals: its shooting maps are unshot maps)
-//! or version 2 heads (the same, in parts): both are still read.
+//! checkpoint without pending arrivals: its shooting maps are unshot maps),
+//! version 2 heads (the same, in parts), or versions 3 and 4 (whole and head
+//! with pending `Φ_in` dense, a value for every mirror: read as sparse,
+//! [`super::specular::MirrorPower`]): all are still read.
 //! [`Checkpoint::from_bytes`] and [`Propagation::resume`] refuse anything
 //! that does not fit the rebuilt geometry, or that is not finite and
 //! non-negative, with an [`Error::Decode`].
@@ -45,10 +47,50 @@ const WHOLE_V1: u32 = 1;
 /// The parts' serialisation ([`Totals`], [`super::MapBatch`]; and the head
 /// of earlier builds, without pending arrivals).
 pub(crate) const SPLIT_VERSION: u32 = 2;
+/// The whole checkpoint of earlier builds, with dense pending `Φ_in`.
+const CHECKPOINT_DENSE: u32 = 3;
+/// The shooting state's head of earlier builds, with dense pending `Φ_in`.
+pub(crate) const HEAD_DENSE: u32 = 4;
 /// The whole checkpoint (one blob).
-const CHECKPOINT_VERSION: u32 = 3;
+const CHECKPOINT_VERSION: u32 = 5;
 /// The shooting state's head ([`super::StateHead`]).
-pub(crate) const HEAD_VERSION: u32 = 4;
+pub(crate) const HEAD_VERSION: u32 = 6;
+
+/// Pending arrivals as earlier builds stored them: `Φ_in` of every mirror of
+/// every direction, zeros included.
+#[derive(Serialize, Deserialize)]
+pub(crate) struct DensePending {
+    pub(crate) power_in: Vec<Vec<Rgb>>,
+}
+
+impl DensePending {
+    /// The same arrivals with their zeros left out.
+    pub(crate) fn sparse(self) -> Pending {
+        let power_in = (self.power_in.into_iter())
+            .map(|dense| {
+                (dense.into_iter().enumerate())
+                    .filter(|(_, v)| v.iter().any(|&c| c != 0.0))
+                    .map(|(k, v)| (k as u32, v))
+                    .collect()
+            })
+            .collect();
+        Pending { power_in }
+    }
+
+    /// `pending` with a value for each of `mirrors` mirrors.
+    pub(crate) fn of(pending: &Pending, mirrors: usize) -> DensePending {
+        let power_in = (pending.power_in.iter())
+            .map(|sparse| {
+                let mut dense = vec![[0.0; 3]; mirrors];
+                for &(k, v) in sparse {
+                    dense[k as usize] = v;
+                }
+                dense
+            })
+            .collect();
+        DensePending { power_in }
+    }
+}
 
 /// The bincode bytes of `value`.
 pub(crate) fn encode(value: &impl Serialize) -> Vec<u8> {
@@ -87,6 +129,17 @@ pub struct Checkpoint {
     pub pending: Option<Pending>,
 }
 
+/// [`Checkpoint`] with dense pending `Φ_in` (version 3).
+#[derive(Serialize, Deserialize)]
+pub(crate) struct CheckpointDense {
+    pub(crate) version: u32,
+    pub(crate) stats: Vec<IterationStats>,
+    pub(crate) current: Vec<Rgb>,
+    pub(crate) total: Vec<Rgb>,
+    pub(crate) mirrors: Option<Vec<DirectionCheckpoint>>,
+    pub(crate) pending: Option<DensePending>,
+}
+
 /// [`Checkpoint`] as earlier builds wrote it (version 1).
 #[derive(Deserialize)]
 struct CheckpointV1 {
@@ -112,6 +165,17 @@ impl Checkpoint {
         let bad = |e: bincode::Error| Error::Decode(format!("checkpoint: {e}"));
         match version_of(bytes) {
             Some(CHECKPOINT_VERSION) => bincode::deserialize(bytes).map_err(bad),
+            Some(CHECKPOINT_DENSE) => {
+                let old: CheckpointDense = bincode::deserialize(bytes).map_err(bad)?;
+                Ok(Checkpoint {
+                    version: CHECKPOINT_VERSION,
+                    stats: old.stats,
+                    current: old.current,
+                    total: old.total,
+                    mirrors: old.mirrors,
+                    pending: old.pending.map(DensePending::sparse),
+                })
+            }
             Some(WHOLE_V1) => {
                 let old: CheckpointV1 = bincode::deserialize(bytes).map_err(bad)?;
                 debug_assert_eq!(old.version, WHOLE_V1);
@@ -124,11 +188,11 @@ impl Checkpoint {
                     pending: None,
                 })
             }
-            Some(SPLIT_VERSION | HEAD_VERSION) => Err(Error::Decode(
+            Some(SPLIT_VERSION | HEAD_DENSE | HEAD_VERSION) => Err(Error::Decode(
                 "checkpoint: this is the head of a split checkpoint (read it with its other parts)".into(),
             )),
             Some(v) => Err(Error::Decode(format!(
-                "checkpoint version {v} (this build reads {WHOLE_V1} and {CHECKPOINT_VERSION})"
+                "checkpoint version {v} (this build reads {WHOLE_V1}, {CHECKPOINT_DENSE} and {CHECKPOINT_VERSION})"
             ))),
             None => Err(Error::Decode("checkpoint: truncated".into())),
         }
@@ -138,7 +202,7 @@ impl Checkpoint {
     /// maps and totals are in other blobs, see [`super::snapshot`]) rather
     /// than a whole one.
     pub fn is_split(bytes: &[u8]) -> bool {
-        matches!(version_of(bytes), Some(SPLIT_VERSION | HEAD_VERSION))
+        matches!(version_of(bytes), Some(SPLIT_VERSION | HEAD_DENSE | HEAD_VERSION))
     }
 
     /// The two halves of this checkpoint.
@@ -393,14 +457,18 @@ impl Propagation {
             return misfit("pending mirror arrivals for a scene without mirrors".into());
         };
         let l = self.directions.len();
-        if p.power_in.len() != l || p.power_in.iter().any(|v| v.len() != spec.mirrors.len()) {
+        if p.power_in.len() != l {
             return misfit(format!(
-                "pending mirror power does not fit {l} directions and {} mirrors",
-                spec.mirrors.len()
+                "pending mirror power for {} directions, not {l}",
+                p.power_in.len()
             ));
         }
-        if !p.power_in.iter().all(|v| valid(v)) {
-            return misfit("negative or non-finite pending mirror power".into());
+        let mirrors = spec.mirrors.len() as u32;
+        if let Some(d) = p.power_in.iter().position(|v| !mirror_power_fits(v, mirrors)) {
+            return misfit(format!(
+                "direction {d}'s pending mirror power does not fit {mirrors} mirrors \
+                 (increasing mirror numbers, non-negative finite power)"
+            ));
         }
         Ok(())
     }
@@ -462,6 +530,15 @@ pub(crate) fn valid(v: &[Rgb]) -> bool {
     // `0 ≤ c ≤ MAX` is false for NaN, for infinities and for negative values.
     let power = 0.0..=f64::MAX;
     v.as_flattened().iter().fold(true, |ok, c| ok & power.contains(c))
+}
+
+/// Whether `power` is one direction's `Φ_in` over `mirrors` mirrors
+/// ([`super::specular::MirrorPower`]): strictly increasing mirror numbers
+/// below `mirrors`, non-negative finite power.
+pub(crate) fn mirror_power_fits(power: &[(u32, Rgb)], mirrors: u32) -> bool {
+    power.windows(2).all(|w| w[0].0 < w[1].0)
+        && power.last().is_none_or(|&(k, _)| k < mirrors)
+        && power.iter().all(|(_, v)| valid(std::slice::from_ref(v)))
 }
 
 #[cfg(test)]

@@ -458,7 +458,7 @@ mod tests {
             pass: super::super::Pass::Shoot,
             batches: block.start as u32..block.end as u32,
             sum: sub.finish().unwrap(),
-            power_in: Some(block.clone().map(|b| vec![[b as f64, 0.0, 0.0]]).collect()),
+            power_in: Some(block.clone().map(|b| vec![(0, [b as f64, 0.0, 0.0])]).collect()),
         }
     }
 

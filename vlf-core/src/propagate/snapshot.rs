@@ -29,7 +29,9 @@
 //! whole: [`StateHead::from_bytes`] still reads them, and
 //! [`StateHead::mirror_totals_by_batch`] tells the two apart.
 
-use super::checkpoint::{HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, misfit, version_of};
+use super::checkpoint::{
+    DensePending, HEAD_DENSE, HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, misfit, version_of,
+};
 use super::specular::Pending;
 use super::work::{Batching, MirrorBlock};
 use super::{IterationStats, Propagation};
@@ -51,6 +53,16 @@ pub struct StateHead {
     /// `Φ_in` of the arrivals the shooting maps hold, when they wait to be
     /// reflected.
     pub pending: Option<Pending>,
+}
+
+/// A head with dense pending `Φ_in`, as earlier builds wrote it (version 4).
+#[derive(Serialize, Deserialize)]
+struct StateHeadDense {
+    version: u32,
+    stats: Vec<IterationStats>,
+    current: Vec<Rgb>,
+    mirror_batches: Option<u32>,
+    pending: Option<DensePending>,
 }
 
 /// A head as earlier builds wrote it (version 2).
@@ -81,8 +93,9 @@ impl StateHead {
     }
 
     /// Whether the snapshot's mirror totals are stored by batch (this
-    /// build) rather than whole in its totals blob, and its map batches
-    /// stored where this build puts them (earlier builds: version 2).
+    /// build, and heads with dense `Φ_in`) rather than whole in its totals
+    /// blob, and its map batches stored where this build puts them (earlier
+    /// builds: version 2).
     pub fn mirror_totals_by_batch(&self) -> bool {
         self.version == HEAD_VERSION
     }
@@ -95,6 +108,16 @@ impl StateHead {
         let bad = |e: bincode::Error| Error::Decode(format!("shooting state head: {e}"));
         match version_of(bytes) {
             Some(HEAD_VERSION) => bincode::deserialize(bytes).map_err(bad),
+            Some(HEAD_DENSE) => {
+                let old: StateHeadDense = bincode::deserialize(bytes).map_err(bad)?;
+                Ok(StateHead {
+                    version: HEAD_VERSION,
+                    stats: old.stats,
+                    current: old.current,
+                    mirror_batches: old.mirror_batches,
+                    pending: old.pending.map(DensePending::sparse),
+                })
+            }
             Some(SPLIT_VERSION) => {
                 let old: StateHeadV2 = bincode::deserialize(bytes).map_err(bad)?;
                 Ok(StateHead {
@@ -106,7 +129,7 @@ impl StateHead {
                 })
             }
             Some(v) => Err(Error::Decode(format!(
-                "shooting state head: version {v} (this build reads {SPLIT_VERSION} and {HEAD_VERSION})"
+                "shooting state head: version {v} (this build reads {SPLIT_VERSION}, {HEAD_DENSE} and {HEAD_VERSION})"
             ))),
             None => Err(Error::Decode("shooting state head: truncated".into())),
         }
@@ -428,7 +451,8 @@ impl Propagation {
 
 /// The bytes earlier builds wrote, for tests of the stores they left: a
 /// checkpoint or head without pending arrivals (their shooting maps are
-/// unshot maps) in the layouts of version 1 (whole) and 2 (head).
+/// unshot maps) in the layouts of version 1 (whole) and 2 (head), and with
+/// dense pending `Φ_in` in those of version 3 (whole) and 4 (head).
 #[doc(hidden)]
 pub mod earlier {
     use super::*;
@@ -464,6 +488,51 @@ pub mod earlier {
                     .as_ref()
                     .map(|m| m.iter().map(|d| (&d.shooting[..], &d.total[..])).collect()),
             })
+        })
+    }
+
+    /// `checkpoint` as a version 3 blob, its pending `Φ_in` dense over
+    /// `mirrors` mirrors.
+    pub fn whole_dense(checkpoint: &Checkpoint, mirrors: usize) -> Vec<u8> {
+        encode(&crate::propagate::checkpoint::CheckpointDense {
+            version: 3,
+            stats: checkpoint.stats.clone(),
+            current: checkpoint.current.clone(),
+            total: checkpoint.total.clone(),
+            mirrors: checkpoint.mirrors.clone(),
+            pending: checkpoint.pending.as_ref().map(|p| DensePending::of(p, mirrors)),
+        })
+    }
+
+    /// `head` as a version 4 blob, its pending `Φ_in` dense over `mirrors`
+    /// mirrors.
+    pub fn head_dense(head: &StateHead, mirrors: usize) -> Vec<u8> {
+        encode(&StateHeadDense {
+            version: HEAD_DENSE,
+            stats: head.stats.clone(),
+            current: head.current.clone(),
+            mirror_batches: head.mirror_batches,
+            pending: head.pending.as_ref().map(|p| DensePending::of(p, mirrors)),
+        })
+    }
+
+    /// `output` as earlier builds wrote it, its `Φ_in` dense over `mirrors` mirrors.
+    pub fn batch_output_dense(output: &crate::propagate::BatchOutput, mirrors: usize) -> Vec<u8> {
+        let pending = |power_in: &Vec<crate::propagate::specular::MirrorPower>| {
+            DensePending::of(
+                &Pending {
+                    power_in: power_in.clone(),
+                },
+                mirrors,
+            )
+            .power_in
+        };
+        encode(&crate::propagate::work::DenseOutput {
+            iteration: output.iteration,
+            pass: output.pass,
+            batches: output.batches.clone(),
+            sum: output.sum.clone(),
+            power_in: output.power_in.as_ref().map(pending),
         })
     }
 

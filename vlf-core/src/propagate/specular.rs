@@ -262,12 +262,32 @@ type GatherTable = Vec<Vec<(u32, u32)>>;
 /// distributed service that is the worker with the direction's lease, so
 /// the maps go from worker to worker (a worker that keeps its directions
 /// reads nothing back) and the coordinator handles only `Φ_in`, a few
-/// numbers per direction.
+/// numbers per direction and mirror its rays met.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pending {
-    /// `Φ_in(P, ω)`: per direction, per mirror (in the order of
-    /// [`Specular::mirrors`]), the power its incident map holds.
-    pub power_in: Vec<Vec<Rgb>>,
+    /// `Φ_in(P, ω)`: per direction, the power its incident map holds on each
+    /// mirror that received some ([`MirrorPower`]).
+    pub power_in: Vec<MirrorPower>,
+}
+
+/// `Φ_in` of one direction: `(k, Φ)` for every mirror `k` (by its ordinal in
+/// [`Specular::mirrors`]) that received power `Φ` ≠ 0, by increasing `k`.
+///
+/// Sparse because a direction's rays meet few of a scan's mirror polygons:
+/// at N = 64 a triangle of the 47 794-triangle dragon is far smaller than a
+/// ray cell, so a direction crosses about one in a hundred. Dense, `Φ_in`
+/// was `l × mirrors` triples — 588 MB in every snapshot of that dragon as a
+/// mirror at l = 513, 9.4 GB at l = 8193 — nearly all zeros. Omitted entries
+/// are zeros: every use skips a mirror without power, so the sums are those
+/// of the dense table, to the bit.
+pub type MirrorPower = Vec<(u32, Rgb)>;
+
+/// The power of mirror `k` in `power` (zero where it has no entry).
+fn power_of(power: &[(u32, Rgb)], k: u32) -> Rgb {
+    match power.binary_search_by_key(&k, |&(m, _)| m) {
+        Ok(i) => power[i].1,
+        Err(_) => [0.0; 3],
+    }
 }
 
 impl Specular {
@@ -413,7 +433,7 @@ impl Specular {
     /// reflected.
     pub fn has_unshot(&self) -> bool {
         match &self.pending {
-            Some(p) => p.power_in.iter().flatten().any(|v| v.iter().any(|&c| c > 0.0)),
+            Some(p) => (p.power_in.iter().flatten()).any(|(_, v)| v.iter().any(|&c| c > 0.0)),
             None => self
                 .maps
                 .iter()
@@ -421,21 +441,29 @@ impl Specular {
         }
     }
 
-    /// `Φ_in(P, ω)` of direction `d` for every mirror `P` (by ordinal): the
-    /// power its incident map `incident` holds, `Σ_slots I · Δω`.
-    pub fn power_in_of(&self, directions: &DirectionSet, d: usize, incident: &[Rgb]) -> Vec<Rgb> {
-        let mut p = vec![[0.0; 3]; self.mirrors.len()];
+    /// `Φ_in(P, ω)` of direction `d` for every mirror `P` that received power
+    /// ([`MirrorPower`]): what its incident map `incident` holds,
+    /// `Σ_slots I · Δω`.
+    pub fn power_in_of(&self, directions: &DirectionSet, d: usize, incident: &[Rgb]) -> MirrorPower {
+        let mut p: MirrorPower = Vec::new();
         let w = directions.get(d).weight;
         let MirrorView { sub, layout } = &self.views[d];
+        // The entries are sorted by surface: each mirror's are adjacent.
         for &(s, _, e) in &layout.entries {
             let base = layout.entry_base[e as usize] as usize;
-            let acc = &mut p[self.ordinal[s as usize] as usize];
+            let k = self.ordinal[s as usize];
+            if p.last().is_none_or(|&(last, _)| last != k) {
+                p.push((k, [0.0; 3]));
+            }
+            let acc = &mut p.last_mut().expect("pushed").1;
             for v in &incident[base..base + sub.entries[e as usize].rays as usize] {
                 for c in 0..3 {
                     acc[c] += v[c] * w;
                 }
             }
         }
+        p.retain(|(_, v)| v.iter().any(|&c| c != 0.0));
+        p.sort_unstable_by_key(|&(k, _)| k);
         p
     }
 
@@ -444,15 +472,15 @@ impl Specular {
     /// (`b·ρs·Φ_in` per route that has slots to fill) — the same sums, in
     /// the same order, as [`Specular::gather`] adds up, so a coordinator that
     /// never sees a map knows the exchange's power exactly.
-    pub fn settle(&self, scene: &Scene, power_in: &[Vec<Rgb>]) -> Exchange {
+    pub fn settle(&self, scene: &Scene, power_in: &[MirrorPower]) -> Exchange {
         let mut exchange = Exchange::default();
-        for v in power_in.iter().flatten() {
+        for (_, v) in power_in.iter().flatten() {
             add(&mut exchange.incident, v);
         }
         for (i, routes) in self.routes.iter().enumerate() {
             let mut reflected = [0.0; 3];
             for route in routes {
-                let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+                let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
                 if pin.iter().all(|&p| p <= 0.0) || !self.slotted[i][self.ordinal[route.mirror as usize] as usize] {
                     continue;
                 }
@@ -471,12 +499,12 @@ impl Specular {
 
     /// The source directions whose arrivals the gather of `targets` reads:
     /// those of their routes that carry power, in order.
-    pub fn sources(&self, targets: std::ops::Range<usize>, power_in: &[Vec<Rgb>]) -> Vec<usize> {
+    pub fn sources(&self, targets: std::ops::Range<usize>, power_in: &[MirrorPower]) -> Vec<usize> {
         let mut out: Vec<usize> = self.routes[targets]
             .iter()
             .flatten()
             .filter(|r| {
-                power_in[r.source as usize][self.ordinal[r.mirror as usize] as usize]
+                power_of(&power_in[r.source as usize], self.ordinal[r.mirror as usize])
                     .iter()
                     .any(|&p| p > 0.0)
             })
@@ -522,11 +550,11 @@ impl Specular {
         scene: &Scene,
         directions: &DirectionSet,
         incident: &(dyn Fn(usize) -> &'a [Rgb] + Sync),
-        power_in: &[Vec<Rgb>],
+        power_in: &[MirrorPower],
         i: usize,
     ) -> Vec<Rgb> {
         let lit = |route: &Route| {
-            let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+            let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
             !pin.iter().all(|&p| p <= 0.0)
         };
         // Backward mapping: every slot of P in i reads the incident radiance of the source ray
@@ -547,7 +575,7 @@ impl Specular {
             if !lit(route) {
                 continue;
             }
-            let pin = power_in[route.source as usize][self.ordinal[route.mirror as usize] as usize];
+            let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
             let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
             let source_incident = incident(route.source as usize);
             samples.clear();

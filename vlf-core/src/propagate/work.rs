@@ -38,7 +38,7 @@
 
 use super::reduce::TreeSum;
 use super::shoot::{self, Flow, Scratch};
-use super::specular::DirectionMaps;
+use super::specular::{DirectionMaps, MirrorPower};
 use super::{FlowRecord, Propagation, perturb, radiance_of};
 use crate::directions::DirectionSet;
 use crate::psf::{RasterScratch, Subfield};
@@ -222,8 +222,8 @@ pub struct BatchOutput {
     /// The block's node sum.
     pub sum: BatchSum,
     /// When the pass uses mirror maps: per direction of the block, in order,
-    /// `Φ_in` of what arrived on each mirror ([`super::Specular::power_in_of`]).
-    pub power_in: Option<Vec<Vec<Rgb>>>,
+    /// `Φ_in` of what arrived on the mirrors ([`super::Specular::power_in_of`]).
+    pub power_in: Option<Vec<MirrorPower>>,
 }
 
 /// The mirror maps of a block's directions after it shot them: their part of
@@ -244,13 +244,46 @@ pub struct MirrorBlock {
     pub total: Vec<Vec<Rgb>>,
 }
 
+/// The first four bytes of a [`BatchOutput`] with sparse `Φ_in`. Earlier builds' outputs start
+/// with their iteration, a number far below it, and hold `Φ_in` dense (one value per mirror).
+const SPARSE_OUTPUT: u32 = 0xB05A_25E2;
+
+/// [`BatchOutput`] as earlier builds wrote it: `Φ_in` dense.
+#[derive(Serialize, Deserialize)]
+pub(crate) struct DenseOutput {
+    pub(crate) iteration: u32,
+    pub(crate) pass: Pass,
+    pub(crate) batches: Range<u32>,
+    pub(crate) sum: BatchSum,
+    pub(crate) power_in: Option<Vec<Vec<Rgb>>>,
+}
+
 impl BatchOutput {
     pub fn to_bytes(&self) -> Vec<u8> {
-        bincode::serialize(self).expect("bincode into memory cannot fail for plain numbers")
+        let mut bytes = SPARSE_OUTPUT.to_le_bytes().to_vec();
+        bincode::serialize_into(&mut bytes, self).expect("bincode into memory cannot fail for plain numbers");
+        bytes
     }
 
+    /// Reads an output of this build, or of an earlier one (dense `Φ_in`, read as sparse): a
+    /// coordinator of this build may take over an iteration whose outputs an earlier one left.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<BatchOutput> {
-        bincode::deserialize(bytes).map_err(|e| crate::Error::Decode(format!("batch output: {e}")))
+        let bad = |e: bincode::Error| crate::Error::Decode(format!("batch output: {e}"));
+        match bytes.split_first_chunk::<4>() {
+            Some((head, rest)) if u32::from_le_bytes(*head) == SPARSE_OUTPUT => bincode::deserialize(rest).map_err(bad),
+            _ => {
+                let old: DenseOutput = bincode::deserialize(bytes).map_err(bad)?;
+                Ok(BatchOutput {
+                    iteration: old.iteration,
+                    pass: old.pass,
+                    batches: old.batches,
+                    sum: old.sum,
+                    power_in: old
+                        .power_in
+                        .map(|p| super::checkpoint::DensePending { power_in: p }.sparse().power_in),
+                })
+            }
+        }
     }
 }
 
@@ -266,7 +299,7 @@ pub struct IterationWork {
     pub(crate) received: Vec<Rgb>,
     pub(crate) flow: Flow,
     /// With mirror maps: per direction, `Φ_in` of its arrivals, as absorbed.
-    pub(crate) power_in: Vec<Vec<Rgb>>,
+    pub(crate) power_in: Vec<MirrorPower>,
     /// The pass being absorbed (its index) and its partial sums.
     cursor: usize,
     tree: TreeSum,
