@@ -137,7 +137,10 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
                 .install(|| Propagation::with_subfield_budget(scene, spec.options, args.subfield_budget()))
                 .context("cannot set up the light field")?;
             let store = Store::open(&args.store)?;
-            let job = pool.install(|| FieldJob::create(&store, &prop, spec.encoding))?;
+            let mut job = pool.install(|| FieldJob::create(&store, &prop, spec.encoding))?;
+            if !spec.keep_checkpoints {
+                job.set_compact(true)?;
+            }
             println!("job {} in {}", job.id(), args.store);
             (job, prop)
         }
@@ -252,6 +255,7 @@ impl JobFlags {
             filter: self.filter,
             pass_batches: Some(self.pass_batches),
             resample: self.resample,
+            keep_checkpoints: self.keep_checkpoints,
             encoding: match self.encoding {
                 EncodingArg::F32 => WireEncoding::F32,
                 EncodingArg::F16 => WireEncoding::F16,

@@ -14,6 +14,9 @@ pub struct JobSpec {
     pub encoding: Encoding,
     /// Re-sample mirror maps by backward ray tracing after the last iteration.
     pub resample: bool,
+    /// Keep every snapshot resumable rather than compact the superseded ones
+    /// (`vlf_store::Manifest::compact`).
+    pub keep_checkpoints: bool,
 }
 
 impl JobSpec {
@@ -65,6 +68,7 @@ impl JobSpec {
             options,
             encoding,
             resample: p.resample,
+            keep_checkpoints: p.keep_checkpoints,
         })
     }
 }

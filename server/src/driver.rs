@@ -43,6 +43,9 @@ pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Resu
         if spec.resample {
             job.set_resample(true)?;
         }
+        if !spec.keep_checkpoints {
+            job.set_compact(true)?;
+        }
         Ok(Coordinator::new(job, prop))
     })
     .await

@@ -360,6 +360,12 @@ impl FieldJob {
         self.set_state(JobState::Failed { message })
     }
 
+    /// Sets whether committing a snapshot deletes the mirror shooting maps of the one before
+    /// (see [`crate::Manifest::compact`]).
+    pub fn set_compact(&mut self, compact: bool) -> Result<(), StoreError> {
+        self.job.set_compact(compact)
+    }
+
     /// Records whether the final field is to be re-sampled (see [`crate::Manifest::resample`]).
     pub fn set_resample(&mut self, resample: bool) -> Result<(), StoreError> {
         self.job.set_resample(resample)
@@ -397,6 +403,7 @@ impl FieldJob {
     /// of a job of the first builds).
     pub fn checkpoint(&self, k: u32) -> Result<Checkpoint, StoreError> {
         self.job.check_committed(Stage::Iteration(k))?;
+        self.job.check_resumable(k)?;
         self.released_checkpoint(k, self.released_state(k)?)
     }
 
@@ -424,6 +431,7 @@ impl FieldJob {
     /// What shooting the iteration after finished snapshot `k` reads: half of its checkpoint.
     pub fn shooting_state(&self, k: u32) -> Result<ShootingState, StoreError> {
         self.job.check_committed(Stage::Iteration(k))?;
+        self.job.check_resumable(k)?;
         self.released_shooting_state(k)
     }
 

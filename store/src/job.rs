@@ -315,12 +315,51 @@ impl Job {
         if !self.store.exists(&layout::state(self.id(), k)?)? {
             return Err(self.error(format!("cannot commit iteration {k}: its resume state is not written")));
         }
+        // The snapshot this one supersedes loses its mirror shooting maps if the job compacts:
+        // listed as compacted in the same manifest write, deleted after it (a reader never
+        // finds a resumable snapshot without its parts; a crash in between leaves garbage).
+        let superseded = match self.last_finished() {
+            Some(p) if self.manifest.compact && !self.manifest.compacted.contains(&p) => {
+                let parts = self.store.list(&layout::map_parts(self.id(), p, MapPart::Shooting)?)?;
+                (!parts.is_empty()).then_some((p, parts))
+            }
+            _ => None,
+        };
         let mut manifest = self.manifest.clone();
         manifest.finished_iterations.push(k);
         manifest.state = JobState::Propagating {
             iteration: k.saturating_add(1),
         };
+        if let Some((p, _)) = &superseded {
+            manifest.compacted.push(*p);
+        }
+        self.write_manifest(manifest)?;
+        if let Some((p, parts)) = superseded
+            && let Err(e) = self.store.delete_all(&parts)
+        {
+            tracing::warn!(job = %self.id(), snapshot = p, error = %e, "compacted snapshot's shooting maps not all deleted");
+        }
+        Ok(())
+    }
+
+    /// Sets whether committing a snapshot compacts the one before ([`Manifest::compact`]).
+    pub fn set_compact(&mut self, compact: bool) -> Result<(), StoreError> {
+        let mut manifest = self.manifest.clone();
+        manifest.compact = compact;
         self.write_manifest(manifest)
+    }
+
+    /// Refuses snapshot `k` if it was compacted ([`Manifest::compacted`]): it renders, but does
+    /// not resume.
+    pub fn check_resumable(&self, k: u32) -> Result<(), StoreError> {
+        if self.manifest.compacted.contains(&k) {
+            let last = self.last_finished().map_or("none".into(), |l| l.to_string());
+            return Err(self.error(format!(
+                "snapshot {k} was compacted once a later one was committed: it renders, but only \
+                 its radiance is kept, not the maps to resume from (the last snapshot, {last}, resumes)"
+            )));
+        }
+        Ok(())
     }
 
     /// Sets the job's state (e.g. failed, cancelled, or propagating again to resume).

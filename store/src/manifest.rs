@@ -74,6 +74,17 @@ pub struct Manifest {
     /// does what was asked). Absent in older manifests: false.
     #[serde(default, skip_serializing_if = "is_false")]
     pub resample: bool,
+    /// Whether committing a snapshot deletes the mirror shooting maps of the one before it
+    /// ([`Manifest::compacted`]): only the last snapshot is resumed, and a mirror job's
+    /// shooting maps are half its store (the half-mirror grid room at l = 2049, N = 128: 30
+    /// snapshots of 425 MB). Set when the job is created; absent in older manifests: false.
+    #[serde(default, skip_serializing_if = "is_false")]
+    pub compact: bool,
+    /// Finished snapshots whose shooting maps were deleted once a later one was committed:
+    /// they render as before (their radiance is kept) but do not resume. Strictly increasing,
+    /// finished, and never the last finished snapshot.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub compacted: Vec<u32>,
 }
 
 fn is_false(b: &bool) -> bool {
@@ -95,6 +106,8 @@ impl Manifest {
             created: now,
             updated: now,
             resample: false,
+            compact: false,
+            compacted: Vec::new(),
         }
     }
 
@@ -132,6 +145,16 @@ impl Manifest {
             return Err(format!(
                 "finished iterations {:?} are not strictly increasing",
                 self.finished_iterations
+            ));
+        }
+        if self.compacted.windows(2).any(|w| w[0] >= w[1])
+            || !self.compacted.iter().all(|k| self.is_finished(*k))
+            || self.compacted.last().is_some_and(|k| Some(*k) == self.last_finished())
+        {
+            return Err(format!(
+                "compacted snapshots {:?} are not strictly increasing finished snapshots before the \
+                 last of {:?}",
+                self.compacted, self.finished_iterations
             ));
         }
         if self.encoding == Encoding::Bytes {
@@ -187,6 +210,16 @@ mod tests {
         let json = serde_json::to_vec(&m).unwrap();
         assert_eq!(Manifest::from_json(&json).unwrap(), m);
         assert!(String::from_utf8_lossy(&json).contains(r#""state":{"kind":"propagating","iteration":3}"#));
+        // Compacted snapshots: finished ones before the last, in order.
+        m.compact = true;
+        m.compacted = vec![0, 1];
+        assert_eq!(Manifest::from_json(&serde_json::to_vec(&m).unwrap()).unwrap(), m);
+        for bad in [vec![0, 1, 2], vec![1, 0], vec![1, 1], vec![5]] {
+            m.compacted = bad;
+            let e = Manifest::from_json(&serde_json::to_vec(&m).unwrap()).unwrap_err();
+            assert!(e.contains("compacted"), "{e}");
+        }
+        m.compacted = Vec::new();
         m.finished_iterations = vec![0, 2, 2];
         assert!(Manifest::from_json(&serde_json::to_vec(&m).unwrap()).is_err());
         assert!(Manifest::from_json(b"{}").is_err());

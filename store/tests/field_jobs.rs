@@ -805,3 +805,64 @@ fn earlier_jobs_with_a_mirror_of_several_polygons_are_refused() {
         }
     }
 }
+
+/// A job that compacts (what `vlf propagate` and the service do unless told to keep
+/// checkpoints): committing a snapshot deletes the mirror shooting maps of the one before. Every
+/// snapshot still renders as it did, the last resumes to the field of a job that kept them all,
+/// the earlier ones are refused as checkpoints with a message that says why, and the store
+/// holds the shooting maps of the last snapshot only.
+#[test]
+fn compacted_snapshots_render_as_before_and_only_the_last_resumes() {
+    let scene = bundled("mirrors.obj");
+    let mut runs = Vec::new();
+    for compact in [false, true] {
+        let store = Store::open("memory://").unwrap();
+        let mut p = Propagation::new(scene.clone(), options(4)).unwrap();
+        let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+        job.set_compact(compact).unwrap();
+        while !p.finished() {
+            p.step(|_| {});
+            job.write_snapshot(&p).unwrap();
+        }
+        let views: Vec<LightField> = (1..=4).map(|k| job.load(Stage::Iteration(k)).unwrap()).collect();
+        runs.push((store, job.id().clone(), views));
+    }
+    let shooting_parts = |store: &Store, id: &JobId, k: u32| {
+        store
+            .list(&layout::map_parts(id, k, MapPart::Shooting).unwrap())
+            .unwrap()
+            .len()
+    };
+    let [(kept_store, kept_id, kept_views), (store, id, views)] = &runs[..] else {
+        unreachable!()
+    };
+    let kept = FieldJob::open(kept_store, kept_id).unwrap();
+    let job = FieldJob::open(store, id).unwrap();
+    assert_eq!(job.job().manifest().compacted, vec![0, 1, 2, 3]);
+    assert!(kept.job().manifest().compacted.is_empty());
+    for k in 0..4 {
+        assert!(shooting_parts(kept_store, kept_id, k) > 0, "snapshot {k} kept its maps");
+        assert_eq!(shooting_parts(store, id, k), 0, "snapshot {k} compacted");
+        let refused = job.checkpoint(k).unwrap_err().to_string();
+        assert!(refused.contains("compacted") && refused.contains("4"), "{refused}");
+        assert!(job.shooting_state(k).is_err());
+    }
+    assert!(shooting_parts(store, id, 4) > 0);
+    for (k, (a, b)) in views.iter().zip(kept_views).enumerate() {
+        assert!(a.radiance == b.radiance, "snapshot {} renders otherwise", k + 1);
+        assert!(a.specular.as_ref().unwrap().totals == b.specular.as_ref().unwrap().totals);
+    }
+    assert!(without_times(job.checkpoint(4).unwrap()) == without_times(kept.checkpoint(4).unwrap()));
+    // Both finish from their last snapshot to the same field.
+    let mut digests = Vec::new();
+    for mut done in [kept, job] {
+        let mut p = done.resume().unwrap();
+        while !p.finished() {
+            p.step(|_| {});
+        }
+        let field = p.into_field();
+        done.finish(&field, false).unwrap();
+        digests.push(field.digest());
+    }
+    assert_eq!(digests[0], digests[1]);
+}
