@@ -326,7 +326,9 @@ fn in_process_with(
     let mut prop = Propagation::new(scene.clone(), spec.options.clone())?;
     let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
     // As `vlf propagate` and the service do (the service's jobs of this bench compact too).
-    job.set_compact(!spec.keep_checkpoints)?;
+    if !spec.keep_checkpoints {
+        job.set_compact(true)?;
+    }
     let mut iterations = Vec::new();
     let mut phases = Vec::new();
     let mut snapshots = SnapshotWriter::new();
