@@ -65,15 +65,25 @@ impl Scheduler {
     pub fn status(&self, job: &JobId) -> Result<JobStatus, Unknown> {
         let state = self.lock();
         let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
-        Ok(entry.status.borrow().clone())
+        let mut status = entry.status.borrow().clone();
+        // The workers alive now, not at the job's last event: a worker that joins a job waiting
+        // on another's lease causes no event, and would not be counted until the next one.
+        status.workers_alive = alive_workers(&state, self.timing);
+        Ok(status)
     }
 
-    /// Every job's status, oldest first.
+    /// Every job's status, oldest first (workers alive counted now, as [`Self::status`] does).
     pub fn list(&self) -> Vec<JobStatus> {
         let state = self.lock();
+        let alive = alive_workers(&state, self.timing);
         let mut jobs: Vec<_> = state.jobs.values().collect();
         jobs.sort_by_key(|j| j.order);
-        jobs.iter().map(|j| j.status.borrow().clone()).collect()
+        (jobs.iter())
+            .map(|j| JobStatus {
+                workers_alive: alive,
+                ..j.status.borrow().clone()
+            })
+            .collect()
     }
 
     /// A receiver of the job's status changes.
