@@ -9,11 +9,16 @@
 //!     weights `b_k`; in each direction's subfield the point falls between
 //!     four rays, whose mirror radiance is interpolated bilinearly; the three
 //!     are blended by `b_k`. No searching but finding the mirror in a tile's
-//!     short list. Blurry where directions are sparse, but constant time;
+//!     short list. Blurry where directions are sparse, but constant time. On
+//!     a curved mirror, whose triangles are mostly smaller than a ray cell, a
+//!     ray that misses the triangle's plane is read where it crosses a
+//!     neighbouring triangle ([`LightField::mirror_slot`]);
 //!   - **ray traced**: reflect the eye ray until it meets a diffuse surface
 //!     and read its map (sharp reflections; cost grows with depth).
 
 use crate::field::LightField;
+use crate::propagate::specular::MirrorLayout;
+use crate::psf::{Subfield, SurfaceProjection};
 use crate::render::{Bvh, Camera, Hit, Image};
 use crate::scene::Rgb;
 use glam::DVec3;
@@ -72,6 +77,17 @@ impl ViewNeeds {
 
 /// Offset along the normal for secondary rays (VLF frame: the scene spans 2).
 const RAY_EPSILON: f64 = 1e-7;
+
+/// How far along a ray, in ray spacings, a neighbouring mirror's crossing may lie from the
+/// looked-up polygon's plane and still stand for it ([`LightField::mirror_slot`]). A ray read
+/// by a look-up passes within √2 spacings of the point, so on the same smooth sheet of the
+/// surface, not seen too obliquely, the two crossings lie about that close; another part of
+/// the object along the ray (the far side of a fold, a claw behind) lies further. Chosen on the
+/// mirror dragon: 1 and 4 spacings gave images alike (2-core VM, l = 513, N = 64).
+pub const NEIGHBOUR_DEPTH_CELLS: f64 = 2.0;
+/// The least cosine between the normals of a looked-up mirror polygon and a neighbour that
+/// stands for it ([`LightField::mirror_slot`]): 60°.
+pub const NEIGHBOUR_ANGLE_COS: f64 = 0.5;
 
 impl LightField {
     /// Radiance leaving mirror `surface` at `p` (VLF frame) along unit
@@ -144,7 +160,7 @@ impl LightField {
                     continue;
                 }
                 let (x, y) = (x as u32, y as u32);
-                if let Some(slot) = layout.locate_on_plane(sub, &self.atlas.plane_rep, surface as u32, x, y) {
+                if let Some(slot) = self.mirror_slot(sub, layout, surface as u32, x, y) {
                     let m = sub.grid.tile;
                     visit(RayRead {
                         vertex,
@@ -157,6 +173,80 @@ impl LightField {
                 }
             }
         }
+    }
+
+    /// The mirror slot that stands for ray `(x, y)` of subfield `sub` (its mirror layout
+    /// `layout`) in a look-up on mirror polygon `surface`: where the ray crosses the polygon's
+    /// plane, that crossing ([`MirrorLayout::locate_on_plane`]); else the ray's crossing of a
+    /// *neighbouring* mirror, if one lies close by.
+    ///
+    /// **Why neighbours.** A look-up reads the four rays around its point. On a plane mirror
+    /// they cross the plane wherever the point is inside it. A curved mirror, though, is many
+    /// small planes (a scanned chrome object: triangles far smaller than a ray cell), and the
+    /// four rays mostly cross *other* triangles of it than the one hit: read on its own plane
+    /// only, such a mirror came out black but for the few triangles a ray happens to cross.
+    /// The radiance leaving a smooth mirror along a direction varies smoothly over it, so the
+    /// ray's crossing of the neighbouring triangle is as good a sample of it as any ray a cell
+    /// away on a plane: the bilinear interpolation then reads the surface, not the polygon.
+    ///
+    /// **Which neighbour.** Of the mirror surfaces the ray crosses, one that
+    /// - faces the same side of the line as the polygon (its slot holds light leaving along
+    ///   the same oriented direction),
+    /// - has a normal within [`NEIGHBOUR_ANGLE_COS`] of the polygon's (a fold or a corner of
+    ///   the mirror is not a neighbour: the two planes of a mirrored corner keep their own
+    ///   rays, as before), and
+    /// - crosses the ray within [`NEIGHBOUR_DEPTH_CELLS`] ray spacings of where the polygon's
+    ///   plane does (the same sheet of the surface, not another part of the object behind);
+    ///
+    /// the nearest such crossing, the lower surface on a tie. A pure function of the field,
+    /// so the GPU's windows (`viewer/src/rays.rs`) store exactly these slots.
+    pub fn mirror_slot(&self, sub: &Subfield, layout: &MirrorLayout, surface: u32, x: u32, y: u32) -> Option<u32> {
+        if let Some(slot) = layout.locate_on_plane(sub, &self.atlas.plane_rep, surface, x, y) {
+            return Some(slot);
+        }
+        let crossings = (sub.entries_at(x, y))
+            .filter_map(|(entry, offset)| Some((sub.entries[entry].surface, layout.slot(entry, offset)?)));
+        self.neighbour_slot(sub, surface, x, y, crossings)
+    }
+
+    /// The neighbour [`LightField::mirror_slot`] picks for polygon `surface` among `crossings`,
+    /// the mirror crossings of ray `(x, y)` of `sub` as (surface, slot), in any order: for a
+    /// caller that has listed every ray's crossings once (the viewer's tables, which ask for
+    /// every ray around every mirror) rather than search a tile per question.
+    pub fn neighbour_slot(
+        &self,
+        sub: &Subfield,
+        surface: u32,
+        x: u32,
+        y: u32,
+        crossings: impl IntoIterator<Item = (u32, u32)>,
+    ) -> Option<u32> {
+        let surfaces = &self.scene.surfaces;
+        let polygon = surfaces.get(surface as usize)?;
+        let rep = self.atlas.plane_rep.get(surface as usize).copied().unwrap_or(surface);
+        let w = sub.frame.w;
+        let side = w.dot(polygon.normal);
+        let n = sub.grid.resolution;
+        let (cx, cy) = (x as f64 + 0.5, y as f64 + 0.5);
+        let depth_on =
+            |s: &crate::scene::Surface| SurfaceProjection::new(&sub.frame, n, s.normal, s.offset).depth_at(cx, cy);
+        let here = depth_on(polygon);
+        let reach = NEIGHBOUR_DEPTH_CELLS * 2.0 / n as f64;
+        // The nearest, then the lower surface: the same choice whatever the order of `crossings`.
+        let mut best: Option<(f64, u32, u32)> = None;
+        for (other, slot) in crossings {
+            let Some(s) = surfaces.get(other as usize) else {
+                continue;
+            };
+            if other == rep || s.normal.dot(w) * side <= 0.0 || s.normal.dot(polygon.normal) < NEIGHBOUR_ANGLE_COS {
+                continue;
+            }
+            let distance = (depth_on(s) - here).abs();
+            if distance <= reach && best.is_none_or(|(d, o, _)| (distance, other) < (d, o)) {
+                best = Some((distance, other, slot));
+            }
+        }
+        best.map(|(_, _, slot)| slot)
     }
 
     /// What drawing `camera`'s view with `samples_per_axis²` samples per pixel reads from this

@@ -270,75 +270,15 @@ fn a_mirror_room_renders_alike_however_its_walls_are_tessellated() {
     }
 }
 
-/// An icosphere of radius `r` subdivided `levels` times, facing inwards; triangles whose
-/// centroid is above `cap` (y) emit.
+/// An icosphere of radius `r` subdivided `levels` times (`icosphere`), facing inwards;
+/// triangles whose centroid is above `cap` (y) emit.
 fn integrating_sphere(r: f64, levels: u32, cap: f64) -> Scene {
-    let t = (1.0 + 5f64.sqrt()) / 2.0;
-    let mut v: Vec<DVec3> = [
-        (-1.0, t, 0.0),
-        (1.0, t, 0.0),
-        (-1.0, -t, 0.0),
-        (1.0, -t, 0.0),
-        (0.0, -1.0, t),
-        (0.0, 1.0, t),
-        (0.0, -1.0, -t),
-        (0.0, 1.0, -t),
-        (t, 0.0, -1.0),
-        (t, 0.0, 1.0),
-        (-t, 0.0, -1.0),
-        (-t, 0.0, 1.0),
-    ]
-    .iter()
-    .map(|&(x, y, z)| DVec3::new(x, y, z).normalize())
-    .collect();
-    let mut faces: Vec<[usize; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..levels {
-        let mut mid = std::collections::HashMap::new();
-        let mut next = Vec::new();
-        for f in &faces {
-            let mut m = [0usize; 3];
-            for k in 0..3 {
-                let (a, b) = (f[k].min(f[(k + 1) % 3]), f[k].max(f[(k + 1) % 3]));
-                m[k] = *mid.entry((a, b)).or_insert_with(|| {
-                    v.push(((v[a] + v[b]) * 0.5).normalize());
-                    v.len() - 1
-                });
-            }
-            next.push([f[0], m[0], m[2]]);
-            next.push([f[1], m[1], m[0]]);
-            next.push([f[2], m[2], m[1]]);
-            next.push([m[0], m[1], m[2]]);
-        }
-        faces = next;
-    }
-    let surfaces = faces
-        .iter()
-        .map(|f| {
+    let surfaces = icosphere(DVec3::ZERO, r, levels)
+        .into_iter()
+        .map(|[a, b, c]| {
             // Outward-wound faces reversed: fronts face the centre.
-            let (a, b, c) = (v[f[0]] * r, v[f[2]] * r, v[f[1]] * r);
             let emits = (a + b + c).y / 3.0 > cap;
-            tri(a, b, c, usize::from(emits))
+            tri(a, c, b, usize::from(emits))
         })
         .collect();
     scene(surfaces, vec![material("wall", 0.5, 0.0), material("lamp", 0.5, 1.0)])

@@ -131,7 +131,13 @@ impl MirrorLayout {
     /// The mirror slot of grid cell `(x, y)` on `surface`, if its ray crosses it.
     pub fn locate(&self, sub: &Subfield, surface: u32, x: u32, y: u32) -> Option<u32> {
         let (entry, offset) = sub.locate_entry(surface, x, y)?;
-        let base = self.entry_base[entry];
+        self.slot(entry, offset)
+    }
+
+    /// The mirror slot of the ray at `offset` within entry `entry` of the subfield
+    /// ([`Subfield::entries`]), if the entry's surface has directional maps.
+    pub fn slot(&self, entry: usize, offset: u32) -> Option<u32> {
+        let base = *self.entry_base.get(entry)?;
         (base != NO_SLOT).then(|| base + offset)
     }
 

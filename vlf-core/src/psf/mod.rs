@@ -303,20 +303,20 @@ impl Subfield {
         None
     }
 
-    /// Like [`Subfield::locate_entry`], for the first surface of the tile (in surface order)
-    /// that `accept`s and whose rays include cell `(x, y)`: how a look-up on one polygon of a
-    /// tessellated mirror finds a neighbouring ray that crosses another polygon of it.
-    pub fn locate_entry_where(&self, x: u32, y: u32, accept: impl Fn(u32) -> bool) -> Option<(usize, u32)> {
+    /// Every entry whose rays include cell `(x, y)`, in surface order, as its index in
+    /// [`Subfield::entries`] and the ray's offset within it: the surfaces the ray crosses.
+    pub fn entries_at(&self, x: u32, y: u32) -> impl Iterator<Item = (usize, u32)> + '_ {
         let (m, n) = (self.grid.tile, self.grid.resolution);
-        if x >= n || y >= n {
-            return None;
-        }
-        let k = ((y / m) * self.grid.tiles_per_side() + x / m) as usize;
+        let inside = x < n && y < n;
+        let k = if inside {
+            ((y / m) * self.grid.tiles_per_side() + x / m) as usize
+        } else {
+            0
+        };
         let (row, col) = ((y % m) as u16, (x % m) as u16);
-        let (local, offset) = (self.tile(k).iter().enumerate())
-            .filter(|(_, e)| accept(e.surface))
-            .find_map(|(local, e)| Some((local, self.offset_in(e, row, col)?)))?;
-        Some((self.tile_start[k] as usize + local, offset))
+        let entries = if inside { self.tile(k) } else { &[] };
+        let first = if inside { self.tile_start[k] as usize } else { 0 };
+        (entries.iter().enumerate()).filter_map(move |(local, e)| Some((first + local, self.offset_in(e, row, col)?)))
     }
 
     /// Visits every ray of `surface` in slot order with its grid cell `(x, y)`.

@@ -208,3 +208,69 @@ pub fn without_times(mut c: vlf_core::propagate::Checkpoint) -> vlf_core::propag
     }
     c
 }
+
+/// The triangles of an icosphere of radius `r` about `centre`, the icosahedron's faces cut in
+/// four `levels` times (20·4^levels triangles), each wound counter-clockwise seen from outside
+/// (fronts face out). A curved mesh whose every triangle is its own plane.
+pub fn icosphere(centre: DVec3, r: f64, levels: u32) -> Vec<[DVec3; 3]> {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut v: Vec<DVec3> = [
+        (-1.0, t, 0.0),
+        (1.0, t, 0.0),
+        (-1.0, -t, 0.0),
+        (1.0, -t, 0.0),
+        (0.0, -1.0, t),
+        (0.0, 1.0, t),
+        (0.0, -1.0, -t),
+        (0.0, 1.0, -t),
+        (t, 0.0, -1.0),
+        (t, 0.0, 1.0),
+        (-t, 0.0, -1.0),
+        (-t, 0.0, 1.0),
+    ]
+    .iter()
+    .map(|&(x, y, z)| DVec3::new(x, y, z).normalize())
+    .collect();
+    let mut faces: Vec<[usize; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..levels {
+        let mut mid = std::collections::HashMap::new();
+        let mut next = Vec::new();
+        for f in &faces {
+            let mut m = [0usize; 3];
+            for k in 0..3 {
+                let (a, b) = (f[k].min(f[(k + 1) % 3]), f[k].max(f[(k + 1) % 3]));
+                m[k] = *mid.entry((a, b)).or_insert_with(|| {
+                    v.push(((v[a] + v[b]) * 0.5).normalize());
+                    v.len() - 1
+                });
+            }
+            next.push([f[0], m[0], m[2]]);
+            next.push([f[1], m[1], m[0]]);
+            next.push([f[2], m[2], m[1]]);
+            next.push([m[0], m[1], m[2]]);
+        }
+        faces = next;
+    }
+    faces.iter().map(|f| f.map(|i| centre + v[i] * r)).collect()
+}
