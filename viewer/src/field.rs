@@ -408,7 +408,13 @@ impl FieldRenderer {
         let catalog = PartCatalog::new(field);
         let direct = exact.map(|_| DirectParts::new(&catalog));
         let table_len = direct.map_or(catalog.len(), |d| d.table_len());
+        let started = std::time::Instant::now();
         let rays = RayTables::new(field, &catalog);
+        tracing::debug!(
+            mb = std::mem::size_of_val(rays.words.as_slice()) as f64 / 1e6,
+            seconds = started.elapsed().as_secs_f64(),
+            "mirror ray tables built"
+        );
         // Per surface: its fan for the rasteriser, its polygon, grid and material for the shader.
         let mut vertices = Vec::new();
         let mut polygon_vertices: Vec<[f32; 4]> = Vec::new();

@@ -170,6 +170,18 @@ fn a_curved_mirror_matches_the_cpu_renderer_from_the_rays() {
         "the ball faces out"
     );
     compare(&gpu, &field, &readme_camera(128, 96), 2, SpecularMode::Rays);
+    // The shader's tables list each mirror slot once (three words), and so grow with the slots,
+    // not with directions × mirror planes as dense windows per plane did (five words each).
+    let tables = vlf_viewer::rays::RayTables::new(&field, &vlf_core::parts::PartCatalog::new(&field));
+    let spec = field.specular.as_ref().unwrap();
+    let slots: usize = spec.layouts.iter().map(|l| l.len as usize).sum();
+    assert_eq!(tables.words.len() - tables.words[9] as usize, 3 * slots);
+    let (l, planes) = (spec.layouts.len(), ball.len());
+    assert!(
+        tables.words.len() < l * planes,
+        "{} words for {l} directions and {planes} mirror planes",
+        tables.words.len()
+    );
 }
 
 /// Exact direct light (`vlf_core::direct`) on the GPU: the same quadrature points and shadow

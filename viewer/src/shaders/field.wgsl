@@ -360,19 +360,69 @@ fn lattice_point(i: i32, j: i32, n: i32) -> vec4<f32> {
     return vec4<f32>(v, bitcast<f32>(index));
 }
 
-// Where the ray of cell (x, y) of direction d for mirror m is: its part and its index in the part,
-// or NONE when no such ray crosses the mirror.
-fn mirror_slot(d: u32, m: u32, x: i32, y: i32) -> vec2<u32> {
-    let w = rays[7u] + 5u * (d * rays[2u] + m);
-    let x0 = i32(rays[w]);
-    let y0 = i32(rays[w + 1u]);
-    let width = i32(rays[w + 2u]);
-    let height = i32(rays[w + 3u]);
-    if (x < x0 || y < y0 || x >= x0 + width || y >= y0 + height) {
+// The crossings of the ray of cell (x, y) of direction d with mirror planes, as a range of the
+// crossings table (3 words each: the plane's first polygon, the part holding the ray, its index
+// in the part); empty where no mirror crosses the ray's tile.
+fn ray_crossings(d: u32, x: i32, y: i32) -> vec2<u32> {
+    let resolution = i32(rays[3u]);
+    if (x < 0 || y < 0 || x >= resolution || y >= resolution) {
+        return vec2<u32>(0u);
+    }
+    let m = rays[10u];
+    let per_side = rays[11u];
+    let ux = u32(x);
+    let uy = u32(y);
+    let tile = rays[rays[7u] + d * per_side * per_side + (uy / m) * per_side + ux / m];
+    if (tile == NONE) {
+        return vec2<u32>(0u);
+    }
+    let c = rays[8u] + tile + (uy % m) * m + (ux % m);
+    return vec2<u32>(rays[c], rays[c + 1u]);
+}
+
+// Where the ray of cell (x, y) of direction d stands for mirror `s` (`LightField::mirror_slot`):
+// its part and its index in the part, or NONE. The ray's crossing of s's mirror plane if it has
+// one; else the nearest crossing of a neighbouring mirror that faces the same side, has a normal
+// within 60° of s's and lies within 2 ray spacings of s's plane along the ray
+// (`LightField::neighbour_slot`, `NEIGHBOUR_DEPTH_CELLS`, `NEIGHBOUR_ANGLE_COS`).
+fn mirror_slot(d: u32, s: Surface, x: i32, y: i32) -> vec2<u32> {
+    let range = ray_crossings(d, x, y);
+    let table = rays[9u];
+    for (var i = range.x; i < range.y; i++) {
+        if (surfaces[rays[table + 3u * i]].mirror_index == s.mirror_index) {
+            return vec2<u32>(rays[table + 3u * i + 1u], rays[table + 3u * i + 2u]);
+        }
+    }
+    if (range.x == range.y) {
         return vec2<u32>(NONE);
     }
-    let c = rays[8u] + 2u * (rays[w + 4u] + u32((y - y0) * width + (x - x0)));
-    return vec2<u32>(rays[c], rays[c + 1u]);
+    // The ray's start (`PsfFrame::ray_origin` at the cell's centre) and direction w = u × v.
+    let dir = rays[6u] + 8u * d;
+    let u = ray_vec3(dir);
+    let v = ray_vec3(dir + 3u);
+    let w = cross(u, v);
+    let step = 2.0 / f32(rays[3u]);
+    let origin = u * ((f32(x) + 0.5 + ray_f32(dir + 6u)) * step - 1.0) + v * ((f32(y) + 0.5 + ray_f32(dir + 7u)) * step - 1.0);
+    let side = dot(w, s.normal);
+    let here = (s.offset - dot(s.normal, origin)) / side;
+    var best = vec2<u32>(NONE);
+    var best_distance = 2.0 * step;
+    var best_surface = NONE;
+    for (var i = range.x; i < range.y; i++) {
+        let other = rays[table + 3u * i];
+        let q = surfaces[other];
+        let facing = dot(q.normal, w);
+        if (facing * side <= 0.0 || dot(q.normal, s.normal) < 0.5) {
+            continue;
+        }
+        let distance = abs((q.offset - dot(q.normal, origin)) / facing - here);
+        if (distance < best_distance || (distance == best_distance && other < best_surface)) {
+            best = vec2<u32>(rays[table + 3u * i + 1u], rays[table + 3u * i + 2u]);
+            best_distance = distance;
+            best_surface = other;
+        }
+    }
+    return best;
 }
 
 // Radiance leaving mirror `s` at `p` towards unit direction `outgoing`, from the maps; w is 1 when
@@ -453,7 +503,7 @@ fn mirror_from_rays(s: Surface, p: vec3<f32>, outgoing: vec3<f32>) -> vec4<f32> 
             if (w <= 0.0 || x < 0 || y < 0) {
                 continue;
             }
-            let slot = mirror_slot(d, s.mirror_index, x, y);
+            let slot = mirror_slot(d, s, x, y);
             if (slot.x != NONE) {
                 let base = parts[slot.x];
                 if (base == NONE) {
