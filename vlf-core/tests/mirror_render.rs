@@ -11,8 +11,17 @@ use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::render::{Bvh, Camera};
 
-/// A lamp lights a diffuse wall with a gradient; a mirror faces the wall.
-fn scene_and_field(l: usize, n: u32) -> vlf_core::field::LightField {
+/// The glass of [`scene_and_field`] and the ball of [`ball_field`] are surface 3, and later.
+const MIRROR: usize = 3;
+
+/// A lamp lights a diffuse wall with a gradient, over a floor; `mirrors` (material 2, a mirror
+/// of ρs 0.85) face the wall. Propagated to convergence with l directions on `n × n` grids.
+fn lit_mirrors(
+    mirrors: Vec<vlf_core::scene::Surface>,
+    l: usize,
+    n: u32,
+    texel_cells: f64,
+) -> vlf_core::field::LightField {
     let lamp = rect(
         DVec3::new(0.0, 0.5, -0.3),
         DVec3::X * 0.15,
@@ -21,10 +30,11 @@ fn scene_and_field(l: usize, n: u32) -> vlf_core::field::LightField {
         1,
     );
     let wall = rect(DVec3::new(0.0, 0.0, -0.6), DVec3::X * 0.6, DVec3::Y * 0.5, DVec3::Z, 0);
-    let glass = rect(DVec3::new(0.0, 0.0, 0.5), DVec3::X * 0.4, DVec3::Y * 0.3, -DVec3::Z, 2);
     let floor = rect(DVec3::new(0.0, -0.5, 0.0), DVec3::X * 0.6, DVec3::Z * 0.6, DVec3::Y, 0);
+    let mut surfaces = vec![lamp, wall, floor];
+    surfaces.extend(mirrors);
     let scene = scene(
-        vec![lamp, wall, glass, floor],
+        surfaces,
         vec![
             material("wall", 0.7, 0.0),
             material("lamp", 0.0, 1.0),
@@ -41,12 +51,18 @@ fn scene_and_field(l: usize, n: u32) -> vlf_core::field::LightField {
             epsilon: 1e-4,
             max_iterations: 100,
         },
-        texel_cells: 2.0,
+        texel_cells,
         ..Options::default()
     };
     let mut p = Propagation::new(scene, options).unwrap();
     p.run(|_| {});
     p.into_field()
+}
+
+/// [`lit_mirrors`] with one plane mirror.
+fn scene_and_field(l: usize, n: u32) -> vlf_core::field::LightField {
+    let glass = rect(DVec3::new(0.0, 0.0, 0.5), DVec3::X * 0.4, DVec3::Y * 0.3, -DVec3::Z, 2);
+    lit_mirrors(vec![glass], l, n, 2.0)
 }
 
 /// Looking at the mirror from in front of the wall (the scene is in the VLF frame).
@@ -75,15 +91,15 @@ fn traced_mirror_pixels_are_rho_times_what_the_reflection_sees() {
             let Some(hit) = bvh.intersect(&field.scene, o, d, 0.0, f64::INFINITY) else {
                 continue;
             };
-            if hit.surface != 2 {
+            if hit.surface != MIRROR {
                 continue;
             }
             // Independent reflection: mirror the ray about the mirror's plane.
-            let n = field.scene.surfaces[2].normal;
+            let n = field.scene.surfaces[MIRROR].normal;
             let r = d - 2.0 * d.dot(n) * n;
             let seen = bvh.intersect(&field.scene, hit.point + n * 1e-6, r, 0.0, f64::INFINITY);
             let want = match seen {
-                Some(h) if h.front && h.surface != 2 => field.radiance_at(h.surface, h.point)[0] * 0.85,
+                Some(h) if h.front && h.surface != MIRROR => field.radiance_at(h.surface, h.point)[0] * 0.85,
                 _ => 0.0,
             };
             let got = image.pixels[(y * cam.width + x) as usize][0] as f64;
@@ -106,7 +122,7 @@ fn mirror_mean(field: &vlf_core::field::LightField, mode: SpecularMode) -> f64 {
         for x in 0..cam.width {
             let (o, d) = cam.ray(x as f64 + 0.5, y as f64 + 0.5);
             if let Some(hit) = bvh.intersect(&field.scene, o, d, 0.0, f64::INFINITY)
-                && hit.surface == 2
+                && hit.surface == MIRROR
             {
                 sum += image.pixels[(y * cam.width + x) as usize][0] as f64;
                 count += 1;
@@ -130,42 +146,12 @@ fn mirrors_from_the_rays_agree_with_ray_tracing() {
     assert!(e_res < 0.05, "re-sampled: {e_res}");
 }
 
-/// The lamp, wall and floor of [`scene_and_field`] with a mirror ball of 1 280 triangles
-/// (radius 0.22) in place of the plane mirror: at N = 32 a ray cell is 0.0625 across and a
-/// triangle about 0.03, so most triangles are crossed by no ray of a direction.
+/// [`lit_mirrors`] with a mirror ball of 1 280 triangles (radius 0.22) in place of the plane
+/// mirror: at N = 32 a ray cell is 0.0625 across and a triangle about 0.03, so most triangles
+/// are crossed by no ray of a direction.
 fn ball_field(l: usize, n: u32) -> vlf_core::field::LightField {
-    let lamp = rect(
-        DVec3::new(0.0, 0.5, -0.3),
-        DVec3::X * 0.15,
-        DVec3::Z * 0.15,
-        -DVec3::Y,
-        1,
-    );
-    let wall = rect(DVec3::new(0.0, 0.0, -0.6), DVec3::X * 0.6, DVec3::Y * 0.5, DVec3::Z, 0);
-    let floor = rect(DVec3::new(0.0, -0.5, 0.0), DVec3::X * 0.6, DVec3::Z * 0.6, DVec3::Y, 0);
-    let mut surfaces = vec![lamp, wall, floor];
     let ball = icosphere(DVec3::new(0.0, -0.1, 0.25), 0.22, 3);
-    surfaces.extend(ball.into_iter().map(|t| surface(t.to_vec(), 2)));
-    let scene = scene(
-        surfaces,
-        vec![
-            material("wall", 0.7, 0.0),
-            material("lamp", 0.0, 1.0),
-            mirror("chrome", 0.0, 0.85),
-        ],
-    );
-    let options = Options {
-        directions: l,
-        grid: GridSize::new(n, 8).unwrap(),
-        stop: Stop::Converge {
-            epsilon: 1e-4,
-            max_iterations: 100,
-        },
-        ..Options::default()
-    };
-    let mut p = Propagation::new(scene, options).unwrap();
-    p.run(|_| {});
-    p.into_field()
+    lit_mirrors(ball.into_iter().map(|t| surface(t.to_vec(), 2)).collect(), l, n, 1.0)
 }
 
 /// Over the ball's pixels: the mean of the traced image, the mean from the rays, and the share
