@@ -15,8 +15,9 @@
 //!
 //! So the shader needs every ray's mirror crossings. They are listed per direction, tile by
 //! tile as the subfields are cut: a tile no mirror crosses costs one word, a crossed tile one
-//! word per ray (where its crossings start) and three per crossing. That grows with the mirror
-//! slots, not with the mirror polygons: the 47 794-triangle mirror dragon at l = 513, N = 64
+//! word per ray (where its crossings start) and three per crossing. Beyond the one word per
+//! tile of every direction (l·(N/m)²: 34 MB at l = 8193, N = 256, m = 8), that grows with the
+//! mirror slots, not with the mirror polygons: the 47 794-triangle mirror dragon at l = 513, N = 64
 //! takes 4.2 MB, built in 0.02 s, where dense windows per (direction, mirror plane) took 508 MB
 //! and 5 s (1 064 MB and 18 s once they held the neighbours' slots), more than a GPU binds.
 //!
@@ -29,7 +30,7 @@
 //!
 //! | words | what |
 //! |---|---|
-//! | 0..16 | header: `n`, `l`, mirror planes, resolution `N`, offsets of lattice, vectors, directions, tiles, rays, crossings; tile size `m`, tiles per side; rotation (9 floats, column-major) from word 16 |
+//! | 0..16 | header: `n`, `l`, mirror planes, resolution `N`, offsets of lattice, vectors, directions, tiles, rays, crossings; tile size `m`, tiles per side; the neighbour rule's reach (ray spacings) and least cosine (`vlf_core::lookup`); rotation (9 floats, column-major) from word 16 |
 //! | lattice | `(2n+1)²` words: line direction index, bit 31 set for `−ω`; `NONE` outside |
 //! | vectors | 3 floats per line direction: its unrotated unit vector |
 //! | directions | 8 words per line direction: PSF frame `u`, `v` (3 floats each), then the ray lattice's phase `shift` (2 floats) |
@@ -39,6 +40,7 @@
 
 use rayon::prelude::*;
 use vlf_core::field::LightField;
+use vlf_core::lookup::{NEIGHBOUR_ANGLE_COS, NEIGHBOUR_DEPTH_CELLS};
 use vlf_core::parts::{Part, PartCatalog};
 
 /// No slot, no direction.
@@ -119,6 +121,8 @@ impl RayTables {
         let grid = spec.subfields.grid();
         words[10] = grid.tile;
         words[11] = grid.tiles_per_side();
+        words[12] = f(NEIGHBOUR_DEPTH_CELLS);
+        words[13] = f(NEIGHBOUR_ANGLE_COS);
         let (mut tiles, mut rays, mut crossings) = (Vec::new(), Vec::new(), Vec::new());
         for c in per_direction {
             let (first_ray, first_crossing) = (rays.len() as u32, crossings.len() as u32 / 3);

@@ -194,33 +194,18 @@ impl LightField {
     ///   the same oriented direction),
     /// - has a normal within [`NEIGHBOUR_ANGLE_COS`] of the polygon's (a fold or a corner of
     ///   the mirror is not a neighbour: the two planes of a mirrored corner keep their own
-    ///   rays, as before), and
+    ///   rays, as before; facets less than 60° apart, though, read each other's rays near their
+    ///   shared edge), and
     /// - crosses the ray within [`NEIGHBOUR_DEPTH_CELLS`] ray spacings of where the polygon's
     ///   plane does (the same sheet of the surface, not another part of the object behind);
     ///
-    /// the nearest such crossing, the lower surface on a tie. A pure function of the field,
-    /// so the GPU's windows (`viewer/src/rays.rs`) store exactly these slots.
+    /// the nearest such crossing, the lower surface on a tie. The viewer's shader applies the
+    /// same rule, in `f32`, to every ray's list of crossings (`viewer/src/rays.rs`,
+    /// `mirror_slot` in `field.wgsl`), with these constants from its tables' header.
     pub fn mirror_slot(&self, sub: &Subfield, layout: &MirrorLayout, surface: u32, x: u32, y: u32) -> Option<u32> {
         if let Some(slot) = layout.locate_on_plane(sub, &self.atlas.plane_rep, surface, x, y) {
             return Some(slot);
         }
-        let crossings = (sub.entries_at(x, y))
-            .filter_map(|(entry, offset)| Some((sub.entries[entry].surface, layout.slot(entry, offset)?)));
-        self.neighbour_slot(sub, surface, x, y, crossings)
-    }
-
-    /// The neighbour [`LightField::mirror_slot`] picks for polygon `surface` among `crossings`,
-    /// the mirror crossings of ray `(x, y)` of `sub` as (surface, slot), in any order: for a
-    /// caller that has listed every ray's crossings once (the viewer's tables, which ask for
-    /// every ray around every mirror) rather than search a tile per question.
-    pub fn neighbour_slot(
-        &self,
-        sub: &Subfield,
-        surface: u32,
-        x: u32,
-        y: u32,
-        crossings: impl IntoIterator<Item = (u32, u32)>,
-    ) -> Option<u32> {
         let surfaces = &self.scene.surfaces;
         let polygon = surfaces.get(surface as usize)?;
         let rep = self.atlas.plane_rep.get(surface as usize).copied().unwrap_or(surface);
@@ -232,10 +217,11 @@ impl LightField {
             |s: &crate::scene::Surface| SurfaceProjection::new(&sub.frame, n, s.normal, s.offset).depth_at(cx, cy);
         let here = depth_on(polygon);
         let reach = NEIGHBOUR_DEPTH_CELLS * 2.0 / n as f64;
-        // The nearest, then the lower surface: the same choice whatever the order of `crossings`.
+        // The nearest, then the lower surface (as the shader, which lists crossings otherwise).
         let mut best: Option<(f64, u32, u32)> = None;
-        for (other, slot) in crossings {
-            let Some(s) = surfaces.get(other as usize) else {
+        for (entry, offset) in sub.entries_at(x, y, |entry| layout.slot(entry, 0).is_some()) {
+            let other = sub.entries[entry].surface;
+            let (Some(slot), Some(s)) = (layout.slot(entry, offset), surfaces.get(other as usize)) else {
                 continue;
             };
             if other == rep || s.normal.dot(w) * side <= 0.0 || s.normal.dot(polygon.normal) < NEIGHBOUR_ANGLE_COS {

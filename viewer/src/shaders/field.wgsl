@@ -383,8 +383,8 @@ fn ray_crossings(d: u32, x: i32, y: i32) -> vec2<u32> {
 // Where the ray of cell (x, y) of direction d stands for mirror `s` (`LightField::mirror_slot`):
 // its part and its index in the part, or NONE. The ray's crossing of s's mirror plane if it has
 // one; else the nearest crossing of a neighbouring mirror that faces the same side, has a normal
-// within 60° of s's and lies within 2 ray spacings of s's plane along the ray
-// (`LightField::neighbour_slot`, `NEIGHBOUR_DEPTH_CELLS`, `NEIGHBOUR_ANGLE_COS`).
+// within `NEIGHBOUR_ANGLE_COS` of s's and lies within `NEIGHBOUR_DEPTH_CELLS` ray spacings of s's
+// plane along the ray (both in header words 12 and 13); ties go to the lower surface.
 fn mirror_slot(d: u32, s: Surface, x: i32, y: i32) -> vec2<u32> {
     let range = ray_crossings(d, x, y);
     let table = rays[9u];
@@ -406,13 +406,14 @@ fn mirror_slot(d: u32, s: Surface, x: i32, y: i32) -> vec2<u32> {
     let side = dot(w, s.normal);
     let here = (s.offset - dot(s.normal, origin)) / side;
     var best = vec2<u32>(NONE);
-    var best_distance = 2.0 * step;
+    var best_distance = ray_f32(12u) * step;
+    let least_cos = ray_f32(13u);
     var best_surface = NONE;
     for (var i = range.x; i < range.y; i++) {
         let other = rays[table + 3u * i];
         let q = surfaces[other];
         let facing = dot(q.normal, w);
-        if (facing * side <= 0.0 || dot(q.normal, s.normal) < 0.5) {
+        if (facing * side <= 0.0 || dot(q.normal, s.normal) < least_cos) {
             continue;
         }
         let distance = abs((q.offset - dot(q.normal, origin)) / facing - here);

@@ -206,7 +206,7 @@ impl Gatherer<'_> {
                 |e| !on_cells.contains(&e),
                 p,
                 n,
-                |o, w, t| !self.occluded(o, w, t) || self.bvh().intersect(scene, o, w, 0.0, t).is_some(),
+                |o, w, t| !self.occluded(o, w, t) || self.bvh().occluded(scene, o, w, crate::direct::SHADOW_START, t),
             );
             if e.iter().any(|&c| c > 0.0) {
                 any = true;

@@ -303,9 +303,16 @@ impl Subfield {
         None
     }
 
-    /// Every entry whose rays include cell `(x, y)`, in surface order, as its index in
-    /// [`Subfield::entries`] and the ray's offset within it: the surfaces the ray crosses.
-    pub fn entries_at(&self, x: u32, y: u32) -> impl Iterator<Item = (usize, u32)> + '_ {
+    /// Every entry that `keep` accepts (by its index in [`Subfield::entries`]) and whose rays
+    /// include cell `(x, y)`, in surface order, as its index and the ray's offset within it:
+    /// the surfaces the ray crosses. `keep` is asked first, so the spans of the entries it
+    /// refuses are never scanned.
+    pub fn entries_at<'a>(
+        &'a self,
+        x: u32,
+        y: u32,
+        keep: impl Fn(usize) -> bool + 'a,
+    ) -> impl Iterator<Item = (usize, u32)> + 'a {
         let (m, n) = (self.grid.tile, self.grid.resolution);
         let inside = x < n && y < n;
         let k = if inside {
@@ -316,7 +323,9 @@ impl Subfield {
         let (row, col) = ((y % m) as u16, (x % m) as u16);
         let entries = if inside { self.tile(k) } else { &[] };
         let first = if inside { self.tile_start[k] as usize } else { 0 };
-        (entries.iter().enumerate()).filter_map(move |(local, e)| Some((first + local, self.offset_in(e, row, col)?)))
+        (entries.iter().enumerate())
+            .filter(move |&(local, _)| keep(first + local))
+            .filter_map(move |(local, e)| Some((first + local, self.offset_in(e, row, col)?)))
     }
 
     /// Visits every ray of `surface` in slot order with its grid cell `(x, y)`.

@@ -435,6 +435,19 @@ impl Bvh {
     /// (`t` is in its units) but must be non-zero. Ties in `t` go to the
     /// lowest surface index, exactly as [`intersect_brute_force`].
     pub fn intersect(&self, scene: &Scene, origin: DVec3, dir: DVec3, t_min: f64, t_max: f64) -> Option<Hit> {
+        self.traverse(scene, origin, dir, t_min, t_max, false)
+    }
+
+    /// Whether any surface meets `origin + t * dir` with `t_min <= t <= t_max`: a shadow ray's
+    /// question. The traversal stops at the first hit it finds instead of looking on for the
+    /// nearest, so the answer is [`Bvh::intersect`]'s `is_some()` at less cost wherever the
+    /// segment is blocked. (The shader's `blocked` does the same.)
+    pub fn occluded(&self, scene: &Scene, origin: DVec3, dir: DVec3, t_min: f64, t_max: f64) -> bool {
+        self.traverse(scene, origin, dir, t_min, t_max, true).is_some()
+    }
+
+    /// The nearest hit, or with `any_hit` the first one found.
+    fn traverse(&self, scene: &Scene, origin: DVec3, dir: DVec3, t_min: f64, t_max: f64, any_hit: bool) -> Option<Hit> {
         if self.nodes.is_empty() || t_min.is_nan() || t_max.is_nan() || t_min > t_max {
             return None;
         }
@@ -464,6 +477,9 @@ impl Bvh {
                                 point,
                                 front,
                             });
+                            if any_hit {
+                                return best;
+                            }
                         }
                     }
                 }
@@ -675,6 +691,13 @@ pub(crate) mod tests {
             let expected = intersect_brute_force(&scene, origin, dir, t_min, t_max);
             let got = bvh.intersect(&scene, origin, dir, t_min, t_max);
             assert_eq!(got, expected, "ray {i}: origin {origin}, dir {dir}");
+            // The shadow ray's question, answered at the first hit found.
+            let segment_end = t_max.min(rng.range(0.2, 3.0));
+            assert_eq!(
+                bvh.occluded(&scene, origin, dir, t_min, segment_end),
+                intersect_brute_force(&scene, origin, dir, t_min, segment_end).is_some(),
+                "segment {i}: origin {origin}, dir {dir}, t ≤ {segment_end}"
+            );
             if let Some(h) = got {
                 hits += 1;
                 back += usize::from(!h.front);
