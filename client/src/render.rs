@@ -41,15 +41,28 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
     let stage = stage.unwrap_or_else(|| job.latest_stage());
     let started = Instant::now();
-    let mut field = job
-        .load(stage)
-        .with_context(|| format!("cannot read {} of job {id}", describe(stage)))?;
+    let cannot_read = || format!("cannot read {} of job {id}", describe(stage));
+    // Snapshot 1 from the same store is read on the same geometry, built once.
+    let (field, first) = match (try_exact, &first_store) {
+        (true, None) => {
+            let mut loaded = job
+                .load_each(&[stage, Stage::Iteration(1)])
+                .with_context(cannot_read)?
+                .into_iter();
+            (loaded.next(), loaded.next())
+        }
+        _ => (Some(job.load(stage)), None),
+    };
+    let mut field = field.context("no field read")?.with_context(cannot_read)?;
     if try_exact {
-        let first_job = match &first_store {
-            Some(s) => FieldJob::open(s, &id).with_context(|| format!("cannot open job {id}"))?,
-            None => job,
+        let first = match (first, &first_store) {
+            (Some(first), _) => first,
+            (None, Some(s)) => FieldJob::open(s, &id)
+                .with_context(|| format!("cannot open job {id}"))?
+                .load(Stage::Iteration(1)),
+            (None, None) => job.load(Stage::Iteration(1)),
         };
-        match first_job.load(Stage::Iteration(1)) {
+        match first {
             Ok(first) => field.use_exact_direct(&first, args.direct_samples)?,
             Err(e) if exact_direct => {
                 return Err(e).with_context(|| format!("exact direct light needs snapshot 1 of job {id}"));

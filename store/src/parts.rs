@@ -130,8 +130,12 @@ impl StageParts {
     /// mirror layouts rebuilt from the scene and options, no radiance blob read. What a viewer
     /// draws from while the parts arrive, and where [`StageParts::read`] puts them.
     pub fn geometry(&self) -> Result<LightField, StoreError> {
+        self.geometry_of(self.job.propagation(None)?)
+    }
+
+    /// [`StageParts::geometry`] from the job's propagation `p`, already built.
+    fn geometry_of(&self, p: vlf_core::propagate::Propagation) -> Result<LightField, StoreError> {
         let job = &self.job;
-        let p = job.propagation(None)?;
         let radiance = vec![[0.0f32; 3]; p.atlas.texels];
         let totals = p
             .specular
@@ -381,8 +385,32 @@ impl FieldJob {
         stage: Stage,
         needs: Option<&vlf_core::lookup::ViewNeeds>,
     ) -> Result<(LightField, usize), StoreError> {
+        self.load_parts_on(stage, needs, None)
+    }
+
+    /// Reads several committed stages whole, building the job's geometry (its atlas and every
+    /// subfield, most of reading a scanned scene's stage: 2.7 of 3.2 s for the 202 520-triangle
+    /// dragon) once for all of them. Each stage's result stands on its own, so a stage that is
+    /// missing (snapshot 1 of a job that kept none) does not keep the others from being read.
+    pub fn load_each(&self, stages: &[Stage]) -> Result<Vec<Result<LightField, StoreError>>, StoreError> {
+        let p = self.propagation(None)?;
+        Ok((stages.iter())
+            .map(|&stage| Ok(self.load_parts_on(stage, None, Some(p.clone()))?.0))
+            .collect())
+    }
+
+    /// [`FieldJob::load_parts`] on the job's propagation `p` where it is built already.
+    fn load_parts_on(
+        &self,
+        stage: Stage,
+        needs: Option<&vlf_core::lookup::ViewNeeds>,
+        p: Option<vlf_core::propagate::Propagation>,
+    ) -> Result<(LightField, usize), StoreError> {
         let reader = StageParts::open(self.clone(), stage)?;
-        let mut field = reader.geometry()?;
+        let mut field = match p {
+            Some(p) => reader.geometry_of(p)?,
+            None => reader.geometry()?,
+        };
         let catalog = PartCatalog::new(&field);
         let parts: Vec<u32> = match needs {
             Some(needs) => catalog.needed(needs),

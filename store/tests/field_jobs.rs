@@ -179,6 +179,21 @@ fn encodings_and_snapshots(o: &Opener) {
             0.0,
             "last snapshot mirrors (exact, from its checkpoint)",
         );
+        // Stages read on one geometry are what each reads alone; a stage the job does not have
+        // is an error of its own, which leaves the others read.
+        let each = job
+            .load_each(&[Stage::Field, Stage::Iteration(1), Stage::Iteration(9)])
+            .unwrap();
+        assert_eq!(each.len(), 3);
+        assert!(
+            each[0].as_ref().unwrap() == &back,
+            "{encoding:?}: the field read with others"
+        );
+        assert!(
+            each[1].as_ref().unwrap() == &job.load(Stage::Iteration(1)).unwrap(),
+            "{encoding:?}: snapshot 1"
+        );
+        assert!(each[2].is_err(), "snapshot 9 of a job of 4 iterations");
     }
 }
 
