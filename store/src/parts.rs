@@ -393,9 +393,13 @@ impl FieldJob {
     /// dragon) once for all of them. Each stage's result stands on its own, so a stage that is
     /// missing (snapshot 1 of a job that kept none) does not keep the others from being read.
     pub fn load_each(&self, stages: &[Stage]) -> Result<Vec<Result<LightField, StoreError>>, StoreError> {
-        let p = self.propagation(None)?;
-        Ok((stages.iter())
-            .map(|&stage| Ok(self.load_parts_on(stage, None, Some(p.clone()))?.0))
+        let mut p = Some(self.propagation(None)?);
+        Ok((stages.iter().enumerate())
+            .map(|(i, &stage)| {
+                // The last stage takes the propagation itself; the others a copy.
+                let geometry = if i + 1 == stages.len() { p.take() } else { p.clone() };
+                Ok(self.load_parts_on(stage, None, geometry)?.0)
+            })
             .collect())
     }
 

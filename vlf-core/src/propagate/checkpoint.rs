@@ -151,6 +151,24 @@ struct CheckpointV1 {
 }
 
 impl Checkpoint {
+    /// A checkpoint of this build's version from its parts (however they were read).
+    pub fn new(
+        stats: Vec<IterationStats>,
+        current: Vec<Rgb>,
+        total: Vec<Rgb>,
+        mirrors: Option<Vec<DirectionCheckpoint>>,
+        pending: Option<Pending>,
+    ) -> Checkpoint {
+        Checkpoint {
+            version: CHECKPOINT_VERSION,
+            stats,
+            current,
+            total,
+            mirrors,
+            pending,
+        }
+    }
+
     /// Iterations done when the checkpoint was taken.
     pub fn iterations(&self) -> u32 {
         self.stats.len() as u32
@@ -167,26 +185,13 @@ impl Checkpoint {
             Some(CHECKPOINT_VERSION) => bincode::deserialize(bytes).map_err(bad),
             Some(CHECKPOINT_DENSE) => {
                 let old: CheckpointDense = bincode::deserialize(bytes).map_err(bad)?;
-                Ok(Checkpoint {
-                    version: CHECKPOINT_VERSION,
-                    stats: old.stats,
-                    current: old.current,
-                    total: old.total,
-                    mirrors: old.mirrors,
-                    pending: old.pending.map(DensePending::sparse),
-                })
+                let pending = old.pending.map(DensePending::sparse);
+                Ok(Checkpoint::new(old.stats, old.current, old.total, old.mirrors, pending))
             }
             Some(WHOLE_V1) => {
                 let old: CheckpointV1 = bincode::deserialize(bytes).map_err(bad)?;
                 debug_assert_eq!(old.version, WHOLE_V1);
-                Ok(Checkpoint {
-                    version: CHECKPOINT_VERSION,
-                    stats: old.stats,
-                    current: old.current,
-                    total: old.total,
-                    mirrors: old.mirrors,
-                    pending: None,
-                })
+                Ok(Checkpoint::new(old.stats, old.current, old.total, old.mirrors, None))
             }
             Some(SPLIT_VERSION | HEAD_DENSE | HEAD_VERSION) => Err(Error::Decode(
                 "checkpoint: this is the head of a split checkpoint (read it with its other parts)".into(),
@@ -273,14 +278,13 @@ impl Checkpoint {
             }
             _ => return bad("only one half has mirror maps".into()),
         };
-        Ok(Checkpoint {
-            version: CHECKPOINT_VERSION,
-            stats: state.stats,
-            current: state.current,
-            total: totals.total,
+        Ok(Checkpoint::new(
+            state.stats,
+            state.current,
+            totals.total,
             mirrors,
-            pending: state.pending,
-        })
+            state.pending,
+        ))
     }
 }
 
