@@ -462,7 +462,7 @@ pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Res
         .into_inner();
     let stage = resolve_stage(&status, job, snapshot)?;
     let mut names = vec!["manifest.blob".to_string(), "scene.blob".to_string()];
-    names.extend(stage_blobs(&mut clients, job, stage).await?);
+    names.extend(layout::read_by_renders(stage_blobs(&mut clients, job, stage).await?));
     names.sort();
     names.dedup();
     let store = vlf_store::blocking(|| Store::open("memory://")).await??;

@@ -85,11 +85,15 @@ pub enum BlobKind {
     /// final field's mirror radiance, one blob per direction (earlier builds wrote one
     /// [`BlobKind::TileRadiance`] per tile).
     DirectionRadiance = 11,
+    /// Radiance of every mirror slot of a batch of directions, direction after direction: a
+    /// snapshot's mirror radiance in the job's encoding (`iters/K/mirror-radiance/`), what
+    /// renders read of it once its exact `f64` totals are compacted away.
+    BatchRadiance = 12,
 }
 
 impl BlobKind {
     /// Every kind, in numeric order.
-    pub const ALL: [BlobKind; 11] = [
+    pub const ALL: [BlobKind; 12] = [
         BlobKind::Manifest,
         BlobKind::Scene,
         BlobKind::Snapshot,
@@ -101,6 +105,7 @@ impl BlobKind {
         BlobKind::BatchOutput,
         BlobKind::Survey,
         BlobKind::DirectionRadiance,
+        BlobKind::BatchRadiance,
     ];
 
     /// The number stored in the header.

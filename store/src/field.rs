@@ -25,7 +25,11 @@
 //! them, the head and diffuse totals by the coordinator. Mirror radiance of a snapshot is read
 //! from its checkpoint's mirror totals, by batch of directions: cutting it into tiles after every
 //! iteration would write thousands of blobs per iteration (6 000 for the bundled mirror scene at
-//! l = 513, N = 64, m = 8) for a state that is superseded by the next one. The final field
+//! l = 513, N = 64, m = 8) for a state that is superseded by the next one. Those totals are kept
+//! twice per batch: exact (`f64`, `mirror-totals/`), for resuming, and as radiance in the job's
+//! encoding (`mirror-radiance/`, [`FieldJob::mirror_radiance_put`]), for rendering; compacting a
+//! superseded snapshot drops the exact ones, most of a mirror job's store (the mirror scene at
+//! l = 2049, N = 128: 53 MB of a 55 MB snapshot). The final field
 //! (stage `field`) holds radiance only, mirrors per direction, possibly re-sampled (see
 //! `LightField::resample_mirrors`); a viewer fetches the directions whose tiles it needs and
 //! cuts the tiles out ([`crate::StageParts`]).
@@ -91,6 +95,11 @@ pub struct Summary {
     /// final field of an earlier build) or the snapshot's mirror totals (an iteration's stage).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub mirrors_by_direction: bool,
+    /// Whether a snapshot's mirror radiance is read from its [`MapPart::Radiance`] parts, in the
+    /// job's encoding (this build's snapshots; a scene without mirrors has none), rather than
+    /// from its exact mirror totals (snapshots of earlier builds).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub mirror_radiance_by_batch: bool,
 }
 
 impl Summary {
@@ -298,9 +307,13 @@ impl FieldJob {
                     .map(|(b, bytes)| (MapPart::Totals, b, bytes)),
             )
             .collect();
+        let radiance = (0..parts.mirror_totals.len())
+            .into_par_iter()
+            .map(|b| self.mirror_radiance_put(k, b as u32, &p.mirror_totals_of_batch(b)));
         let maps = writes
             .par_iter()
             .map(|&(part, b, bytes)| self.job.map_part_put(k, part, b as u32, bytes))
+            .chain(radiance)
             .collect::<Result<Vec<_>, _>>()?;
         let head = self.job.state_put(k, &parts.head)?;
         let unit = radiance_unit(&self.scene);
@@ -319,6 +332,8 @@ impl FieldJob {
                 stats: p.stats.clone(),
                 digest: None,
                 mirrors_by_direction: false,
+                // Written with the maps, by whoever wrote them (none without mirrors).
+                mirror_radiance_by_batch: true,
             },
         };
         Ok(EncodedSnapshot { maps, head, rest })
@@ -350,6 +365,7 @@ impl FieldJob {
                 stats: field.stats.clone(),
                 digest: Some(field.digest()),
                 mirrors_by_direction: true,
+                mirror_radiance_by_batch: false,
             },
         )?;
         self.job.finish()
@@ -661,6 +677,29 @@ impl FieldJob {
 fn scaled(v: &[[f32; 3]], unit: f64) -> Vec<f32> {
     let scale = (1.0 / unit) as f32;
     v.as_flattened().iter().map(|&x| x * scale).collect()
+}
+
+impl FieldJob {
+    /// The [`MapPart::Radiance`] blob of batch `batch` of snapshot `k`: the total maps `totals`
+    /// of the batch's directions, in order, one after the other, as radiance in the job's
+    /// encoding (shape `[slots, 3]`, the batch's slots). Written next to the exact totals by
+    /// whoever writes those (a worker, as it shoots the batch; the in-process run with its
+    /// snapshot), create-only as they are: a pure function of the job.
+    ///
+    /// Why a second copy: the exact `f64` totals are what resuming from `k` reads, and only the
+    /// last snapshot of a compacting job resumes; a render needs the job's encoding only (a
+    /// final field's mirror radiance is stored so). Once `k` is superseded its exact totals are
+    /// deleted with its shooting maps ([`Job::commit_iteration`]), leaving a quarter of the
+    /// bytes or less in `f16`; and every snapshot renders from these, so it renders the same
+    /// bits before and after it is compacted.
+    pub fn mirror_radiance_put(&self, k: u32, batch: u32, totals: &[&[Rgb]]) -> Result<Put, StoreError> {
+        let scale = 1.0 / radiance_unit(&self.scene);
+        let values: Vec<f32> = (totals.iter().flat_map(|d| d.iter()))
+            .flat_map(|t| t.map(|c| (c * scale) as f32))
+            .collect();
+        let slots = (values.len() / 3) as u32;
+        self.job.mirror_radiance_put(k, batch, &[slots, 3], &values)
+    }
 }
 
 /// Writes every chunk of diffuse maps of `stage`, in parallel.

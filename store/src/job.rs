@@ -195,6 +195,20 @@ impl Job {
         })
     }
 
+    /// The [`MapPart::Radiance`] values blob of batch `batch` of snapshot `k` (`shape`
+    /// `[slots, 3]`, in the stage's radiance unit), in the job's encoding, for
+    /// [`Store::put_all`]; create-only, as [`Job::map_part_put`]'s.
+    pub fn mirror_radiance_put(&self, k: u32, batch: u32, shape: &[u32], values: &[f32]) -> Result<Put, StoreError> {
+        let key = layout::map_part(self.id(), k, MapPart::Radiance, batch)?;
+        let bytes = blob::encode_values(BlobKind::BatchRadiance, self.manifest.encoding, shape, values)
+            .map_err(|e| self.blob_error(&key, e))?;
+        Ok(Put {
+            key,
+            bytes: bytes.into(),
+            create_only: true,
+        })
+    }
+
     /// Mirror maps `part` of batch `b` of the resume state of iteration `k` as written,
     /// committed or not (see [`Job::get_released_state`]), for every `(part, b)` of `parts`,
     /// their requests overlapping (see [`Store::get_all`]), in the order of `parts`.
@@ -315,12 +329,13 @@ impl Job {
         if !self.store.exists(&layout::state(self.id(), k)?)? {
             return Err(self.error(format!("cannot commit iteration {k}: its resume state is not written")));
         }
-        // The snapshot this one supersedes loses its mirror shooting maps if the job compacts:
-        // listed as compacted in the same manifest write, deleted after it (a reader never
-        // finds a resumable snapshot without its parts; a crash in between leaves garbage).
+        // The snapshot this one supersedes loses what only resuming from it reads if the job
+        // compacts ([`Job::resume_only_parts`]). Listed as compacted in the same manifest
+        // write, deleted after it (a reader never finds a resumable snapshot without its
+        // parts; a crash in between leaves garbage).
         let superseded = match self.last_finished() {
             Some(p) if self.manifest.compact && !self.manifest.compacted.contains(&p) => {
-                let parts = self.store.list(&layout::map_parts(self.id(), p, MapPart::Shooting)?)?;
+                let parts = self.resume_only_parts(p)?;
                 (!parts.is_empty()).then_some((p, parts))
             }
             _ => None,
@@ -342,6 +357,42 @@ impl Job {
         Ok(())
     }
 
+    /// The keys of snapshot `p`'s blobs that only resuming from it reads, which compacting it
+    /// deletes ([`Job::commit_iteration`]): what a render reads stays (the summary, the diffuse
+    /// maps and the mirror radiance, in the job's encoding).
+    ///
+    /// - Its mirror shooting maps.
+    /// - From store format 6 on, its exact state: the shooting state's head, the diffuse totals
+    ///   and, where its mirror radiance is stored as [`MapPart::Radiance`] parts (as many as
+    ///   there are batches of exact totals), the exact mirror totals. Most of a mirror job's
+    ///   store; most of a diffuse job's snapshots (`f64` per texel, where the diffuse maps a
+    ///   render reads are `f16`).
+    ///
+    /// One listing of the snapshot.
+    fn resume_only_parts(&self, p: u32) -> Result<Vec<String>, StoreError> {
+        let folder = |part| layout::map_parts(self.id(), p, part);
+        let (shooting, totals, radiance) = (
+            folder(MapPart::Shooting)?,
+            folder(MapPart::Totals)?,
+            folder(MapPart::Radiance)?,
+        );
+        let keys = self
+            .store
+            .list(&layout::stage_prefix(self.id(), Stage::Iteration(p))?)?;
+        let under = |prefix: &str| -> Vec<String> { keys.iter().filter(|k| k.starts_with(prefix)).cloned().collect() };
+        let mut parts = under(&shooting);
+        if self.manifest.format < 6 {
+            return Ok(parts);
+        }
+        let exact = [layout::state(self.id(), p)?, layout::totals(self.id(), p)?];
+        parts.extend(keys.iter().filter(|k| exact.contains(k)).cloned());
+        let (totals, radiance) = (under(&totals), under(&radiance));
+        if radiance.len() == totals.len() {
+            parts.extend(totals);
+        }
+        Ok(parts)
+    }
+
     /// Sets whether committing a snapshot compacts the one before ([`Manifest::compact`]).
     pub fn set_compact(&mut self, compact: bool) -> Result<(), StoreError> {
         let mut manifest = self.manifest.clone();
@@ -356,7 +407,7 @@ impl Job {
             let last = self.last_finished().map_or("none".into(), |l| l.to_string());
             return Err(self.error(format!(
                 "snapshot {k} was compacted once a later one was committed: it renders, but only \
-                 its radiance is kept, not the maps to resume from (the last snapshot, {last}, resumes)"
+                 its radiance is kept, not the state to resume from (the last snapshot, {last}, resumes)"
             )));
         }
         Ok(())

@@ -9,7 +9,8 @@
 //! | `jobs/J/survey.blob` | Survey | what setting the job up learnt over all its directions (caller's bytes), so that nobody learns it again |
 //! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | the head of what shooting the iteration after K reads (or, in jobs written before the split, all that resuming needs) |
 //! | `jobs/J/iters/KKKKK/shooting/BBBBB.blob` | Snapshot | what batch B of the directions shoots next: the mirror arrivals to gather (or unshot maps) |
-//! | `jobs/J/iters/KKKKK/mirror-totals/BBBBB.blob` | Snapshot | the total mirror maps of batch B of the directions |
+//! | `jobs/J/iters/KKKKK/mirror-totals/BBBBB.blob` | Snapshot | the total mirror maps of batch B of the directions, exact (`f64`): what resuming reads (deleted once K is compacted) |
+//! | `jobs/J/iters/KKKKK/mirror-radiance/BBBBB.blob` | BatchRadiance | the same maps as radiance in the job's encoding: what renders read (format 6 on) |
 //! | `jobs/J/iters/KKKKK/totals.blob` | Snapshot | the diffuse totals (absent in jobs written before the split; with the mirror totals in jobs written before they were stored by batch) |
 //! | `jobs/J/iters/KKKKK/unshot/BBBBB.blob` | Snapshot | in jobs written before the mirror totals were stored by batch: the unshot mirror maps of batch B |
 //! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
@@ -88,14 +89,18 @@ pub fn state(job: &JobId, k: u32) -> Result<String, StoreError> {
 pub enum MapPart {
     /// What the batch's directions shoot next (`shooting/`).
     Shooting,
-    /// Their total maps (`mirror-totals/`).
+    /// Their total maps (`mirror-totals/`), exact (`f64`): what resuming reads.
     Totals,
+    /// Their total maps as radiance in the job's encoding (`mirror-radiance/`, a
+    /// [`crate::BlobKind::BatchRadiance`] values blob): what renders read. A snapshot that is
+    /// compacted keeps these and loses its exact totals.
+    Radiance,
     /// Their unshot maps, in jobs written before the mirror totals were stored by batch
     /// (`unshot/`).
     Unshot,
 }
 
-/// `jobs/J/iters/KKKKK/{shooting,mirror-totals,unshot}/BBBBB.blob`: the mirror maps `part` of
+/// `jobs/J/iters/KKKKK/{shooting,mirror-totals,mirror-radiance,unshot}/BBBBB.blob`: the mirror maps `part` of
 /// batch `batch` of the directions in the resume state after `k` iterations.
 pub fn map_part(job: &JobId, k: u32, part: MapPart, batch: u32) -> Result<String, StoreError> {
     Ok(format!(
@@ -105,12 +110,13 @@ pub fn map_part(job: &JobId, k: u32, part: MapPart, batch: u32) -> Result<String
     ))
 }
 
-/// `jobs/J/iters/KKKKK/{shooting,mirror-totals,unshot}/`: where the [`map_part`]s `part` of the
+/// `jobs/J/iters/KKKKK/{shooting,mirror-totals,mirror-radiance,unshot}/`: where the [`map_part`]s `part` of the
 /// resume state after `k` iterations are.
 pub fn map_parts(job: &JobId, k: u32, part: MapPart) -> Result<String, StoreError> {
     let folder = match part {
         MapPart::Shooting => "shooting",
         MapPart::Totals => "mirror-totals",
+        MapPart::Radiance => "mirror-radiance",
         MapPart::Unshot => "unshot",
     };
     Ok(format!("{}{folder}/", stage_prefix(job, Stage::Iteration(k))?))
@@ -120,6 +126,24 @@ pub fn map_parts(job: &JobId, k: u32, part: MapPart) -> Result<String, StoreErro
 pub fn parse_map_part(prefix: &str, key: &str) -> Option<u32> {
     let name = key.strip_prefix(prefix)?.strip_suffix(".blob")?;
     (name.len() == 5 && name.bytes().all(|b| b.is_ascii_digit())).then(|| name.parse().ok())?
+}
+
+/// Of the keys of a stage's blobs (or their names under the job's prefix), those a render of
+/// the stage reads: all but a snapshot's mirror shooting maps (and the unshot maps of earlier
+/// builds), and where its mirror radiance is stored in the job's encoding (`mirror-radiance/`,
+/// store format 6 on) all but its exact state too — the head, the diffuse totals, the exact
+/// mirror totals. What a client fetches to render a running job's last snapshot: a tenth of the
+/// snapshot for the mirror scene at l = 2049, N = 128.
+pub fn read_by_renders(mut keys: Vec<String>) -> Vec<String> {
+    let folder = |key: &str, name: &str| key.contains(&format!("/{name}/")) || key.starts_with(&format!("{name}/"));
+    let is = |key: &str, name: &str| key == name || key.ends_with(&format!("/{name}"));
+    let by_radiance = keys.iter().any(|k| folder(k, "mirror-radiance"));
+    keys.retain(|k| {
+        let resume_only = folder(k, "shooting") || folder(k, "unshot");
+        let exact = folder(k, "mirror-totals") || is(k, "state.blob") || is(k, "totals.blob");
+        !(resume_only || by_radiance && exact)
+    });
+    keys
 }
 
 /// `jobs/J/iters/KKKKK/totals.blob`: the totals half of the resume state after `k` iterations.

@@ -26,7 +26,13 @@ use std::time::{SystemTime, UNIX_EPOCH};
 ///   per polygon. A job of format 3 or 4 is read as it was unless its scene has a mirror of
 ///   several polygons (`FieldJob::open` refuses that one: its maps are laid out otherwise); a
 ///   build that reads 4 at most refuses format 5 rather than read a plane's slots per polygon.
-pub const MANIFEST_FORMAT: u32 = 5;
+/// * 6: a mirror job's snapshots store their mirror radiance in the job's encoding as well,
+///   one blob per batch of directions (`iters/K/mirror-radiance/`), which renders read; a
+///   compacted snapshot keeps only what renders read (summary, diffuse maps, mirror radiance),
+///   not its exact state (head, diffuse and mirror totals, `f64`). A job of format 5 or earlier
+///   is read as it was, and compacts as it did (its mirror shooting maps only); a build that
+///   reads 5 at most refuses format 6 rather than look for a compacted snapshot's totals.
+pub const MANIFEST_FORMAT: u32 = 6;
 
 /// The oldest format this build reads ([`MANIFEST_FORMAT`]'s list says what changed).
 pub const OLDEST_READABLE_FORMAT: u32 = 3;
@@ -74,14 +80,15 @@ pub struct Manifest {
     /// does what was asked). Absent in older manifests: false.
     #[serde(default, skip_serializing_if = "is_false")]
     pub resample: bool,
-    /// Whether committing a snapshot deletes the mirror shooting maps of the one before it
-    /// ([`Manifest::compacted`]): only the last snapshot is resumed, and a mirror job's
-    /// shooting maps are half its store (the half-mirror grid room at l = 2049, N = 128: 30
-    /// snapshots of 425 MB). Set when the job is created; absent in older manifests: false.
+    /// Whether committing a snapshot deletes what only resuming reads of the one before it
+    /// ([`Manifest::compacted`]): only the last snapshot is resumed, and a mirror job's exact
+    /// state is most of its store (the mirror scene at l = 2049, N = 128: 517 MB of snapshots
+    /// kept whole, 160 MB compacted; jobs of format 5 and earlier lose their shooting maps only).
+    /// Set when the job is created; absent in older manifests: false.
     #[serde(default, skip_serializing_if = "is_false")]
     pub compact: bool,
-    /// Finished snapshots whose shooting maps were deleted once a later one was committed:
-    /// they render as before (their radiance is kept) but do not resume. Strictly increasing,
+    /// Finished snapshots whose exact state was deleted once a later one was committed: they
+    /// render as before (their radiance is kept) but do not resume. Strictly increasing,
     /// finished, and never the last finished snapshot.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub compacted: Vec<u32>,

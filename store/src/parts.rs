@@ -29,7 +29,11 @@ enum MirrorSource {
     Directions,
     /// One blob per tile (a final field of an earlier build).
     Tiles,
-    /// A snapshot's mirror totals, one blob per batch of directions.
+    /// A snapshot's mirror radiance in the job's encoding, one blob per batch of directions
+    /// (`MapPart::Radiance`).
+    Radiance,
+    /// A snapshot's exact mirror totals, one blob per batch of directions (snapshots of earlier
+    /// builds).
     Batches,
     /// A snapshot of an earlier build: all its mirror totals in this one blob (its totals, or
     /// its whole checkpoint).
@@ -63,6 +67,7 @@ impl StageParts {
             ))));
         }
         let mirrors = match stage {
+            Stage::Iteration(_) if summary.mirror_radiance_by_batch => MirrorSource::Radiance,
             Stage::Iteration(k) => {
                 let store = job.job().store();
                 let (first, totals, whole) = (
@@ -115,8 +120,12 @@ impl StageParts {
             (MirrorSource::Whole(whole), _) => key == whole,
             (MirrorSource::Directions, stage) => layout::parse_direction(key)
                 .is_some_and(|d| layout::direction(self.job.id(), stage, d).is_ok_and(|named| named == key)),
-            (MirrorSource::Batches, Stage::Iteration(k)) => layout::map_part(self.job.id(), k, MapPart::Totals, 0)
-                .is_ok_and(|first| key.starts_with(first.trim_end_matches("00000.blob"))),
+            (MirrorSource::Batches, Stage::Iteration(k)) => {
+                layout::map_parts(self.job.id(), k, MapPart::Totals).is_ok_and(|folder| key.starts_with(&folder))
+            }
+            (MirrorSource::Radiance, Stage::Iteration(k)) => {
+                layout::map_parts(self.job.id(), k, MapPart::Radiance).is_ok_and(|folder| key.starts_with(&folder))
+            }
             _ => false,
         }
     }
@@ -155,11 +164,22 @@ impl StageParts {
             (Part::Tile { direction, .. }, Stage::Iteration(k), MirrorSource::Batches) => {
                 layout::map_part(id, k, MapPart::Totals, self.batch_of(direction) as u32)
             }
+            (Part::Tile { direction, .. }, Stage::Iteration(k), MirrorSource::Radiance) => {
+                layout::map_part(id, k, MapPart::Radiance, self.batch_of(direction) as u32)
+            }
             (Part::Tile { direction, tile }, stage, _) => {
                 let per_side = self.job.options().grid.tiles_per_side();
                 layout::tile(id, stage, direction, tile % per_side, tile / per_side)
             }
         }
+    }
+
+    /// The batch of a [`MapPart::Radiance`] key of snapshot `k` (`…/mirror-radiance/BBBBB.blob`),
+    /// if it is one of the job's batches.
+    fn radiance_batch(&self, k: u32, key: &str) -> Option<u32> {
+        let folder = layout::map_parts(self.job.id(), k, MapPart::Radiance).ok()?;
+        let batch = layout::parse_map_part(&folder, key)?;
+        ((batch as usize) < self.job.options().batching().count()).then_some(batch)
     }
 
     /// The batch of directions `direction` is in.
@@ -276,7 +296,7 @@ impl StageParts {
     fn shared_totals(&self, key: &str, direction: u32) -> Result<(Arc<MirrorTotals>, usize), StoreError> {
         let first = match self.mirrors {
             MirrorSource::Directions => direction as usize,
-            MirrorSource::Batches => {
+            MirrorSource::Batches | MirrorSource::Radiance => {
                 let batch = self.batch_of(direction);
                 self.job.options().batching().range(batch).start
             }
@@ -292,17 +312,23 @@ impl StageParts {
         }
     }
 
-    /// The number of mirror slots of each direction whose blob is among `keys`, from `catalog`
-    /// (a direction's tiles number its slots one after the other): what its blob must hold.
+    /// The number of mirror slots of each direction whose blob is among `keys` (a direction's,
+    /// or its batch's mirror radiance), from `catalog` (a direction's tiles number its slots one
+    /// after the other): what its blob must hold.
     fn direction_slots(&self, catalog: &PartCatalog, keys: &[String]) -> HashMap<u32, usize> {
-        if self.mirrors != MirrorSource::Directions {
-            return HashMap::new();
-        }
-        let mut slots: HashMap<u32, usize> = keys
-            .iter()
-            .filter_map(|k| layout::parse_direction(k))
-            .map(|d| (d, 0))
-            .collect();
+        let directions: Vec<u32> = match (&self.mirrors, self.stage) {
+            (MirrorSource::Directions, _) => keys.iter().filter_map(|k| layout::parse_direction(k)).collect(),
+            (MirrorSource::Radiance, Stage::Iteration(k)) => {
+                let batching = self.job.options().batching();
+                keys.iter()
+                    .filter_map(|key| self.radiance_batch(k, key))
+                    .flat_map(|b| batching.range(b as usize))
+                    .map(|d| d as u32)
+                    .collect()
+            }
+            _ => return HashMap::new(),
+        };
+        let mut slots: HashMap<u32, usize> = directions.into_iter().map(|d| (d, 0)).collect();
         // A viewer's reads are small and many: the catalog is walked only when a direction's
         // blob is among them.
         if slots.is_empty() {
@@ -348,6 +374,29 @@ impl StageParts {
                         )))
                     })?;
                 f32_maps(&self.job.decode_map_part(k, batch as usize, &bytes)?.maps)
+            }
+            (Stage::Iteration(k), MirrorSource::Radiance) => {
+                let (shape, values) = self.values(key, stored, BlobKind::BatchRadiance)?;
+                let batch = self.radiance_batch(k, key).ok_or_else(|| {
+                    self.job.field_error(vlf_core::Error::Decode(format!(
+                        "`{key}` is not a batch of mirror radiance"
+                    )))
+                })?;
+                let counts: Vec<usize> = (self.job.options().batching().range(batch as usize))
+                    .map(|d| slots.get(&(d as u32)).copied().unwrap_or(0))
+                    .collect();
+                let held: usize = counts.iter().sum();
+                self.job
+                    .check_shape(&shape, &[held as u32, 3], || Ok(key.to_string()))?;
+                let radiance = self.scaled(&values);
+                let mut rest = &radiance[..];
+                (counts.iter())
+                    .map(|&n| {
+                        let (d, after) = rest.split_at(n);
+                        rest = after;
+                        d.to_vec()
+                    })
+                    .collect()
             }
             (Stage::Iteration(k), MirrorSource::Whole(_)) => {
                 let bytes = self.job.job().decode_snapshot(key, stored)?;

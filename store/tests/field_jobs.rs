@@ -172,12 +172,13 @@ fn encodings_and_snapshots(o: &Opener) {
         );
         let last = job.load(Stage::Iteration(4)).unwrap();
         assert_close(&back.radiance, &last.radiance, 0.0, 0.0, "last snapshot");
+        // Its mirror radiance is stored in the job's encoding as the field's is: the same bits.
         assert_close(
-            &field.specular.as_ref().unwrap().totals.concat(),
+            &back.specular.as_ref().unwrap().totals.concat(),
             &last.specular.as_ref().unwrap().totals.concat(),
             0.0,
             0.0,
-            "last snapshot mirrors (exact, from its checkpoint)",
+            "last snapshot mirrors",
         );
         // Stages read on one geometry are what each reads alone; a stage the job does not have
         // is an error of its own, which leaves the others read.
@@ -255,6 +256,19 @@ fn damage_names_the_key(o: &Opener) {
     assert!(job.load(Stage::Iteration(1)).is_ok());
 }
 
+/// Takes `flag` (true) out of the summary of `stage`, as earlier builds wrote it.
+fn summary_without(store: &Store, id: &JobId, stage: Stage, flag: &str) {
+    let key = layout::summary(id, stage).unwrap();
+    let json = blob::decode_bytes(&store.get(&key).unwrap(), BlobKind::Summary).unwrap();
+    let mut summary: serde_json::Value = serde_json::from_slice(&json).unwrap();
+    assert_eq!(summary[flag], serde_json::Value::Bool(true), "{flag} of {stage:?}");
+    summary.as_object_mut().unwrap().remove(flag);
+    let json = serde_json::to_vec(&summary).unwrap();
+    store
+        .put(&key, blob::encode_bytes(BlobKind::Summary, &json).unwrap())
+        .unwrap();
+}
+
 /// A final field as earlier builds stored it — mirror radiance one blob per direction and tile,
 /// a summary that does not say `mirrors_by_direction` — reads back as this build's does.
 fn earlier_final_fields(o: &Opener) {
@@ -289,15 +303,7 @@ fn earlier_final_fields(o: &Opener) {
         tiles > spec.layouts.iter().filter(|l| l.len > 0).count(),
         "several tiles a direction"
     );
-    let key = layout::summary(&id, Stage::Field).unwrap();
-    let json = blob::decode_bytes(&store.get(&key).unwrap(), BlobKind::Summary).unwrap();
-    let mut summary: serde_json::Value = serde_json::from_slice(&json).unwrap();
-    assert_eq!(summary["mirrors_by_direction"], serde_json::Value::Bool(true));
-    summary.as_object_mut().unwrap().remove("mirrors_by_direction");
-    let json = serde_json::to_vec(&summary).unwrap();
-    store
-        .put(&key, blob::encode_bytes(BlobKind::Summary, &json).unwrap())
-        .unwrap();
+    summary_without(&store, &id, Stage::Field, "mirrors_by_direction");
 
     let job = FieldJob::open(&store, &id).unwrap();
     assert!(!job.summary(Stage::Field).unwrap().mirrors_by_direction);
@@ -402,7 +408,7 @@ fn as_earlier_build(store: &Store, id: &JobId, k: u32, whole: bool) -> Checkpoin
     };
     let (state_key, totals_key) = (layout::state(id, k).unwrap(), layout::totals(id, k).unwrap());
     for b in 0..unshot.len() as u32 {
-        for part in [MapPart::Shooting, MapPart::Totals, MapPart::Unshot] {
+        for part in [MapPart::Shooting, MapPart::Totals, MapPart::Radiance, MapPart::Unshot] {
             store.delete(&layout::map_part(id, k, part, b).unwrap()).unwrap();
         }
     }
@@ -561,11 +567,29 @@ fn snapshots_of_earlier_builds_still_read() {
     let tile = (0..catalog.len() as u32)
         .find(|&i| matches!(catalog.part(i), vlf_core::parts::Part::Tile { .. }))
         .expect("the mirror scene has mirror tiles");
+    let radiance_key = parts.key(&catalog, tile).unwrap();
+    assert!(
+        radiance_key.contains("/mirror-radiance/") && parts.is_shared(&radiance_key),
+        "{radiance_key}"
+    );
+    // As the builds of store format 5 wrote it: exact totals by batch and no radiance parts (a
+    // summary that does not name them). It renders from the totals, with the same bits in
+    // `f32`.
+    summary_without(&store, &id, Stage::Iteration(2), "mirror_radiance_by_batch");
+    for b in 0..job.options().batching().count() as u32 {
+        store
+            .delete(&layout::map_part(&id, 2, MapPart::Radiance, b).unwrap())
+            .unwrap();
+    }
+    let parts = open_parts();
     let batch_key = parts.key(&catalog, tile).unwrap();
     assert!(
-        batch_key.contains("/mirror-totals/") && parts.is_shared(&batch_key),
+        batch_key.contains("/mirror-totals/") && parts.is_shared(&batch_key) && !parts.is_shared(&radiance_key),
         "{batch_key}"
     );
+    let back = FieldJob::open(&store, &id).unwrap().load(Stage::Iteration(2)).unwrap();
+    assert_eq!(back.radiance, viewed.radiance);
+    assert_eq!(back.specular.unwrap().totals, viewed.specular.as_ref().unwrap().totals);
 
     // A worker shoots the iteration after snapshot 2 from this build's parts.
     let pass = vlf_core::propagate::Pass::Shoot;
@@ -821,11 +845,92 @@ fn earlier_jobs_with_a_mirror_of_several_polygons_are_refused() {
     }
 }
 
+/// What a client fetches to render a stage ([`layout::read_by_renders`]) draws it with the same
+/// bits as the whole store: of a mirror job's last snapshot, not its exact state (a fraction of
+/// its bytes); of a snapshot of store format 5 (no mirror radiance parts), its exact totals.
+#[test]
+fn a_stage_renders_from_what_renders_read() {
+    let store = Store::open("memory://").unwrap();
+    let (job, _) = run(&store, &bundled("mirrors.obj"), Encoding::F16);
+    let id = job.id().clone();
+    let fetched = |stage: Stage| -> (LightField, usize, usize) {
+        let all = store.list(&layout::stage_prefix(&id, stage).unwrap()).unwrap();
+        let kept = layout::read_by_renders(all.clone());
+        let bytes = |keys: &[String]| keys.iter().map(|k| store.get(k).unwrap().len()).sum::<usize>();
+        let partial = Store::open("memory://").unwrap();
+        for key in [layout::manifest(&id), layout::scene(&id)].iter().chain(&kept) {
+            partial.put(key, store.get(key).unwrap()).unwrap();
+        }
+        let field = FieldJob::open(&partial, &id).unwrap().load(stage).unwrap();
+        (field, bytes(&kept), bytes(&all))
+    };
+    for stage in [Stage::Field, Stage::Iteration(4)] {
+        let (field, kept, all) = fetched(stage);
+        assert!(field == job.load(stage).unwrap(), "{stage:?}");
+        if stage == Stage::Field {
+            assert_eq!(kept, all, "a final field is all radiance");
+        } else {
+            assert!(4 * kept < all, "{stage:?}: {kept} of {all} bytes");
+        }
+    }
+    summary_without(&store, &id, Stage::Iteration(4), "mirror_radiance_by_batch");
+    for b in 0..job.options().batching().count() as u32 {
+        store
+            .delete(&layout::map_part(&id, 4, MapPart::Radiance, b).unwrap())
+            .unwrap();
+    }
+    let (field, kept, all) = fetched(Stage::Iteration(4));
+    assert!(field == job.load(Stage::Iteration(4)).unwrap());
+    assert!(kept < all && 2 * kept > all, "format 5: {kept} of {all} bytes");
+}
+
+/// A diffuse job that compacts keeps of a superseded snapshot what renders read, its summary and
+/// diffuse maps, and deletes its exact state (the head and the diffuse totals, `f64` per texel,
+/// most of the snapshot): each snapshot renders as it did while it was the last, only the last
+/// resumes, and it resumes exactly.
+#[test]
+fn compacted_diffuse_snapshots_keep_what_renders_read() {
+    let store = Store::open("memory://").unwrap();
+    let mut p = Propagation::new(bundled("cornell.obj"), options(4)).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F16).unwrap();
+    job.set_compact(true).unwrap();
+    let mut fresh = Vec::new();
+    while !p.finished() {
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+        fresh.push(job.load(Stage::Iteration(p.iterations_done())).unwrap());
+    }
+    let id = job.id().clone();
+    let views: Vec<LightField> = (1..=4).map(|k| job.load(Stage::Iteration(k)).unwrap()).collect();
+    assert!(views == fresh, "a snapshot renders otherwise once superseded");
+    assert_eq!(job.job().manifest().compacted, vec![0, 1, 2, 3]);
+    for k in 0..=4 {
+        for exact in [layout::state(&id, k).unwrap(), layout::totals(&id, k).unwrap()] {
+            assert_eq!(store.exists(&exact).unwrap(), k == 4, "{exact}");
+        }
+        let kept = store
+            .list(&layout::stage_prefix(&id, Stage::Iteration(k)).unwrap())
+            .unwrap();
+        assert!(
+            kept.iter().any(|key| key.contains("/diffuse/")),
+            "snapshot {k}: {kept:?}"
+        );
+        if k < 4 {
+            let rendered = |key: &String| key.ends_with("/summary.blob") || key.contains("/diffuse/");
+            assert!(kept.iter().all(rendered), "snapshot {k}: {kept:?}");
+            assert!(job.checkpoint(k).unwrap_err().to_string().contains("compacted"));
+        }
+    }
+    assert!(without_times(job.checkpoint(4).unwrap()) == without_times(p.checkpoint()));
+}
+
 /// A job that compacts (what `vlf propagate` and the service do unless told to keep
-/// checkpoints): committing a snapshot deletes the mirror shooting maps of the one before. Every
-/// snapshot still renders as it did, the last resumes to the field of a job that kept them all,
-/// the earlier ones are refused as checkpoints with a message that says why, and the store
-/// holds the shooting maps of the last snapshot only.
+/// checkpoints): committing a snapshot deletes the mirror shooting maps and the exact mirror
+/// totals of the one before. Every snapshot still renders as it did before it was compacted (its
+/// mirror radiance in the job's encoding stays), the last resumes to the field of a job that
+/// kept them all, the earlier ones are refused as checkpoints with a message that says why, and
+/// the store holds the shooting maps and exact totals of the last snapshot only: the compacted
+/// snapshots are less than half their size before (`f16`).
 #[test]
 fn compacted_snapshots_render_as_before_and_only_the_last_resumes() {
     let scene = bundled("mirrors.obj");
@@ -833,21 +938,42 @@ fn compacted_snapshots_render_as_before_and_only_the_last_resumes() {
     for compact in [false, true] {
         let store = Store::open("memory://").unwrap();
         let mut p = Propagation::new(scene.clone(), options(4)).unwrap();
-        let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+        let mut job = FieldJob::create(&store, &p, Encoding::F16).unwrap();
         job.set_compact(compact).unwrap();
+        // Each snapshot as it renders while it is the last.
+        let mut fresh = Vec::new();
         while !p.finished() {
             p.step(|_| {});
             job.write_snapshot(&p).unwrap();
+            fresh.push(job.load(Stage::Iteration(p.iterations_done())).unwrap());
         }
         let views: Vec<LightField> = (1..=4).map(|k| job.load(Stage::Iteration(k)).unwrap()).collect();
+        assert!(
+            views == fresh,
+            "a snapshot renders otherwise once superseded (compact: {compact})"
+        );
         runs.push((store, job.id().clone(), views));
     }
-    let shooting_parts = |store: &Store, id: &JobId, k: u32| {
-        store
-            .list(&layout::map_parts(id, k, MapPart::Shooting).unwrap())
-            .unwrap()
-            .len()
+    let parts = |part| {
+        move |store: &Store, id: &JobId, k: u32| store.list(&layout::map_parts(id, k, part).unwrap()).unwrap().len()
     };
+    let (shooting_parts, exact_totals, radiance_parts) = (
+        parts(MapPart::Shooting),
+        parts(MapPart::Totals),
+        parts(MapPart::Radiance),
+    );
+    let bytes_of = |part| {
+        move |store: &Store, id: &JobId, k: u32| -> usize {
+            let prefix = layout::map_parts(id, k, part).unwrap();
+            store
+                .list(&prefix)
+                .unwrap()
+                .iter()
+                .map(|key| store.get(key).unwrap().len())
+                .sum()
+        }
+    };
+    let (exact_bytes, radiance_bytes) = (bytes_of(MapPart::Totals), bytes_of(MapPart::Radiance));
     let [(kept_store, kept_id, kept_views), (store, id, views)] = &runs[..] else {
         unreachable!()
     };
@@ -855,14 +981,30 @@ fn compacted_snapshots_render_as_before_and_only_the_last_resumes() {
     let job = FieldJob::open(store, id).unwrap();
     assert_eq!(job.job().manifest().compacted, vec![0, 1, 2, 3]);
     assert!(kept.job().manifest().compacted.is_empty());
+    let batches = job.options().batching().count();
     for k in 0..4 {
         assert!(shooting_parts(kept_store, kept_id, k) > 0, "snapshot {k} kept its maps");
+        assert_eq!(
+            exact_totals(kept_store, kept_id, k),
+            batches,
+            "snapshot {k} kept its totals"
+        );
         assert_eq!(shooting_parts(store, id, k), 0, "snapshot {k} compacted");
+        assert_eq!(exact_totals(store, id, k), 0, "snapshot {k} compacted");
+        assert_eq!(radiance_parts(store, id, k), batches, "snapshot {k} still renders");
+        if k > 0 {
+            let (now, then) = (radiance_bytes(store, id, k), exact_bytes(kept_store, kept_id, k));
+            assert!(
+                2 * now < then,
+                "snapshot {k}: mirror radiance {now} bytes, exact totals {then}"
+            );
+        }
         let refused = job.checkpoint(k).unwrap_err().to_string();
         assert!(refused.contains("compacted") && refused.contains("4"), "{refused}");
         assert!(job.shooting_state(k).is_err());
     }
     assert!(shooting_parts(store, id, 4) > 0);
+    assert_eq!(exact_totals(store, id, 4), batches);
     for (k, (a, b)) in views.iter().zip(kept_views).enumerate() {
         assert!(a.radiance == b.radiance, "snapshot {} renders otherwise", k + 1);
         assert!(a.specular.as_ref().unwrap().totals == b.specular.as_ref().unwrap().totals);

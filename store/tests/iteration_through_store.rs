@@ -142,7 +142,30 @@ fn same_bits(o: &Opener, scene: Scene, options: Options) {
             field_blobs(&job) == field_blobs(&reference),
             "{workers} replicas: stored field differs"
         );
+        // The snapshots' mirror radiance, written by the workers as they shoot, is the bytes
+        // the in-process run writes with its snapshots.
+        for k in 0..=3 {
+            let radiance = radiance_blobs(&job, k);
+            assert_eq!(!radiance.is_empty(), scene_has_mirrors(&scene), "snapshot {k}");
+            assert!(
+                radiance == radiance_blobs(&reference, k),
+                "{workers} replicas: mirror radiance of snapshot {k} differs"
+            );
+        }
     }
+}
+
+/// Every [`MapPart::Radiance`] blob of snapshot `k`, by key under the job.
+fn radiance_blobs(job: &FieldJob, k: u32) -> Vec<(String, Vec<u8>)> {
+    let prefix = layout::map_parts(job.id(), k, MapPart::Radiance).unwrap();
+    let store = job.job().store();
+    (store.list(&prefix).unwrap().into_iter())
+        .map(|key| (key[prefix.len()..].to_string(), store.get(&key).unwrap().to_vec()))
+        .collect()
+}
+
+fn scene_has_mirrors(scene: &Scene) -> bool {
+    (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror())
 }
 
 fn mirrors(o: &Opener) {
@@ -531,6 +554,12 @@ fn a_run_computed_behind_returns_before_its_writes(o: &Opener) {
 /// leave the output alone. A coordinator that finds the output without a report of it takes it
 /// only with its maps, and computed again, the block gives the same bytes and its maps back.
 fn an_output_without_its_maps_is_computed_again(o: &Opener) {
+    for part in [MapPart::Totals, MapPart::Radiance] {
+        an_output_without_its_part_is_computed_again(o, part);
+    }
+}
+
+fn an_output_without_its_part_is_computed_again(o: &Opener, part: MapPart) {
     let (id, mut coordinator, mut replica) = start(o, bundled("mirrors.obj"), options(0, 33), Encoding::F32);
     for _ in 0..2 {
         compute_iteration(&mut coordinator, &mut replica);
@@ -539,7 +568,7 @@ fn an_output_without_its_maps_is_computed_again(o: &Opener) {
     replica.compute(2, Pass::Shoot, 0..1).unwrap();
     replica.compute(2, Pass::Shoot, 1..2).unwrap();
     let store = o.open();
-    let lost = layout::map_part(&id, 3, MapPart::Totals, 1).unwrap();
+    let lost = layout::map_part(&id, 3, part, 1).unwrap();
     store.delete(&lost).unwrap();
     let mut restarted = Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
     assert_eq!(restarted.blocks_in_store().unwrap(), vec![vec![0..1]]);

@@ -149,9 +149,9 @@ fn the_needed_keys_are_all_a_view_reads() {
         );
         // A snapshot's mirror radiance is read by batch of directions: those the view sees.
         if let Stage::Iteration(_) = stage {
-            let batches = keys.iter().filter(|k| k.contains("/mirror-totals/")).count();
+            let batches = keys.iter().filter(|k| k.contains("/mirror-radiance/")).count();
             let all = job.options().batching().count();
-            eprintln!("close-up of snapshot: {batches} of {all} batches of mirror totals");
+            eprintln!("close-up of snapshot: {batches} of {all} batches of mirror radiance");
             assert!(batches > 0 && batches < all, "{batches} of {all}");
         }
     }
@@ -182,22 +182,35 @@ fn parts_read_one_by_one_are_the_fields_and_bad_blobs_are_named() {
         let (_, job_bytes) = job.stored_bytes(stage).unwrap();
         assert!(reader.bytes_read() > 0 && reader.bytes_read() < job_bytes);
     }
-    // A corrupted tile: an error that names its key; the other parts still read.
-    let reader = StageParts::open(job.clone(), Stage::Field).unwrap();
-    let geometry = reader.geometry().unwrap();
-    let catalog = PartCatalog::new(&geometry);
-    let tile = (0..catalog.len() as u32)
-        .find(|&p| matches!(catalog.part(p), Part::Tile { .. }))
-        .unwrap();
-    let key = reader.key(&catalog, tile).unwrap();
+    // A corrupted tile (a direction's blob, a snapshot's batch of mirror radiance), or the blob
+    // of a batch with other slots: an error that names its key; the other parts still read.
     let store = job.job().store();
-    let mut bytes = store.get(&key).unwrap().to_vec();
-    let middle = bytes.len() / 2;
-    bytes[middle] ^= 0x55;
-    store.put(&key, bytes).unwrap();
-    let error = reader.read(&catalog, &[0, tile]).unwrap_err().to_string();
-    assert!(error.contains(&key), "{error}");
-    assert!(reader.read(&catalog, &[0]).is_ok());
+    for stage in [Stage::Field, Stage::Iteration(2)] {
+        let reader = StageParts::open(job.clone(), stage).unwrap();
+        let geometry = reader.geometry().unwrap();
+        let catalog = PartCatalog::new(&geometry);
+        let tiles: Vec<u32> = (0..catalog.len() as u32)
+            .filter(|&p| matches!(catalog.part(p), Part::Tile { .. }))
+            .collect();
+        let (tile, last) = (tiles[0], *tiles.last().unwrap());
+        let (key, other) = (reader.key(&catalog, tile).unwrap(), reader.key(&catalog, last).unwrap());
+        let good = store.get(&key).unwrap().to_vec();
+        let mut bytes = good.clone();
+        let middle = bytes.len() / 2;
+        bytes[middle] ^= 0x55;
+        store.put(&key, bytes).unwrap();
+        let error = reader.read(&catalog, &[0, tile]).unwrap_err().to_string();
+        assert!(error.contains(&key), "{stage:?}: {error}");
+        assert!(reader.read(&catalog, &[0]).is_ok());
+        if stage != Stage::Field {
+            assert!(key.contains("/mirror-radiance/") && key != other, "{key}, {other}");
+            store.put(&key, store.get(&other).unwrap()).unwrap();
+            let fresh = StageParts::open(job.clone(), stage).unwrap();
+            let error = fresh.read(&catalog, &[tile]).unwrap_err().to_string();
+            assert!(error.contains(&key) && error.contains("shape"), "{stage:?}: {error}");
+        }
+        store.put(&key, good).unwrap();
+    }
     // A stage that is not committed is refused.
     assert!(StageParts::open(job.clone(), Stage::Iteration(99)).is_err());
 }

@@ -200,10 +200,16 @@ impl Coordinator {
                 .map(|b| b as usize)
                 .collect())
         };
-        let (shooting, totals) = (held(MapPart::Shooting)?, held(MapPart::Totals)?);
+        let parts = [MapPart::Shooting, MapPart::Totals, MapPart::Radiance].map(held);
+        let [shooting, totals, radiance] = parts;
+        let (shooting, totals, radiance) = (shooting?, totals?, radiance?);
         Ok(stored
             .into_iter()
-            .filter(|block| block.clone().all(|b| shooting.contains(&b) && totals.contains(&b)))
+            .filter(|block| {
+                block
+                    .clone()
+                    .all(|b| shooting.contains(&b) && totals.contains(&b) && radiance.contains(&b))
+            })
             .collect())
     }
 

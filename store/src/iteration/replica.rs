@@ -438,14 +438,14 @@ impl Replica {
         if let Some(block) = block {
             // The block took its directions' totals with it: computing it again reads them.
             batches.for_each(|b| current.totals[b] = false);
-            let job = self.job.job();
-            let puts = block
-                .batch_bytes(self.prop.batching())
-                .par_iter()
-                .flat_map_iter(|(b, shooting, totals)| {
+            let (job, batching) = (self.job.job(), self.prop.batching());
+            let radiance = block.batch_totals(batching);
+            let puts = (block.batch_bytes(batching).par_iter().zip(&radiance))
+                .flat_map_iter(|((b, shooting, totals), (_, maps))| {
                     [
                         job.map_part_put(k + 1, MapPart::Shooting, *b, shooting),
                         job.map_part_put(k + 1, MapPart::Totals, *b, totals),
+                        self.job.mirror_radiance_put(k + 1, *b, maps),
                     ]
                 })
                 .collect::<Result<Vec<_>, _>>()?;

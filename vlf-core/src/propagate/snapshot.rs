@@ -247,6 +247,21 @@ impl Totals {
 }
 
 impl MirrorBlock {
+    /// The block's total maps, per batch: its number and its directions' maps, in order (what
+    /// the batch's mirror radiance is made of).
+    pub fn batch_totals(&self, batching: Batching) -> Vec<(u32, Vec<&[Rgb]>)> {
+        let first = batching.range(self.batches.start as usize).start;
+        (self.batches.clone())
+            .map(|b| {
+                let range = batching.range(b as usize);
+                let maps = self.total[range.start - first..range.end - first]
+                    .iter()
+                    .map(Vec::as_slice);
+                (b, maps.collect())
+            })
+            .collect()
+    }
+
     /// The block's parts of the next snapshot, serialised in parallel: per
     /// batch, its number and the [`MapBatch::to_bytes`] of its shooting maps
     /// and of its totals (from the block's maps, without copying them).
@@ -314,6 +329,15 @@ struct TotalsRef<'a> {
 }
 
 impl Propagation {
+    /// The total mirror maps of batch `b` of the directions, direction after direction, as
+    /// held now: what a snapshot's mirror radiance is made of (none without mirrors).
+    pub fn mirror_totals_of_batch(&self, b: usize) -> Vec<&[Rgb]> {
+        let range = self.batching().range(b);
+        self.specular.as_ref().map_or(Vec::new(), |s| {
+            s.maps[range].iter().map(|m| m.total.as_slice()).collect()
+        })
+    }
+
     /// The parts of [`Propagation::checkpoint`], serialised in parallel:
     /// equal to `checkpoint().split()` with the shooting half
     /// [`ShootingState::into_parts`] and the totals [`Totals::into_parts`],
