@@ -186,9 +186,9 @@ pub struct JobFlags {
     /// outputs through the store (docs/scaling.md, *Finer batches*).
     #[arg(long, default_value_t = defaults::PASS_BATCHES)]
     pass_batches: u32,
-    /// Keep every snapshot resumable. By default, once a snapshot is committed the mirror
-    /// shooting maps of the one before are deleted: it still renders, and the last snapshot
-    /// resumes, but a mirror job's store is about half the size (docs/store.md).
+    /// Keep every snapshot resumable. By default, once a snapshot is committed the one before
+    /// keeps only what renders read (its exact state is deleted): it still renders, and the last
+    /// snapshot resumes, but the job's store is a third of the size or less (docs/store.md).
     #[arg(long)]
     keep_checkpoints: bool,
 }

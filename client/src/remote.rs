@@ -461,11 +461,19 @@ pub async fn fetch_job(target: &Target, job: &str, snapshot: Option<u32>) -> Res
         .map_err(call_error)?
         .into_inner();
     let stage = resolve_stage(&status, job, snapshot)?;
-    let mut names = vec!["manifest.blob".to_string(), "scene.blob".to_string()];
-    names.extend(layout::read_by_renders(stage_blobs(&mut clients, job, stage).await?));
+    let store = vlf_store::blocking(|| Store::open("memory://")).await??;
+    // The manifest first: it says which of the stage's blobs a render reads.
+    let described = vec!["manifest.blob".to_string(), "scene.blob".to_string()];
+    fetch_into(&mut clients, job, described, &store).await?;
+    let id = JobId::parse(job).map_err(anyhow::Error::msg)?;
+    let opened = {
+        let (store, id) = (store.clone(), id.clone());
+        vlf_store::blocking(move || vlf_store::Job::open(&store, &id)).await??
+    };
+    let listed = stage_blobs(&mut clients, job, stage).await?;
+    let mut names = opened.read_by_renders(stage, listed)?;
     names.sort();
     names.dedup();
-    let store = vlf_store::blocking(|| Store::open("memory://")).await??;
     fetch_into(&mut clients, job, names, &store).await?;
     Ok((store, stage))
 }

@@ -332,8 +332,10 @@ impl FieldJob {
                 stats: p.stats.clone(),
                 digest: None,
                 mirrors_by_direction: false,
-                // Written with the maps, by whoever wrote them (none without mirrors).
-                mirror_radiance_by_batch: true,
+                // Written with the maps by whoever wrote them (none without mirrors), in a job
+                // of format 6 on: no build that writes none opens one. A job of an earlier
+                // format, resumed by this build, may have blocks from workers of an earlier build.
+                mirror_radiance_by_batch: self.job.manifest().format >= 6,
             },
         };
         Ok(EncodedSnapshot { maps, head, rest })
@@ -376,7 +378,7 @@ impl FieldJob {
         self.set_state(JobState::Failed { message })
     }
 
-    /// Sets whether committing a snapshot deletes the mirror shooting maps of the one before
+    /// Sets whether committing a snapshot deletes what only resuming reads of the one before
     /// (see [`crate::Manifest::compact`]).
     pub fn set_compact(&mut self, compact: bool) -> Result<(), StoreError> {
         self.job.set_compact(compact)
@@ -689,13 +691,14 @@ impl FieldJob {
     /// Why a second copy: the exact `f64` totals are what resuming from `k` reads, and only the
     /// last snapshot of a compacting job resumes; a render needs the job's encoding only (a
     /// final field's mirror radiance is stored so). Once `k` is superseded its exact totals are
-    /// deleted with its shooting maps ([`Job::commit_iteration`]), leaving a quarter of the
-    /// bytes or less in `f16`; and every snapshot renders from these, so it renders the same
-    /// bits before and after it is compacted.
+    /// deleted with the rest of its exact state ([`Job::commit_iteration`]), leaving a seventh of
+    /// the bytes in `f16`; and every snapshot renders from these, so it renders the same bits
+    /// before and after it is compacted. Rounded to `f32` and scaled as the final field's mirror
+    /// radiance is, so that the last snapshot's mirrors are the field's to the bit.
     pub fn mirror_radiance_put(&self, k: u32, batch: u32, totals: &[&[Rgb]]) -> Result<Put, StoreError> {
-        let scale = 1.0 / radiance_unit(&self.scene);
+        let scale = (1.0 / radiance_unit(&self.scene)) as f32;
         let values: Vec<f32> = (totals.iter().flat_map(|d| d.iter()))
-            .flat_map(|t| t.map(|c| (c * scale) as f32))
+            .flat_map(|t| t.map(|c| c as f32 * scale))
             .collect();
         let slots = (values.len() / 3) as u32;
         self.job.mirror_radiance_put(k, batch, &[slots, 3], &values)

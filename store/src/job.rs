@@ -352,7 +352,7 @@ impl Job {
         if let Some((p, parts)) = superseded
             && let Err(e) = self.store.delete_all(&parts)
         {
-            tracing::warn!(job = %self.id(), snapshot = p, error = %e, "compacted snapshot's shooting maps not all deleted");
+            tracing::warn!(job = %self.id(), snapshot = p, error = %e, "compacted snapshot's exact state not all deleted");
         }
         Ok(())
     }
@@ -391,6 +391,39 @@ impl Job {
             parts.extend(totals);
         }
         Ok(parts)
+    }
+
+    /// Of the blobs of `stage` (`names`: keys, or names under the job's prefix as the service
+    /// lists them), those a render of it reads. A snapshot's mirror shooting maps (and the
+    /// unshot maps of earlier builds) are for resuming only; from store format 6 on, so is its
+    /// whole exact state — the head, the diffuse and the exact mirror totals — as a render reads
+    /// the mirror radiance in the job's encoding ([`Job::resume_only_parts`]). What a client
+    /// fetches to render a running job's last snapshot: a tenth of it for the mirror scene at
+    /// l = 2049, N = 128, a twelfth for the Cornell box; and none of what compacting the
+    /// snapshot may delete meanwhile.
+    pub fn read_by_renders(&self, stage: Stage, mut names: Vec<String>) -> Result<Vec<String>, StoreError> {
+        let Stage::Iteration(k) = stage else {
+            return Ok(names);
+        };
+        let job = layout::job_prefix(self.id());
+        let under_job = |key: String| key.strip_prefix(&job).map(str::to_string).unwrap_or(key);
+        let mut folders = vec![MapPart::Shooting, MapPart::Unshot];
+        let mut exact = Vec::new();
+        if self.manifest.format >= 6 {
+            folders.push(MapPart::Totals);
+            exact = vec![
+                under_job(layout::state(self.id(), k)?),
+                under_job(layout::totals(self.id(), k)?),
+            ];
+        }
+        let folders = (folders.into_iter())
+            .map(|part| Ok(under_job(layout::map_parts(self.id(), k, part)?)))
+            .collect::<Result<Vec<_>, StoreError>>()?;
+        names.retain(|name| {
+            let name = name.strip_prefix(&job).unwrap_or(name);
+            !(folders.iter().any(|f| name.starts_with(f.as_str())) || exact.iter().any(|e| e == name))
+        });
+        Ok(names)
     }
 
     /// Sets whether committing a snapshot compacts the one before ([`Manifest::compact`]).

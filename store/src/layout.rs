@@ -128,24 +128,6 @@ pub fn parse_map_part(prefix: &str, key: &str) -> Option<u32> {
     (name.len() == 5 && name.bytes().all(|b| b.is_ascii_digit())).then(|| name.parse().ok())?
 }
 
-/// Of the keys of a stage's blobs (or their names under the job's prefix), those a render of
-/// the stage reads: all but a snapshot's mirror shooting maps (and the unshot maps of earlier
-/// builds), and where its mirror radiance is stored in the job's encoding (`mirror-radiance/`,
-/// store format 6 on) all but its exact state too — the head, the diffuse totals, the exact
-/// mirror totals. What a client fetches to render a running job's last snapshot: a tenth of the
-/// snapshot for the mirror scene at l = 2049, N = 128.
-pub fn read_by_renders(mut keys: Vec<String>) -> Vec<String> {
-    let folder = |key: &str, name: &str| key.contains(&format!("/{name}/")) || key.starts_with(&format!("{name}/"));
-    let is = |key: &str, name: &str| key == name || key.ends_with(&format!("/{name}"));
-    let by_radiance = keys.iter().any(|k| folder(k, "mirror-radiance"));
-    keys.retain(|k| {
-        let resume_only = folder(k, "shooting") || folder(k, "unshot");
-        let exact = folder(k, "mirror-totals") || is(k, "state.blob") || is(k, "totals.blob");
-        !(resume_only || by_radiance && exact)
-    });
-    keys
-}
-
 /// `jobs/J/iters/KKKKK/totals.blob`: the totals half of the resume state after `k` iterations.
 pub fn totals(job: &JobId, k: u32) -> Result<String, StoreError> {
     Ok(format!("{}totals.blob", stage_prefix(job, Stage::Iteration(k))?))

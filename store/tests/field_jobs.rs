@@ -845,17 +845,25 @@ fn earlier_jobs_with_a_mirror_of_several_polygons_are_refused() {
     }
 }
 
-/// What a client fetches to render a stage ([`layout::read_by_renders`]) draws it with the same
-/// bits as the whole store: of a mirror job's last snapshot, not its exact state (a fraction of
-/// its bytes); of a snapshot of store format 5 (no mirror radiance parts), its exact totals.
+/// What a client fetches to render a stage ([`vlf_store::Job::read_by_renders`]) draws it with
+/// the same bits as the whole store: of a job's last snapshot, not its exact state (a fraction of
+/// its bytes, with mirrors and without); of a mirror snapshot of store format 5 (no mirror
+/// radiance parts), its exact totals.
 #[test]
 fn a_stage_renders_from_what_renders_read() {
     let store = Store::open("memory://").unwrap();
+    let (diffuse, _) = run(&store, &bundled("cornell.obj"), Encoding::F16);
     let (job, _) = run(&store, &bundled("mirrors.obj"), Encoding::F16);
-    let id = job.id().clone();
-    let fetched = |stage: Stage| -> (LightField, usize, usize) {
+    let fetched = |job: &FieldJob, stage: Stage| -> (LightField, usize, usize) {
+        let id = job.id().clone();
+        let opened = vlf_store::Job::open(&store, &id).unwrap();
         let all = store.list(&layout::stage_prefix(&id, stage).unwrap()).unwrap();
-        let kept = layout::read_by_renders(all.clone());
+        // As the service lists them: under the job's prefix.
+        let under = layout::job_prefix(&id);
+        let names = all.iter().map(|k| k[under.len()..].to_string()).collect();
+        let kept: Vec<String> = (opened.read_by_renders(stage, names).unwrap().into_iter())
+            .map(|n| under.clone() + &n)
+            .collect();
         let bytes = |keys: &[String]| keys.iter().map(|k| store.get(k).unwrap().len()).sum::<usize>();
         let partial = Store::open("memory://").unwrap();
         for key in [layout::manifest(&id), layout::scene(&id)].iter().chain(&kept) {
@@ -864,24 +872,68 @@ fn a_stage_renders_from_what_renders_read() {
         let field = FieldJob::open(&partial, &id).unwrap().load(stage).unwrap();
         (field, bytes(&kept), bytes(&all))
     };
-    for stage in [Stage::Field, Stage::Iteration(4)] {
-        let (field, kept, all) = fetched(stage);
-        assert!(field == job.load(stage).unwrap(), "{stage:?}");
-        if stage == Stage::Field {
-            assert_eq!(kept, all, "a final field is all radiance");
-        } else {
-            assert!(4 * kept < all, "{stage:?}: {kept} of {all} bytes");
+    for job in [&diffuse, &job] {
+        for stage in [Stage::Field, Stage::Iteration(4)] {
+            let (field, kept, all) = fetched(job, stage);
+            assert!(field == job.load(stage).unwrap(), "{stage:?}");
+            if stage == Stage::Field {
+                assert_eq!(kept, all, "a final field is all radiance");
+            } else {
+                assert!(4 * kept < all, "{stage:?}: {kept} of {all} bytes");
+            }
         }
     }
+    // The mirror job as store format 5 wrote it.
+    let id = job.id().clone();
+    let mut manifest = job.job().manifest().clone();
+    manifest.format = 5;
+    store.put(&layout::manifest(&id), manifest.to_blob().unwrap()).unwrap();
     summary_without(&store, &id, Stage::Iteration(4), "mirror_radiance_by_batch");
     for b in 0..job.options().batching().count() as u32 {
         store
             .delete(&layout::map_part(&id, 4, MapPart::Radiance, b).unwrap())
             .unwrap();
     }
-    let (field, kept, all) = fetched(Stage::Iteration(4));
+    let (field, kept, all) = fetched(&job, Stage::Iteration(4));
     assert!(field == job.load(Stage::Iteration(4)).unwrap());
     assert!(kept < all && 2 * kept > all, "format 5: {kept} of {all} bytes");
+}
+
+/// A job of store format 5 that this build goes on with (its coordinator and workers of this
+/// build, or of the one before, alike) compacts as format 5 did: its superseded snapshots keep
+/// their exact mirror totals, which renders read, as their summaries do not name radiance parts.
+#[test]
+fn a_format_5_job_compacts_as_it_did() {
+    let store = Store::open("memory://").unwrap();
+    let mut p = Propagation::new(bundled("mirrors.obj"), options(4)).unwrap();
+    let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    job.set_compact(true).unwrap();
+    let id = job.id().clone();
+    let mut manifest = job.job().manifest().clone();
+    manifest.format = 5;
+    store.put(&layout::manifest(&id), manifest.to_blob().unwrap()).unwrap();
+    let mut job = FieldJob::open(&store, &id).unwrap();
+    while !p.finished() {
+        p.step(|_| {});
+        job.write_snapshot(&p).unwrap();
+    }
+    assert_eq!(job.job().manifest().compacted, vec![0, 1, 2, 3]);
+    let batches = job.options().batching().count();
+    for k in 1..=4 {
+        assert!(!job.summary(Stage::Iteration(k)).unwrap().mirror_radiance_by_batch);
+        let parts = |part| store.list(&layout::map_parts(&id, k, part).unwrap()).unwrap().len();
+        assert_eq!(parts(MapPart::Totals), batches, "snapshot {k}");
+        assert_eq!(parts(MapPart::Shooting) > 0, k == 4, "snapshot {k}");
+        assert!(store.exists(&layout::state(&id, k).unwrap()).unwrap(), "snapshot {k}");
+        let parts = vlf_store::StageParts::open(job.clone(), Stage::Iteration(k)).unwrap();
+        let geometry = parts.geometry().unwrap();
+        let catalog = vlf_core::parts::PartCatalog::new(&geometry);
+        let tile = (0..catalog.len() as u32)
+            .find(|&i| matches!(catalog.part(i), vlf_core::parts::Part::Tile { .. }))
+            .unwrap();
+        assert!(parts.key(&catalog, tile).unwrap().contains("/mirror-totals/"));
+        assert!(job.load(Stage::Iteration(k)).is_ok());
+    }
 }
 
 /// A diffuse job that compacts keeps of a superseded snapshot what renders read, its summary and
