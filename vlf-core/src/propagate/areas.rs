@@ -24,7 +24,7 @@ const AREA_UNIT: f64 = 1.0 / (1u128 << 80) as f64;
 
 /// Discrete areas of some of a direction set's directions, in whole [`AREA_UNIT`]s: parts
 /// computed anywhere add up exactly ([`AreaUnits::add`]) to what all the directions give.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub(crate) struct AreaUnits(Vec<i128>);
 
 impl AreaUnits {
@@ -65,6 +65,11 @@ impl AreaUnits {
     pub(crate) fn add(&mut self, other: &AreaUnits) {
         debug_assert_eq!(self.0.len(), other.0.len(), "parts over other texels");
         self.0.iter_mut().zip(&other.0).for_each(|(a, b)| *a += b);
+    }
+
+    /// How many texels it covers.
+    pub(crate) fn texels(&self) -> usize {
+        self.0.len()
     }
 
     /// The areas, each the exact sum rounded once to `f64`.

@@ -54,42 +54,48 @@ impl Plan {
         if plan.mirrors == 0 {
             return plan;
         }
-        let edges = sends_to(geometry, subfields);
-        // Breadth-first over iterations: `shoots[s]` = first iteration in
-        // which s has light to send; a receiver of it relays one later.
-        let n = scene.surfaces.len();
-        let mut shoots = vec![u32::MAX; n];
-        let mut lit = vec![u32::MAX; n];
-        let mut frontier: Vec<u32> = (0..n as u32)
-            .filter(|&s| scene.material(s as usize).is_emitter())
-            .collect();
-        for &s in &frontier {
-            shoots[s as usize] = 0;
-        }
-        let mut k = 0;
-        while !frontier.is_empty() {
-            let mut next = Vec::new();
-            for &a in &frontier {
-                let from = edges.partition_point(|e| e.0 < a);
-                for &(_, b) in edges[from..].iter().take_while(|e| e.0 == a) {
-                    lit[b as usize] = lit[b as usize].min(k);
-                    let m = scene.material(b as usize);
-                    if (m.is_diffuse() || m.is_mirror()) && shoots[b as usize] == u32::MAX {
-                        shoots[b as usize] = k + 1;
-                        next.push(b);
-                    }
-                }
-            }
-            next.sort_unstable();
-            frontier = next;
-            k += 1;
-        }
-        plan.lit_mirrors = (0..n as u32)
-            .filter(|&s| scene.material(s as usize).is_mirror() && lit[s as usize] != u32::MAX)
-            .map(|s| (s, lit[s as usize]))
-            .collect();
+        plan.lit_mirrors = lit_mirrors(scene, &sends_to(geometry, subfields, 0..subfields.len()));
         plan
     }
+}
+
+/// The mirrors light reaches, as (surface, first iteration it arrives), by surface, from the
+/// pairs of surfaces that face each other along some ray (`edges`, sorted: [`sends_to`] of
+/// every direction, in one piece or the union of several).
+pub(crate) fn lit_mirrors(scene: &Scene, edges: &[(u32, u32)]) -> Vec<(u32, u32)> {
+    // Breadth-first over iterations: `shoots[s]` = first iteration in
+    // which s has light to send; a receiver of it relays one later.
+    let n = scene.surfaces.len();
+    let mut shoots = vec![u32::MAX; n];
+    let mut lit = vec![u32::MAX; n];
+    let mut frontier: Vec<u32> = (0..n as u32)
+        .filter(|&s| scene.material(s as usize).is_emitter())
+        .collect();
+    for &s in &frontier {
+        shoots[s as usize] = 0;
+    }
+    let mut k = 0;
+    while !frontier.is_empty() {
+        let mut next = Vec::new();
+        for &a in &frontier {
+            let from = edges.partition_point(|e| e.0 < a);
+            for &(_, b) in edges[from..].iter().take_while(|e| e.0 == a) {
+                lit[b as usize] = lit[b as usize].min(k);
+                let m = scene.material(b as usize);
+                if (m.is_diffuse() || m.is_mirror()) && shoots[b as usize] == u32::MAX {
+                    shoots[b as usize] = k + 1;
+                    next.push(b);
+                }
+            }
+        }
+        next.sort_unstable();
+        frontier = next;
+        k += 1;
+    }
+    (0..n as u32)
+        .filter(|&s| scene.material(s as usize).is_mirror() && lit[s as usize] != u32::MAX)
+        .map(|s| (s, lit[s as usize]))
+        .collect()
 }
 
 impl Plan {
@@ -103,7 +109,7 @@ impl Plan {
     }
 
     /// The surfaces of `scene` counted by kind; nothing decided yet.
-    fn counted(scene: &Scene) -> Plan {
+    pub(crate) fn counted(scene: &Scene) -> Plan {
         let kinds = |f: fn(&crate::scene::Material) -> bool| {
             (0..scene.surfaces.len()).filter(|&s| f(scene.material(s))).count()
         };
@@ -126,10 +132,13 @@ impl Plan {
 /// tile's rays (a sort by depth per ray) cannot add one: the tile is passed over. The set is
 /// the same as walking every ray's, and it is found much sooner: the same few pairs (floor
 /// and ceiling, wall and mirror) recur over most of a direction's tiles.
-fn sends_to(geometry: Geometry, subfields: &Subfields) -> Vec<(u32, u32)> {
+///
+/// Over the directions `range` (all of them for a plan; a part of them for a
+/// [`super::survey::SurveyPart`]), sorted and without repeats: parts unite into the whole's set.
+pub(crate) fn sends_to(geometry: Geometry, subfields: &Subfields, range: std::ops::Range<usize>) -> Vec<(u32, u32)> {
     /// Tiles with more candidate pairs than this are walked without checking them.
     const CHECKED: usize = 256;
-    let mut edges: Vec<(u32, u32)> = (0..subfields.len())
+    let mut edges: Vec<(u32, u32)> = range
         .into_par_iter()
         .map_init(Scratch::default, |scratch, d| {
             let sub = &subfields.get(d);
@@ -268,7 +277,7 @@ mod tests {
                 atlas: &p.atlas,
                 stacking: &p.stacking,
             };
-            let found = sends_to(geometry, &p.subfields);
+            let found = sends_to(geometry, &p.subfields, 0..p.subfields.len());
             assert_eq!(found, walking_every_ray(geometry, &p.subfields), "{name}, N = {n}");
             assert!(
                 found.len() > 2 * p.scene.surfaces.len(),

@@ -18,10 +18,20 @@
 //! than learning it again changes no bit of the field.
 
 use super::Options;
+use super::areas::AreaUnits;
 use super::checkpoint::{encode, version_of};
-use crate::psf::GridSize;
+use super::plan::{self, Plan};
+use super::shoot::{Geometry, Stacking};
+use crate::directions::DirectionSet;
+use crate::maps::TexelAtlas;
+use crate::psf::{Footprints, GridSize, Subfields};
 use crate::scene::Scene;
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
+use std::sync::Arc;
+
+/// The version [`SurveyPart::to_bytes`] writes first.
+const PART_VERSION: u32 = 1;
 
 /// The version [`Survey::to_bytes`] writes first. Version 2 records what the survey was learnt
 /// for ([`Surveyed`]); version 1 did not.
@@ -147,5 +157,233 @@ impl Survey {
             }
         }
         Ok(())
+    }
+}
+
+/// What the directions `directions` contribute to a survey: their discrete areas, summed exactly
+/// ([`AreaUnits`]), and the pairs of surfaces that face each other along some ray of theirs
+/// (none without mirrors). Learnt anywhere — a worker, over the directions it holds — and put
+/// together by [`Survey::from_parts`] with the same bits as a survey learnt whole, however the
+/// directions were split and in whatever order the parts arrive: integer sums and a set union.
+/// So the survey, the serial part of a job's set-up, can be spread over the workers.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SurveyPart {
+    version: u32,
+    /// What it was learnt for.
+    pub of: Surveyed,
+    /// The directions it covers, `start..end`.
+    pub directions: (u32, u32),
+    units: AreaUnits,
+    sends_to: Vec<(u32, u32)>,
+}
+
+impl SurveyPart {
+    /// Learns the part of `scene`'s survey with `options` that the directions `range` make:
+    /// builds the texel atlas and those directions' subfields only (within `budget` bytes of
+    /// subfields when one is given), and passes over their rays.
+    pub fn learn(
+        scene: &Scene,
+        options: &Options,
+        range: Range<usize>,
+        budget: Option<usize>,
+    ) -> crate::Result<SurveyPart> {
+        options.validate()?;
+        let directions = DirectionSet::new(options.directions)?;
+        if range.is_empty() || range.end > directions.len() {
+            return Err(crate::Error::Parameter(format!(
+                "directions {range:?} are not a part of the {} directions",
+                directions.len()
+            )));
+        }
+        let atlas = TexelAtlas::new(scene, options.texel_size(), options.grid.ray_spacing())?;
+        let footprints = Arc::new(Footprints::new(scene, &atlas.plane_rep));
+        let frames = (0..directions.len()).map(|d| directions.frame(d)).collect();
+        let subfields = match budget {
+            Some(bytes) => Subfields::within(footprints, frames, options.grid, bytes),
+            None => Subfields::on_demand(footprints, frames, options.grid),
+        };
+        let stacking = Stacking::new(scene, &atlas);
+        let geometry = Geometry {
+            scene,
+            atlas: &atlas,
+            stacking: &stacking,
+        };
+        let units = AreaUnits::of(geometry, &directions, range.clone(), |d| subfields.get(d));
+        let mirrors = (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror());
+        let sends_to = match mirrors {
+            true => plan::sends_to(geometry, &subfields, range.clone()),
+            false => Vec::new(),
+        };
+        Ok(SurveyPart {
+            version: PART_VERSION,
+            of: Surveyed::of(scene, options),
+            directions: (range.start as u32, range.end as u32),
+            units,
+            sends_to,
+        })
+    }
+
+    pub fn to_bytes(&self) -> Vec<u8> {
+        encode(self)
+    }
+
+    /// Reads a part; what cannot be one (truncated, another version, trailing bytes) is a
+    /// [`crate::Error::Decode`]. Whether it fits a job is [`Survey::from_parts`]'s to say.
+    pub fn from_bytes(bytes: &[u8]) -> crate::Result<SurveyPart> {
+        let bad = |m: String| crate::Error::Decode(format!("survey part: {m}"));
+        match version_of(bytes) {
+            Some(PART_VERSION) => {}
+            Some(v) => return Err(bad(format!("version {v}, this build reads {PART_VERSION}"))),
+            None => return Err(bad(format!("{} bytes, too short", bytes.len()))),
+        }
+        let part: SurveyPart = bincode::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
+        if encode(&part).len() != bytes.len() {
+            return Err(bad("trailing bytes".into()));
+        }
+        Ok(part)
+    }
+}
+
+impl Survey {
+    /// The survey of `scene` with `options` from parts learnt separately ([`SurveyPart`]), given
+    /// in any order: the same bits as [`super::Propagation::survey`] of a propagation that
+    /// learnt it whole. Parts that were learnt for another job, overlap, leave directions out or
+    /// disagree on the texels are refused with an error that says which.
+    pub fn from_parts(scene: &Scene, options: &Options, mut parts: Vec<SurveyPart>) -> crate::Result<Survey> {
+        let misfit = |m: String| Err(crate::Error::Decode(format!("survey parts: {m}")));
+        let of = Surveyed::of(scene, options);
+        if let Some(other) = parts.iter().find(|p| p.of != of) {
+            let (a, b) = other.directions;
+            return misfit(format!("the part of directions {a}..{b} was learnt for another job"));
+        }
+        parts.sort_by_key(|p| p.directions);
+        let mut next = 0;
+        for p in &parts {
+            let (a, b) = p.directions;
+            if a != next || b <= a {
+                return misfit(format!(
+                    "directions {a}..{b} do not continue from direction {next} (each direction once, none left out)"
+                ));
+            }
+            next = b;
+        }
+        if next as usize != options.directions {
+            return misfit(format!("they cover {next} of the {} directions", options.directions));
+        }
+        let Some((first, rest)) = parts.split_first() else {
+            return misfit("none".into());
+        };
+        let mut units = first.units.clone();
+        let mut edges: Vec<(u32, u32)> = first.sends_to.clone();
+        for p in rest {
+            if p.units.texels() != units.texels() {
+                return misfit(format!(
+                    "the part of directions {:?} has {} texels, the first {}",
+                    p.directions,
+                    p.units.texels(),
+                    units.texels()
+                ));
+            }
+            units.add(&p.units);
+            edges.extend(&p.sends_to);
+        }
+        edges.sort_unstable();
+        edges.dedup();
+        let lit = match Plan::counted(scene).mirrors {
+            0 => Vec::new(),
+            _ => plan::lit_mirrors(scene, &edges),
+        };
+        Ok(Survey::new(of, units.areas(), lit))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::propagate::{Propagation, Stop};
+    use crate::scene::{ImportOptions, load_obj};
+
+    fn bundled(name: &str) -> Scene {
+        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../scenes")
+            .join(name);
+        load_obj(&path, &ImportOptions::default()).unwrap().0
+    }
+
+    fn options(directions: usize) -> Options {
+        Options {
+            directions,
+            grid: GridSize::new(32, 8).unwrap(),
+            stop: Stop::Iterations(1),
+            ..Options::default()
+        }
+    }
+
+    /// The parts of `cuts` (direction boundaries), learnt apart, through their bytes as a store
+    /// holds them, in reverse order.
+    fn parts(scene: &Scene, options: &Options, cuts: &[usize], budget: Option<usize>) -> Vec<SurveyPart> {
+        let mut parts: Vec<SurveyPart> = (cuts.windows(2))
+            .map(|c| SurveyPart::learn(scene, options, c[0]..c[1], budget).unwrap())
+            .map(|p| SurveyPart::from_bytes(&p.to_bytes()).unwrap())
+            .collect();
+        parts.reverse();
+        parts
+    }
+
+    #[test]
+    fn parts_learnt_apart_make_the_survey_learnt_whole() {
+        let options = options(129);
+        for name in ["cornell.obj", "mirrors.obj"] {
+            let scene = bundled(name);
+            let whole = Propagation::new(scene.clone(), options.clone()).unwrap().survey();
+            assert_eq!(!whole.lit_mirrors.is_empty(), name == "mirrors.obj", "{name}");
+            for (cuts, budget) in [
+                (&[0, 129][..], None),
+                (&[0, 1, 64, 100, 129][..], None),
+                (&[0, 7, 129][..], Some(0)),
+            ] {
+                let survey = Survey::from_parts(&scene, &options, parts(&scene, &options, cuts, budget)).unwrap();
+                assert!(survey == whole, "{name}, parts {cuts:?}, budget {budget:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn parts_that_do_not_make_a_survey_are_refused() {
+        let (scene, options) = (bundled("cornell.obj"), options(33));
+        let refused = |parts: Vec<SurveyPart>, says: &str| {
+            let e = Survey::from_parts(&scene, &options, parts).unwrap_err().to_string();
+            assert!(e.contains(says), "{e} (expected: {says})");
+        };
+        // In reverse order: the second part first.
+        let [b, a] = parts(&scene, &options, &[0, 16, 33], None).try_into().unwrap();
+        let overlapping = SurveyPart::learn(&scene, &options, 10..33, None).unwrap();
+        refused(vec![a.clone()], "cover 16 of the 33");
+        refused(vec![b.clone()], "do not continue from direction 0");
+        refused(vec![a.clone(), overlapping], "do not continue from direction 16");
+        refused(
+            vec![a.clone(), b.clone(), b.clone()],
+            "do not continue from direction 33",
+        );
+        refused(Vec::new(), "cover 0 of the 33");
+        let other = Options {
+            texel_cells: 2.0,
+            ..options.clone()
+        };
+        let elsewhere = SurveyPart::learn(&scene, &other, 16..33, None).unwrap();
+        refused(vec![b.clone(), elsewhere], "another job");
+        assert!(Survey::from_parts(&scene, &options, vec![b.clone(), a.clone()]).is_ok());
+        // Not a part of the directions.
+        for range in [0..0, 30..34] {
+            let e = SurveyPart::learn(&scene, &options, range.clone(), None).unwrap_err();
+            assert!(matches!(e, crate::Error::Parameter(_)), "{range:?}: {e}");
+        }
+        // Bytes that are not a part.
+        let bytes = a.to_bytes();
+        let longer = [bytes.clone(), vec![0]].concat();
+        for bad in [&bytes[..bytes.len() - 1], &bytes[..3], &longer[..]] {
+            let e = SurveyPart::from_bytes(bad).unwrap_err();
+            assert!(matches!(e, crate::Error::Decode(_)), "{e}");
+        }
     }
 }
