@@ -357,6 +357,78 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     assert_eq!(finished.digest, digest);
 }
 
+/// A job stored as submitted but not set up yet (its coordinator stopped while setting it up:
+/// manifest and scene only) is set up by the coordinator that takes up the store, and ends with
+/// the bits of `vlf propagate`.
+#[test]
+fn a_job_submitted_but_not_set_up_is_set_up_by_the_next_coordinator() {
+    let scratch = temp("set-up");
+    let dir = scratch.path();
+    let extra = ["--iterations", "3"];
+    let (expected, _) = reference(dir, &extra);
+    let described = {
+        let reference = Store::open_existing(dir.join("reference").to_str().unwrap()).unwrap();
+        let id = Job::list(&reference).unwrap().pop().unwrap();
+        let done = FieldJob::open(&reference, &id).unwrap();
+        let store = Store::open(dir.join("store").to_str().unwrap()).unwrap();
+        let job = FieldJob::describe(&store, done.scene(), done.options(), vlf_store::Encoding::F32).unwrap();
+        assert!(!job.is_set_up());
+        job.id().to_string()
+    };
+    let (_server, url) = serve(dir, &dir.join("store"), "127.0.0.1:0", &[]);
+    let _worker = worker(dir, "w", &url, &[]);
+    watch(&url, &described);
+    assert_same_field(
+        &expected,
+        &field(&dir.join("store"), &described),
+        "set up after a restart",
+    );
+}
+
+/// A job whose set-up fails — here, emitters too small for any ray to hit — is accepted when
+/// submitted (setting up is not waited for) and then fails, with the library's reason in its
+/// status and in the store.
+#[test]
+fn a_job_whose_set_up_fails_fails_with_the_reason() {
+    let scratch = temp("set-up-fails");
+    let dir = scratch.path();
+    let store = dir.join("store");
+    let (_server, url) = serve(dir, &store, "127.0.0.1:0", &[]);
+    let obj = "mtllib s.mtl\nv 0 0 0\nv 1 0 0\nv 1 0 1\nv 0 0 1\n\
+               v 0.5 0.5 0.5\nv 0.501 0.5 0.5\nv 0.501 0.5 0.501\nv 0.5 0.5 0.501\n\
+               usemtl white\nf 1 4 3 2\nusemtl light\nf 5 6 7 8\n";
+    let mtl = "newmtl white\nKd 0.5 0.5 0.5\nnewmtl light\nKd 0 0 0\nKe 10 10 10\n";
+    let rt = runtime();
+    let submitted = rt.block_on(async {
+        let mut c = Target::new(&url).connect().await.unwrap();
+        c.jobs
+            .submit(v1::SubmitRequest {
+                scene: Some(v1::submit_request::Scene::Upload(v1::SceneUpload {
+                    obj_name: "tiny.obj".into(),
+                    obj: obj.as_bytes().to_vec(),
+                    mtl: [("s.mtl".to_string(), mtl.as_bytes().to_vec())].into(),
+                })),
+                parameters: Some(v1::Parameters {
+                    directions: Some(33),
+                    resolution: Some(16),
+                    ..Default::default()
+                }),
+            })
+            .await
+    });
+    let id = submitted.expect("submitted").into_inner().job_id;
+    let failed = wait_status(&url, &id, "the failed set-up", |s| s.state == State::Failed as i32);
+    assert!(failed.message.contains("no emitter is hit by any ray"), "{failed:?}");
+    let job = FieldJob::open(
+        &Store::open_existing(store.to_str().unwrap()).unwrap(),
+        &JobId::parse(&id).unwrap(),
+    )
+    .unwrap();
+    assert!(!job.is_set_up());
+    let recorded = format!("{:?}", job.job().manifest().state);
+    assert!(recorded.contains("no emitter is hit by any ray"), "{recorded}");
+}
+
 /// Waits (a minute at most) until `proc`'s log holds `needle`.
 fn wait_for_log(proc: &Proc, needle: &str) {
     let deadline = Instant::now() + Duration::from_secs(60);

@@ -32,28 +32,91 @@ pub enum SubmitError {
     Internal(String),
 }
 
-/// Creates a job for `scene` with `spec` in the scheduler's store (snapshot 0 written), and
-/// starts driving it. Returns its first status.
+/// Creates a job for `scene` with `spec` in the scheduler's store and starts setting it up and
+/// driving it. Returns its first status at once: queued, "setting up". Setting a job up (its
+/// geometry, its survey, snapshot 0: [`set_up_and_start`]) takes minutes for a large scan at the
+/// big settings, longer than a client, or a proxy between, should wait for an answer; what can
+/// be checked at once (the scene as parsed, the parameters) is refused here, what only setting
+/// up finds (emitters no ray hits) fails the job, with the library's message.
 pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Result<JobStatus, SubmitError> {
-    let budget = set_up_budget(sched.subfield_budget(), sched.prototypes().is_some(), &scene);
+    spec.options.validate().map_err(SubmitError::Invalid)?;
     let store = sched.store().clone();
-    let created = vlf_store::blocking(move || -> Result<_, SubmitError> {
-        let prop = Propagation::with_subfield_budget(scene, spec.options, budget).map_err(SubmitError::Invalid)?;
-        let mut job = FieldJob::create(&store, &prop, spec.encoding)?;
+    let job = vlf_store::blocking(move || -> Result<_, SubmitError> {
+        let mut job = FieldJob::describe(&store, &scene, &spec.options, spec.encoding)?;
         if spec.resample {
             job.set_resample(true)?;
         }
         if !spec.keep_checkpoints {
             job.set_compact(true)?;
         }
-        Ok(Coordinator::new(job, prop))
+        Ok(job)
     })
     .await
     .map_err(|e| SubmitError::Internal(e.to_string()))??;
-    let id = created.job().id().clone();
+    let id = job.id().clone();
     tracing::info!(job = %id, "job submitted");
-    start(sched, created, Origin::Submitted);
+    set_up_and_start(sched, job);
     sched.status(&id).map_err(|e| SubmitError::Internal(e.to_string()))
+}
+
+/// What a job's status says while it is being set up.
+const SETTING_UP: &str = "setting up";
+
+/// Registers `job`, submitted but not set up, with the scheduler, and sets it up on a blocking
+/// thread ([`FieldJob::set_up`]): then drives it; a set-up that fails fails the job, with the
+/// reason in its status and in the store.
+fn set_up_and_start(sched: &Arc<Scheduler>, job: FieldJob) {
+    let mut status = stored_status(&job);
+    status.message = SETTING_UP.into();
+    let id = job.id().clone();
+    let wake = match sched.add_job(status) {
+        Ok(wake) => wake,
+        Err(e) => {
+            tracing::error!("cannot schedule job {id}: {e}");
+            return;
+        }
+    };
+    let budget = set_up_budget(sched.subfield_budget(), sched.prototypes().is_some(), job.scene());
+    let sched = sched.clone();
+    tokio::spawn(async move {
+        let started = std::time::Instant::now();
+        let mut job = job;
+        // A set-up that fails is recorded in the store here: the job is not taken up again.
+        let set_up = vlf_store::blocking(move || -> Result<Coordinator, String> {
+            let built = Propagation::with_subfield_budget(job.scene().clone(), job.options().clone(), budget)
+                .map_err(|e| e.to_string())
+                .and_then(|prop| job.set_up(&prop).map(|()| prop).map_err(|e| e.to_string()));
+            match built {
+                Ok(prop) => Ok(Coordinator::new(job, prop)),
+                Err(e) => {
+                    let message = format!("cannot set the job up: {e}");
+                    match job.fail(message.clone()) {
+                        Ok(()) => Err(message),
+                        Err(e) => Err(format!("{message} (and recording it in the store failed: {e})")),
+                    }
+                }
+            }
+        })
+        .await;
+        match set_up {
+            Ok(Ok(coordinator)) => {
+                tracing::info!(job = %id, seconds = format!("{:.2}", started.elapsed().as_secs_f64()), "job set up");
+                sched.update(&id, |s| s.message.clear());
+                drive(&sched, coordinator, wake, Origin::Submitted);
+            }
+            Ok(Err(message)) => {
+                tracing::warn!(job = %id, "{message}");
+                sched.update(&id, |s| {
+                    s.state = WireState::Failed as i32;
+                    s.message = message;
+                });
+            }
+            Err(e) => sched.update(&id, |s| {
+                s.state = WireState::Failed as i32;
+                s.message = format!("internal: {e}");
+            }),
+        }
+    });
 }
 
 /// The subfield budget a new job is set up within: the configured one; else, for a scene without
@@ -87,23 +150,32 @@ pub async fn recover(sched: &Arc<Scheduler>) -> Result<usize, StoreError> {
         let (store, budget) = (sched.store().clone(), sched.subfield_budget());
         let opened = {
             let id = id.clone();
-            vlf_store::blocking(move || -> Result<Result<Coordinator, JobStatus>, StoreError> {
+            vlf_store::blocking(move || -> Result<Taken, StoreError> {
                 let job = FieldJob::open(&store, &id)?;
                 match job.job().manifest().state {
-                    JobState::Queued | JobState::Propagating { .. } => Ok(Ok(Coordinator::resume_within(job, budget)?)),
-                    _ => Ok(Err(stored_status(&job))),
+                    // Submitted to a coordinator that stopped before it was set up.
+                    JobState::Queued if !job.is_set_up() => Ok(Taken::ToSetUp(job)),
+                    JobState::Queued | JobState::Propagating { .. } => {
+                        Ok(Taken::Resumed(Box::new(Coordinator::resume_within(job, budget)?)))
+                    }
+                    _ => Ok(Taken::Ended(stored_status(&job))),
                 }
             })
             .await
             .map_err(|e| StoreError::Layout(e.to_string()))?
         };
         match opened {
-            Ok(Ok(coordinator)) => {
+            Ok(Taken::Resumed(coordinator)) => {
                 tracing::info!(job = %id, snapshot = coordinator.iteration(), "resuming job");
-                start(sched, coordinator, Origin::Recovered);
+                start(sched, *coordinator, Origin::Recovered);
                 resumed += 1;
             }
-            Ok(Err(status)) => {
+            Ok(Taken::ToSetUp(job)) => {
+                tracing::info!(job = %id, "setting up job");
+                set_up_and_start(sched, job);
+                resumed += 1;
+            }
+            Ok(Taken::Ended(status)) => {
                 let _ = sched.add_job(status);
             }
             Err(e) => {
@@ -174,6 +246,13 @@ enum Origin {
     Recovered,
 }
 
+/// What a restarted coordinator makes of a job of its store.
+enum Taken {
+    Resumed(Box<Coordinator>),
+    ToSetUp(FieldJob),
+    Ended(JobStatus),
+}
+
 /// Registers the job with the scheduler and spawns its driver.
 fn start(sched: &Arc<Scheduler>, coordinator: Coordinator, origin: Origin) {
     let mut status = stored_status(coordinator.job());
@@ -185,6 +264,15 @@ fn start(sched: &Arc<Scheduler>, coordinator: Coordinator, origin: Origin) {
             return;
         }
     };
+    drive(sched, coordinator, wake, origin);
+}
+
+/// Spawns the driver of a job the scheduler knows (woken by `wake`).
+fn drive(sched: &Arc<Scheduler>, coordinator: Coordinator, wake: Arc<Notify>, origin: Origin) {
+    sched.update(coordinator.job().id(), |s| {
+        s.unshot_fraction = coordinator.propagation().unshot_fraction();
+        s.snapshots = coordinator.job().job().manifest().finished_iterations.clone();
+    });
     if let Some(prototypes) = sched.prototypes() {
         prototypes.insert(coordinator.job().id().clone(), coordinator.propagation().clone());
     }

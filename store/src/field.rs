@@ -146,22 +146,49 @@ impl FieldJob {
     /// Creates a job for the fresh propagation `p` (no iteration done yet) and writes its
     /// snapshot 0. Radiance blobs use `encoding`.
     pub fn create(store: &Store, p: &Propagation, encoding: Encoding) -> Result<FieldJob, StoreError> {
-        let parameters = serde_json::to_value(&p.options).map_err(|e| StoreError::Layout(e.to_string()))?;
-        let job = Job::create(
-            store,
-            &p.scene.to_bytes(),
-            &p.scene.content_hash(),
-            parameters,
-            encoding,
-        )?;
-        let mut field_job = FieldJob {
+        let mut job = FieldJob::describe(store, &p.scene, &p.options, encoding)?;
+        job.set_up(p)?;
+        Ok(job)
+    }
+
+    /// Creates a job for `scene` with `options`, not set up yet: its manifest (queued, no
+    /// snapshot) and scene only. What a coordinator stores when a job is submitted, so that the
+    /// submission is answered at once; setting the job up — its geometry and survey, which take
+    /// minutes for a large scan at the big settings — comes after ([`FieldJob::set_up`]), and a
+    /// coordinator that stops in between sets it up again when it takes the job up.
+    pub fn describe(
+        store: &Store,
+        scene: &Scene,
+        options: &Options,
+        encoding: Encoding,
+    ) -> Result<FieldJob, StoreError> {
+        options.validate().map_err(|e| StoreError::Field {
+            url: store.url().to_string(),
+            job: String::new(),
+            source: e,
+        })?;
+        let parameters = serde_json::to_value(options).map_err(|e| StoreError::Layout(e.to_string()))?;
+        let job = Job::create(store, &scene.to_bytes(), &scene.content_hash(), parameters, encoding)?;
+        Ok(FieldJob {
             job,
-            scene: p.scene.clone(),
-            options: p.options.clone(),
-        };
-        field_job.job.put_survey(&p.survey().to_bytes())?;
-        field_job.write_snapshot(p)?;
-        Ok(field_job)
+            scene: scene.clone(),
+            options: options.clone(),
+        })
+    }
+
+    /// Whether the job is set up: its snapshot 0 is written ([`FieldJob::set_up`]).
+    pub fn is_set_up(&self) -> bool {
+        self.job.manifest().is_finished(0)
+    }
+
+    /// Sets up a job [described](FieldJob::describe) but not set up yet from `p`, its fresh
+    /// propagation: stores the survey and writes snapshot 0.
+    pub fn set_up(&mut self, p: &Propagation) -> Result<(), StoreError> {
+        if (p.scene.content_hash(), &p.options) != (self.scene.content_hash(), &self.options) {
+            return Err(self.job_error("set up from a propagation of another scene or options".into()));
+        }
+        self.job.put_survey(&p.survey().to_bytes())?;
+        self.write_snapshot(p)
     }
 
     /// The job's stored survey, written when the job was created (what set-up learnt over all
