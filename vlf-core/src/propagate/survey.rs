@@ -91,17 +91,7 @@ impl Survey {
     /// Reads a survey; what cannot be one (truncated, another version, trailing bytes) is a
     /// [`crate::Error::Decode`]. Whether it fits a scene is [`Survey::check`]'s to say.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<Survey> {
-        let bad = |m: String| crate::Error::Decode(format!("survey: {m}"));
-        match version_of(bytes) {
-            Some(SURVEY_VERSION) => {}
-            Some(v) => return Err(bad(format!("version {v}, this build reads {SURVEY_VERSION}"))),
-            None => return Err(bad(format!("{} bytes, too short", bytes.len()))),
-        }
-        let survey: Survey = bincode::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
-        if encode(&survey).len() != bytes.len() {
-            return Err(bad("trailing bytes".into()));
-        }
-        Ok(survey)
+        read_versioned(bytes, SURVEY_VERSION, "survey")
     }
 
     /// Reads a survey stored with a job: `None` for one of the earlier layout (version 1), which
@@ -230,18 +220,28 @@ impl SurveyPart {
     /// Reads a part; what cannot be one (truncated, another version, trailing bytes) is a
     /// [`crate::Error::Decode`]. Whether it fits a job is [`Survey::from_parts`]'s to say.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<SurveyPart> {
-        let bad = |m: String| crate::Error::Decode(format!("survey part: {m}"));
-        match version_of(bytes) {
-            Some(PART_VERSION) => {}
-            Some(v) => return Err(bad(format!("version {v}, this build reads {PART_VERSION}"))),
-            None => return Err(bad(format!("{} bytes, too short", bytes.len()))),
-        }
-        let part: SurveyPart = bincode::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
-        if encode(&part).len() != bytes.len() {
-            return Err(bad("trailing bytes".into()));
-        }
-        Ok(part)
+        read_versioned(bytes, PART_VERSION, "survey part")
     }
+}
+
+/// Reads `what`, written by [`encode`] with `version` first; what cannot be one (truncated,
+/// another version, trailing bytes) is a [`crate::Error::Decode`].
+fn read_versioned<T: Serialize + serde::de::DeserializeOwned>(
+    bytes: &[u8],
+    version: u32,
+    what: &str,
+) -> crate::Result<T> {
+    let bad = |m: String| crate::Error::Decode(format!("{what}: {m}"));
+    match version_of(bytes) {
+        Some(v) if v == version => {}
+        Some(v) => return Err(bad(format!("version {v}, this build reads {version}"))),
+        None => return Err(bad(format!("{} bytes, too short", bytes.len()))),
+    }
+    let value: T = bincode::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
+    if encode(&value).len() != bytes.len() {
+        return Err(bad("trailing bytes".into()));
+    }
+    Ok(value)
 }
 
 impl Survey {
