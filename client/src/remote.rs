@@ -264,6 +264,7 @@ pub async fn jobs(target: Target) -> Result<()> {
 pub fn describe(s: &JobStatus) -> String {
     let state = State::try_from(s.state).unwrap_or(State::Unspecified);
     let what = match state {
+        State::Queued if !s.message.is_empty() => format!("queued, {}", s.message),
         State::Queued => "queued".to_string(),
         State::Propagating => format!(
             "propagating iteration {}{} ({}/{} batches, {} leased)",

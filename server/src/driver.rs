@@ -62,9 +62,26 @@ pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Resu
 /// What a job's status says while it is being set up.
 const SETTING_UP: &str = "setting up";
 
+/// One job is set up at a time: a set-up takes every thread of the coordinator (and, for a
+/// large scan, hundreds of megabytes), and submitting no longer waits for it, so a script that
+/// submits many jobs would otherwise start them all at once.
+static SET_UPS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(1);
+
+/// How setting a job up ended.
+enum SetUp {
+    Done(Box<Coordinator>),
+    /// The scene and options make no propagation (the library's reason): the job fails.
+    Invalid(String),
+    /// The store failed (perhaps for a moment): the job stays queued in the store, and the next
+    /// coordinator to take the store up sets it up again.
+    Store(String),
+    Cancelled,
+}
+
 /// Registers `job`, submitted but not set up, with the scheduler, and sets it up on a blocking
-/// thread ([`FieldJob::set_up`]): then drives it; a set-up that fails fails the job, with the
-/// reason in its status and in the store.
+/// thread ([`FieldJob::set_up`]), one job at a time: then drives it. A scene that makes no
+/// propagation fails the job, with the reason in its status and in the store; a job cancelled
+/// meanwhile is recorded cancelled, set up or not.
 fn set_up_and_start(sched: &Arc<Scheduler>, job: FieldJob) {
     let mut status = stored_status(&job);
     status.message = SETTING_UP.into();
@@ -79,43 +96,62 @@ fn set_up_and_start(sched: &Arc<Scheduler>, job: FieldJob) {
     let budget = set_up_budget(sched.subfield_budget(), sched.prototypes().is_some(), job.scene());
     let sched = sched.clone();
     tokio::spawn(async move {
+        let _turn = SET_UPS.acquire().await;
         let started = std::time::Instant::now();
-        let mut job = job;
-        // A set-up that fails is recorded in the store here: the job is not taken up again.
-        let set_up = vlf_store::blocking(move || -> Result<Coordinator, String> {
-            let built = Propagation::with_subfield_budget(job.scene().clone(), job.options().clone(), budget)
-                .map_err(|e| e.to_string())
-                .and_then(|prop| job.set_up(&prop).map(|()| prop).map_err(|e| e.to_string()));
-            match built {
-                Ok(prop) => Ok(Coordinator::new(job, prop)),
+        let (mut job, cancelled) = (job, {
+            let (sched, id) = (sched.clone(), id.clone());
+            move || sched.is_cancelled(&id)
+        });
+        let set_up = vlf_store::blocking(move || -> SetUp {
+            // The end a job reaches here is recorded in the store: it is not taken up again.
+            let ended = |job: &mut FieldJob, state: JobState, outcome: SetUp| match job.set_state(state) {
+                Ok(()) => outcome,
+                Err(e) => SetUp::Store(format!("recording the job's end failed: {e}")),
+            };
+            if cancelled() {
+                return ended(&mut job, JobState::Cancelled, SetUp::Cancelled);
+            }
+            let prop = match Propagation::with_subfield_budget(job.scene().clone(), job.options().clone(), budget) {
+                Ok(prop) => prop,
                 Err(e) => {
                     let message = format!("cannot set the job up: {e}");
-                    match job.fail(message.clone()) {
-                        Ok(()) => Err(message),
-                        Err(e) => Err(format!("{message} (and recording it in the store failed: {e})")),
-                    }
+                    let failed = JobState::Failed {
+                        message: message.clone(),
+                    };
+                    return ended(&mut job, failed, SetUp::Invalid(message));
                 }
+            };
+            if let Err(e) = job.set_up(&prop) {
+                return SetUp::Store(format!("cannot set the job up: {e}"));
             }
+            if cancelled() {
+                return ended(&mut job, JobState::Cancelled, SetUp::Cancelled);
+            }
+            SetUp::Done(Box::new(Coordinator::new(job, prop)))
         })
-        .await;
-        match set_up {
-            Ok(Ok(coordinator)) => {
+        .await
+        .unwrap_or_else(|e| SetUp::Store(format!("internal: {e}")));
+        let (state, message) = match set_up {
+            SetUp::Done(coordinator) => {
                 tracing::info!(job = %id, seconds = format!("{:.2}", started.elapsed().as_secs_f64()), "job set up");
                 sched.update(&id, |s| s.message.clear());
-                drive(&sched, coordinator, wake, Origin::Submitted);
+                drive(&sched, *coordinator, wake, Origin::Submitted);
+                return;
             }
-            Ok(Err(message)) => {
-                tracing::warn!(job = %id, "{message}");
-                sched.update(&id, |s| {
-                    s.state = WireState::Failed as i32;
-                    s.message = message;
-                });
-            }
-            Err(e) => sched.update(&id, |s| {
-                s.state = WireState::Failed as i32;
-                s.message = format!("internal: {e}");
-            }),
-        }
+            SetUp::Cancelled => (WireState::Cancelled, String::new()),
+            SetUp::Invalid(message) => (WireState::Failed, message),
+            SetUp::Store(message) => (
+                WireState::Failed,
+                format!(
+                    "{message} (the job stays queued in the store: a coordinator taking the store up sets it up again)"
+                ),
+            ),
+        };
+        tracing::warn!(job = %id, ?state, "{message}");
+        sched.update(&id, |s| {
+            s.state = state as i32;
+            s.message = message;
+        });
     });
 }
 
