@@ -615,8 +615,13 @@ fn lost() -> Stop {
 
 #[cfg(test)]
 mod tests {
-    use super::set_up_budget;
+    use super::{SET_UPS, SETTING_UP, set_up_budget, submit};
+    use crate::scheduler::{Scheduler, Timing};
+    use std::time::{Duration, Instant};
     use vlf_core::scene::{ImportOptions, Scene, load_obj};
+    use vlf_proto::JobSpec;
+    use vlf_proto::v1::{self, State as WireState};
+    use vlf_store::{FieldJob, JobId, JobState, Store};
 
     fn bundled(name: &str) -> Scene {
         let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -635,5 +640,40 @@ mod tests {
         // A configured budget is the operator's.
         assert_eq!(set_up_budget(Some(1 << 20), false, &cornell), Some(1 << 20));
         assert_eq!(set_up_budget(Some(1 << 20), true, &mirrors), Some(1 << 20));
+    }
+
+    /// A job cancelled while it waits for its turn to be set up is recorded cancelled in the
+    /// store, not set up and not driven: a coordinator taking the store up leaves it be.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_job_cancelled_before_it_is_set_up_is_recorded_cancelled() {
+        let store = Store::open("memory://").unwrap();
+        let sched = Scheduler::new(store.clone(), Timing::default(), None, None);
+        // Another job is being set up: this one waits its turn.
+        let turn = SET_UPS.acquire().await.unwrap();
+        let parameters = v1::Parameters {
+            directions: Some(33),
+            resolution: Some(16),
+            iterations: Some(1),
+            ..Default::default()
+        };
+        let spec = JobSpec::from_parameters(&parameters).unwrap();
+        let status = submit(&sched, bundled("cornell.obj"), spec).await.unwrap();
+        assert_eq!(
+            (status.state, status.message.as_str()),
+            (WireState::Queued as i32, SETTING_UP)
+        );
+        let id = JobId::parse(&status.job_id).unwrap();
+        sched.cancel(&id).unwrap();
+        drop(turn);
+        let deadline = Instant::now() + Duration::from_secs(30);
+        while sched.status(&id).unwrap().state != WireState::Cancelled as i32 {
+            assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        let job = vlf_store::blocking(move || FieldJob::open(&store, &id).unwrap())
+            .await
+            .unwrap();
+        assert_eq!(job.job().manifest().state, JobState::Cancelled);
+        assert!(!job.is_set_up());
     }
 }
