@@ -8,7 +8,7 @@ use crate::error::StoreError;
 use crate::field::{FieldJob, PendingSnapshot};
 use crate::job::Job;
 use crate::layout;
-use crate::layout::MapPart;
+use crate::layout::{MapPart, Stage};
 use crate::manifest::JobState;
 use std::collections::HashSet;
 use std::ops::Range;
@@ -190,26 +190,23 @@ impl Coordinator {
         if pass != Pass::Shoot || !self.work().uses_mirror_maps() || stored.is_empty() {
             return Ok(stored);
         }
-        let store = self.job.job().store();
-        let held = |part| -> Result<HashSet<usize>, StoreError> {
-            let prefix = layout::map_parts(self.job.id(), k + 1, part)?;
-            Ok(store
-                .list(&prefix)?
-                .iter()
-                .filter_map(|key| layout::parse_map_part(&prefix, key))
-                .map(|b| b as usize)
-                .collect())
-        };
-        let parts = [MapPart::Shooting, MapPart::Totals, MapPart::Radiance].map(held);
-        let [shooting, totals, radiance] = parts;
-        let (shooting, totals, radiance) = (shooting?, totals?, radiance?);
+        // One listing of the next snapshot: every batch's parts, each of the three kinds.
+        let id = self.job.id();
+        let keys = (self.job.job().store()).list(&layout::stage_prefix(id, Stage::Iteration(k + 1))?)?;
+        let held = [MapPart::Shooting, MapPart::Totals, MapPart::Radiance]
+            .into_iter()
+            .map(|part| {
+                let folder = layout::map_parts(id, k + 1, part)?;
+                Ok(keys
+                    .iter()
+                    .filter_map(|key| layout::parse_map_part(&folder, key))
+                    .map(|b| b as usize)
+                    .collect::<HashSet<usize>>())
+            })
+            .collect::<Result<Vec<_>, StoreError>>()?;
         Ok(stored
             .into_iter()
-            .filter(|block| {
-                block
-                    .clone()
-                    .all(|b| shooting.contains(&b) && totals.contains(&b) && radiance.contains(&b))
-            })
+            .filter(|block| block.clone().all(|b| held.iter().all(|h| h.contains(&b))))
             .collect())
     }
 
