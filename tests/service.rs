@@ -198,13 +198,22 @@ fn one_two_and_four_worker_processes_give_propagates_bits() {
         } else {
             &[]
         };
-        let (_server, url) = serve(dir, &store, "127.0.0.1:0", budget);
-        let _workers: Vec<Proc> = (0..workers)
+        let (server, url) = serve(dir, &store, "127.0.0.1:0", budget);
+        let workers_up: Vec<Proc> = (0..workers)
             .map(|w| worker(dir, &format!("worker-{workers}-{w}"), &url, budget))
             .collect();
+        // Registered before the job comes: they learn its survey, not the coordinator.
+        for w in &workers_up {
+            wait_for_log(w, "registered");
+        }
         let id = submit(&url, &["--iterations", "3"]);
         let watched = watch(&url, &id);
         assert_same_field(&expected, &field(&store, &id), &format!("{workers} workers"));
+        assert!(
+            server.log().contains("survey learnt by the workers"),
+            "{}",
+            server.log()
+        );
         // And says so by the digest: `vlf watch` ends on it, the status carries it.
         assert!(watched.contains(&format!("finished, digest {digest}")), "{watched}");
         // How the last iteration used the workers: some of them computed, never more than the
@@ -355,6 +364,53 @@ fn a_coordinator_restarted_mid_iteration_resumes_with_the_same_bits() {
     let finished = wait_status(&url, &id, "the finished job", |_| true);
     assert_eq!(finished.state, State::Finished as i32, "{finished:?}");
     assert_eq!(finished.digest, digest);
+}
+
+/// A coordinator stopped while its workers learn a job's survey: the next one takes the parts
+/// already in the store as they are, has the rest learnt, and the job ends with the bits of
+/// `vlf propagate`; the parts go with the first iteration's work.
+#[test]
+fn a_coordinator_restarted_mid_survey_uses_the_parts_already_learnt() {
+    let scratch = temp("restart-survey");
+    let dir = scratch.path();
+    // l = 33: the survey is 2 batches, leased one at a time.
+    let extra = ["--iterations", "2"];
+    let (expected, digest) = reference(dir, &extra);
+    let store = dir.join("store");
+    let listen = format!("127.0.0.1:{}", free_port());
+    let one = ["--max-lease-batches", "1"];
+    let (mut server, url) = serve(dir, &store, &listen, &one);
+    // It learns the survey's first batch and holds the second for ever.
+    let mut stalled = worker(dir, "stalled", &url, &["--hang-after-leases", "1"]);
+    wait_for_log(&stalled, "registered");
+    let id = submit(&url, &extra);
+    stalled.wait_for_line("stalled holding lease");
+    let status = wait_status(&url, &id, "the survey's first part", |s| s.batches_done == 1);
+    assert_eq!(
+        (status.state, status.iteration),
+        (State::Queued as i32, 0),
+        "{status:?}"
+    );
+    let parts = store.join("jobs").join(&id).join("work/00000/survey");
+    let names = |dir: &Path| -> Vec<String> {
+        let entries = std::fs::read_dir(dir)
+            .map(|d| d.flatten().collect::<Vec<_>>())
+            .unwrap_or_default();
+        entries
+            .iter()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect()
+    };
+    assert_eq!(names(&parts), ["00000-00001.blob"]);
+    server.kill();
+    stalled.kill();
+    let _patient = worker(dir, "patient", &url, &[]);
+    let (server, url) = serve(dir, &store, &listen, &one);
+    let watched = watch(&url, &id);
+    assert!(watched.contains(&format!("digest {digest}")), "{watched}");
+    assert_same_field(&expected, &field(&store, &id), "after a restart mid-survey");
+    assert!(server.log().contains("stored_before=1"), "{}", server.log());
+    assert!(names(&parts).is_empty(), "survey parts left: {:?}", names(&parts));
 }
 
 /// A job stored as submitted but not set up yet (its coordinator stopped while setting it up:

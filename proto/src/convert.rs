@@ -79,6 +79,7 @@ pub fn pass_to_wire(pass: Pass) -> (u32, u32) {
         Pass::Shoot => (0, 0),
         Pass::Areas { copy } => (1, copy),
         Pass::ShootCopy { copy } => (2, copy),
+        Pass::Survey => (3, 0),
     }
 }
 
@@ -120,6 +121,7 @@ pub fn pass_from_wire(kind: u32, copy: u32) -> Option<Pass> {
         0 if copy == 0 => Some(Pass::Shoot),
         1 => Some(Pass::Areas { copy }),
         2 => Some(Pass::ShootCopy { copy }),
+        3 if copy == 0 => Some(Pass::Survey),
         _ => None,
     }
 }
@@ -220,11 +222,18 @@ mod tests {
 
     #[test]
     fn passes_round_trip() {
-        for pass in [Pass::Shoot, Pass::Areas { copy: 3 }, Pass::ShootCopy { copy: 0 }] {
+        for pass in [
+            Pass::Shoot,
+            Pass::Areas { copy: 3 },
+            Pass::ShootCopy { copy: 0 },
+            Pass::Survey,
+        ] {
             let (k, c) = pass_to_wire(pass);
             assert_eq!(pass_from_wire(k, c), Some(pass));
         }
         assert_eq!(pass_from_wire(0, 1), None);
+        assert_eq!(pass_from_wire(3, 1), None);
+        assert_eq!(pass_from_wire(4, 0), None);
         let blocks = vec![0..8, 8..12, 12..13];
         let wire = pass_blocks_to_wire(Pass::Areas { copy: 3 }, &blocks);
         assert_eq!(pass_blocks_from_wire(&wire), Ok((Pass::Areas { copy: 3 }, blocks)));
@@ -245,6 +254,5 @@ mod tests {
         assert!(pass_blocks_from_wire(&empty).unwrap_err().contains("4..4 is empty"));
         let unknown = v1::PassBlocks { pass_kind: 7, ..wire };
         assert!(pass_blocks_from_wire(&unknown).is_err());
-        assert_eq!(pass_from_wire(3, 0), None);
     }
 }

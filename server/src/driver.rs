@@ -13,7 +13,7 @@
 use crate::scheduler::{PassOutcome, Scheduler};
 use std::sync::Arc;
 use tokio::sync::Notify;
-use vlf_core::propagate::{Pass, Propagation};
+use vlf_core::propagate::{Pass, Propagation, Survey, SurveyPart, SurveyParts};
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{JobStatus, State as WireState};
@@ -55,7 +55,7 @@ pub async fn submit(sched: &Arc<Scheduler>, scene: Scene, spec: JobSpec) -> Resu
     .map_err(|e| SubmitError::Internal(e.to_string()))??;
     let id = job.id().clone();
     tracing::info!(job = %id, "job submitted");
-    set_up_and_start(sched, job);
+    set_up_and_start(sched, job, Origin::Submitted);
     sched.status(&id).map_err(|e| SubmitError::Internal(e.to_string()))
 }
 
@@ -70,19 +70,19 @@ static SET_UPS: tokio::sync::Semaphore = tokio::sync::Semaphore::const_new(1);
 /// How setting a job up ended.
 enum SetUp {
     Done(Box<Coordinator>),
-    /// The scene and options make no propagation (the library's reason): the job fails.
-    Invalid(String),
+    /// The job cannot be set up (the scene and options make no propagation, a survey block
+    /// failed too often, a stored part cannot be read): the job fails, for this reason.
+    Failed(String),
     /// The store failed (perhaps for a moment): the job stays queued in the store, and the next
     /// coordinator to take the store up sets it up again.
     Store(String),
     Cancelled,
 }
 
-/// Registers `job`, submitted but not set up, with the scheduler, and sets it up on a blocking
-/// thread ([`FieldJob::set_up`]), one job at a time: then drives it. A scene that makes no
-/// propagation fails the job, with the reason in its status and in the store; a job cancelled
-/// meanwhile is recorded cancelled, set up or not.
-fn set_up_and_start(sched: &Arc<Scheduler>, job: FieldJob) {
+/// Registers `job`, submitted but not set up yet, with the scheduler, and sets it up
+/// ([`set_up`]): then drives it. A job that cannot be set up fails, with the reason in its status
+/// and in the store; a job cancelled meanwhile is recorded cancelled, set up or not.
+fn set_up_and_start(sched: &Arc<Scheduler>, job: FieldJob, origin: Origin) {
     let mut status = stored_status(&job);
     status.message = SETTING_UP.into();
     let id = job.id().clone();
@@ -93,53 +93,18 @@ fn set_up_and_start(sched: &Arc<Scheduler>, job: FieldJob) {
             return;
         }
     };
-    let budget = set_up_budget(sched.subfield_budget(), sched.prototypes().is_some(), job.scene());
     let sched = sched.clone();
     tokio::spawn(async move {
-        let _turn = SET_UPS.acquire().await;
         let started = std::time::Instant::now();
-        let (mut job, cancelled) = (job, {
-            let (sched, id) = (sched.clone(), id.clone());
-            move || sched.is_cancelled(&id)
-        });
-        let set_up = vlf_store::blocking(move || -> SetUp {
-            // The end a job reaches here is recorded in the store: it is not taken up again.
-            let ended = |job: &mut FieldJob, state: JobState, outcome: SetUp| match job.set_state(state) {
-                Ok(()) => outcome,
-                Err(e) => SetUp::Store(format!("recording the job's end failed: {e}")),
-            };
-            if cancelled() {
-                return ended(&mut job, JobState::Cancelled, SetUp::Cancelled);
-            }
-            let prop = match Propagation::with_subfield_budget(job.scene().clone(), job.options().clone(), budget) {
-                Ok(prop) => prop,
-                Err(e) => {
-                    let message = format!("cannot set the job up: {e}");
-                    let failed = JobState::Failed {
-                        message: message.clone(),
-                    };
-                    return ended(&mut job, failed, SetUp::Invalid(message));
-                }
-            };
-            if let Err(e) = job.set_up(&prop) {
-                return SetUp::Store(format!("cannot set the job up: {e}"));
-            }
-            if cancelled() {
-                return ended(&mut job, JobState::Cancelled, SetUp::Cancelled);
-            }
-            SetUp::Done(Box::new(Coordinator::new(job, prop)))
-        })
-        .await
-        .unwrap_or_else(|e| SetUp::Store(format!("internal: {e}")));
-        let (state, message) = match set_up {
+        let (state, message) = match set_up(&sched, job, &wake, origin).await {
             SetUp::Done(coordinator) => {
                 tracing::info!(job = %id, seconds = format!("{:.2}", started.elapsed().as_secs_f64()), "job set up");
                 sched.update(&id, |s| s.message.clear());
-                drive(&sched, *coordinator, wake, Origin::Submitted);
+                drive(&sched, *coordinator, wake, origin);
                 return;
             }
             SetUp::Cancelled => (WireState::Cancelled, String::new()),
-            SetUp::Invalid(message) => (WireState::Failed, message),
+            SetUp::Failed(message) => (WireState::Failed, message),
             SetUp::Store(message) => (
                 WireState::Failed,
                 format!(
@@ -153,6 +118,192 @@ fn set_up_and_start(sched: &Arc<Scheduler>, job: FieldJob) {
             s.message = message;
         });
     });
+}
+
+/// Sets `job` up: learns its survey, then builds its geometry, stores the survey and writes
+/// snapshot 0 ([`FieldJob::set_up`]) on a blocking thread, one job at a time. How it ended is
+/// recorded in the store where the job ends (failed, cancelled).
+///
+/// The survey — a walk over every ray of every subfield, the part of set-up that grows with the
+/// field — is leased to the workers as the parts of [`Pass::Survey`] ([`learn_survey`]) when
+/// one that learns surveys is alive, or when a previous coordinator's workers stored parts of
+/// it; it is learnt here, with all the coordinator's threads, when none is (a job submitted
+/// before its workers start, workers of an earlier build) or when workers in this process share
+/// the coordinator's propagation (they take it whole, survey included). The same bits either way.
+async fn set_up(sched: &Arc<Scheduler>, job: FieldJob, wake: &Notify, origin: Origin) -> SetUp {
+    let id = job.id().clone();
+    let cancelled = {
+        let (sched, id) = (sched.clone(), id.clone());
+        move || sched.is_cancelled(&id)
+    };
+    let budget = set_up_budget(sched.subfield_budget(), sched.prototypes().is_some(), job.scene());
+    let job = Arc::new(job);
+    // Parts a previous coordinator's workers stored.
+    let stored = match origin {
+        Origin::Recovered if sched.prototypes().is_none() => {
+            let job = job.clone();
+            match vlf_store::blocking(move || job.stored_blocks(0, Pass::Survey)).await {
+                Ok(Ok(stored)) => stored,
+                Ok(Err(e)) => return SetUp::Store(format!("cannot list the survey's parts: {e}")),
+                Err(e) => return SetUp::Store(format!("internal: {e}")),
+            }
+        }
+        _ => Vec::new(),
+    };
+    let leased = sched.prototypes().is_none() && (sched.surveyors_alive() > 0 || !stored.is_empty());
+    let learnt = match leased {
+        true => learn_survey(sched, &job, wake, &stored, budget).await.map(Some),
+        false => Ok(None),
+    };
+    // Every blocking step that held the job is over: this is the only holder left.
+    let job = Arc::try_unwrap(job).unwrap_or_else(|shared| (*shared).clone());
+    let survey = match learnt {
+        Ok(survey) => survey,
+        Err(SetUp::Cancelled) => return ended(job, JobState::Cancelled, SetUp::Cancelled).await,
+        Err(SetUp::Failed(message)) => {
+            let failed = JobState::Failed {
+                message: message.clone(),
+            };
+            return ended(job, failed, SetUp::Failed(message)).await;
+        }
+        Err(outcome) => return outcome,
+    };
+    let _turn = SET_UPS.acquire().await;
+    let mut job = job;
+    vlf_store::blocking(move || -> SetUp {
+        if cancelled() {
+            return record_end(&mut job, JobState::Cancelled, SetUp::Cancelled);
+        }
+        let (scene, options) = (job.scene().clone(), job.options().clone());
+        let built = match survey {
+            Some(survey) => Propagation::with_survey(scene, options, budget, survey),
+            None => Propagation::with_subfield_budget(scene, options, budget),
+        };
+        let prop = match built {
+            Ok(prop) => prop,
+            Err(e) => {
+                let message = format!("cannot set the job up: {e}");
+                let failed = JobState::Failed {
+                    message: message.clone(),
+                };
+                return record_end(&mut job, failed, SetUp::Failed(message));
+            }
+        };
+        if let Err(e) = job.set_up(&prop) {
+            return SetUp::Store(format!("cannot set the job up: {e}"));
+        }
+        if cancelled() {
+            return record_end(&mut job, JobState::Cancelled, SetUp::Cancelled);
+        }
+        SetUp::Done(Box::new(Coordinator::new(job, prop)))
+    })
+    .await
+    .unwrap_or_else(|e| SetUp::Store(format!("internal: {e}")))
+}
+
+/// Records in the store that `job` ended set-up in `state` (it is not taken up again), and
+/// returns `outcome`; a store that fails leaves the job queued ([`SetUp::Store`]).
+fn record_end(job: &mut FieldJob, state: JobState, outcome: SetUp) -> SetUp {
+    match job.set_state(state) {
+        Ok(()) => outcome,
+        Err(e) => SetUp::Store(format!("recording the job's end failed: {e}")),
+    }
+}
+
+/// [`record_end`] on a blocking thread.
+async fn ended(mut job: FieldJob, state: JobState, outcome: SetUp) -> SetUp {
+    vlf_store::blocking(move || record_end(&mut job, state, outcome))
+        .await
+        .unwrap_or_else(|e| SetUp::Store(format!("internal: {e}")))
+}
+
+/// Learns `job`'s survey through its workers: opens [`Pass::Survey`] over the job's batches
+/// (the blocks `stored` by a previous coordinator's workers are used as they are) and adds up
+/// the parts in order as their blocks are reported ([`SurveyParts`]), while the later ones are
+/// still being learnt. When no worker that learns surveys has been alive for three heartbeats
+/// (the one that had the pass died, or none came back after a coordinator restart), the
+/// coordinator closes the pass and learns the rest itself, within `budget`. Returns the survey,
+/// or why there is none: cancelled, failed ([`SetUp::Failed`]: a block failed too often, a
+/// part cannot be read or does not fit), or the store failed.
+async fn learn_survey(
+    sched: &Arc<Scheduler>,
+    job: &Arc<FieldJob>,
+    wake: &Notify,
+    stored: &[std::ops::Range<usize>],
+    budget: Option<usize>,
+) -> Result<Survey, SetUp> {
+    let id = job.id().clone();
+    let batching = job.options().batching();
+    let batches = batching.count();
+    let started = std::time::Instant::now();
+    sched.start_iteration(&id, 1, batches, job.options().directions);
+    sched.start_pass(&id, 0, Pass::Survey, batches, stored, &[]);
+    let grace = sched.timing().heartbeat * 3;
+    // Since when no worker that learns surveys is alive.
+    let mut unattended: Option<std::time::Instant> = None;
+    let mut parts = SurveyParts::new(job.scene(), job.options());
+    let add = |parts: &mut SurveyParts, part| {
+        (parts.add(part)).map_err(|e| SetUp::Failed(format!("cannot add up the survey: {e}")))
+    };
+    let (mut next, mut by_workers) = (0, 0);
+    while next < batches {
+        let ready = loop {
+            let notified = wake.notified();
+            match sched.pass_outcome(&id, Pass::Survey, next) {
+                PassOutcome::Running => {
+                    if sched.surveyors_alive() > 0 {
+                        unattended = None;
+                    } else if unattended.get_or_insert_with(std::time::Instant::now).elapsed() >= grace {
+                        break None;
+                    }
+                    tokio::select! {
+                        _ = notified => {}
+                        _ = tokio::time::sleep(grace / 4) => {}
+                    }
+                }
+                PassOutcome::Ready(blocks) => break Some(blocks),
+                PassOutcome::Cancelled => return Err(SetUp::Cancelled),
+                PassOutcome::Failed(m) => return Err(SetUp::Failed(format!("cannot learn the survey: {m}"))),
+            }
+        };
+        let Some(ready) = ready else {
+            // Nobody to lease it to: the rest is learnt here (a late report of it is ignored).
+            sched.end_pass(&id, 0, Pass::Survey);
+            tracing::warn!(job = %id, from_batch = next, "no worker learns surveys: learning the rest of the survey here");
+            let (job, rest) = (job.clone(), batching.directions_of(next..batches));
+            let part = vlf_store::blocking(move || SurveyPart::learn(job.scene(), job.options(), rest, budget))
+                .await
+                .map_err(|e| SetUp::Store(format!("internal: {e}")))?
+                .map_err(|e| SetUp::Failed(format!("cannot set the job up: {e}")))?;
+            add(&mut parts, part)?;
+            break;
+        };
+        next = ready.last().map_or(next, |b| b.end);
+        by_workers += ready.len();
+        let read = {
+            let job = job.clone();
+            vlf_store::blocking(move || job.survey_parts(&ready))
+                .await
+                .map_err(|e| SetUp::Store(format!("internal: {e}")))?
+        };
+        for part in read.map_err(|e| SetUp::Failed(format!("cannot read the survey: {e}")))? {
+            add(&mut parts, part)?;
+        }
+        if next == batches {
+            sched.end_pass(&id, 0, Pass::Survey);
+        }
+    }
+    let survey = parts
+        .finish(job.scene())
+        .map_err(|e| SetUp::Failed(format!("cannot add up the survey: {e}")))?;
+    tracing::info!(
+        job = %id,
+        seconds = format!("{:.2}", started.elapsed().as_secs_f64()),
+        blocks = by_workers,
+        stored_before = stored.len(),
+        "survey learnt by the workers"
+    );
+    Ok(survey)
 }
 
 /// The subfield budget a new job is set up within: the configured one; else, for a scene without
@@ -208,7 +359,7 @@ pub async fn recover(sched: &Arc<Scheduler>) -> Result<usize, StoreError> {
             }
             Ok(Taken::ToSetUp(job)) => {
                 tracing::info!(job = %id, "setting up job");
-                set_up_and_start(sched, job);
+                set_up_and_start(sched, job, Origin::Recovered);
                 resumed += 1;
             }
             Ok(Taken::Ended(status)) => {
@@ -616,8 +767,9 @@ fn lost() -> Stop {
 #[cfg(test)]
 mod tests {
     use super::{SET_UPS, SETTING_UP, set_up_budget, submit};
-    use crate::scheduler::{Scheduler, Timing};
+    use crate::scheduler::{Abilities, Scheduler, Timing};
     use std::time::{Duration, Instant};
+    use vlf_core::propagate::{Pass, Propagation, Surveyor, reduce};
     use vlf_core::scene::{ImportOptions, Scene, load_obj};
     use vlf_proto::JobSpec;
     use vlf_proto::v1::{self, State as WireState};
@@ -675,5 +827,64 @@ mod tests {
             .unwrap();
         assert_eq!(job.job().manifest().state, JobState::Cancelled);
         assert!(!job.is_set_up());
+    }
+
+    /// A worker learns the first block of a job's survey and dies: the coordinator, with no
+    /// worker left that learns surveys, learns the rest itself, and the job is set up with the
+    /// survey a propagation learns whole.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_survey_whose_worker_dies_is_finished_by_the_coordinator() {
+        let store = Store::open("memory://").unwrap();
+        let timing = Timing {
+            heartbeat: Duration::from_millis(100),
+            ..Timing::default()
+        };
+        let sched = Scheduler::new(store.clone(), timing, None, None);
+        let worker = sched.register("mortal", Abilities::ALL);
+        let parameters = v1::Parameters {
+            directions: Some(129),
+            resolution: Some(16),
+            iterations: Some(1),
+            ..Default::default()
+        };
+        let spec = JobSpec::from_parameters(&parameters).unwrap();
+        let scene = bundled("mirrors.obj");
+        let status = submit(&sched, scene.clone(), spec.clone()).await.unwrap();
+        let id = JobId::parse(&status.job_id).unwrap();
+        let grant = sched.lease(&worker, Duration::from_secs(30)).await.unwrap().unwrap();
+        let batches = spec.options.batching().count();
+        assert_eq!(grant.pass, Pass::Survey);
+        assert!(grant.batches.end < batches, "a part of the survey: {grant:?}");
+        let learnt = {
+            let (store, id, run) = (store.clone(), id.clone(), grant.batches.clone());
+            vlf_store::blocking(move || {
+                let job = FieldJob::open(&store, &id).unwrap();
+                let surveyor = Surveyor::new(job.scene(), job.options(), None).unwrap();
+                for block in reduce::cover(run) {
+                    let part = surveyor
+                        .part(job.options().batching().directions_of(block.clone()))
+                        .unwrap();
+                    job.put_survey_part(block, &part).unwrap();
+                }
+            })
+        };
+        learnt.await.unwrap();
+        assert!(
+            sched
+                .report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[])
+                .unwrap()
+        );
+        // The worker is silent from now on.
+        let deadline = Instant::now() + Duration::from_secs(60);
+        // Set up, the job waits for a worker to propagate it.
+        while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
+            assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let whole = Propagation::new(scene, spec.options.clone()).unwrap().survey();
+        let stored = vlf_store::blocking(move || FieldJob::open(&store, &id).unwrap().stored_survey().unwrap())
+            .await
+            .unwrap();
+        assert!(stored == Some(whole), "the survey stored with the job");
     }
 }

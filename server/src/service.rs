@@ -227,6 +227,7 @@ impl workers_server::Workers for Api {
         let abilities = Abilities {
             runs: request.takes_runs,
             claims: request.takes_claims,
+            surveys: request.takes_surveys,
         };
         let worker_id = self.sched.register(&request.name, abilities);
         Ok(Response::new(v1::RegisterReply {
@@ -443,6 +444,7 @@ mod tests {
                 threads: 2,
                 takes_runs: true,
                 takes_claims: true,
+                takes_surveys: true,
             }))
             .await
             .unwrap()
@@ -490,6 +492,73 @@ mod tests {
         assert_eq!(copy.reads, vec![pass_blocks_to_wire(areas, &[0..8, 8..16])]);
     }
 
+    /// A survey is leased only to workers that learn surveys (an earlier build's would fail
+    /// it), and what its batches took does not size the iterations' leases.
+    #[tokio::test]
+    async fn a_survey_goes_only_to_workers_that_learn_surveys() {
+        let (sched, id) = scheduler_with_a_job();
+        let api = Api::new(sched.clone(), 0);
+        let mut workers = Vec::new();
+        for (name, takes_surveys) in [("old", false), ("new", true)] {
+            let request = v1::RegisterRequest {
+                name: name.into(),
+                threads: 1,
+                takes_runs: true,
+                takes_claims: true,
+                takes_surveys,
+            };
+            workers.push(
+                api.register(Request::new(request))
+                    .await
+                    .unwrap()
+                    .into_inner()
+                    .worker_id,
+            );
+        }
+        assert_eq!((sched.workers_alive(), sched.surveyors_alive()), (2, 1));
+        let lease = |w: &String| {
+            api.lease(Request::new(v1::LeaseRequest {
+                worker_id: w.clone(),
+                wait_ms: 0,
+            }))
+        };
+        sched.start_pass(&id, 0, Pass::Survey, 4, &[], &[]);
+        assert!(
+            lease(&workers[0]).await.unwrap().into_inner().lease.is_none(),
+            "not to an old worker"
+        );
+        let survey = lease(&workers[1]).await.unwrap().into_inner().lease.unwrap();
+        assert_eq!((survey.pass_kind, survey.pass_copy, survey.snapshot), (3, 0, 0));
+        let mut rest = vec![survey];
+        while let Some(next) = lease(&workers[1]).await.unwrap().into_inner().lease {
+            rest.push(next);
+        }
+        for l in &rest {
+            assert!(
+                api.report(report(&workers[1], l, 0))
+                    .await
+                    .unwrap()
+                    .into_inner()
+                    .accepted
+            );
+        }
+        let covered: u32 = rest.iter().map(|l| l.batch_count.max(1)).sum();
+        assert_eq!(covered, 4);
+        let blocks: Vec<_> = rest
+            .iter()
+            .map(|l| l.batch as usize..(l.batch + l.batch_count.max(1)) as usize)
+            .collect();
+        assert_eq!(
+            sched.pass_outcome(&id, Pass::Survey, 0),
+            crate::scheduler::PassOutcome::Ready(blocks)
+        );
+        sched.end_pass(&id, 0, Pass::Survey);
+        // The old worker shoots; the speed is still unknown: one batch.
+        sched.start_pass(&id, 0, Pass::Shoot, 16, &[], &[]);
+        let shoot = lease(&workers[0]).await.unwrap().into_inner().lease.unwrap();
+        assert_eq!((shoot.pass_kind, shoot.batch, shoot.batch_count), (0, 0, 1));
+    }
+
     #[tokio::test]
     async fn a_lease_says_what_is_committed_and_extend_claims_the_rest() {
         let (sched, id) = scheduler_with_a_job();
@@ -501,6 +570,7 @@ mod tests {
                 threads: 1,
                 takes_runs: true,
                 takes_claims,
+                takes_surveys: true,
             };
             workers.push(
                 api.register(Request::new(request))

@@ -89,11 +89,14 @@ pub enum BlobKind {
     /// snapshot's mirror radiance in the job's encoding (`iters/K/mirror-radiance/`), what
     /// renders read of it once its exact `f64` totals are compacted away.
     BatchRadiance = 12,
+    /// What a block of a job's directions adds to its survey, learnt by a worker before the job
+    /// is set up (caller's serialisation; `jobs/J/work/00000/survey/`).
+    SurveyPart = 13,
 }
 
 impl BlobKind {
     /// Every kind, in numeric order.
-    pub const ALL: [BlobKind; 12] = [
+    pub const ALL: [BlobKind; 13] = [
         BlobKind::Manifest,
         BlobKind::Scene,
         BlobKind::Snapshot,
@@ -106,6 +109,7 @@ impl BlobKind {
         BlobKind::Survey,
         BlobKind::DirectionRadiance,
         BlobKind::BatchRadiance,
+        BlobKind::SurveyPart,
     ];
 
     /// The number stored in the header.
@@ -116,7 +120,7 @@ impl BlobKind {
     /// The zstd level blobs of this kind are written with (any level reads back the same way).
     fn zstd_level(self) -> i32 {
         match self {
-            BlobKind::Snapshot | BlobKind::BatchOutput => ZSTD_LEVEL_TRANSIENT,
+            BlobKind::Snapshot | BlobKind::BatchOutput | BlobKind::SurveyPart => ZSTD_LEVEL_TRANSIENT,
             _ => ZSTD_LEVEL,
         }
     }

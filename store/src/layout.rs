@@ -15,6 +15,7 @@
 //! | `jobs/J/iters/KKKKK/unshot/BBBBB.blob` | Snapshot | in jobs written before the mirror totals were stored by batch: the unshot mirror maps of batch B |
 //! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
 //! | `jobs/J/work/KKKKK/PASS/BBBBB.blob` | BatchOutput | a worker's output for one batch of the iteration after snapshot K (deleted once K+1 is committed) |
+//! | `jobs/J/work/00000/survey/SSSSS-EEEEE.blob` | SurveyPart | what batches S..E of the directions add to the survey, learnt by a worker before the job is set up (deleted with iteration 1's work) |
 //! | `S/diffuse/CCCCCCC.blob` | DiffuseMaps | outgoing radiance of the charts of diffuse chunk C (`vlf_core::parts`) |
 //! | `S/mirrors/SSSSSSS.blob` | MirrorMaps | directional maps of mirror S |
 //! | `S/dirs/DDDDD/tile-TTTT-TTTT.blob` | TileRadiance | tile (s, t) of direction D's parallel subfield |

@@ -912,3 +912,55 @@ fn each_worker_takes_a_prototype_once_and_the_last_takes_the_original() {
     alone.remove(&id);
     assert!(alone.take(&id).is_none());
 }
+
+/// Survey parts through the store: workers' blocks, stored and read back in any grouping, add up
+/// to the survey the propagation learns whole; a part that does not fit its key (other
+/// directions, corrupted bytes) is an error that names the key, and is refused when written
+/// under the wrong batches.
+#[test]
+fn survey_parts_through_the_store_make_the_survey() {
+    use vlf_core::propagate::{SurveyParts, Surveyor, reduce};
+    let store = Store::open("memory://").unwrap();
+    let (scene, options) = (bundled("mirrors.obj"), options(0, 129));
+    let job = FieldJob::describe(&store, &scene, &options, Encoding::F32).unwrap();
+    let batching = options.batching();
+    let batches = batching.count();
+    assert_eq!(batches, 8);
+    // Two workers' leases, each the blocks that cover its run.
+    let surveyor = Surveyor::new(&scene, &options, Some(0)).unwrap();
+    let mut blocks = Vec::new();
+    for run in [0..3, 3..8] {
+        for block in reduce::cover(run) {
+            let part = surveyor.part(batching.directions_of(block.clone())).unwrap();
+            job.put_survey_part(block.clone(), &part).unwrap();
+            blocks.push(block);
+        }
+    }
+    assert_eq!(job.stored_blocks(0, Pass::Survey).unwrap(), blocks);
+    let mut sum = SurveyParts::new(&scene, &options);
+    for part in job.survey_parts(&blocks).unwrap() {
+        sum.add(part).unwrap();
+    }
+    let whole = Propagation::new(scene.clone(), options.clone()).unwrap().survey();
+    assert!(sum.finish(&scene).unwrap() == whole);
+    // Written under the wrong batches: refused.
+    let part = surveyor.part(batching.directions_of(0..1)).unwrap();
+    let error = job.survey_part_put(1..2, &part).unwrap_err().to_string();
+    assert!(error.contains("is not that of batches 1..2"), "{error}");
+    // Stored under the wrong key (another block's bytes), or corrupted: the key is named.
+    let key =
+        |b: &std::ops::Range<usize>| layout::work_block(job.id(), 0, "survey", b.start as u32, b.end as u32).unwrap();
+    let (first, second) = (key(&blocks[0]), key(&blocks[1]));
+    let good = store.get(&first).unwrap().to_vec();
+    store.put(&first, store.get(&second).unwrap().to_vec()).unwrap();
+    let error = job.survey_parts(&blocks[..1]).unwrap_err().to_string();
+    assert!(error.contains(&first) && error.contains("holds directions"), "{error}");
+    let mut bytes = good.clone();
+    let middle = bytes.len() / 2;
+    bytes[middle] ^= 0x55;
+    store.put(&first, bytes).unwrap();
+    let error = job.survey_parts(&blocks[..1]).unwrap_err().to_string();
+    assert!(error.contains(&first), "{error}");
+    store.put(&first, good).unwrap();
+    assert!(job.survey_parts(&blocks).is_ok());
+}

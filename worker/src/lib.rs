@@ -18,7 +18,7 @@ use std::ops::Range;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 use tonic::Code;
-use vlf_core::propagate::reduce;
+use vlf_core::propagate::{Pass, Surveyor, reduce};
 use vlf_proto::v1;
 use vlf_proto::{ConnectError, Target, pass_blocks_from_wire, pass_from_wire};
 use vlf_store::{FieldJob, JobId, ReadAhead, Replica, Store, StoreError, Writing};
@@ -176,6 +176,7 @@ pub async fn run(
                 threads: pool.current_num_threads() as u32,
                 takes_runs: true,
                 takes_claims: true,
+                takes_surveys: true,
             }) => r,
         };
         let reply = match registered {
@@ -504,6 +505,9 @@ async fn compute(
         0 => end,
         n => (start + n as usize).min(end),
     };
+    if pass == Pass::Survey {
+        return compute_survey(store, pool, replicas, job, start..committed).await;
+    }
     let claim = Arc::new(Claim::new(committed, end));
     // The computing thread holds the only sender: the claimer stops when it is done.
     let (asks, asked) = tokio::sync::mpsc::unbounded_channel();
@@ -531,6 +535,53 @@ async fn compute(
     });
     let (computed, ()) = tokio::join!(computing, claimer);
     computed
+        .map_err(|e| format!("internal: {e}"))?
+        .map_err(|e| e.to_string())
+}
+
+/// Learns the survey parts of the batches `run` of `job` (not set up yet: no [`Replica`] can be
+/// opened) into the store, one per aligned block of the run (`reduce::cover`), with one
+/// [`Surveyor`] — one texel atlas — for them all, the subfields held within the worker's budget.
+/// A survey lease is committed whole; were it not, the run computed is the committed part, and
+/// the report says so (the rest goes back to the pool).
+async fn compute_survey(
+    store: Store,
+    pool: Arc<rayon::ThreadPool>,
+    replicas: Arc<Mutex<Replicas>>,
+    job: JobId,
+    run: Range<usize>,
+) -> Result<Computed, String> {
+    let budget = lock(&replicas).subfield_budget;
+    let computing = vlf_store::blocking(move || {
+        pool.install(|| -> Result<Computed, StoreError> {
+            let started = Instant::now();
+            let opened = FieldJob::open(&store, &job)?;
+            let field_error = |source| StoreError::Field {
+                url: store.url().to_string(),
+                job: job.to_string(),
+                source,
+            };
+            let surveyor = Surveyor::new(opened.scene(), opened.options(), budget).map_err(field_error)?;
+            let batching = opened.options().batching();
+            // The set-up (opening the job, the atlas) is shared by the blocks in proportion.
+            let set_up = started.elapsed().as_secs_f64() / run.len().max(1) as f64;
+            let (mut puts, mut costs) = (Vec::new(), Vec::new());
+            for block in reduce::cover(run.clone()) {
+                let started = Instant::now();
+                let part = surveyor
+                    .part(batching.directions_of(block.clone()))
+                    .map_err(field_error)?;
+                puts.push(opened.survey_part_put(block.clone(), &part)?);
+                let each = started.elapsed().as_secs_f64() / block.len() as f64;
+                costs.extend(std::iter::repeat_n(each + set_up, block.len()));
+            }
+            tracing::debug!(job = %job, batches = ?run, "survey parts learnt");
+            let writes = store.put_all_behind(puts)?;
+            Ok((run, writes, costs, None))
+        })
+    });
+    computing
+        .await
         .map_err(|e| format!("internal: {e}"))?
         .map_err(|e| e.to_string())
 }

@@ -93,13 +93,18 @@ impl Scheduler {
         Ok(entry.status.subscribe())
     }
 
-    /// Changes the job's status with `change` and publishes it (the driver's milestones).
+    /// Changes the job's status with `change` and publishes it (the driver's milestones). A job
+    /// that ends has nothing left to lease: its open passes close (a lease of them out still is
+    /// ignored when reported).
     pub fn update(&self, job: &JobId, change: impl FnOnce(&mut JobStatus)) {
         let mut state = self.lock();
         let alive = alive_workers(&state, self.timing);
         if let Some(entry) = state.jobs.get_mut(job) {
             let mut status = entry.status.borrow().clone();
             change(&mut status);
+            if is_terminal(status.state) {
+                entry.passes.clear();
+            }
             publish(entry, status, alive);
         }
     }

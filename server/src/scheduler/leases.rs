@@ -53,6 +53,7 @@ impl Scheduler {
         let state = &mut *guard;
         touch(state, worker)?;
         let alive = alive_workers(state, self.timing);
+        let takes = |pass| state.workers.get(worker).is_some_and(|w| w.abilities.takes(pass));
         let mut jobs: Vec<(&JobId, &JobEntry)> = state.jobs.iter().collect();
         jobs.sort_by_key(|(_, j)| j.order);
         let found = jobs.iter().find_map(|(id, entry)| {
@@ -60,6 +61,9 @@ impl Scheduler {
                 return None;
             }
             entry.passes.iter().enumerate().find_map(|(p, run)| {
+                if !takes(run.pass) {
+                    return None;
+                }
                 let (b, home) = run.first_pending(worker, &entry.shooting, &state.workers)?;
                 Some(((*id).clone(), p, b, home))
             })
@@ -281,7 +285,8 @@ impl Scheduler {
                         .shooting
                         .record(worker, batches.clone(), run.batches.len(), seconds, costs);
                 }
-                if seconds.is_finite() && seconds > 0.0 {
+                // A survey's batches cost another thing than the iterations' the speed sizes.
+                if pass != Pass::Survey && seconds.is_finite() && seconds > 0.0 {
                     entry.clock.batch_seconds = Some(seconds / batches.len() as f64);
                 }
                 entry.clock.use_clock.reported(worker, seconds);

@@ -129,6 +129,9 @@ pub struct Abilities {
     /// It computes only a lease's committed batches unasked and claims the others with
     /// [`Scheduler::extend`], so another worker can be given them meanwhile.
     pub claims: bool,
+    /// It learns parts of a job's survey ([`Pass::Survey`]); a job is set up with the survey
+    /// its workers learn only while one that can is alive.
+    pub surveys: bool,
 }
 
 impl Abilities {
@@ -136,17 +139,25 @@ impl Abilities {
     pub const ALL: Abilities = Abilities {
         runs: true,
         claims: true,
+        surveys: true,
     };
-    /// A worker that computes runs but claims nothing.
+    /// A worker that computes runs and learns surveys but claims nothing.
     pub const RUNS: Abilities = Abilities {
         runs: true,
         claims: false,
+        surveys: true,
     };
-    /// A worker that computes single aligned blocks.
+    /// A worker that computes single aligned blocks (of an iteration's passes only).
     pub const BLOCKS: Abilities = Abilities {
         runs: false,
         claims: false,
+        surveys: false,
     };
+
+    /// Whether a worker with these abilities may be leased `pass`.
+    fn takes(self, pass: Pass) -> bool {
+        pass != Pass::Survey || self.surveys
+    }
 }
 
 /// What a driver finds when it wakes, waiting for a batch.
@@ -332,6 +343,14 @@ fn touch(state: &mut State, worker: &str) -> Result<(), Unknown> {
     Ok(())
 }
 
+/// Workers heard from within three heartbeats that learn survey parts.
+fn alive_surveyors(state: &State, timing: Timing) -> u32 {
+    let now = Instant::now();
+    (state.workers.values())
+        .filter(|w| w.abilities.surveys && now.duration_since(w.last_seen) <= timing.heartbeat * 3)
+        .count() as u32
+}
+
 fn alive_workers(state: &State, timing: Timing) -> u32 {
     let now = Instant::now();
     state
@@ -389,7 +408,8 @@ fn publish(entry: &mut JobEntry, mut status: JobStatus, workers_alive: u32) {
         let left = clock.batches_total.saturating_sub(batches_done) as f64;
         status.eta_iteration_seconds = if rate > 0.0 { left / rate } else { -1.0 };
         status.eta_job_seconds = -1.0;
-        if status.iterations_planned > 0 && status.eta_iteration_seconds >= 0.0 {
+        // While the job is set up (iteration 0, its survey leased) no iteration's time is known.
+        if status.iterations_planned > 0 && status.iteration > 0 && status.eta_iteration_seconds >= 0.0 {
             let per_iteration = if clock.finished.is_empty() {
                 elapsed + status.eta_iteration_seconds
             } else {

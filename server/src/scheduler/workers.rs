@@ -3,7 +3,7 @@
 //! (`alive_workers`), and one silent too long loses its leases, which `Scheduler::reap` does
 //! with the other expired leases (in `leases`).
 
-use super::{Abilities, Scheduler, Unknown, WorkerEntry, alive_workers, touch};
+use super::{Abilities, Scheduler, Unknown, WorkerEntry, alive_surveyors, alive_workers, touch};
 use std::time::Instant;
 
 impl Scheduler {
@@ -28,6 +28,11 @@ impl Scheduler {
     /// Workers heard from within three heartbeats.
     pub fn workers_alive(&self) -> u32 {
         alive_workers(&self.lock(), self.timing)
+    }
+
+    /// Workers alive that learn survey parts ([`Abilities::surveys`]).
+    pub fn surveyors_alive(&self) -> u32 {
+        alive_surveyors(&self.lock(), self.timing)
     }
 
     /// Notes that `worker` is alive.

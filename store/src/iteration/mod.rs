@@ -44,11 +44,14 @@
 //!   commits the snapshot ([`SnapshotCommit`]), and what an iteration moved ([`WorkTraffic`]);
 //! - `cover`: which aligned blocks make up a pass, for both sides;
 //! - `prototypes`: [`Prototypes`], propagations a process's coordinator hands its workers.
+//! - `survey`: the survey learnt by the workers before the job is set up, as the parts of a pass
+//!   leased like the iterations' ([`vlf_core::propagate::Pass::Survey`]).
 
 mod coordinator;
 mod cover;
 mod prototypes;
 mod replica;
+mod survey;
 
 pub use coordinator::{Coordinator, SnapshotCommit, WorkTraffic};
 pub use prototypes::Prototypes;
@@ -69,6 +72,7 @@ fn pass_name(pass: Pass) -> String {
         Pass::Shoot => "shoot".into(),
         Pass::Areas { copy } => format!("areas-{copy:02}"),
         Pass::ShootCopy { copy } => format!("copy-{copy:02}"),
+        Pass::Survey => "survey".into(),
     }
 }
 

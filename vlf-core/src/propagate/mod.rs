@@ -62,7 +62,7 @@ pub use shoot::Flow;
 pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
 pub use split::{HomeThreads, split_by_cost};
-pub use survey::Survey;
+pub use survey::{Survey, SurveyPart, SurveyParts, Surveyor};
 pub use work::{BatchOutput, BatchSum, Batching, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;

@@ -170,47 +170,15 @@ pub struct SurveyPart {
 impl SurveyPart {
     /// Learns the part of `scene`'s survey with `options` that the directions `range` make:
     /// builds the texel atlas and those directions' subfields only (within `budget` bytes of
-    /// subfields when one is given), and passes over their rays.
+    /// subfields when one is given), and passes over their rays. [`Surveyor`] learns several
+    /// parts with one atlas.
     pub fn learn(
         scene: &Scene,
         options: &Options,
         range: Range<usize>,
         budget: Option<usize>,
     ) -> crate::Result<SurveyPart> {
-        options.validate()?;
-        let directions = DirectionSet::new(options.directions)?;
-        if range.is_empty() || range.end > directions.len() {
-            return Err(crate::Error::Parameter(format!(
-                "directions {range:?} are not a part of the {} directions",
-                directions.len()
-            )));
-        }
-        let atlas = TexelAtlas::new(scene, options.texel_size(), options.grid.ray_spacing())?;
-        let footprints = Arc::new(Footprints::new(scene, &atlas.plane_rep));
-        let frames = (0..directions.len()).map(|d| directions.frame(d)).collect();
-        let subfields = match budget {
-            Some(bytes) => Subfields::within(footprints, frames, options.grid, bytes),
-            None => Subfields::on_demand(footprints, frames, options.grid),
-        };
-        let stacking = Stacking::new(scene, &atlas);
-        let geometry = Geometry {
-            scene,
-            atlas: &atlas,
-            stacking: &stacking,
-        };
-        let units = AreaUnits::of(geometry, &directions, range.clone(), |d| subfields.get(d));
-        let mirrors = (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror());
-        let sends_to = match mirrors {
-            true => plan::sends_to(geometry, &subfields, range.clone()),
-            false => Vec::new(),
-        };
-        Ok(SurveyPart {
-            version: PART_VERSION,
-            of: Surveyed::of(scene, options),
-            directions: (range.start as u32, range.end as u32),
-            units,
-            sends_to,
-        })
+        Surveyor::new(scene, options, budget)?.part(range)
     }
 
     pub fn to_bytes(&self) -> Vec<u8> {
@@ -221,6 +189,75 @@ impl SurveyPart {
     /// [`crate::Error::Decode`]. Whether it fits a job is [`Survey::from_parts`]'s to say.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<SurveyPart> {
         read_versioned(bytes, PART_VERSION, "survey part")
+    }
+}
+
+/// What learning parts of a survey needs, built once for all the parts one learns: the job's
+/// texel atlas, the polygons' footprints and stacking, and the subfields as their directions
+/// come up (within a budget when one is given). A worker leased several blocks of the survey
+/// learns them with one, so the atlas — seconds for a scan of 10⁵ polygons — is built once a
+/// lease, not once a block.
+pub struct Surveyor<'s> {
+    scene: &'s Scene,
+    of: Surveyed,
+    directions: DirectionSet,
+    atlas: TexelAtlas,
+    stacking: Stacking,
+    subfields: Subfields,
+    mirrors: bool,
+}
+
+impl<'s> Surveyor<'s> {
+    /// The geometry that parts of `scene`'s survey with `options` are learnt over; no subfield
+    /// is built yet. Options that do not make a propagation are refused.
+    pub fn new(scene: &'s Scene, options: &Options, budget: Option<usize>) -> crate::Result<Surveyor<'s>> {
+        options.validate()?;
+        let directions = DirectionSet::new(options.directions)?;
+        let atlas = TexelAtlas::new(scene, options.texel_size(), options.grid.ray_spacing())?;
+        let footprints = Arc::new(Footprints::new(scene, &atlas.plane_rep));
+        let frames = (0..directions.len()).map(|d| directions.frame(d)).collect();
+        let subfields = match budget {
+            Some(bytes) => Subfields::within(footprints, frames, options.grid, bytes),
+            None => Subfields::on_demand(footprints, frames, options.grid),
+        };
+        let stacking = Stacking::new(scene, &atlas);
+        Ok(Surveyor {
+            scene,
+            of: Surveyed::of(scene, options),
+            directions,
+            atlas,
+            stacking,
+            subfields,
+            mirrors: (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror()),
+        })
+    }
+
+    /// The part the directions `range` make: their discrete areas, and with mirrors the pairs
+    /// of surfaces their rays find facing each other.
+    pub fn part(&self, range: Range<usize>) -> crate::Result<SurveyPart> {
+        if range.is_empty() || range.end > self.directions.len() {
+            return Err(crate::Error::Parameter(format!(
+                "directions {range:?} are not a part of the {} directions",
+                self.directions.len()
+            )));
+        }
+        let geometry = Geometry {
+            scene: self.scene,
+            atlas: &self.atlas,
+            stacking: &self.stacking,
+        };
+        let units = AreaUnits::of(geometry, &self.directions, range.clone(), |d| self.subfields.get(d));
+        let sends_to = match self.mirrors {
+            true => plan::sends_to(geometry, &self.subfields, range.clone()),
+            false => Vec::new(),
+        };
+        Ok(SurveyPart {
+            version: PART_VERSION,
+            of: self.of.clone(),
+            directions: (range.start as u32, range.end as u32),
+            units,
+            sends_to,
+        })
     }
 }
 
@@ -250,50 +287,98 @@ impl Survey {
     /// learnt it whole. Parts that were learnt for another job, overlap, leave directions out or
     /// disagree on the texels are refused with an error that says which.
     pub fn from_parts(scene: &Scene, options: &Options, mut parts: Vec<SurveyPart>) -> crate::Result<Survey> {
-        let misfit = |m: String| Err(crate::Error::Decode(format!("survey parts: {m}")));
-        let of = Surveyed::of(scene, options);
-        if let Some(other) = parts.iter().find(|p| p.of != of) {
-            let (a, b) = other.directions;
-            return misfit(format!("the part of directions {a}..{b} was learnt for another job"));
+        let mut survey = SurveyParts::new(scene, options);
+        // Another job's part is named as such, wherever it would have gone.
+        if let Some(other) = parts.iter().find(|p| p.of != survey.of) {
+            return Err(another_job(other));
         }
         parts.sort_by_key(|p| p.directions);
-        let mut next = 0;
-        for p in &parts {
-            let (a, b) = p.directions;
-            if a != next || b <= a {
-                return misfit(format!(
-                    "directions {a}..{b} do not continue from direction {next} (each direction once, none left out)"
-                ));
-            }
-            next = b;
+        for part in parts {
+            survey.add(part)?;
         }
-        if next as usize != options.directions {
-            return misfit(format!("they cover {next} of the {} directions", options.directions));
+        survey.finish(scene)
+    }
+}
+
+fn another_job(part: &SurveyPart) -> crate::Error {
+    let (a, b) = part.directions;
+    crate::Error::Decode(format!(
+        "survey parts: the part of directions {a}..{b} was learnt for another job"
+    ))
+}
+
+/// A survey put together from its parts in direction order, as they come in (the coordinator of
+/// a job reads the parts its workers learnt block by block, and keeps one sum, not every part):
+/// the same bits as [`Survey::from_parts`] of all of them.
+pub struct SurveyParts {
+    of: Surveyed,
+    /// The directions the parts added so far cover: `0..next`.
+    next: u32,
+    units: Option<AreaUnits>,
+    edges: Vec<(u32, u32)>,
+}
+
+impl SurveyParts {
+    /// No part yet, of the survey of `scene` with `options`.
+    pub fn new(scene: &Scene, options: &Options) -> SurveyParts {
+        SurveyParts {
+            of: Surveyed::of(scene, options),
+            next: 0,
+            units: None,
+            edges: Vec::new(),
         }
-        let Some((first, rest)) = parts.split_first() else {
-            return misfit("none".into());
-        };
-        let mut units = first.units.clone();
-        let mut edges: Vec<(u32, u32)> = first.sends_to.clone();
-        for p in rest {
-            if p.units.texels() != units.texels() {
+    }
+
+    /// Adds the part that continues the directions added so far. A part of another job, one that
+    /// does not start where the others end, or over other texels is refused, and nothing is
+    /// added.
+    pub fn add(&mut self, part: SurveyPart) -> crate::Result<()> {
+        let misfit = |m: String| Err(crate::Error::Decode(format!("survey parts: {m}")));
+        let (a, b) = part.directions;
+        if part.of != self.of {
+            return Err(another_job(&part));
+        }
+        if a != self.next || b <= a {
+            return misfit(format!(
+                "directions {a}..{b} do not continue from direction {} (each direction once, none left out)",
+                self.next
+            ));
+        }
+        match &mut self.units {
+            Some(units) if part.units.texels() != units.texels() => {
                 return misfit(format!(
-                    "the part of directions {:?} has {} texels, the first {}",
-                    p.directions,
-                    p.units.texels(),
+                    "the part of directions {a}..{b} has {} texels, the first {}",
+                    part.units.texels(),
                     units.texels()
                 ));
             }
-            units.add(&p.units);
-            edges.extend(&p.sends_to);
+            Some(units) => units.add(&part.units),
+            None => self.units = Some(part.units),
         }
-        edges.sort_unstable();
-        edges.dedup();
+        self.edges.extend(part.sends_to);
+        self.edges.sort_unstable();
+        self.edges.dedup();
+        self.next = b;
+        Ok(())
+    }
+
+    /// The survey, once the parts cover every direction.
+    pub fn finish(self, scene: &Scene) -> crate::Result<Survey> {
+        let directions = self.of.directions;
+        let units = match self.units {
+            Some(units) if self.next as usize == directions => units,
+            _ => {
+                return Err(crate::Error::Decode(format!(
+                    "survey parts: they cover {} of the {directions} directions",
+                    self.next
+                )));
+            }
+        };
         let lit = match Plan::counted(scene).mirrors {
             0 => Vec::new(),
-            _ => plan::lit_mirrors(scene, &edges),
+            _ => plan::lit_mirrors(scene, &self.edges),
         };
-        Ok(Survey::new(of, units.areas(), lit))
+        Ok(Survey::new(self.of, units.areas(), lit))
     }
 }
 
@@ -345,6 +430,36 @@ mod tests {
                 let survey = Survey::from_parts(&scene, &options, parts(&scene, &options, cuts, budget)).unwrap();
                 assert!(survey == whole, "{name}, parts {cuts:?}, budget {budget:?}");
             }
+        }
+    }
+
+    /// A coordinator adds its workers' parts as they come in, in order: the same survey, and a
+    /// part out of turn is refused without spoiling the sum.
+    #[test]
+    fn parts_added_in_order_make_the_survey_and_refuse_one_out_of_turn() {
+        let options = options(129);
+        for name in ["cornell.obj", "mirrors.obj"] {
+            let scene = bundled(name);
+            let whole = Propagation::new(scene.clone(), options.clone()).unwrap().survey();
+            // One surveyor for several parts, as a worker's lease learns its blocks.
+            let surveyor = Surveyor::new(&scene, &options, None).unwrap();
+            let parts: Vec<SurveyPart> = [0..8, 8..64, 64..129]
+                .into_iter()
+                .map(|r| surveyor.part(r).unwrap())
+                .collect();
+            let mut sum = SurveyParts::new(&scene, &options);
+            sum.add(parts[0].clone()).unwrap();
+            let e = sum.add(parts[2].clone()).unwrap_err().to_string();
+            assert!(e.contains("do not continue from direction 8"), "{e}");
+            sum.add(parts[1].clone()).unwrap();
+            let e = sum.add(parts[1].clone()).unwrap_err().to_string();
+            assert!(e.contains("do not continue from direction 64"), "{e}");
+            let mut early = SurveyParts::new(&scene, &options);
+            early.add(parts[0].clone()).unwrap();
+            let e = early.finish(&scene).unwrap_err().to_string();
+            assert!(e.contains("cover 8 of the 129"), "{e}");
+            sum.add(parts[2].clone()).unwrap();
+            assert!(sum.finish(&scene).unwrap() == whole, "{name}");
         }
     }
 

@@ -133,6 +133,10 @@ pub enum Pass {
     Areas { copy: u32 },
     /// Shoot through rotated copy `copy`, carrying `1/count` of the power.
     ShootCopy { copy: u32 },
+    /// Learn what the job's set-up learns over the true directions ([`super::SurveyPart`]):
+    /// never a pass of an iteration, but the service leases it like one before the first, so
+    /// that the workers rather than the coordinator walk every subfield's rays once.
+    Survey,
 }
 
 /// The per-direction texel buffers (one colour per texel each: a chunk's
@@ -339,7 +343,7 @@ impl Pass {
     pub fn prerequisites(self) -> Vec<Pass> {
         match self {
             Pass::ShootCopy { copy } => vec![Pass::Areas { copy }],
-            Pass::Shoot | Pass::Areas { .. } => Vec::new(),
+            Pass::Shoot | Pass::Areas { .. } | Pass::Survey => Vec::new(),
         }
     }
 }
