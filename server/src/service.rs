@@ -522,18 +522,25 @@ mod tests {
                 wait_ms: 0,
             }))
         };
-        sched.start_pass(&id, 0, Pass::Survey, 4, &[], &[]);
+        sched.start_pass(&id, 0, Pass::Survey, 16, &[], &[]);
         assert!(
             lease(&workers[0]).await.unwrap().into_inner().lease.is_none(),
             "not to an old worker"
         );
-        let survey = lease(&workers[1]).await.unwrap().into_inner().lease.unwrap();
-        assert_eq!((survey.pass_kind, survey.pass_copy, survey.snapshot), (3, 0, 0));
-        let mut rest = vec![survey];
+        let first = lease(&workers[1]).await.unwrap().into_inner().lease.unwrap();
+        assert_eq!((first.pass_kind, first.pass_copy, first.snapshot), (3, 0, 0));
+        assert_eq!((first.batch, first.batch_count), (0, 1), "speed unknown: one batch");
+        // Reported, it sizes the survey's next leases: a quarter of what is open per worker, here
+        // blocks of 4 (the lease runs to the end of the block that holds its first batch).
+        let reply = api.report(report(&workers[1], &first, 20)).await.unwrap().into_inner();
+        assert!(reply.accepted);
+        let second = reply.next.expect("the next lease");
+        assert_eq!((second.pass_kind, second.batch, second.batch_count), (3, 1, 3));
+        let mut rest = vec![first, second];
         while let Some(next) = lease(&workers[1]).await.unwrap().into_inner().lease {
             rest.push(next);
         }
-        for l in &rest {
+        for l in &rest[1..] {
             assert!(
                 api.report(report(&workers[1], l, 0))
                     .await
@@ -543,10 +550,12 @@ mod tests {
             );
         }
         let covered: u32 = rest.iter().map(|l| l.batch_count.max(1)).sum();
-        assert_eq!(covered, 4);
+        assert_eq!(covered, 16);
         let blocks: Vec<_> = rest
             .iter()
-            .map(|l| l.batch as usize..(l.batch + l.batch_count.max(1)) as usize)
+            .flat_map(|l| {
+                vlf_core::propagate::reduce::cover(l.batch as usize..(l.batch + l.batch_count.max(1)) as usize)
+            })
             .collect();
         assert_eq!(
             sched.pass_outcome(&id, Pass::Survey, 0),

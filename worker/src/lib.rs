@@ -1,5 +1,6 @@
 //! A VLF worker: registers with a coordinator, heartbeats, and loops over leases — each a run of
-//! batches of directions of one pass of one iteration of one job — computing the run from the
+//! batches of directions of one pass of one iteration of one job, or of the job's survey before
+//! its first iteration (`compute_survey`) — computing the run from the
 //! store with all its cores (rayon), one aligned block at a time, and writing its outputs back
 //! into the store before it reports. A lease may leave its last batches uncommitted: the worker
 //! claims them when it gets there (`Claim`), and if the coordinator has given them to an idle
@@ -80,6 +81,10 @@ pub struct WorkerStats {
 struct Replicas {
     store: Option<(String, Store)>,
     jobs: Vec<(JobId, Replica)>,
+    /// The job whose survey this worker was leased last, and what learns its parts: kept from
+    /// one survey lease to the next (its atlas built once), dropped once the job's iterations
+    /// come (a replica of the job is opened).
+    surveying: Option<(JobId, FieldJob, Surveyor)>,
     prototypes: Option<vlf_store::Prototypes>,
     subfield_budget: Option<usize>,
 }
@@ -101,7 +106,39 @@ impl Replicas {
         let store = Store::open_existing(url)?;
         self.store = Some((url.to_string(), store.clone()));
         self.jobs.clear();
+        self.surveying = None;
         Ok(store)
+    }
+
+    /// The job `job`, not set up yet, and what learns its survey's parts within the worker's
+    /// budget: the ones kept from the last survey lease if they are this job's.
+    fn surveyor(&mut self, store: &Store, job: &JobId) -> Result<(&FieldJob, &Surveyor), StoreError> {
+        if self.surveying.as_ref().is_none_or(|(id, _, _)| id != job) {
+            self.surveying = None;
+            let started = Instant::now();
+            let opened = FieldJob::open(store, job)?;
+            // A part reads each subfield once for the areas, and with mirrors once more for the
+            // surfaces facing each other: without mirrors none is worth keeping (at l = 8193,
+            // N = 256 the Cornell box's are 696 MB); with them the lease's are, within the budget.
+            let scene = opened.scene();
+            let mirrors = (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror());
+            let budget = self.subfield_budget.or((!mirrors).then_some(0));
+            let surveyor = Surveyor::new(scene, opened.options(), budget).map_err(|source| StoreError::Field {
+                url: store.url().to_string(),
+                job: job.to_string(),
+                source,
+            })?;
+            tracing::info!(
+                job = %job,
+                setup_s = format!("{:.2}", started.elapsed().as_secs_f64()),
+                "survey geometry built"
+            );
+            self.surveying = Some((job.clone(), opened, surveyor));
+        }
+        match &self.surveying {
+            Some((_, job, surveyor)) => Ok((job, surveyor)),
+            None => unreachable!("set above"),
+        }
     }
 
     fn replica(&mut self, store: &Store, job: &JobId) -> Result<&mut Replica, StoreError> {
@@ -111,6 +148,10 @@ impl Replicas {
                 self.jobs.insert(0, entry);
             }
             None => {
+                // The job's iterations have come: its survey is over.
+                if self.surveying.as_ref().is_some_and(|(id, _, _)| id == job) {
+                    self.surveying = None;
+                }
                 let opened = FieldJob::open(store, job)?;
                 let replica = match self.prototypes.as_ref().and_then(|p| p.take(job)) {
                     Some(prop) => Replica::at_snapshot(opened, prop),
@@ -163,6 +204,7 @@ pub async fn run(
     let replicas = Arc::new(Mutex::new(Replicas {
         store: None,
         jobs: Vec::new(),
+        surveying: None,
         prototypes: config.prototypes.clone(),
         subfield_budget: config.subfield_budget,
     }));
@@ -540,10 +582,10 @@ async fn compute(
 }
 
 /// Learns the survey parts of the batches `run` of `job` (not set up yet: no [`Replica`] can be
-/// opened) into the store, one per aligned block of the run (`reduce::cover`), with one
-/// [`Surveyor`] — one texel atlas — for them all, the subfields held within the worker's budget.
-/// A survey lease is committed whole; were it not, the run computed is the committed part, and
-/// the report says so (the rest goes back to the pool).
+/// opened) into the store, one per aligned block of the run (`reduce::cover`), with the
+/// [`Surveyor`] the worker keeps for the job (its atlas built at the first survey lease), the
+/// subfields held within the worker's budget. A survey lease is committed whole; were it not, the
+/// run computed is the committed part, and the report says so (the rest goes back to the pool).
 async fn compute_survey(
     store: Store,
     pool: Arc<rayon::ThreadPool>,
@@ -551,29 +593,23 @@ async fn compute_survey(
     job: JobId,
     run: Range<usize>,
 ) -> Result<Computed, String> {
-    let budget = lock(&replicas).subfield_budget;
     let computing = vlf_store::blocking(move || {
         pool.install(|| -> Result<Computed, StoreError> {
-            let started = Instant::now();
-            let opened = FieldJob::open(&store, &job)?;
-            let field_error = |source| StoreError::Field {
-                url: store.url().to_string(),
-                job: job.to_string(),
-                source,
-            };
-            let surveyor = Surveyor::new(opened.scene(), opened.options(), budget).map_err(field_error)?;
+            let mut replicas = lock(&replicas);
+            let (opened, surveyor) = replicas.surveyor(&store, &job)?;
             let batching = opened.options().batching();
-            // The set-up (opening the job, the atlas) is shared by the blocks in proportion.
-            let set_up = started.elapsed().as_secs_f64() / run.len().max(1) as f64;
             let (mut puts, mut costs) = (Vec::new(), Vec::new());
             for block in reduce::cover(run.clone()) {
                 let started = Instant::now();
-                let part = surveyor
-                    .part(batching.directions_of(block.clone()))
-                    .map_err(field_error)?;
+                let part =
+                    (surveyor.part(batching.directions_of(block.clone()))).map_err(|source| StoreError::Field {
+                        url: store.url().to_string(),
+                        job: job.to_string(),
+                        source,
+                    })?;
                 puts.push(opened.survey_part_put(block.clone(), &part)?);
                 let each = started.elapsed().as_secs_f64() / block.len() as f64;
-                costs.extend(std::iter::repeat_n(each + set_up, block.len()));
+                costs.extend(std::iter::repeat_n(each, block.len()));
             }
             tracing::debug!(job = %job, batches = ?run, "survey parts learnt");
             let writes = store.put_all_behind(puts)?;

@@ -49,6 +49,7 @@ impl Scheduler {
                     finished: Vec::new(),
                     use_clock: UseClock::default(),
                     batch_seconds: None,
+                    survey_batch_seconds: None,
                 },
                 shooting: Shooting::default(),
             },

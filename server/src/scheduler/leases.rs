@@ -80,8 +80,11 @@ impl Scheduler {
             unreachable!("found above");
         };
         let most = self.timing.max_lease_batches.max(1);
-        let speed = entry.clock.batch_seconds;
         let open: usize = entry.passes.iter().map(|r| r.batches.len() - r.done).sum();
+        let speed = match entry.passes[p].pass {
+            Pass::Survey => entry.clock.survey_batch_seconds,
+            _ => entry.clock.batch_seconds,
+        };
         let run = &mut entry.passes[p];
         let n = run.batches.len();
         let (batches, committed) = match home {
@@ -285,9 +288,13 @@ impl Scheduler {
                         .shooting
                         .record(worker, batches.clone(), run.batches.len(), seconds, costs);
                 }
-                // A survey's batches cost another thing than the iterations' the speed sizes.
-                if pass != Pass::Survey && seconds.is_finite() && seconds > 0.0 {
-                    entry.clock.batch_seconds = Some(seconds / batches.len() as f64);
+                // A survey's batches cost another thing than the iterations': each its own speed.
+                if seconds.is_finite() && seconds > 0.0 {
+                    let speed = match pass {
+                        Pass::Survey => &mut entry.clock.survey_batch_seconds,
+                        _ => &mut entry.clock.batch_seconds,
+                    };
+                    *speed = Some(seconds / batches.len() as f64);
                 }
                 entry.clock.use_clock.reported(worker, seconds);
                 entry.driver.notify_one();

@@ -141,11 +141,11 @@ impl Abilities {
         claims: true,
         surveys: true,
     };
-    /// A worker that computes runs and learns surveys but claims nothing.
+    /// A worker that computes runs but claims nothing (nor learns surveys).
     pub const RUNS: Abilities = Abilities {
         runs: true,
         claims: false,
-        surveys: true,
+        surveys: false,
     };
     /// A worker that computes single aligned blocks (of an iteration's passes only).
     pub const BLOCKS: Abilities = Abilities {
@@ -251,6 +251,8 @@ struct Clock {
     use_clock: UseClock,
     /// Compute seconds per batch of the last block reported (sizes the next passes' blocks).
     batch_seconds: Option<f64>,
+    /// The same of the job's survey ([`Pass::Survey`]), which costs another thing a batch.
+    survey_batch_seconds: Option<f64>,
 }
 
 #[derive(Clone)]

@@ -10,12 +10,18 @@
 //!   over the pairs of surfaces that face each other along some ray of some subfield.
 //!
 //! Learning them walks every ray of every subfield: about three quarters of one thread's set-up
-//! of the Cornell box and of the mirror scene at l = 2049, N = 128. The coordinator
-//! of a job learns them when it creates the job and stores them with it; a worker that opens the
-//! job reads them ([`super::Propagation::with_survey`]) and builds only the subfields it shoots,
-//! as it shoots them (a scene with mirrors still builds every subfield once, for the mirror
-//! layouts). The survey is a pure function of the scene and the options, so reading it rather
-//! than learning it again changes no bit of the field.
+//! of the Cornell box and of the mirror scene at l = 2049, N = 128. So it is learnt once per job
+//! and stored with it; a worker that opens the job reads it ([`super::Propagation::with_survey`])
+//! and builds only the subfields it shoots, as it shoots them (a scene with mirrors still builds
+//! every subfield once, for the mirror layouts). The survey is a pure function of the scene and
+//! the options, so reading it rather than learning it again changes no bit of the field.
+//!
+//! It can be learnt whole ([`super::Propagation::survey`] of a propagation set up the plain
+//! way) or in parts: each range of directions gives a [`SurveyPart`] (learnt by a
+//! [`Surveyor`], which builds the texel atlas once for several parts), and the parts add up,
+//! exactly and in any split, to the whole ([`SurveyParts`], [`Survey::from_parts`]). The
+//! distributed service leases the parts to its workers ([`super::Pass::Survey`]), so the walk
+//! that grows with the field is spread over them rather than done by the coordinator alone.
 
 use super::Options;
 use super::areas::AreaUnits;
@@ -193,12 +199,12 @@ impl SurveyPart {
 }
 
 /// What learning parts of a survey needs, built once for all the parts one learns: the job's
-/// texel atlas, the polygons' footprints and stacking, and the subfields as their directions
-/// come up (within a budget when one is given). A worker leased several blocks of the survey
-/// learns them with one, so the atlas — seconds for a scan of 10⁵ polygons — is built once a
-/// lease, not once a block.
-pub struct Surveyor<'s> {
-    scene: &'s Scene,
+/// scene and texel atlas, the polygons' footprints and stacking, and the subfields as their
+/// directions come up (within a budget when one is given). A worker keeps one for the job whose
+/// survey it is leased, so the atlas — seconds for a scan of 10⁵ polygons — is built once per
+/// worker, not once per block.
+pub struct Surveyor {
+    scene: Scene,
     of: Surveyed,
     directions: DirectionSet,
     atlas: TexelAtlas,
@@ -207,10 +213,10 @@ pub struct Surveyor<'s> {
     mirrors: bool,
 }
 
-impl<'s> Surveyor<'s> {
+impl Surveyor {
     /// The geometry that parts of `scene`'s survey with `options` are learnt over; no subfield
     /// is built yet. Options that do not make a propagation are refused.
-    pub fn new(scene: &'s Scene, options: &Options, budget: Option<usize>) -> crate::Result<Surveyor<'s>> {
+    pub fn new(scene: &Scene, options: &Options, budget: Option<usize>) -> crate::Result<Surveyor> {
         options.validate()?;
         let directions = DirectionSet::new(options.directions)?;
         let atlas = TexelAtlas::new(scene, options.texel_size(), options.grid.ray_spacing())?;
@@ -222,7 +228,7 @@ impl<'s> Surveyor<'s> {
         };
         let stacking = Stacking::new(scene, &atlas);
         Ok(Surveyor {
-            scene,
+            scene: scene.clone(),
             of: Surveyed::of(scene, options),
             directions,
             atlas,
@@ -242,7 +248,7 @@ impl<'s> Surveyor<'s> {
             )));
         }
         let geometry = Geometry {
-            scene: self.scene,
+            scene: &self.scene,
             atlas: &self.atlas,
             stacking: &self.stacking,
         };
