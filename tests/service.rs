@@ -391,6 +391,11 @@ fn a_coordinator_restarted_mid_survey_uses_the_parts_already_learnt() {
         (State::Queued as i32, 0),
         "{status:?}"
     );
+    let said = text(&vlf(&["status", &id, "--server", &url]));
+    assert!(
+        said.contains("queued, setting up (survey 1/2 batches, 1 leased)"),
+        "{said}"
+    );
     let parts = store.join("jobs").join(&id).join("work/00000/survey");
     let names = |dir: &Path| -> Vec<String> {
         let entries = std::fs::read_dir(dir)

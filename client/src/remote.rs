@@ -264,6 +264,11 @@ pub async fn jobs(target: Target) -> Result<()> {
 pub fn describe(s: &JobStatus) -> String {
     let state = State::try_from(s.state).unwrap_or(State::Unspecified);
     let what = match state {
+        // Its survey leased to the workers: how far they are.
+        State::Queued if !s.message.is_empty() && s.batches_total > 0 => format!(
+            "queued, {} (survey {}/{} batches, {} leased)",
+            s.message, s.batches_done, s.batches_total, s.leases_out
+        ),
         State::Queued if !s.message.is_empty() => format!("queued, {}", s.message),
         State::Queued => "queued".to_string(),
         State::Propagating => format!(
