@@ -220,11 +220,13 @@ async fn ended(mut job: FieldJob, state: JobState, outcome: SetUp) -> SetUp {
 /// Learns `job`'s survey through its workers: opens [`Pass::Survey`] over the job's batches
 /// (the blocks `stored` by a previous coordinator's workers are used as they are) and adds up
 /// the parts in order as their blocks are reported ([`SurveyParts`]), while the later ones are
-/// still being learnt. When no worker that learns surveys has been alive for three heartbeats
-/// (the one that had the pass died, or none came back after a coordinator restart), the
-/// coordinator closes the pass and learns the rest itself, within `budget`. Returns the survey,
-/// or why there is none: cancelled, failed ([`SetUp::Failed`]: a block failed too often, a
-/// part cannot be read or does not fit), or the store failed.
+/// still being learnt. The coordinator closes the pass and learns the rest itself, within
+/// `budget` and in its turn to set jobs up ([`SET_UPS`]), when no worker that learns surveys
+/// is left (none heard from for six heartbeats: three to count one dead, three more of grace —
+/// the one that had the pass died, or none came back after a coordinator restart), or when a
+/// stored part cannot be read or does not fit (a corrupted blob, one of another build). Returns
+/// the survey, or why there is none: cancelled, failed ([`SetUp::Failed`]: a block failed too
+/// often, the rest cannot be learnt here either), or the store failed.
 async fn learn_survey(
     sched: &Arc<Scheduler>,
     job: &Arc<FieldJob>,
@@ -242,11 +244,9 @@ async fn learn_survey(
     // Since when no worker that learns surveys is alive.
     let mut unattended: Option<std::time::Instant> = None;
     let mut parts = SurveyParts::new(job.scene(), job.options());
-    let add = |parts: &mut SurveyParts, part| {
-        (parts.add(part)).map_err(|e| SetUp::Failed(format!("cannot add up the survey: {e}")))
-    };
-    let (mut next, mut by_workers) = (0, 0);
-    while next < batches {
+    let mut next = 0;
+    let mut by_workers = 0;
+    'leased: while next < batches {
         let ready = loop {
             let notified = wake.notified();
             match sched.pass_outcome(&id, Pass::Survey, next) {
@@ -254,44 +254,55 @@ async fn learn_survey(
                     if sched.surveyors_alive() > 0 {
                         unattended = None;
                     } else if unattended.get_or_insert_with(std::time::Instant::now).elapsed() >= grace {
-                        break None;
+                        tracing::warn!(job = %id, from_batch = next, "no worker learns surveys: learning the rest here");
+                        break 'leased;
                     }
                     tokio::select! {
                         _ = notified => {}
                         _ = tokio::time::sleep(grace / 4) => {}
                     }
                 }
-                PassOutcome::Ready(blocks) => break Some(blocks),
+                PassOutcome::Ready(blocks) => break blocks,
                 PassOutcome::Cancelled => return Err(SetUp::Cancelled),
                 PassOutcome::Failed(m) => return Err(SetUp::Failed(format!("cannot learn the survey: {m}"))),
             }
         };
-        let Some(ready) = ready else {
-            // Nobody to lease it to: the rest is learnt here (a late report of it is ignored).
-            sched.end_pass(&id, 0, Pass::Survey);
-            tracing::warn!(job = %id, from_batch = next, "no worker learns surveys: learning the rest of the survey here");
-            let (job, rest) = (job.clone(), batching.directions_of(next..batches));
-            let part = vlf_store::blocking(move || SurveyPart::learn(job.scene(), job.options(), rest, budget))
-                .await
-                .map_err(|e| SetUp::Store(format!("internal: {e}")))?
-                .map_err(|e| SetUp::Failed(format!("cannot set the job up: {e}")))?;
-            add(&mut parts, part)?;
-            break;
-        };
-        next = ready.last().map_or(next, |b| b.end);
-        by_workers += ready.len();
         let read = {
-            let job = job.clone();
+            let (job, ready) = (job.clone(), ready.clone());
             vlf_store::blocking(move || job.survey_parts(&ready))
                 .await
                 .map_err(|e| SetUp::Store(format!("internal: {e}")))?
         };
-        for part in read.map_err(|e| SetUp::Failed(format!("cannot read the survey: {e}")))? {
-            add(&mut parts, part)?;
+        let read = match read {
+            Ok(read) => read,
+            // Not there, or not a part of this job: learnt again, here.
+            Err(e @ (StoreError::NotFound { .. } | StoreError::Blob { .. } | StoreError::Field { .. })) => {
+                tracing::warn!(job = %id, from_batch = next, "learning the rest of the survey here: {e}");
+                break;
+            }
+            Err(e) => return Err(SetUp::Store(format!("cannot read the survey: {e}"))),
+        };
+        for (block, part) in ready.iter().zip(read) {
+            if let Err(e) = parts.add(part) {
+                tracing::warn!(job = %id, from_batch = next, "learning the rest of the survey here: {e}");
+                break 'leased;
+            }
+            (next, by_workers) = (block.end, by_workers + 1);
         }
-        if next == batches {
-            sched.end_pass(&id, 0, Pass::Survey);
-        }
+    }
+    sched.end_pass(&id, 0, Pass::Survey);
+    if next < batches {
+        // No batch is leased any more: the status drops the survey's progress.
+        sched.start_iteration(&id, 0, batches, job.options().directions);
+        let _turn = SET_UPS.acquire().await;
+        let (job, rest) = (job.clone(), batching.directions_of(next..batches));
+        let part = vlf_store::blocking(move || SurveyPart::learn(job.scene(), job.options(), rest, budget))
+            .await
+            .map_err(|e| SetUp::Store(format!("internal: {e}")))?
+            .map_err(|e| SetUp::Failed(format!("cannot set the job up: {e}")))?;
+        parts
+            .add(part)
+            .map_err(|e| SetUp::Failed(format!("cannot add up the survey: {e}")))?;
     }
     let survey = parts
         .finish(job.scene())
@@ -301,6 +312,7 @@ async fn learn_survey(
         seconds = format!("{:.2}", started.elapsed().as_secs_f64()),
         blocks = by_workers,
         stored_before = stored.len(),
+        learnt_here = batches - next.min(batches),
         "survey learnt by the workers"
     );
     Ok(survey)
@@ -879,6 +891,43 @@ mod tests {
         // Set up, the job waits for a worker to propagate it.
         while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
             assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let whole = Propagation::new(scene, spec.options.clone()).unwrap().survey();
+        let stored = vlf_store::blocking(move || FieldJob::open(&store, &id).unwrap().stored_survey().unwrap())
+            .await
+            .unwrap();
+        assert!(stored == Some(whole), "the survey stored with the job");
+    }
+
+    /// A stored part that cannot be read (here, garbage under its key) does not fail the job:
+    /// the coordinator learns the rest of the survey itself, and the job is set up with the
+    /// survey a propagation learns whole.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_survey_part_that_cannot_be_read_is_learnt_again_by_the_coordinator() {
+        let store = Store::open("memory://").unwrap();
+        let sched = Scheduler::new(store.clone(), Timing::default(), None, None);
+        let worker = sched.register("careless", Abilities::ALL);
+        let parameters = v1::Parameters {
+            directions: Some(129),
+            resolution: Some(16),
+            iterations: Some(1),
+            ..Default::default()
+        };
+        let spec = JobSpec::from_parameters(&parameters).unwrap();
+        let scene = bundled("cornell.obj");
+        let status = submit(&sched, scene.clone(), spec.clone()).await.unwrap();
+        let id = JobId::parse(&status.job_id).unwrap();
+        let grant = sched.lease(&worker, Duration::from_secs(30)).await.unwrap().unwrap();
+        assert_eq!((grant.pass, grant.batches.clone()), (Pass::Survey, 0..1));
+        let key = vlf_store::layout::work_block(&id, 0, "survey", 0, 1).unwrap();
+        store.put(&key, b"not a survey part".to_vec()).unwrap();
+        assert!(sched.report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[]).unwrap());
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
+            assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
+            // The worker stays alive: the coordinator does not wait for it to die.
+            sched.heartbeat(&worker).unwrap();
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
         let whole = Propagation::new(scene, spec.options.clone()).unwrap().survey();

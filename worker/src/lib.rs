@@ -117,13 +117,9 @@ impl Replicas {
             self.surveying = None;
             let started = Instant::now();
             let opened = FieldJob::open(store, job)?;
-            // A part reads each subfield once for the areas, and with mirrors once more for the
-            // surfaces facing each other: without mirrors none is worth keeping (at l = 8193,
-            // N = 256 the Cornell box's are 696 MB); with them the lease's are, within the budget.
-            let scene = opened.scene();
-            let mirrors = (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror());
-            let budget = self.subfield_budget.or((!mirrors).then_some(0));
-            let surveyor = Surveyor::new(scene, opened.options(), budget).map_err(|source| StoreError::Field {
+            // It keeps the atlas from lease to lease, and a part's subfields (within the budget)
+            // until the part is learnt: none without mirrors, where a part reads each once.
+            let surveyor = Surveyor::new(opened.scene(), opened.options(), self.subfield_budget).map_err(|source| StoreError::Field {
                 url: store.url().to_string(),
                 job: job.to_string(),
                 source,

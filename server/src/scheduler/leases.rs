@@ -179,6 +179,7 @@ impl Scheduler {
             .leases
             .iter()
             .filter(|(_, l)| l.worker != worker && l.committed < l.batches.end && open(&l.job))
+            .filter(|(_, l)| abilities.takes(l.pass))
             .map(|(id, l)| (id.clone(), (l.batches.end - l.committed, std::cmp::Reverse(l.number))))
             .max_by_key(|(_, key)| *key)?;
         state.counter += 1;

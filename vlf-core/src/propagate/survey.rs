@@ -209,20 +209,25 @@ pub struct Surveyor {
     directions: DirectionSet,
     atlas: TexelAtlas,
     stacking: Stacking,
+    /// The directions' subfields, none built: each part builds its own (see [`Surveyor::part`]).
     subfields: Subfields,
     mirrors: bool,
 }
 
 impl Surveyor {
     /// The geometry that parts of `scene`'s survey with `options` are learnt over; no subfield
-    /// is built yet. Options that do not make a propagation are refused.
+    /// is built yet. A part holds its subfields within `budget` bytes when one is given; else,
+    /// without mirrors (each subfield read once) none is kept, and with mirrors (read twice:
+    /// the areas, the surfaces facing each other) the part's are, until it is learnt. Options
+    /// that do not make a propagation are refused.
     pub fn new(scene: &Scene, options: &Options, budget: Option<usize>) -> crate::Result<Surveyor> {
         options.validate()?;
         let directions = DirectionSet::new(options.directions)?;
         let atlas = TexelAtlas::new(scene, options.texel_size(), options.grid.ray_spacing())?;
         let footprints = Arc::new(Footprints::new(scene, &atlas.plane_rep));
         let frames = (0..directions.len()).map(|d| directions.frame(d)).collect();
-        let subfields = match budget {
+        let mirrors = (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror());
+        let subfields = match budget.or((!mirrors).then_some(0)) {
             Some(bytes) => Subfields::within(footprints, frames, options.grid, bytes),
             None => Subfields::on_demand(footprints, frames, options.grid),
         };
@@ -234,12 +239,14 @@ impl Surveyor {
             atlas,
             stacking,
             subfields,
-            mirrors: (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror()),
+            mirrors,
         })
     }
 
     /// The part the directions `range` make: their discrete areas, and with mirrors the pairs
-    /// of surfaces their rays find facing each other.
+    /// of surfaces their rays find facing each other. The subfields it builds go with it: no
+    /// later part reads the same directions, so a surveyor kept from part to part (a worker's,
+    /// from lease to lease) holds the atlas only.
     pub fn part(&self, range: Range<usize>) -> crate::Result<SurveyPart> {
         if range.is_empty() || range.end > self.directions.len() {
             return Err(crate::Error::Parameter(format!(
@@ -252,9 +259,10 @@ impl Surveyor {
             atlas: &self.atlas,
             stacking: &self.stacking,
         };
-        let units = AreaUnits::of(geometry, &self.directions, range.clone(), |d| self.subfields.get(d));
+        let subfields = self.subfields.released();
+        let units = AreaUnits::of(geometry, &self.directions, range.clone(), |d| subfields.get(d));
         let sends_to = match self.mirrors {
-            true => plan::sends_to(geometry, &self.subfields, range.clone()),
+            true => plan::sends_to(geometry, &subfields, range.clone()),
             false => Vec::new(),
         };
         Ok(SurveyPart {
@@ -318,6 +326,8 @@ fn another_job(part: &SurveyPart) -> crate::Error {
 /// the same bits as [`Survey::from_parts`] of all of them.
 pub struct SurveyParts {
     of: Surveyed,
+    /// The scene's surfaces: a pair of surfaces facing each other names two of them.
+    surfaces: usize,
     /// The directions the parts added so far cover: `0..next`.
     next: u32,
     units: Option<AreaUnits>,
@@ -329,6 +339,7 @@ impl SurveyParts {
     pub fn new(scene: &Scene, options: &Options) -> SurveyParts {
         SurveyParts {
             of: Surveyed::of(scene, options),
+            surfaces: scene.surfaces.len(),
             next: 0,
             units: None,
             edges: Vec::new(),
@@ -348,6 +359,12 @@ impl SurveyParts {
             return misfit(format!(
                 "directions {a}..{b} do not continue from direction {} (each direction once, none left out)",
                 self.next
+            ));
+        }
+        if let Some(&(s, t)) = (part.sends_to.iter()).find(|&&(s, t)| s as usize >= self.surfaces || t as usize >= self.surfaces) {
+            return misfit(format!(
+                "the part of directions {a}..{b} names surfaces {s} and {t} of the scene's {}",
+                self.surfaces
             ));
         }
         match &mut self.units {
@@ -493,6 +510,10 @@ mod tests {
         };
         let elsewhere = SurveyPart::learn(&scene, &other, 16..33, None).unwrap();
         refused(vec![b.clone(), elsewhere], "another job");
+        // A pair of surfaces the scene does not have (a part that decodes, yet is garbage).
+        let mut stray = b.clone();
+        stray.sends_to = vec![(0, scene.surfaces.len() as u32)];
+        refused(vec![a.clone(), stray], "names surfaces 0 and");
         assert!(Survey::from_parts(&scene, &options, vec![b.clone(), a.clone()]).is_ok());
         // Not a part of the directions.
         for range in [0..0, 30..34] {
