@@ -921,8 +921,15 @@ mod tests {
         let grant = sched.lease(&worker, Duration::from_secs(30)).await.unwrap().unwrap();
         assert_eq!((grant.pass, grant.batches.clone()), (Pass::Survey, 0..1));
         let key = vlf_store::layout::work_block(&id, 0, "survey", 0, 1).unwrap();
-        store.put(&key, b"not a survey part".to_vec()).unwrap();
-        assert!(sched.report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[]).unwrap());
+        let garbage = store.clone();
+        vlf_store::blocking(move || garbage.put(&key, b"not a survey part".to_vec()).unwrap())
+            .await
+            .unwrap();
+        assert!(
+            sched
+                .report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[])
+                .unwrap()
+        );
         let deadline = Instant::now() + Duration::from_secs(60);
         while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
             assert!(Instant::now() < deadline, "{:?}", sched.status(&id));

@@ -119,10 +119,12 @@ impl Replicas {
             let opened = FieldJob::open(store, job)?;
             // It keeps the atlas from lease to lease, and a part's subfields (within the budget)
             // until the part is learnt: none without mirrors, where a part reads each once.
-            let surveyor = Surveyor::new(opened.scene(), opened.options(), self.subfield_budget).map_err(|source| StoreError::Field {
-                url: store.url().to_string(),
-                job: job.to_string(),
-                source,
+            let surveyor = Surveyor::new(opened.scene(), opened.options(), self.subfield_budget).map_err(|source| {
+                StoreError::Field {
+                    url: store.url().to_string(),
+                    job: job.to_string(),
+                    source,
+                }
             })?;
             tracing::info!(
                 job = %job,

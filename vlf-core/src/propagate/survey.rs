@@ -361,7 +361,9 @@ impl SurveyParts {
                 self.next
             ));
         }
-        if let Some(&(s, t)) = (part.sends_to.iter()).find(|&&(s, t)| s as usize >= self.surfaces || t as usize >= self.surfaces) {
+        if let Some(&(s, t)) =
+            (part.sends_to.iter()).find(|&&(s, t)| s as usize >= self.surfaces || t as usize >= self.surfaces)
+        {
             return misfit(format!(
                 "the part of directions {a}..{b} names surfaces {s} and {t} of the scene's {}",
                 self.surfaces
