@@ -396,6 +396,7 @@ fn a_coordinator_restarted_mid_survey_uses_the_parts_already_learnt() {
         said.contains("queued, setting up (survey 1/2 batches, 1 leased)"),
         "{said}"
     );
+    assert!(said.contains("unshot –"), "no unshot power before snapshot 0: {said}");
     let parts = store.join("jobs").join(&id).join("work/00000/survey");
     let names = |dir: &Path| -> Vec<String> {
         let entries = std::fs::read_dir(dir)

@@ -289,10 +289,12 @@ pub fn describe(s: &JobStatus) -> String {
         State::Cancelled => "cancelled".to_string(),
         State::Unspecified => "unknown".to_string(),
     };
-    let mut line = format!(
-        "{}  {what}  unshot {:.3e}  snapshots {:?}",
-        s.job_id, s.unshot_fraction, s.snapshots
-    );
+    // None before the job is set up.
+    let unshot = match s.unshot_fraction.is_nan() {
+        true => "–".to_string(),
+        false => format!("{:.3e}", s.unshot_fraction),
+    };
+    let mut line = format!("{}  {what}  unshot {unshot}  snapshots {:?}", s.job_id, s.snapshots);
     if state == State::Propagating {
         line += &format!(
             "  {} workers  {:.0} directions/s",
@@ -410,7 +412,8 @@ pub async fn follow(clients: &mut Clients, job: &str) -> Result<JobStatus> {
     }
 }
 
-/// The progress bar of the iteration being propagated.
+/// The progress bar of the iteration being propagated, or of the survey the workers learn while
+/// the job is set up (iteration 0).
 struct Bars {
     style: ProgressStyle,
     bar: Option<(u32, ProgressBar)>,
@@ -425,23 +428,31 @@ impl Bars {
     }
 
     fn show(&mut self, status: &JobStatus) {
-        if status.state != State::Propagating as i32 {
+        let surveying = status.state == State::Queued as i32 && status.batches_total > 0;
+        if status.state != State::Propagating as i32 && !surveying {
             return;
         }
         if self.bar.as_ref().is_none_or(|(k, _)| *k != status.iteration) {
             self.clear();
             let b = ProgressBar::new(u64::from(status.batches_total));
             b.set_style(self.style.clone());
-            b.set_prefix(format!("iteration {}", status.iteration));
+            b.set_prefix(match surveying {
+                true => "survey".to_string(),
+                false => format!("iteration {}", status.iteration),
+            });
             self.bar = Some((status.iteration, b));
         }
         if let Some((_, b)) = &self.bar {
             b.set_length(u64::from(status.batches_total.max(1)));
             b.set_position(u64::from(status.batches_done));
-            b.set_message(format!(
-                "unshot {:.2e}, {} workers, {:.0} dir/s",
-                status.unshot_fraction, status.workers_alive, status.directions_per_second
-            ));
+            let workers = format!(
+                "{} workers, {:.0} dir/s",
+                status.workers_alive, status.directions_per_second
+            );
+            b.set_message(match surveying {
+                true => workers,
+                false => format!("unshot {:.2e}, {workers}", status.unshot_fraction),
+            });
         }
     }
 
