@@ -841,18 +841,16 @@ mod tests {
         assert!(!job.is_set_up());
     }
 
-    /// A worker learns the first block of a job's survey and dies: the coordinator, with no
-    /// worker left that learns surveys, learns the rest itself, and the job is set up with the
-    /// survey a propagation learns whole.
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn a_survey_whose_worker_dies_is_finished_by_the_coordinator() {
+    /// A scheduler over a `memory://` store with `timing`, one worker that learns surveys, and
+    /// a job of `scene` (l = 129: 8 batches) submitted after it registered; returns them with
+    /// the worker's first lease, a block of the survey.
+    async fn a_job_surveyed_by(
+        timing: Timing,
+        scene: &str,
+    ) -> (Store, std::sync::Arc<Scheduler>, String, JobId, JobSpec, crate::scheduler::Grant) {
         let store = Store::open("memory://").unwrap();
-        let timing = Timing {
-            heartbeat: Duration::from_millis(100),
-            ..Timing::default()
-        };
         let sched = Scheduler::new(store.clone(), timing, None, None);
-        let worker = sched.register("mortal", Abilities::ALL);
+        let worker = sched.register("surveyor", Abilities::ALL);
         let parameters = v1::Parameters {
             directions: Some(129),
             resolution: Some(16),
@@ -860,13 +858,48 @@ mod tests {
             ..Default::default()
         };
         let spec = JobSpec::from_parameters(&parameters).unwrap();
-        let scene = bundled("mirrors.obj");
-        let status = submit(&sched, scene.clone(), spec.clone()).await.unwrap();
+        let status = submit(&sched, bundled(scene), spec.clone()).await.unwrap();
         let id = JobId::parse(&status.job_id).unwrap();
         let grant = sched.lease(&worker, Duration::from_secs(30)).await.unwrap().unwrap();
-        let batches = spec.options.batching().count();
         assert_eq!(grant.pass, Pass::Survey);
-        assert!(grant.batches.end < batches, "a part of the survey: {grant:?}");
+        assert!(grant.batches.end < spec.options.batching().count(), "a part of the survey: {grant:?}");
+        (store, sched, worker, id, spec, grant)
+    }
+
+    /// Waits until the job is set up (it then waits for a worker to propagate it), heartbeating
+    /// for `alive` meanwhile if given, and checks that it was set up with the survey a
+    /// propagation of `scene` learns whole.
+    async fn set_up_with_the_whole_survey(
+        (store, sched, id): (Store, &Scheduler, JobId),
+        scene: &str,
+        spec: &JobSpec,
+        alive: Option<&str>,
+    ) {
+        let deadline = Instant::now() + Duration::from_secs(60);
+        while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
+            assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
+            if let Some(worker) = alive {
+                sched.heartbeat(worker).unwrap();
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        let whole = Propagation::new(bundled(scene), spec.options.clone()).unwrap().survey();
+        let stored = vlf_store::blocking(move || FieldJob::open(&store, &id).unwrap().stored_survey().unwrap())
+            .await
+            .unwrap();
+        assert!(stored == Some(whole), "the survey stored with the job");
+    }
+
+    /// A worker learns the first block of a job's survey and dies: the coordinator, with no
+    /// worker left that learns surveys, learns the rest itself, and the job is set up with the
+    /// survey a propagation learns whole.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_survey_whose_worker_dies_is_finished_by_the_coordinator() {
+        let timing = Timing {
+            heartbeat: Duration::from_millis(100),
+            ..Timing::default()
+        };
+        let (store, sched, worker, id, spec, grant) = a_job_surveyed_by(timing, "mirrors.obj").await;
         let learnt = {
             let (store, id, run) = (store.clone(), id.clone(), grant.batches.clone());
             vlf_store::blocking(move || {
@@ -881,23 +914,10 @@ mod tests {
             })
         };
         learnt.await.unwrap();
-        assert!(
-            sched
-                .report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[])
-                .unwrap()
-        );
+        let reported = sched.report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[]);
+        assert!(reported.unwrap());
         // The worker is silent from now on.
-        let deadline = Instant::now() + Duration::from_secs(60);
-        // Set up, the job waits for a worker to propagate it.
-        while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
-            assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        let whole = Propagation::new(scene, spec.options.clone()).unwrap().survey();
-        let stored = vlf_store::blocking(move || FieldJob::open(&store, &id).unwrap().stored_survey().unwrap())
-            .await
-            .unwrap();
-        assert!(stored == Some(whole), "the survey stored with the job");
+        set_up_with_the_whole_survey((store, &sched, id), "mirrors.obj", &spec, None).await;
     }
 
     /// A stored part that cannot be read (here, garbage under its key) does not fail the job:
@@ -905,42 +925,16 @@ mod tests {
     /// survey a propagation learns whole.
     #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
     async fn a_survey_part_that_cannot_be_read_is_learnt_again_by_the_coordinator() {
-        let store = Store::open("memory://").unwrap();
-        let sched = Scheduler::new(store.clone(), Timing::default(), None, None);
-        let worker = sched.register("careless", Abilities::ALL);
-        let parameters = v1::Parameters {
-            directions: Some(129),
-            resolution: Some(16),
-            iterations: Some(1),
-            ..Default::default()
-        };
-        let spec = JobSpec::from_parameters(&parameters).unwrap();
-        let scene = bundled("cornell.obj");
-        let status = submit(&sched, scene.clone(), spec.clone()).await.unwrap();
-        let id = JobId::parse(&status.job_id).unwrap();
-        let grant = sched.lease(&worker, Duration::from_secs(30)).await.unwrap().unwrap();
-        assert_eq!((grant.pass, grant.batches.clone()), (Pass::Survey, 0..1));
+        let (store, sched, worker, id, spec, grant) = a_job_surveyed_by(Timing::default(), "cornell.obj").await;
+        assert_eq!(grant.batches, 0..1);
         let key = vlf_store::layout::work_block(&id, 0, "survey", 0, 1).unwrap();
         let garbage = store.clone();
         vlf_store::blocking(move || garbage.put(&key, b"not a survey part".to_vec()).unwrap())
             .await
             .unwrap();
-        assert!(
-            sched
-                .report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[])
-                .unwrap()
-        );
-        let deadline = Instant::now() + Duration::from_secs(60);
-        while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
-            assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
-            // The worker stays alive: the coordinator does not wait for it to die.
-            sched.heartbeat(&worker).unwrap();
-            tokio::time::sleep(Duration::from_millis(20)).await;
-        }
-        let whole = Propagation::new(scene, spec.options.clone()).unwrap().survey();
-        let stored = vlf_store::blocking(move || FieldJob::open(&store, &id).unwrap().stored_survey().unwrap())
-            .await
-            .unwrap();
-        assert!(stored == Some(whole), "the survey stored with the job");
+        let reported = sched.report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[]);
+        assert!(reported.unwrap());
+        // The worker stays alive: the coordinator does not wait for it to die.
+        set_up_with_the_whole_survey((store, &sched, id), "cornell.obj", &spec, Some(&worker)).await;
     }
 }

@@ -93,12 +93,17 @@ impl FieldJob {
             output.batches.start,
             output.batches.end,
         )?;
-        let bytes =
-            blob::encode_bytes(BlobKind::BatchOutput, &output.to_bytes()).map_err(|source| StoreError::Blob {
-                url: self.job().store().url().to_string(),
-                key: key.clone(),
-                source,
-            })?;
+        self.work_put(key, BlobKind::BatchOutput, &output.to_bytes())
+    }
+
+    /// A work blob of `kind` holding `payload` under `key`, encoded for
+    /// [`crate::Store::put_all`]: create-only, as every block output is.
+    fn work_put(&self, key: String, kind: BlobKind, payload: &[u8]) -> Result<Put, StoreError> {
+        let bytes = blob::encode_bytes(kind, payload).map_err(|source| StoreError::Blob {
+            url: self.job().store().url().to_string(),
+            key: key.clone(),
+            source,
+        })?;
         Ok(Put {
             key,
             bytes: bytes.into(),

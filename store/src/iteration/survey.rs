@@ -47,16 +47,7 @@ impl FieldJob {
                 format!("a part of directions {a}..{b} is not that of batches {batches:?} ({directions:?})"),
             ));
         }
-        let bytes = blob::encode_bytes(BlobKind::SurveyPart, &part.to_bytes()).map_err(|source| StoreError::Blob {
-            url: self.job().store().url().to_string(),
-            key: key.clone(),
-            source,
-        })?;
-        Ok(Put {
-            key,
-            bytes: bytes.into(),
-            create_only: true,
-        })
+        self.work_put(key, BlobKind::SurveyPart, &part.to_bytes())
     }
 
     /// Writes [`FieldJob::survey_part_put`]'s blob.
