@@ -847,7 +847,14 @@ mod tests {
     async fn a_job_surveyed_by(
         timing: Timing,
         scene: &str,
-    ) -> (Store, std::sync::Arc<Scheduler>, String, JobId, JobSpec, crate::scheduler::Grant) {
+    ) -> (
+        Store,
+        std::sync::Arc<Scheduler>,
+        String,
+        JobId,
+        JobSpec,
+        crate::scheduler::Grant,
+    ) {
         let store = Store::open("memory://").unwrap();
         let sched = Scheduler::new(store.clone(), timing, None, None);
         let worker = sched.register("surveyor", Abilities::ALL);
@@ -862,7 +869,10 @@ mod tests {
         let id = JobId::parse(&status.job_id).unwrap();
         let grant = sched.lease(&worker, Duration::from_secs(30)).await.unwrap().unwrap();
         assert_eq!(grant.pass, Pass::Survey);
-        assert!(grant.batches.end < spec.options.batching().count(), "a part of the survey: {grant:?}");
+        assert!(
+            grant.batches.end < spec.options.batching().count(),
+            "a part of the survey: {grant:?}"
+        );
         (store, sched, worker, id, spec, grant)
     }
 
