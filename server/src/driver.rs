@@ -159,20 +159,14 @@ async fn set_up(sched: &Arc<Scheduler>, job: FieldJob, wake: &Notify, origin: Or
     let job = Arc::try_unwrap(job).unwrap_or_else(|shared| (*shared).clone());
     let survey = match learnt {
         Ok(survey) => survey,
-        Err(SetUp::Cancelled) => return ended(job, JobState::Cancelled, SetUp::Cancelled).await,
-        Err(SetUp::Failed(message)) => {
-            let failed = JobState::Failed {
-                message: message.clone(),
-            };
-            return ended(job, failed, SetUp::Failed(message)).await;
-        }
+        Err(outcome @ (SetUp::Cancelled | SetUp::Failed(_))) => return ended(job, outcome).await,
         Err(outcome) => return outcome,
     };
     let _turn = SET_UPS.acquire().await;
     let mut job = job;
     vlf_store::blocking(move || -> SetUp {
         if cancelled() {
-            return record_end(&mut job, JobState::Cancelled, SetUp::Cancelled);
+            return record_end(&mut job, SetUp::Cancelled);
         }
         let (scene, options) = (job.scene().clone(), job.options().clone());
         let built = match survey {
@@ -181,19 +175,13 @@ async fn set_up(sched: &Arc<Scheduler>, job: FieldJob, wake: &Notify, origin: Or
         };
         let prop = match built {
             Ok(prop) => prop,
-            Err(e) => {
-                let message = format!("cannot set the job up: {e}");
-                let failed = JobState::Failed {
-                    message: message.clone(),
-                };
-                return record_end(&mut job, failed, SetUp::Failed(message));
-            }
+            Err(e) => return record_end(&mut job, SetUp::Failed(format!("cannot set the job up: {e}"))),
         };
         if let Err(e) = job.set_up(&prop) {
             return SetUp::Store(format!("cannot set the job up: {e}"));
         }
         if cancelled() {
-            return record_end(&mut job, JobState::Cancelled, SetUp::Cancelled);
+            return record_end(&mut job, SetUp::Cancelled);
         }
         SetUp::Done(Box::new(Coordinator::new(job, prop)))
     })
@@ -201,9 +189,17 @@ async fn set_up(sched: &Arc<Scheduler>, job: FieldJob, wake: &Notify, origin: Or
     .unwrap_or_else(|e| SetUp::Store(format!("internal: {e}")))
 }
 
-/// Records in the store that `job` ended set-up in `state` (it is not taken up again), and
-/// returns `outcome`; a store that fails leaves the job queued ([`SetUp::Store`]).
-fn record_end(job: &mut FieldJob, state: JobState, outcome: SetUp) -> SetUp {
+/// Records in the store that `job` ended set-up as `outcome` says (it is not taken up again), and
+/// returns `outcome`; a store that fails leaves the job queued ([`SetUp::Store`]). Only a
+/// cancelled or failed set-up ends the job; any other outcome is returned as it is.
+fn record_end(job: &mut FieldJob, outcome: SetUp) -> SetUp {
+    let state = match &outcome {
+        SetUp::Cancelled => JobState::Cancelled,
+        SetUp::Failed(message) => JobState::Failed {
+            message: message.clone(),
+        },
+        SetUp::Done(_) | SetUp::Store(_) => return outcome,
+    };
     match job.set_state(state) {
         Ok(()) => outcome,
         Err(e) => SetUp::Store(format!("recording the job's end failed: {e}")),
@@ -211,8 +207,8 @@ fn record_end(job: &mut FieldJob, state: JobState, outcome: SetUp) -> SetUp {
 }
 
 /// [`record_end`] on a blocking thread.
-async fn ended(mut job: FieldJob, state: JobState, outcome: SetUp) -> SetUp {
-    vlf_store::blocking(move || record_end(&mut job, state, outcome))
+async fn ended(mut job: FieldJob, outcome: SetUp) -> SetUp {
+    vlf_store::blocking(move || record_end(&mut job, outcome))
         .await
         .unwrap_or_else(|e| SetUp::Store(format!("internal: {e}")))
 }

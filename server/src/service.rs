@@ -417,6 +417,23 @@ mod tests {
         })
     }
 
+    /// Registers a worker of one thread that takes runs, with the other abilities as given;
+    /// returns its id.
+    async fn register(api: &Api, name: &str, takes_claims: bool, takes_surveys: bool) -> String {
+        let request = v1::RegisterRequest {
+            name: name.into(),
+            threads: 1,
+            takes_runs: true,
+            takes_claims,
+            takes_surveys,
+        };
+        api.register(Request::new(request))
+            .await
+            .unwrap()
+            .into_inner()
+            .worker_id
+    }
+
     /// A scheduler over a `memory://` store with one propagating job, its iteration started.
     fn scheduler_with_a_job() -> (Arc<Scheduler>, JobId) {
         let store = vlf_store::Store::open("memory://").unwrap();
@@ -500,20 +517,7 @@ mod tests {
         let api = Api::new(sched.clone(), 0);
         let mut workers = Vec::new();
         for (name, takes_surveys) in [("old", false), ("new", true)] {
-            let request = v1::RegisterRequest {
-                name: name.into(),
-                threads: 1,
-                takes_runs: true,
-                takes_claims: true,
-                takes_surveys,
-            };
-            workers.push(
-                api.register(Request::new(request))
-                    .await
-                    .unwrap()
-                    .into_inner()
-                    .worker_id,
-            );
+            workers.push(register(&api, name, true, takes_surveys).await);
         }
         assert_eq!((sched.workers_alive(), sched.surveyors_alive()), (2, 1));
         let lease = |w: &String| {
@@ -574,20 +578,7 @@ mod tests {
         let api = Api::new(sched.clone(), 0);
         let mut workers = Vec::new();
         for (name, takes_claims) in [("a", true), ("b", true), ("old", false)] {
-            let request = v1::RegisterRequest {
-                name: name.into(),
-                threads: 1,
-                takes_runs: true,
-                takes_claims,
-                takes_surveys: true,
-            };
-            workers.push(
-                api.register(Request::new(request))
-                    .await
-                    .unwrap()
-                    .into_inner()
-                    .worker_id,
-            );
+            workers.push(register(&api, name, takes_claims, true).await);
         }
         let lease = |w: &String| {
             api.lease(Request::new(v1::LeaseRequest {
