@@ -319,8 +319,10 @@ async fn learn_survey(
 /// coordinator builds each subfield once to learn the job's survey and, never shooting, reads
 /// none after, so it need never hold them all (at l = 8193, N = 256 the Cornell box's are
 /// 696 MB): at most one per thread is alive. The same bits: a subfield is a pure function of
-/// the job. With mirrors the field's tiles are cut along the subfields, and the workers of this
-/// process take the propagation whole, so those keep them.
+/// the job. With mirrors, learning the survey reads each subfield twice (the discrete areas, the
+/// surfaces facing each other), so they are held while it does; the workers of this process
+/// take the propagation whole, so those keep them. Either way a coordinator lets them go once
+/// the job is set up ([`Propagation::release_subfields`]).
 fn set_up_budget(configured: Option<usize>, shared: bool, scene: &Scene) -> Option<usize> {
     let mirrors = (0..scene.surfaces.len()).any(|s| scene.material(s).is_mirror());
     match configured {
@@ -471,8 +473,8 @@ fn drive(sched: &Arc<Scheduler>, coordinator: Coordinator, wake: Arc<Notify>, or
     if let Some(prototypes) = sched.prototypes() {
         prototypes.insert(coordinator.job().id().clone(), coordinator.propagation().clone());
     }
-    // The prototype keeps the subfields for the workers of this process; the coordinator of a
-    // diffuse job reads none (with mirrors it keeps them, for the field's tiles).
+    // The prototype keeps the subfields for the workers of this process; the coordinator reads
+    // none (mirror tiles are cut along the mirror views).
     let mut coordinator = coordinator;
     coordinator.release_subfields();
     let resample = coordinator.job().job().manifest().resample;
@@ -794,7 +796,8 @@ mod tests {
     fn a_standalone_coordinator_of_a_diffuse_scene_keeps_no_subfield() {
         let (cornell, mirrors) = (bundled("cornell.obj"), bundled("mirrors.obj"));
         assert_eq!(set_up_budget(None, false, &cornell), Some(0));
-        // Its workers in this process take the propagation whole; mirrors' tiles need them.
+        // Its workers in this process take the propagation whole; learning a mirror scene's
+        // survey reads each subfield twice.
         assert_eq!(set_up_budget(None, true, &cornell), None);
         assert_eq!(set_up_budget(None, false, &mirrors), None);
         // A configured budget is the operator's.

@@ -41,7 +41,7 @@
 //! [`Summary::mirrors_by_direction`]).
 //!
 //! **Only what is stored is radiance** (and the survey). Directions, subfields, texel grids and
-//! mirror layouts are a deterministic function of the scene and the options, so a reader
+//! mirror views are a deterministic function of the scene and the options, so a reader
 //! rebuilds them ([`FieldJob::propagation`], which reads the job's survey rather than passing
 //! over every subfield to learn it again) and uses them to put each stored value back in place;
 //! a blob whose shape does not match is an error naming its key. A diffuse-only scene has no
@@ -62,7 +62,7 @@ use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::parts::diffuse_chunks;
-use vlf_core::propagate::specular::MirrorLayout;
+use vlf_core::propagate::specular::MirrorView;
 use vlf_core::propagate::{
     Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Survey, Totals,
 };
@@ -115,9 +115,9 @@ impl Summary {
     }
 }
 
-/// Mirror radiance to store: the subfields and layouts that place it, and its values.
+/// Mirror radiance to store: the views that place it, and its values.
 struct Mirrors<'a> {
-    layouts: &'a [MirrorLayout],
+    views: &'a [MirrorView],
     totals: &'a [Vec<[f32; 3]>],
 }
 
@@ -378,7 +378,7 @@ impl FieldJob {
     /// Writes `field` as the job's final field and marks the job finished.
     pub fn finish(&mut self, field: &LightField, resampled: bool) -> Result<(), StoreError> {
         let mirrors = field.specular.as_ref().map(|s| Mirrors {
-            layouts: &s.layouts,
+            views: &s.views,
             totals: &s.totals,
         });
         let unit = radiance_unit(&self.scene);
@@ -661,7 +661,7 @@ impl FieldJob {
         let Some(m) = mirrors else {
             return Ok(());
         };
-        let lit: Vec<usize> = (0..m.layouts.len()).filter(|&d| m.layouts[d].len > 0).collect();
+        let lit: Vec<usize> = (0..m.views.len()).filter(|&d| m.views[d].slots() > 0).collect();
         self.job.put_encoded(&lit, |&d| {
             let values = scaled(&m.totals[d], unit);
             self.job

@@ -149,7 +149,7 @@ impl StageParts {
         let totals = p
             .specular
             .as_ref()
-            .map(|spec| spec.layouts.iter().map(|l| vec![[0.0; 3]; l.len as usize]).collect());
+            .map(|spec| spec.views.iter().map(|v| vec![[0.0; 3]; v.slots()]).collect());
         LightField::from_radiance(p, self.summary.stats.clone(), radiance, totals).map_err(|e| job.field_error(e))
     }
 

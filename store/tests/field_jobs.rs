@@ -279,7 +279,8 @@ fn earlier_final_fields(o: &Opener) {
     let spec = now.specular.as_ref().unwrap();
     let per_side = job.options().grid.tiles_per_side();
     let mut tiles = 0;
-    for (d, l) in spec.layouts.iter().enumerate() {
+    for (d, view) in spec.views.iter().enumerate() {
+        let l = &view.layout;
         let key = layout::direction(&id, Stage::Field, d as u32).unwrap();
         if l.len == 0 {
             assert!(
@@ -289,7 +290,7 @@ fn earlier_final_fields(o: &Opener) {
             continue;
         }
         let (_, values) = blob::decode_values(&store.get(&key).unwrap(), BlobKind::DirectionRadiance).unwrap();
-        for (k, range) in l.tile_slots(&spec.subfields.get(d)) {
+        for (k, range) in l.tile_slots(&view.sub) {
             let (s, t) = (k % per_side, k / per_side);
             let tile = &values[3 * range.start..3 * range.end];
             job.job()
@@ -300,7 +301,7 @@ fn earlier_final_fields(o: &Opener) {
         store.delete(&key).unwrap();
     }
     assert!(
-        tiles > spec.layouts.iter().filter(|l| l.len > 0).count(),
+        tiles > spec.views.iter().filter(|v| v.slots() > 0).count(),
         "several tiles a direction"
     );
     summary_without(&store, &id, Stage::Field, "mirrors_by_direction");

@@ -665,7 +665,9 @@ fn runs_computed_in_steps(o: &Opener) {
 /// bytes alive), with the bits of the in-process run. Each worker keeps a home of batches, as
 /// the scheduler keeps them: once its home's subfields are built (the first iteration), later
 /// iterations build none, with mirrors too (their gathers read the sources' mirror views, not
-/// their subfields).
+/// their subfields). The job's survey is stored, so no one passes over the whole field at
+/// set-up, with mirrors neither (their views rasterise the mirror planes alone), and the
+/// coordinator, which never shoots, builds no subfield at all.
 fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let store = Store::open("memory://").unwrap();
     let reference = in_process(&store, &scene, &options);
@@ -677,19 +679,16 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let id = job.id().clone();
     drop(p);
     let budget = all * 45 / 100;
-    // The coordinator within the same budget: it reads subfields to set up and, with mirrors,
-    // to write the field's tiles.
+    // The coordinator within the same budget.
     let mut coordinator = Coordinator::resume_within(job, Some(budget)).unwrap();
     let coordinator_subfields = coordinator.propagation().subfields.clone();
     let mut workers: Vec<Replica> = (0..3)
         .map(|_| Replica::within(FieldJob::open(&store, &id).unwrap(), Some(budget)).unwrap())
         .collect();
-    // The job's survey is stored: set-up passes over no subfield of a diffuse job, and over
-    // each once with mirrors, for their layouts (learning the survey would be two passes more,
-    // each rebuilding what the budget did not keep).
+    // The job's survey is stored: set-up passes over no subfield, with mirrors neither.
     for worker in &workers {
         let built = worker.subfield_memory().builds;
-        assert_eq!(built, if mirrors { l } else { 0 }, "set-up built {built} subfields");
+        assert_eq!(built, 0, "set-up built {built} subfields (mirrors: {mirrors})");
     }
     let mut builds_after_first = Vec::new();
     while !coordinator.finished() {
@@ -716,17 +715,18 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let job = coordinator.finish(false).unwrap();
     assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
     assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
-    if !mirrors {
-        // The job's survey is stored, so no worker passed over the whole field at set-up: each
-        // built its home's subfields, once, and together they built the field's once.
-        assert_eq!(builds_after_first.iter().sum::<u64>(), l, "{builds_after_first:?}");
-    }
-    let threads = rayon::current_num_threads();
-    let held = coordinator_subfields.memory();
-    assert!(
-        held.peak <= budget + threads * largest && held.peak < all,
-        "the coordinator held {held:?} of {all}"
+    // Each worker built its home's subfields, once, and together they built the field's once.
+    assert_eq!(
+        builds_after_first.iter().sum::<u64>(),
+        l,
+        "mirrors: {mirrors}, {builds_after_first:?}"
     );
+    let held = coordinator_subfields.memory();
+    assert_eq!(
+        held.builds, 0,
+        "the coordinator built subfields (mirrors: {mirrors}): {held:?}"
+    );
+    let threads = rayon::current_num_threads();
     for (w, worker) in workers.iter().enumerate() {
         let held = worker.subfield_memory();
         assert!(
@@ -808,37 +808,32 @@ fn replicas_read_the_jobs_survey() {
     }
 }
 
-/// The coordinator of a diffuse job reads no subfield (it absorbs what workers shoot, perturbed
-/// copies' areas included): once it lets them go it builds none to the job's end, and the field
-/// is the in-process run's. With mirrors it keeps them, for the field's mirror tiles.
+/// A coordinator reads no subfield (it absorbs what workers shoot, perturbed copies' areas
+/// included, and cuts mirror tiles along the mirror views): once it lets them go it builds none
+/// to the job's end, with mirrors too, and the field is the in-process run's.
 #[test]
-fn a_diffuse_jobs_coordinator_lets_its_subfields_go() {
-    let (scene, options) = (bundled("cornell.obj"), options(2, 129));
-    let store = Store::open("memory://").unwrap();
-    let reference = in_process(&store, &scene, &options);
-    let p = Propagation::new(scene, options.clone()).unwrap();
-    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
-    let id = job.id().clone();
-    let mut coordinator = Coordinator::new(job, p);
-    assert!(coordinator.propagation().subfields.memory().live > 0);
-    coordinator.release_subfields();
-    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
-    while !coordinator.finished() {
-        compute_iteration(&mut coordinator, &mut replica);
-        coordinator.finish_iteration().unwrap();
+fn a_coordinator_lets_its_subfields_go() {
+    for (scene, perturbations) in [("cornell.obj", 2), ("mirrors.obj", 0)] {
+        let (scene, options) = (bundled(scene), options(perturbations, 129));
+        let store = Store::open("memory://").unwrap();
+        let reference = in_process(&store, &scene, &options);
+        let p = Propagation::new(scene, options.clone()).unwrap();
+        let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+        let id = job.id().clone();
+        let mut coordinator = Coordinator::new(job, p);
+        assert!(coordinator.propagation().subfields.memory().live > 0);
+        coordinator.release_subfields();
+        let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+        while !coordinator.finished() {
+            compute_iteration(&mut coordinator, &mut replica);
+            coordinator.finish_iteration().unwrap();
+        }
+        let held = coordinator.propagation().subfields.memory();
+        let job = coordinator.finish(false).unwrap();
+        assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+        assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+        assert_eq!((held.live, held.builds), (0, 0), "{held:?}");
     }
-    let held = coordinator.propagation().subfields.memory();
-    let job = coordinator.finish(false).unwrap();
-    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
-    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
-    assert_eq!((held.live, held.builds), (0, 0), "{held:?}");
-
-    let p = Propagation::new(bundled("mirrors.obj"), options).unwrap();
-    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
-    let all = p.subfields.memory().live;
-    let mut coordinator = Coordinator::new(job, p);
-    coordinator.release_subfields();
-    assert_eq!(coordinator.propagation().subfields.memory().live, all);
 }
 
 #[test]

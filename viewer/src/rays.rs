@@ -82,8 +82,9 @@ impl RayTables {
             return RayTables { words, mirror_index };
         };
         let (n, rotation, lattice, vectors) = spec.directions.lookup_tables();
-        let l = spec.subfields.len();
-        let resolution = spec.subfields.grid().resolution;
+        let l = spec.views.len();
+        let grid = spec.views.first().map_or(field.options.grid, |v| v.sub.grid);
+        let resolution = grid.resolution;
         let f = |v: f64| (v as f32).to_bits();
         words[0] = n as u32;
         words[1] = l as u32;
@@ -107,7 +108,7 @@ impl RayTables {
 
         words[6] = words.len() as u32;
         for d in 0..l {
-            let frame = spec.subfields.frame(d);
+            let frame = spec.views[d].sub.frame;
             words.extend(frame.u.to_array().map(f));
             words.extend(frame.v.to_array().map(f));
             words.extend(frame.shift.to_array().map(f));
@@ -118,7 +119,6 @@ impl RayTables {
             .into_par_iter()
             .map(|d| DirectionCrossings::new(field, catalog, d))
             .collect();
-        let grid = spec.subfields.grid();
         words[10] = grid.tile;
         words[11] = grid.tiles_per_side();
         words[12] = f(NEIGHBOUR_DEPTH_CELLS);
@@ -156,8 +156,7 @@ impl DirectionCrossings {
                 crossings: Vec::new(),
             };
         };
-        let sub = &spec.subfields.get(d);
-        let layout = &spec.layouts[d];
+        let (sub, layout) = (&spec.views[d].sub, &spec.views[d].layout);
         let (m, per_side, n) = (sub.grid.tile, sub.grid.tiles_per_side(), sub.grid.resolution);
         // Each ray's crossings as (plane, slot), from the mirror entries of its tile.
         let mut of_ray: Vec<Vec<(u32, u32)>> = vec![Vec::new(); (n * n) as usize];

@@ -195,7 +195,7 @@ fn a_curved_mirror_matches_the_cpu_renderer_from_the_rays() {
     // The shader's tables grow with the mirror slots, not with directions × mirror planes as
     // dense windows per plane did (five words each).
     let tables = vlf_viewer::rays::RayTables::new(&field, &vlf_core::parts::PartCatalog::new(&field));
-    let (l, planes) = (field.specular.as_ref().unwrap().layouts.len(), ball.len());
+    let (l, planes) = (field.specular.as_ref().unwrap().views.len(), ball.len());
     assert!(
         tables.words.len() < l * planes,
         "{} words for {l} directions and {planes} mirror planes",

@@ -14,12 +14,10 @@
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
-use crate::propagate::specular::MirrorLayout;
+use crate::propagate::specular::MirrorView;
 use crate::propagate::{IterationStats, Options, Propagation};
-use crate::psf::Subfields;
 use crate::scene::{Rgb, Scene};
 use glam::DVec3;
-use std::sync::Arc;
 
 /// A propagated virtual light field.
 #[derive(Clone, Debug, PartialEq)]
@@ -47,10 +45,9 @@ pub struct LightField {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SpecularField {
     pub directions: DirectionSet,
-    /// The propagation's, whole or within its budget (the field's look-ups read them by
-    /// direction: [`Subfields::get`]).
-    pub subfields: Arc<Subfields>,
-    pub layouts: Vec<MirrorLayout>,
+    /// Per direction, its subfield on the mirrors alone, with their slots: where each ray
+    /// that crosses a mirror finds its radiance ([`MirrorView`]).
+    pub views: Vec<MirrorView>,
     /// `totals[d][slot]`: radiance leaving the mirror along direction `d`.
     pub totals: Vec<Vec<[f32; 3]>>,
 }
@@ -67,13 +64,13 @@ impl LightField {
     /// Rebuilds a field from its stored radiance: diffuse radiance per texel
     /// (holes filled, see [`Propagation::diffuse_radiance`]) and, with
     /// mirrors, the totals per direction and mirror slot. The geometry
-    /// (directions, subfields, texel grids, mirror layouts) is a
+    /// (directions, subfields, texel grids, mirror views) is a
     /// deterministic function of the scene and options, so it is recomputed,
     /// not stored. Sizes that do not fit it, and non-finite or negative
     /// radiance, are an [`Error::Decode`](crate::Error::Decode).
     ///
     /// `p` is a fresh [`Propagation::new`] of the field's scene and options:
-    /// its texel atlas, subfields and mirror layouts say where each stored
+    /// its texel atlas and mirror views say where each stored
     /// value goes, and become the field's geometry.
     pub fn from_radiance(
         p: Propagation,
@@ -96,16 +93,20 @@ impl LightField {
         match (&p.specular, &totals) {
             (None, None) => {}
             (Some(spec), Some(totals)) => {
-                if totals.len() != spec.layouts.len() {
+                if totals.len() != spec.views.len() {
                     return bad(format!(
                         "mirror maps of {} directions, expected {}",
                         totals.len(),
-                        spec.layouts.len()
+                        spec.views.len()
                     ));
                 }
-                for (d, (t, l)) in totals.iter().zip(&spec.layouts).enumerate() {
-                    if t.len() != l.len as usize {
-                        return bad(format!("direction {d}: {} mirror values for {} slots", t.len(), l.len));
+                for (d, (t, v)) in totals.iter().zip(&spec.views).enumerate() {
+                    if t.len() != v.slots() {
+                        return bad(format!(
+                            "direction {d}: {} mirror values for {} slots",
+                            t.len(),
+                            v.slots()
+                        ));
                     }
                     if !valid(t) {
                         return bad(format!("direction {d}: negative or non-finite mirror radiance"));
@@ -132,9 +133,8 @@ impl LightField {
         let covered: Vec<bool> = p.projected_area.iter().map(|&a| a > 0.0).collect();
         let specular = p.specular.zip(totals).map(|(s, totals)| SpecularField {
             totals,
-            layouts: s.layouts,
+            views: s.views,
             directions: p.directions,
-            subfields: p.subfields,
         });
         LightField {
             specular,
@@ -240,8 +240,7 @@ impl Propagation {
             .zip(self.mirror_totals())
             .map(|(s, totals)| SpecularField {
                 directions: self.directions.clone(),
-                subfields: self.subfields.clone(),
-                layouts: s.layouts.clone(),
+                views: s.views.clone(),
                 totals,
             });
         LightField {

@@ -142,8 +142,7 @@ impl LightField {
                 continue;
             }
             let d = o.index as usize;
-            let sub = &spec.subfields.get(d);
-            let layout = &spec.layouts[d];
+            let (sub, layout) = (&spec.views[d].sub, &spec.views[d].layout);
             let n = sub.grid.resolution;
             // Bilinear between the four rays around p's projection.
             let g = sub.frame.to_grid(p, n) - 0.5;
@@ -415,8 +414,7 @@ impl LightField {
         let totals: Vec<Vec<[f32; 3]>> = (0..spec.directions.len())
             .into_par_iter()
             .map(|d| {
-                let sub = &spec.subfields.get(d);
-                let layout = &spec.layouts[d];
+                let (sub, layout) = (&spec.views[d].sub, &spec.views[d].layout);
                 let mut out = spec.totals[d].clone();
                 let w = spec.directions.get(d).vector;
                 for &(surface, k, e) in &layout.entries {

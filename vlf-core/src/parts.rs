@@ -82,8 +82,8 @@ impl PartCatalog {
             .map(|&c| chunk_of_chart[c as usize])
             .collect();
         if let Some(spec) = &field.specular {
-            for (d, layout) in spec.layouts.iter().enumerate() {
-                for (k, range) in layout.tile_slots(&spec.subfields.get(d)) {
+            for (d, view) in spec.views.iter().enumerate() {
+                for (k, range) in view.layout.tile_slots(&view.sub) {
                     parts.push(Part::Tile {
                         direction: d as u32,
                         tile: k,

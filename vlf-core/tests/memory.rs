@@ -120,8 +120,8 @@ fn a_known_survey_builds_only_the_subfields_shot() {
 }
 
 /// With mirrors, the survey also says which mirrors light reaches (the plan's search over every
-/// subfield); set-up still builds every subfield once, for the mirror layouts. The same plan and
-/// the same bits.
+/// subfield); set-up then builds no subfield, the mirror views rasterising the mirror planes
+/// alone. The same plan and the same bits.
 #[test]
 fn a_known_survey_with_mirrors_gives_the_same_bits() {
     let options = split_options(0);
@@ -130,6 +130,7 @@ fn a_known_survey_with_mirrors_gives_the_same_bits() {
     assert!(!survey.lit_mirrors.is_empty());
     let mut known = Propagation::with_survey(mirror_room(), options, None, survey).unwrap();
     assert_eq!(known.plan, whole.plan);
+    assert_eq!(known.subfields.memory().builds, 0);
     while !whole.finished() {
         whole.step(|_| {});
         known.step(|_| {});

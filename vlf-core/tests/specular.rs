@@ -6,6 +6,7 @@ mod common;
 use common::*;
 use glam::DVec3;
 use std::f64::consts::PI;
+use vlf_core::propagate::specular::MirrorLayout;
 use vlf_core::propagate::{Options, Propagation, Stop};
 use vlf_core::psf::GridSize;
 
@@ -300,14 +301,29 @@ fn mirror_propagation_is_deterministic_across_threads() {
     );
 }
 
-/// What the exchange reads of a direction, its mirror entries alone (`MirrorView`), finds
-/// every grid cell's mirror slot where the whole subfield does, and nothing elsewhere: the
-/// gathers read their sources through it without building the sources' subfields. Every
-/// polygon of a mirror finds the slots of its plane.
+/// What the exchange, the tiles and the look-ups read of a direction, its mirror entries alone
+/// (`MirrorView`, rasterised from the mirror planes alone), holds the whole subfield's mirror
+/// entries and spans, finds every grid cell's mirror slot where the whole subfield does, and
+/// nothing elsewhere; shooting's numbering of the whole subfield (`Specular::entry_base`) is
+/// the same slots. Every polygon of a mirror finds the slots of its plane.
 #[test]
 fn a_mirror_view_locates_the_slots_of_the_whole_subfield() {
     let p = Propagation::new(mirror_room(), options(33, 32, 8, 1)).unwrap();
     let spec = p.specular.as_ref().unwrap();
+    // Without the subfields held, the views are rasterised from the mirror planes alone, and no
+    // subfield of the scene is built for them: the same views, routes and field.
+    let survey = p.survey();
+    let digest = |mut q: Propagation| {
+        q.run(|_| {});
+        q.into_field().digest()
+    };
+    for budget in [Some(1), None] {
+        let alone = Propagation::with_survey(mirror_room(), options(33, 32, 8, 1), budget, survey.clone()).unwrap();
+        assert_eq!(alone.subfields.memory().builds, 0, "budget {budget:?}");
+        let (a, b) = (alone.specular.as_ref().unwrap(), spec);
+        assert!(a.views == b.views && a.routes == b.routes, "budget {budget:?}");
+        assert_eq!(digest(alone), digest(p.clone()), "budget {budget:?}");
+    }
     let plane_rep = p.atlas.plane_rep.clone();
     let polygons: Vec<u32> = (0..p.scene.surfaces.len() as u32)
         .filter(|&s| p.scene.material(s as usize).is_mirror())
@@ -317,12 +333,20 @@ fn a_mirror_view_locates_the_slots_of_the_whole_subfield() {
         (8, 2),
         "two mirror walls of four quads"
     );
+    let mut has_maps = vec![false; p.scene.surfaces.len()];
+    for &m in &spec.mirrors {
+        has_maps[m as usize] = true;
+    }
     let mut found = 0;
     for d in 0..p.directions.len() {
-        let (sub, layout) = (p.subfields.get(d), &spec.layouts[d]);
+        let sub = p.subfields.get(d);
+        let layout = &MirrorLayout::new(&sub, &has_maps);
         let view = &spec.views[d];
         assert_eq!(view.layout.len, layout.len, "direction {d}");
         assert!(view.sub.entries.len() < sub.entries.len());
+        // The whole subfield's mirror entries and spans, rays numbered afresh.
+        assert_eq!(view.sub, sub.only(|s| has_maps[s as usize]), "direction {d}");
+        assert_eq!(spec.entry_base(d, &sub), layout.entry_base, "direction {d}");
         let n = sub.grid.resolution;
         for &m in &polygons {
             for y in 0..n {
@@ -398,10 +422,7 @@ fn a_mirror_reflects_the_same_power_however_it_is_tessellated() {
     assert_eq!(b.mirrors.len(), 1, "256 quads, one plane: its first quad has the slots");
     assert_eq!(a.routes, b.routes, "one plane, one normal: the same routes");
     for d in 0..one.directions.len() {
-        assert_eq!(
-            a.layouts[d].len, b.layouts[d].len,
-            "direction {d}: the same rays cross the mirror"
-        );
+        assert_eq!(a.slots(d), b.slots(d), "direction {d}: the same rays cross the mirror");
     }
     for (s, t) in one.stats.iter().zip(&many.stats) {
         let (u, v) = (lum(&s.exchange.reflected), lum(&t.exchange.reflected));

@@ -252,7 +252,7 @@ fn a_mirror_room_renders_alike_however_its_walls_are_tessellated() {
         let mirrors = field.specular.as_ref().unwrap();
         // The same rays cross the mirrors, but for a ray through an edge where the cut walls
         // meet the block's footprint (there the floor is two planes, as in the diffuse room).
-        let slots = |f: &vlf_core::field::SpecularField| f.layouts.iter().map(|l| l.len as f64).sum::<f64>();
+        let slots = |f: &vlf_core::field::SpecularField| f.views.iter().map(|v| v.slots() as f64).sum::<f64>();
         let (a, b) = (slots(mirrors), slots(plain_mirrors));
         assert!((a - b).abs() <= 1e-3 * b, "{split:?}: {a} mirror slots against {b}");
         for (mode, reference) in modes.iter().zip(&references) {

@@ -157,8 +157,9 @@ impl Replicas {
                         // Every worker process builds the job's geometry for itself: the texel
                         // grids and directions; the subfields of what it shoots, as it shoots
                         // them (the discrete areas are the job's, stored with it); with mirrors,
-                        // a pass over every subfield for their layouts. Time that more workers do
-                        // not shorten (docs/scaling.md), so it is logged.
+                        // the mirror planes rasterised alone in every direction (their views) and
+                        // the reflection routes. Time that more workers do not shorten
+                        // (docs/scaling.md), so it is logged.
                         let started = Instant::now();
                         let replica = Replica::within(opened, self.subfield_budget)?;
                         tracing::info!(

@@ -110,9 +110,7 @@ impl Propagation {
             _ => None,
         };
         if let Some(spec) = spec
-            && let Some(d) = directions
-                .clone()
-                .find(|&d| spec.maps[d].total.len() != spec.layouts[d].len as usize)
+            && let Some(d) = directions.clone().find(|&d| spec.maps[d].total.len() != spec.slots(d))
         {
             return Err(crate::Error::Parameter(format!(
                 "the mirror totals of direction {d} are not restored (a block computed before took them)"
@@ -297,11 +295,7 @@ impl Propagation {
                 "mirror maps for a scene without mirrors".into(),
             ));
         };
-        let fits = |maps: &[Vec<Rgb>]| {
-            maps.iter()
-                .zip(&spec.layouts[range.clone()])
-                .all(|(a, l)| a.len() == l.len as usize)
-        };
+        let fits = |maps: &[Vec<Rgb>]| maps.iter().zip(range.clone()).all(|(a, d)| a.len() == spec.slots(d));
         if !fits(&block.shooting) || !fits(&block.total) {
             return Err(crate::Error::Parameter(format!(
                 "mirror maps of batches {batches:?} do not fit their directions"

@@ -508,7 +508,7 @@ impl Propagation {
 /// rest of the propagation).
 fn check_maps(spec: &super::Specular, first: usize, maps: &[Vec<Rgb>]) -> crate::Result<()> {
     for (d, saved) in (first..).zip(maps) {
-        let slots = spec.layouts.get(d).map_or(0, |l| l.len as usize);
+        let slots = spec.views.get(d).map_or(0, |v| v.slots());
         if saved.len() != slots {
             return misfit(format!(
                 "direction {d}: mirror maps do not match its {slots} mirror slots"

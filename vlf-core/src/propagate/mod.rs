@@ -423,9 +423,8 @@ impl Propagation {
     /// asked for — by a worker, when it shoots the direction — and kept within `budget` (all
     /// kept without one). A worker of a cluster so spends on set-up what its share of the
     /// directions costs rather than what the whole field does, and holds only its share's
-    /// subfields. A scene with mirrors light reaches still builds every subfield, for the
-    /// mirror layouts (all at once without a budget, as [`Propagation::new`] does). The same
-    /// bits as learning the survey again: it is the same numbers.
+    /// subfields; its mirrors rasterise their own planes alone ([`specular::MirrorView`]). The
+    /// same bits as learning the survey again: it is the same numbers.
     ///
     /// Refuses a survey that does not fit the scene and options ([`Survey::check`]), with an
     /// [`Error::Decode`](crate::Error::Decode) that says why (the caller adds where it was read).
@@ -437,12 +436,10 @@ impl Propagation {
     /// coordinator of a diffuse job absorbs what workers shoot and never shoots itself, so it
     /// holds none once the job is set up (at l = 8193, N = 256 the Cornell box's are 696 MB). One
     /// asked for later is built again (the same spans), so no bit changes; clones made before
-    /// (a prototype handed to a worker) keep theirs. With mirrors they are kept: the field's
-    /// mirror tiles are cut along them.
+    /// (a prototype handed to a worker) keep theirs. Mirrors need none: their tiles are cut
+    /// along their views ([`specular::MirrorView`]).
     pub fn release_subfields(&mut self) {
-        if self.specular.is_none() {
-            self.subfields = Arc::new(self.subfields.released());
-        }
+        self.subfields = Arc::new(self.subfields.released());
     }
 
     /// What this propagation's set-up learnt over all directions, for whoever builds the same
@@ -478,12 +475,10 @@ impl Propagation {
         let atlas_s = lap();
         let subfields = match (budget, &known) {
             (Some(bytes), _) => Subfields::within(footprints.clone(), frames, grid, bytes),
-            // With mirrors light reaches, the layouts need every subfield anyway: held whole,
-            // reading one takes no lock (a renderer's look-ups read them ray by ray).
-            (None, Some(survey)) if survey.lit_mirrors.is_empty() => {
-                Subfields::on_demand(footprints.clone(), frames, grid)
-            }
-            (None, _) => Subfields::build_all(footprints.clone(), frames, grid),
+            // Known, the survey spares the pass over every direction: each is built when shot.
+            (None, Some(_)) => Subfields::on_demand(footprints.clone(), frames, grid),
+            // Learning it passes over them all, reading each two or three times.
+            (None, None) => Subfields::build_all(footprints.clone(), frames, grid),
         };
         let stacking = shoot::Stacking::new(&scene, &atlas);
         let geometry = shoot::Geometry {
@@ -520,14 +515,14 @@ impl Propagation {
         }
         let mirrors = plan.mapped_mirrors();
         let specular = (!mirrors.is_empty()).then(|| {
-            let mut spec = Specular::new(&scene, &directions, &subfields, mirrors);
+            let mut spec = Specular::new(&scene, &directions, &subfields, &atlas.plane_rep, mirrors);
             // Within a budget, memory is what the process is short of.
             spec.keep_gather_tables = budget.is_none();
             spec
         });
         plan.mirror_slots = specular
             .as_ref()
-            .map_or(0, |s| s.layouts.iter().map(|l| l.len as usize).sum());
+            .map_or(0, |s| s.views.iter().map(specular::MirrorView::slots).sum());
         plan.perturbation = options.perturbation.iterations > 0 && options.perturbation.count > 0 && specular.is_none();
         plan.filter = options.filter_for(specular.is_some());
         tracing::debug!(
@@ -785,13 +780,13 @@ impl Propagation {
     }
 
     /// Bytes held by the field: subfield tables (those held, within a budget), the radiance maps of the
-    /// texels and, with mirrors, their layouts, mirror views and directional totals (f32).
+    /// texels and, with mirrors, their views and directional totals (f32).
     pub fn field_bytes(&self) -> usize {
         let layout = |l: &specular::MirrorLayout| l.entry_base.len() * 4 + l.entries.len() * 12;
         let specular = self.specular.as_ref().map_or(0, |s| {
-            let layouts: usize = s.layouts.iter().map(|l| layout(l) + l.len as usize * 12).sum();
-            let views: usize = s.views.iter().map(|v| v.sub.memory_bytes() + layout(&v.layout)).sum();
-            layouts + views
+            (s.views.iter())
+                .map(|v| v.sub.memory_bytes() + layout(&v.layout) + v.slots() * 12)
+                .sum::<usize>()
         });
         self.subfields.memory().live
             + self.atlas.texels * (std::mem::size_of::<[f32; 3]>() + std::mem::size_of::<f32>())

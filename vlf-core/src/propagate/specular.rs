@@ -57,8 +57,9 @@
 
 use super::shoot::NO_SLOT;
 use crate::directions::DirectionSet;
-use crate::psf::{Subfield, Subfields, SurfaceProjection};
+use crate::psf::{Footprints, RasterScratch, Subfield, Subfields, SurfaceProjection};
 use crate::scene::{Rgb, Scene};
+use glam::DVec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::sync::OnceLock;
@@ -198,13 +199,21 @@ pub struct Exchange {
     pub reflected: Rgb,
 }
 
-/// One direction's subfield restricted to the mirrors with maps ([`Subfield::only`]), with its
-/// slots laid out as the whole subfield's ([`MirrorLayout`] numbers mirror slots tile by tile,
-/// entry by entry, counting only mirror entries: the view has them in the same order), so every
-/// look-up answers as on the whole subfield. What the exchange reads of a direction, the gather of its own unshot map and of
-/// its sources' arrivals, and its `Φ_in`: kept for every direction, it spares a process
-/// within a subfield budget rebuilding whole subfields to gather (a mirror's spans are a
-/// small part of a subfield, and its maps, kept anyway, hold more).
+/// One direction's subfield restricted to the mirrors with maps, with its slots laid out as the
+/// whole subfield's ([`MirrorLayout`] numbers mirror slots tile by tile, entry by entry,
+/// counting only mirror entries: the view has them in the same order), so every look-up of a
+/// mirror's rays answers as on the whole subfield.
+///
+/// **All a field's mirror geometry.** The exchange (the gather of a direction's unshot map and
+/// of its sources' arrivals, `Φ_in`), the cutting of mirror maps into tiles, the look-ups of a
+/// walkthrough and the viewer's ray tables read the views alone; only shooting a direction reads
+/// the whole subfield's numbering ([`Specular::entry_base`]), and it has the subfield then.
+///
+/// **Built from the mirrors alone** ([`Footprints::of`]) where the subfields are not all held:
+/// a direction rasterises the mirror planes, not the scene, so no process builds every subfield
+/// for its mirrors — a worker builds those of the directions it shoots, a coordinator none. It
+/// is the whole subfield's mirror entries and spans, its rays numbered afresh
+/// ([`Subfield::only`]), to the bit.
 #[derive(Clone, Debug, PartialEq)]
 pub struct MirrorView {
     pub sub: Subfield,
@@ -212,11 +221,15 @@ pub struct MirrorView {
 }
 
 impl MirrorView {
-    /// The view of `sub` on the surfaces that `has_maps`.
-    fn new(sub: &Subfield, has_maps: &[bool]) -> MirrorView {
-        let sub = sub.only(|s| has_maps[s as usize]);
+    /// The view whose subfield `sub` holds the entries of the mirrors `has_maps` marks alone.
+    fn new(sub: Subfield, has_maps: &[bool]) -> MirrorView {
         let layout = MirrorLayout::new(&sub, has_maps);
         MirrorView { sub, layout }
+    }
+
+    /// Number of mirror slots of the direction.
+    pub fn slots(&self) -> usize {
+        self.layout.len as usize
     }
 }
 
@@ -226,9 +239,7 @@ pub struct Specular {
     /// Surfaces with directional maps (mirrors that light can reach): each the first polygon
     /// of its mirror plane (see the module docs).
     pub mirrors: Vec<u32>,
-    /// Per direction, its mirror slots in its whole subfield (what shooting reads).
-    pub layouts: Vec<MirrorLayout>,
-    /// Per direction, its mirror entries alone (what the exchange reads).
+    /// Per direction, its mirror entries alone: the mirror geometry of everything but shooting.
     pub views: Vec<MirrorView>,
     pub maps: Vec<DirectionMaps>,
     /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
@@ -299,44 +310,60 @@ fn power_of(power: &[(u32, Rgb)], k: u32) -> Rgb {
 }
 
 impl Specular {
-    /// Lays out the mirror maps of `mirrors` over every subfield and builds the
-    /// reflection routes.
-    pub fn new(scene: &Scene, directions: &DirectionSet, subfields: &Subfields, mirrors: Vec<u32>) -> Self {
+    /// Lays out the mirror maps of `mirrors` over the subfields of every direction and builds
+    /// the reflection routes. Where `subfields` are all held, each view is cut from its
+    /// subfield ([`Subfield::only`]); else the mirror planes alone are rasterised
+    /// ([`MirrorView::build`]), no subfield of the scene built — the same views either way.
+    pub fn new(
+        scene: &Scene,
+        directions: &DirectionSet,
+        subfields: &Subfields,
+        plane_rep: &[u32],
+        mirrors: Vec<u32>,
+    ) -> Self {
         let mut has_maps = vec![false; scene.surfaces.len()];
         let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
         for (k, &m) in mirrors.iter().enumerate() {
             has_maps[m as usize] = true;
             ordinal[m as usize] = k as u32;
         }
-        let per_direction: Vec<(MirrorLayout, MirrorView, Vec<u32>)> = subfields.map(|_, sub| {
-            let layout = MirrorLayout::new(sub, &has_maps);
-            let mut slotted: Vec<u32> = (layout.entries.iter())
-                .filter(|&&(_, _, e)| sub.entries[e as usize].rays > 0)
-                .map(|&(s, _, _)| ordinal[s as usize])
-                .collect();
-            slotted.sort_unstable();
-            slotted.dedup();
-            (layout, MirrorView::new(sub, &has_maps), slotted)
-        });
-        let (mut layouts, mut views, mut slotted) = (Vec::new(), Vec::new(), Vec::new());
-        for (layout, view, s) in per_direction {
-            layouts.push(layout);
-            views.push(view);
-            slotted.push(s);
-        }
-        let maps = layouts
+        let views: Vec<MirrorView> = if subfields.all_held() {
+            subfields.map(|_, sub| MirrorView::new(sub.only(|s| has_maps[s as usize]), &has_maps))
+        } else {
+            let footprints = Footprints::of(scene, plane_rep, |rep| has_maps[rep as usize]);
+            (0..subfields.len())
+                .into_par_iter()
+                .map_init(RasterScratch::default, |scratch, d| {
+                    let sub = Subfield::build_with(&footprints, subfields.frame(d), subfields.grid(), scratch);
+                    MirrorView::new(sub, &has_maps)
+                })
+                .collect()
+        };
+        let slotted = views
             .iter()
-            .map(|l| DirectionMaps {
-                unshot: vec![[0.0; 3]; l.len as usize],
-                total: vec![[0.0; 3]; l.len as usize],
-                incident: vec![[0.0; 3]; l.len as usize],
+            .map(|view| {
+                let mut slotted: Vec<u32> = (view.layout.entries.iter())
+                    .filter(|&&(_, _, e)| view.sub.entries[e as usize].rays > 0)
+                    .map(|&(s, _, _)| ordinal[s as usize])
+                    .collect();
+                slotted.sort_unstable();
+                slotted.dedup();
+                slotted
+            })
+            .collect();
+        let maps = views
+            .iter()
+            .map(|v| DirectionMaps {
+                unshot: vec![[0.0; 3]; v.slots()],
+                total: vec![[0.0; 3]; v.slots()],
+                incident: vec![[0.0; 3]; v.slots()],
             })
             .collect();
         // crossing[k]: the directions (increasing) whose rays meet mirror k, an entry of its
         // in their layout; listed per mirror, as the routes ask, and only where they meet.
         let mut crossing: Vec<Vec<u32>> = vec![Vec::new(); mirrors.len()];
-        for (d, l) in layouts.iter().enumerate() {
-            for &(s, _, _) in &l.entries {
+        for (d, view) in views.iter().enumerate() {
+            for &(s, _, _) in &view.layout.entries {
                 let list = &mut crossing[ordinal[s as usize] as usize];
                 if list.last() != Some(&(d as u32)) {
                     list.push(d as u32);
@@ -355,12 +382,11 @@ impl Specular {
                 routes[target as usize].push(route);
             }
         }
-        for r in &mut routes {
-            r.sort_by_key(|r| (r.mirror, r.source));
-        }
+        routes
+            .par_iter_mut()
+            .for_each(|r| r.sort_by_key(|r| (r.mirror, r.source)));
         Specular {
             mirrors,
-            layouts,
             views,
             maps,
             routes,
@@ -370,6 +396,33 @@ impl Specular {
             gather_tables: (0..directions.len()).map(|_| OnceLock::new()).collect(),
             keep_gather_tables: true,
         }
+    }
+
+    /// The first mirror slot of every entry of `sub`, direction `d`'s whole subfield
+    /// ([`MirrorLayout::entry_base`]): what shooting the direction reads, found from the subfield
+    /// it shoots (one pass over its entries) rather than held for every direction.
+    pub fn entry_base(&self, d: usize, sub: &Subfield) -> Vec<u32> {
+        // Entries are stored tile by tile, so index order is the layout's slot order.
+        let mut len = 0u32;
+        let base: Vec<u32> = (sub.entries.iter())
+            .map(|e| match self.ordinal.get(e.surface as usize) {
+                Some(&k) if k != NO_SLOT => {
+                    len += e.rays;
+                    len - e.rays
+                }
+                _ => NO_SLOT,
+            })
+            .collect();
+        debug_assert_eq!(
+            len, self.views[d].layout.len,
+            "direction {d}: its view and its subfield disagree"
+        );
+        base
+    }
+
+    /// Number of mirror slots of direction `d`.
+    pub fn slots(&self, d: usize) -> usize {
+        self.views[d].slots()
     }
 
     /// The backward mapping of target direction `i` ([`GatherTable`]), for the routes `wanted`
@@ -641,6 +694,13 @@ fn add(acc: &mut Rgb, v: &Rgb) {
 fn mirror_routes(scene: &Scene, directions: &DirectionSet, crossing: &[u32], m: u32) -> Vec<(u32, Route)> {
     let n = scene.surfaces[m as usize].normal;
     let crosses = |d: u32| crossing.binary_search(&d).is_ok();
+    // The grazing fallback's candidates, the crossing line directions not parallel to the
+    // mirror, gathered once per mirror rather than once per source (a curved mirror's many small
+    // planes fall back often, and this scan was most of the routes' time).
+    let candidates: Vec<(u32, DVec3)> = (crossing.iter())
+        .map(|&t| (t, directions.get(t as usize).vector))
+        .filter(|(_, v)| v.dot(n).abs() > 1e-9)
+        .collect();
     let mut out = Vec::new();
     for &source in crossing {
         let w = directions.get(source as usize).vector;
@@ -659,16 +719,17 @@ fn mirror_routes(scene: &Scene, directions: &DirectionSet, crossing: &[u32], m: 
             .collect();
         if kept.is_empty() {
             // Grazing reflection whose triangle lies behind the mirror or misses
-            // it: the closest line direction that does leave the front.
-            let best = (crossing.iter().map(|&t| t as usize))
-                .filter(|&t| directions.get(t).vector.dot(n).abs() > 1e-9)
-                .max_by(|&a, &b| {
-                    let fa = directions.get(a).vector.dot(r).abs();
-                    let fb = directions.get(b).vector.dot(r).abs();
-                    fa.total_cmp(&fb).then(b.cmp(&a))
-                });
+            // it: the closest line direction that does leave the front (the largest |t·r|,
+            // the lowest index of equals: candidates are in increasing index).
+            let mut best: Option<(u32, f64)> = None;
+            for &(t, v) in &candidates {
+                let f = v.dot(r).abs();
+                if best.is_none_or(|(_, b)| f.total_cmp(&b).is_gt()) {
+                    best = Some((t, f));
+                }
+            }
             match best {
-                Some(t) => kept.push((t as u32, 1.0)),
+                Some((t, _)) => kept.push((t, 1.0)),
                 None => continue,
             }
         }

@@ -12,8 +12,8 @@
 //! Learning them walks every ray of every subfield: about three quarters of one thread's set-up
 //! of the Cornell box and of the mirror scene at l = 2049, N = 128. So it is learnt once per job
 //! and stored with it; a worker that opens the job reads it ([`super::Propagation::with_survey`])
-//! and builds only the subfields it shoots, as it shoots them (a scene with mirrors still builds
-//! every subfield once, for the mirror layouts). The survey is a pure function of the scene and
+//! and builds only the subfields it shoots, as it shoots them (with mirrors too: their views
+//! rasterise the mirror planes alone, [`super::specular::MirrorView`]). The survey is a pure function of the scene and
 //! the options, so reading it rather than learning it again changes no bit of the field.
 //!
 //! It can be learnt whole ([`super::Propagation::survey`] of a propagation set up the plain

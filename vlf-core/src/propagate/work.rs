@@ -635,10 +635,15 @@ impl Propagation {
                     sub: &sub,
                     weight: self.directions.get(d).weight,
                 };
+                // Where each mirror entry's slots start in this subfield's numbering.
+                let mirror_base = match (mirrors, self.specular.as_ref()) {
+                    (true, Some(spec)) => spec.entry_base(d, &sub),
+                    _ => Vec::new(),
+                };
                 let io = match (mirrors, maps, self.specular.as_ref()) {
                     (false, _, _) => None,
-                    (true, Some(m), Some(spec)) => Some(shoot::SpecularIo {
-                        mirror_base: &spec.layouts[d].entry_base,
+                    (true, Some(m), Some(_)) => Some(shoot::SpecularIo {
+                        mirror_base: &mirror_base,
                         unshot: m.unshot,
                         incident: &mut *m.incident,
                     }),

@@ -74,6 +74,17 @@ impl Footprints {
     /// tiles ([`crate::maps::TexelAtlas::plane_rep`]): surfaces sharing one are a planar group,
     /// rasterised by its outline. Deterministic: shapes in order of their surface, edges sorted.
     pub fn new(scene: &Scene, plane_rep: &[u32]) -> Self {
+        Footprints::of(scene, plane_rep, |_| true)
+    }
+
+    /// [`Footprints::new`] for the shapes whose standing surface is kept (`keep(rep)`), and
+    /// only the points they use: what a subfield of those surfaces alone rasterises. Its tiles
+    /// hold the same entries, with the same spans, as the whole scene's hold for those surfaces
+    /// (a tile's entries are sorted by surface, and a shape is rasterised on its own); only the
+    /// slot numbering (`first_ray`) counts their rays alone. The mirror views are built so
+    /// ([`crate::propagate::specular::MirrorView`]): a few mirror planes cost a direction a few
+    /// shapes, not the scene's.
+    pub fn of(scene: &Scene, plane_rep: &[u32], keep: impl Fn(u32) -> bool) -> Self {
         let mut points = Vec::new();
         let mut index_of: HashMap<[i64; 3], u32> = HashMap::new();
         let mut point = |p: DVec3| {
@@ -89,6 +100,9 @@ impl Footprints {
         }
         let (mut shapes, mut normals, mut corners, mut edges) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for (rep, group) in members.iter().enumerate() {
+            if !keep(rep as u32) {
+                continue;
+            }
             let normal = scene.surfaces[rep].normal;
             if let [only] = group[..] {
                 let first = corners.len() as u32;

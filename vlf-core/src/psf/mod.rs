@@ -343,19 +343,24 @@ impl Subfield {
     }
 
     /// The entries of the surfaces that `keep` accepts, as a subfield of their own (the same
-    /// frame, grid, tiles and spans): a view of a few surfaces, such as the mirrors that a
-    /// gather reads, that costs their spans rather than the whole scene's. Each entry keeps
-    /// its `first_ray` in this whole subfield's numbering, so slots read through the view are
-    /// the whole subfield's (and [`Subfield::slot_count`] of the view is not the view's).
+    /// frame, grid, tiles and spans, the rays numbered afresh): the subfield that rasterising
+    /// those surfaces alone builds ([`Footprints::of`]), to the bit — a tile's entries are
+    /// sorted by surface, and each surface is rasterised on its own.
     pub fn only(&self, keep: impl Fn(u32) -> bool) -> Subfield {
         let mut tile_start = Vec::with_capacity(self.tile_start.len());
         let (mut entries, mut spans) = (Vec::new(), Vec::new());
+        let mut slots = 0u32;
         tile_start.push(0);
         for k in 0..self.tile_count() {
             for e in self.tile(k).iter().filter(|e| keep(e.surface)) {
                 let first_span = spans.len() as u32;
                 spans.extend_from_slice(self.spans_of(e));
-                entries.push(TileSurface { first_span, ..*e });
+                entries.push(TileSurface {
+                    first_span,
+                    first_ray: slots,
+                    ..*e
+                });
+                slots += e.rays;
             }
             tile_start.push(entries.len() as u32);
         }

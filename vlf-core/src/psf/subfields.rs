@@ -171,6 +171,12 @@ impl Subfields {
         }
     }
 
+    /// Whether every subfield is held (built up front, [`Subfields::build_all`]): reading any
+    /// costs nothing then.
+    pub fn all_held(&self) -> bool {
+        matches!(self.held, Held::All(_))
+    }
+
     /// Number of directions.
     pub fn len(&self) -> usize {
         self.frames.len()
