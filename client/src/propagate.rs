@@ -63,7 +63,7 @@ pub fn run(args: PropagateArgs) -> Result<()> {
     outcome?;
 
     let field_bytes = prop.field_bytes();
-    // Read at the end: writing the field's mirror tiles reads subfields too.
+    // Read at the end, after everything that may build subfields.
     let subfields = prop.subfields.clone();
     let geometry = format!(
         "{} polygons in {} charts, {} texels",

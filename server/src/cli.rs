@@ -39,8 +39,9 @@ pub struct ServeArgs {
     #[arg(long, default_value_t = ServeConfig::MAX_UPLOAD_BYTES)]
     pub max_upload_bytes: u64,
     /// Hold at most this much of a job's subfields (e.g. 256MiB): the coordinator reads them
-    /// only to set a job up and, with mirrors, to write its field. Default: none kept for a job
-    /// without mirrors (each built once, to learn the job's survey), all held with mirrors.
+    /// only to learn a job's survey, where its workers do not. Default: none kept for a job
+    /// without mirrors (each built once), all held with mirrors while the survey is learnt
+    /// (each read twice); none after set-up either way.
     #[arg(long, value_name = "SIZE")]
     pub subfield_memory: Option<bytesize::ByteSize>,
 }

@@ -14,7 +14,7 @@
 //! | `jobs/J/iters/KKKKK/totals.blob` | Snapshot | the diffuse totals (absent in jobs written before the split; with the mirror totals in jobs written before they were stored by batch) |
 //! | `jobs/J/iters/KKKKK/unshot/BBBBB.blob` | Snapshot | in jobs written before the mirror totals were stored by batch: the unshot mirror maps of batch B |
 //! | `S/summary.blob` | Summary | JSON: iterations done, unshot power, statistics |
-//! | `jobs/J/work/KKKKK/PASS/BBBBB.blob` | BatchOutput | a worker's output for one batch of the iteration after snapshot K (deleted once K+1 is committed) |
+//! | `jobs/J/work/KKKKK/PASS/BBBBB.blob` | BatchOutput | a worker's output for one batch of the iteration after snapshot K (deleted once K+1 is committed; a late one when the job is finished) |
 //! | `jobs/J/work/00000/survey/SSSSS-EEEEE.blob` | SurveyPart | what batches S..E of the directions add to the survey, learnt by a worker before the job is set up (deleted with iteration 1's work) |
 //! | `S/diffuse/CCCCCCC.blob` | DiffuseMaps | outgoing radiance of the charts of diffuse chunk C (`vlf_core::parts`) |
 //! | `S/mirrors/SSSSSSS.blob` | MirrorMaps | directional maps of mirror S |
@@ -134,10 +134,16 @@ pub fn totals(job: &JobId, k: u32) -> Result<String, StoreError> {
     Ok(format!("{}totals.blob", stage_prefix(job, Stage::Iteration(k))?))
 }
 
+/// `jobs/J/work/`: everything the workers write for the coordinator to absorb (the survey's
+/// parts, every iteration's batch outputs), none of it needed once the job is finished.
+pub fn work_root(job: &JobId) -> String {
+    format!("{JOBS_PREFIX}{job}/work/")
+}
+
 /// `jobs/J/work/KKKKK/`: the batch outputs of the iteration that starts from snapshot `k`.
 pub fn work_prefix(job: &JobId, k: u32) -> Result<String, StoreError> {
     let k = check("iteration", k, MAX_ITERATION)?;
-    Ok(format!("{JOBS_PREFIX}{job}/work/{k:05}/"))
+    Ok(format!("{}{k:05}/", work_root(job)))
 }
 
 /// `jobs/J/work/KKKKK/PASS/`: the outputs of pass `pass` (a name such as `shoot` or `areas-00`)

@@ -135,8 +135,8 @@ impl StageParts {
         self.bytes.load(Ordering::Relaxed)
     }
 
-    /// The field's geometry with all radiance zero: directions, subfields, texel grids and
-    /// mirror layouts rebuilt from the scene and options, no radiance blob read. What a viewer
+    /// The field's geometry with all radiance zero: directions, texel grids and mirror views
+    /// rebuilt from the scene and options, no radiance blob read. What a viewer
     /// draws from while the parts arrive, and where [`StageParts::read`] puts them.
     pub fn geometry(&self) -> Result<LightField, StoreError> {
         self.geometry_of(self.job.propagation(None)?)

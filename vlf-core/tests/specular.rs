@@ -346,7 +346,7 @@ fn a_mirror_view_locates_the_slots_of_the_whole_subfield() {
         assert!(view.sub.entries.len() < sub.entries.len());
         // The whole subfield's mirror entries and spans, rays numbered afresh.
         assert_eq!(view.sub, sub.only(|s| has_maps[s as usize]), "direction {d}");
-        assert_eq!(spec.entry_base(d, &sub), layout.entry_base, "direction {d}");
+        assert_eq!(spec.entry_base(d, &sub).unwrap(), layout.entry_base, "direction {d}");
         let n = sub.grid.resolution;
         for &m in &polygons {
             for y in 0..n {

@@ -94,10 +94,10 @@ impl Coordinator {
         }
     }
 
-    /// Lets go of the subfields where the coordinator reads none (a diffuse job: it absorbs
-    /// what workers shoot): [`Propagation::release_subfields`]. Once the job's propagation has
-    /// been handed to whoever shares this process (`crate::Prototypes`), the coordinator of a
-    /// diffuse job needs no more memory for them.
+    /// Lets go of the subfields, which the coordinator does not read once the job is set up (it
+    /// absorbs what workers shoot; mirror tiles are cut along the mirror views):
+    /// [`Propagation::release_subfields`]. Once the job's propagation has been handed to
+    /// whoever shares this process (`crate::Prototypes`), it needs no more memory for them.
     pub fn release_subfields(&mut self) {
         self.prop.release_subfields();
     }
@@ -329,6 +329,26 @@ impl Coordinator {
             field.resample_mirrors(8);
         }
         self.job.finish(&field, resample)?;
+        sweep_work(&self.job);
         Ok(self.job)
+    }
+}
+
+/// Deletes whatever is left under the job's work prefix once it is finished: each
+/// iteration's outputs go when its snapshot is committed, but a worker wrongly taken for
+/// dead may write its lease's output after that (a survey part after snapshot 1, a batch
+/// after its iteration's snapshot), and nothing else would ever delete it. A failure here
+/// is only logged: the field is written and the job finished; what stays is garbage.
+fn sweep_work(job: &FieldJob) {
+    let store = job.job().store();
+    let root = layout::work_root(job.id());
+    let swept = store.list(&root).and_then(|left| {
+        store.delete_all(&left)?;
+        Ok(left.len())
+    });
+    match swept {
+        Ok(0) => {}
+        Ok(n) => tracing::info!(job = %job.id(), blobs = n, "late work outputs swept"),
+        Err(e) => tracing::warn!(job = %job.id(), error = %e, "late work outputs left in the store"),
     }
 }

@@ -313,7 +313,7 @@ impl Specular {
     /// Lays out the mirror maps of `mirrors` over the subfields of every direction and builds
     /// the reflection routes. Where `subfields` are all held, each view is cut from its
     /// subfield ([`Subfield::only`]); else the mirror planes alone are rasterised
-    /// ([`MirrorView::build`]), no subfield of the scene built — the same views either way.
+    /// ([`Footprints::of`]), no subfield of the scene built — the same views either way.
     pub fn new(
         scene: &Scene,
         directions: &DirectionSet,
@@ -400,8 +400,10 @@ impl Specular {
 
     /// The first mirror slot of every entry of `sub`, direction `d`'s whole subfield
     /// ([`MirrorLayout::entry_base`]): what shooting the direction reads, found from the subfield
-    /// it shoots (one pass over its entries) rather than held for every direction.
-    pub fn entry_base(&self, d: usize, sub: &Subfield) -> Vec<u32> {
+    /// it shoots (one pass over its entries) rather than held for every direction. A subfield
+    /// whose mirror rays are not the view's (which would put radiance in the wrong slots) is an
+    /// error, never shot.
+    pub fn entry_base(&self, d: usize, sub: &Subfield) -> crate::Result<Vec<u32>> {
         // Entries are stored tile by tile, so index order is the layout's slot order.
         let mut len = 0u32;
         let base: Vec<u32> = (sub.entries.iter())
@@ -413,11 +415,13 @@ impl Specular {
                 _ => NO_SLOT,
             })
             .collect();
-        debug_assert_eq!(
-            len, self.views[d].layout.len,
-            "direction {d}: its view and its subfield disagree"
-        );
-        base
+        let slots = self.views.get(d).map_or(0, MirrorView::slots);
+        if len as usize != slots {
+            return Err(crate::Error::Parameter(format!(
+                "direction {d}: its subfield crosses the mirrors with {len} rays, its mirror view with {slots}"
+            )));
+        }
+        Ok(base)
     }
 
     /// Number of mirror slots of direction `d`.
@@ -482,7 +486,7 @@ impl Specular {
         p
     }
 
-    /// Frees every direction's maps, keeping the layouts and routes: for a
+    /// Frees every direction's maps, keeping the views and routes: for a
     /// coordinator whose workers hold the maps (see [`Pending`]), which then
     /// needs only `Φ_in`, whatever the number of mirror slots. Restoring a
     /// batch ([`super::Propagation::restore_totals_batch`]) brings its maps

@@ -637,7 +637,7 @@ impl Propagation {
                 };
                 // Where each mirror entry's slots start in this subfield's numbering.
                 let mirror_base = match (mirrors, self.specular.as_ref()) {
-                    (true, Some(spec)) => spec.entry_base(d, &sub),
+                    (true, Some(spec)) => spec.entry_base(d, &sub)?,
                     _ => Vec::new(),
                 };
                 let io = match (mirrors, maps, self.specular.as_ref()) {

@@ -85,19 +85,29 @@ impl Footprints {
     /// ([`crate::propagate::specular::MirrorView`]): a few mirror planes cost a direction a few
     /// shapes, not the scene's.
     pub fn of(scene: &Scene, plane_rep: &[u32], keep: impl Fn(u32) -> bool) -> Self {
-        let mut points = Vec::new();
-        let mut index_of: HashMap<[i64; 3], u32> = HashMap::new();
-        let mut point = |p: DVec3| {
-            *index_of.entry(vertex_key(p)).or_insert_with(|| {
-                points.push(p);
-                points.len() as u32 - 1
-            })
-        };
         let rep_of = |s: usize| plane_rep.get(s).copied().unwrap_or(s as u32) as usize;
         let mut members: Vec<Vec<u32>> = vec![Vec::new(); scene.surfaces.len()];
         for s in 0..scene.surfaces.len() {
             members[rep_of(s)].push(s as u32);
         }
+        // Corners shared by several surfaces are equal only up to rounding (`vertex_key` merges
+        // them); the point stands at the first one met in the whole scene, shapes kept or not,
+        // so that a subset's corners snap to the grid exactly as the whole scene's do.
+        let mut canonical: HashMap<[i64; 3], DVec3> = HashMap::new();
+        for &s in members.iter().flatten() {
+            for &p in &scene.surfaces[s as usize].vertices {
+                canonical.entry(vertex_key(p)).or_insert(p);
+            }
+        }
+        let mut points = Vec::new();
+        let mut index_of: HashMap<[i64; 3], u32> = HashMap::new();
+        let mut point = |p: DVec3| {
+            let key = vertex_key(p);
+            *index_of.entry(key).or_insert_with(|| {
+                points.push(canonical.get(&key).copied().unwrap_or(p));
+                points.len() as u32 - 1
+            })
+        };
         let (mut shapes, mut normals, mut corners, mut edges) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for (rep, group) in members.iter().enumerate() {
             if !keep(rep as u32) {
@@ -322,5 +332,88 @@ mod tests {
             assert_eq!(floor as u64, direct);
             assert!(floor > 0);
         }
+    }
+
+    /// A subset's footprints (`Footprints::of`, what the mirror views rasterise) place a corner
+    /// shared with a surface left out where the whole scene's do: at the first of its nearly
+    /// equal copies met in the whole scene, so the subset's shapes snap to the grid to the bit
+    /// as they do among all the others.
+    #[test]
+    fn a_subset_places_shared_corners_as_the_whole_scene() {
+        let origin = FaceOrigin { line: 0, face: 0 };
+        // The second quad's copies of the shared edge's corners are off by far less than the
+        // vertex quantum: one vertex, whose place is the first quad's.
+        let off = 1e-12;
+        let polygons = vec![
+            (
+                vec![
+                    DVec3::new(0.0, 0.0, 0.0),
+                    DVec3::new(0.3, 0.0, 0.0),
+                    DVec3::new(0.3, 1.0, 0.0),
+                    DVec3::new(0.0, 1.0, 0.0),
+                ],
+                0,
+                origin.clone(),
+            ),
+            (
+                vec![
+                    DVec3::new(0.3 + off, 0.0, 0.0),
+                    DVec3::new(1.0, 0.0, 0.0),
+                    DVec3::new(1.0, 1.0, 0.0),
+                    DVec3::new(0.3 - off, 1.0, 0.0),
+                ],
+                1,
+                origin,
+            ),
+        ];
+        let lamp = Material {
+            emission: [1.0; 3],
+            ..Material::grey("lamp", 0.5)
+        };
+        let materials = vec![Material::grey("wall", 0.5), lamp];
+        let (scene, _) = Scene::from_polygons(&polygons, materials, &ImportOptions::default()).unwrap();
+        let atlas = TexelAtlas::new(&scene, 0.05, 2.0 / 64.0).unwrap();
+        let whole = Footprints::new(&scene, &atlas.plane_rep);
+        let rep = atlas.plane_rep[1];
+        let subset = Footprints::of(&scene, &atlas.plane_rep, |s| s == rep);
+        assert_eq!(subset.shape_count(), 1);
+        let corners = |f: &Footprints| -> Vec<DVec3> {
+            let shape = f.shapes.iter().find(|s| s.surface == rep).expect("the kept shape");
+            assert_eq!(shape.kind, ShapeKind::Polygon);
+            let range = shape.first as usize..(shape.first + shape.len) as usize;
+            f.corners[range].iter().map(|&c| f.points[c as usize]).collect()
+        };
+        let bits = |p: &DVec3| p.to_array().map(f64::to_bits);
+        // The premise: the second quad has its own copies of two corners of the first.
+        let (first, second) = (&scene.surfaces[0].vertices, &scene.surfaces[1].vertices);
+        let copies: Vec<&DVec3> = (second.iter())
+            .filter(|q| {
+                first
+                    .iter()
+                    .any(|p| vertex_key(*p) == vertex_key(**q) && bits(p) != bits(q))
+            })
+            .collect();
+        assert_eq!(copies.len(), 2, "{first:?} and {second:?}");
+        let (a, b) = (corners(&whole), corners(&subset));
+        assert!(a.iter().zip(&b).all(|(p, q)| bits(p) == bits(q)), "{a:?} against {b:?}");
+        // Placed at the first quad's copies.
+        for q in copies {
+            assert!(
+                a.iter()
+                    .any(|p| first.iter().any(|f| bits(f) == bits(p)) && vertex_key(*p) == vertex_key(*q))
+            );
+        }
+        // And they rasterise the same spans.
+        let (n, frame) = (64, PsfFrame::new(DVec3::new(0.2, -0.3, 0.9)));
+        let spans = |f: &Footprints| {
+            let mut out = Vec::new();
+            f.rasterize(&frame, n, &mut RasterScratch::default(), |s, span| {
+                if s == rep {
+                    out.push((span.row, span.start, span.end));
+                }
+            });
+            out
+        };
+        assert_eq!(spans(&whole), spans(&subset));
     }
 }

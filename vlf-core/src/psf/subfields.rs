@@ -23,8 +23,7 @@
 //!   survey is stored with the job) builds only the subfields of the directions it shoots.
 //!
 //! **The bound.** Besides the cache's `budget`, a subfield is alive while someone reads it:
-//! a thread shooting a direction (or passing over it at set-up, or writing its mirror tiles)
-//! holds one; gathering a direction's mirror maps reads the mirror entries alone, which the
+//! a thread shooting a direction (or passing over it at set-up) holds one; gathering a direction's mirror maps reads the mirror entries alone, which the
 //! specular state keeps (`crate::propagate::specular::MirrorView`), and holds none. So the
 //! subfield bytes alive never exceed `budget + threads · largest subfield` — what
 //! [`SubfieldMemory::peak`] counts, every subfield built being counted until it is dropped.
@@ -226,8 +225,8 @@ impl Subfields {
     }
 
     /// `f(d, subfield of d)` for every direction, in parallel, in direction order: the set-up
-    /// passes over the whole field (discrete areas, which surfaces see each other, mirror
-    /// layouts), which within a budget build each subfield they are not holding.
+    /// passes over the whole field (discrete areas, which surfaces see each other), which
+    /// within a budget build each subfield they are not holding.
     pub fn map<T: Send>(&self, f: impl Fn(usize, &Subfield) -> T + Sync + Send) -> Vec<T> {
         (0..self.len()).into_par_iter().map(|d| f(d, &self.get(d))).collect()
     }
