@@ -49,6 +49,8 @@
 //!
 //! Blobs of a stage are written in parallel; the manifest commit comes last (see [`crate::job`]).
 
+mod finish;
+
 use crate::blob::Encoding;
 use crate::error::StoreError;
 use crate::id::JobId;
@@ -62,9 +64,8 @@ use serde::{Deserialize, Serialize};
 use vlf_core::field::LightField;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::parts::diffuse_chunks;
-use vlf_core::propagate::specular::MirrorView;
 use vlf_core::propagate::{
-    Checkpoint, IterationStats, MapBatch, Options, Propagation, ShootingState, StateHead, Survey, Totals,
+    Checkpoint, IterationStats, MapBatch, MapKind, Options, Propagation, ShootingState, StateHead, Survey, Totals,
 };
 use vlf_core::scene::{Rgb, Scene};
 
@@ -113,12 +114,6 @@ impl Summary {
             source: vlf_core::Error::Decode(format!("summary of {stage:?}: {e}")),
         })
     }
-}
-
-/// Mirror radiance to store: the views that place it, and its values.
-struct Mirrors<'a> {
-    views: &'a [MirrorView],
-    totals: &'a [Vec<[f32; 3]>],
 }
 
 /// A light-field job in a store: its [`Job`] plus the scene and options it propagates.
@@ -323,24 +318,25 @@ impl FieldJob {
         if self.job.manifest().is_finished(k) {
             return Err(self.job_error(format!("snapshot {k} is already finished")));
         }
-        let parts = p.snapshot_bytes(maps);
-        let writes: Vec<(MapPart, usize, &Vec<u8>)> = (parts.shooting.iter().enumerate())
-            .map(|(b, bytes)| (MapPart::Shooting, b, bytes))
-            .chain(
-                parts
-                    .mirror_totals
-                    .iter()
-                    .enumerate()
-                    .map(|(b, bytes)| (MapPart::Totals, b, bytes)),
-            )
-            .collect();
-        let radiance = (0..parts.mirror_totals.len())
+        let parts = p.snapshot_bytes(false);
+        // Each batch's maps compressed as they are serialised, not all serialised first.
+        let batches = if maps && p.specular.is_some() {
+            p.batching().count()
+        } else {
+            0
+        };
+        let maps = (0..batches)
             .into_par_iter()
-            .map(|b| self.mirror_radiance_put(k, b as u32, &p.mirror_totals_of_batch(b)));
-        let maps = writes
-            .par_iter()
-            .map(|&(part, b, bytes)| self.job.map_part_put(k, part, b as u32, bytes))
-            .chain(radiance)
+            .flat_map_iter(|b| {
+                let put = move |part: MapPart, kind: MapKind| {
+                    self.job.map_part_put(k, part, b as u32, &p.map_batch_bytes(b, kind))
+                };
+                [
+                    put(MapPart::Shooting, MapKind::Shooting),
+                    put(MapPart::Totals, MapKind::Totals),
+                    self.mirror_radiance_put(k, b as u32, &p.mirror_totals_of_batch(b)),
+                ]
+            })
             .collect::<Result<Vec<_>, _>>()?;
         let head = self.job.state_put(k, &parts.head)?;
         let unit = radiance_unit(&self.scene);
@@ -375,31 +371,6 @@ impl FieldJob {
         self.job = committed;
     }
 
-    /// Writes `field` as the job's final field and marks the job finished.
-    pub fn finish(&mut self, field: &LightField, resampled: bool) -> Result<(), StoreError> {
-        let mirrors = field.specular.as_ref().map(|s| Mirrors {
-            views: &s.views,
-            totals: &s.totals,
-        });
-        let unit = radiance_unit(&self.scene);
-        self.write_radiance(Stage::Field, &field.atlas, &field.radiance, mirrors, unit)?;
-        self.write_summary(
-            Stage::Field,
-            &Summary {
-                iterations: field.stats.len() as u32,
-                unshot_fraction: field.unshot_fraction,
-                emitted: field.emitted,
-                resampled,
-                radiance_unit: unit,
-                stats: field.stats.clone(),
-                digest: Some(field.digest()),
-                mirrors_by_direction: true,
-                mirror_radiance_by_batch: false,
-            },
-        )?;
-        self.job.finish()
-    }
-
     /// Marks the job failed with `message` (the blobs written so far stay readable).
     pub fn fail(&mut self, message: String) -> Result<(), StoreError> {
         self.set_state(JobState::Failed { message })
@@ -430,18 +401,51 @@ impl FieldJob {
     /// [`FieldJob::resume`], holding at most `budget` bytes of subfields when one is given
     /// ([`Propagation::with_subfield_budget`]).
     pub fn resume_within(&mut self, budget: Option<usize>) -> Result<Propagation, StoreError> {
-        if self.job.manifest().state == JobState::Finished {
-            return Err(self.job_error("the job is finished; nothing to resume".into()));
-        }
-        let k = self
-            .job
-            .last_finished()
-            .ok_or_else(|| self.job_error("no finished snapshot to resume from".into()))?;
+        let k = self.snapshot_to_resume()?;
         let checkpoint = self.checkpoint(k)?;
         let mut p = self.propagation(budget)?;
         p.restore(checkpoint).map_err(|e| self.field_error(e))?;
         self.job.set_state(JobState::Propagating { iteration: k + 1 })?;
         Ok(p)
+    }
+
+    /// [`FieldJob::resume_within`] for a coordinator, whose workers hold the mirror maps: the
+    /// propagation at the last finished snapshot without them
+    /// ([`Propagation::restore_without_maps`]: the snapshot's head and diffuse totals, none of
+    /// its map parts read), and whether it holds them — they are zeros until an iteration
+    /// shoots them; a snapshot of an earlier build, whose maps are not stored by batch, is
+    /// restored whole.
+    pub fn resume_without_maps(&mut self, budget: Option<usize>) -> Result<(Propagation, bool), StoreError> {
+        let k = self.snapshot_to_resume()?;
+        self.job.check_committed(Stage::Iteration(k))?;
+        self.job.check_resumable(k)?;
+        let mut p = self.propagation(budget)?;
+        let held = match self.released_state(k)? {
+            ReleasedState::Head(head) if head.mirror_totals_by_batch() => {
+                self.of_snapshot(k, head.iterations())?;
+                let totals = self.decode_totals(k, &self.job.get_released_totals(k)?)?;
+                p.restore_without_maps(head, totals.total)
+                    .map_err(|e| self.field_error(e))?
+            }
+            released => {
+                let checkpoint = self.released_checkpoint(k, released)?;
+                p.restore(checkpoint).map_err(|e| self.field_error(e))?;
+                true
+            }
+        };
+        self.job.set_state(JobState::Propagating { iteration: k + 1 })?;
+        Ok((p, held))
+    }
+
+    /// The last finished snapshot, which resuming starts from; an error for a finished job, or
+    /// one with no snapshot yet.
+    fn snapshot_to_resume(&self) -> Result<u32, StoreError> {
+        if self.job.manifest().state == JobState::Finished {
+            return Err(self.job_error("the job is finished; nothing to resume".into()));
+        }
+        self.job
+            .last_finished()
+            .ok_or_else(|| self.job_error("no finished snapshot to resume from".into()))
     }
 
     /// The exact checkpoint of finished snapshot `k`: its parts joined (or the whole checkpoint
@@ -640,35 +644,6 @@ impl FieldJob {
         self.job.put_summary(stage, &json)
     }
 
-    /// Writes every diffuse map and the mirror radiance of every direction of `stage`, in
-    /// parallel.
-    ///
-    /// A direction's mirror radiance is one blob, its slots tile after tile, although a viewer
-    /// needs only the tiles it sees of it: the 2 781 492 mirror slots of the mirror scene at
-    /// l = 2049, N = 128 lie in 69 467 tiles, a few hundred bytes each once encoded, and writing
-    /// that many objects (a PUT each on an object store, a file each on disk) cost more than
-    /// the field's propagation; one per direction is 2 049 blobs of 6.6 kB on average, which a
-    /// viewer fetches as quickly as one tile, and keeps.
-    fn write_radiance(
-        &self,
-        stage: Stage,
-        atlas: &TexelAtlas,
-        radiance: &[[f32; 3]],
-        mirrors: Option<Mirrors>,
-        unit: f64,
-    ) -> Result<(), StoreError> {
-        write_diffuse(&self.job, stage, atlas, radiance, unit)?;
-        let Some(m) = mirrors else {
-            return Ok(());
-        };
-        let lit: Vec<usize> = (0..m.views.len()).filter(|&d| m.views[d].slots() > 0).collect();
-        self.job.put_encoded(&lit, |&d| {
-            let values = scaled(&m.totals[d], unit);
-            self.job
-                .direction_put(stage, d as u32, &[m.totals[d].len() as u32, 3], &values)
-        })
-    }
-
     /// A blob whose shape does not fit the rebuilt geometry: an error naming its key.
     pub(crate) fn check_shape(
         &self,
@@ -703,7 +678,7 @@ impl FieldJob {
 }
 
 /// Radiance values divided by the stored unit, flattened.
-fn scaled(v: &[[f32; 3]], unit: f64) -> Vec<f32> {
+pub(crate) fn scaled(v: &[[f32; 3]], unit: f64) -> Vec<f32> {
     let scale = (1.0 / unit) as f32;
     v.as_flattened().iter().map(|&x| x * scale).collect()
 }
@@ -722,9 +697,9 @@ impl FieldJob {
     /// the bytes in `f16`; and every snapshot renders from these, so it renders the same bits
     /// before and after it is compacted. Rounded to `f32` and scaled as the final field's mirror
     /// radiance is, so that the last snapshot's mirrors are the field's to the bit.
-    pub fn mirror_radiance_put(&self, k: u32, batch: u32, totals: &[&[Rgb]]) -> Result<Put, StoreError> {
+    pub fn mirror_radiance_put(&self, k: u32, batch: u32, totals: &[impl AsRef<[Rgb]>]) -> Result<Put, StoreError> {
         let scale = (1.0 / radiance_unit(&self.scene)) as f32;
-        let values: Vec<f32> = (totals.iter().flat_map(|d| d.iter()))
+        let values: Vec<f32> = (totals.iter().flat_map(|d| d.as_ref().iter()))
             .flat_map(|t| t.map(|c| c as f32 * scale))
             .collect();
         let slots = (values.len() / 3) as u32;
@@ -733,7 +708,7 @@ impl FieldJob {
 }
 
 /// Writes every chunk of diffuse maps of `stage`, in parallel.
-fn write_diffuse(
+pub(crate) fn write_diffuse(
     job: &Job,
     stage: Stage,
     atlas: &TexelAtlas,

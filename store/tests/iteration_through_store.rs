@@ -7,6 +7,7 @@
 #[macro_use]
 mod suite;
 
+use std::collections::BTreeSet;
 use suite::Opener;
 use vlf_core::propagate::{Checkpoint, Options, Pass, Perturbation, Propagation, Stop};
 use vlf_core::psf::GridSize;
@@ -687,6 +688,10 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     let (l, mirrors) = (p.directions.len() as u64, p.specular.is_some());
     let all = p.subfields.memory().live;
     let largest = p.subfields.map(|_, s| s.memory_bytes()).into_iter().max().unwrap();
+    // Bytes of one mirror map of each direction.
+    let map_bytes: Vec<usize> = (0..l as usize)
+        .map(|d| p.specular.as_ref().map_or(0, |s| s.slots(d) * 24))
+        .collect();
     let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
     let id = job.id().clone();
     drop(p);
@@ -703,26 +708,73 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
         assert_eq!(built, 0, "set-up built {built} subfields (mirrors: {mirrors})");
     }
     let mut builds_after_first = Vec::new();
+    let mut most_maps = vec![0usize; workers.len()];
+    let coordinator_maps = |c: &Coordinator| c.propagation().specular.as_ref().map_or(0, |s| s.held_bytes());
     while !coordinator.finished() {
         let k = coordinator.iteration();
+        assert_eq!(coordinator_maps(&coordinator), 0, "the coordinator holds mirror maps");
         while let Some((pass, batches)) = coordinator.pending_pass() {
             // Homes of contiguous batches: 3, 3 and 2 of 8.
+            let homes: Vec<Vec<usize>> = (0..workers.len())
+                .map(|w| (0..batches).filter(|b| b * 3 / batches == w).collect())
+                .collect();
+            // The directions a worker's leases shoot, and those they gather from: found from the
+            // coordinator's state, not from what the workers did.
+            let prop = coordinator.propagation();
+            let (work, batching) = (prop.iteration_work(), prop.batching());
+            let reads: Vec<(BTreeSet<usize>, BTreeSet<usize>)> = (homes.iter())
+                .map(|home| {
+                    let own: BTreeSet<usize> = home.iter().flat_map(|&b| batching.range(b)).collect();
+                    let read = (home.iter())
+                        .flat_map(|&b| prop.mirror_batches_read(&work, pass, b..b + 1).unwrap().0)
+                        .flat_map(|b| batching.range(b))
+                        .filter(|d| !own.contains(d))
+                        .collect();
+                    (own, read)
+                })
+                .collect();
             std::thread::scope(|s| {
-                for (w, worker) in workers.iter_mut().enumerate() {
-                    let home: Vec<usize> = (0..batches).filter(|b| b * 3 / batches == w).collect();
+                for (worker, home) in workers.iter_mut().zip(&homes) {
                     s.spawn(move || {
-                        for b in home {
+                        for &b in home {
                             worker.compute(k, pass, b..b + 1).unwrap();
                         }
                     });
                 }
             });
+            // A worker holds the maps of the directions it shoots (its shooting and total maps
+            // restored, those it computed for the next snapshot), and the arrivals of those it
+            // gathers from; none of any other direction.
+            for (w, (worker, (own, read))) in workers.iter().zip(&reads).enumerate() {
+                let held = worker.held_maps();
+                let others: Vec<&usize> = (held.directions.iter())
+                    .filter(|d| !own.contains(d) && !read.contains(d))
+                    .collect();
+                assert!(others.is_empty(), "worker {w} holds the maps of directions {others:?}");
+                let bound: usize = own.iter().map(|&d| 3 * map_bytes[d]).sum::<usize>()
+                    + read.iter().map(|&d| map_bytes[d]).sum::<usize>();
+                assert!(
+                    held.bytes <= bound,
+                    "worker {w}: {} bytes of maps, over {bound}",
+                    held.bytes
+                );
+                most_maps[w] = most_maps[w].max(held.bytes);
+            }
             coordinator.absorb_pass().unwrap();
         }
         coordinator.finish_iteration().unwrap();
         if k == 0 {
             builds_after_first = workers.iter().map(|w| w.subfield_memory().builds).collect();
         }
+    }
+    assert_eq!(coordinator_maps(&coordinator), 0, "the coordinator holds mirror maps");
+    let whole: usize = map_bytes.iter().sum();
+    for (w, &most) in most_maps.iter().enumerate() {
+        assert_eq!(most > 0, mirrors, "worker {w} held {most} bytes of maps");
+        assert!(
+            !mirrors || most < 3 * whole,
+            "worker {w} held every direction's maps: {most} bytes"
+        );
     }
     let job = coordinator.finish(false).unwrap();
     assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));

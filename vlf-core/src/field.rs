@@ -165,34 +165,9 @@ impl LightField {
     /// directions' hashes hashed in order, so the digest does not depend on the thread count.
     pub fn digest(&self) -> String {
         use rayon::prelude::*;
-        use sha2::{Digest, Sha256};
-        fn values(h: &mut Sha256, v: &[[f32; 3]]) {
-            h.update((v.len() as u64).to_le_bytes());
-            let mut buf = Vec::with_capacity(12 * 1024);
-            for chunk in v.chunks(1024) {
-                buf.clear();
-                buf.extend(chunk.iter().flatten().flat_map(|c| c.to_le_bytes()));
-                h.update(&buf);
-            }
-        }
-        let mut h = Sha256::new();
-        h.update(b"vlf field digest 1");
-        h.update((self.stats.len() as u64).to_le_bytes());
-        values(&mut h, &self.radiance);
-        if let Some(spec) = &self.specular {
-            let directions: Vec<[u8; 32]> = (spec.totals.par_iter())
-                .map(|t| {
-                    let mut d = Sha256::new();
-                    values(&mut d, t);
-                    d.finalize().into()
-                })
-                .collect();
-            h.update((directions.len() as u64).to_le_bytes());
-            for d in &directions {
-                h.update(d);
-            }
-        }
-        h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+        let mirrors: Option<Vec<[u8; 32]>> =
+            (self.specular.as_ref()).map(|spec| spec.totals.par_iter().map(|t| mirror_digest(t)).collect());
+        digest_of(self.stats.len(), &self.radiance, mirrors.as_deref())
     }
 
     /// Outgoing diffuse radiance of `surface` at point `p` (VLF frame),
@@ -287,11 +262,9 @@ impl Propagation {
     /// and mirror slot (`None` without specular machinery).
     pub fn mirror_totals(&self) -> Option<Vec<Vec<[f32; 3]>>> {
         self.specular.as_ref().map(|s| {
-            s.maps
-                .iter()
-                .map(|m| {
-                    m.total
-                        .iter()
+            (0..s.maps.len())
+                .map(|d| {
+                    (s.map_or_zeros(d, |m| &m.total).iter())
                         .map(|t| [t[0] as f32, t[1] as f32, t[2] as f32])
                         .collect()
                 })
@@ -341,5 +314,44 @@ fn fill_holes(atlas: &TexelAtlas, covered: &[bool], radiance: &mut [[f32; 3]]) {
                 break;
             }
         }
+    }
+}
+
+/// [`LightField::digest`] from its parts: the number of iterations, the diffuse radiance and,
+/// with mirrors, every direction's [`mirror_digest`] in order. For whoever writes a field
+/// without holding all of it (a coordinator streams the mirror totals from the last
+/// snapshot's parts, a batch of directions at a time): the same string.
+pub fn digest_of(iterations: usize, radiance: &[[f32; 3]], mirrors: Option<&[[u8; 32]]>) -> String {
+    use sha2::{Digest, Sha256};
+    let mut h = Sha256::new();
+    h.update(b"vlf field digest 1");
+    h.update((iterations as u64).to_le_bytes());
+    hash_values(&mut h, radiance);
+    if let Some(directions) = mirrors {
+        h.update((directions.len() as u64).to_le_bytes());
+        for d in directions {
+            h.update(d);
+        }
+    }
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// The hash of one direction's mirror totals in [`LightField::digest`].
+pub fn mirror_digest(totals: &[[f32; 3]]) -> [u8; 32] {
+    use sha2::{Digest, Sha256};
+    let mut d = Sha256::new();
+    hash_values(&mut d, totals);
+    d.finalize().into()
+}
+
+/// Feeds `v` to `h`: its length, then every value's `f32` bits little-endian.
+fn hash_values(h: &mut sha2::Sha256, v: &[[f32; 3]]) {
+    use sha2::Digest;
+    h.update((v.len() as u64).to_le_bytes());
+    let mut buf = Vec::with_capacity(12 * 1024);
+    for chunk in v.chunks(1024) {
+        buf.clear();
+        buf.extend(chunk.iter().flatten().flat_map(|c| c.to_le_bytes()));
+        h.update(&buf);
     }
 }

@@ -9,8 +9,8 @@ mod common;
 use common::*;
 use std::collections::HashMap;
 use vlf_core::propagate::{
-    BatchOutput, Checkpoint, HomeThreads, MapBatch, Options, Pass, Propagation, ShootingState, StateHead, Stop, Totals,
-    reduce,
+    BatchOutput, Checkpoint, HomeThreads, MapBatch, MapKind, Options, Pass, Propagation, ShootingState, StateHead,
+    Stop, Totals, reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -140,8 +140,9 @@ fn run_distributed_in_blocks(
                 let (out, block) = replicas[w].compute_block(&works[w], pass, blocks[b].clone()).unwrap();
                 if let Some(block) = block {
                     blocks_of_maps.push(block.clone());
-                    for (b, s, t) in block.batch_bytes(main.batching()) {
-                        maps.put(k + 1, b as usize, s, t);
+                    for b in block.batches.clone() {
+                        let bytes = |kind| block.batch_bytes(main.batching(), b, kind);
+                        maps.put(k + 1, b as usize, bytes(MapKind::Shooting), bytes(MapKind::Totals));
                     }
                 }
                 stored.insert((pass, blocks[b].start), out.to_bytes());
@@ -456,9 +457,14 @@ fn a_perturbed_iteration_lists_every_copys_areas_first_and_learns_only_areas() {
 
 #[test]
 fn out_of_order_and_foreign_batches_are_refused() {
-    let p = Propagation::new(mirror_room(), options(0)).unwrap();
+    let mut p = Propagation::new(mirror_room(), options(0)).unwrap();
     let mut work = p.iteration_work();
     assert_eq!(work.passes(), vec![Pass::Shoot]);
+    // Maps never written are not held (their zeros are allocated when first written): refused.
+    let mut maps = p.specular.as_ref().unwrap().maps[16..32].to_vec();
+    let err = p.run_batch(&work, Pass::Shoot, 1, Some(&mut maps)).unwrap_err();
+    assert!(err.to_string().contains("not held"), "{err}");
+    p.specular.as_mut().unwrap().hold_zeros(16..32);
     let mut maps = p.specular.as_ref().unwrap().maps[16..32].to_vec();
     let sum = p.run_batch(&work, Pass::Shoot, 1, Some(&mut maps)).unwrap();
     // Batch 1 before batch 0; a block that is not a node of the tree.

@@ -7,8 +7,9 @@ use common::*;
 use glam::DVec3;
 use std::f64::consts::PI;
 use vlf_core::propagate::specular::MirrorLayout;
-use vlf_core::propagate::{Options, Propagation, Stop};
+use vlf_core::propagate::{MapBatch, Options, Pass, Propagation, StateHead, Stop};
 use vlf_core::psf::GridSize;
+use vlf_core::scene::Scene;
 
 fn lum(c: &[f64; 3]) -> f64 {
     c.iter().sum::<f64>() / 3.0
@@ -233,8 +234,9 @@ fn unreachable_mirror_gets_no_maps() {
 
 /// A mirror beside the lamp, facing the same way, sees only what the lamp
 /// lights: it is first lit in iteration 1 and iteration 0 does no mirror work.
-#[test]
-fn mirror_work_starts_when_light_can_reach_a_mirror() {
+/// A lamp and a mirror side by side, facing a wall: light reaches the mirror only in the second
+/// iteration (lamp → wall → mirror).
+fn lamp_beside_a_mirror() -> Scene {
     let lamp = rect(
         DVec3::new(-0.5, 0.0, -0.2),
         DVec3::Y * 0.15,
@@ -250,15 +252,19 @@ fn mirror_work_starts_when_light_can_reach_a_mirror() {
         2,
     );
     let wall = rect(DVec3::new(0.4, 0.0, 0.0), DVec3::Y * 0.5, DVec3::Z * 0.5, -DVec3::X, 0);
-    let scene = scene(
+    scene(
         vec![lamp, glass, wall],
         vec![
             material("wall", 0.5, 0.0),
             material("lamp", 0.0, 1.0),
             mirror("glass", 0.0, 0.9),
         ],
-    );
-    let mut p = Propagation::new(scene, options(129, 32, 8, 3)).unwrap();
+    )
+}
+
+#[test]
+fn mirror_work_starts_when_light_can_reach_a_mirror() {
+    let mut p = Propagation::new(lamp_beside_a_mirror(), options(129, 32, 8, 3)).unwrap();
     assert_eq!(p.plan.lit_mirrors, vec![(1, 1)]);
     p.run(|_| {});
     assert_eq!(p.stats[0].exchange, Default::default());
@@ -431,5 +437,63 @@ fn a_mirror_reflects_the_same_power_however_it_is_tessellated() {
             "iteration {}: reflected {u} (one quad) against {v} (256 quads)",
             s.index
         );
+    }
+}
+
+/// A process allocates a direction's mirror maps where it writes or reads them, no sooner: a
+/// new propagation holds none (a snapshot of them holds their zeros), one process stepping
+/// through the propagation holds every direction's from the first iteration that shoots them,
+/// and a propagation restored without its maps (a coordinator's) holds none and computes no
+/// block until they are restored — an error, not zeros.
+#[test]
+fn mirror_maps_are_held_where_they_are_written() {
+    let mut p = Propagation::new(lamp_beside_a_mirror(), options(129, 32, 8, 4)).unwrap();
+    let spec = p.specular.as_ref().unwrap();
+    let l = p.directions.len();
+    let slots: Vec<usize> = (0..l).map(|d| spec.slots(d)).collect();
+    let all_slots: usize = slots.iter().sum();
+    assert!(all_slots > 0);
+    assert_eq!(spec.held_bytes(), 0, "a new propagation allocated mirror maps");
+    assert!(spec.holds_all(), "the maps never written are zeros, here");
+    let fresh = p.snapshot_bytes(true);
+    for bytes in fresh.shooting.iter().chain(&fresh.mirror_totals) {
+        let part = MapBatch::from_bytes(bytes).unwrap();
+        for (d, map) in p.batching().range(part.batch as usize).zip(&part.maps) {
+            assert_eq!(map.len(), slots[d], "direction {d}");
+            assert!(map.iter().flatten().all(|&c| c == 0.0));
+        }
+    }
+    let first_lit = p.plan.first_mirror_iteration().unwrap();
+    assert!(first_lit > 0);
+    let heads: Vec<(StateHead, Vec<[f64; 3]>)> = (0..4)
+        .map(|k| {
+            let held = p.specular.as_ref().unwrap().held_bytes();
+            if k <= first_lit {
+                assert_eq!(held, 0, "maps allocated before iteration {k} shot them");
+            } else {
+                assert_eq!(held, 3 * 24 * all_slots, "after iteration {k}");
+            }
+            let head = StateHead::from_bytes(&p.snapshot_bytes(false).head).unwrap();
+            let total = p.checkpoint().split().1.total;
+            p.step(|_| {});
+            (head, total)
+        })
+        .collect();
+    // Restored without its maps: zeros until an iteration shot them, elsewhere after.
+    for (k, (head, total)) in heads.into_iter().enumerate() {
+        let mut r = Propagation::new(lamp_beside_a_mirror(), options(129, 32, 8, 4)).unwrap();
+        let zeros = r.restore_without_maps(head, total).unwrap();
+        assert_eq!(zeros, k as u32 <= first_lit, "snapshot {k}");
+        let spec = r.specular.as_ref().unwrap();
+        assert_eq!(spec.held_bytes(), 0);
+        assert_eq!(spec.holds_all(), zeros);
+        let work = r.iteration_work();
+        let computed = r.compute_block(&work, Pass::Shoot, 0..1);
+        if zeros {
+            computed.unwrap();
+        } else {
+            let err = computed.unwrap_err().to_string();
+            assert!(err.contains("not restored"), "{err}");
+        }
     }
 }

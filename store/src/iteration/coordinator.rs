@@ -74,9 +74,15 @@ impl Coordinator {
 
     /// [`Coordinator::resume`], holding at most `budget` bytes of subfields when one is given
     /// (a coordinator reads them only to set the job up and, with mirrors, to write the field).
+    ///
+    /// The mirror maps are not read back: its workers read them from the snapshot, and until an
+    /// iteration shoots them they are zeros ([`FieldJob::resume_without_maps`]).
     pub fn resume_within(mut job: FieldJob, budget: Option<usize>) -> Result<Coordinator, StoreError> {
-        let prop = job.resume_within(budget)?;
-        Ok(Coordinator::new(job, prop))
+        let (prop, maps_held) = job.resume_without_maps(budget)?;
+        Ok(Coordinator {
+            maps_held,
+            ..Coordinator::new(job, prop)
+        })
     }
 
     /// Coordinates `job` from `prop`, which must be the job's propagation at its last finished
@@ -313,8 +319,15 @@ impl Coordinator {
     }
 
     /// Writes the final field and marks the job finished: the mirror totals come from the last
-    /// snapshot's parts, where the workers wrote them.
+    /// snapshot's parts, where the workers wrote them — streamed from there a few batches at a
+    /// time ([`FieldJob::finish_from_snapshot`]), or, to re-sample them (which reads the whole
+    /// field), restored whole first.
     pub fn finish(mut self, resample: bool) -> Result<FieldJob, StoreError> {
+        if self.prop.specular.is_some() && !self.maps_held && !resample {
+            self.job.finish_from_snapshot(&self.prop)?;
+            sweep_work(&self.job);
+            return Ok(self.job);
+        }
         if self.prop.specular.is_some() && !self.maps_held {
             let k = self.iteration();
             let all: Vec<usize> = (0..self.prop.batching().count()).collect();

@@ -13,7 +13,7 @@ use std::collections::HashSet;
 use std::ops::Range;
 use std::time::Instant;
 use vlf_core::propagate::reduce::RunOutputs;
-use vlf_core::propagate::{BatchOutput, IterationWork, MapBatch, MirrorBlock, Pass, Propagation};
+use vlf_core::propagate::{BatchOutput, IterationWork, MapBatch, MapKind, MirrorBlock, Pass, Propagation};
 
 /// A worker's copy of a job's propagation: the geometry is built once; each iteration restores
 /// the state from the store — except the mirror maps this replica computed itself, which it
@@ -87,6 +87,15 @@ impl ReadAhead {
     }
 }
 
+/// The mirror maps a replica holds ([`Replica::held_maps`]).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct HeldMaps {
+    /// Bytes of their values.
+    pub bytes: usize,
+    /// The directions whose maps they are.
+    pub directions: std::collections::BTreeSet<usize>,
+}
+
 struct Current {
     k: u32,
     work: IterationWork,
@@ -124,6 +133,29 @@ impl Replica {
         self.prop.subfields.memory()
     }
 
+    /// The mirror maps this replica holds now: those restored into its propagation, those of
+    /// the blocks it computed for the next snapshot, and the parts it read ahead. Those of the
+    /// directions its leases shoot and gather from, not of the whole field
+    /// ([`vlf_core::propagate::specular::Unheld`]).
+    pub fn held_maps(&self) -> HeldMaps {
+        let mut held = HeldMaps::default();
+        if let Some(spec) = &self.prop.specular {
+            held.bytes += spec.held_bytes();
+            held.directions.extend(spec.held_directions());
+        }
+        let batching = self.prop.batching();
+        for block in &self.held {
+            held.bytes += block.bytes();
+            let (first, end) = (block.batches.start as usize, block.batches.end as usize);
+            held.directions.extend(batching.directions_of(first..end));
+        }
+        for (_, part) in self.ahead.iter().flat_map(|a| &a.maps) {
+            held.bytes += part.bytes();
+            held.directions.extend(batching.range(part.batch as usize));
+        }
+        held
+    }
+
     /// A replica of `job` over `prop`, a propagation of the same scene and options (built by
     /// someone else in this process: the geometry is not built twice). Its state is restored
     /// from the store before every iteration, so what it holds now does not matter.
@@ -146,10 +178,15 @@ impl Replica {
     /// `prop.iterations_done()` — as a coordinator in this process holds it when it takes the job
     /// up ([`Prototypes`](super::Prototypes)): the iteration from that snapshot reads nothing of it from the store
     /// (the same bits: the snapshot was written from that state).
+    ///
+    /// A propagation whose mirror maps are elsewhere (a coordinator whose workers shot them)
+    /// holds only part of the snapshot: the replica then reads the maps from the store as any
+    /// other does.
     pub fn at_snapshot(job: FieldJob, prop: Propagation) -> Replica {
         let k = prop.iterations_done();
+        let whole = prop.specular.as_ref().is_none_or(|s| s.holds_all());
         Replica {
-            holds_snapshot: Some(k),
+            holds_snapshot: whole.then_some(k),
             ..Replica::with_propagation(job, prop)
         }
     }
@@ -439,13 +476,16 @@ impl Replica {
             // The block took its directions' totals with it: computing it again reads them.
             batches.for_each(|b| current.totals[b] = false);
             let (job, batching) = (self.job.job(), self.prop.batching());
-            let radiance = block.batch_totals(batching);
-            let puts = (block.batch_bytes(batching).par_iter().zip(&radiance))
-                .flat_map_iter(|((b, shooting, totals), (_, maps))| {
+            // Each batch's parts compressed as they are serialised, not all serialised first.
+            let puts = (block.batches.clone().into_par_iter())
+                .flat_map_iter(|b| {
+                    let put = |part: MapPart, kind: MapKind| {
+                        job.map_part_put(k + 1, part, b, &block.batch_bytes(batching, b, kind))
+                    };
                     [
-                        job.map_part_put(k + 1, MapPart::Shooting, *b, shooting),
-                        job.map_part_put(k + 1, MapPart::Totals, *b, totals),
-                        self.job.mirror_radiance_put(k + 1, *b, maps),
+                        put(MapPart::Shooting, MapKind::Shooting),
+                        put(MapPart::Totals, MapKind::Totals),
+                        self.job.mirror_radiance_put(k + 1, b, &block.batch_totals(batching, b)),
                     ]
                 })
                 .collect::<Result<Vec<_>, _>>()?;

@@ -12,6 +12,7 @@
 
 use super::Propagation;
 use super::reduce::is_aligned_block;
+use super::specular::Unheld;
 use super::work::{BatchOutput, IterationWork, MirrorBlock, MirrorIo, Pass, add_into};
 use crate::scene::Rgb;
 use rayon::prelude::*;
@@ -58,6 +59,7 @@ impl Propagation {
         batches: Range<usize>,
     ) -> crate::Result<(BatchOutput, Option<MirrorBlock>, Vec<f64>)> {
         let directions = self.block_directions(work, &batches)?;
+        self.hold_block_maps(work, pass, directions.clone())?;
         let (output, sent, costs) = self.shoot_block(work, pass, batches, directions.clone())?;
         let Some((unshot, incident)) = sent else {
             return Ok((output, None, costs));
@@ -71,7 +73,10 @@ impl Propagation {
         let total = directions
             .zip(&unshot)
             .map(|(d, u)| {
-                let mut t = std::mem::take(&mut spec.maps[d].total);
+                let maps = &mut spec.maps[d];
+                let mut t = std::mem::take(&mut maps.total);
+                // The block holds it now: not zeros, whatever the direction's other maps are.
+                maps.unheld = Unheld::Elsewhere;
                 add_into(&mut t, u);
                 t
             })
@@ -88,6 +93,39 @@ impl Propagation {
             total,
         };
         Ok((output, Some(block), costs))
+    }
+
+    /// Makes sure the maps that shooting `directions` in `pass` reads are here, when the pass
+    /// shoots mirror maps: the block's totals, and what it shoots from — its unshot maps, or
+    /// while arrivals are pending those of the directions it gathers from
+    /// ([`super::Specular::sources`]). Maps never written are zeros, allocated now (a replica of
+    /// a new job's snapshot); one elsewhere that was not restored is an error, not zeros.
+    fn hold_block_maps(&mut self, work: &IterationWork, pass: Pass, directions: Range<usize>) -> crate::Result<()> {
+        let spec = match (self.specular.as_mut(), pass, work.uses_mirror_maps()) {
+            (Some(spec), Pass::Shoot, true) => spec,
+            _ => return Ok(()),
+        };
+        let (read, what) = match &spec.pending {
+            Some(p) => (spec.sources(directions.clone(), &p.power_in), "arrival map"),
+            None => (directions.clone().collect(), "unshot map"),
+        };
+        spec.hold_zeros(directions.clone().chain(read.iter().copied()));
+        if let Some(d) = directions.clone().find(|&d| !spec.holds(d, &spec.maps[d].total)) {
+            return Err(crate::Error::Parameter(format!(
+                "the mirror totals of direction {d} are not restored (a block computed before took them)"
+            )));
+        }
+        let pending = spec.pending.is_some();
+        let held = |d: usize| match pending {
+            true => spec.holds(d, &spec.maps[d].incident),
+            false => spec.holds(d, &spec.maps[d].unshot),
+        };
+        match read.into_iter().find(|&d| !held(d)) {
+            Some(d) => Err(crate::Error::Parameter(format!(
+                "the mirror {what} of direction {d} is not restored"
+            ))),
+            None => Ok(()),
+        }
     }
 
     /// The shooting of [`Propagation::compute_block`], which reads the state
@@ -109,13 +147,6 @@ impl Propagation {
             (Some(spec), Pass::Shoot, true) => Some(spec),
             _ => None,
         };
-        if let Some(spec) = spec
-            && let Some(d) = directions.clone().find(|&d| spec.maps[d].total.len() != spec.slots(d))
-        {
-            return Err(crate::Error::Parameter(format!(
-                "the mirror totals of direction {d} are not restored (a block computed before took them)"
-            )));
-        }
         let (scene, dirs) = (&self.scene, &self.directions);
         let unshot: Option<Vec<Cow<[Rgb]>>> = spec.map(|spec| match &spec.pending {
             Some(pending) => {

@@ -74,7 +74,7 @@ impl DensePending {
                     .collect()
             })
             .collect();
-        Pending { power_in }
+        Pending::new(power_in)
     }
 
     /// `pending` with a value for each of `mirrors` mirrors.
@@ -350,11 +350,11 @@ impl Propagation {
             current: self.current.clone(),
             total: self.total.clone(),
             mirrors: self.specular.as_ref().map(|s| {
-                s.maps
-                    .iter()
-                    .map(|m| DirectionCheckpoint {
-                        shooting: m.shooting(s.pending.is_some()).to_vec(),
-                        total: m.total.clone(),
+                let pending = s.pending.is_some();
+                (0..s.maps.len())
+                    .map(|d| DirectionCheckpoint {
+                        shooting: s.map_or_zeros(d, |m| m.shooting(pending)).into_owned(),
+                        total: s.map_or_zeros(d, |m| &m.total).into_owned(),
                     })
                     .collect()
             }),
@@ -409,9 +409,46 @@ impl Propagation {
         if let (Some(spec), Some(maps)) = (&mut self.specular, totals.mirrors) {
             for (own, saved) in spec.maps.iter_mut().zip(maps) {
                 own.total = saved;
+                // Every map is restored or cleared: those not held are zeros.
+                own.unheld = super::specular::Unheld::Zero;
             }
         }
         Ok(())
+    }
+
+    /// Replaces this propagation's state by snapshot `head` and its diffuse totals `total`
+    /// (of the same scene and options), keeping the geometry, without its mirror maps: what a
+    /// coordinator resumes from, whose workers read and write the maps. Those are left where
+    /// they are — zeros, when no iteration so far shot any (`Ok(true)`: the coordinator then
+    /// writes them into the snapshots until one does), else in the snapshot's parts
+    /// (`Ok(false)`, [`super::specular::Unheld::Elsewhere`]). Whole, the maps were three times
+    /// the field's mirror totals in the coordinator's memory (the mirror scene at l = 8193,
+    /// N = 256: 2.1 GB read back, decoded and held only to be let go after the next iteration).
+    /// On error the state is unchanged.
+    pub fn restore_without_maps(&mut self, head: super::StateHead, total: Vec<Rgb>) -> crate::Result<bool> {
+        if total.len() != self.atlas.texels {
+            return misfit(format!(
+                "{} total texel values for {} texels",
+                total.len(),
+                self.atlas.texels
+            ));
+        }
+        if !valid(&total) {
+            return misfit("negative or non-finite power".into());
+        }
+        let iterations = head.iterations();
+        self.restore_head(head)?;
+        self.total = total;
+        // Before the first iteration light can reach a mirror, no iteration uses the maps
+        // (`iteration_work`): they are the zeros they started as.
+        let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
+        let zeros = iterations <= first_lit;
+        if zeros && let Some(spec) = self.specular.as_mut() {
+            spec.maps
+                .iter_mut()
+                .for_each(|m| m.unheld = super::specular::Unheld::Zero);
+        }
+        Ok(zeros)
     }
 
     /// Replaces the state that shooting reads — the statistics, Current,

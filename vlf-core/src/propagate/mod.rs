@@ -59,7 +59,7 @@ pub mod work;
 pub use checkpoint::{Checkpoint, ShootingState, Totals};
 pub use plan::Plan;
 pub use shoot::Flow;
-pub use snapshot::{MapBatch, SnapshotBytes, StateHead};
+pub use snapshot::{MapBatch, MapKind, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
 pub use split::{HomeThreads, split_by_cost};
 pub use survey::{Survey, SurveyPart, SurveyParts, Surveyor};
@@ -686,9 +686,18 @@ impl Propagation {
     /// The mirror maps an iteration's shooting reads and writes, taken out of the propagation,
     /// when `work` uses them: the last iteration's arrivals gathered first (the exchange, see
     /// `specular::Pending`).
+    ///
+    /// One process shooting every direction holds every direction's maps: those it never wrote
+    /// are zeros, allocated now ([`Specular::hold_zeros`]). A propagation whose maps are
+    /// elsewhere (a coordinator's, a worker's replica) computes blocks instead, and never steps.
     fn gathered_maps(&mut self, work: &IterationWork) -> Option<Vec<specular::DirectionMaps>> {
         match (&mut self.specular, work.uses_mirror_maps()) {
             (Some(spec), true) => {
+                assert!(
+                    spec.holds_all(),
+                    "a propagation whose mirror maps are elsewhere cannot step"
+                );
+                spec.hold_zeros(0..self.directions.len());
                 spec.gather_all(&self.scene, &self.directions);
                 Some(std::mem::take(&mut spec.maps))
             }
@@ -741,9 +750,8 @@ impl Propagation {
         // `Specular::unshot_power`): computed once, as settling walks every route.
         let (exchange, settled) = match self.specular.as_mut() {
             Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
-                let power_in = std::mem::take(&mut work.power_in);
-                let exchange = spec.settle(scene, &power_in);
-                spec.pending = Some(specular::Pending { power_in });
+                spec.pending = Some(specular::Pending::new(std::mem::take(&mut work.power_in)));
+                let exchange = spec.settled(scene).expect("arrivals pending");
                 (exchange, true)
             }
             _ => (Exchange::default(), false),

@@ -39,6 +39,7 @@ use crate::error::Error;
 use crate::scene::Rgb;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
 
 /// What every lease of the next iteration reads of a snapshot.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -84,6 +85,13 @@ pub struct MapBatch {
     pub batch: u32,
     /// Per direction of the batch, in order, its map.
     pub maps: Vec<Vec<Rgb>>,
+}
+
+impl MapBatch {
+    /// Bytes of the maps it holds.
+    pub fn bytes(&self) -> usize {
+        self.maps.iter().map(Vec::capacity).sum::<usize>() * std::mem::size_of::<Rgb>()
+    }
 }
 
 impl StateHead {
@@ -247,44 +255,46 @@ impl Totals {
 }
 
 impl MirrorBlock {
-    /// The block's total maps, per batch: its number and its directions' maps, in order (what
-    /// the batch's mirror radiance is made of).
-    pub fn batch_totals(&self, batching: Batching) -> Vec<(u32, Vec<&[Rgb]>)> {
-        let first = batching.range(self.batches.start as usize).start;
-        (self.batches.clone())
-            .map(|b| {
-                let range = batching.range(b as usize);
-                let maps = self.total[range.start - first..range.end - first]
-                    .iter()
-                    .map(Vec::as_slice);
-                (b, maps.collect())
-            })
-            .collect()
+    /// The total maps of batch `b`, one of the block's: its directions' maps, in order (what the
+    /// batch's mirror radiance is made of).
+    pub fn batch_totals(&self, batching: Batching, b: u32) -> Vec<&[Rgb]> {
+        self.total[self.local(batching, b)].iter().map(Vec::as_slice).collect()
     }
 
-    /// The block's parts of the next snapshot, serialised in parallel: per
-    /// batch, its number and the [`MapBatch::to_bytes`] of its shooting maps
-    /// and of its totals (from the block's maps, without copying them).
-    pub fn batch_bytes(&self, batching: Batching) -> Vec<(u32, Vec<u8>, Vec<u8>)> {
-        let first = batching.range(self.batches.start as usize).start;
-        self.batches
-            .clone()
-            .into_par_iter()
-            .map(|b| {
-                let range = batching.range(b as usize);
-                let range = range.start - first..range.end - first;
-                let part = |maps: &[Vec<Rgb>]| {
-                    encode(&MapBatchRef {
-                        version: SPLIT_VERSION,
-                        iterations: self.iterations,
-                        batch: b,
-                        maps: maps[range.clone()].iter().map(Vec::as_slice).collect(),
-                    })
-                };
-                (b, part(&self.shooting), part(&self.total))
-            })
-            .collect()
+    /// The block's part of the next snapshot for batch `b`, one of the block's: the
+    /// [`MapBatch::to_bytes`] of its maps of `kind`, from the block's maps without copying them.
+    /// A batch at a time, so that whoever stores them compresses each as it is serialised: a
+    /// block may be a worker's whole home, and all its batches serialised at once were 1.07 GB
+    /// for each of two workers of the mirror scene at l = 8193, N = 256.
+    pub fn batch_bytes(&self, batching: Batching, b: u32, kind: MapKind) -> Vec<u8> {
+        let maps = match kind {
+            MapKind::Shooting => &self.shooting,
+            MapKind::Totals => &self.total,
+        };
+        encode(&MapBatchRef {
+            version: SPLIT_VERSION,
+            iterations: self.iterations,
+            batch: b,
+            maps: maps[self.local(batching, b)].iter().map(Vec::as_slice).collect(),
+        })
     }
+
+    /// Where batch `b`'s directions are among the block's.
+    fn local(&self, batching: Batching, b: u32) -> std::ops::Range<usize> {
+        let first = batching.range(self.batches.start as usize).start;
+        let range = batching.range(b as usize);
+        range.start - first..range.end - first
+    }
+}
+
+/// Which of a batch's mirror maps a snapshot part holds ([`Propagation::map_batch_bytes`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MapKind {
+    /// What the next iteration shoots from: the arrivals while they are pending, else the
+    /// unshot maps ([`super::specular::DirectionMaps::shooting`]).
+    Shooting,
+    /// The total maps.
+    Totals,
 }
 
 /// A checkpoint's parts, serialised ([`Propagation::snapshot_bytes`]).
@@ -331,11 +341,11 @@ struct TotalsRef<'a> {
 impl Propagation {
     /// The total mirror maps of batch `b` of the directions, direction after direction, as
     /// held now: what a snapshot's mirror radiance is made of (none without mirrors).
-    pub fn mirror_totals_of_batch(&self, b: usize) -> Vec<&[Rgb]> {
+    pub fn mirror_totals_of_batch(&self, b: usize) -> Vec<Cow<'_, [Rgb]>> {
         let range = self.batching().range(b);
-        self.specular.as_ref().map_or(Vec::new(), |s| {
-            s.maps[range].iter().map(|m| m.total.as_slice()).collect()
-        })
+        self.specular
+            .as_ref()
+            .map_or(Vec::new(), |s| range.map(|d| s.map_or_zeros(d, |m| &m.total)).collect())
     }
 
     /// The parts of [`Propagation::checkpoint`], serialised in parallel:
@@ -361,15 +371,6 @@ impl Propagation {
             total: &self.total,
             mirrors: None,
         };
-        let part = |b: usize, map: &(dyn Fn(&super::specular::DirectionMaps) -> &[Rgb] + Sync)| {
-            let maps = spec.map_or(Vec::new(), |s| s.maps[batching.range(b)].iter().map(map).collect());
-            encode(&MapBatchRef {
-                version: SPLIT_VERSION,
-                iterations,
-                batch: b as u32,
-                maps,
-            })
-        };
         let batches = if maps && spec.is_some() { batching.count() } else { 0 };
         let ((head, totals), (shooting, mirror_totals)) = rayon::join(
             || rayon::join(|| encode(&head), || encode(&totals)),
@@ -378,10 +379,15 @@ impl Propagation {
                     || {
                         (0..batches)
                             .into_par_iter()
-                            .map(|b| part(b, &|m| m.shooting(pending.is_some())))
+                            .map(|b| self.map_batch_bytes(b, MapKind::Shooting))
                             .collect()
                     },
-                    || (0..batches).into_par_iter().map(|b| part(b, &|m| &m.total)).collect(),
+                    || {
+                        (0..batches)
+                            .into_par_iter()
+                            .map(|b| self.map_batch_bytes(b, MapKind::Totals))
+                            .collect()
+                    },
                 )
             },
         );
@@ -393,10 +399,38 @@ impl Propagation {
         }
     }
 
+    /// The [`MapBatch::to_bytes`] of batch `b`'s mirror maps of `kind`, as held now: one part of
+    /// [`Propagation::snapshot_bytes`]. Apart so that whoever stores a snapshot compresses each
+    /// batch as it is serialised: all at once, the serialised maps of every direction were held
+    /// together, 2.1 GB for a coordinator writing the mirror scene's first snapshot at l = 8193,
+    /// N = 256. Maps never shot are not held ([`super::specular::Unheld`]): the batch's zeros are
+    /// made for it.
+    pub fn map_batch_bytes(&self, b: usize, kind: MapKind) -> Vec<u8> {
+        let range = self.batching().range(b);
+        let maps: Vec<Cow<[Rgb]>> = self.specular.as_ref().map_or(Vec::new(), |s| {
+            let pending = s.pending.is_some();
+            range
+                .map(|d| match kind {
+                    MapKind::Shooting => s.map_or_zeros(d, |m| m.shooting(pending)),
+                    MapKind::Totals => s.map_or_zeros(d, |m| &m.total),
+                })
+                .collect()
+        });
+        encode(&MapBatchRef {
+            version: SPLIT_VERSION,
+            iterations: self.iterations_done(),
+            batch: b as u32,
+            maps: maps.iter().map(|m| m.as_ref()).collect(),
+        })
+    }
+
     /// Restores the head of a shooting state: the statistics, Current and
-    /// pending `Φ_in`. The mirror maps are left as they were until their
-    /// batches are restored ([`Propagation::restore_shooting_batch`],
-    /// [`Propagation::restore_totals_batch`]); like
+    /// pending `Φ_in`. The mirror maps held are let go: the snapshot's are
+    /// elsewhere ([`super::specular::Unheld::Elsewhere`]) until their batches
+    /// are restored ([`Propagation::restore_shooting_batch`],
+    /// [`Propagation::restore_totals_batch`]) or adopted
+    /// ([`Propagation::adopt_mirrors`]), so a replica holds the maps of the
+    /// directions it reads, not of every direction it ever read. Like
     /// [`Propagation::restore_shooting`], for a replica that computes blocks
     /// only. On error the state is unchanged.
     pub fn restore_head(&mut self, head: StateHead) -> crate::Result<()> {
@@ -411,6 +445,7 @@ impl Propagation {
         self.check_pending(head.pending.as_ref())?;
         if let Some(spec) = self.specular.as_mut() {
             spec.pending = head.pending;
+            spec.release_maps();
         }
         self.current = head.current;
         self.stats = head.stats;
@@ -421,7 +456,7 @@ impl Propagation {
     /// snapshot whose head was restored last (arrivals or unshot maps, as
     /// the head says). On error the state is unchanged.
     pub fn restore_shooting_batch(&mut self, part: MapBatch) -> crate::Result<()> {
-        let range = self.check_batch(&part)?;
+        let range = self.check_map_batch(&part)?;
         if let Some(spec) = self.specular.as_mut() {
             let pending = spec.pending.is_some();
             for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
@@ -435,7 +470,7 @@ impl Propagation {
     /// snapshot whose head was restored last. On error the state is
     /// unchanged.
     pub fn restore_totals_batch(&mut self, part: MapBatch) -> crate::Result<()> {
-        let range = self.check_batch(&part)?;
+        let range = self.check_map_batch(&part)?;
         if let Some(spec) = self.specular.as_mut() {
             for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
                 own.total = saved;
@@ -445,8 +480,9 @@ impl Propagation {
     }
 
     /// The directions of a batch of mirror maps that fits this propagation's
-    /// state, or why it does not.
-    fn check_batch(&self, part: &MapBatch) -> crate::Result<std::ops::Range<usize>> {
+    /// state — a batch of its directions, after as many iterations, one value per mirror slot,
+    /// finite and non-negative — or why it does not.
+    pub fn check_map_batch(&self, part: &MapBatch) -> crate::Result<std::ops::Range<usize>> {
         let batching = self.batching();
         let iterations = self.iterations_done();
         if self.specular.is_none() {
@@ -543,13 +579,7 @@ pub mod earlier {
     /// `output` as earlier builds wrote it, its `Φ_in` dense over `mirrors` mirrors.
     pub fn batch_output_dense(output: &crate::propagate::BatchOutput, mirrors: usize) -> Vec<u8> {
         let pending = |power_in: &Vec<crate::propagate::specular::MirrorPower>| {
-            DensePending::of(
-                &Pending {
-                    power_in: power_in.clone(),
-                },
-                mirrors,
-            )
-            .power_in
+            DensePending::of(&Pending::new(power_in.clone()), mirrors).power_in
         };
         encode(&crate::propagate::work::DenseOutput {
             iteration: output.iteration,

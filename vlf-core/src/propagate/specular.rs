@@ -15,6 +15,13 @@
 //! * `incident` — radiance that arrived on the mirror along this direction
 //!   during the last shot, waiting to be reflected.
 //!
+//! **Held where they are read.** A process allocates a direction's maps only when it reads or
+//! writes them ([`Unheld`]): one process running the whole propagation holds every direction's,
+//! a worker of the service those of the directions its leases shoot and of the directions they
+//! gather from, a coordinator none. Allocated for every direction in every process, the maps
+//! were the largest part of a mirror job's memory, everywhere: three maps of 1.07 GB each for
+//! the mirror scene at l = 8193, N = 256.
+//!
 //! ## Reflection between iterations (the exchange)
 //!
 //! Light arriving on mirror `P` along oriented direction `ω` leaves along the
@@ -152,12 +159,15 @@ impl MirrorLayout {
     }
 }
 
-/// The mirror maps owned by one direction (see the module docs).
+/// The mirror maps owned by one direction (see the module docs). Each is *held* when it has
+/// one value per mirror slot of the direction, else empty, its values then as `unheld` says.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct DirectionMaps {
     pub unshot: Vec<Rgb>,
     pub total: Vec<Rgb>,
     pub incident: Vec<Rgb>,
+    /// What the maps not held are.
+    pub unheld: Unheld,
 }
 
 impl DirectionMaps {
@@ -167,8 +177,9 @@ impl DirectionMaps {
         if pending { &self.incident } else { &self.unshot }
     }
 
-    /// Sets what the next iteration shoots from (see [`Self::shooting`]) and
-    /// clears the other map.
+    /// Sets what the next iteration shoots from (see [`Self::shooting`]) and lets the other map
+    /// go: the next shooting writes it afresh (the gather its unshot map, the shot its incident
+    /// map, from zero), so nothing reads what it held.
     pub fn set_shooting(&mut self, pending: bool, map: Vec<Rgb>) {
         let (set, clear) = if pending {
             (&mut self.incident, &mut self.unshot)
@@ -176,8 +187,35 @@ impl DirectionMaps {
             (&mut self.unshot, &mut self.incident)
         };
         *set = map;
-        clear.fill([0.0; 3]);
+        *clear = Vec::new();
     }
+
+    /// Bytes of the maps held.
+    pub fn bytes(&self) -> usize {
+        (self.unshot.capacity() + self.total.capacity() + self.incident.capacity()) * std::mem::size_of::<Rgb>()
+    }
+}
+
+/// What the values of a mirror map that a process does not hold are ([`DirectionMaps`]).
+///
+/// A map is held — allocated, one value per slot — where the process reads or writes it, and
+/// no more: every direction's in one process running the whole propagation; in the service a
+/// worker's, from one snapshot to the next, those of the directions its leases shoot (their
+/// shooting and total maps) and of the directions they gather from (their arrivals), and a
+/// coordinator's none — at l = 8193, N = 256 the mirror scene's maps are 1.07 GB each for the
+/// whole field. A map not held is empty.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Unheld {
+    /// Zeros: nothing was shot into them (a new propagation, or a map that a restore cleared).
+    /// Allocated when first written ([`Specular::hold_zeros`]); read as zeros.
+    #[default]
+    Zero,
+    /// Elsewhere: in the store, where the workers that computed them wrote them — a worker's
+    /// replica between snapshots ([`super::Propagation::restore_head`]), a coordinator whose
+    /// workers shoot the maps ([`Specular::release_maps`]) — or in a block that took the
+    /// direction's totals along ([`super::Propagation::compute_block`]). Reading one is an
+    /// error until its batch is restored.
+    Elsewhere,
 }
 
 /// One feed of a target direction: light arriving on `mirror` along source
@@ -241,6 +279,7 @@ pub struct Specular {
     pub mirrors: Vec<u32>,
     /// Per direction, its mirror entries alone: the mirror geometry of everything but shooting.
     pub views: Vec<MirrorView>,
+    /// Per direction, its maps: those held, the others empty (their values: [`Unheld`]).
     pub maps: Vec<DirectionMaps>,
     /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
     pub routes: Vec<Vec<Route>>,
@@ -285,8 +324,35 @@ type GatherTable = Vec<Vec<(u32, u32)>>;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Pending {
     /// `Φ_in(P, ω)`: per direction, the power its incident map holds on each
-    /// mirror that received some ([`MirrorPower`]).
+    /// mirror that received some ([`MirrorPower`]). Replaced whole, never edited: what is
+    /// settled of it is kept ([`Specular::settled`]).
     pub power_in: Vec<MirrorPower>,
+    /// [`Specular::settle`] of `power_in`, once asked for.
+    #[serde(skip)]
+    settled: Settled,
+}
+
+impl Pending {
+    pub fn new(power_in: Vec<MirrorPower>) -> Pending {
+        Pending {
+            power_in,
+            settled: Settled::default(),
+        }
+    }
+}
+
+/// The exchange's bookkeeping of a [`Pending`], found once: settling walks every route (tens of
+/// millions for a curved mirror), and the unshot power, which the stop rule, the snapshot's
+/// summary and a job's status all ask for, is made of it. Found afresh every time, it was two
+/// thirds of a coordinator's CPU for the mirror dragon (47 794 triangles, l = 2049, N = 128).
+/// Neither stored (a function of `Φ_in` and the geometry) nor compared.
+#[derive(Clone, Debug, Default)]
+struct Settled(OnceLock<Exchange>);
+
+impl PartialEq for Settled {
+    fn eq(&self, _: &Settled) -> bool {
+        true
+    }
 }
 
 /// `Φ_in` of one direction: `(k, Φ)` for every mirror `k` (by its ordinal in
@@ -351,14 +417,8 @@ impl Specular {
                 slotted
             })
             .collect();
-        let maps = views
-            .iter()
-            .map(|v| DirectionMaps {
-                unshot: vec![[0.0; 3]; v.slots()],
-                total: vec![[0.0; 3]; v.slots()],
-                incident: vec![[0.0; 3]; v.slots()],
-            })
-            .collect();
+        // Zeros, allocated where first written (`hold_zeros`).
+        let maps = vec![DirectionMaps::default(); views.len()];
         // crossing[k]: the directions (increasing) whose rays meet mirror k, an entry of its
         // in their layout; listed per mirror, as the routes ask, and only where they meet.
         let mut crossing: Vec<Vec<u32>> = vec![Vec::new(); mirrors.len()];
@@ -429,6 +489,61 @@ impl Specular {
         self.views[d].slots()
     }
 
+    /// Whether `map`, one of direction `d`'s maps, is held: one value per slot.
+    pub fn holds(&self, d: usize, map: &[Rgb]) -> bool {
+        map.len() == self.slots(d)
+    }
+
+    /// Allocates the zeros of every map of `directions` not held, when the maps not held are
+    /// zeros ([`Unheld::Zero`]): what whoever writes them first (shooting a direction) does.
+    /// Maps elsewhere stay as they are: they are restored, never made up.
+    pub fn hold_zeros(&mut self, directions: impl IntoIterator<Item = usize>) {
+        for d in directions {
+            let slots = self.views[d].slots();
+            let m = &mut self.maps[d];
+            if m.unheld != Unheld::Zero {
+                continue;
+            }
+            for map in [&mut m.unshot, &mut m.total, &mut m.incident] {
+                if map.len() != slots {
+                    *map = vec![[0.0; 3]; slots];
+                }
+            }
+        }
+    }
+
+    /// The map of direction `d` that `which` picks, as held, or else its zeros. Zeros are what
+    /// a map not held is unless it is [`Unheld::Elsewhere`]: callers that may meet one of those
+    /// ask [`Specular::holds`] first.
+    pub fn map_or_zeros(&self, d: usize, which: impl Fn(&DirectionMaps) -> &[Rgb]) -> std::borrow::Cow<'_, [Rgb]> {
+        let map = which(&self.maps[d]);
+        if self.holds(d, map) {
+            std::borrow::Cow::Borrowed(map)
+        } else {
+            std::borrow::Cow::Owned(vec![[0.0; 3]; self.slots(d)])
+        }
+    }
+
+    /// Whether every map is here: held, or zeros not allocated yet ([`Unheld::Zero`]) — none
+    /// elsewhere.
+    pub fn holds_all(&self) -> bool {
+        (self.maps.iter().enumerate()).all(|(d, m)| {
+            m.unheld == Unheld::Zero || [&m.unshot, &m.total, &m.incident].iter().all(|v| self.holds(d, v))
+        })
+    }
+
+    /// Bytes of the mirror maps held ([`DirectionMaps::bytes`]).
+    pub fn held_bytes(&self) -> usize {
+        self.maps.iter().map(DirectionMaps::bytes).sum()
+    }
+
+    /// The directions some of whose maps are held (allocated), in increasing order.
+    pub fn held_directions(&self) -> impl Iterator<Item = usize> + '_ {
+        (self.maps.iter().enumerate())
+            .filter(|(_, m)| m.bytes() > 0)
+            .map(|(d, _)| d)
+    }
+
     /// The backward mapping of target direction `i` ([`GatherTable`]), for the routes `wanted`
     /// (the others' lists left empty): every slot of the route's mirror in `i` reads the source
     /// ray through the same point of the mirror.
@@ -471,8 +586,8 @@ impl Specular {
     /// them ([`Specular::settle`]: the gather scales each route to carry
     /// exactly that).
     pub fn unshot_power(&self, scene: &Scene, directions: &DirectionSet) -> Rgb {
-        if let Some(pending) = &self.pending {
-            return self.settle(scene, &pending.power_in).reflected;
+        if let Some(exchange) = self.settled(scene) {
+            return exchange.reflected;
         }
         let mut p = [0.0; 3];
         for (d, maps) in self.maps.iter().enumerate() {
@@ -486,14 +601,17 @@ impl Specular {
         p
     }
 
-    /// Frees every direction's maps, keeping the views and routes: for a
-    /// coordinator whose workers hold the maps (see [`Pending`]), which then
-    /// needs only `Φ_in`, whatever the number of mirror slots. Restoring a
-    /// batch ([`super::Propagation::restore_totals_batch`]) brings its maps
-    /// back.
+    /// Frees every direction's maps, keeping the views and routes: their values are elsewhere
+    /// ([`Unheld::Elsewhere`]) — for a coordinator whose workers hold the maps (see
+    /// [`Pending`]), which then needs only `Φ_in`, whatever the number of mirror slots, and for
+    /// a worker's replica moving on to the next snapshot. Restoring a batch
+    /// ([`super::Propagation::restore_totals_batch`]) brings its maps back.
     pub fn release_maps(&mut self) {
         for m in &mut self.maps {
-            *m = DirectionMaps::default();
+            *m = DirectionMaps {
+                unheld: Unheld::Elsewhere,
+                ..DirectionMaps::default()
+            };
         }
     }
 
@@ -540,32 +658,50 @@ impl Specular {
     /// (`b·ρs·Φ_in` per route that has slots to fill) — the same sums, in
     /// the same order, as [`Specular::gather`] adds up, so a coordinator that
     /// never sees a map knows the exchange's power exactly.
+    ///
+    /// The targets are settled in parallel, each its own sum, and the sums added in target
+    /// order: the same bits on any number of threads.
     pub fn settle(&self, scene: &Scene, power_in: &[MirrorPower]) -> Exchange {
         let mut exchange = Exchange::default();
         for (_, v) in power_in.iter().flatten() {
             add(&mut exchange.incident, v);
         }
-        for (i, routes) in self.routes.iter().enumerate() {
-            let mut reflected = [0.0; 3];
-            for route in routes {
-                let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
-                let slotted = self.slotted[i]
-                    .binary_search(&self.ordinal[route.mirror as usize])
-                    .is_ok();
-                if pin.iter().all(|&p| p <= 0.0) || !slotted {
-                    continue;
-                }
-                let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
-                for c in 0..3 {
-                    let target = route.weight * rho[c] * pin[c];
-                    if target > 0.0 {
-                        reflected[c] += target;
-                    }
-                }
-            }
-            add(&mut exchange.reflected, &reflected);
+        let reflected: Vec<Rgb> = (self.routes.par_iter().enumerate())
+            .map(|(i, routes)| self.settle_target(scene, power_in, i, routes))
+            .collect();
+        for r in &reflected {
+            add(&mut exchange.reflected, r);
         }
         exchange
+    }
+
+    /// [`Specular::settle`] of the pending arrivals, found once per [`Pending`].
+    pub fn settled(&self, scene: &Scene) -> Option<Exchange> {
+        let pending = self.pending.as_ref()?;
+        Some(*pending.settled.0.get_or_init(|| self.settle(scene, &pending.power_in)))
+    }
+
+    /// What target direction `i`'s gather reflects into its unshot map: `Σ b·ρs·Φ_in` over its
+    /// `routes` that carry power and have slots to fill.
+    fn settle_target(&self, scene: &Scene, power_in: &[MirrorPower], i: usize, routes: &[Route]) -> Rgb {
+        let mut reflected = [0.0; 3];
+        for route in routes {
+            let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
+            let slotted = self.slotted[i]
+                .binary_search(&self.ordinal[route.mirror as usize])
+                .is_ok();
+            if pin.iter().all(|&p| p <= 0.0) || !slotted {
+                continue;
+            }
+            let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
+            for c in 0..3 {
+                let target = route.weight * rho[c] * pin[c];
+                if target > 0.0 {
+                    reflected[c] += target;
+                }
+            }
+        }
+        reflected
     }
 
     /// The source directions whose arrivals the gather of `targets` reads:
@@ -594,6 +730,7 @@ impl Specular {
         let Some(pending) = self.pending.take() else {
             return;
         };
+        self.hold_zeros(0..directions.len());
         let incident: Vec<Vec<Rgb>> = self
             .maps
             .iter_mut()

@@ -248,6 +248,14 @@ pub struct MirrorBlock {
     pub total: Vec<Vec<Rgb>>,
 }
 
+impl MirrorBlock {
+    /// Bytes of the maps it holds.
+    pub fn bytes(&self) -> usize {
+        let values: usize = (self.shooting.iter().chain(&self.total)).map(Vec::capacity).sum();
+        values * std::mem::size_of::<Rgb>()
+    }
+}
+
 /// The first four bytes of a [`BatchOutput`] with sparse `Φ_in`. Earlier builds' outputs start
 /// with their iteration, a number far below it, and hold `Φ_in` dense (one value per mirror).
 const SPARSE_OUTPUT: u32 = 0xB05A_25E2;
@@ -749,6 +757,15 @@ impl Propagation {
                 "batch {batch} needs the mirror maps of its {} directions",
                 range.len()
             )));
+        }
+        if let (Some(maps), Some(spec)) = (maps.as_ref(), &self.specular) {
+            let unfit =
+                |(d, m): &(usize, &MirrorIo)| m.unshot.len() != spec.slots(*d) || m.incident.len() != spec.slots(*d);
+            if let Some((d, _)) = range.clone().zip(maps.iter()).find(unfit) {
+                return Err(crate::Error::Parameter(format!(
+                    "direction {d}: its mirror maps are not held (one value per mirror slot)"
+                )));
+            }
         }
         if buffers.len() < CHUNK {
             buffers.resize_with(CHUNK, Vec::new);
