@@ -412,29 +412,28 @@ impl FieldJob {
     /// [`FieldJob::resume_within`] for a coordinator, whose workers hold the mirror maps: the
     /// propagation at the last finished snapshot without them
     /// ([`Propagation::restore_without_maps`]: the snapshot's head and diffuse totals, none of
-    /// its map parts read), and whether it holds them — they are zeros until an iteration
-    /// shoots them; a snapshot of an earlier build, whose maps are not stored by batch, is
-    /// restored whole.
-    pub fn resume_without_maps(&mut self, budget: Option<usize>) -> Result<(Propagation, bool), StoreError> {
+    /// its map parts read). They are zeros until an iteration shoots them, and elsewhere after
+    /// ([`vlf_core::propagate::Specular::holds_all`] says which). A snapshot of an earlier
+    /// build, whose maps are not stored by batch, is restored whole.
+    pub fn resume_without_maps(&mut self, budget: Option<usize>) -> Result<Propagation, StoreError> {
         let k = self.snapshot_to_resume()?;
         self.job.check_committed(Stage::Iteration(k))?;
         self.job.check_resumable(k)?;
         let mut p = self.propagation(budget)?;
-        let held = match self.released_state(k)? {
+        match self.released_state(k)? {
             ReleasedState::Head(head) if head.mirror_totals_by_batch() => {
                 self.of_snapshot(k, head.iterations())?;
                 let totals = self.decode_totals(k, &self.job.get_released_totals(k)?)?;
                 p.restore_without_maps(head, totals.total)
-                    .map_err(|e| self.field_error(e))?
+                    .map_err(|e| self.field_error(e))?;
             }
             released => {
                 let checkpoint = self.released_checkpoint(k, released)?;
                 p.restore(checkpoint).map_err(|e| self.field_error(e))?;
-                true
             }
-        };
+        }
         self.job.set_state(JobState::Propagating { iteration: k + 1 })?;
-        Ok((p, held))
+        Ok(p)
     }
 
     /// The last finished snapshot, which resuming starts from; an error for a finished job, or

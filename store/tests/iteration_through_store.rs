@@ -896,8 +896,55 @@ fn a_coordinator_lets_its_subfields_go() {
         let job = coordinator.finish(false).unwrap();
         assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
         assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+        assert_eq!(digest(&job), digest(&reference));
         assert_eq!((held.live, held.builds), (0, 0), "{held:?}");
     }
+}
+
+/// A coordinator that takes a mirror job up reads no mirror map back: before light can reach a
+/// mirror they are zeros, which it holds without allocating them (and writes into the
+/// snapshots); after, they are in the snapshot's parts, where the workers read them and the
+/// coordinator finishes the field from. Stopped after any iteration, it ends with the bits of an
+/// uninterrupted run.
+#[test]
+fn a_coordinator_takes_a_mirror_job_up_without_its_maps() {
+    let (scene, options) = (bundled("mirrors.obj"), options(0, 129));
+    let store = Store::open("memory://").unwrap();
+    let reference = in_process(&store, &scene, &options);
+    let p = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let first_lit = p.plan.first_mirror_iteration().unwrap();
+    for stop in 0..3 {
+        let p = Propagation::new(scene.clone(), options.clone()).unwrap();
+        let id = FieldJob::create(&store, &p, Encoding::F32).unwrap().id().clone();
+        let mut coordinator = Coordinator::new(FieldJob::open(&store, &id).unwrap(), p);
+        let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+        for _ in 0..stop {
+            compute_iteration(&mut coordinator, &mut replica);
+            coordinator.finish_iteration().unwrap();
+        }
+        drop(coordinator);
+        let mut coordinator = Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
+        let spec = coordinator.propagation().specular.as_ref().unwrap();
+        assert_eq!(spec.held_bytes(), 0, "resumed after {stop} iterations");
+        assert_eq!(spec.holds_all(), stop <= first_lit, "resumed after {stop} iterations");
+        while !coordinator.finished() {
+            compute_iteration(&mut coordinator, &mut replica);
+            coordinator.finish_iteration().unwrap();
+        }
+        let job = coordinator.finish(false).unwrap();
+        assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+        assert!(
+            field_blobs(&job) == field_blobs(&reference),
+            "stored field differs, stopped after {stop}"
+        );
+        // Written from the snapshot's parts, the field's digest is the one of the whole field.
+        assert_eq!(digest(&job), digest(&reference));
+    }
+}
+
+fn digest(job: &FieldJob) -> String {
+    let summary = vlf_store::Summary::read(job.job(), Stage::Field).unwrap();
+    summary.digest.expect("a final field's summary gives its digest")
 }
 
 #[test]

@@ -61,8 +61,10 @@ pub struct Coordinator {
     traffic: Vec<WorkTraffic>,
     /// The batch outputs read back so far in the current iteration.
     absorbed: WorkTraffic,
-    /// Whether `prop` holds the mirror maps of its snapshot: true from its restore until an
-    /// iteration shoots them (then they live in the store, written by the workers).
+    /// Whether `prop` holds the mirror maps of its snapshot (zeros, until an iteration shoots
+    /// them; then they live in the store, written by the workers): what it was given says
+    /// ([`vlf_core::propagate::Specular::holds_all`]), and it stays so until an iteration shoots
+    /// them.
     maps_held: bool,
 }
 
@@ -78,17 +80,17 @@ impl Coordinator {
     /// The mirror maps are not read back: its workers read them from the snapshot, and until an
     /// iteration shoots them they are zeros ([`FieldJob::resume_without_maps`]).
     pub fn resume_within(mut job: FieldJob, budget: Option<usize>) -> Result<Coordinator, StoreError> {
-        let (prop, maps_held) = job.resume_without_maps(budget)?;
-        Ok(Coordinator {
-            maps_held,
-            ..Coordinator::new(job, prop)
-        })
+        let prop = job.resume_without_maps(budget)?;
+        Ok(Coordinator::new(job, prop))
     }
 
     /// Coordinates `job` from `prop`, which must be the job's propagation at its last finished
-    /// snapshot — as [`FieldJob::create`]'s input or [`FieldJob::resume`]'s output is — so the
-    /// geometry is not built twice.
+    /// snapshot — as [`FieldJob::create`]'s input or [`FieldJob::resume`]'s or
+    /// [`FieldJob::resume_without_maps`]'s output is — so the geometry is not built twice. Its
+    /// mirror maps may be elsewhere (in the snapshot's parts): the coordinator then never
+    /// writes them, and finishes the job from the parts.
     pub fn new(job: FieldJob, prop: Propagation) -> Coordinator {
+        let maps_held = prop.specular.as_ref().is_none_or(|s| s.holds_all());
         Coordinator {
             job,
             prop,
@@ -96,7 +98,7 @@ impl Coordinator {
             opened: None,
             traffic: Vec::new(),
             absorbed: WorkTraffic::default(),
-            maps_held: true,
+            maps_held,
         }
     }
 

@@ -14,9 +14,9 @@ use vlf_core::propagate::Propagation;
 /// snapshot's, so it gives the same bits as a replica built from the store.
 ///
 /// Each of the process's workers takes a job's propagation once: all but the last get a copy,
-/// the last the one offered (a copy of the mirror scene's is 13 MB of maps, which cost its first
-/// iteration 2–4 ms of fresh memory). A worker that asks again (its replica was dropped) finds
-/// none and builds one from the store.
+/// the last the one offered (a copy of one whose mirror maps are held costs memory and time: the
+/// mirror scene's was 13 MB of maps, 2–4 ms of its first iteration). A worker that asks again
+/// (its replica was dropped) finds none and builds one from the store.
 #[derive(Clone)]
 pub struct Prototypes {
     offers: Arc<Mutex<HashMap<JobId, Offer>>>,

@@ -35,8 +35,10 @@ impl Propagation {
     /// few megabytes per iteration that the in-process loop does not pay.
     /// This propagation then lacks them: computing the block again needs them
     /// restored first ([`Propagation::restore_totals_batch`]), else it is
-    /// refused; [`Propagation::adopt_mirrors`] puts the block's maps back for
-    /// the next iteration. Nothing else changes.
+    /// refused (its directions' maps are elsewhere, [`super::specular::Unheld`]);
+    /// [`Propagation::adopt_mirrors`] puts the block's maps back for the next
+    /// iteration. Nothing else changes, but for maps never written, whose zeros
+    /// the block allocates as it reads them.
     pub fn compute_block(
         &mut self,
         work: &IterationWork,

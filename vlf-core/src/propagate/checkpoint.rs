@@ -478,7 +478,8 @@ impl Propagation {
                 for (own, saved) in spec.maps.iter_mut().zip(maps) {
                     own.set_shooting(pending, saved);
                 }
-                spec.pending = state.pending;
+                // Settled afresh: what a `Pending` keeps is of the arrivals it was made with.
+                spec.pending = state.pending.map(|p| Pending::new(p.power_in));
             }
             (Some(_), None) => return misfit("the scene has mirrors, the checkpoint none".into()),
             (None, Some(_)) => return misfit("the checkpoint has mirror maps, the scene no mirror".into()),

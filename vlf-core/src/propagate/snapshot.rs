@@ -444,7 +444,8 @@ impl Propagation {
         }
         self.check_pending(head.pending.as_ref())?;
         if let Some(spec) = self.specular.as_mut() {
-            spec.pending = head.pending;
+            // Settled afresh: what a `Pending` keeps is of the arrivals it was made with.
+            spec.pending = head.pending.map(|p| Pending::new(p.power_in));
             spec.release_maps();
         }
         self.current = head.current;

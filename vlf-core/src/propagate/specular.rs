@@ -513,8 +513,10 @@ impl Specular {
     }
 
     /// The map of direction `d` that `which` picks, as held, or else its zeros. Zeros are what
-    /// a map not held is unless it is [`Unheld::Elsewhere`]: callers that may meet one of those
-    /// ask [`Specular::holds`] first.
+    /// a map not held is unless it is [`Unheld::Elsewhere`]: what reads maps that may be
+    /// elsewhere (a coordinator's, a replica's) asks [`Specular::holds`] or
+    /// [`Specular::holds_all`] first — a coordinator writes maps and finishes from them only
+    /// while it holds them all, a block restores what it reads.
     pub fn map_or_zeros(&self, d: usize, which: impl Fn(&DirectionMaps) -> &[Rgb]) -> std::borrow::Cow<'_, [Rgb]> {
         let map = which(&self.maps[d]);
         if self.holds(d, map) {
@@ -604,8 +606,9 @@ impl Specular {
     /// Frees every direction's maps, keeping the views and routes: their values are elsewhere
     /// ([`Unheld::Elsewhere`]) — for a coordinator whose workers hold the maps (see
     /// [`Pending`]), which then needs only `Φ_in`, whatever the number of mirror slots, and for
-    /// a worker's replica moving on to the next snapshot. Restoring a batch
-    /// ([`super::Propagation::restore_totals_batch`]) brings its maps back.
+    /// a worker's replica moving on to the next snapshot. Restoring a batch brings its maps back
+    /// ([`super::Propagation::restore_shooting_batch`], [`super::Propagation::restore_totals_batch`]),
+    /// as adopting a block does ([`super::Propagation::adopt_mirrors`]).
     pub fn release_maps(&mut self) {
         for m in &mut self.maps {
             *m = DirectionMaps {
