@@ -77,7 +77,7 @@ fn gathered_maps_carry_the_settled_power() {
     let read = |d: usize| spec.maps[d].incident.as_slice();
     let one: Vec<_> = [0, 40, 128]
         .into_iter()
-        .map(|i| spec.gather(&scene, &directions, &read, &pending.power_in, i))
+        .map(|i| spec.gather(&scene, &directions, &read, &pending.power_in, i).unwrap())
         .collect();
     assert!(
         one.iter().flatten().any(|v| v[0] > 0.0),

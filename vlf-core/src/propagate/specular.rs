@@ -745,7 +745,10 @@ impl Specular {
         let read = |d: usize| incident[d].as_slice();
         let gathered: Vec<Vec<Rgb>> = (0..directions.len())
             .into_par_iter()
-            .map(|i| self.gather(scene, directions, &read, &pending.power_in, i))
+            .map(|i| {
+                (self.gather(scene, directions, &read, &pending.power_in, i))
+                    .expect("one process holds every direction's arrivals")
+            })
             .collect();
         for (maps, unshot) in self.maps.iter_mut().zip(gathered) {
             maps.unshot = unshot;
@@ -755,7 +758,8 @@ impl Specular {
     /// The new unshot map of target direction `i` from the pending arrivals
     /// `incident(source)` of its routes' sources and every direction's
     /// `Φ_in` (see the module docs): what a worker computes for the
-    /// directions it shoots.
+    /// directions it shoots. An arrival map it reads that is not held (a
+    /// replica that did not restore it) is an error, not zeros.
     pub fn gather<'a>(
         &self,
         scene: &Scene,
@@ -763,7 +767,7 @@ impl Specular {
         incident: &(dyn Fn(usize) -> &'a [Rgb] + Sync),
         power_in: &[MirrorPower],
         i: usize,
-    ) -> Vec<Rgb> {
+    ) -> crate::Result<Vec<Rgb>> {
         let lit = |route: &Route| {
             let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
             !pin.iter().all(|&p| p <= 0.0)
@@ -789,6 +793,12 @@ impl Specular {
             let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
             let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
             let source_incident = incident(route.source as usize);
+            if !self.holds(route.source as usize, source_incident) {
+                return Err(crate::Error::Parameter(format!(
+                    "the mirror arrival map of direction {} is not restored",
+                    route.source
+                )));
+            }
             samples.clear();
             samples.extend(reads.iter().map(|&(slot, read)| {
                 let v = if read == NO_SLOT {
@@ -823,7 +833,7 @@ impl Specular {
                 }
             }
         }
-        out
+        Ok(out)
     }
 }
 
