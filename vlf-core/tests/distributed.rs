@@ -563,7 +563,7 @@ fn a_block_takes_its_totals_along_and_is_computed_again_only_once_they_are_resto
     let read = |d: usize| before.maps[d].incident.as_slice();
     for (i, d) in first.clone().enumerate() {
         let sent = before
-            .gather(&again.scene, &again.directions, &read, &pending.power_in, d)
+            .gather(&again.scene, &again.directions, &read, pending, d)
             .unwrap();
         let want: Vec<[f64; 3]> = before.maps[d]
             .total

@@ -151,7 +151,7 @@ impl Propagation {
                     directions
                         .clone()
                         .into_par_iter()
-                        .map(|i| spec.gather(scene, dirs, &read, &pending.power_in, i).map(Cow::Owned))
+                        .map(|i| spec.gather(scene, dirs, &read, pending, i).map(Cow::Owned))
                         .collect::<crate::Result<_>>()
                 }
                 None => Ok(directions
@@ -228,7 +228,7 @@ impl Propagation {
             Some(pending) => {
                 let batching = work.batching();
                 let mut b: Vec<usize> = spec
-                    .sources(directions, &pending.power_in)
+                    .sources(directions, pending)
                     .into_iter()
                     .map(|d| batching.batch_of(d))
                     .collect();

@@ -43,6 +43,7 @@
 
 mod areas;
 mod block;
+mod by_mirror;
 pub mod checkpoint;
 mod claim;
 mod filter;

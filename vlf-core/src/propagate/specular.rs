@@ -62,6 +62,7 @@
 //! sources ([`Specular::sources`]) from the snapshot or from its own memory.
 //! The field's bits are the same either way.
 
+use super::by_mirror::{PowerByMirror, RoutesByMirror};
 use super::shoot::NO_SLOT;
 use crate::directions::DirectionSet;
 use crate::psf::{Footprints, RasterScratch, Subfield, Subfields, SurfaceProjection};
@@ -275,7 +276,8 @@ impl MirrorView {
 #[derive(Clone, Debug)]
 pub struct Specular {
     /// Surfaces with directional maps (mirrors that light can reach): each the first polygon
-    /// of its mirror plane (see the module docs).
+    /// of its mirror plane (see the module docs), by increasing surface number — so a mirror's
+    /// ordinal here orders the routes as its surface does.
     pub mirrors: Vec<u32>,
     /// Per direction, its mirror entries alone: the mirror geometry of everything but shooting.
     pub views: Vec<MirrorView>,
@@ -296,6 +298,8 @@ pub struct Specular {
     /// Per target direction, its [`GatherTable`] once its first gather found it, when
     /// [`Specular::keep_gather_tables`].
     gather_tables: Vec<OnceLock<GatherTable>>,
+    /// The routes by mirror, for settling, once the first settle asks ([`RoutesByMirror`]).
+    routes_by_mirror: OnceLock<RoutesByMirror>,
     /// Whether a gather keeps the table it finds, for the next iterations' gathers of the same
     /// direction: on unless the process holds its subfields within a memory budget. The tables
     /// take 8 bytes a sample, a few samples a mirror slot (one per route): about 85 MB for the
@@ -325,32 +329,47 @@ type GatherTable = Vec<Vec<(u32, u32)>>;
 pub struct Pending {
     /// `Φ_in(P, ω)`: per direction, the power its incident map holds on each
     /// mirror that received some ([`MirrorPower`]). Replaced whole, never edited: what is
-    /// settled of it is kept ([`Specular::settled`]).
+    /// found of it is kept ([`Found`]).
     pub power_in: Vec<MirrorPower>,
-    /// [`Specular::settle`] of `power_in`, once asked for.
+    /// What the exchange finds of `power_in`, once asked for.
     #[serde(skip)]
-    settled: Settled,
+    found: Found,
 }
 
 impl Pending {
     pub fn new(power_in: Vec<MirrorPower>) -> Pending {
         Pending {
             power_in,
-            settled: Settled::default(),
+            found: Found::default(),
         }
     }
 }
 
-/// The exchange's bookkeeping of a [`Pending`], found once: settling walks every route (tens of
-/// millions for a curved mirror), and the unshot power, which the stop rule, the snapshot's
+/// What the exchange finds of a [`Pending`], once: [`Specular::settle`] walks every route (tens
+/// of millions for a curved mirror), and the unshot power, which the stop rule, the snapshot's
 /// summary and a job's status all ask for, is made of it. Found afresh every time, it was two
 /// thirds of a coordinator's CPU for the mirror dragon (47 794 triangles, l = 2049, N = 128).
-/// Neither stored (a function of `Φ_in` and the geometry) nor compared.
-#[derive(Clone, Debug, Default)]
-struct Settled(OnceLock<Exchange>);
+/// Neither stored (a function of `Φ_in` and the geometry) nor compared, and a clone of a
+/// [`Pending`] turns `Φ_in` around afresh if it needs it.
+#[derive(Debug, Default)]
+struct Found {
+    /// [`Specular::settle`] of `power_in`.
+    settled: OnceLock<Exchange>,
+    /// `power_in` by mirror, as a gather's routes ask for it.
+    by_mirror: OnceLock<PowerByMirror>,
+}
 
-impl PartialEq for Settled {
-    fn eq(&self, _: &Settled) -> bool {
+impl Clone for Found {
+    fn clone(&self) -> Found {
+        Found {
+            settled: self.settled.clone(),
+            by_mirror: OnceLock::new(),
+        }
+    }
+}
+
+impl PartialEq for Found {
+    fn eq(&self, _: &Found) -> bool {
         true
     }
 }
@@ -367,14 +386,6 @@ impl PartialEq for Settled {
 /// of the dense table, to the bit.
 pub type MirrorPower = Vec<(u32, Rgb)>;
 
-/// The power of mirror `k` in `power` (zero where it has no entry).
-fn power_of(power: &[(u32, Rgb)], k: u32) -> Rgb {
-    match power.binary_search_by_key(&k, |&(m, _)| m) {
-        Ok(i) => power[i].1,
-        Err(_) => [0.0; 3],
-    }
-}
-
 impl Specular {
     /// Lays out the mirror maps of `mirrors` over the subfields of every direction and builds
     /// the reflection routes. Where `subfields` are all held, each view is cut from its
@@ -385,8 +396,10 @@ impl Specular {
         directions: &DirectionSet,
         subfields: &Subfields,
         plane_rep: &[u32],
-        mirrors: Vec<u32>,
+        mut mirrors: Vec<u32>,
     ) -> Self {
+        mirrors.sort_unstable();
+        mirrors.dedup();
         let mut has_maps = vec![false; scene.surfaces.len()];
         let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
         for (k, &m) in mirrors.iter().enumerate() {
@@ -454,6 +467,7 @@ impl Specular {
             ordinal,
             slotted,
             gather_tables: (0..directions.len()).map(|_| OnceLock::new()).collect(),
+            routes_by_mirror: OnceLock::new(),
             keep_gather_tables: true,
         }
     }
@@ -662,62 +676,65 @@ impl Specular {
     /// the same order, as [`Specular::gather`] adds up, so a coordinator that
     /// never sees a map knows the exchange's power exactly.
     ///
-    /// The targets are settled in parallel, each its own sum, and the sums added in target
-    /// order: the same bits on any number of threads.
-    pub fn settle(&self, scene: &Scene, power_in: &[MirrorPower]) -> Exchange {
+    /// One pass over the routes, mirror by mirror beside each mirror's `Φ_in`
+    /// ([`RoutesByMirror`]): each target's sum takes its routes in their order, and the sums
+    /// are added in target order, so the bits are those of walking each target's routes.
+    pub fn settle(&self, scene: &Scene, pending: &Pending) -> Exchange {
+        let started = std::time::Instant::now();
         let mut exchange = Exchange::default();
-        for (_, v) in power_in.iter().flatten() {
+        for (_, v) in pending.power_in.iter().flatten() {
             add(&mut exchange.incident, v);
         }
-        let reflected: Vec<Rgb> = (self.routes.par_iter().enumerate())
-            .map(|(i, routes)| self.settle_target(scene, power_in, i, routes))
-            .collect();
-        for r in &reflected {
+        // Turned around for this settle alone where no gather asked before: a coordinator
+        // settles once per iteration and never gathers, so it keeps no second copy of `Φ_in`.
+        let turned;
+        let lit = match pending.found.by_mirror.get() {
+            Some(lit) => lit,
+            None => {
+                turned = PowerByMirror::new(&pending.power_in, self.mirrors.len());
+                &turned
+            }
+        };
+        let routes = self
+            .routes_by_mirror
+            .get_or_init(|| RoutesByMirror::new(&self.routes, &self.ordinal, &self.slotted, self.mirrors.len()));
+        let rho = |k: u32| scene.materials[scene.surfaces[self.mirrors[k as usize] as usize].material].specular;
+        for r in &routes.reflected(lit, rho, self.routes.len()) {
             add(&mut exchange.reflected, r);
         }
+        tracing::debug!(
+            routes = routes.len(),
+            lit = lit.len(),
+            seconds = started.elapsed().as_secs_f64(),
+            "exchange settled"
+        );
         exchange
     }
 
     /// [`Specular::settle`] of the pending arrivals, found once per [`Pending`].
     pub fn settled(&self, scene: &Scene) -> Option<Exchange> {
         let pending = self.pending.as_ref()?;
-        Some(*pending.settled.0.get_or_init(|| self.settle(scene, &pending.power_in)))
+        Some(*pending.found.settled.get_or_init(|| self.settle(scene, pending)))
     }
 
-    /// What target direction `i`'s gather reflects into its unshot map: `Σ b·ρs·Φ_in` over its
-    /// `routes` that carry power and have slots to fill.
-    fn settle_target(&self, scene: &Scene, power_in: &[MirrorPower], i: usize, routes: &[Route]) -> Rgb {
-        let mut reflected = [0.0; 3];
-        for route in routes {
-            let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
-            let slotted = self.slotted[i]
-                .binary_search(&self.ordinal[route.mirror as usize])
-                .is_ok();
-            if pin.iter().all(|&p| p <= 0.0) || !slotted {
-                continue;
-            }
-            let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
-            for c in 0..3 {
-                let target = route.weight * rho[c] * pin[c];
-                if target > 0.0 {
-                    reflected[c] += target;
-                }
-            }
-        }
-        reflected
+    /// `pending`'s `Φ_in` by mirror ([`PowerByMirror`]), turned around once per [`Pending`].
+    fn by_mirror<'a>(&self, pending: &'a Pending) -> &'a PowerByMirror {
+        (pending.found.by_mirror).get_or_init(|| PowerByMirror::new(&pending.power_in, self.mirrors.len()))
+    }
+
+    /// `Φ_in` of `route`'s mirror along its source.
+    fn route_power(&self, lit: &PowerByMirror, route: &Route) -> Rgb {
+        lit.power(self.ordinal[route.mirror as usize], route.source)
     }
 
     /// The source directions whose arrivals the gather of `targets` reads:
     /// those of their routes that carry power, in order.
-    pub fn sources(&self, targets: std::ops::Range<usize>, power_in: &[MirrorPower]) -> Vec<usize> {
+    pub fn sources(&self, targets: std::ops::Range<usize>, pending: &Pending) -> Vec<usize> {
+        let lit = self.by_mirror(pending);
         let mut out: Vec<usize> = self.routes[targets]
             .iter()
             .flatten()
-            .filter(|r| {
-                power_of(&power_in[r.source as usize], self.ordinal[r.mirror as usize])
-                    .iter()
-                    .any(|&p| p > 0.0)
-            })
+            .filter(|r| self.route_power(lit, r).iter().any(|&p| p > 0.0))
             .map(|r| r.source as usize)
             .collect();
         out.sort_unstable();
@@ -746,7 +763,7 @@ impl Specular {
         let gathered: Vec<Vec<Rgb>> = (0..directions.len())
             .into_par_iter()
             .map(|i| {
-                (self.gather(scene, directions, &read, &pending.power_in, i))
+                (self.gather(scene, directions, &read, &pending, i))
                     .expect("one process holds every direction's arrivals")
             })
             .collect();
@@ -765,13 +782,11 @@ impl Specular {
         scene: &Scene,
         directions: &DirectionSet,
         incident: &(dyn Fn(usize) -> &'a [Rgb] + Sync),
-        power_in: &[MirrorPower],
+        pending: &Pending,
         i: usize,
     ) -> crate::Result<Vec<Rgb>> {
-        let lit = |route: &Route| {
-            let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
-            !pin.iter().all(|&p| p <= 0.0)
-        };
+        let power = self.by_mirror(pending);
+        let lit = |route: &Route| !self.route_power(power, route).iter().all(|&p| p <= 0.0);
         // Backward mapping: every slot of P in i reads the incident radiance of the source ray
         // through the same point of P. Found once per direction where tables are kept (a
         // fifth of the mirror scene's in-process run went to finding it again every
@@ -790,7 +805,7 @@ impl Specular {
             if !lit(route) {
                 continue;
             }
-            let pin = power_of(&power_in[route.source as usize], self.ordinal[route.mirror as usize]);
+            let pin = self.route_power(power, route);
             let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
             let source_incident = incident(route.source as usize);
             if !self.holds(route.source as usize, source_incident) {
