@@ -25,7 +25,7 @@ use crate::scene::Rgb;
 /// bytes each, a run a few cache lines long) and reads one power. Side by side, each step of the
 /// search was a line of its own, a cache miss each, as the routes of one target jump from
 /// mirror to mirror.
-#[derive(Clone, Debug, Default)]
+#[derive(Debug)]
 pub struct PowerByMirror {
     /// `start[k]..start[k + 1]`: mirror `k`'s run of `sources` and `powers`; `mirrors + 1`
     /// values.
@@ -38,9 +38,10 @@ pub struct PowerByMirror {
 
 impl PowerByMirror {
     /// The index of `power_in` (per source direction, as [`MirrorPower`]) over `mirrors`
-    /// mirrors: a counting sort by mirror, stable in the source. An entry for a mirror number
-    /// not below `mirrors` (none from this build: a corrupt snapshot's) is left out, as no route
-    /// could ask for it.
+    /// mirrors: a counting sort by mirror, stable in the source. `power_in` is as a restore
+    /// checks it (`check_pending`: each list by strictly increasing mirror, every mirror below
+    /// `mirrors`); an entry for a mirror number out of range is left out all the same, as no
+    /// route could ask for it.
     pub fn new(power_in: &[MirrorPower], mirrors: usize) -> PowerByMirror {
         let known = |k: u32| (k as usize) < mirrors;
         let mut start = vec![0u32; mirrors + 1];
@@ -97,7 +98,7 @@ impl PowerByMirror {
 /// target: the exchange's table read mirror by mirror ([`RoutesByMirror::reflected`]). Only the
 /// routes that can carry power are kept: those whose mirror has slots in their target (the
 /// others have nothing to fill).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct RoutesByMirror {
     /// `start[k]..start[k + 1]`: mirror `k`'s run of `routes`.
     start: Vec<u32>,
@@ -135,11 +136,12 @@ impl RoutesByMirror {
             }
         }
         // Filled target by target: each mirror's run is by target, and by source within one;
-        // by (source, target) now, each pair once.
+        // by (source, target) now. A stable sort: were a (source, target) pair there twice, its
+        // routes would stay in the target's order.
         let mut rest = &mut by_mirror[..];
         for k in 0..mirrors {
             let (run, after) = rest.split_at_mut((start[k + 1] - start[k]) as usize);
-            run.sort_unstable_by_key(|&(source, target, _)| (source, target));
+            run.sort_by_key(|&(source, target, _)| (source, target));
             rest = after;
         }
         RoutesByMirror {
@@ -218,5 +220,63 @@ mod tests {
         assert_eq!(index.of(3), (&[0, 2][..], &[[2.0, 0.0, 0.0], [0.0, 5.0, 0.0]][..]));
         assert!(index.of(1).0.is_empty() && index.of(9).0.is_empty() && index.of(u32::MAX).0.is_empty());
         assert_eq!(index.len(), 5);
+    }
+
+    /// Routes read mirror by mirror give each target the sum of its own routes taken in order:
+    /// a mirror without a slot in the target is left out, sources interleave between targets,
+    /// a source that lit nothing and a route past the mirror's last lit source carry nothing.
+    #[test]
+    fn routes_by_mirror_sum_each_targets_routes_in_order() {
+        let route = |mirror, source, weight| Route { mirror, source, weight };
+        // Surfaces 10, 20, 30 are mirrors 0, 1, 2.
+        let mut ordinal = vec![u32::MAX; 31];
+        (ordinal[10], ordinal[20], ordinal[30]) = (0, 1, 2);
+        let routes = vec![
+            vec![
+                route(10, 0, 0.5),
+                route(10, 2, 0.25),
+                route(20, 1, 1.0),
+                route(20, 3, 0.5),
+                route(30, 3, 0.125),
+            ],
+            vec![
+                route(10, 1, 0.75),
+                route(10, 2, 0.5),
+                route(20, 3, 0.5),
+                route(30, 0, 1.0),
+            ],
+            vec![route(20, 0, 0.3), route(20, 2, 0.7)],
+        ];
+        // Target 1 has no slot on mirror 1 (surface 20).
+        let slotted = vec![vec![0, 1, 2], vec![0, 2], vec![1]];
+        let power_in: Vec<MirrorPower> = vec![
+            vec![(0, [1.0, 2.0, 0.0]), (1, [3.0, 0.0, 0.0])],
+            vec![(0, [0.5, 0.5, 0.5])],
+            vec![(0, [0.0, 0.0, 4.0]), (1, [1.0, 1.0, 1.0])],
+            vec![],
+        ];
+        let rho = |k: u32| [0.9, 0.8, if k == 1 { 0.6 } else { 0.7 }];
+        let lit = PowerByMirror::new(&power_in, 3);
+        let by_mirror = RoutesByMirror::new(&routes, &ordinal, &slotted, 3);
+        assert_eq!(by_mirror.len(), 10, "target 1's route on mirror 1 is left out");
+        let got = by_mirror.reflected(&lit, rho, 3);
+        for (i, routes) in routes.iter().enumerate() {
+            let mut want = [0.0; 3];
+            for r in routes {
+                let k = ordinal[r.mirror as usize];
+                if !slotted[i].contains(&k) {
+                    continue;
+                }
+                let pin = lit.power(k, r.source);
+                for c in 0..3 {
+                    let carried = r.weight * rho(k)[c] * pin[c];
+                    if carried > 0.0 {
+                        want[c] += carried;
+                    }
+                }
+            }
+            assert_eq!(got[i], want, "target {i}");
+        }
+        assert_eq!(got[2], [0.3 * 0.9 * 3.0 + 0.7 * 0.9, 0.7 * 0.8, 0.7 * 0.6]);
     }
 }

@@ -685,8 +685,9 @@ impl Specular {
         for (_, v) in pending.power_in.iter().flatten() {
             add(&mut exchange.incident, v);
         }
-        // Turned around for this settle alone where no gather asked before: a coordinator
-        // settles once per iteration and never gathers, so it keeps no second copy of `Φ_in`.
+        // Turned around for this settle alone unless a gather asked before: a coordinator settles
+        // once per iteration and never gathers, so it keeps no second copy of `Φ_in` (one
+        // process, which gathers next, turns it around again then).
         let turned;
         let lit = match pending.found.by_mirror.get() {
             Some(lit) => lit,
