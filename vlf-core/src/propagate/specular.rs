@@ -803,10 +803,10 @@ impl Specular {
         let mut out = vec![[0.0; 3]; self.views[i].layout.len as usize];
         let mut samples: Vec<(u32, Rgb)> = Vec::new();
         for (route, reads) in self.routes[i].iter().zip(table) {
-            if !lit(route) {
+            let pin = self.route_power(power, route);
+            if pin.iter().all(|&p| p <= 0.0) {
                 continue;
             }
-            let pin = self.route_power(power, route);
             let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
             let source_incident = incident(route.source as usize);
             if !self.holds(route.source as usize, source_incident) {
