@@ -92,11 +92,14 @@ pub enum BlobKind {
     /// What a block of a job's directions adds to its survey, learnt by a worker before the job
     /// is set up (caller's serialisation; `jobs/J/work/00000/survey/`).
     SurveyPart = 13,
+    /// Every direction's mirror view and the reflection routes of a job with mirrors, computed
+    /// when it is set up (caller's serialisation): what its workers read rather than compute.
+    MirrorGeometry = 14,
 }
 
 impl BlobKind {
     /// Every kind, in numeric order.
-    pub const ALL: [BlobKind; 13] = [
+    pub const ALL: [BlobKind; 14] = [
         BlobKind::Manifest,
         BlobKind::Scene,
         BlobKind::Snapshot,
@@ -110,6 +113,7 @@ impl BlobKind {
         BlobKind::DirectionRadiance,
         BlobKind::BatchRadiance,
         BlobKind::SurveyPart,
+        BlobKind::MirrorGeometry,
     ];
 
     /// The number stored in the header.

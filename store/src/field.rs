@@ -65,7 +65,8 @@ use vlf_core::field::LightField;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::parts::diffuse_chunks;
 use vlf_core::propagate::{
-    Checkpoint, IterationStats, MapBatch, MapKind, Options, Propagation, ShootingState, StateHead, Survey, Totals,
+    Checkpoint, IterationStats, MapBatch, MapKind, MirrorGeometry, Options, Propagation, ShootingState, StateHead,
+    Survey, Totals,
 };
 use vlf_core::scene::{Rgb, Scene};
 
@@ -177,12 +178,23 @@ impl FieldJob {
     }
 
     /// Sets up a job [described](FieldJob::describe) but not set up yet from `p`, its fresh
-    /// propagation: stores the survey and writes snapshot 0.
+    /// propagation: stores the survey and, with mirrors, their geometry, then writes snapshot 0
+    /// (which workers wait for, so they find both).
     pub fn set_up(&mut self, p: &Propagation) -> Result<(), StoreError> {
         if (p.scene.content_hash(), &p.options) != (self.scene.content_hash(), &self.options) {
             return Err(self.job_error("set up from a propagation of another scene or options".into()));
         }
         self.job.put_survey(&p.survey().to_bytes())?;
+        let started = std::time::Instant::now();
+        if let Some(geometry) = p.mirror_geometry() {
+            self.job.put_mirror_geometry(&geometry)?;
+            tracing::debug!(
+                job = %self.id(),
+                mb = format!("{:.1}", geometry.len() as f64 / 1e6),
+                seconds = format!("{:.3}", started.elapsed().as_secs_f64()),
+                "mirror geometry stored"
+            );
+        }
         self.write_snapshot(p)
     }
 
@@ -202,20 +214,48 @@ impl FieldJob {
         })
     }
 
+    /// The job's stored mirror geometry, written when it was set up (every direction's mirror
+    /// view and the reflection routes, which whoever opens the job reads rather than computes);
+    /// `None` for a job without mirrors, or stored before the geometry was. One that is there
+    /// but unreadable is an error, not a reason to compute it again.
+    pub fn stored_mirror_geometry(&self) -> Result<Option<MirrorGeometry>, StoreError> {
+        let Some(bytes) = self.job.mirror_geometry()? else {
+            return Ok(None);
+        };
+        MirrorGeometry::from_bytes(&bytes).map(Some).map_err(|e| {
+            let key = layout::mirror_geometry(self.id());
+            self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))
+        })
+    }
+
     /// The job's propagation at snapshot 0 — its geometry, holding at most `budget` bytes of
     /// subfields when one is given ([`Propagation::with_subfield_budget`]). With the job's
     /// [stored survey](FieldJob::stored_survey) no subfield is built up front
-    /// ([`Propagation::with_survey`]): a worker builds those of the directions it shoots. The
-    /// geometry is the job's to the bit, whoever builds it.
+    /// ([`Propagation::with_survey`]): a worker builds those of the directions it shoots; with
+    /// its [stored mirror geometry](FieldJob::stored_mirror_geometry) too, no mirror is
+    /// rasterised either ([`Propagation::with_stored`]). The geometry is the job's to the bit,
+    /// whoever builds it.
     pub fn propagation(&self, budget: Option<usize>) -> Result<Propagation, StoreError> {
         let (scene, options) = (self.scene.clone(), self.options.clone());
-        match self.stored_survey()? {
-            Some(survey) => Propagation::with_survey(scene, options, budget, survey).map_err(|e| match e {
-                vlf_core::Error::Decode(m) => vlf_core::Error::Decode(format!("`{}`: {m}", layout::survey(self.id()))),
-                e => e,
-            }),
-            None => Propagation::with_subfield_budget(scene, options, budget),
-        }
+        let Some(survey) = self.stored_survey()? else {
+            return Propagation::with_subfield_budget(scene, options, budget).map_err(|e| self.field_error(e));
+        };
+        let p = match self.stored_mirror_geometry()? {
+            Some(mirrors) => Propagation::with_stored(scene, options, budget, survey, mirrors),
+            None => Propagation::with_survey(scene, options, budget, survey),
+        };
+        // A misfit names the blob whose check refused it.
+        p.map_err(|e| match e {
+            vlf_core::Error::Decode(m) => {
+                let key = if m.starts_with("the mirror geometry") {
+                    layout::mirror_geometry(self.id())
+                } else {
+                    layout::survey(self.id())
+                };
+                vlf_core::Error::Decode(format!("`{key}`: {m}"))
+            }
+            e => e,
+        })
         .map_err(|e| self.field_error(e))
     }
 

@@ -169,6 +169,24 @@ impl Job {
         }
     }
 
+    /// Writes the mirror views and routes computed when the job was set up (caller's
+    /// serialisation): once, create-only — like the survey, a pure function of the job.
+    pub fn put_mirror_geometry(&self, geometry: &[u8]) -> Result<(), StoreError> {
+        let key = layout::mirror_geometry(self.id());
+        let bytes = blob::encode_bytes(BlobKind::MirrorGeometry, geometry).map_err(|e| self.blob_error(&key, e))?;
+        self.store.put_new(&key, bytes)?;
+        Ok(())
+    }
+
+    /// The job's mirror views and routes (caller's serialisation); `None` if it has none.
+    pub fn mirror_geometry(&self) -> Result<Option<Vec<u8>>, StoreError> {
+        match (self.store).get_bytes_blob(&layout::mirror_geometry(self.id()), BlobKind::MirrorGeometry) {
+            Ok(bytes) => Ok(Some(bytes)),
+            Err(StoreError::NotFound { .. }) => Ok(None),
+            Err(e) => Err(e),
+        }
+    }
+
     /// Writes the resume state of iteration `k` (caller's serialisation).
     pub fn put_state(&self, k: u32, state: &[u8]) -> Result<(), StoreError> {
         self.store.put_all(vec![self.state_put(k, state)?])

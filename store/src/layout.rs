@@ -7,6 +7,7 @@
 //! | `jobs/J/manifest.blob` | Manifest | JSON [`crate::Manifest`]; written last, the commit point |
 //! | `jobs/J/scene.blob` | Scene | the normalised scene (caller's bytes) |
 //! | `jobs/J/survey.blob` | Survey | what setting the job up learnt over all its directions (caller's bytes), so that nobody learns it again |
+//! | `jobs/J/mirrors.blob` | MirrorGeometry | with mirrors: every direction's mirror view and the reflection routes, computed when the job was set up (caller's bytes), so that no worker computes them again |
 //! | `jobs/J/iters/KKKKK/state.blob` | Snapshot | the head of what shooting the iteration after K reads (or, in jobs written before the split, all that resuming needs) |
 //! | `jobs/J/iters/KKKKK/shooting/BBBBB.blob` | Snapshot | what batch B of the directions shoots next: the mirror arrivals to gather (or unshot maps) |
 //! | `jobs/J/iters/KKKKK/mirror-totals/BBBBB.blob` | Snapshot | the total mirror maps of batch B of the directions, exact (`f64`): what resuming reads (deleted once K is compacted) |
@@ -67,6 +68,12 @@ pub fn scene(job: &JobId) -> String {
 /// (`vlf_core::propagate::Survey`), written with the job.
 pub fn survey(job: &JobId) -> String {
     format!("{JOBS_PREFIX}{job}/survey.blob")
+}
+
+/// `jobs/J/mirrors.blob`: every direction's mirror view and the reflection routes
+/// (`vlf_core::propagate::MirrorGeometry`), written with the job when it has mirrors.
+pub fn mirror_geometry(job: &JobId) -> String {
+    format!("{JOBS_PREFIX}{job}/mirrors.blob")
 }
 
 /// `jobs/J/iters/KKKKK/` or `jobs/J/field/`: everything of a stage.

@@ -872,6 +872,89 @@ fn replicas_read_the_jobs_survey() {
     }
 }
 
+/// A mirror job stores its mirror geometry when it is set up, and whoever opens the job reads it
+/// rather than computing it: the routes it stores are the routes a replica has (altered in the
+/// store, altered in the replica), and replicas that read it give the in-process field. A job
+/// stored without it computes it, the same; one that is there but unreadable or of another job
+/// is an error naming it.
+#[test]
+fn replicas_read_the_jobs_mirror_geometry() {
+    let (scene, options) = (bundled("mirrors.obj"), options(0, 129));
+    let store = Store::open("memory://").unwrap();
+    let reference = in_process(&store, &scene, &options);
+    let p = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    let stored = job
+        .stored_mirror_geometry()
+        .unwrap()
+        .expect("a mirror job stores its geometry");
+    assert_eq!(Some(stored.to_bytes()), p.mirror_geometry());
+    let key = layout::mirror_geometry(&id);
+    let blob = |kind, bytes: &[u8]| vlf_store::blob::encode_bytes(kind, bytes).unwrap();
+    let valid = store.get(&key).unwrap();
+
+    let mut altered = stored.clone();
+    let t = (0..altered.routes.len())
+        .find(|&t| !altered.routes[t].is_empty())
+        .unwrap();
+    altered.routes[t][0].weight *= 0.5;
+    store
+        .put(&key, blob(BlobKind::MirrorGeometry, &altered.to_bytes()))
+        .unwrap();
+    let read = FieldJob::open(&store, &id).unwrap().propagation(None).unwrap();
+    assert_eq!(read.specular.as_ref().unwrap().routes, altered.routes);
+    store.put(&key, valid.clone()).unwrap();
+
+    let mut coordinator = Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
+    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    assert_eq!(replica.subfield_memory().builds, 0, "set-up built subfields");
+    while !coordinator.finished() {
+        compute_iteration(&mut coordinator, &mut replica);
+        coordinator.finish_iteration().unwrap();
+    }
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+
+    // As a job of an earlier build: computed, the same.
+    store.delete(&key).unwrap();
+    let job = FieldJob::open(&store, &id).unwrap();
+    assert!(job.stored_mirror_geometry().unwrap().is_none());
+    let computed = job.propagation(None).unwrap();
+    assert_eq!(computed.mirror_geometry(), Some(stored.to_bytes()));
+
+    let mut flipped = valid.to_vec();
+    flipped[60] ^= 4;
+    let other = Propagation::new(
+        scene,
+        Options {
+            directions: 33,
+            ..options
+        },
+    )
+    .unwrap()
+    .mirror_geometry()
+    .unwrap();
+    for (bytes, says) in [
+        (flipped, "checksum"),
+        (valid[..40].to_vec(), "mirrors.blob"),
+        (blob(BlobKind::MirrorGeometry, &[1, 0, 0, 0, 7]), "mirrors.blob"),
+        (
+            blob(BlobKind::MirrorGeometry, &other),
+            "mirrors.blob`: the mirror geometry was computed for l = 33",
+        ),
+        (blob(BlobKind::Survey, &stored.to_bytes()), "mirrors.blob"),
+    ] {
+        store.put(&key, bytes).unwrap();
+        let error = Replica::new(FieldJob::open(&store, &id).unwrap())
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(error.contains(says), "{error}");
+    }
+}
+
 /// A coordinator reads no subfield (it absorbs what workers shoot, perturbed copies' areas
 /// included, and cuts mirror tiles along the mirror views): once it lets them go it builds none
 /// to the job's end, with mirrors too, and the field is the in-process run's.

@@ -47,6 +47,7 @@ mod by_mirror;
 pub mod checkpoint;
 mod claim;
 mod filter;
+pub mod mirror_geometry;
 mod perturb;
 pub mod plan;
 pub mod reduce;
@@ -58,6 +59,7 @@ pub mod survey;
 pub mod work;
 
 pub use checkpoint::{Checkpoint, ShootingState, Totals};
+pub use mirror_geometry::MirrorGeometry;
 pub use plan::Plan;
 pub use shoot::Flow;
 pub use snapshot::{MapBatch, MapKind, SnapshotBytes, StateHead};
@@ -414,7 +416,7 @@ impl Propagation {
     /// whole field. Set-up still reads every subfield once (two or three passes over the
     /// directions, each rebuilding what the budget did not keep).
     pub fn with_subfield_budget(scene: Scene, options: Options, budget: Option<usize>) -> crate::Result<Self> {
-        Propagation::set_up(scene, options, budget, None)
+        Propagation::set_up(scene, options, budget, None, None)
     }
 
     /// [`Propagation::with_subfield_budget`] where the [`Survey`] is known — what set-up
@@ -430,7 +432,28 @@ impl Propagation {
     /// Refuses a survey that does not fit the scene and options ([`Survey::check`]), with an
     /// [`Error::Decode`](crate::Error::Decode) that says why (the caller adds where it was read).
     pub fn with_survey(scene: Scene, options: Options, budget: Option<usize>, survey: Survey) -> crate::Result<Self> {
-        Propagation::set_up(scene, options, budget, Some(survey))
+        Propagation::set_up(scene, options, budget, Some(survey), None)
+    }
+
+    /// [`Propagation::with_survey`] where the mirror geometry is known too — every direction's
+    /// mirror view and the reflection routes, computed by whoever set the job up and stored with
+    /// it ([`Propagation::mirror_geometry`]): no mirror plane is rasterised, no route found. The
+    /// same bits: it is the same tables. A geometry that does not fit the scene, the options or
+    /// the mirrors the survey maps is refused ([`MirrorGeometry::check`]).
+    pub fn with_stored(
+        scene: Scene,
+        options: Options,
+        budget: Option<usize>,
+        survey: Survey,
+        mirrors: MirrorGeometry,
+    ) -> crate::Result<Self> {
+        Propagation::set_up(scene, options, budget, Some(survey), Some(mirrors))
+    }
+
+    /// This propagation's mirror geometry, as bytes for [`MirrorGeometry::from_bytes`]; `None`
+    /// without mirrors. What a job stores beside its survey, so that nobody computes it again.
+    pub fn mirror_geometry(&self) -> Option<Vec<u8>> {
+        (self.specular.as_ref()).map(|s| MirrorGeometry::bytes_of(&self.scene, &self.options, s))
     }
 
     /// Lets go of the subfields, when nothing this propagation will still do reads them: the
@@ -453,8 +476,15 @@ impl Propagation {
         )
     }
 
-    /// Builds the geometry, and learns the survey unless it is `known`.
-    fn set_up(scene: Scene, options: Options, budget: Option<usize>, known: Option<Survey>) -> crate::Result<Self> {
+    /// Builds the geometry, and learns the survey unless it is `known`; the mirrors' views and
+    /// routes are read from `stored` when given, else computed.
+    fn set_up(
+        scene: Scene,
+        options: Options,
+        budget: Option<usize>,
+        known: Option<Survey>,
+        stored: Option<MirrorGeometry>,
+    ) -> crate::Result<Self> {
         options.validate()?;
         // Seconds since the last lap: where set-up's time goes, logged at the end.
         let mut last = Instant::now();
@@ -515,12 +545,16 @@ impl Propagation {
             ));
         }
         let mirrors = plan.mapped_mirrors();
-        let specular = (!mirrors.is_empty()).then(|| {
-            let mut spec = Specular::new(&scene, &directions, &subfields, &atlas.plane_rep, mirrors);
+        let mut specular = match stored {
+            Some(geometry) => Some(geometry.into_specular(&scene, &options, &subfields, &mirrors)?),
+            None => {
+                (!mirrors.is_empty()).then(|| Specular::new(&scene, &directions, &subfields, &atlas.plane_rep, mirrors))
+            }
+        };
+        if let Some(spec) = &mut specular {
             // Within a budget, memory is what the process is short of.
             spec.keep_gather_tables = budget.is_none();
-            spec
-        });
+        }
         plan.mirror_slots = specular
             .as_ref()
             .map_or(0, |s| s.views.iter().map(specular::MirrorView::slots).sum());

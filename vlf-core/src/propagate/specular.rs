@@ -63,6 +63,7 @@
 //! The field's bits are the same either way.
 
 use super::by_mirror::{PowerByMirror, RoutesByMirror};
+use super::mirror_geometry::MirrorGeometry;
 use super::shoot::NO_SLOT;
 use crate::directions::DirectionSet;
 use crate::psf::{Footprints, RasterScratch, Subfield, Subfields, SurfaceProjection};
@@ -396,16 +397,9 @@ impl Specular {
         directions: &DirectionSet,
         subfields: &Subfields,
         plane_rep: &[u32],
-        mut mirrors: Vec<u32>,
+        mirrors: Vec<u32>,
     ) -> Self {
-        mirrors.sort_unstable();
-        mirrors.dedup();
-        let mut has_maps = vec![false; scene.surfaces.len()];
-        let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
-        for (k, &m) in mirrors.iter().enumerate() {
-            has_maps[m as usize] = true;
-            ordinal[m as usize] = k as u32;
-        }
+        let (mirrors, has_maps, ordinal) = mirror_tables(scene, mirrors);
         let views: Vec<MirrorView> = if subfields.all_held() {
             subfields.map(|_, sub| MirrorView::new(sub.only(|s| has_maps[s as usize]), &has_maps))
         } else {
@@ -418,20 +412,6 @@ impl Specular {
                 })
                 .collect()
         };
-        let slotted = views
-            .iter()
-            .map(|view| {
-                let mut slotted: Vec<u32> = (view.layout.entries.iter())
-                    .filter(|&&(_, _, e)| view.sub.entries[e as usize].rays > 0)
-                    .map(|&(s, _, _)| ordinal[s as usize])
-                    .collect();
-                slotted.sort_unstable();
-                slotted.dedup();
-                slotted
-            })
-            .collect();
-        // Zeros, allocated where first written (`hold_zeros`).
-        let maps = vec![DirectionMaps::default(); views.len()];
         // crossing[k]: the directions (increasing) whose rays meet mirror k, an entry of its
         // in their layout; listed per mirror, as the routes ask, and only where they meet.
         let mut crossing: Vec<Vec<u32>> = vec![Vec::new(); mirrors.len()];
@@ -458,7 +438,44 @@ impl Specular {
         routes
             .par_iter_mut()
             .for_each(|r| r.sort_by_key(|r| (r.mirror, r.source)));
+        Specular::assemble(mirrors, ordinal, views, routes)
+    }
+
+    /// The specular state whose views and routes were computed elsewhere — a job's stored
+    /// [`MirrorGeometry`], which [`MirrorGeometry::check`] found to be this scene's: the same
+    /// state as [`Specular::new`] builds, without rasterising a mirror or finding a route.
+    pub(crate) fn from_geometry(scene: &Scene, geometry: MirrorGeometry) -> Self {
+        let (mirrors, has_maps, ordinal) = mirror_tables(scene, geometry.mirrors);
+        let views = (geometry.views.into_par_iter())
+            .map(|sub| MirrorView::new(sub, &has_maps))
+            .collect();
+        Specular::assemble(mirrors, ordinal, views, geometry.routes)
+    }
+
+    /// What [`Specular::from_geometry`] reads back, borrowed from this state: its views'
+    /// subfields and its routes.
+    pub(crate) fn geometry(&self) -> (&[u32], Vec<&Subfield>, &[Vec<Route>]) {
+        (&self.mirrors, self.views.iter().map(|v| &v.sub).collect(), &self.routes)
+    }
+
+    /// The state of `mirrors` (sorted, by ordinal) with these views and routes, nothing held.
+    fn assemble(mirrors: Vec<u32>, ordinal: Vec<u32>, views: Vec<MirrorView>, routes: Vec<Vec<Route>>) -> Self {
+        let slotted = views
+            .iter()
+            .map(|view| {
+                let mut slotted: Vec<u32> = (view.layout.entries.iter())
+                    .filter(|&&(_, _, e)| view.sub.entries[e as usize].rays > 0)
+                    .map(|&(s, _, _)| ordinal[s as usize])
+                    .collect();
+                slotted.sort_unstable();
+                slotted.dedup();
+                slotted
+            })
+            .collect();
+        // Zeros, allocated where first written (`hold_zeros`).
+        let maps = vec![DirectionMaps::default(); views.len()];
         Specular {
+            gather_tables: (0..views.len()).map(|_| OnceLock::new()).collect(),
             mirrors,
             views,
             maps,
@@ -466,7 +483,6 @@ impl Specular {
             pending: None,
             ordinal,
             slotted,
-            gather_tables: (0..directions.len()).map(|_| OnceLock::new()).collect(),
             routes_by_mirror: OnceLock::new(),
             keep_gather_tables: true,
         }
@@ -566,14 +582,23 @@ impl Specular {
     fn gather_table(&self, scene: &Scene, i: usize, wanted: impl Fn(&Route) -> bool) -> GatherTable {
         let MirrorView { sub, layout } = &self.views[i];
         let n = sub.grid.resolution;
+        // The target's rays on the last route's mirror: routes come by mirror, each mirror's
+        // several sources read through the same points, so it is found once per mirror.
+        let mut on_mirror: Option<(u32, SurfaceProjection)> = None;
         (self.routes[i].iter())
             .map(|route| {
                 let mut samples = Vec::new();
                 if !wanted(route) {
                     return samples;
                 }
-                let surface = &scene.surfaces[route.mirror as usize];
-                let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
+                let proj = match &on_mirror {
+                    Some((m, proj)) if *m == route.mirror => proj,
+                    _ => {
+                        let surface = &scene.surfaces[route.mirror as usize];
+                        let proj = SurfaceProjection::new(&sub.frame, n, surface.normal, surface.offset);
+                        &on_mirror.insert((route.mirror, proj)).1
+                    }
+                };
                 let MirrorView {
                     sub: source,
                     layout: source_layout,
@@ -857,6 +882,20 @@ fn add(acc: &mut Rgb, v: &Rgb) {
     for (a, b) in acc.iter_mut().zip(v) {
         *a += b;
     }
+}
+
+/// `mirrors` sorted, each once, with which surfaces they are (`has_maps`, by surface) and each
+/// one's ordinal among them (`ordinal`, by surface; [`NO_SLOT`] for the other surfaces).
+fn mirror_tables(scene: &Scene, mut mirrors: Vec<u32>) -> (Vec<u32>, Vec<bool>, Vec<u32>) {
+    mirrors.sort_unstable();
+    mirrors.dedup();
+    let mut has_maps = vec![false; scene.surfaces.len()];
+    let mut ordinal = vec![NO_SLOT; scene.surfaces.len()];
+    for (k, &m) in mirrors.iter().enumerate() {
+        has_maps[m as usize] = true;
+        ordinal[m as usize] = k as u32;
+    }
+    (mirrors, has_maps, ordinal)
 }
 
 /// The routes of mirror `m`: for every source line direction whose rays cross it (`crossing`,

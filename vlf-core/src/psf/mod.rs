@@ -251,6 +251,57 @@ impl Subfield {
         }
     }
 
+    /// Whether these tables are a subfield's, for one read from elsewhere (a job's stored mirror
+    /// geometry) before anything indexes with them: one entry list per tile of the grid, each
+    /// tile's surfaces increasing and each one that `surface` accepts, every entry's spans within
+    /// the table and the tile, its rays their length and its first slot the count before it. The
+    /// look-ups then stay in bounds; what the tables say of the scene is the caller's to check.
+    pub fn check_tables(&self, surface: impl Fn(u32) -> bool) -> Result<(), String> {
+        let (m, tiles) = (self.grid.tile, self.grid.tiles_per_side() as usize);
+        if self.tile_start.len() != tiles * tiles + 1 || self.tile_start.first() != Some(&0) {
+            return Err(format!(
+                "has {} tile starts for {} tiles",
+                self.tile_start.len(),
+                tiles * tiles
+            ));
+        }
+        if !self.tile_start.is_sorted() {
+            return Err("has tile starts out of order".into());
+        }
+        if self.tile_start.last().map(|&end| end as usize) != Some(self.entries.len()) {
+            return Err("has tile starts that do not end at its entries' count".into());
+        }
+        let mut slots = 0u32;
+        for k in 0..self.tile_count() {
+            let entries = self.tile(k);
+            if !entries.windows(2).all(|w| w[0].surface < w[1].surface) {
+                return Err(format!("lists the surfaces of tile {k} out of order or twice"));
+            }
+            for e in entries {
+                if !surface(e.surface) {
+                    return Err(format!("has an entry of surface {}, which it cannot hold", e.surface));
+                }
+                let spans = (e.first_span.checked_add(e.span_count))
+                    .and_then(|end| self.spans.get(e.first_span as usize..end as usize))
+                    .ok_or_else(|| format!("has spans of tile {k} past its {} spans", self.spans.len()))?;
+                let mut rays = 0u64;
+                for s in spans {
+                    if !(u32::from(s.row) < m && s.start < s.end && u32::from(s.end) <= m) {
+                        return Err(format!("has a span {s:?} outside its {m}-ray tile {k}"));
+                    }
+                    rays += u64::from(s.end - s.start);
+                }
+                if u64::from(e.rays) != rays || e.first_ray != slots {
+                    return Err(format!("miscounts the rays of tile {k}"));
+                }
+                slots = slots
+                    .checked_add(e.rays)
+                    .ok_or_else(|| "has more rays than slots can number".to_string())?;
+            }
+        }
+        Ok(())
+    }
+
     /// The surfaces of tile `k` with their edge tables.
     pub fn tile(&self, k: usize) -> &[TileSurface] {
         &self.entries[self.tile_start[k] as usize..self.tile_start[k + 1] as usize]

@@ -1,0 +1,166 @@
+//! A job's stored mirror geometry (`MirrorGeometry`): read back, it is the specular state that
+//! set-up computes, to the bit; one that does not fit the job is refused with what is wrong,
+//! never indexed.
+
+mod common;
+
+use common::*;
+use glam::DVec3;
+use vlf_core::propagate::survey::Surveyed;
+use vlf_core::propagate::{MirrorGeometry, Options, Propagation, Stop};
+use vlf_core::psf::GridSize;
+use vlf_core::scene::Scene;
+
+fn options(l: usize, iterations: u32) -> Options {
+    Options {
+        directions: l,
+        grid: GridSize::new(32, 8).unwrap(),
+        stop: Stop::Iterations(iterations),
+        ..Options::default()
+    }
+}
+
+/// The mirror room (two flat mirror walls) with a faceted mirror ball of 80 triangles in it.
+fn room_with_ball() -> Scene {
+    let room = mirror_room();
+    let mut surfaces = room.surfaces.clone();
+    for t in icosphere(DVec3::new(0.05, -0.1, 0.0), 0.15, 1) {
+        surfaces.push(surface(t.to_vec(), 2));
+    }
+    scene(surfaces, room.materials.clone())
+}
+
+fn digest(mut p: Propagation) -> String {
+    p.run(|_| {});
+    p.into_field().digest()
+}
+
+/// Whoever reads the geometry a propagation stores has its views, routes and field, without
+/// building a subfield; a worker that computes it from the mirror planes alone writes the same
+/// bytes; a diffuse scene has none.
+#[test]
+fn a_stored_mirror_geometry_is_the_computed_one() {
+    for scene in [room_with_ball(), mirror_room()] {
+        let p = Propagation::new(scene.clone(), options(129, 2)).unwrap();
+        let bytes = p.mirror_geometry().expect("a mirror scene has a geometry");
+        let geometry = MirrorGeometry::from_bytes(&bytes).unwrap();
+        assert_eq!(geometry.to_bytes(), bytes);
+        let read = Propagation::with_stored(scene.clone(), options(129, 2), None, p.survey(), geometry).unwrap();
+        assert_eq!(read.subfields.memory().builds, 0);
+        let (a, b) = (read.specular.as_ref().unwrap(), p.specular.as_ref().unwrap());
+        assert!(a.mirrors == b.mirrors && a.views == b.views && a.routes == b.routes);
+        assert_eq!(read.plan.mirror_slots, p.plan.mirror_slots);
+        assert!(b.routes.iter().map(Vec::len).sum::<usize>() > 0);
+        assert_eq!(digest(read), digest(p.clone()));
+
+        let computed = Propagation::with_survey(scene, options(129, 2), None, p.survey()).unwrap();
+        assert_eq!(computed.mirror_geometry(), Some(bytes));
+    }
+    assert!(
+        Propagation::new(lit_box(), options(33, 1))
+            .unwrap()
+            .mirror_geometry()
+            .is_none()
+    );
+}
+
+/// Every way a stored geometry can misfit its job — another scene or options, other mirrors,
+/// tables that would index out of bounds or break the routes' order, bytes that are not one —
+/// is a decode error that says what, never a panic or a field.
+#[test]
+fn a_mirror_geometry_that_does_not_fit_is_refused() {
+    let scene = room_with_ball();
+    let p = Propagation::new(scene.clone(), options(129, 1)).unwrap();
+    let bytes = p.mirror_geometry().unwrap();
+    let good = MirrorGeometry::from_bytes(&bytes).unwrap();
+    let l = good.views.len();
+    let tile = good.views[0].grid.tile as u16;
+    // A view with spans, a non-mirror surface, a target with several routes.
+    let d = (0..l).find(|&d| !good.views[d].spans.is_empty()).unwrap();
+    let wall = (0..scene.surfaces.len() as u32)
+        .find(|&s| !scene.material(s as usize).is_mirror())
+        .unwrap();
+    let t = (0..l).find(|&t| good.routes[t].len() > 1).unwrap();
+    let other_l = MirrorGeometry::from_bytes(
+        &Propagation::new(scene.clone(), options(33, 1))
+            .unwrap()
+            .mirror_geometry()
+            .unwrap(),
+    )
+    .unwrap();
+    let other_scene = MirrorGeometry::from_bytes(
+        &Propagation::new(mirror_room(), options(129, 1))
+            .unwrap()
+            .mirror_geometry()
+            .unwrap(),
+    )
+    .unwrap();
+
+    type Misfit = Box<dyn Fn(&mut MirrorGeometry)>;
+    let cases: Vec<(Misfit, &str)> = vec![
+        (Box::new(move |g| *g = other_l.clone()), "computed for l = 33"),
+        (Box::new(move |g| *g = other_scene.clone()), "another scene"),
+        (Box::new(|g| _ = g.mirrors.pop()), "mirrors, where the survey maps"),
+        (Box::new(|g| _ = g.views.pop()), "views"),
+        (Box::new(|g| g.views.swap(0, 1)), "another frame"),
+        (Box::new(move |g| g.views[d].spans[0].end = tile + 1), "outside"),
+        (
+            Box::new(move |g| g.views[d].spans[0].start = g.views[d].spans[0].end),
+            "outside",
+        ),
+        (Box::new(move |g| g.views[d].entries[0].rays += 1), "miscounts"),
+        (
+            Box::new(move |g| g.views[d].entries[0].span_count = u32::MAX),
+            "past its",
+        ),
+        (Box::new(move |g| g.views[d].entries[0].surface = wall), "cannot hold"),
+        (Box::new(move |g| _ = g.views[d].tile_start.pop()), "tile starts"),
+        (
+            Box::new(move |g| *g.views[d].tile_start.last_mut().unwrap() += 1),
+            "tile starts",
+        ),
+        (
+            Box::new(move |g| g.routes[t][0].source = l as u32),
+            "not one of the job's",
+        ),
+        (Box::new(move |g| g.routes[t][0].mirror = wall), "not one of the job's"),
+        (Box::new(move |g| g.routes[t][0].weight = f64::NAN), "share NaN"),
+        (Box::new(move |g| g.routes[t].reverse()), "out of order"),
+    ];
+    for (misfit, says) in cases {
+        let mut geometry = good.clone();
+        misfit(&mut geometry);
+        // Through its bytes, as a store gives it.
+        let geometry = MirrorGeometry::from_bytes(&geometry.to_bytes()).unwrap();
+        let error = Propagation::with_stored(scene.clone(), options(129, 1), None, p.survey(), geometry)
+            .err()
+            .expect(says)
+            .to_string();
+        assert!(
+            error.contains("mirror geometry") && error.contains(says),
+            "{says}: {error}"
+        );
+    }
+    let mut trailing = bytes.clone();
+    trailing.push(0);
+    let mut version = bytes.clone();
+    version[0] = 9;
+    for (bytes, says) in [
+        (bytes[..bytes.len() / 2].to_vec(), "mirror geometry"),
+        (trailing, "trailing bytes"),
+        (version, "version 9"),
+        (vec![1, 0], "too short"),
+    ] {
+        let error = MirrorGeometry::from_bytes(&bytes).expect_err(says).to_string();
+        assert!(error.contains(says), "{says}: {error}");
+    }
+    // A diffuse job has none to read, even one that says it is the job's.
+    let diffuse = Propagation::new(lit_box(), options(33, 1)).unwrap();
+    let mut geometry = good;
+    geometry.of = Surveyed::of(&lit_box(), &options(33, 1));
+    let error = Propagation::with_stored(lit_box(), options(33, 1), None, diffuse.survey(), geometry)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(error.contains("maps no mirror"), "{error}");
+}
