@@ -6,6 +6,7 @@
 //! |---|---|---|
 //! | the normalised scene | `jobs/J/scene.blob` | `Scene::to_bytes`, exact |
 //! | what set-up learns over all directions: the discrete areas `T_t`, the mirrors light reaches | `jobs/J/survey.blob` | `Survey::to_bytes`, exact |
+//! | with mirrors: every direction's mirror view and the reflection routes | `jobs/J/mirrors.blob` | `MirrorGeometry` bytes, exact |
 //! | the propagation options | the manifest's `parameters` | JSON of `Options` (floats round-trip exactly) |
 //! | the checkpoint after K iterations | `jobs/J/iters/KKKKK/state.blob` (the shooting state's head), per batch B of directions `shooting/BBBBB.blob` and `mirror-totals/BBBBB.blob` (its mirror maps), and `totals.blob` (diffuse) | `Propagation::snapshot_bytes`: f64, exact (see below for jobs of earlier builds) |
 //! | what a stage is | `S/summary.blob` | JSON [`Summary`] |
@@ -240,7 +241,13 @@ impl FieldJob {
         let Some(survey) = self.stored_survey()? else {
             return Propagation::with_subfield_budget(scene, options, budget).map_err(|e| self.field_error(e));
         };
-        let p = match self.stored_mirror_geometry()? {
+        // A job whose survey maps no mirror has no geometry to ask the store for.
+        let stored = if survey.lit_mirrors.is_empty() {
+            None
+        } else {
+            self.stored_mirror_geometry()?
+        };
+        let p = match stored {
             Some(mirrors) => Propagation::with_stored(scene, options, budget, survey, mirrors),
             None => Propagation::with_survey(scene, options, budget, survey),
         };

@@ -811,6 +811,26 @@ fn across_workers_within_budgets(scene: Scene, options: Options, steady: bool) {
     }
 }
 
+/// Runs the job to its end with one replica, and compares it with `reference`, a run of the same.
+fn finishes_as(mut coordinator: Coordinator, mut replica: Replica, reference: &FieldJob) {
+    while !coordinator.finished() {
+        compute_iteration(&mut coordinator, &mut replica);
+        coordinator.finish_iteration().unwrap();
+    }
+    let job = coordinator.finish(false).unwrap();
+    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+    assert!(field_blobs(&job) == field_blobs(reference), "stored field differs");
+}
+
+/// A replica of job `id` cannot be made, with an error that `says` why.
+fn refused(store: &Store, id: &JobId, says: &str) {
+    let error = Replica::new(FieldJob::open(store, id).unwrap())
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(error.contains(says), "{error}");
+}
+
 /// A job's survey is stored with it (`FieldJob::propagation`): a replica of a diffuse job builds
 /// no subfield until it shoots, then only those of its lease. A job stored before surveys were
 /// (no survey blob) computes as before, its replicas building the whole geometry, to the same
@@ -839,16 +859,10 @@ fn replicas_read_the_jobs_survey() {
     store.delete(&key).unwrap();
     let job = FieldJob::open(&store, &id).unwrap();
     assert!(job.stored_survey().unwrap().is_none());
-    let mut coordinator = Coordinator::resume(job).unwrap();
-    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    let coordinator = Coordinator::resume(job).unwrap();
+    let replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
     assert_eq!(replica.subfield_memory().builds, l);
-    while !coordinator.finished() {
-        compute_iteration(&mut coordinator, &mut replica);
-        coordinator.finish_iteration().unwrap();
-    }
-    let job = coordinator.finish(false).unwrap();
-    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
-    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+    finishes_as(coordinator, replica, &reference);
 
     let blob = |kind, bytes: &[u8]| vlf_store::blob::encode_bytes(kind, bytes).unwrap();
     let valid = blob(BlobKind::Survey, &p.survey().to_bytes());
@@ -864,11 +878,7 @@ fn replicas_read_the_jobs_survey() {
         (blob(BlobKind::Scene, &p.survey().to_bytes()), "survey.blob"),
     ] {
         store.put(&key, bytes).unwrap();
-        let error = Replica::new(FieldJob::open(&store, &id).unwrap())
-            .err()
-            .unwrap()
-            .to_string();
-        assert!(error.contains(says), "{error}");
+        refused(&store, &id, says);
     }
 }
 
@@ -906,16 +916,10 @@ fn replicas_read_the_jobs_mirror_geometry() {
     assert_eq!(read.specular.as_ref().unwrap().routes, altered.routes);
     store.put(&key, valid.clone()).unwrap();
 
-    let mut coordinator = Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
-    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    let coordinator = Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
+    let replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
     assert_eq!(replica.subfield_memory().builds, 0, "set-up built subfields");
-    while !coordinator.finished() {
-        compute_iteration(&mut coordinator, &mut replica);
-        coordinator.finish_iteration().unwrap();
-    }
-    let job = coordinator.finish(false).unwrap();
-    assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
-    assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+    finishes_as(coordinator, replica, &reference);
 
     // As a job of an earlier build: computed, the same.
     store.delete(&key).unwrap();
@@ -947,11 +951,7 @@ fn replicas_read_the_jobs_mirror_geometry() {
         (blob(BlobKind::Survey, &stored.to_bytes()), "mirrors.blob"),
     ] {
         store.put(&key, bytes).unwrap();
-        let error = Replica::new(FieldJob::open(&store, &id).unwrap())
-            .err()
-            .unwrap()
-            .to_string();
-        assert!(error.contains(says), "{error}");
+        refused(&store, &id, says);
     }
 }
 

@@ -35,9 +35,9 @@ fn digest(mut p: Propagation) -> String {
     p.into_field().digest()
 }
 
-/// Whoever reads the geometry a propagation stores has its views, routes and field, without
-/// building a subfield; a worker that computes it from the mirror planes alone writes the same
-/// bytes; a diffuse scene has none.
+/// Whoever reads the geometry a propagation stores has its views, routes and field (and builds no
+/// subfield of the scene); a worker that computes it from the mirror planes alone writes the same
+/// bytes; what is read is what the bytes say; a diffuse scene has none.
 #[test]
 fn a_stored_mirror_geometry_is_the_computed_one() {
     for scene in [room_with_ball(), mirror_room()] {
@@ -53,8 +53,17 @@ fn a_stored_mirror_geometry_is_the_computed_one() {
         assert!(b.routes.iter().map(Vec::len).sum::<usize>() > 0);
         assert_eq!(digest(read), digest(p.clone()));
 
-        let computed = Propagation::with_survey(scene, options(129, 2), None, p.survey()).unwrap();
-        assert_eq!(computed.mirror_geometry(), Some(bytes));
+        let computed = Propagation::with_survey(scene.clone(), options(129, 2), None, p.survey()).unwrap();
+        assert_eq!(computed.mirror_geometry(), Some(bytes.clone()));
+
+        // Read, not found again: a route altered in the bytes is altered in the propagation.
+        let mut altered = MirrorGeometry::from_bytes(&bytes).unwrap();
+        let t = (0..altered.routes.len())
+            .find(|&t| !altered.routes[t].is_empty())
+            .unwrap();
+        altered.routes[t][0].weight *= 0.5;
+        let read = Propagation::with_stored(scene, options(129, 2), None, p.survey(), altered.clone()).unwrap();
+        assert_eq!(read.specular.unwrap().routes, altered.routes);
     }
     assert!(
         Propagation::new(lit_box(), options(33, 1))
@@ -100,7 +109,7 @@ fn a_mirror_geometry_that_does_not_fit_is_refused() {
     let cases: Vec<(Misfit, &str)> = vec![
         (Box::new(move |g| *g = other_l.clone()), "computed for l = 33"),
         (Box::new(move |g| *g = other_scene.clone()), "another scene"),
-        (Box::new(|g| _ = g.mirrors.pop()), "mirrors, where the survey maps"),
+        (Box::new(|g| _ = g.mirrors.pop()), "other mirrors"),
         (Box::new(|g| _ = g.views.pop()), "views"),
         (Box::new(|g| g.views.swap(0, 1)), "another frame"),
         (Box::new(move |g| g.views[d].spans[0].end = tile + 1), "outside"),
