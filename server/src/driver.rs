@@ -14,6 +14,7 @@ use crate::scheduler::{PassOutcome, Scheduler};
 use std::sync::Arc;
 use tokio::sync::Notify;
 use vlf_core::propagate::{Pass, Propagation, Survey, SurveyPart, SurveyParts};
+use vlf_core::psf::Subfield;
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
 use vlf_proto::v1::{JobStatus, State as WireState};
@@ -170,7 +171,8 @@ async fn set_up(sched: &Arc<Scheduler>, job: FieldJob, wake: &Notify, origin: Or
         }
         let (scene, options) = (job.scene().clone(), job.options().clone());
         let built = match survey {
-            Some(survey) => Propagation::with_survey(scene, options, budget, survey),
+            // The mirror views are cut from the planes the workers learnt with the survey.
+            Some((survey, planes)) => Propagation::with_survey_and_planes(scene, options, budget, survey, planes),
             None => Propagation::with_subfield_budget(scene, options, budget),
         };
         let prop = match built {
@@ -221,7 +223,8 @@ async fn ended(mut job: FieldJob, outcome: SetUp) -> SetUp {
 /// is left (none heard from for six heartbeats: three to count one dead, three more of grace —
 /// the one that had the pass died, or none came back after a coordinator restart), or when a
 /// stored part cannot be read or does not fit (a corrupted blob, one of another build). Returns
-/// the survey, or why there is none: cancelled, failed ([`SetUp::Failed`]: a block failed too
+/// the survey with every direction's mirror planes ([`SurveyParts::finish_with_planes`]), or why
+/// there is none: cancelled, failed ([`SetUp::Failed`]: a block failed too
 /// often, the rest cannot be learnt here either), or the store failed.
 async fn learn_survey(
     sched: &Arc<Scheduler>,
@@ -229,7 +232,7 @@ async fn learn_survey(
     wake: &Notify,
     stored: &[std::ops::Range<usize>],
     budget: Option<usize>,
-) -> Result<Survey, SetUp> {
+) -> Result<(Survey, Vec<Subfield>), SetUp> {
     let id = job.id().clone();
     let batching = job.options().batching();
     let batches = batching.count();
@@ -300,8 +303,8 @@ async fn learn_survey(
             .add(part)
             .map_err(|e| SetUp::Failed(format!("cannot add up the survey: {e}")))?;
     }
-    let survey = parts
-        .finish(job.scene())
+    let learnt = parts
+        .finish_with_planes(job.scene())
         .map_err(|e| SetUp::Failed(format!("cannot add up the survey: {e}")))?;
     tracing::info!(
         job = %id,
@@ -311,7 +314,7 @@ async fn learn_survey(
         learnt_here = batches - next.min(batches),
         "survey learnt by the workers"
     );
-    Ok(survey)
+    Ok(learnt)
 }
 
 /// The subfield budget a new job is set up within: the configured one; else, for a scene without

@@ -7,7 +7,7 @@ mod common;
 use common::*;
 use glam::DVec3;
 use vlf_core::propagate::survey::Surveyed;
-use vlf_core::propagate::{MirrorGeometry, Options, Propagation, Stop};
+use vlf_core::propagate::{MirrorGeometry, Options, Propagation, Stop, SurveyParts, Surveyor};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
@@ -172,4 +172,76 @@ fn a_mirror_geometry_that_does_not_fit_is_refused() {
         .unwrap()
         .to_string();
     assert!(error.contains("maps no mirror"), "{error}");
+}
+
+/// What a coordinator whose workers learnt the survey sets a job up with: the mirror planes
+/// learnt with the survey's parts (here three, of 40, 1 and 88 directions) give the views,
+/// routes and field that set-up computes — restricted to the mirrors light reaches, not the
+/// one outside the room — and planes that do not fit the directions are refused.
+#[test]
+fn views_cut_from_the_surveys_mirror_planes_are_the_computed_ones() {
+    let room = room_with_ball();
+    let mut surfaces = room.surfaces.clone();
+    // A mirror outside the closed room, facing away: in every direction's planes, never lit.
+    surfaces.push(rect(
+        DVec3::new(0.8, 0.0, 0.0),
+        DVec3::new(0.0, 0.2, 0.0),
+        DVec3::new(0.0, 0.0, 0.2),
+        DVec3::X,
+        2,
+    ));
+    let scene = scene(surfaces, room.materials.clone());
+    let outside = scene.surfaces.len() as u32 - 1;
+    let options = options(129, 2);
+    let p = Propagation::new(scene.clone(), options.clone()).unwrap();
+    let spec = p.specular.as_ref().unwrap();
+    assert!(!spec.mirrors.contains(&outside) && spec.mirrors.len() > 2);
+
+    let surveyor = Surveyor::new(&scene, &options, None).unwrap();
+    let mut parts = SurveyParts::new(&scene, &options);
+    let mut short = surveyor.part(0..40).unwrap();
+    short.mirror_planes.pop();
+    let error = parts.add(short).unwrap_err().to_string();
+    assert!(error.contains("39 mirror planes for 40"), "{error}");
+    for range in [0..40, 40..41, 41..129] {
+        parts.add(surveyor.part(range).unwrap()).unwrap();
+    }
+    let (survey, planes) = parts.finish_with_planes(&scene).unwrap();
+    assert!(survey == p.survey());
+    let holds_outside = |d: usize| planes[d].entries.iter().any(|e| e.surface == outside);
+    assert!((0..129).any(holds_outside), "the planes hold every mirror");
+
+    let cut = Propagation::with_survey_and_planes(scene.clone(), options.clone(), None, survey.clone(), planes.clone())
+        .unwrap();
+    let (a, b) = (cut.specular.as_ref().unwrap(), spec);
+    assert!(a.mirrors == b.mirrors && a.views == b.views && a.routes == b.routes);
+    assert_eq!(cut.mirror_geometry(), p.mirror_geometry());
+    assert_eq!(digest(cut), digest(p.clone()));
+
+    let wall = (0..scene.surfaces.len() as u32)
+        .find(|&s| !scene.material(s as usize).is_mirror())
+        .unwrap();
+    let d = (0..129).find(|&d| !planes[d].entries.is_empty()).unwrap();
+    type Misfit = Box<dyn Fn(&mut Vec<vlf_core::psf::Subfield>)>;
+    let cases: Vec<(Misfit, &str)> = vec![
+        (Box::new(|planes| _ = planes.pop()), "128 views for 129 directions"),
+        (Box::new(|planes| planes.swap(0, 1)), "another frame"),
+        (
+            Box::new(move |planes| planes[d].entries[0].surface = wall),
+            "cannot hold",
+        ),
+        (Box::new(move |planes| planes[d].entries[0].rays += 1), "miscounts"),
+    ];
+    for (misfit, says) in cases {
+        let mut planes = planes.clone();
+        misfit(&mut planes);
+        let error = Propagation::with_survey_and_planes(scene.clone(), options.clone(), None, survey.clone(), planes)
+            .err()
+            .expect(says)
+            .to_string();
+        assert!(
+            error.contains("the survey's mirror planes") && error.contains(says),
+            "{says}: {error}"
+        );
+    }
 }

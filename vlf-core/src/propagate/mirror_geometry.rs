@@ -112,21 +112,11 @@ impl MirrorGeometry {
                 expected.len()
             ));
         }
-        let l = subfields.len();
-        if self.views.len() != l || self.routes.len() != l {
-            return misfit(format!(
-                "has {} views and {} route lists for {l} directions",
-                self.views.len(),
-                self.routes.len()
-            ));
-        }
         let is_mirror = |s: u32| self.mirrors.binary_search(&s).is_ok();
-        for (d, view) in self.views.iter().enumerate() {
-            if view.frame != subfields.frame(d) || view.grid != subfields.grid() {
-                return misfit(format!("has the view of another frame or grid for direction {d}"));
-            }
-            view.check_tables(is_mirror)
-                .or_else(|m| misfit(format!("has a view of direction {d} that {m}")))?;
+        check_views(&self.views, subfields, is_mirror).or_else(misfit)?;
+        let l = subfields.len();
+        if self.routes.len() != l {
+            return misfit(format!("has {} route lists for {l} directions", self.routes.len()));
         }
         for (target, routes) in self.routes.iter().enumerate() {
             for route in routes {
@@ -162,4 +152,43 @@ impl MirrorGeometry {
         self.check(scene, options, subfields, mirrors)?;
         Ok(Specular::from_geometry(scene, self))
     }
+}
+
+/// Whether `views` can be the mirror views of the directions of `subfields`: one per direction,
+/// each in its direction's frame and grid, with tables that index nothing out of bounds
+/// ([`Subfield::check_tables`]) and hold only surfaces that `holds` accepts. Says what is wrong
+/// if not.
+pub(super) fn check_views(
+    views: &[Subfield],
+    subfields: &Subfields,
+    holds: impl Fn(u32) -> bool,
+) -> Result<(), String> {
+    let l = subfields.len();
+    if views.len() != l {
+        return Err(format!("has {} views for {l} directions", views.len()));
+    }
+    for (d, view) in views.iter().enumerate() {
+        if view.frame != subfields.frame(d) || view.grid != subfields.grid() {
+            return Err(format!("has the view of another frame or grid for direction {d}"));
+        }
+        view.check_tables(&holds)
+            .map_err(|m| format!("has a view of direction {d} that {m}"))?;
+    }
+    Ok(())
+}
+
+/// [`Specular::from_mirror_planes`], once `planes` are found to be the mirror planes of the
+/// directions of `subfields` ([`check_views`]: surfaces of `scene` that are mirrors alone).
+pub(super) fn specular_from_planes(
+    scene: &Scene,
+    directions: &crate::directions::DirectionSet,
+    subfields: &Subfields,
+    planes: Vec<Subfield>,
+    mirrors: Vec<u32>,
+) -> crate::Result<Specular> {
+    let surfaces = scene.surfaces.len();
+    let is_mirror = |s: u32| (s as usize) < surfaces && scene.material(s as usize).is_mirror();
+    check_views(&planes, subfields, is_mirror)
+        .map_err(|m| crate::Error::Decode(format!("the survey's mirror planes: it {m}")))?;
+    Ok(Specular::from_mirror_planes(scene, directions, planes, mirrors))
 }

@@ -70,7 +70,7 @@ pub use work::{BatchOutput, BatchSum, Batching, IterationWork, MirrorBlock, Pass
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
-use crate::psf::{Footprints, GridSize, Subfields};
+use crate::psf::{Footprints, GridSize, Subfield, Subfields};
 use crate::scene::{Rgb, Scene};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
@@ -403,6 +403,17 @@ pub(crate) fn luminance(c: &Rgb) -> f64 {
     (c[0] + c[1] + c[2]) / 3.0
 }
 
+/// Where set-up takes the mirrors' views and routes from.
+enum Mirrors {
+    /// Rasterising the mirror planes in every direction, and finding the routes.
+    Computed,
+    /// Every direction's subfield restricted to the mirror planes, learnt with the survey: the
+    /// routes found from them.
+    FromPlanes(Vec<Subfield>),
+    /// The job's stored geometry, read back.
+    Stored(MirrorGeometry),
+}
+
 impl Propagation {
     /// Builds the field's geometry (directions, subfields, texel grids,
     /// discrete areas) and loads the emitters' power as unshot.
@@ -416,7 +427,7 @@ impl Propagation {
     /// whole field. Set-up still reads every subfield once (two or three passes over the
     /// directions, each rebuilding what the budget did not keep).
     pub fn with_subfield_budget(scene: Scene, options: Options, budget: Option<usize>) -> crate::Result<Self> {
-        Propagation::set_up(scene, options, budget, None, None)
+        Propagation::set_up(scene, options, budget, None, Mirrors::Computed)
     }
 
     /// [`Propagation::with_subfield_budget`] where the [`Survey`] is known — what set-up
@@ -432,7 +443,23 @@ impl Propagation {
     /// Refuses a survey that does not fit the scene and options ([`Survey::check`]), with an
     /// [`Error::Decode`](crate::Error::Decode) that says why (the caller adds where it was read).
     pub fn with_survey(scene: Scene, options: Options, budget: Option<usize>, survey: Survey) -> crate::Result<Self> {
-        Propagation::set_up(scene, options, budget, Some(survey), None)
+        Propagation::set_up(scene, options, budget, Some(survey), Mirrors::Computed)
+    }
+
+    /// [`Propagation::with_survey`] where every direction's subfield restricted to the scene's
+    /// mirror planes is known too, learnt with the survey's parts
+    /// ([`SurveyParts::finish_with_planes`]): the mirror views are cut from them rather than
+    /// rasterised again — what a coordinator whose workers learnt the survey sets the job up
+    /// with. The same bits. Planes that are not those of the directions (another count, frame or
+    /// grid, a surface that is not a mirror, tables out of bounds) are refused.
+    pub fn with_survey_and_planes(
+        scene: Scene,
+        options: Options,
+        budget: Option<usize>,
+        survey: Survey,
+        planes: Vec<Subfield>,
+    ) -> crate::Result<Self> {
+        Propagation::set_up(scene, options, budget, Some(survey), Mirrors::FromPlanes(planes))
     }
 
     /// [`Propagation::with_survey`] where the mirror geometry is known too — every direction's
@@ -447,7 +474,7 @@ impl Propagation {
         survey: Survey,
         mirrors: MirrorGeometry,
     ) -> crate::Result<Self> {
-        Propagation::set_up(scene, options, budget, Some(survey), Some(mirrors))
+        Propagation::set_up(scene, options, budget, Some(survey), Mirrors::Stored(mirrors))
     }
 
     /// This propagation's mirror geometry, as bytes for [`MirrorGeometry::from_bytes`]; `None`
@@ -477,13 +504,13 @@ impl Propagation {
     }
 
     /// Builds the geometry, and learns the survey unless it is `known`; the mirrors' views and
-    /// routes are read from `stored` when given, else computed.
+    /// routes as `given` says.
     fn set_up(
         scene: Scene,
         options: Options,
         budget: Option<usize>,
         known: Option<Survey>,
-        stored: Option<MirrorGeometry>,
+        given: Mirrors,
     ) -> crate::Result<Self> {
         options.validate()?;
         // Seconds since the last lap: where set-up's time goes, logged at the end.
@@ -545,11 +572,23 @@ impl Propagation {
             ));
         }
         let mirrors = plan.mapped_mirrors();
-        let mut specular = match stored {
-            Some(geometry) => Some(geometry.into_specular(&scene, &options, &subfields, &mirrors)?),
-            None => {
-                (!mirrors.is_empty()).then(|| Specular::new(&scene, &directions, &subfields, &atlas.plane_rep, mirrors))
-            }
+        let mut specular = match given {
+            Mirrors::Stored(geometry) => Some(geometry.into_specular(&scene, &options, &subfields, &mirrors)?),
+            _ if mirrors.is_empty() => None,
+            Mirrors::FromPlanes(planes) => Some(mirror_geometry::specular_from_planes(
+                &scene,
+                &directions,
+                &subfields,
+                planes,
+                mirrors,
+            )?),
+            Mirrors::Computed => Some(Specular::new(
+                &scene,
+                &directions,
+                &subfields,
+                &atlas.plane_rep,
+                mirrors,
+            )),
         };
         if let Some(spec) = &mut specular {
             // Within a budget, memory is what the process is short of.

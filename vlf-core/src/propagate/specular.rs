@@ -412,6 +412,34 @@ impl Specular {
                 })
                 .collect()
         };
+        Specular::with_views(scene, directions, mirrors, ordinal, views)
+    }
+
+    /// [`Specular::new`] where each direction's subfield restricted to the scene's mirror planes
+    /// is known (`planes`, learnt with the survey's parts: [`super::SurveyPart::mirror_planes`],
+    /// checked by the caller): the views are cut from them, no plane rasterised — the same views,
+    /// restricted to the mirrors light reaches.
+    pub(crate) fn from_mirror_planes(
+        scene: &Scene,
+        directions: &DirectionSet,
+        planes: Vec<Subfield>,
+        mirrors: Vec<u32>,
+    ) -> Self {
+        let (mirrors, has_maps, ordinal) = mirror_tables(scene, mirrors);
+        let views = (planes.into_par_iter())
+            .map(|plane| MirrorView::new(plane.only(|s| has_maps[s as usize]), &has_maps))
+            .collect();
+        Specular::with_views(scene, directions, mirrors, ordinal, views)
+    }
+
+    /// The state of `mirrors` (sorted, by ordinal) with these views, its routes found from them.
+    fn with_views(
+        scene: &Scene,
+        directions: &DirectionSet,
+        mirrors: Vec<u32>,
+        ordinal: Vec<u32>,
+        views: Vec<MirrorView>,
+    ) -> Self {
         // crossing[k]: the directions (increasing) whose rays meet mirror k, an entry of its
         // in their layout; listed per mirror, as the routes ask, and only where they meet.
         let mut crossing: Vec<Vec<u32>> = vec![Vec::new(); mirrors.len()];

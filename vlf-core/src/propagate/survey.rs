@@ -22,6 +22,9 @@
 //! exactly and in any split, to the whole ([`SurveyParts`], [`Survey::from_parts`]). The
 //! distributed service leases the parts to its workers ([`super::Pass::Survey`]), so the walk
 //! that grows with the field is spread over them rather than done by the coordinator alone.
+//! With mirrors a part also keeps its directions' subfields restricted to the mirror planes
+//! ([`SurveyPart::mirror_planes`]), which the coordinator cuts the mirror views from
+//! ([`super::Propagation::with_survey_and_planes`]) rather than rasterising the planes again.
 
 use super::Options;
 use super::areas::AreaUnits;
@@ -30,14 +33,16 @@ use super::plan::{self, Plan};
 use super::shoot::{Geometry, Stacking};
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
-use crate::psf::{Footprints, GridSize, Subfields};
+use crate::psf::{Footprints, GridSize, Subfield, Subfields};
 use crate::scene::Scene;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::ops::Range;
 use std::sync::Arc;
 
-/// The version [`SurveyPart::to_bytes`] writes first.
-const PART_VERSION: u32 = 1;
+/// The version [`SurveyPart::to_bytes`] writes first. Version 2 carries the mirror planes
+/// ([`SurveyPart::mirror_planes`]); a part of version 1 is learnt again.
+const PART_VERSION: u32 = 2;
 
 /// The version [`Survey::to_bytes`] writes first. Version 2 records what the survey was learnt
 /// for ([`Surveyed`]); version 1 did not.
@@ -171,6 +176,14 @@ pub struct SurveyPart {
     pub directions: (u32, u32),
     units: AreaUnits,
     sends_to: Vec<(u32, u32)>,
+    /// With mirrors, per direction of the part, its subfield restricted to the scene's mirror
+    /// planes — all of them, as which of them light reaches is known only once every part is in.
+    /// The views of the mirror maps are cut from these ([`super::Propagation::with_survey_and_planes`]):
+    /// the part builds the whole subfields anyway, so restricting them is a copy, where the
+    /// coordinator would otherwise rasterise the mirror planes in every direction itself (most of
+    /// its set-up for a curved mirror: 2–3 s of its two threads for the mirror dragon at
+    /// l = 2049, N = 128). Empty without mirrors.
+    pub mirror_planes: Vec<Subfield>,
 }
 
 impl SurveyPart {
@@ -261,9 +274,14 @@ impl Surveyor {
         };
         let subfields = self.subfields.released();
         let units = AreaUnits::of(geometry, &self.directions, range.clone(), |d| subfields.get(d));
-        let sends_to = match self.mirrors {
-            true => plan::sends_to(geometry, &subfields, range.clone()),
-            false => Vec::new(),
+        let (sends_to, mirror_planes) = match self.mirrors {
+            true => (
+                plan::sends_to(geometry, &subfields, range.clone()),
+                (range.clone().into_par_iter())
+                    .map(|d| subfields.get(d).only(|s| self.scene.material(s as usize).is_mirror()))
+                    .collect(),
+            ),
+            false => (Vec::new(), Vec::new()),
         };
         Ok(SurveyPart {
             version: PART_VERSION,
@@ -271,6 +289,7 @@ impl Surveyor {
             directions: (range.start as u32, range.end as u32),
             units,
             sends_to,
+            mirror_planes,
         })
     }
 }
@@ -329,6 +348,10 @@ pub struct SurveyParts {
     of: Surveyed,
     /// The scene's surfaces: a pair of surfaces facing each other names two of them.
     surfaces: usize,
+    /// Whether the scene has mirrors: then every part has its directions' mirror planes.
+    mirrors: bool,
+    /// The mirror planes of the directions added so far ([`SurveyPart::mirror_planes`]).
+    planes: Vec<Subfield>,
     /// The directions the parts added so far cover: `0..next`.
     next: u32,
     units: Option<AreaUnits>,
@@ -341,6 +364,8 @@ impl SurveyParts {
         SurveyParts {
             of: Surveyed::of(scene, options),
             surfaces: scene.surfaces.len(),
+            mirrors: Plan::counted(scene).mirrors > 0,
+            planes: Vec::new(),
             next: 0,
             units: None,
             edges: Vec::new(),
@@ -370,6 +395,13 @@ impl SurveyParts {
                 self.surfaces
             ));
         }
+        let planes = if self.mirrors { (b - a) as usize } else { 0 };
+        if part.mirror_planes.len() != planes {
+            return misfit(format!(
+                "the part of directions {a}..{b} has {} mirror planes for {planes}",
+                part.mirror_planes.len()
+            ));
+        }
         match &mut self.units {
             Some(units) if part.units.texels() != units.texels() => {
                 return misfit(format!(
@@ -382,6 +414,7 @@ impl SurveyParts {
             None => self.units = Some(part.units),
         }
         self.edges.extend(part.sends_to);
+        self.planes.extend(part.mirror_planes);
         self.edges.sort_unstable();
         self.edges.dedup();
         self.next = b;
@@ -390,6 +423,12 @@ impl SurveyParts {
 
     /// The survey, once the parts cover every direction.
     pub fn finish(self, scene: &Scene) -> crate::Result<Survey> {
+        self.finish_with_planes(scene).map(|(survey, _)| survey)
+    }
+
+    /// [`SurveyParts::finish`], and every direction's mirror planes (none without mirrors): what
+    /// [`super::Propagation::with_survey_and_planes`] cuts the mirror views from.
+    pub fn finish_with_planes(self, scene: &Scene) -> crate::Result<(Survey, Vec<Subfield>)> {
         let directions = self.of.directions;
         let units = match self.units {
             Some(units) if self.next as usize == directions => units,
@@ -404,7 +443,7 @@ impl SurveyParts {
             0 => Vec::new(),
             _ => plan::lit_mirrors(scene, &self.edges),
         };
-        Ok(Survey::new(self.of, units.areas(), lit))
+        Ok((Survey::new(self.of, units.areas(), lit), self.planes))
     }
 }
 
