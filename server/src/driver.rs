@@ -171,8 +171,20 @@ async fn set_up(sched: &Arc<Scheduler>, job: FieldJob, wake: &Notify, origin: Or
         }
         let (scene, options) = (job.scene().clone(), job.options().clone());
         let built = match survey {
-            // The mirror views are cut from the planes the workers learnt with the survey.
-            Some((survey, planes)) => Propagation::with_survey_and_planes(scene, options, budget, survey, planes),
+            // The mirror views are cut from the planes the workers learnt with the survey; planes
+            // that do not fit the job (a worker of another build) are set aside, and the views
+            // rasterised here instead, rather than failing the job.
+            Some((survey, planes)) => {
+                let cut =
+                    Propagation::with_survey_and_planes(scene.clone(), options.clone(), budget, survey.clone(), planes);
+                match cut {
+                    Err(e @ vlf_core::Error::Decode(_)) => {
+                        tracing::warn!(job = %job.id(), "rasterising the mirror views here: {e}");
+                        Propagation::with_survey(scene, options, budget, survey)
+                    }
+                    cut => cut,
+                }
+            }
             None => Propagation::with_subfield_budget(scene, options, budget),
         };
         let prop = match built {
@@ -895,11 +907,21 @@ mod tests {
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
-        let whole = Propagation::new(bundled(scene), spec.options.clone()).unwrap().survey();
-        let stored = vlf_store::blocking(move || FieldJob::open(&store, &id).unwrap().stored_survey().unwrap())
-            .await
-            .unwrap();
-        assert!(stored == Some(whole), "the survey stored with the job");
+        let whole = Propagation::new(bundled(scene), spec.options.clone()).unwrap();
+        let (survey, mirrors) = vlf_store::blocking(move || {
+            let job = FieldJob::open(&store, &id).unwrap();
+            let mirrors = job.stored_mirror_geometry().unwrap().map(|g| g.to_bytes());
+            (job.stored_survey().unwrap(), mirrors)
+        })
+        .await
+        .unwrap();
+        assert!(survey == Some(whole.survey()), "the survey stored with the job");
+        // With mirrors, the views cut from the planes the parts learnt, and the routes found
+        // from them, are those of the whole propagation.
+        assert!(
+            mirrors == whole.mirror_geometry(),
+            "the mirror geometry stored with the job"
+        );
     }
 
     /// A worker learns the first block of a job's survey and dies: the coordinator, with no

@@ -41,7 +41,8 @@ use std::ops::Range;
 use std::sync::Arc;
 
 /// The version [`SurveyPart::to_bytes`] writes first. Version 2 carries the mirror planes
-/// ([`SurveyPart::mirror_planes`]); a part of version 1 is learnt again.
+/// ([`SurveyPart::mirror_planes`]); a stored part of version 1 cannot be read, and the
+/// coordinator learns the survey from its block on itself, as for any part it cannot read.
 const PART_VERSION: u32 = 2;
 
 /// The version [`Survey::to_bytes`] writes first. Version 2 records what the survey was learnt
@@ -179,7 +180,8 @@ pub struct SurveyPart {
     /// With mirrors, per direction of the part, its subfield restricted to the scene's mirror
     /// planes — all of them, as which of them light reaches is known only once every part is in.
     /// The views of the mirror maps are cut from these ([`super::Propagation::with_survey_and_planes`]):
-    /// the part builds the whole subfields anyway, so restricting them is a copy, where the
+    /// the part builds the whole subfields anyway, so restricting them is a copy (without a
+    /// subfield budget; within one, a subfield may be built again), where the
     /// coordinator would otherwise rasterise the mirror planes in every direction itself (most of
     /// its set-up for a curved mirror: 2–3 s of its two threads for the mirror dragon at
     /// l = 2049, N = 128). Empty without mirrors.
@@ -230,8 +232,9 @@ pub struct Surveyor {
 impl Surveyor {
     /// The geometry that parts of `scene`'s survey with `options` are learnt over; no subfield
     /// is built yet. A part holds its subfields within `budget` bytes when one is given; else,
-    /// without mirrors (each subfield read once) none is kept, and with mirrors (read twice:
-    /// the areas, the surfaces facing each other) the part's are, until it is learnt. Options
+    /// without mirrors (each subfield read once) none is kept, and with mirrors (read three
+    /// times: the areas, the surfaces facing each other, the mirror planes) the part's are, until
+    /// it is learnt — within a budget, one read may build a subfield again. Options
     /// that do not make a propagation are refused.
     pub fn new(scene: &Scene, options: &Options, budget: Option<usize>) -> crate::Result<Surveyor> {
         options.validate()?;
