@@ -23,6 +23,7 @@ use super::specular::{Route, Specular};
 use super::survey::{Surveyed, read_versioned};
 use crate::psf::{Subfield, Subfields};
 use crate::scene::Scene;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// The version a [`MirrorGeometry`]'s bytes start with: of the layout, and of how
@@ -118,24 +119,25 @@ impl MirrorGeometry {
         if self.routes.len() != l {
             return misfit(format!("has {} route lists for {l} directions", self.routes.len()));
         }
-        for (target, routes) in self.routes.iter().enumerate() {
+        // Direction by direction on every thread; the first misfit in direction order is told,
+        // whichever thread finds it first, so the message is the same every time.
+        let misfit_routes = |(target, routes): (usize, &Vec<Route>)| {
             for route in routes {
                 if !is_mirror(route.mirror) || route.source as usize >= l {
-                    return misfit(format!(
+                    return Some(format!(
                         "routes direction {target} from mirror {} and direction {}, not one of the job's",
                         route.mirror, route.source
                     ));
                 }
                 if !(route.weight > 0.0 && route.weight <= 1.0) {
-                    return misfit(format!("gives direction {target} a route of share {}", route.weight));
+                    return Some(format!("gives direction {target} a route of share {}", route.weight));
                 }
             }
-            if !routes
-                .windows(2)
-                .all(|w| (w[0].mirror, w[0].source) < (w[1].mirror, w[1].source))
-            {
-                return misfit(format!("lists the routes of direction {target} out of order or twice"));
-            }
+            let ordered = (routes.windows(2)).all(|w| (w[0].mirror, w[0].source) < (w[1].mirror, w[1].source));
+            (!ordered).then(|| format!("lists the routes of direction {target} out of order or twice"))
+        };
+        if let Some(m) = self.routes.par_iter().enumerate().find_map_first(misfit_routes) {
+            return misfit(m);
         }
         Ok(())
     }
@@ -161,20 +163,22 @@ impl MirrorGeometry {
 pub(super) fn check_views(
     views: &[Subfield],
     subfields: &Subfields,
-    holds: impl Fn(u32) -> bool,
+    holds: impl Fn(u32) -> bool + Sync,
 ) -> Result<(), String> {
     let l = subfields.len();
     if views.len() != l {
         return Err(format!("has {} views for {l} directions", views.len()));
     }
-    for (d, view) in views.iter().enumerate() {
+    // On every thread, the first misfit in direction order told (see `MirrorGeometry::check`).
+    let misfit = |(d, view): (usize, &Subfield)| {
         if view.frame != subfields.frame(d) || view.grid != subfields.grid() {
-            return Err(format!("has the view of another frame or grid for direction {d}"));
+            return Some(format!("has the view of another frame or grid for direction {d}"));
         }
-        view.check_tables(&holds)
-            .map_err(|m| format!("has a view of direction {d} that {m}"))?;
-    }
-    Ok(())
+        (view.check_tables(&holds))
+            .err()
+            .map(|m| format!("has a view of direction {d} that {m}"))
+    };
+    views.par_iter().enumerate().find_map_first(misfit).map_or(Ok(()), Err)
 }
 
 /// [`Specular::from_mirror_planes`], once `planes` are found to be the mirror planes of the
