@@ -154,33 +154,36 @@ impl Job {
     /// Writes what setting the job up learnt over all its directions (caller's serialisation):
     /// once, create-only — it is a pure function of the job.
     pub fn put_survey(&self, survey: &[u8]) -> Result<(), StoreError> {
-        let key = layout::survey(self.id());
-        let bytes = blob::encode_bytes(BlobKind::Survey, survey).map_err(|e| self.blob_error(&key, e))?;
-        self.store.put_new(&key, bytes)?;
-        Ok(())
+        self.put_once(&layout::survey(self.id()), BlobKind::Survey, survey)
     }
 
     /// The job's survey (caller's serialisation); `None` if it has none.
     pub fn survey(&self) -> Result<Option<Vec<u8>>, StoreError> {
-        match self.store.get_bytes_blob(&layout::survey(self.id()), BlobKind::Survey) {
-            Ok(bytes) => Ok(Some(bytes)),
-            Err(StoreError::NotFound { .. }) => Ok(None),
-            Err(e) => Err(e),
-        }
+        self.get_if_any(&layout::survey(self.id()), BlobKind::Survey)
     }
 
     /// Writes the mirror views and routes computed when the job was set up (caller's
     /// serialisation): once, create-only — like the survey, a pure function of the job.
     pub fn put_mirror_geometry(&self, geometry: &[u8]) -> Result<(), StoreError> {
-        let key = layout::mirror_geometry(self.id());
-        let bytes = blob::encode_bytes(BlobKind::MirrorGeometry, geometry).map_err(|e| self.blob_error(&key, e))?;
-        self.store.put_new(&key, bytes)?;
-        Ok(())
+        self.put_once(&layout::mirror_geometry(self.id()), BlobKind::MirrorGeometry, geometry)
     }
 
     /// The job's mirror views and routes (caller's serialisation); `None` if it has none.
     pub fn mirror_geometry(&self) -> Result<Option<Vec<u8>>, StoreError> {
-        match (self.store).get_bytes_blob(&layout::mirror_geometry(self.id()), BlobKind::MirrorGeometry) {
+        self.get_if_any(&layout::mirror_geometry(self.id()), BlobKind::MirrorGeometry)
+    }
+
+    /// Writes `data` as the `kind` blob at `key`, create-only: what is a pure function of the
+    /// job may be written again, with the same bytes, by a coordinator that sets it up again.
+    fn put_once(&self, key: &str, kind: BlobKind, data: &[u8]) -> Result<(), StoreError> {
+        let bytes = blob::encode_bytes(kind, data).map_err(|e| self.blob_error(key, e))?;
+        self.store.put_new(key, bytes)?;
+        Ok(())
+    }
+
+    /// The `kind` blob at `key`, decoded; `None` if there is none.
+    fn get_if_any(&self, key: &str, kind: BlobKind) -> Result<Option<Vec<u8>>, StoreError> {
+        match self.store.get_bytes_blob(key, kind) {
             Ok(bytes) => Ok(Some(bytes)),
             Err(StoreError::NotFound { .. }) => Ok(None),
             Err(e) => Err(e),

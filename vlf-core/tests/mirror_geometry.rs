@@ -30,6 +30,12 @@ fn room_with_ball() -> Scene {
     scene(surfaces, room.materials.clone())
 }
 
+/// `set_up` failed, with an error about `what` that `says` why.
+fn refused(set_up: vlf_core::Result<Propagation>, what: &str, says: &str) {
+    let error = set_up.err().expect(says).to_string();
+    assert!(error.contains(what) && error.contains(says), "{says}: {error}");
+}
+
 fn digest(mut p: Propagation) -> String {
     p.run(|_| {});
     p.into_field().digest()
@@ -141,14 +147,8 @@ fn a_mirror_geometry_that_does_not_fit_is_refused() {
         misfit(&mut geometry);
         // Through its bytes, as a store gives it.
         let geometry = MirrorGeometry::from_bytes(&geometry.to_bytes()).unwrap();
-        let error = Propagation::with_stored(scene.clone(), options(129, 1), None, p.survey(), geometry)
-            .err()
-            .expect(says)
-            .to_string();
-        assert!(
-            error.contains("mirror geometry") && error.contains(says),
-            "{says}: {error}"
-        );
+        let read = Propagation::with_stored(scene.clone(), options(129, 1), None, p.survey(), geometry);
+        refused(read, "mirror geometry", says);
     }
     let mut trailing = bytes.clone();
     trailing.push(0);
@@ -235,13 +235,7 @@ fn views_cut_from_the_surveys_mirror_planes_are_the_computed_ones() {
     for (misfit, says) in cases {
         let mut planes = planes.clone();
         misfit(&mut planes);
-        let error = Propagation::with_survey_and_planes(scene.clone(), options.clone(), None, survey.clone(), planes)
-            .err()
-            .expect(says)
-            .to_string();
-        assert!(
-            error.contains("the survey's mirror planes") && error.contains(says),
-            "{says}: {error}"
-        );
+        let cut = Propagation::with_survey_and_planes(scene.clone(), options.clone(), None, survey.clone(), planes);
+        refused(cut, "the survey's mirror planes", says);
     }
 }
