@@ -13,7 +13,7 @@
 use crate::scheduler::{PassOutcome, Scheduler};
 use std::sync::Arc;
 use tokio::sync::Notify;
-use vlf_core::propagate::{Pass, Propagation, Survey, SurveyPart, SurveyParts};
+use vlf_core::propagate::{Batching, Pass, Propagation, Survey, SurveyPart, SurveyParts};
 use vlf_core::psf::Subfield;
 use vlf_core::scene::Scene;
 use vlf_proto::JobSpec;
@@ -278,8 +278,9 @@ async fn learn_survey(
                 PassOutcome::Failed(m) => return Err(SetUp::Failed(format!("cannot learn the survey: {m}"))),
             }
         };
+        let ready = read_at_once(&ready, &batching);
         let read = {
-            let (job, ready) = (job.clone(), ready.clone());
+            let (job, ready) = (job.clone(), ready.to_vec());
             vlf_store::blocking(move || job.survey_parts(&ready))
                 .await
                 .map_err(|e| SetUp::Store(format!("internal: {e}")))?
@@ -327,6 +328,30 @@ async fn learn_survey(
         "survey learnt by the workers"
     );
     Ok(learnt)
+}
+
+/// The most survey parts, and the most directions of them, that the coordinator reads and holds
+/// at once ([`read_at_once`]).
+const PARTS_AT_ONCE: usize = 8;
+const DIRECTIONS_AT_ONCE: usize = 256;
+
+/// The first of the parts `ready` (in order) that the coordinator reads at once: at most
+/// [`PARTS_AT_ONCE`] parts of at most [`DIRECTIONS_AT_ONCE`] directions, and at least one part.
+/// Parts come in as workers finish them, a few at a time; but a coordinator that takes over a
+/// job finds every part its predecessor's workers stored ready at once. Each part holds a
+/// 16-byte area count per texel of the scene (megabytes for a scan), and with mirror planes
+/// tens of kB a direction (the mirror dragon's at l = 2049: about 100 MB of tables in all).
+/// Read in one go, every stored blob and every decoded part would be held at once; read in
+/// steps, only a step's are, each part's planes moving into the sum as it is added.
+fn read_at_once<'a>(ready: &'a [std::ops::Range<usize>], batching: &Batching) -> &'a [std::ops::Range<usize>] {
+    let mut directions = 0;
+    let taken = (ready.iter().take(PARTS_AT_ONCE))
+        .take_while(|block| {
+            directions += batching.directions_of((*block).clone()).len();
+            directions <= DIRECTIONS_AT_ONCE
+        })
+        .count();
+    &ready[..taken.max(1).min(ready.len())]
 }
 
 /// The subfield budget a new job is set up within: the configured one; else, for a scene without
@@ -791,10 +816,10 @@ fn lost() -> Stop {
 
 #[cfg(test)]
 mod tests {
-    use super::{SET_UPS, SETTING_UP, set_up_budget, submit};
+    use super::{DIRECTIONS_AT_ONCE, PARTS_AT_ONCE, SET_UPS, SETTING_UP, read_at_once, set_up_budget, submit};
     use crate::scheduler::{Abilities, Scheduler, Timing};
     use std::time::{Duration, Instant};
-    use vlf_core::propagate::{Pass, Propagation, Surveyor, reduce};
+    use vlf_core::propagate::{Batching, Pass, Propagation, Surveyor, reduce};
     use vlf_core::scene::{ImportOptions, Scene, load_obj};
     use vlf_proto::JobSpec;
     use vlf_proto::v1::{self, State as WireState};
@@ -818,6 +843,42 @@ mod tests {
         // A configured budget is the operator's.
         assert_eq!(set_up_budget(Some(1 << 20), false, &cornell), Some(1 << 20));
         assert_eq!(set_up_budget(Some(1 << 20), true, &mirrors), Some(1 << 20));
+    }
+
+    /// A coordinator reads stored survey parts in steps of at most `PARTS_AT_ONCE` parts and
+    /// `DIRECTIONS_AT_ONCE` directions, at least one part a step, in order.
+    #[test]
+    fn survey_parts_are_read_a_few_at_a_time() {
+        // l = 8193 in 64 batches of 128 directions.
+        let batching = Batching::new(8193, 64);
+        assert_eq!(batching.size(), 128);
+        let one_each: Vec<_> = (0..64).map(|b| b..b + 1).collect();
+        let step = read_at_once(&one_each, &batching);
+        assert_eq!(step, &one_each[..DIRECTIONS_AT_ONCE / 128]);
+        // A part larger than a step is read alone.
+        let whole = vec![0..32, 32..64];
+        assert_eq!(read_at_once(&whole, &batching), &whole[..1]);
+        // Small parts: at most PARTS_AT_ONCE of them (l = 129, 8 batches of 16 directions).
+        let small = Batching::new(129, 64);
+        let ready: Vec<_> = (0..small.count()).map(|b| b..b + 1).collect();
+        assert!(ready.len() > PARTS_AT_ONCE / 2);
+        let step = read_at_once(&ready, &small);
+        assert_eq!(step, &ready[..PARTS_AT_ONCE.min(ready.len())]);
+        // Stepping through reads every part once, in order, each step within the bounds.
+        let mut next = 0;
+        let mut steps = 0;
+        while next < one_each.len() {
+            let step = read_at_once(&one_each[next..], &batching);
+            let directions: usize = step.iter().map(|b| batching.directions_of(b.clone()).len()).sum();
+            assert!(!step.is_empty() && step.len() <= PARTS_AT_ONCE && directions <= DIRECTIONS_AT_ONCE);
+            assert_eq!(step[0].start, next);
+            next = step.last().unwrap().end;
+            steps += 1;
+        }
+        // Two parts a step, but for the last batch's 129 directions (l = 64 · 128 + 1), which
+        // would take the last step past 256: it is read alone.
+        assert_eq!(DIRECTIONS_AT_ONCE, 256);
+        assert_eq!(steps, 31 + 2);
     }
 
     /// A job cancelled while it waits for its turn to be set up is recorded cancelled in the
@@ -901,7 +962,9 @@ mod tests {
     ) {
         let deadline = Instant::now() + Duration::from_secs(60);
         while sched.status(&id).unwrap().state != WireState::Propagating as i32 {
-            assert!(Instant::now() < deadline, "{:?}", sched.status(&id));
+            let status = sched.status(&id).unwrap();
+            assert!(status.state != WireState::Failed as i32, "{status:?}");
+            assert!(Instant::now() < deadline, "{status:?}");
             if let Some(worker) = alive {
                 sched.heartbeat(worker).unwrap();
             }
@@ -951,6 +1014,38 @@ mod tests {
         let reported = sched.report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[]);
         assert!(reported.unwrap());
         // The worker is silent from now on.
+        set_up_with_the_whole_survey((store, &sched, id), "mirrors.obj", &spec, None).await;
+    }
+
+    /// A worker of another build learns planes that do not fit the job (here, two directions'
+    /// planes swapped): the coordinator sets them aside and rasterises the mirror views itself,
+    /// and the job is set up with the survey and mirror geometry a propagation finds whole.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn mirror_planes_that_do_not_fit_are_set_aside() {
+        let timing = Timing {
+            heartbeat: Duration::from_millis(100),
+            ..Timing::default()
+        };
+        let (store, sched, worker, id, spec, grant) = a_job_surveyed_by(timing, "mirrors.obj").await;
+        let learnt = {
+            let (store, id, run) = (store.clone(), id.clone(), grant.batches.clone());
+            vlf_store::blocking(move || {
+                let job = FieldJob::open(&store, &id).unwrap();
+                let surveyor = Surveyor::new(job.scene(), job.options(), None).unwrap();
+                for block in reduce::cover(run) {
+                    let mut part = surveyor
+                        .part(job.options().batching().directions_of(block.clone()))
+                        .unwrap();
+                    assert!(part.mirror_planes.len() >= 2);
+                    part.mirror_planes.swap(0, 1);
+                    job.put_survey_part(block, &part).unwrap();
+                }
+            })
+        };
+        learnt.await.unwrap();
+        let reported = sched.report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[]);
+        assert!(reported.unwrap());
+        // The worker is silent from now on: the coordinator learns the rest of the survey.
         set_up_with_the_whole_survey((store, &sched, id), "mirrors.obj", &spec, None).await;
     }
 

@@ -331,6 +331,45 @@ fn homes_on_threads_of_their_own_give_the_same_bits_with_perturbation() {
     homes_give_the_same_bits(scene, options(2), 2, &[&[1], &[2, 3]]);
 }
 
+/// Where every subfield is held, a rotated copy's subfields are built once, by its areas, and
+/// taken by its shot (`step` shoots each copy right after its areas); within a subfield budget
+/// they are built by both passes. The same bits either way, and as the plain loop's.
+#[test]
+fn rotated_subfields_are_built_once_where_every_subfield_is_held() {
+    let options = options(2);
+    let (l, copies) = (options.directions, options.perturbation.count as usize);
+    let mut straight = Propagation::new(lit_box(), options.clone()).unwrap();
+    while !straight.finished() {
+        straight.step_shared(|_| {});
+    }
+    let want = without_times(straight.checkpoint());
+    // The plain loop shoots the copies after all their areas: the first copy's are kept.
+    assert_eq!(straight.rotated_subfields_built(), 2 * (2 * copies - 1) * l);
+
+    let mut held = Propagation::new(lit_box(), options.clone()).unwrap();
+    held.run(|_| {});
+    assert_eq!(
+        held.rotated_subfields_built(),
+        2 * copies * l,
+        "once per copy and direction"
+    );
+    assert!(
+        without_times(held.checkpoint()) == want,
+        "kept subfields changed the bits"
+    );
+
+    let budget = 64 << 10;
+    let mut bounded = Propagation::with_subfield_budget(lit_box(), options, Some(budget)).unwrap();
+    assert!(!bounded.subfields.all_held());
+    bounded.run(|_| {});
+    assert_eq!(
+        bounded.rotated_subfields_built(),
+        2 * 2 * copies * l,
+        "twice within a budget"
+    );
+    assert!(without_times(bounded.checkpoint()) == want);
+}
+
 #[test]
 // Homes of one range are what some of these cases mean.
 #[allow(clippy::single_range_in_vec_init)]

@@ -597,7 +597,7 @@ async fn compute_survey(
             let mut replicas = lock(&replicas);
             let (opened, surveyor) = replicas.surveyor(&store, &job)?;
             let batching = opened.options().batching();
-            let (mut puts, mut costs) = (Vec::new(), Vec::new());
+            let (mut writes, mut costs) = (Vec::new(), Vec::new());
             for block in reduce::cover(run.clone()) {
                 let started = Instant::now();
                 let part =
@@ -606,13 +606,17 @@ async fn compute_survey(
                         job: job.to_string(),
                         source,
                     })?;
-                puts.push(opened.survey_part_put(block.clone(), &part)?);
+                // Written while the next block is learnt, its bytes dropped once written, rather
+                // than every part of the lease held until its end (with mirror planes, a curved
+                // mirror's parts are tens of kB a direction).
+                let put = opened.survey_part_put(block.clone(), &part)?;
+                drop(part);
+                writes.push(store.put_all_behind(vec![put])?);
                 let each = started.elapsed().as_secs_f64() / block.len() as f64;
                 costs.extend(std::iter::repeat_n(each, block.len()));
             }
             tracing::debug!(job = %job, batches = ?run, "survey parts learnt");
-            let writes = store.put_all_behind(puts)?;
-            Ok((run, writes, costs, None))
+            Ok((run, Writing::all(&store, writes)?, costs, None))
         })
     });
     computing

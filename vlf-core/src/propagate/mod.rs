@@ -51,6 +51,7 @@ pub mod mirror_geometry;
 mod perturb;
 pub mod plan;
 pub mod reduce;
+mod rotated;
 pub(crate) mod shoot;
 pub mod snapshot;
 pub mod specular;
@@ -393,6 +394,8 @@ pub struct Propagation {
     pub(crate) owners: Vec<u32>,
     /// The per-direction texel buffers, kept from one block or step to the next.
     buffers: work::KeptBuffers,
+    /// Rotated copies' subfields, kept from a copy's areas to its shot ([`rotated`]).
+    rotated: Arc<rotated::RotatedSubfields>,
 }
 
 fn sum_rgb(v: &[Rgb]) -> Rgb {
@@ -626,8 +629,16 @@ impl Propagation {
             stats: Vec::new(),
             owners,
             buffers: work::KeptBuffers::default(),
+            rotated: Arc::default(),
             phase_times: Vec::new(),
         })
+    }
+
+    /// How many subfields of rotated copies this propagation (and its clones) built so far:
+    /// twice a copy's directions per copy where they are not kept from its areas to its shot,
+    /// once where they are ([`rotated`]).
+    pub fn rotated_subfields_built(&self) -> usize {
+        self.rotated.built()
     }
 
     /// How this propagation's passes are cut into batches ([`Options::pass_batches`]).
@@ -680,8 +691,13 @@ impl Propagation {
     /// pass's directions claimed one at a time by whichever thread is free, each batch summed in
     /// direction order as its directions come in (`claim`), the batch sums absorbed in order.
     /// The same bits on any number of threads, and as any split across workers.
+    ///
+    /// A perturbed iteration's passes are shot in [`IterationWork::shooting_order`] (each copy's
+    /// shot right after its areas, its rotated subfields built once: [`rotated`]) and absorbed
+    /// in [`IterationWork::passes`]'s, a shot's whole-pass sum held until its turn.
     pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
-        self.step_by(|prop, work, pass, maps, clock, heard| {
+        let mut held: Vec<(Pass, BatchSum)> = Vec::new();
+        self.step_by(IterationWork::shooting_order, |prop, work, pass, maps, clock, heard| {
             let mut io = maps.map(|m| work::mirror_io(m));
             let all = 0..work.batches();
             let (sum, _) = prop
@@ -689,8 +705,12 @@ impl Propagation {
                 .expect("batches of this process's own work are well-formed");
             drop(io);
             clock.reducing();
-            work.absorb(pass, all, sum)
-                .expect("the whole pass is the root of its tree");
+            held.push((pass, sum));
+            while let Some(k) = (work.next_expected()).and_then(|(next, _)| held.iter().position(|(p, _)| *p == next)) {
+                let (pass, sum) = held.remove(k);
+                work.absorb(pass, all.clone(), sum)
+                    .expect("the whole pass is the root of its tree");
+            }
             clock.reduced();
         })
     }
@@ -700,7 +720,7 @@ impl Propagation {
     /// plainest schedule, which the others are held to (`tests/distributed.rs`).
     pub fn step_shared(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let mut buffers = self.buffers.take();
-        let stats = self.step_by(|prop, work, pass, mut maps, clock, heard| {
+        let stats = self.step_by(IterationWork::passes, |prop, work, pass, mut maps, clock, heard| {
             for batch in 0..work.batches() {
                 let range = work.batch_range(batch);
                 let mut own = maps.as_mut().map(|m| work::mirror_io(&mut m[range.clone()]));
@@ -719,13 +739,14 @@ impl Propagation {
     }
 
     /// One iteration in this process around `shoot`, which shoots and absorbs one pass: the
-    /// iteration's work and mirror maps set up, every pass in order, then the end of the
-    /// iteration and its phase times. `shoot` gets the pass's work, the mirror maps, the phase
-    /// clock and a function that turns the directions done in the pass into the iteration's
-    /// progress.
+    /// iteration's work and mirror maps set up, every pass in the order `order` gives, then the
+    /// end of the iteration and its phase times. `shoot` gets the pass's work, the mirror maps,
+    /// the phase clock and a function that turns the directions done in the pass into the
+    /// iteration's progress.
     #[allow(clippy::type_complexity)]
     fn step_by(
         &mut self,
+        order: fn(&IterationWork) -> Vec<Pass>,
         mut shoot: impl FnMut(
             &Propagation,
             &mut IterationWork,
@@ -738,7 +759,7 @@ impl Propagation {
         let started = Instant::now();
         let mut clock = PhaseClock::start(started);
         let mut work = self.iteration_work();
-        let passes = work.passes();
+        let passes = order(&work);
         let l = self.directions.len();
         let mut maps = self.gathered_maps(&work);
         clock.planned();
@@ -818,6 +839,8 @@ impl Propagation {
             "an iteration finished before its passes"
         );
         let index = work.index;
+        // A copy shot elsewhere (another worker of this process) left its subfields here.
+        self.rotated.clear();
         let scene = &self.scene;
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
         // Settled here, the arrivals' reflected power is also what the mirrors hold unshot (see

@@ -357,6 +357,27 @@ impl Pass {
 }
 
 impl IterationWork {
+    /// The passes of this iteration in the order one process shoots them: each rotated copy's
+    /// shot right after its areas (`A0 S0 A1 S1 …`), so that the rotated subfields kept from the
+    /// one to the other ([`super::rotated`]) are never more than one copy's. They are still
+    /// absorbed in [`IterationWork::passes`]'s order (a shot's sum waits for the last areas):
+    /// the same bits.
+    pub fn shooting_order(&self) -> Vec<Pass> {
+        let passes = self.passes();
+        let mut order = Vec::with_capacity(passes.len());
+        for &pass in &passes {
+            match pass {
+                Pass::ShootCopy { .. } => {}
+                Pass::Areas { copy } => {
+                    order.push(pass);
+                    order.extend(passes.iter().filter(|&&p| p == Pass::ShootCopy { copy }));
+                }
+                _ => order.push(pass),
+            }
+        }
+        order
+    }
+
     /// The passes of this iteration, in the order they must be absorbed:
     /// every pass comes after its [`prerequisites`](Self::prerequisites).
     pub fn passes(&self) -> Vec<Pass> {
@@ -616,10 +637,11 @@ impl Propagation {
     /// so that one who has just read the buffer through (to add it to a sum) clears it in the
     /// same pass ([`add_and_clear`]) rather than in one more pass over a few hundred kB here. `maps` are its mirror maps when the pass
     /// shoots them ([`IterationWork::uses_mirror_maps`]): the incident radiance is added to
-    /// them. A rotated copy's subfield is built here, in `scratch` (a copy serves one iteration,
-    /// so its subfields are not kept). The one kernel of every schedule: a batch shot CHUNK
-    /// directions at a time ([`Propagation::run_batch`]) and directions claimed one by one
-    /// (`super::claim`) compute exactly this, so they get the same bits.
+    /// them. A rotated copy's subfield is built here, in `scratch`, by its `Areas` pass, and
+    /// kept for its `ShootCopy` pass where every subfield is held ([`super::rotated`]). The one
+    /// kernel of every schedule: a batch shot CHUNK directions at a time
+    /// ([`Propagation::run_batch`]) and directions claimed one by one (`super::claim`) compute
+    /// exactly this, so they get the same bits.
     pub(crate) fn shoot_direction(
         &self,
         work: &IterationWork,
@@ -664,8 +686,13 @@ impl Propagation {
             (Pass::Areas { copy }, Mode::Perturbed { copies, .. }) if (copy as usize) < copies.len() => {
                 let set = &copies[copy as usize];
                 let sub = Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster);
+                self.rotated.count_build();
                 let weight = set.get(d).weight;
                 shoot::count(geometry, &sub, walk, |t| buf[t][0] += weight);
+                // Kept for the copy's shot where every subfield is held (see `super::rotated`).
+                if self.subfields.all_held() {
+                    self.rotated.keep(work.index, copy, d, sub, self.directions.len());
+                }
                 Ok(Flow::default())
             }
             (Pass::ShootCopy { copy }, Mode::Perturbed { copies, radiance, .. }) if (copy as usize) < copies.len() => {
@@ -675,7 +702,10 @@ impl Propagation {
                     )));
                 };
                 let set = &copies[copy as usize];
-                let sub = Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster);
+                let sub = self.rotated.take(work.index, copy, d).unwrap_or_else(|| {
+                    self.rotated.count_build();
+                    Subfield::build_with(&self.footprints, set.frame(d), self.options.grid, raster)
+                });
                 let beam = shoot::Beam {
                     sub: &sub,
                     weight: set.get(d).weight,

@@ -242,6 +242,11 @@ impl Subfield {
             }
         }
         tile_start.push(entries.len() as u32);
+        // Grown by doubling, the tables would keep up to half again of slack while held (all
+        // of a field's, or a rotated copy's kept from its areas to its shot); a copy costs
+        // microseconds against the milliseconds of rasterising.
+        entries.shrink_to_fit();
+        spans.shrink_to_fit();
         Subfield {
             frame,
             grid,

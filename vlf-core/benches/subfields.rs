@@ -1,0 +1,152 @@
+//! What rasterising a direction's subfield costs for a scanned mesh.
+//!
+//! `cargo bench -p vlf-core --bench subfields`: a closed room with a ball of 20 480 or 81 920
+//! triangles (an icosphere, its vertices jittered as a scan's are), N = 128, m = 8: the
+//! subfields of 64 of l = 2049 directions, built one after another on one thread. Every
+//! set-up builds each direction's subfield once, the survey once more where no subfield is
+//! kept, and a perturbed iteration twice per rotated copy (its areas, then its shot): for a
+//! mesh of tens of thousands of triangles, most of a perturbed iteration.
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use glam::DVec3;
+use std::collections::HashMap;
+use vlf_core::directions::DirectionSet;
+use vlf_core::maps::TexelAtlas;
+use vlf_core::propagate::Options;
+use vlf_core::psf::{Footprints, GridSize, RasterScratch, Subfield};
+use vlf_core::scene::{FaceOrigin, ImportOptions, Material, Scene};
+
+/// An icosphere of `20 · 4^levels` triangles, radius `r` about `c`, vertices moved along the
+/// radius by up to `jitter · r`.
+fn ball(c: DVec3, r: f64, levels: u32, jitter: f64) -> Vec<Vec<DVec3>> {
+    let t = (1.0 + 5f64.sqrt()) / 2.0;
+    let mut points: Vec<DVec3> = [
+        (-1.0, t, 0.0),
+        (1.0, t, 0.0),
+        (-1.0, -t, 0.0),
+        (1.0, -t, 0.0),
+        (0.0, -1.0, t),
+        (0.0, 1.0, t),
+        (0.0, -1.0, -t),
+        (0.0, 1.0, -t),
+        (t, 0.0, -1.0),
+        (t, 0.0, 1.0),
+        (-t, 0.0, -1.0),
+        (-t, 0.0, 1.0),
+    ]
+    .iter()
+    .map(|&(x, y, z)| DVec3::new(x, y, z).normalize())
+    .collect();
+    let mut faces: Vec<[usize; 3]> = vec![
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ];
+    for _ in 0..levels {
+        let mut middle: HashMap<(usize, usize), usize> = HashMap::new();
+        let mut mid = |a: usize, b: usize, points: &mut Vec<DVec3>| {
+            *middle.entry((a.min(b), a.max(b))).or_insert_with(|| {
+                points.push(((points[a] + points[b]) * 0.5).normalize());
+                points.len() - 1
+            })
+        };
+        faces = faces
+            .iter()
+            .flat_map(|&[a, b, c]| {
+                let (ab, bc, ca) = (mid(a, b, &mut points), mid(b, c, &mut points), mid(c, a, &mut points));
+                [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
+            })
+            .collect();
+    }
+    let mut seed = 7u64;
+    let mut jittered = |p: DVec3| {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        let u = (seed >> 11) as f64 / (1u64 << 53) as f64;
+        c + p * r * (1.0 + jitter * (u - 0.5))
+    };
+    let points: Vec<DVec3> = points.into_iter().map(&mut jittered).collect();
+    faces.iter().map(|f| f.iter().map(|&i| points[i]).collect()).collect()
+}
+
+fn room_with_ball(levels: u32) -> Scene {
+    let m = |name: &str, e: f64| Material {
+        name: name.into(),
+        diffuse: [0.6; 3],
+        specular: [0.0; 3],
+        emission: [e; 3],
+        albedo_texture: None,
+    };
+    let origin = FaceOrigin { line: 0, face: 0 };
+    let axes = [DVec3::X, DVec3::Y, DVec3::Z];
+    let mut polygons = Vec::new();
+    for face in 0..6 {
+        let (axis, sign) = (axes[face / 2], if face % 2 == 0 { -1.0 } else { 1.0 });
+        let (a, b) = (axes[(face / 2 + 1) % 3] * 2.0, axes[(face / 2 + 2) % 3] * 2.0);
+        let c = axis * sign * 2.0;
+        let mut v = vec![c - a - b, c + a - b, c + a + b, c - a + b];
+        if (v[1] - v[0]).cross(v[2] - v[0]).dot(-axis * sign) < 0.0 {
+            v.reverse();
+        }
+        polygons.push((v, (face == 3) as usize, origin.clone()));
+    }
+    for tri in ball(DVec3::new(0.0, -1.0, 0.0), 0.8, levels, 0.01) {
+        polygons.push((tri, 0, origin.clone()));
+    }
+    Scene::from_polygons(
+        &polygons,
+        vec![m("wall", 0.0), m("lamp", 5.0)],
+        &ImportOptions::default(),
+    )
+    .expect("valid room")
+    .0
+}
+
+fn bench(c: &mut Criterion) {
+    let options = Options {
+        directions: 2049,
+        grid: GridSize::new(128, 8).expect("valid grid"),
+        ..Options::default()
+    };
+    let directions = DirectionSet::new(options.directions).expect("valid l");
+    let mut group = c.benchmark_group("subfields of a ball in a room, N=128 m=8");
+    group.sample_size(10);
+    for levels in [5, 6] {
+        let scene = room_with_ball(levels);
+        let atlas = TexelAtlas::new(&scene, options.texel_size(), options.grid.ray_spacing()).expect("atlas");
+        let footprints = Footprints::new(&scene, &atlas.plane_rep);
+        let triangles = 20 << (2 * levels);
+        group.bench_function(format!("{triangles} triangles, 64 directions"), |b| {
+            let mut scratch = RasterScratch::default();
+            b.iter(|| {
+                (0..64)
+                    .map(|k| {
+                        let sub =
+                            Subfield::build_with(&footprints, directions.frame(k * 32), options.grid, &mut scratch);
+                        sub.entries.len()
+                    })
+                    .sum::<usize>()
+            })
+        });
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);
