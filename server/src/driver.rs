@@ -858,12 +858,13 @@ mod tests {
         // A part larger than a step is read alone.
         let whole = vec![0..32, 32..64];
         assert_eq!(read_at_once(&whole, &batching), &whole[..1]);
-        // Small parts: at most PARTS_AT_ONCE of them (l = 129, 8 batches of 16 directions).
-        let small = Batching::new(129, 64);
+        // Small parts: at most PARTS_AT_ONCE of them (l = 513, 32 batches of 16 directions:
+        // more than PARTS_AT_ONCE of them would still be within DIRECTIONS_AT_ONCE).
+        let small = Batching::new(513, 64);
         let ready: Vec<_> = (0..small.count()).map(|b| b..b + 1).collect();
-        assert!(ready.len() > PARTS_AT_ONCE / 2);
+        assert!(ready.len() > PARTS_AT_ONCE && (PARTS_AT_ONCE + 1) * small.size() <= DIRECTIONS_AT_ONCE);
         let step = read_at_once(&ready, &small);
-        assert_eq!(step, &ready[..PARTS_AT_ONCE.min(ready.len())]);
+        assert_eq!(step, &ready[..PARTS_AT_ONCE]);
         // Stepping through reads every part once, in order, each step within the bounds.
         let mut next = 0;
         let mut steps = 0;

@@ -608,7 +608,11 @@ async fn compute_survey(
                     })?;
                 // Written while the next block is learnt, its bytes dropped once written, rather
                 // than every part of the lease held until its end (with mirror planes, a curved
-                // mirror's parts are tens of kB a direction).
+                // mirror's parts are tens of kB a direction); a store slower than the learning
+                // still holds them meanwhile. Should a later block fail, the parts already on
+                // their way land unreported: harmless, as a part is a pure function of the job
+                // and its block, written create-only, and one the coordinator finds stored is
+                // one it need not lease again.
                 let put = opened.survey_part_put(block.clone(), &part)?;
                 drop(part);
                 writes.push(store.put_all_behind(vec![put])?);

@@ -692,12 +692,18 @@ impl Propagation {
     /// direction order as its directions come in (`claim`), the batch sums absorbed in order.
     /// The same bits on any number of threads, and as any split across workers.
     ///
-    /// A perturbed iteration's passes are shot in [`IterationWork::shooting_order`] (each copy's
-    /// shot right after its areas, its rotated subfields built once: [`rotated`]) and absorbed
-    /// in [`IterationWork::passes`]'s, a shot's whole-pass sum held until its turn.
+    /// Where every subfield is held, a perturbed iteration's passes are shot in
+    /// [`IterationWork::shooting_order`] (each copy's shot right after its areas, its rotated
+    /// subfields built once: [`rotated`]) and absorbed in [`IterationWork::passes`]'s, a shot's
+    /// whole-pass sum held until its turn (at most `copies − 1` texel-sized sums). Within a
+    /// subfield budget nothing is kept, so the passes are shot in the order they are absorbed.
     pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let mut held: Vec<(Pass, BatchSum)> = Vec::new();
-        self.step_by(IterationWork::shooting_order, |prop, work, pass, maps, clock, heard| {
+        let order = match self.subfields.all_held() {
+            true => IterationWork::shooting_order,
+            false => IterationWork::passes,
+        };
+        self.step_by(order, |prop, work, pass, maps, clock, heard| {
             let mut io = maps.map(|m| work::mirror_io(m));
             let all = 0..work.batches();
             let (sum, _) = prop
@@ -840,7 +846,7 @@ impl Propagation {
         );
         let index = work.index;
         // A copy shot elsewhere (another worker of this process) left its subfields here.
-        self.rotated.clear();
+        self.rotated.clear(index);
         let scene = &self.scene;
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
         // Settled here, the arrivals' reflected power is also what the mirrors hold unshot (see

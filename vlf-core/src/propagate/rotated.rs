@@ -53,16 +53,25 @@ impl RotatedSubfields {
     }
 
     /// Keeps the subfield of direction `d` of copy `copy` of iteration `iteration` for the copy's
-    /// shot, unless `limit` are kept already. Those of an earlier iteration are dropped.
+    /// shot, unless `limit` are kept already. Those of an earlier iteration are dropped; one of
+    /// an earlier iteration than those kept (a late duplicate of a lease) is not kept.
     pub(crate) fn keep(&self, iteration: u32, copy: u32, d: usize, sub: Subfield, limit: usize) {
         let mut held = self.lock();
-        if held.iteration != iteration {
-            held.subfields.clear();
+        if iteration < held.iteration {
+            return;
+        }
+        // Freed once the lock is let go: up to `limit` subfields, which no other thread need
+        // wait for.
+        let mut stale = HashMap::new();
+        if iteration > held.iteration {
+            stale = std::mem::take(&mut held.subfields);
             held.iteration = iteration;
         }
         if held.subfields.len() < limit {
             held.subfields.insert((copy, d), sub);
         }
+        drop(held);
+        drop(stale);
     }
 
     /// The kept subfield of direction `d` of copy `copy` of iteration `iteration`, given up.
@@ -80,10 +89,14 @@ impl RotatedSubfields {
         self.lock().subfields.len()
     }
 
-    /// Drops every kept subfield (an iteration is over).
-    pub(crate) fn clear(&self) {
+    /// Drops every kept subfield of iteration `iteration` or before (it is over).
+    pub(crate) fn clear(&self, iteration: u32) {
         let mut held = self.lock();
-        held.subfields = HashMap::new();
+        if held.iteration <= iteration {
+            let stale = std::mem::take(&mut held.subfields);
+            drop(held);
+            drop(stale);
+        }
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Held> {
@@ -131,8 +144,16 @@ mod tests {
         assert_eq!(rotated.kept(), 1, "the last iteration's dropped");
         assert_eq!(rotated.take(3, 0, 5), None);
         assert_eq!(rotated.take(4, 0, 7), Some(subfield(7)));
+        // A late one of iteration 3 neither is kept nor drops iteration 4's.
+        rotated.keep(3, 0, 9, subfield(9), 2);
+        assert_eq!(rotated.kept(), 0);
         rotated.keep(4, 0, 8, subfield(8), 2);
-        rotated.clear();
+        assert_eq!(rotated.kept(), 1);
+        assert_eq!(rotated.take(3, 0, 9), None);
+        // The end of iteration 3 leaves iteration 4's; the end of 4 drops them.
+        rotated.clear(3);
+        assert_eq!(rotated.kept(), 1);
+        rotated.clear(4);
         assert_eq!(rotated.kept(), 0);
     }
 }
