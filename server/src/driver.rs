@@ -819,7 +819,7 @@ mod tests {
     use super::{DIRECTIONS_AT_ONCE, PARTS_AT_ONCE, SET_UPS, SETTING_UP, read_at_once, set_up_budget, submit};
     use crate::scheduler::{Abilities, Scheduler, Timing};
     use std::time::{Duration, Instant};
-    use vlf_core::propagate::{Batching, Pass, Propagation, Surveyor, reduce};
+    use vlf_core::propagate::{Batching, Pass, Propagation, SurveyPart, Surveyor, reduce};
     use vlf_core::scene::{ImportOptions, Scene, load_obj};
     use vlf_proto::JobSpec;
     use vlf_proto::v1::{self, State as WireState};
@@ -988,46 +988,20 @@ mod tests {
         );
     }
 
-    /// A worker learns the first block of a job's survey and dies: the coordinator, with no
-    /// worker left that learns surveys, learns the rest itself, and the job is set up with the
-    /// survey a propagation learns whole.
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn a_survey_whose_worker_dies_is_finished_by_the_coordinator() {
-        let timing = Timing {
-            heartbeat: Duration::from_millis(100),
-            ..Timing::default()
-        };
-        let (store, sched, worker, id, spec, grant) = a_job_surveyed_by(timing, "mirrors.obj").await;
-        let learnt = {
-            let (store, id, run) = (store.clone(), id.clone(), grant.batches.clone());
-            vlf_store::blocking(move || {
-                let job = FieldJob::open(&store, &id).unwrap();
-                let surveyor = Surveyor::new(job.scene(), job.options(), None).unwrap();
-                for block in reduce::cover(run) {
-                    let part = surveyor
-                        .part(job.options().batching().directions_of(block.clone()))
-                        .unwrap();
-                    job.put_survey_part(block, &part).unwrap();
-                }
-            })
-        };
-        learnt.await.unwrap();
-        let reported = sched.report_run(&worker, &grant.lease_id, Ok(()), 0.01, None, &[]);
-        assert!(reported.unwrap());
-        // The worker is silent from now on.
-        set_up_with_the_whole_survey((store, &sched, id), "mirrors.obj", &spec, None).await;
-    }
-
-    /// A worker of another build learns planes that do not fit the job (here, two directions'
-    /// planes swapped): the coordinator sets them aside and rasterises the mirror views itself,
-    /// and the job is set up with the survey and mirror geometry a propagation finds whole.
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn mirror_planes_that_do_not_fit_are_set_aside() {
-        let timing = Timing {
-            heartbeat: Duration::from_millis(100),
-            ..Timing::default()
-        };
-        let (store, sched, worker, id, spec, grant) = a_job_surveyed_by(timing, "mirrors.obj").await;
+    /// The surveying worker of [`a_job_surveyed_by`] learns the parts of its lease `grant` into
+    /// the store, each passed through `alter` first, reports the lease done and falls silent;
+    /// the job is then set up, and checked to be set up with the whole survey.
+    async fn learnt_then_silent(
+        (store, sched, worker, id, spec, grant): (
+            Store,
+            std::sync::Arc<Scheduler>,
+            String,
+            JobId,
+            JobSpec,
+            crate::scheduler::Grant,
+        ),
+        alter: fn(&mut SurveyPart),
+    ) {
         let learnt = {
             let (store, id, run) = (store.clone(), id.clone(), grant.batches.clone());
             vlf_store::blocking(move || {
@@ -1037,8 +1011,7 @@ mod tests {
                     let mut part = surveyor
                         .part(job.options().batching().directions_of(block.clone()))
                         .unwrap();
-                    assert!(part.mirror_planes.len() >= 2);
-                    part.mirror_planes.swap(0, 1);
+                    alter(&mut part);
                     job.put_survey_part(block, &part).unwrap();
                 }
             })
@@ -1048,6 +1021,36 @@ mod tests {
         assert!(reported.unwrap());
         // The worker is silent from now on: the coordinator learns the rest of the survey.
         set_up_with_the_whole_survey((store, &sched, id), "mirrors.obj", &spec, None).await;
+    }
+
+    /// A timing in which a silent worker is soon given up.
+    fn short_heartbeat() -> Timing {
+        Timing {
+            heartbeat: Duration::from_millis(100),
+            ..Timing::default()
+        }
+    }
+
+    /// A worker learns the first block of a job's survey and dies: the coordinator, with no
+    /// worker left that learns surveys, learns the rest itself, and the job is set up with the
+    /// survey a propagation learns whole.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_survey_whose_worker_dies_is_finished_by_the_coordinator() {
+        let surveyed = a_job_surveyed_by(short_heartbeat(), "mirrors.obj").await;
+        learnt_then_silent(surveyed, |_| {}).await;
+    }
+
+    /// A worker of another build learns planes that do not fit the job (here, two directions'
+    /// planes swapped): the coordinator sets them aside and rasterises the mirror views itself,
+    /// and the job is set up with the survey and mirror geometry a propagation finds whole.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn mirror_planes_that_do_not_fit_are_set_aside() {
+        let surveyed = a_job_surveyed_by(short_heartbeat(), "mirrors.obj").await;
+        learnt_then_silent(surveyed, |part| {
+            assert!(part.mirror_planes.len() >= 2);
+            part.mirror_planes.swap(0, 1);
+        })
+        .await;
     }
 
     /// A stored part that cannot be read (here, garbage under its key) does not fail the job:
