@@ -917,20 +917,21 @@ mod tests {
         assert!(!job.is_set_up());
     }
 
-    /// A scheduler over a `memory://` store with `timing`, one worker that learns surveys, and
-    /// a job of `scene` (l = 129: 8 batches) submitted after it registered; returns them with
-    /// the worker's first lease, a block of the survey.
-    async fn a_job_surveyed_by(
-        timing: Timing,
-        scene: &str,
-    ) -> (
+    /// What [`a_job_surveyed_by`] returns: the store, the scheduler, the worker, the job, its
+    /// spec and the worker's lease.
+    type SurveyedJob = (
         Store,
         std::sync::Arc<Scheduler>,
         String,
         JobId,
         JobSpec,
         crate::scheduler::Grant,
-    ) {
+    );
+
+    /// A scheduler over a `memory://` store with `timing`, one worker that learns surveys, and
+    /// a job of `scene` (l = 129: 8 batches) submitted after it registered; returns them with
+    /// the worker's first lease, a block of the survey.
+    async fn a_job_surveyed_by(timing: Timing, scene: &str) -> SurveyedJob {
         let store = Store::open("memory://").unwrap();
         let sched = Scheduler::new(store.clone(), timing, None, None);
         let worker = sched.register("surveyor", Abilities::ALL);
@@ -991,17 +992,7 @@ mod tests {
     /// The surveying worker of [`a_job_surveyed_by`] learns the parts of its lease `grant` into
     /// the store, each passed through `alter` first, reports the lease done and falls silent;
     /// the job is then set up, and checked to be set up with the whole survey.
-    async fn learnt_then_silent(
-        (store, sched, worker, id, spec, grant): (
-            Store,
-            std::sync::Arc<Scheduler>,
-            String,
-            JobId,
-            JobSpec,
-            crate::scheduler::Grant,
-        ),
-        alter: fn(&mut SurveyPart),
-    ) {
+    async fn learnt_then_silent((store, sched, worker, id, spec, grant): SurveyedJob, alter: fn(&mut SurveyPart)) {
         let learnt = {
             let (store, id, run) = (store.clone(), id.clone(), grant.batches.clone());
             vlf_store::blocking(move || {
