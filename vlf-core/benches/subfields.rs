@@ -9,80 +9,27 @@
 
 use criterion::{Criterion, criterion_group, criterion_main};
 use glam::DVec3;
-use std::collections::HashMap;
 use vlf_core::directions::DirectionSet;
 use vlf_core::maps::TexelAtlas;
 use vlf_core::propagate::Options;
 use vlf_core::psf::{Footprints, GridSize, RasterScratch, Subfield};
 use vlf_core::scene::{FaceOrigin, ImportOptions, Material, Scene};
 
-/// An icosphere of `20 · 4^levels` triangles, radius `r` about `c`, vertices moved along the
-/// radius by up to `jitter · r`.
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+/// [`common::icosphere`] about `c`, each vertex moved along the radius by up to `jitter · r` as a
+/// scan's are: by a hash of its position, so that the triangles meeting there move it alike.
 fn ball(c: DVec3, r: f64, levels: u32, jitter: f64) -> Vec<Vec<DVec3>> {
-    let t = (1.0 + 5f64.sqrt()) / 2.0;
-    let mut points: Vec<DVec3> = [
-        (-1.0, t, 0.0),
-        (1.0, t, 0.0),
-        (-1.0, -t, 0.0),
-        (1.0, -t, 0.0),
-        (0.0, -1.0, t),
-        (0.0, 1.0, t),
-        (0.0, -1.0, -t),
-        (0.0, 1.0, -t),
-        (t, 0.0, -1.0),
-        (t, 0.0, 1.0),
-        (-t, 0.0, -1.0),
-        (-t, 0.0, 1.0),
-    ]
-    .iter()
-    .map(|&(x, y, z)| DVec3::new(x, y, z).normalize())
-    .collect();
-    let mut faces: Vec<[usize; 3]> = vec![
-        [0, 11, 5],
-        [0, 5, 1],
-        [0, 1, 7],
-        [0, 7, 10],
-        [0, 10, 11],
-        [1, 5, 9],
-        [5, 11, 4],
-        [11, 10, 2],
-        [10, 7, 6],
-        [7, 1, 8],
-        [3, 9, 4],
-        [3, 4, 2],
-        [3, 2, 6],
-        [3, 6, 8],
-        [3, 8, 9],
-        [4, 9, 5],
-        [2, 4, 11],
-        [6, 2, 10],
-        [8, 6, 7],
-        [9, 8, 1],
-    ];
-    for _ in 0..levels {
-        let mut middle: HashMap<(usize, usize), usize> = HashMap::new();
-        let mut mid = |a: usize, b: usize, points: &mut Vec<DVec3>| {
-            *middle.entry((a.min(b), a.max(b))).or_insert_with(|| {
-                points.push(((points[a] + points[b]) * 0.5).normalize());
-                points.len() - 1
-            })
-        };
-        faces = faces
-            .iter()
-            .flat_map(|&[a, b, c]| {
-                let (ab, bc, ca) = (mid(a, b, &mut points), mid(b, c, &mut points), mid(c, a, &mut points));
-                [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-            })
-            .collect();
-    }
-    let mut seed = 7u64;
-    let mut jittered = |p: DVec3| {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
-        let u = (seed >> 11) as f64 / (1u64 << 53) as f64;
-        c + p * r * (1.0 + jitter * (u - 0.5))
+    let moved = |p: DVec3| {
+        let key = (p.x.to_bits() ^ p.y.to_bits().rotate_left(21) ^ p.z.to_bits().rotate_left(42))
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        let u = (key >> 11) as f64 / (1u64 << 53) as f64;
+        c + (p - c) * (1.0 + jitter * (u - 0.5))
     };
-    let points: Vec<DVec3> = points.into_iter().map(&mut jittered).collect();
-    faces.iter().map(|f| f.iter().map(|&i| points[i]).collect()).collect()
+    (common::icosphere(c, r, levels).into_iter())
+        .map(|tri| tri.iter().map(|&p| moved(p)).collect())
+        .collect()
 }
 
 fn room_with_ball(levels: u32) -> Scene {
