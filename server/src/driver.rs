@@ -672,9 +672,11 @@ impl Driver {
                         .map_err(Stop::Failed)?
                         .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
                 }
-                self.sched.end_pass(&self.id, k, pass);
+                // What it opens is open before it closes: a pass waiting for them (the
+                // scheduler's `about_to_open`) never finds neither.
                 absorbed.push((pass, blocks));
                 self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
+                self.sched.end_pass(&self.id, k, pass);
             }
             self.check_cancelled()?;
             // Snapshots are committed in order: the last one before this one is released.

@@ -822,6 +822,52 @@ fn finishes_as(mut coordinator: Coordinator, mut replica: Replica, reference: &F
     assert!(field_blobs(&job) == field_blobs(reference), "stored field differs");
 }
 
+/// A worker's subfields are built on demand and kept (no budget), and it keeps each rotated
+/// subfield its areas of a copy build for the copy's shot: computing each copy's shot right after
+/// its areas, as the service leases them, it builds each rotated subfield once (`copies·l` per
+/// perturbed iteration); within a budget it keeps none and builds each twice. The same bits
+/// either way, absorbed in the iteration's order.
+#[test]
+fn a_worker_without_a_budget_builds_each_rotated_subfield_once() {
+    let (scene, options) = (bundled("cornell.obj"), options(2, 129));
+    let store = Store::open("memory://").unwrap();
+    let reference = in_process(&store, &scene, &options);
+    for (budget, builds_per_subfield) in [(None, 1), (Some(1), 2)] {
+        let p = Propagation::new(scene.clone(), options.clone()).unwrap();
+        let l = p.directions.len();
+        let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+        let id = job.id().clone();
+        let mut coordinator = Coordinator::resume(job).unwrap();
+        let mut replica = Replica::within(FieldJob::open(&store, &id).unwrap(), budget).unwrap();
+        let mut perturbed = 0;
+        while !coordinator.finished() {
+            let k = coordinator.iteration();
+            let (passes, batches) = coordinator.passes();
+            let mut shooting: Vec<Pass> = passes.iter().map(|(pass, _)| *pass).collect();
+            shooting.sort_by_key(|pass| pass.shooting_rank());
+            let copies = shooting.iter().filter(|p| matches!(p, Pass::Areas { .. })).count();
+            perturbed += usize::from(copies > 0);
+            let before = replica.rotated_subfields_built();
+            for pass in shooting {
+                replica.compute(k, pass, 0..batches).unwrap();
+            }
+            assert_eq!(
+                replica.rotated_subfields_built() - before,
+                builds_per_subfield * copies * l,
+                "iteration {k}, budget {budget:?}"
+            );
+            while coordinator.pending_pass().is_some() {
+                coordinator.absorb_pass().unwrap();
+            }
+            coordinator.finish_iteration().unwrap();
+        }
+        assert_eq!(perturbed, 2, "the premise: two perturbed iterations");
+        let job = coordinator.finish(false).unwrap();
+        assert!(without_times(job.checkpoint(3).unwrap()) == without_times(reference.checkpoint(3).unwrap()));
+        assert!(field_blobs(&job) == field_blobs(&reference), "stored field differs");
+    }
+}
+
 /// A replica of job `id` cannot be made, with an error that `says` why.
 fn refused(store: &Store, id: &JobId, says: &str) {
     let error = Replica::new(FieldJob::open(store, id).unwrap())

@@ -4,7 +4,7 @@
 //! state is made here, so that a batch `Leased(n)` is one of lease `n` and goes back to
 //! `Pending` when that lease does not finish is kept in one file.
 
-use super::pass::{BatchState, find_run, first_claim};
+use super::pass::{BatchState, PassRun, find_run, first_claim};
 use super::{
     Grant, JobEntry, LeaseEntry, MAX_BATCH_FAILURES, Scheduler, State, Unknown, alive_workers, block_len, publish,
     touch,
@@ -60,8 +60,18 @@ impl Scheduler {
             if !entry.is_open() {
                 return None;
             }
-            entry.passes.iter().enumerate().find_map(|(p, run)| {
-                if !takes(run.pass) {
+            // A rotated copy's shot before the next copy's areas: a worker keeps the subfields
+            // its areas built for the shot, one copy's at most (`Pass::shooting_rank`). So a pass
+            // also waits for one ranked before it that opens as soon as what is written is
+            // absorbed (a copy's shot, its areas all written): leased the next copy's areas
+            // meanwhile, a lone worker would fill its keep with subfields it must build again.
+            let opening = about_to_open(&entry.passes);
+            let mut order: Vec<usize> = (0..entry.passes.len()).collect();
+            order.sort_by_key(|&p| entry.passes[p].pass.shooting_rank());
+            order.into_iter().find_map(|p| {
+                let run = &entry.passes[p];
+                let rank = run.pass.shooting_rank();
+                if !takes(run.pass) || opening.iter().any(|q| q.shooting_rank() < rank) {
                     return None;
                 }
                 let (b, home) = run.first_pending(worker, &entry.shooting, &state.workers)?;
@@ -382,4 +392,16 @@ impl Scheduler {
         }
         expired.len()
     }
+}
+
+/// The passes not open yet that open as soon as the driver absorbs what is written: those that
+/// need only open passes whose every batch is done.
+fn about_to_open(passes: &[PassRun]) -> Vec<Pass> {
+    let open = |pass: Pass| passes.iter().any(|r| r.pass == pass);
+    let written = |pass: Pass| passes.iter().any(|r| r.pass == pass && r.done == r.batches.len());
+    (passes.iter())
+        .filter(|r| r.done == r.batches.len())
+        .flat_map(|r| r.pass.dependents())
+        .filter(|&q| !open(q) && q.prerequisites().into_iter().all(written))
+        .collect()
 }

@@ -108,9 +108,10 @@ pub fn block_len(batches: usize, open: usize, workers: u32, batch_seconds: Optio
 }
 
 impl PassRun {
-    /// The pending batch `worker` should start a lease at, and for a shooting pass its [`home`].
-    /// Of a shooting pass: the first of its home; else the first it shot last time (it keeps their mirror maps); else the first
-    /// that no other registered worker shot. Else — rather than wait — the first pending batch.
+    /// The pending batch `worker` should start a lease at, and for a pass of an iteration its
+    /// [`home`]. Of such a pass: the first of its home; else the first it shot last time (it keeps
+    /// their mirror maps); else the first that no other registered worker shot. Else — rather
+    /// than wait — the first pending batch. The survey has no homes.
     ///
     /// Homes matter for mirrors: a direction gathers what arrived from the directions that
     /// reflect into it, which are near it in direction order (cut into 16 batches, the bundled
@@ -118,6 +119,10 @@ impl PassRun {
     /// of the pass read 4 batches of each other's arrivals; leased blocks in the order asked,
     /// they interleave and read nearly everything. As homes stay put while the workers do, a
     /// worker shoots the same batches from iteration to iteration and keeps their maps.
+    ///
+    /// And for a perturbed iteration's rotated copies: a worker keeps the rotated subfields its
+    /// areas of a copy built for the copy's shot (`vlf_core::propagate::rotated`), so the shot
+    /// of its home finds the subfields its areas of the same home built.
     pub(super) fn first_pending(
         &self,
         worker: &str,
@@ -125,7 +130,7 @@ impl PassRun {
         workers: &HashMap<String, WorkerEntry>,
     ) -> Option<(usize, Option<Range<usize>>)> {
         let pending = || (0..self.batches.len()).filter(|&b| self.batches[b].state == BatchState::Pending);
-        if self.pass != Pass::Shoot {
+        if self.pass == Pass::Survey {
             return pending().next().map(|b| (b, None));
         }
         let shooter = |b: usize| shooting.shooters.get(b).and_then(Option::as_deref);

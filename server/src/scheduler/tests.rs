@@ -178,16 +178,16 @@ async fn stored_blocks_are_kept_and_new_blocks_never_straddle_them() {
     // ignored), 4..6 and 12..16.
     s.start_pass(&id, 0, areas, 16, &[0..2, 0..4, 1..3, 4..6, 12..16], &[]);
     assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(vec![0..4, 4..6]));
-    // With two workers, blocks of 4 batches at most: one that does not take runs gets an
-    // aligned block, one that does the rest of the next block.
+    // With two workers, each in its home (a: 0..8, old: 8..16), blocks of 4 batches at most:
+    // one that does not take runs gets an aligned block, one that does the rest of its home.
     let old = s.register("old", Abilities::BLOCKS);
     let g = s.lease(&old, Duration::ZERO).await.unwrap().unwrap();
-    assert_eq!(g.batches, 6..8);
+    assert_eq!(g.batches, 8..12);
     let mut grants = Vec::new();
     while let Some(g) = s.lease(&w, Duration::ZERO).await.unwrap() {
         grants.push(g.batches);
     }
-    assert_eq!(grants, vec![8..12]);
+    assert_eq!(grants, vec![6..8]);
     // Alone, a worker that takes runs gets the gap in one lease.
     let s = scheduler(60_000);
     let w = s.register("a", Abilities::ALL);
@@ -253,8 +253,8 @@ async fn a_worker_shoots_the_batches_it_shot_last_time() {
     }
     assert_eq!(first, [0..1, 1..2, 2..3, 3..4]);
     s.end_pass(&id, 0, shoot);
-    // Iteration 2: b asks first and is given its own batches, not batch 0; a pass of another
-    // kind keeps the plain order.
+    // Iteration 2: b asks first and is given its own batches, not batch 0; and so in a rotated
+    // copy's areas (a worker's shot of the copy finds the subfields its areas built).
     s.start_pass(&id, 1, shoot, 4, &[], &[]);
     let g = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(g.batches.start, 2, "b shot batches 2 and 3 last time");
@@ -269,7 +269,61 @@ async fn a_worker_shoots_the_batches_it_shot_last_time() {
     assert_eq!(rest.batches, 1..2);
     s.start_pass(&id, 1, Pass::Areas { copy: 0 }, 4, &[], &[]);
     let areas = s.lease(&b, Duration::ZERO).await.unwrap().unwrap();
+    assert_eq!((areas.pass, areas.batches.start), (Pass::Areas { copy: 0 }, 2));
+    let areas = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!((areas.pass, areas.batches.start), (Pass::Areas { copy: 0 }, 0));
+}
+
+/// A perturbed iteration's passes are leased as one process shoots them (`Pass::shooting_rank`):
+/// a rotated copy's shot, once open, before the next copy's areas, and those areas wait while
+/// the shot is about to open (its areas all written, not yet absorbed) — a worker keeps the
+/// subfields its areas built for the shot, one copy's at most. The two workers' parts of a
+/// copy's shot are their parts of its areas.
+#[tokio::test]
+async fn a_copys_shot_is_leased_before_the_next_copys_areas() {
+    let s = scheduler(60_000);
+    let id = job(&s);
+    let (a0, a1, s0) = (
+        Pass::Areas { copy: 0 },
+        Pass::Areas { copy: 1 },
+        Pass::ShootCopy { copy: 0 },
+    );
+    s.start_pass(&id, 1, a0, 4, &[], &[]);
+    s.start_pass(&id, 1, a1, 4, &[], &[]);
+    let (a, b) = (s.register("a", Abilities::ALL), s.register("b", Abilities::ALL));
+    let mut parts: HashMap<String, Vec<usize>> = HashMap::new();
+    for w in [&a, &b].into_iter().cycle().take(8) {
+        if let Some(g) = s.lease(w, Duration::ZERO).await.unwrap() {
+            assert_eq!(g.pass, a0, "copy 0's areas first");
+            parts.entry(w.clone()).or_default().extend(g.batches.clone());
+            assert!(s.report(w, &g.lease_id, Ok(()), 0.01).unwrap());
+        }
+    }
+    assert_eq!(parts.values().map(Vec::len).sum::<usize>(), 4);
+    // Copy 0's areas are all written: its shot opens as soon as they are absorbed, and copy 1's
+    // areas wait for it.
+    assert_eq!(s.lease(&a, Duration::ZERO).await.unwrap(), None);
+    let absorbed = vec![(a0, vec![0..4])];
+    s.start_pass(&id, 1, s0, 4, &[], &absorbed);
+    s.end_pass(&id, 1, a0);
+    let mut shot: HashMap<String, Vec<usize>> = HashMap::new();
+    for w in [&b, &a] {
+        let g = s.lease(w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.pass, s0, "the shot before the next copy's areas, opened earlier");
+        shot.entry(w.clone()).or_default().extend(g.batches.clone());
+    }
+    // Each worker's leases of the shot start in its part of the areas.
+    for w in [&a, &b] {
+        assert!(
+            parts[w].contains(&shot[w][0]),
+            "{w}: areas {:?}, shot {:?}",
+            parts[w],
+            shot[w]
+        );
+    }
+    // Copy 1's areas go on while the shot is out.
+    let next = s.lease(&a, Duration::ZERO).await.unwrap().unwrap();
+    assert_eq!(next.pass, a1);
 }
 
 #[tokio::test]

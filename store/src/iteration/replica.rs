@@ -133,6 +133,13 @@ impl Replica {
         self.prop.subfields.memory()
     }
 
+    /// How many subfields of rotated copies this replica built so far: once each where no budget
+    /// bounds its subfields and each copy is shot after its areas, as the service leases them
+    /// ([`Propagation::rotated_subfields_built`]).
+    pub fn rotated_subfields_built(&self) -> usize {
+        self.prop.rotated_subfields_built()
+    }
+
     /// The mirror maps this replica holds now: those restored into its propagation, those of
     /// the blocks it computed for the next snapshot, and the parts it read ahead. Those of the
     /// directions its leases shoot and gather from, not of the whole field

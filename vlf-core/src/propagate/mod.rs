@@ -692,14 +692,14 @@ impl Propagation {
     /// direction order as its directions come in (`claim`), the batch sums absorbed in order.
     /// The same bits on any number of threads, and as any split across workers.
     ///
-    /// Where every subfield is held, a perturbed iteration's passes are shot in
+    /// Where no budget bounds the subfields, a perturbed iteration's passes are shot in
     /// [`IterationWork::shooting_order`] (each copy's shot right after its areas, its rotated
     /// subfields built once: [`rotated`]) and absorbed in [`IterationWork::passes`]'s, a shot's
     /// whole-pass sum held until its turn (at most `copies − 1` texel-sized sums). Within a
     /// subfield budget nothing is kept, so the passes are shot in the order they are absorbed.
     pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let mut held: Vec<(Pass, BatchSum)> = Vec::new();
-        let order = match self.subfields.all_held() {
+        let order = match !self.subfields.has_budget() {
             true => IterationWork::shooting_order,
             false => IterationWork::passes,
         };

@@ -10,13 +10,21 @@
 //! at l = 2049, N = 128 spends 24–26 s on each perturbed iteration (2-core VM) against 1.1 s on
 //! a plain one, which walks subfields held since set-up.
 //!
-//! So a propagation that holds every subfield of its own directions (the memory it was given
-//! allows it) keeps each rotated subfield its `Areas` pass built, until the copy's shot takes
-//! it: at most one copy's worth, `l` subfields — about what the held subfields take, and only
-//! during the perturbed iterations. [`super::Propagation::step`] shoots each copy right after its
-//! areas (`IterationWork::shooting_order`) so that one copy's are enough. A propagation within a
-//! subfield budget keeps none: its bound is the budget's. A subfield taken from here is the one
-//! the pass would have built, so the bits are the same.
+//! So a propagation whose subfields no budget bounds (held whole, or built on demand and kept,
+//! as a service worker's are) keeps each rotated subfield its `Areas` pass built, until the
+//! copy's shot takes it: at most one copy's worth, `l` subfields — about what the held subfields
+//! take, and only during the perturbed iterations. A propagation within a subfield budget keeps
+//! none: its bound is the budget's. A subfield taken from here is the one the pass would have
+//! built, so the bits are the same.
+//!
+//! One copy's are enough when each copy is shot right after its areas ([`Pass::shooting_rank`](super::Pass::shooting_rank)):
+//! [`super::Propagation::step`] shoots in that order (`IterationWork::shooting_order`), and the
+//! service leases in it — a copy's shot before the next copy's areas, which wait for it while
+//! it is about to open, and each worker's part of a copy's shot is the part of its areas it
+//! computed (its home). The 47 794-triangle dragon's embedded run (`vlf run`, one worker,
+//! 2 threads, 2 perturbed iterations of 4 copies): 12 293 rotated builds per perturbed
+//! iteration before (the next copy's areas leased while the shot waited for its areas to be
+//! absorbed), 8 196 = `copies·l` since.
 
 use crate::psf::Subfield;
 use std::collections::HashMap;

@@ -354,6 +354,28 @@ impl Pass {
             Pass::Shoot | Pass::Areas { .. } | Pass::Survey => Vec::new(),
         }
     }
+
+    /// The passes of an iteration that read this one's results: those that can open once it is
+    /// absorbed (the inverse of [`Pass::prerequisites`]).
+    pub fn dependents(self) -> Vec<Pass> {
+        match self {
+            Pass::Areas { copy } => vec![Pass::ShootCopy { copy }],
+            Pass::Shoot | Pass::ShootCopy { .. } | Pass::Survey => Vec::new(),
+        }
+    }
+
+    /// Where this pass comes when one process shoots an iteration's passes, lowest first: a
+    /// rotated copy's shot right after its areas, before the next copy's areas (`A0 S0 A1 S1 …`),
+    /// so that the rotated subfields kept from the one to the other ([`super::rotated`]) are
+    /// one copy's. [`IterationWork::shooting_order`] sorts by it, and the service leases the
+    /// open passes in its order.
+    pub fn shooting_rank(self) -> (u32, u32) {
+        match self {
+            Pass::Shoot | Pass::Survey => (0, 0),
+            Pass::Areas { copy } => (copy, 0),
+            Pass::ShootCopy { copy } => (copy, 1),
+        }
+    }
 }
 
 impl IterationWork {
@@ -363,18 +385,8 @@ impl IterationWork {
     /// absorbed in [`IterationWork::passes`]'s order (a shot's sum waits for the last areas):
     /// the same bits.
     pub fn shooting_order(&self) -> Vec<Pass> {
-        let passes = self.passes();
-        let mut order = Vec::with_capacity(passes.len());
-        for &pass in &passes {
-            match pass {
-                Pass::ShootCopy { .. } => {}
-                Pass::Areas { copy } => {
-                    order.push(pass);
-                    order.extend(passes.iter().filter(|&&p| p == Pass::ShootCopy { copy }));
-                }
-                _ => order.push(pass),
-            }
-        }
+        let mut order = self.passes();
+        order.sort_by_key(|pass| pass.shooting_rank());
         order
     }
 
@@ -689,8 +701,8 @@ impl Propagation {
                 self.rotated.count_build();
                 let weight = set.get(d).weight;
                 shoot::count(geometry, &sub, walk, |t| buf[t][0] += weight);
-                // Kept for the copy's shot where every subfield is held (see `super::rotated`).
-                if self.subfields.all_held() {
+                // Kept for the copy's shot where no budget bounds the subfields (`super::rotated`).
+                if !self.subfields.has_budget() {
                     self.rotated.keep(work.index, copy, d, sub, self.directions.len());
                 }
                 Ok(Flow::default())

@@ -176,6 +176,20 @@ impl Subfields {
         matches!(self.held, Held::All(_))
     }
 
+    /// Whether a memory budget bounds what is held: not when every subfield is held, nor when
+    /// they are built on demand and kept ([`Subfields::on_demand`]). A set without one may keep
+    /// more beside it (the rotated copies' subfields, `crate::propagate::rotated`).
+    pub fn has_budget(&self) -> bool {
+        self.budget().is_some()
+    }
+
+    fn budget(&self) -> Option<usize> {
+        match &self.held {
+            Held::All(_) => None,
+            Held::Budget { bytes, .. } => Some(*bytes).filter(|&b| b != usize::MAX),
+        }
+    }
+
     /// Number of directions.
     pub fn len(&self) -> usize {
         self.frames.len()
@@ -234,10 +248,7 @@ impl Subfields {
     /// What is held and was held (see [`SubfieldMemory`]).
     pub fn memory(&self) -> SubfieldMemory {
         SubfieldMemory {
-            budget: match &self.held {
-                Held::All(_) => None,
-                Held::Budget { bytes, .. } => Some(*bytes).filter(|&b| b != usize::MAX),
-            },
+            budget: self.budget(),
             live: self.counter.live.load(Ordering::Relaxed),
             peak: self.counter.peak.load(Ordering::Relaxed),
             builds: self.counter.builds.load(Ordering::Relaxed),
