@@ -673,7 +673,7 @@ impl Driver {
                         .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
                 }
                 // What it opens is open before it closes: a pass waiting for them (the
-                // scheduler's `about_to_open`) never finds neither.
+                // scheduler's `opening_once_absorbed`) never finds neither.
                 absorbed.push((pass, blocks));
                 self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
                 self.sched.end_pass(&self.id, k, pass);

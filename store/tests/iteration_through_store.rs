@@ -839,6 +839,10 @@ fn a_worker_without_a_budget_builds_each_rotated_subfield_once() {
         let id = job.id().clone();
         let mut coordinator = Coordinator::resume(job).unwrap();
         let mut replica = Replica::within(FieldJob::open(&store, &id).unwrap(), budget).unwrap();
+        // Another worker computes the first iteration's areas too, and not the shots: it keeps
+        // one copy's subfields (none within a budget), and drops them when it moves on (to the
+        // plain iteration, which keeps none of its own).
+        let mut other = Replica::within(FieldJob::open(&store, &id).unwrap(), budget).unwrap();
         let mut perturbed = 0;
         while !coordinator.finished() {
             let k = coordinator.iteration();
@@ -847,6 +851,16 @@ fn a_worker_without_a_budget_builds_each_rotated_subfield_once() {
             shooting.sort_by_key(|pass| pass.shooting_rank());
             let copies = shooting.iter().filter(|p| matches!(p, Pass::Areas { .. })).count();
             perturbed += usize::from(copies > 0);
+            if k == 0 {
+                for &pass in shooting.iter().filter(|p| matches!(p, Pass::Areas { .. })) {
+                    other.compute(k, pass, 0..batches).unwrap();
+                }
+                assert_eq!(other.rotated_subfields_kept(), if budget.is_none() { l } else { 0 });
+            } else if copies == 0 {
+                // A plain iteration keeps nothing new: what is kept is what was not dropped.
+                other.compute(k, Pass::Shoot, 0..1).unwrap();
+                assert_eq!(other.rotated_subfields_kept(), 0, "the first iteration's are dropped");
+            }
             let before = replica.rotated_subfields_built();
             for pass in shooting {
                 replica.compute(k, pass, 0..batches).unwrap();

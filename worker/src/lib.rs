@@ -50,7 +50,9 @@ pub struct WorkerConfig {
     /// Propagations offered by a coordinator in this process: cloned instead of built.
     pub prototypes: Option<vlf_store::Prototypes>,
     /// At most this many bytes of a job's subfields held ([`Replica::within`]): the worker
-    /// keeps those of its home's directions rather than the whole field's. `None`: all held.
+    /// keeps those of its home's directions rather than the whole field's. `None`: no bound (all
+    /// held, or with the job's survey stored those of the directions it shoots, built on demand);
+    /// it then also keeps a rotated copy's subfields from its areas to its shot, at most `l`.
     /// (A prototype from a coordinator in this process comes with the coordinator's.)
     pub subfield_budget: Option<usize>,
 }

@@ -25,8 +25,8 @@ struct Lease<'a> {
 }
 
 impl Scheduler {
-    /// Leases the first pending batch of the oldest job to `worker`, waiting up to `wait` for
-    /// one.
+    /// Leases the first pending batch of the oldest job to `worker`, its open passes taken in
+    /// shooting order ([`Pass::shooting_rank`]), waiting up to `wait` for one.
     pub async fn lease(&self, worker: &str, wait: Duration) -> Result<Option<Grant>, Unknown> {
         let until = Instant::now() + wait;
         loop {
@@ -63,9 +63,10 @@ impl Scheduler {
             // A rotated copy's shot before the next copy's areas: a worker keeps the subfields
             // its areas built for the shot, one copy's at most (`Pass::shooting_rank`). So a pass
             // also waits for one ranked before it that opens as soon as what is written is
-            // absorbed (a copy's shot, its areas all written): leased the next copy's areas
-            // meanwhile, a lone worker would fill its keep with subfields it must build again.
-            let opening = about_to_open(&entry.passes);
+            // absorbed (a copy's shot, its areas all written and absorbed but for the last
+            // blocks: milliseconds): leased the next copy's areas meanwhile, a lone worker would
+            // fill its keep with subfields it must build again.
+            let opening = opening_once_absorbed(&entry.passes);
             let mut order: Vec<usize> = (0..entry.passes.len()).collect();
             order.sort_by_key(|&p| entry.passes[p].pass.shooting_rank());
             order.into_iter().find_map(|p| {
@@ -394,14 +395,21 @@ impl Scheduler {
     }
 }
 
-/// The passes not open yet that open as soon as the driver absorbs what is written: those that
-/// need only open passes whose every batch is done.
-fn about_to_open(passes: &[PassRun]) -> Vec<Pass> {
+/// The passes not open yet that open as soon as the driver absorbs what is written: those whose
+/// prerequisites are all done, with every open pass absorbed before them (the driver absorbs in
+/// [`Pass::absorbing_rank`] order: a copy's shot opens once its areas and every earlier copy's
+/// areas are in).
+fn opening_once_absorbed(passes: &[PassRun]) -> Vec<Pass> {
+    let done = |r: &PassRun| r.done == r.batches.len();
     let open = |pass: Pass| passes.iter().any(|r| r.pass == pass);
-    let written = |pass: Pass| passes.iter().any(|r| r.pass == pass && r.done == r.batches.len());
-    (passes.iter())
-        .filter(|r| r.done == r.batches.len())
+    (passes.iter().filter(|r| done(r)))
         .flat_map(|r| r.pass.dependents())
-        .filter(|&q| !open(q) && q.prerequisites().into_iter().all(written))
+        .filter(|&q| !open(q))
+        .filter(|&q| {
+            let last = q.prerequisites().into_iter().map(Pass::absorbing_rank).max();
+            (passes.iter())
+                .filter(|r| Some(r.pass.absorbing_rank()) <= last)
+                .all(done)
+        })
         .collect()
 }

@@ -88,9 +88,10 @@ pub(super) fn first_claim(run: &Range<usize>, claims: bool) -> usize {
 ///
 /// With one pass open, that is a quarter of a pass per worker. A perturbed iteration opens
 /// every rotated copy's areas at once, then each copy's shooting as its areas are in: with
-/// that much work open, two workers take whole passes — one round trip through the store per
-/// pass instead of one per quarter, and a worker that shoots a copy whose areas it computed
-/// reads none of them back — and the leases shrink as the open work runs out.
+/// that much work open, the blocks are large — but several workers each take their home of a
+/// pass (`home`), so that a worker shoots the part of a copy whose areas it computed and keeps
+/// their subfields, and reads none of them back — and the leases shrink as the open work runs
+/// out.
 pub fn block_len(batches: usize, open: usize, workers: u32, batch_seconds: Option<f64>, lease: Duration) -> usize {
     let Some(per_batch) = batch_seconds else {
         return 1;

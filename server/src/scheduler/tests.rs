@@ -326,6 +326,31 @@ async fn a_copys_shot_is_leased_before_the_next_copys_areas() {
     assert_eq!(next.pass, a1);
 }
 
+/// A copy's shot opens once its areas and every earlier copy's are absorbed (the driver absorbs
+/// every copy's areas in turn): with copy 0's areas still out and copy 1's all in the store (a
+/// job taken up), copy 2's areas do not wait for copy 1's shot. Once copy 0's are written too,
+/// they wait.
+#[tokio::test]
+async fn the_next_areas_wait_only_for_a_shot_that_opens_once_absorbed() {
+    let s = scheduler(60_000);
+    let id = job(&s);
+    let areas = |copy| Pass::Areas { copy };
+    s.start_pass(&id, 1, areas(0), 2, &[], &[]);
+    s.start_pass(&id, 1, areas(1), 2, &[0..2], &[]);
+    s.start_pass(&id, 1, areas(2), 2, &[], &[]);
+    let (x, y) = (s.register("x", Abilities::ALL), s.register("y", Abilities::ALL));
+    let first = s.lease(&x, Duration::ZERO).await.unwrap().unwrap();
+    let second = s.lease(&y, Duration::ZERO).await.unwrap().unwrap();
+    assert_eq!((first.pass, second.pass), (areas(0), areas(0)));
+    let third = s.lease(&x, Duration::ZERO).await.unwrap().unwrap();
+    assert_eq!(third.pass, areas(2), "copy 0's areas are out: no shot opens yet");
+    assert!(s.report(&x, &first.lease_id, Ok(()), 0.01).unwrap());
+    assert!(s.report(&y, &second.lease_id, Ok(()), 0.01).unwrap());
+    // Copy 0's and copy 1's areas are written: their shots open once absorbed, and copy 2's
+    // last areas wait.
+    assert_eq!(s.lease(&y, Duration::ZERO).await.unwrap(), None);
+}
+
 #[tokio::test]
 async fn two_workers_shoot_the_halves_of_the_pass_whatever_order_they_ask_in() {
     let s = scheduler(60_000);

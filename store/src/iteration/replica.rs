@@ -140,6 +140,11 @@ impl Replica {
         self.prop.rotated_subfields_built()
     }
 
+    /// Rotated subfields it keeps now, from a copy's areas for its shot.
+    pub fn rotated_subfields_kept(&self) -> usize {
+        self.prop.rotated_subfields_kept()
+    }
+
     /// The mirror maps this replica holds now: those restored into its propagation, those of
     /// the blocks it computed for the next snapshot, and the parts it read ahead. Those of the
     /// directions its leases shoot and gather from, not of the whole field
@@ -517,6 +522,8 @@ impl Replica {
     /// instead of one more when the first block that gathers them starts — or before the head,
     /// those read ahead ([`ReadAhead`]).
     fn start(&mut self, k: u32) -> Result<(), StoreError> {
+        // Rotated subfields kept in the last iteration that another worker shot.
+        self.prop.drop_rotated_subfields_before(k);
         let guess = self.current.take().map(|c| c.read).unwrap_or_default();
         let held = std::mem::take(&mut self.held);
         // Parts read ahead need not come with the head.

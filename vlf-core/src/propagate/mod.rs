@@ -641,6 +641,20 @@ impl Propagation {
         self.rotated.built()
     }
 
+    /// Rotated subfields kept now, from a copy's areas for its shot ([`rotated`]).
+    pub fn rotated_subfields_kept(&self) -> usize {
+        self.rotated.kept()
+    }
+
+    /// Drops the rotated subfields kept for iterations before `index` ([`rotated`]): what one
+    /// that moves on to iteration `index` without finishing the last (a worker) kept there
+    /// and another shot, or no one.
+    pub fn drop_rotated_subfields_before(&self, index: u32) {
+        if let Some(last) = index.checked_sub(1) {
+            self.rotated.clear(last);
+        }
+    }
+
     /// How this propagation's passes are cut into batches ([`Options::pass_batches`]).
     pub fn batching(&self) -> Batching {
         self.options.batching()

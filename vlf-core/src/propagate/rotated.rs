@@ -13,7 +13,9 @@
 //! So a propagation whose subfields no budget bounds (held whole, or built on demand and kept,
 //! as a service worker's are) keeps each rotated subfield its `Areas` pass built, until the
 //! copy's shot takes it: at most one copy's worth, `l` subfields — about what the held subfields
-//! take, and only during the perturbed iterations. A propagation within a subfield budget keeps
+//! take, and only during the perturbed iterations (those left by a worker whose shot another
+//! took go when it moves on: `Propagation::drop_rotated_subfields_before`). The bound is per
+//! propagation: a worker keeping two jobs' replicas may keep two jobs' worth. A propagation within a subfield budget keeps
 //! none: its bound is the budget's. A subfield taken from here is the one the pass would have
 //! built, so the bits are the same.
 //!
@@ -92,8 +94,7 @@ impl RotatedSubfields {
     }
 
     /// How many are kept.
-    #[cfg(test)]
-    fn kept(&self) -> usize {
+    pub(crate) fn kept(&self) -> usize {
         self.lock().subfields.len()
     }
 

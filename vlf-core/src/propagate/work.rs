@@ -338,10 +338,11 @@ fn passes_of(copies: u32) -> Vec<Pass> {
     if copies == 0 {
         return vec![Pass::Shoot];
     }
-    (0..copies)
-        .map(|copy| Pass::Areas { copy })
-        .chain((0..copies).map(|copy| Pass::ShootCopy { copy }))
-        .collect()
+    let mut passes: Vec<Pass> = (0..copies)
+        .flat_map(|copy| [Pass::Areas { copy }, Pass::ShootCopy { copy }])
+        .collect();
+    passes.sort_by_key(|pass| pass.absorbing_rank());
+    passes
 }
 
 impl Pass {
@@ -361,6 +362,17 @@ impl Pass {
         match self {
             Pass::Areas { copy } => vec![Pass::ShootCopy { copy }],
             Pass::Shoot | Pass::ShootCopy { .. } | Pass::Survey => Vec::new(),
+        }
+    }
+
+    /// Where this pass comes in the order an iteration's passes are absorbed, lowest first: every
+    /// copy's areas, then every copy's shot (`A0 A1 … S0 S1 …`), each after its
+    /// [`Pass::prerequisites`]. [`IterationWork::passes`] is in this order.
+    pub fn absorbing_rank(self) -> (u32, u32) {
+        match self {
+            Pass::Shoot | Pass::Survey => (0, 0),
+            Pass::Areas { copy } => (0, copy),
+            Pass::ShootCopy { copy } => (1, copy),
         }
     }
 
