@@ -199,13 +199,20 @@ impl Footprints {
                     }
                     if !raster::spans_a_centre(lo[0] as i64, hi[0] as i64)
                         || !raster::spans_a_centre(lo[1] as i64, hi[1] as i64)
-                        || normal.dot(frame.w).abs() < 1e-12
                     {
                         continue;
                     }
                     polygon.clear();
                     polygon.extend(corners.iter().map(|&i| at(i)));
-                    raster::rasterize_convex_fixed(polygon, n, |s| emit(surface, s));
+                    // Seen edge-on, it covers nothing: asked only of the polygons that cover a
+                    // centre (most of a scan's whose box holds one do not), as its normal is
+                    // one more cache line.
+                    let mut edge_on = None;
+                    raster::rasterize_convex_fixed(polygon, n, |s| {
+                        if !*edge_on.get_or_insert_with(|| normal.dot(frame.w).abs() < 1e-12) {
+                            emit(surface, s);
+                        }
+                    });
                 }
                 ShapeKind::Outline => {
                     if normal.dot(frame.w).abs() < 1e-12 {

@@ -127,6 +127,52 @@ pub fn rasterize_convex_fixed(p: &mut [Fixed], n: u32, mut emit: impl FnMut(RowS
     if area2 < 0 {
         p.reverse();
     }
+    // A bounding box around one ray centre (the rule in a scan, whose polygons are smaller than
+    // a ray cell): the polygon covers that centre or nothing, decided by its edge functions
+    // there, with no division. The same centres as the rows' spans below, which solve the same
+    // inequalities for the column (tested against them).
+    let (col, row) = (ceil_div(min_x - HALF, SUBPIXELS), ceil_div(min_y - HALF, SUBPIXELS));
+    if col == floor_div(max_x - HALF, SUBPIXELS) && row == floor_div(max_y - HALF, SUBPIXELS) {
+        if !covers_centre(p, col, row, n) {
+            return 0;
+        }
+        emit(RowSpan {
+            row: row as u32,
+            start: col as u32,
+            end: col as u32 + 1,
+        });
+        return 1;
+    }
+    covered_rows(p, n, emit)
+}
+
+/// Whether the counter-clockwise convex polygon `p` covers the centre of ray `(col, row)` of an
+/// `n × n` grid, by the top-left rule: inside every edge's half-plane,
+/// `dx·(yc − ay) − dy·(xc − ax) − bias ≥ 0` (`bias` 1 where the edge does not own its centres).
+fn covers_centre(p: &[Fixed], col: i64, row: i64, n: u32) -> bool {
+    let n = n as i64;
+    if !(0..n).contains(&col) || !(0..n).contains(&row) {
+        return false;
+    }
+    let (xc, yc) = (col * SUBPIXELS + HALF, row * SUBPIXELS + HALF);
+    (0..p.len()).all(|k| {
+        let (a, b) = (p[k], p[(k + 1) % p.len()]);
+        let (dx, dy) = (b.0 - a.0, b.1 - a.1);
+        // An edge of no length (two corners snapped together) bounds nothing.
+        let top_left = dy < 0 || (dy == 0 && dx < 0);
+        let bias = if top_left { 0 } else { 1 };
+        (dx == 0 && dy == 0) || dx * (yc - a.1) - dy * (xc - a.0) - bias >= 0
+    })
+}
+
+/// The row spans the counter-clockwise convex polygon `p` (of nonzero area, snapped) covers on
+/// an `n × n` grid: each row's span solved from the edge inequalities.
+fn covered_rows(p: &[Fixed], n: u32, mut emit: impl FnMut(RowSpan)) -> u64 {
+    let (mut min_y, mut max_y) = (i64::MAX, i64::MIN);
+    for q in p {
+        min_y = min_y.min(q.1);
+        max_y = max_y.max(q.1);
+    }
     let n = n as i64;
     // Rows whose centre j·S + S/2 lies in [min_y, max_y].
     let row_lo = ceil_div(min_y - HALF, SUBPIXELS).max(0);
@@ -312,6 +358,85 @@ mod tests {
         assert_eq!(c.iter().sum::<u32>(), 12);
         assert_eq!(c[(2 * 8 + 2) as usize], 1);
         assert_eq!(c[(5 * 8 + 2) as usize], 0);
+    }
+
+    /// Polygons smaller than a ray cell, decided at the one centre their bounding box holds,
+    /// cover exactly what the rows' spans give: corners on centres, on cell edges, snapped
+    /// together, at and past the grid's edges, both windings, triangles and quads.
+    #[test]
+    fn one_centre_is_decided_as_the_rows_decide_it() {
+        let n = 6u32;
+        let mut seed = 3u64;
+        let (mut single, mut inside) = (0, 0);
+        for trial in 0..40_000 {
+            // Corners near a centre, within a cell: on the fixed-point lattice's quarter steps
+            // every other trial (edges through centres and cell edges), anywhere otherwise.
+            // The centre of cell (−1..8, −1..8): inside the grid and past its edges.
+            let centre = DVec2::new((trial % 9) as f64 - 0.5, (trial / 9 % 9) as f64 - 0.5);
+            let mut corner = || {
+                let (u, v) = (splitmix(&mut seed) - 0.5, splitmix(&mut seed) - 0.5);
+                let q = if trial % 2 == 0 {
+                    DVec2::new((u * 4.0).round() / 4.0, (v * 4.0).round() / 4.0)
+                } else {
+                    DVec2::new(u, v) * 0.9
+                };
+                snap_point(centre + q)
+            };
+            let len = 3 + (trial / 64) % 2;
+            let mut p: Vec<Fixed> = (0..len).map(|_| corner()).collect();
+            if len == 4 {
+                // A convex quad: its corners in angular order about their mean.
+                let (mx, my) = (
+                    p.iter().map(|q| q.0).sum::<i64>() as f64 / 4.0,
+                    p.iter().map(|q| q.1).sum::<i64>() as f64 / 4.0,
+                );
+                p.sort_by(|a, b| {
+                    ((a.1 as f64 - my).atan2(a.0 as f64 - mx)).total_cmp(&(b.1 as f64 - my).atan2(b.0 as f64 - mx))
+                });
+                let convex = (0..4).all(|k| {
+                    let (a, b, c) = (p[k], p[(k + 1) % 4], p[(k + 2) % 4]);
+                    (b.0 - a.0) * (c.1 - b.1) - (b.1 - a.1) * (c.0 - b.0) >= 0
+                });
+                if !convex {
+                    continue;
+                }
+            }
+            let mut fast = Vec::new();
+            let covered = rasterize_convex_fixed(&mut p.clone(), n, |s| fast.push(s));
+            let mut rows = Vec::new();
+            let area2: i128 = (0..p.len())
+                .map(|k| {
+                    let (a, b) = (p[k], p[(k + 1) % p.len()]);
+                    a.0 as i128 * b.1 as i128 - b.0 as i128 * a.1 as i128
+                })
+                .sum();
+            let slow = match area2 {
+                0 => 0,
+                _ => {
+                    if area2 < 0 {
+                        p.reverse();
+                    }
+                    covered_rows(&p, n, |s| rows.push(s))
+                }
+            };
+            assert_eq!((covered, &fast), (slow, &rows), "trial {trial}: {p:?}");
+            let (lo_x, hi_x) = (
+                p.iter().map(|q| q.0).min().unwrap(),
+                p.iter().map(|q| q.0).max().unwrap(),
+            );
+            let (lo_y, hi_y) = (
+                p.iter().map(|q| q.1).min().unwrap(),
+                p.iter().map(|q| q.1).max().unwrap(),
+            );
+            let one = |lo: i64, hi: i64| ceil_div(lo - HALF, SUBPIXELS) == floor_div(hi - HALF, SUBPIXELS);
+            single += usize::from(one(lo_x, hi_x) && one(lo_y, hi_y));
+            inside += covered as usize;
+        }
+        // The premise: many take the one-centre way, and of those both outcomes are common.
+        assert!(
+            single > 10_000 && inside > 3_000 && inside < single,
+            "{single} single, {inside} covered"
+        );
     }
 
     #[test]
