@@ -400,6 +400,9 @@ mod tests {
                 if !convex {
                     continue;
                 }
+                if trial % 3 == 0 {
+                    p.reverse();
+                }
             }
             let mut fast = Vec::new();
             let covered = rasterize_convex_fixed(&mut p.clone(), n, |s| fast.push(s));
