@@ -67,6 +67,8 @@ pub struct RasterScratch {
     fixed: Vec<[i32; 2]>,
     polygon: Vec<Fixed>,
     crossings: Vec<Crossing>,
+    /// What a subfield's tiles are built from ([`super::Subfield::build_with`]).
+    pub(super) tiles: super::TileScratch,
 }
 
 impl Footprints {
@@ -173,6 +175,7 @@ impl Footprints {
             fixed,
             polygon,
             crossings,
+            ..
         } = scratch;
         fixed.clear();
         fixed.extend(self.points.iter().map(|&p| {
