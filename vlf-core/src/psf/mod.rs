@@ -142,7 +142,7 @@ pub struct Span {
 
 /// A subfield's tiles in the making ([`Subfield::build_with`]): kept by the caller's
 /// [`RasterScratch`] from one direction to the next, so that building one allocates its tables
-/// and nothing else.
+/// and little else (a cursor per tile).
 #[derive(Default)]
 pub(crate) struct TileScratch {
     /// (tile, representative surface, span) as rasterised.
