@@ -10,8 +10,9 @@
 //! one worker, a quarter of a pass per worker beyond, and never so large that it would take more
 //! than a quarter of the lease's lifetime at the job's measured speed — so the sizes follow the
 //! workers alive and the speed as they change. A pass of an iteration with several workers is
-//! split into their homes, runs of equal measured cost (`home`), and a worker takes what is left of its
-//! home in one lease (within the same lifetime bound), then helps the others a quarter at a time.
+//! split into their homes, runs of equal measured cost (`home`), and a worker takes what is left
+//! of its home in one lease (within the same lifetime bound), then helps the others a quarter at
+//! a time.
 //! A home lease commits all but its last quarter to a worker that claims ([`Abilities::claims`]);
 //! the worker claims the tail when it gets there ([`Scheduler::extend`]), and a worker with nothing
 //! left to do is given it meanwhile (`Scheduler::steal`): the workers even out at the end of
@@ -21,8 +22,8 @@
 //! [`Scheduler::lease`] hands a run from the batch `PassRun::first_pending` picks (its home's
 //! first, then the batches it shot last time) in
 //! the first open pass of the oldest job, in shooting order (a rotated copy's shot before the
-//! next copy's areas, which wait while it is about to open: `Pass::shooting_rank`), to a worker for [`Timing::lease`]; the worker computes
-//! it, writes the outputs into the store and [`Scheduler::report`]s, which may take its next
+//! next copy's areas, which wait while it is about to open: `Pass::shooting_rank`), to a worker
+//! for [`Timing::lease`]; the worker computes it, writes the outputs into the store and [`Scheduler::report`]s, which may take its next
 //! lease along. A lease that is not reported in time (a dead or stalled worker) expires and its
 //! batches are pending again; a worker that misses three heartbeats loses its leases at once. A
 //! report on a lease that is gone (expired, job cancelled) is ignored: a block's output is a pure

@@ -713,9 +713,10 @@ impl Propagation {
     /// subfield budget nothing is kept, so the passes are shot in the order they are absorbed.
     pub fn step(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let mut held: Vec<(Pass, BatchSum)> = Vec::new();
-        let order = match !self.subfields.has_budget() {
-            true => IterationWork::shooting_order,
-            false => IterationWork::passes,
+        let order = if self.subfields.has_budget() {
+            IterationWork::passes
+        } else {
+            IterationWork::shooting_order
         };
         self.step_by(order, |prop, work, pass, maps, clock, heard| {
             let mut io = maps.map(|m| work::mirror_io(m));

@@ -15,12 +15,12 @@
 //! copy's shot takes it: at most one copy's worth, `l` subfields — about what the held subfields
 //! take, and only during the perturbed iterations (those left by a worker whose shot another
 //! took go when it moves on: `Propagation::drop_rotated_subfields_before`). The bound is per
-//! propagation: a worker keeping two jobs' replicas may keep two jobs' worth. A propagation within a subfield budget keeps
-//! none: its bound is the budget's. A subfield taken from here is the one the pass would have
-//! built, so the bits are the same.
+//! propagation: a worker keeping two jobs' replicas may keep two jobs' worth. A propagation
+//! within a subfield budget keeps none: its bound is the budget's. A subfield taken from here is
+//! the one the pass would have built, so the bits are the same.
 //!
-//! One copy's are enough when each copy is shot right after its areas ([`Pass::shooting_rank`](super::Pass::shooting_rank)):
-//! [`super::Propagation::step`] shoots in that order (`IterationWork::shooting_order`), and the
+//! One copy's are enough when each copy is shot right after its areas
+//! ([`Pass::shooting_rank`](super::Pass::shooting_rank)): [`super::Propagation::step`] shoots in that order (`IterationWork::shooting_order`), and the
 //! service leases in it — a copy's shot before the next copy's areas, which wait for it while
 //! it is about to open, and each worker's part of a copy's shot is the part of its areas it
 //! computed (its home). The 47 794-triangle dragon's embedded run (`vlf run`, one worker,

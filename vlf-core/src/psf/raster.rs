@@ -115,12 +115,7 @@ pub fn rasterize_convex_fixed(p: &mut [Fixed], n: u32, mut emit: impl FnMut(RowS
         return 0;
     }
     // Twice the signed area, exact.
-    let area2: i128 = (0..p.len())
-        .map(|k| {
-            let (a, b) = (p[k], p[(k + 1) % p.len()]);
-            a.0 as i128 * b.1 as i128 - b.0 as i128 * a.1 as i128
-        })
-        .sum();
+    let area2 = twice_area(p);
     if area2 == 0 {
         return 0;
     }
@@ -144,6 +139,16 @@ pub fn rasterize_convex_fixed(p: &mut [Fixed], n: u32, mut emit: impl FnMut(RowS
         return 1;
     }
     covered_rows(p, n, emit)
+}
+
+/// Twice the signed area of the snapped polygon `p` (positive counter-clockwise), exact.
+fn twice_area(p: &[Fixed]) -> i128 {
+    (0..p.len())
+        .map(|k| {
+            let (a, b) = (p[k], p[(k + 1) % p.len()]);
+            a.0 as i128 * b.1 as i128 - b.0 as i128 * a.1 as i128
+        })
+        .sum()
 }
 
 /// Whether the counter-clockwise convex polygon `p` covers the centre of ray `(col, row)` of an
@@ -407,12 +412,7 @@ mod tests {
             let mut fast = Vec::new();
             let covered = rasterize_convex_fixed(&mut p.clone(), n, |s| fast.push(s));
             let mut rows = Vec::new();
-            let area2: i128 = (0..p.len())
-                .map(|k| {
-                    let (a, b) = (p[k], p[(k + 1) % p.len()]);
-                    a.0 as i128 * b.1 as i128 - b.0 as i128 * a.1 as i128
-                })
-                .sum();
+            let area2 = twice_area(&p);
             let slow = match area2 {
                 0 => 0,
                 _ => {
