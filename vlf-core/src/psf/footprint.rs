@@ -52,6 +52,12 @@ pub struct Footprints {
     points: Vec<DVec3>,
     /// Small, as they are walked for every direction: a scan's triangles are 10⁵ shapes.
     shapes: Vec<Shape>,
+    /// Each shape's bounding-box corners, four indices into the points' [`CentreKey`]s: a
+    /// triangle's or a quad's own corners (a triangle's last repeated), or the wide key's
+    /// (index `points.len()`) for a shape that is always rasterised (an outline, a polygon of
+    /// more corners). Fixed-size, so that the test every shape takes in every direction is a
+    /// branch-free pass ([`Footprints::rasterize`]).
+    boxes: Vec<[u32; 4]>,
     /// Each shape's plane normal (a shape seen edge-on is crossed by no ray), read only for
     /// the shapes that cover a ray centre.
     normals: Vec<DVec3>,
@@ -67,8 +73,96 @@ pub struct RasterScratch {
     fixed: Vec<[i32; 2]>,
     polygon: Vec<Fixed>,
     crossings: Vec<Crossing>,
+    /// Each point's [`CentreKey`], and the wide key last.
+    keys: Vec<CentreKey>,
+    /// The shapes whose bounding box holds a ray centre, in shape order.
+    candidates: Vec<u32>,
     /// What a subfield's tiles are built from ([`super::Subfield::build_with`]).
     pub(super) tiles: super::TileScratch,
+}
+
+/// Where a point lies among the ray centres, for the bounding-box test of every shape in every
+/// direction: the lanes `[⌈x⌉, ⌈y⌉, −⌊x⌋, −⌊y⌋]`, the first centre index at or above the
+/// point and minus the last at or below it, per axis ([`raster::first_centre_from`],
+/// [`raster::last_centre_to`]). The lane-wise least of a box's corners' keys holds its lowest
+/// corner's first centres and its highest corner's last ones, and the box holds a centre when
+/// the first is at most the last on both axes: `⌈x⌉ − ⌊x⌋ ≤ 0`, the sums of opposite lanes.
+///
+/// Four `i16` lanes in a `u64` (lane `k` in bits `16k..16k + 16`), so that a box's four
+/// corners are three lane-wise minima of one SSE2 register each. Clamped to
+/// ±[`CentreKey::LIMIT`], far past any grid (`N ≤ 4096`), which can only pass a box lying
+/// wholly past the grid, and that the rasteriser then drops: no box that holds a centre fails.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct CentreKey(u64);
+
+impl CentreKey {
+    const LIMIT: i64 = 16_000;
+    /// Below every point's lanes: a box with it holds every centre.
+    const WIDE: CentreKey = CentreKey::from_lanes([-Self::LIMIT as i16; 4]);
+
+    /// The key of the point `(x, y)` in fixed point.
+    #[inline]
+    fn of(x: i64, y: i64) -> Self {
+        let lane = |c: i64| c.clamp(-Self::LIMIT, Self::LIMIT) as i16;
+        CentreKey::from_lanes([
+            lane(raster::first_centre_from(x)),
+            lane(raster::first_centre_from(y)),
+            lane(-raster::last_centre_to(x)),
+            lane(-raster::last_centre_to(y)),
+        ])
+    }
+
+    const fn from_lanes(lanes: [i16; 4]) -> Self {
+        let mut bits = 0;
+        let mut k = 0;
+        while k < 4 {
+            bits |= (lanes[k] as u16 as u64) << (16 * k);
+            k += 1;
+        }
+        CentreKey(bits)
+    }
+
+    #[cfg_attr(all(target_arch = "x86_64", target_feature = "sse2"), allow(dead_code))]
+    fn lanes(self) -> [i16; 4] {
+        std::array::from_fn(|k| (self.0 >> (16 * k)) as u16 as i16)
+    }
+
+    /// Whether the box of four corners holds a ray centre.
+    #[cfg(all(target_arch = "x86_64", target_feature = "sse2"))]
+    #[inline]
+    fn box_spans_a_centre([a, b, c, d]: [CentreKey; 4]) -> bool {
+        use std::arch::x86_64::{
+            _mm_add_epi16, _mm_cmpgt_epi16, _mm_cvtsi64_si128, _mm_min_epi16, _mm_movemask_epi8, _mm_setzero_si128,
+            _mm_shufflelo_epi16,
+        };
+        // SAFETY: these intrinsics are unsafe only in that they need SSE2, and this function
+        // is compiled only where the target enables SSE2 (`cfg` above; every x86-64 target
+        // does). They take no pointers.
+        unsafe {
+            let lanes = |k: CentreKey| _mm_cvtsi64_si128(k.0 as i64);
+            let least = _mm_min_epi16(_mm_min_epi16(lanes(a), lanes(b)), _mm_min_epi16(lanes(c), lanes(d)));
+            // Lanes 2 and 3 moved onto 0 and 1 and added: |sums| ≤ 2·LIMIT, no overflow.
+            let sums = _mm_add_epi16(least, _mm_shufflelo_epi16::<0b00_00_11_10>(least));
+            _mm_movemask_epi8(_mm_cmpgt_epi16(sums, _mm_setzero_si128())) & 0b1111 == 0
+        }
+    }
+
+    /// Whether the box of four corners holds a ray centre.
+    #[cfg(not(all(target_arch = "x86_64", target_feature = "sse2")))]
+    #[inline]
+    fn box_spans_a_centre(corners: [CentreKey; 4]) -> bool {
+        CentreKey::box_spans_a_centre_by_lanes(corners)
+    }
+
+    /// [`CentreKey::box_spans_a_centre`] lane by lane: where SSE2 is not, and the tests'
+    /// reference where it is.
+    #[cfg_attr(all(target_arch = "x86_64", target_feature = "sse2"), allow(dead_code))]
+    fn box_spans_a_centre_by_lanes(corners: [CentreKey; 4]) -> bool {
+        let lanes = corners.map(CentreKey::lanes);
+        let [x, y, minus_x, minus_y]: [i32; 4] =
+            std::array::from_fn(|k| lanes.iter().map(|l| i32::from(l[k])).min().unwrap_or(i32::MAX));
+        (x + minus_x <= 0) & (y + minus_y <= 0)
+    }
 }
 
 impl Footprints {
@@ -154,9 +248,21 @@ impl Footprints {
                 });
             }
         }
+        let wide = [points.len() as u32; 4];
+        let boxes = (shapes.iter())
+            .map(|shape| match shape.kind {
+                ShapeKind::Polygon => match corners[shape.first as usize..(shape.first + shape.len) as usize] {
+                    [a, b, c] => [a, b, c, c],
+                    [a, b, c, d] => [a, b, c, d],
+                    _ => wide,
+                },
+                ShapeKind::Outline => wide,
+            })
+            .collect();
         Footprints {
             points,
             shapes,
+            boxes,
             normals,
             corners,
             edges,
@@ -175,38 +281,43 @@ impl Footprints {
             fixed,
             polygon,
             crossings,
+            keys,
+            candidates,
             ..
         } = scratch;
-        fixed.clear();
-        fixed.extend(self.points.iter().map(|&p| {
-            let (x, y) = raster::snap_point(frame.to_grid(p, n));
-            [x as i32, y as i32]
-        }));
+        fixed.resize(self.points.len(), [0; 2]);
+        keys.resize(self.points.len() + 1, CentreKey::WIDE);
+        for ((&p, fixed), key) in self.points.iter().zip(fixed.iter_mut()).zip(keys.iter_mut()) {
+            let g = frame.to_grid(p, n);
+            let (x, y) = raster::snap_point(g);
+            *fixed = [x as i32, y as i32];
+            *key = CentreKey::of(x, y);
+        }
+        keys[self.points.len()] = CentreKey::WIDE;
+        // Most polygons of a scan cover no ray centre, and their bounding box says so before
+        // anything else is looked at. Asked of every shape in one pass without a branch, whose
+        // outcome (a scan's polygons are near the size of a ray cell) is a coin's toss; the
+        // shapes that pass are listed in order for the pass below.
+        candidates.clear();
+        candidates.resize(self.boxes.len(), 0);
+        let mut count = 0;
+        for (shape, corners) in self.boxes.iter().enumerate() {
+            candidates[count] = shape as u32;
+            count += CentreKey::box_spans_a_centre(corners.map(|i| keys[i as usize])) as usize;
+        }
+        candidates.truncate(count);
         let at = |i: u32| {
             let [x, y] = fixed[i as usize];
             (x as i64, y as i64)
         };
-        for (shape, normal) in self.shapes.iter().zip(&self.normals) {
+        for &index in candidates.iter() {
+            let (shape, normal) = (&self.shapes[index as usize], &self.normals[index as usize]);
             let range = shape.first as usize..(shape.first + shape.len) as usize;
             let surface = shape.surface;
             match shape.kind {
                 ShapeKind::Polygon => {
-                    // Most polygons of a scan cover no ray centre: the bounding box says so
-                    // before anything else is looked at.
-                    let corners = &self.corners[range];
-                    let (mut lo, mut hi) = ([i32::MAX; 2], [i32::MIN; 2]);
-                    for &i in corners {
-                        let q = fixed[i as usize];
-                        lo = [lo[0].min(q[0]), lo[1].min(q[1])];
-                        hi = [hi[0].max(q[0]), hi[1].max(q[1])];
-                    }
-                    if !raster::spans_a_centre(lo[0] as i64, hi[0] as i64)
-                        || !raster::spans_a_centre(lo[1] as i64, hi[1] as i64)
-                    {
-                        continue;
-                    }
                     polygon.clear();
-                    polygon.extend(corners.iter().map(|&i| at(i)));
+                    polygon.extend(self.corners[range].iter().map(|&i| at(i)));
                     // Seen edge-on, it covers nothing: asked only of the polygons that cover a
                     // centre (most of a scan's whose box holds one do not), as its normal is
                     // one more cache line.
@@ -342,6 +453,67 @@ mod tests {
             assert_eq!(floor as u64, direct);
             assert!(floor > 0);
         }
+    }
+
+    /// The bounding-box test by centre keys, lane-parallel and lane by lane, says what
+    /// `raster::spans_a_centre` says of the box's extent on both axes, for boxes of four corners
+    /// (repeats included) lying on centres, on cell edges and one step beside either, inside
+    /// and past the grid; past the keys' clamp it may only pass boxes the exact test fails
+    /// that lie wholly beyond it. A box with the wide key passes.
+    #[test]
+    fn a_box_holds_a_centre_by_its_keys_as_by_its_corners() {
+        let s = raster::SUBPIXELS;
+        let mut seed = 11u64;
+        let mut next = |bound: i64| {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            ((seed >> 33) % bound as u64) as i64
+        };
+        let limit = CentreKey::LIMIT * s;
+        // Near the cell `base`, on or one step beside a centre or a cell edge, or anywhere.
+        let coordinate = |base: i64, next: &mut dyn FnMut(i64) -> i64| {
+            let offset = [0, s / 2, s / 2 - 1, s / 2 + 1, 1, s - 1, next(s)][next(7) as usize];
+            (base + next(2)) * s + offset
+        };
+        let (mut passed, mut failed) = (0, 0);
+        for round in 0..200_000 {
+            // Mostly boxes a cell or two wide near the origin; some past the clamp.
+            let reach = if round % 10 == 0 { CentreKey::LIMIT + 40 } else { 3 };
+            let base = (next(2 * reach + 1) - reach, next(2 * reach + 1) - reach);
+            let points: Vec<(i64, i64)> = (0..4)
+                .map(|_| (coordinate(base.0, &mut next), coordinate(base.1, &mut next)))
+                .collect();
+            let mut corners = [0usize, 1, 2, 3];
+            if round % 3 == 0 {
+                corners[3] = 2; // a triangle
+            }
+            let keys = corners.map(|k| CentreKey::of(points[k].0, points[k].1));
+            let xs = corners.map(|k| points[k].0);
+            let ys = corners.map(|k| points[k].1);
+            let (lo_x, hi_x) = (*xs.iter().min().unwrap(), *xs.iter().max().unwrap());
+            let (lo_y, hi_y) = (*ys.iter().min().unwrap(), *ys.iter().max().unwrap());
+            let exact = raster::spans_a_centre(lo_x, hi_x) && raster::spans_a_centre(lo_y, hi_y);
+            let (fast, by_lanes) = (
+                CentreKey::box_spans_a_centre(keys),
+                CentreKey::box_spans_a_centre_by_lanes(keys),
+            );
+            assert_eq!(fast, by_lanes, "{points:?}");
+            let beyond = |lo: i64, hi: i64| lo > limit || hi < -limit;
+            if fast != exact {
+                assert!(
+                    fast && (beyond(lo_x, hi_x) || beyond(lo_y, hi_y)),
+                    "{points:?}: {exact} exactly"
+                );
+            }
+            if exact {
+                passed += 1;
+            } else {
+                failed += 1;
+            }
+            let mut wide = keys;
+            wide[round % 4] = CentreKey::WIDE;
+            assert!(CentreKey::box_spans_a_centre(wide) && CentreKey::box_spans_a_centre_by_lanes(wide));
+        }
+        assert!(passed > 20_000 && failed > 20_000, "{passed} boxes pass, {failed} fail");
     }
 
     /// A subset's footprints (`Footprints::of`, what the mirror views rasterise) place a corner

@@ -50,7 +50,19 @@ fn snap(x: f64) -> i64 {
 /// Whether a cell centre `k·S + S/2` lies in `[lo, hi]` (fixed point).
 #[inline]
 pub fn spans_a_centre(lo: i64, hi: i64) -> bool {
-    ceil_div(lo - HALF, SUBPIXELS) <= floor_div(hi - HALF, SUBPIXELS)
+    first_centre_from(lo) <= last_centre_to(hi)
+}
+
+/// Index of the first cell centre at or above `x` (fixed point): `⌈(x − S/2) / S⌉`.
+#[inline]
+pub fn first_centre_from(x: i64) -> i64 {
+    ceil_div(x - HALF, SUBPIXELS)
+}
+
+/// Index of the last cell centre at or below `x` (fixed point): `⌊(x − S/2) / S⌋`.
+#[inline]
+pub fn last_centre_to(x: i64) -> i64 {
+    floor_div(x - HALF, SUBPIXELS)
 }
 
 #[inline]
