@@ -210,11 +210,19 @@ impl Default for Projections {
 }
 
 impl Projections {
+    /// A cache of `slots` rounded up to a power of two, so that a surface's slot is a mask of
+    /// its number, not a division.
     fn with_slots(slots: usize) -> Projections {
         Projections {
             walk: 0,
-            slots: vec![(0, 0, TexelProjection::default()); slots.max(1)],
+            slots: vec![(0, 0, TexelProjection::default()); slots.max(1).next_power_of_two()],
         }
+    }
+
+    /// The slot of `surface`: its number modulo the (power-of-two) slot count.
+    #[inline]
+    fn slot_of(&self, surface: u32) -> usize {
+        surface as usize & (self.slots.len() - 1)
     }
 
     /// Starts the walk of another subfield.
@@ -225,8 +233,8 @@ impl Projections {
     /// `surface`'s projection in this walk's subfield `sub`, kept for the next time.
     #[inline]
     fn get(&mut self, geometry: Geometry, sub: &Subfield, surface: u32) -> TexelProjection {
-        let slots = self.slots.len();
-        let slot = &mut self.slots[surface as usize % slots];
+        let index = self.slot_of(surface);
+        let slot = &mut self.slots[index];
         if (slot.0, slot.1) != (self.walk, surface) {
             *slot = (self.walk, surface, TexelProjection::new(geometry, sub, surface));
         }
@@ -236,7 +244,7 @@ impl Projections {
     /// `surface`'s projection in this walk's subfield `sub`, from the cache or computed.
     #[inline]
     fn read(&self, geometry: Geometry, sub: &Subfield, surface: u32) -> TexelProjection {
-        match self.slots[surface as usize % self.slots.len()] {
+        match self.slots[self.slot_of(surface)] {
             (walk, s, projection) if (walk, s) == (self.walk, surface) => projection,
             _ => TexelProjection::new(geometry, sub, surface),
         }
@@ -989,11 +997,11 @@ mod tests {
                 [x, 0.5 * x + 0.1, 1.0 - x]
             })
             .collect();
-        // One scratch kept from direction to direction, and one whose projection cache of 3
+        // One scratch kept from direction to direction, and one whose projection cache of 4
         // slots keeps almost nothing, against a fresh one each time.
         let mut scratch = Scratch::default();
         let mut tiny = Scratch {
-            projections: Projections::with_slots(3),
+            projections: Projections::with_slots(4),
             ..Scratch::default()
         };
         let bits = |v: &[Rgb]| v.iter().flatten().map(|x| x.to_bits()).collect::<Vec<_>>();

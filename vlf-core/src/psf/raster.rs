@@ -155,12 +155,16 @@ pub fn rasterize_convex_fixed(p: &mut [Fixed], n: u32, mut emit: impl FnMut(RowS
 
 /// Twice the signed area of the snapped polygon `p` (positive counter-clockwise), exact.
 fn twice_area(p: &[Fixed]) -> i128 {
-    (0..p.len())
-        .map(|k| {
-            let (a, b) = (p[k], p[(k + 1) % p.len()]);
-            a.0 as i128 * b.1 as i128 - b.0 as i128 * a.1 as i128
-        })
+    edges(p)
+        .map(|(a, b)| a.0 as i128 * b.1 as i128 - b.0 as i128 * a.1 as i128)
         .sum()
+}
+
+/// The polygon's edges: the last corner to the first, then each corner to the next. (Not by
+/// `p[(k + 1) % len]`: a division per edge, in the loop of every polygon that covers a centre.)
+fn edges(p: &[Fixed]) -> impl Iterator<Item = (Fixed, Fixed)> + '_ {
+    let mut previous = p.last().copied().unwrap_or_default();
+    p.iter().map(move |&b| (std::mem::replace(&mut previous, b), b))
 }
 
 /// Whether the counter-clockwise convex polygon `p` covers the centre of ray `(col, row)` of an
@@ -172,8 +176,7 @@ fn covers_centre(p: &[Fixed], col: i64, row: i64, n: u32) -> bool {
         return false;
     }
     let (xc, yc) = (col * SUBPIXELS + HALF, row * SUBPIXELS + HALF);
-    (0..p.len()).all(|k| {
-        let (a, b) = (p[k], p[(k + 1) % p.len()]);
+    edges(p).all(|(a, b)| {
         let (dx, dy) = (b.0 - a.0, b.1 - a.1);
         // An edge of no length (two corners snapped together) bounds nothing.
         let top_left = dy < 0 || (dy == 0 && dx < 0);
@@ -198,8 +201,7 @@ fn covered_rows(p: &[Fixed], n: u32, mut emit: impl FnMut(RowSpan)) -> u64 {
     for row in row_lo..=row_hi {
         let yc = row * SUBPIXELS + HALF;
         let (mut lo, mut hi) = (0i64, n - 1);
-        for k in 0..p.len() {
-            let (a, b) = (p[k], p[(k + 1) % p.len()]);
+        for (a, b) in edges(p) {
             let (dx, dy) = (b.0 - a.0, b.1 - a.1);
             if dx == 0 && dy == 0 {
                 // Two corners snapped together: an edge of no length bounds nothing.
