@@ -55,7 +55,7 @@ pub struct Footprints {
     /// Each shape's bounding-box corners, four indices into the points' [`CentreKey`]s: a
     /// triangle's or a quad's own corners (a triangle's last repeated), or the wide key's
     /// (index `points.len()`) for a shape that is always rasterised (an outline, a polygon of
-    /// more corners). Fixed-size, so that the test every shape takes in every direction is a
+    /// other than three or four corners). Fixed-size, so that the test every shape takes in every direction is a
     /// branch-free pass ([`Footprints::rasterize`]).
     boxes: Vec<[u32; 4]>,
     /// Each shape's plane normal (a shape seen edge-on is crossed by no ray), read only for
@@ -290,8 +290,10 @@ impl Footprints {
         for ((&p, fixed), key) in self.points.iter().zip(fixed.iter_mut()).zip(keys.iter_mut()) {
             let g = frame.to_grid(p, n);
             let (x, y) = raster::snap_point(g);
-            *fixed = [x as i32, y as i32];
-            *key = CentreKey::of(x, y);
+            // The key from the coordinates the rasteriser reads, so that both see one point.
+            let (x, y) = (x as i32, y as i32);
+            *fixed = [x, y];
+            *key = CentreKey::of(x.into(), y.into());
         }
         keys[self.points.len()] = CentreKey::WIDE;
         // Most polygons of a scan cover no ray centre, and their bounding box says so before
@@ -468,7 +470,6 @@ mod tests {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
             ((seed >> 33) % bound as u64) as i64
         };
-        let limit = CentreKey::LIMIT * s;
         // Near the cell `base`, on or one step beside a centre or a cell edge, or anywhere.
         let coordinate = |base: i64, next: &mut dyn FnMut(i64) -> i64| {
             let offset = [0, s / 2, s / 2 - 1, s / 2 + 1, 1, s - 1, next(s)][next(7) as usize];
@@ -476,9 +477,19 @@ mod tests {
         };
         let (mut passed, mut failed) = (0, 0);
         for round in 0..200_000 {
-            // Mostly boxes a cell or two wide near the origin; some past the clamp.
+            // Mostly boxes a cell or two wide near the origin; some anywhere up to past the
+            // clamp, some at its edges.
             let reach = if round % 10 == 0 { CentreKey::LIMIT + 40 } else { 3 };
-            let base = (next(2 * reach + 1) - reach, next(2 * reach + 1) - reach);
+            let edges = [
+                -CentreKey::LIMIT - 2,
+                -CentreKey::LIMIT - 1,
+                CentreKey::LIMIT - 1,
+                CentreKey::LIMIT,
+            ];
+            let base = match round % 10 {
+                5 => (edges[next(4) as usize], edges[next(4) as usize]),
+                _ => (next(2 * reach + 1) - reach, next(2 * reach + 1) - reach),
+            };
             let points: Vec<(i64, i64)> = (0..4)
                 .map(|_| (coordinate(base.0, &mut next), coordinate(base.1, &mut next)))
                 .collect();
@@ -497,7 +508,11 @@ mod tests {
                 CentreKey::box_spans_a_centre_by_lanes(keys),
             );
             assert_eq!(fast, by_lanes, "{points:?}");
-            let beyond = |lo: i64, hi: i64| lo > limit || hi < -limit;
+            // Wholly past the clamp, in centre indices: the first centre above the box past
+            // +LIMIT, or the last below it past −LIMIT.
+            let beyond = |lo: i64, hi: i64| {
+                raster::first_centre_from(lo) > CentreKey::LIMIT || raster::last_centre_to(hi) < -CentreKey::LIMIT
+            };
             if fast != exact {
                 assert!(
                     fast && (beyond(lo_x, hi_x) || beyond(lo_y, hi_y)),
