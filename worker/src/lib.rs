@@ -339,6 +339,21 @@ async fn lease_loop(
         let started = Instant::now();
         let read_ahead = Ahead::for_lease(&mut ahead, &lease).await;
         let computed = compute(store, pool, replicas, &lease, read_ahead, workers, id).await;
+        if let Ok((_, _, costs, _)) = &computed {
+            // The lease's wall time against its batches' computing: the difference is what the
+            // lease spent outside its batches (reading what it absorbs, gathering mirror maps).
+            tracing::debug!(
+                lease = lease.lease_id,
+                snapshot = lease.snapshot,
+                pass = lease.pass_kind,
+                copy = lease.pass_copy,
+                batch = lease.batch,
+                count = lease.batch_count,
+                wall_ms = format!("{:.1}", started.elapsed().as_secs_f64() * 1e3),
+                batches_ms = format!("{:.1}", costs.iter().sum::<f64>() * 1e3),
+                "lease run"
+            );
+        }
         // The outputs are on their way into the store. A local store has them in at once: the
         // report goes now and brings the next lease. One a round trip away is still writing:
         // the report goes once they are in, in the background, and the next lease is computed
