@@ -33,7 +33,9 @@ pub use blocking::{Panicked, blocking};
 pub use error::StoreError;
 pub use field::{FieldJob, PendingSnapshot, Summary};
 pub use id::JobId;
-pub use iteration::{Coordinator, HeldMaps, Prototypes, ReadAhead, Replica, SnapshotCommit, WorkTraffic};
+pub use iteration::{
+    Coordinator, HeldMaps, Prototypes, ReadAhead, Replica, ReplicaPhases, SnapshotCommit, WorkTraffic,
+};
 pub use job::Job;
 pub use layout::{MapPart, Stage};
 pub use manifest::{JobState, Manifest};

@@ -1133,6 +1133,11 @@ fn compute_seconds_leave_out_the_waits_for_the_store() {
     let costs = replica.batch_costs();
     assert_eq!(costs.len(), 2);
     assert!(costs.iter().all(|&c| c > 0.0) && (costs.iter().sum::<f64>() - seconds).abs() < 1e-12);
+    // Where the wall time went, phase by phase: the head's round trip in moving on to the
+    // iteration, the computing apart from it.
+    let phases = replica.phase_seconds();
+    assert!(phases.start >= 0.3, "{phases:?}");
+    assert!(phases.compute > 0.0 && phases.compute < phases.start, "{phases:?}");
 }
 
 #[test]

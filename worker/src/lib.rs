@@ -22,7 +22,7 @@ use tonic::Code;
 use vlf_core::propagate::{Pass, Surveyor, reduce};
 use vlf_proto::v1;
 use vlf_proto::{ConnectError, Target, pass_blocks_from_wire, pass_from_wire};
-use vlf_store::{FieldJob, JobId, ReadAhead, Replica, Store, StoreError, Writing};
+use vlf_store::{FieldJob, JobId, ReadAhead, Replica, ReplicaPhases, Store, StoreError, Writing};
 
 /// Where the worker finds the store.
 #[derive(Clone, Debug)]
@@ -339,7 +339,7 @@ async fn lease_loop(
         let started = Instant::now();
         let read_ahead = Ahead::for_lease(&mut ahead, &lease).await;
         let computed = compute(store, pool, replicas, &lease, read_ahead, workers, id).await;
-        if let Ok((_, _, costs, _)) = &computed {
+        if let Ok((_, _, costs, _, phases)) = &computed {
             // The lease's wall time against its batches' computing: the difference is what the
             // lease spent outside its batches (reading what it absorbs, gathering mirror maps).
             tracing::debug!(
@@ -351,6 +351,12 @@ async fn lease_loop(
                 count = lease.batch_count,
                 wall_ms = format!("{:.1}", started.elapsed().as_secs_f64() * 1e3),
                 batches_ms = format!("{:.1}", costs.iter().sum::<f64>() * 1e3),
+                start_ms = format!("{:.1}", phases.start * 1e3),
+                map_reads_ms = format!("{:.1}", phases.map_reads * 1e3),
+                prerequisites_ms = format!("{:.1}", phases.prerequisites * 1e3),
+                compute_ms = format!("{:.1}", phases.compute * 1e3),
+                encode_ms = format!("{:.1}", phases.encode * 1e3),
+                outputs_ms = format!("{:.1}", phases.outputs * 1e3),
                 "lease run"
             );
         }
@@ -362,7 +368,7 @@ async fn lease_loop(
         // the waits for the store (`Replica::batch_costs`); a failed lease reports the time
         // until it failed.
         let (result, costs) = match computed {
-            Ok((run, writes, costs, next_ahead)) => {
+            Ok((run, writes, costs, next_ahead, _)) => {
                 if let Some(next_ahead) = next_ahead {
                     ahead = Some(Ahead::start(&lease.job_id, next_ahead, pool));
                 }
@@ -534,7 +540,9 @@ fn report_when_written(
 
 /// A lease computed: its run, the writes of its outputs, what each batch cost, and what to read
 /// ahead of the next iteration.
-type Computed = (Range<usize>, Writing, Vec<f64>, Option<ReadAhead>);
+/// A lease computed: the run of batches, their writes, each batch's cost, what to read ahead
+/// for the next lease, and where the wall time went.
+type Computed = (Range<usize>, Writing, Vec<f64>, Option<ReadAhead>, ReplicaPhases);
 
 /// Computes a lease's batches into the store, left to right, one aligned block at a time; the
 /// outputs are those of the fewest aligned blocks that cover what was computed. Batches past the
@@ -588,7 +596,7 @@ async fn compute(
             }
             let (run, writes) = replica.compute_run_behind(k, pass, start, |done| claim.next_block(done, &asks))?;
             let costs = replica.batch_costs().to_vec();
-            Ok((run, writes, costs, replica.read_ahead(k, pass)))
+            Ok((run, writes, costs, replica.read_ahead(k, pass), replica.phase_seconds()))
         })
     });
     let (computed, ()) = tokio::join!(computing, claimer);
@@ -637,7 +645,13 @@ async fn compute_survey(
                 costs.extend(std::iter::repeat_n(each, block.len()));
             }
             tracing::debug!(job = %job, batches = ?run, "survey parts learnt");
-            Ok((run, Writing::all(&store, writes)?, costs, None))
+            Ok((
+                run,
+                Writing::all(&store, writes)?,
+                costs,
+                None,
+                ReplicaPhases::default(),
+            ))
         })
     });
     computing

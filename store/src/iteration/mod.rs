@@ -55,7 +55,7 @@ mod survey;
 
 pub use coordinator::{Coordinator, SnapshotCommit, WorkTraffic};
 pub use prototypes::Prototypes;
-pub use replica::{HeldMaps, ReadAhead, Replica};
+pub use replica::{HeldMaps, ReadAhead, Replica, ReplicaPhases};
 
 use crate::blob::{self, BlobKind};
 use crate::error::StoreError;

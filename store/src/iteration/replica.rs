@@ -39,6 +39,8 @@ pub struct Replica {
     absorbed: Vec<(u32, Pass, Vec<Range<usize>>)>,
     /// What each batch of the last computation cost (see [`Replica::batch_costs`]).
     costs: Vec<f64>,
+    /// Where the last computation's wall time went ([`Replica::phase_seconds`]).
+    phases: ReplicaPhases,
     /// Mirror-map parts of a later snapshot read ahead ([`Replica::adopt_ahead`]).
     ahead: Option<ReadAhead>,
 }
@@ -182,6 +184,7 @@ impl Replica {
             holds_snapshot: None,
             absorbed: Vec::new(),
             costs: Vec::new(),
+            phases: ReplicaPhases::default(),
             ahead: None,
         }
     }
@@ -216,6 +219,7 @@ impl Replica {
     pub fn compute(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<(), StoreError> {
         self.settle_failed();
         self.costs.clear();
+        self.phases = ReplicaPhases::default();
         let out = self.shoot(k, pass, batches)?;
         let outputs = [out];
         self.write_outputs(&outputs)?;
@@ -239,6 +243,12 @@ impl Replica {
     /// evenly among them.
     pub fn batch_costs(&self) -> &[f64] {
         &self.costs
+    }
+
+    /// Where the last [`Replica::compute`] or run spent its wall time, phase by phase: what a
+    /// worker logs with each lease (`lease run`), to tell computing from the rest.
+    pub fn phase_seconds(&self) -> ReplicaPhases {
+        self.phases
     }
 
     /// Tells the replica which blocks of `pass` of the iteration from snapshot `k` the
@@ -305,6 +315,7 @@ impl Replica {
     ) -> Result<(Range<usize>, Writing), StoreError> {
         self.settle_failed();
         self.costs.clear();
+        self.phases = ReplicaPhases::default();
         let mut outputs = RunOutputs::new();
         let mut done = start;
         while let Some(block) = next(done) {
@@ -320,7 +331,9 @@ impl Replica {
                 .map_err(|e| self.job.field_error(vlf_core::Error::Parameter(e)))?;
         }
         let outputs = outputs.finish();
+        let writing = Instant::now();
         let writes = self.write_outputs_behind(&outputs)?;
+        self.phases.outputs += writing.elapsed().as_secs_f64();
         self.keep_for_later_passes(outputs);
         Ok((start..done, writes))
     }
@@ -382,8 +395,11 @@ impl Replica {
     fn shoot(&mut self, k: u32, pass: Pass, batches: Range<usize>) -> Result<BatchOutput, StoreError> {
         self.write_behind()?;
         if self.current.as_ref().map(|c| c.k) != Some(k) {
+            let starting = Instant::now();
             self.start(k)?;
+            self.phases.start += starting.elapsed().as_secs_f64();
         }
+        let reading = Instant::now();
         let Some(current) = self.current.as_mut() else {
             unreachable!("started just above");
         };
@@ -426,6 +442,8 @@ impl Replica {
         }
         shooting.into_iter().for_each(|b| current.shooting[b] = true);
         totals.into_iter().for_each(|b| current.totals[b] = true);
+        self.phases.map_reads += reading.elapsed().as_secs_f64();
+        let learning = Instant::now();
         // Learn what the pass reads (a rotated copy's areas): the blocks this replica computed
         // from memory, the others from the store — those the lease named, or else those listed.
         if !work.is_ready(pass) {
@@ -479,10 +497,13 @@ impl Replica {
                 work.learn(earlier, sums).map_err(|e| self.job.field_error(e))?;
             }
         }
+        self.phases.prerequisites += learning.elapsed().as_secs_f64();
+        let computing = Instant::now();
         let (out, block, mut costs) = self
             .prop
             .compute_block_costed(work, pass, batches.clone())
             .map_err(|e| self.job.field_error(e))?;
+        self.phases.compute += computing.elapsed().as_secs_f64();
         let encoding = Instant::now();
         if let Some(block) = block {
             // The block took its directions' totals with it: computing it again reads them.
@@ -504,6 +525,7 @@ impl Replica {
             self.unwritten = puts;
             self.held.push(block);
         }
+        self.phases.encode += encoding.elapsed().as_secs_f64();
         let share = encoding.elapsed().as_secs_f64() / costs.len().max(1) as f64;
         costs.iter_mut().for_each(|c| *c += share);
         self.costs.extend(costs);
@@ -598,4 +620,21 @@ impl Replica {
         self.absorbed.retain(|(at, _, _)| *at == k);
         Ok(())
     }
+}
+
+/// Where a replica's computation spent its wall time, in seconds ([`Replica::phase_seconds`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ReplicaPhases {
+    /// Moving on to a new iteration: reading its head and the mirror maps guessed with it.
+    pub start: f64,
+    /// Reading and restoring the mirror maps the blocks shoot from that were not here yet.
+    pub map_reads: f64,
+    /// Learning what the pass reads of earlier passes (a rotated copy's areas).
+    pub prerequisites: f64,
+    /// Computing the blocks (gathering their mirror maps included).
+    pub compute: f64,
+    /// Encoding the blocks' mirror maps for the store.
+    pub encode: f64,
+    /// Serialising the outputs and starting their writes.
+    pub outputs: f64,
 }
