@@ -340,8 +340,9 @@ async fn lease_loop(
         let read_ahead = Ahead::for_lease(&mut ahead, &lease).await;
         let computed = compute(store, pool, replicas, &lease, read_ahead, workers, id).await;
         if let Ok((_, _, costs, _, phases)) = &computed {
-            // The lease's wall time against its batches' computing: the difference is what the
-            // lease spent outside its batches (reading what it absorbs, gathering mirror maps).
+            // The lease's wall time against its batches' computing, and the replica's phases:
+            // what the lease spent outside its batches (moving on to the iteration, reading
+            // maps, serialising outputs) shows as the difference.
             tracing::debug!(
                 lease = lease.lease_id,
                 snapshot = lease.snapshot,
@@ -386,16 +387,6 @@ async fn lease_loop(
             Err(e) => (Err(e), vec![started.elapsed().as_secs_f64()]),
         };
         let seconds: f64 = costs.iter().sum();
-        tracing::debug!(
-            lease = lease.lease_id,
-            snapshot = lease.snapshot,
-            pass = lease.pass_kind,
-            copy = lease.pass_copy,
-            batch = lease.batch,
-            count = lease.batch_count,
-            ms = format!("{:.1}", seconds * 1e3),
-            "lease computed"
-        );
         match &result {
             Ok(_) => {
                 stats.batches += 1;
@@ -403,7 +394,8 @@ async fn lease_loop(
             }
             Err(e) => {
                 stats.failed += 1;
-                tracing::error!(job = lease.job_id, batch = lease.batch, "batch failed: {e}");
+                let ms = format!("{:.1}", seconds * 1e3);
+                tracing::error!(job = lease.job_id, batch = lease.batch, ms, "batch failed: {e}");
             }
         }
         let report = report_request(id, &lease.lease_id, result, costs, LEASE_WAIT_MS);
@@ -538,10 +530,8 @@ fn report_when_written(
     });
 }
 
-/// A lease computed: its run, the writes of its outputs, what each batch cost, and what to read
-/// ahead of the next iteration.
-/// A lease computed: the run of batches, their writes, each batch's cost, what to read ahead
-/// for the next lease, and where the wall time went.
+/// A lease computed: its run, the writes of its outputs, what each batch cost, what to read
+/// ahead of the next iteration, and where the replica spent the wall time.
 type Computed = (Range<usize>, Writing, Vec<f64>, Option<ReadAhead>, ReplicaPhases);
 
 /// Computes a lease's batches into the store, left to right, one aligned block at a time; the

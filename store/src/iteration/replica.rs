@@ -222,7 +222,9 @@ impl Replica {
         self.phases = ReplicaPhases::default();
         let out = self.shoot(k, pass, batches)?;
         let outputs = [out];
+        let writing = Instant::now();
         self.write_outputs(&outputs)?;
+        self.phases.outputs += writing.elapsed().as_secs_f64();
         self.keep_for_later_passes(outputs);
         Ok(())
     }
@@ -525,8 +527,9 @@ impl Replica {
             self.unwritten = puts;
             self.held.push(block);
         }
-        self.phases.encode += encoding.elapsed().as_secs_f64();
-        let share = encoding.elapsed().as_secs_f64() / costs.len().max(1) as f64;
+        let encoded = encoding.elapsed().as_secs_f64();
+        self.phases.encode += encoded;
+        let share = encoded / costs.len().max(1) as f64;
         costs.iter_mut().for_each(|c| *c += share);
         self.costs.extend(costs);
         Ok(out)
@@ -635,6 +638,7 @@ pub struct ReplicaPhases {
     pub compute: f64,
     /// Encoding the blocks' mirror maps for the store.
     pub encode: f64,
-    /// Serialising the outputs and starting their writes.
+    /// Serialising the outputs and starting their writes (and, for [`Replica::compute`], waiting
+    /// for them).
     pub outputs: f64,
 }
