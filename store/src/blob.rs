@@ -36,7 +36,7 @@
 use crate::codec::{self, Unrepresentable};
 use serde::{Deserialize, Serialize};
 use std::cell::RefCell;
-use std::io::Read;
+use std::io::{Read, Write};
 
 /// The four bytes every blob starts with.
 pub const MAGIC: [u8; 4] = *b"VLFB";
@@ -132,15 +132,17 @@ impl BlobKind {
         }
     }
 
-    /// The worker threads that compress a blob of this kind (0: the calling thread alone). Only a
+    /// The worker threads that compress a blob of this kind (0: the calling thread alone). A
     /// job's mirror geometry, 168 MB for a curved mirror of 47 794 triangles at l = 2049, N = 128,
     /// which the coordinator compresses while the job's workers wait for it (1.2 s on one thread of
-    /// the 2-core VM). zstd's frame is the same bytes for any number of workers from one on (it
+    /// the 2-core VM); and a block's output, up to 93 MB of `Φ_in` a pass on that mirror, which a
+    /// worker compresses as it serialises it ([`encode_bytes_with`]) once its lease is computed,
+    /// its other threads idle. zstd's frame is the same bytes for any number of workers from one on (it
     /// cuts the input into jobs by size, not by worker), so the blob is the same whatever machine
     /// writes it, as a create-only write of it again asks.
     fn zstd_workers(self) -> u32 {
         match self {
-            BlobKind::MirrorGeometry => *ZSTD_WORKERS,
+            BlobKind::MirrorGeometry | BlobKind::BatchOutput => *ZSTD_WORKERS,
             _ => 0,
         }
     }
@@ -260,6 +262,9 @@ pub enum BlobError {
     /// zstd failed to compress (only on allocation failure).
     #[error("cannot compress blob payload: {0}")]
     Compress(String),
+    /// The payload's reader stopped before its end ([`decode_bytes_with`]).
+    #[error("blob payload holds {raw_len} bytes, of which its reader took {read}")]
+    Unread { read: u64, raw_len: u64 },
     /// The operation needs another encoding (e.g. values requested from a `Bytes` blob).
     #[error("encoding {found:?} cannot be used here: {reason}")]
     WrongEncoding { found: Encoding, reason: &'static str },
@@ -309,6 +314,90 @@ pub struct Header {
 /// Fails only if zstd cannot allocate its context ([`BlobError::Compress`]).
 pub fn encode_bytes(kind: BlobKind, data: &[u8]) -> Result<Vec<u8>, BlobError> {
     assemble(kind, Encoding::Bytes, &[], data)
+}
+
+/// Encodes as a blob of `kind` the `raw_len` bytes that `write` writes, compressing them as they
+/// come: no buffer holds the whole payload. For payloads serialised from a structure (a pass's
+/// output of a mirror scan: 93 MB of `Φ_in`), where serialising into memory first cost as much
+/// as compressing — every iteration's buffer is fresh memory, which the system zeroes page by
+/// page — and the compression runs on [`BlobKind::zstd_workers`] threads while `write` fills it.
+///
+/// The blob reads back as any other ([`decode_bytes`], [`decode_bytes_with`]). Fails if `write`
+/// fails or writes another number of bytes than `raw_len` ([`BlobError::Compress`]).
+pub fn encode_bytes_with(
+    kind: BlobKind,
+    raw_len: u64,
+    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<Vec<u8>, BlobError> {
+    encode_streamed(kind, kind.zstd_workers(), raw_len, write)
+}
+
+/// [`encode_bytes_with`] on `workers` compressing threads (0: the calling thread alone).
+fn encode_streamed(
+    kind: BlobKind,
+    workers: u32,
+    raw_len: u64,
+    write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
+) -> Result<Vec<u8>, BlobError> {
+    let fail = |e: std::io::Error| BlobError::Compress(e.to_string());
+    // Room for the largest frame: pages the frame does not reach are never touched.
+    let bound = zstd::zstd_safe::compress_bound(usize::try_from(raw_len).map_err(|e| fail(std::io::Error::other(e)))?);
+    let mut blob = Vec::with_capacity(HEADER_LEN + bound);
+    blob.resize(HEADER_LEN, 0);
+    let mut encoder = zstd::stream::write::Encoder::new(blob, kind.zstd_level()).map_err(fail)?;
+    if workers > 0 {
+        encoder.multithread(workers).map_err(fail)?;
+    }
+    encoder.set_pledged_src_size(Some(raw_len)).map_err(fail)?;
+    // Serialisers write a few bytes at a time: they go to zstd in large pieces.
+    let mut counted = Counted {
+        inner: std::io::BufWriter::with_capacity(1 << 18, encoder),
+        bytes: 0,
+    };
+    write(&mut counted).map_err(fail)?;
+    if counted.bytes != raw_len {
+        return Err(BlobError::Compress(format!(
+            "the payload's writer wrote {} bytes, {raw_len} announced",
+            counted.bytes
+        )));
+    }
+    let encoder = counted.inner.into_inner().map_err(|e| fail(e.into_error()))?;
+    let mut blob = encoder.finish().map_err(fail)?;
+    let stored = &blob[HEADER_LEN..];
+    let header = header_bytes(
+        kind,
+        Encoding::Bytes,
+        &[],
+        raw_len as usize,
+        stored.len(),
+        crc32c::crc32c(stored),
+    );
+    blob[..HEADER_LEN].copy_from_slice(&header);
+    Ok(blob)
+}
+
+/// A writer that counts what goes through it.
+struct Counted<W> {
+    inner: W,
+    bytes: u64,
+}
+
+impl<W: Write> Write for Counted<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.inner.write(buf)?;
+        self.bytes += n as u64;
+        Ok(n)
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.inner.write_all(buf)?;
+        self.bytes += buf.len() as u64;
+        Ok(())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.inner.flush()
+    }
 }
 
 /// Encodes `values` (row-major, `shape.iter().product()` of them) as a blob of `kind`.
@@ -420,6 +509,97 @@ pub fn decode_bytes(bytes: &[u8], expected: BlobKind) -> Result<Vec<u8>, BlobErr
             found: decoded.encoding,
             reason: "expected opaque bytes",
         }),
+    }
+}
+
+/// What `read` makes of the payload of an [`Encoding::Bytes`] blob of the `expected` kind,
+/// decompressed as `read` asks for it: no buffer holds the whole payload (see
+/// [`encode_bytes_with`]). The blob is checked as [`decode_bytes`] checks it — header, kind,
+/// checksum before a byte is decompressed, a payload of exactly the header's length — and `read`
+/// must take all of it ([`BlobError::Unread`]). What `read` reports is returned inside: the
+/// outer error is the blob's, the inner one the reader's. Where the frame itself is corrupt,
+/// the blob's error is returned, whatever `read` made of it.
+pub fn decode_bytes_with<T, E>(
+    bytes: &[u8],
+    expected: BlobKind,
+    read: impl FnOnce(&mut dyn Read) -> Result<T, E>,
+) -> Result<Result<T, E>, BlobError> {
+    let header = read_header(bytes)?;
+    if header.kind != expected {
+        return Err(BlobError::WrongKind {
+            expected,
+            found: header.kind,
+        });
+    }
+    if header.encoding != Encoding::Bytes {
+        return Err(BlobError::WrongEncoding {
+            found: header.encoding,
+            reason: "expected opaque bytes",
+        });
+    }
+    let stored = &bytes[HEADER_LEN..];
+    let computed = crc32c::crc32c(stored);
+    if computed != header.payload_crc {
+        return Err(BlobError::ChecksumMismatch {
+            stored: header.payload_crc,
+            computed,
+        });
+    }
+    let decoder = zstd::stream::read::Decoder::with_buffer(stored)
+        .map_err(|e| BlobError::Decompress(e.to_string()))?
+        .single_frame();
+    // Deserialisers read a few bytes at a time: they come out of zstd in large pieces.
+    let mut payload = Payload {
+        inner: std::io::BufReader::with_capacity(1 << 18, decoder.take(header.raw_len.saturating_add(1))),
+        bytes: 0,
+        failed: None,
+    };
+    let made = read(&mut payload);
+    // What `read` left (none, when it read a whole payload), up to where the frame ends: the
+    // frame's own faults come first, then its length, then what `read` made of it.
+    let left = std::io::copy(&mut payload, &mut std::io::sink());
+    if let Some(e) = payload.failed.take() {
+        return Err(BlobError::Decompress(e));
+    }
+    let left = left.map_err(|e| BlobError::Decompress(e.to_string()))?;
+    let expanded = payload.bytes;
+    if expanded != header.raw_len {
+        return Err(BlobError::Decompress(format!(
+            "payload expands to {expanded}{} bytes, header says {}",
+            if expanded > header.raw_len { "+" } else { "" },
+            header.raw_len
+        )));
+    }
+    match made {
+        Ok(_) if left > 0 => Err(BlobError::Unread {
+            read: expanded - left,
+            raw_len: header.raw_len,
+        }),
+        made => Ok(made),
+    }
+}
+
+/// The payload as a reader decompresses it: counts the bytes and keeps the first error, so that
+/// a corrupt frame is reported as such rather than as what its reader made of it.
+struct Payload<R> {
+    inner: R,
+    bytes: u64,
+    failed: Option<String>,
+}
+
+impl<R: Read> Read for Payload<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        match self.inner.read(buf) {
+            Ok(n) => {
+                self.bytes += n as u64;
+                Ok(n)
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => Err(e),
+            Err(e) => {
+                self.failed.get_or_insert_with(|| e.to_string());
+                Err(e)
+            }
+        }
     }
 }
 
@@ -717,5 +897,124 @@ mod tests {
         assert!(decompress(&one, raw.len() as u64).unwrap() == raw);
         let blob = encode_bytes(BlobKind::MirrorGeometry, &raw).unwrap();
         assert!(decode_bytes(&blob, BlobKind::MirrorGeometry).unwrap() == raw);
+    }
+
+    /// 24 MB that compresses, but not to nothing.
+    fn compressible(len: u32) -> Vec<u8> {
+        (0..len)
+            .map(|i| (i.wrapping_mul(2_654_435_761) >> 29) as u8 ^ (i >> 13) as u8)
+            .collect()
+    }
+
+    /// Writes `raw` in pieces of an odd size, as a serialiser would.
+    fn in_pieces(raw: &[u8]) -> impl FnOnce(&mut dyn Write) -> std::io::Result<()> + '_ {
+        |w: &mut dyn Write| raw.chunks(4097).try_for_each(|piece| w.write_all(piece))
+    }
+
+    /// A blob compressed as its payload is written is the same bytes on one, two or four
+    /// compressing threads — a block's output is written create-only, from machines with any
+    /// number of cores — and reads back whole, in memory or as a stream.
+    #[test]
+    fn a_streamed_blob_is_the_same_for_any_number_of_workers_and_reads_back() {
+        let raw = compressible(24 << 20);
+        let kind = BlobKind::BatchOutput;
+        let blob = |workers| encode_streamed(kind, workers, raw.len() as u64, in_pieces(&raw)).unwrap();
+        let one = blob(1);
+        assert!(one.len() < raw.len() / 2);
+        assert!(blob(2) == one && blob(4) == one);
+        assert!(encode_bytes_with(kind, raw.len() as u64, in_pieces(&raw)).unwrap() == one);
+        assert!(decode_bytes(&one, kind).unwrap() == raw);
+        let streamed = decode_bytes_with(&one, kind, |r| {
+            let mut back = Vec::new();
+            r.read_to_end(&mut back).map(|_| back)
+        });
+        assert!(streamed.unwrap().unwrap() == raw);
+        // On the calling thread alone: another frame, the same payload.
+        let alone = blob(0);
+        assert!(decode_bytes(&alone, kind).unwrap() == raw);
+        // An empty payload.
+        let empty = encode_bytes_with(kind, 0, |_| Ok(())).unwrap();
+        assert_eq!(decode_bytes(&empty, kind).unwrap(), Vec::<u8>::new());
+    }
+
+    #[test]
+    fn a_streamed_writer_must_write_what_it_announced() {
+        let raw = compressible(1000);
+        for announced in [999u64, 1001] {
+            let written = encode_bytes_with(BlobKind::BatchOutput, announced, in_pieces(&raw));
+            assert!(
+                matches!(written, Err(BlobError::Compress(_))),
+                "{announced}: {written:?}"
+            );
+        }
+        let failing = encode_bytes_with(BlobKind::BatchOutput, 10, |_| Err(std::io::Error::other("full")));
+        assert!(matches!(failing, Err(BlobError::Compress(m)) if m.contains("full")));
+    }
+
+    /// A streamed read takes the whole payload and nothing else; a corrupt frame is the blob's
+    /// fault, whatever its reader made of it; the reader's own errors come back inside.
+    #[test]
+    fn a_streamed_read_checks_the_blob_as_a_whole_read_does() {
+        let raw = compressible(300_000);
+        let kind = BlobKind::BatchOutput;
+        let blob = encode_bytes(kind, &raw).unwrap();
+        let take = |bytes: &[u8], n: usize| {
+            decode_bytes_with(bytes, kind, |r| {
+                let mut part = vec![0; n];
+                r.read_exact(&mut part).map(|_| part)
+            })
+        };
+        assert!(take(&blob, raw.len()).unwrap().unwrap() == raw);
+        assert!(matches!(
+            take(&blob, 10),
+            Err(BlobError::Unread {
+                read: 10,
+                raw_len: 300_000
+            })
+        ));
+        // Past the end: the reader's error.
+        assert!(matches!(take(&blob, raw.len() + 1), Ok(Err(_))));
+        assert!(matches!(
+            decode_bytes_with(&blob, BlobKind::Snapshot, |_| Ok::<_, ()>(())),
+            Err(BlobError::WrongKind { .. })
+        ));
+        // A byte changed: the checksum catches it before anything is decompressed.
+        let mut flipped = blob.clone();
+        flipped[HEADER_LEN + 100] ^= 0x40;
+        assert!(matches!(take(&flipped, 10), Err(BlobError::ChecksumMismatch { .. })));
+        // A frame cut short, its checksum made right: the frame's fault, not the reader's.
+        let mut cut = blob[..blob.len() - 20].to_vec();
+        let stored = &cut[HEADER_LEN..];
+        let header = header_bytes(
+            kind,
+            Encoding::Bytes,
+            &[],
+            raw.len(),
+            stored.len(),
+            crc32c::crc32c(stored),
+        );
+        cut[..HEADER_LEN].copy_from_slice(&header);
+        for n in [10, raw.len()] {
+            assert!(matches!(take(&cut, n), Err(BlobError::Decompress(_))), "{n}");
+        }
+        // A header that claims another length.
+        for claimed in [raw.len() - 1, raw.len() + 1] {
+            let mut lying = blob.clone();
+            let stored = &lying[HEADER_LEN..];
+            let header = header_bytes(
+                kind,
+                Encoding::Bytes,
+                &[],
+                claimed,
+                stored.len(),
+                crc32c::crc32c(stored),
+            );
+            lying[..HEADER_LEN].copy_from_slice(&header);
+            let read = decode_bytes_with(&lying, kind, |r| {
+                let mut all = Vec::new();
+                r.read_to_end(&mut all).map(|_| all)
+            });
+            assert!(matches!(read, Err(BlobError::Decompress(_))), "{claimed}: {read:?}");
+        }
     }
 }

@@ -396,7 +396,7 @@ fn homes_that_do_not_cover_the_pass_in_order_are_refused() {
 #[test]
 fn batches_partition_the_directions_into_whole_chunks() {
     use vlf_core::propagate::Batching;
-    use vlf_core::propagate::work::CHUNK;
+    use vlf_core::propagate::CHUNK;
     for per_pass in (0..=10).map(|k| 1u32 << k) {
         for l in [9, 33, 129, 513, 2049, 8193] {
             let batching = Batching::new(l, per_pass);

@@ -501,6 +501,24 @@ fn mirror_maps_are_held_where_they_are_written() {
 /// The exchange's bookkeeping as its definition reads, route by route: for every target in
 /// order, its routes in order, `b·ρs·Φ_in` of each route whose source lit its mirror and whose
 /// mirror has slots in the target, looked up in the per-source lists of `Φ_in`.
+/// The batches of the source directions of every route of `targets` whose mirror received
+/// power from that source, increasing: what a worker must read before it gathers them.
+fn source_batches_by_definition(p: &Propagation, targets: std::ops::Range<usize>) -> Vec<usize> {
+    let spec = p.specular.as_ref().unwrap();
+    let pending = spec.pending.as_ref().unwrap();
+    let ordinal = |m: u32| spec.mirrors.iter().position(|&x| x == m).unwrap() as u32;
+    let mut batches = std::collections::BTreeSet::new();
+    for route in spec.routes[targets].iter().flatten() {
+        let k = ordinal(route.mirror);
+        let lit =
+            (pending.power_in[route.source as usize].iter()).any(|(m, pin)| *m == k && pin.iter().any(|&c| c > 0.0));
+        if lit {
+            batches.insert(p.batching().batch_of(route.source as usize));
+        }
+    }
+    batches.into_iter().collect()
+}
+
 fn reflected_by_definition(p: &Propagation) -> [f64; 3] {
     let spec = p.specular.as_ref().unwrap();
     let pending = spec.pending.as_ref().unwrap();
@@ -565,8 +583,18 @@ fn settling_by_mirror_gives_the_bits_of_the_definition() {
             let settled = spec.settle(&p.scene, pending);
             assert!(lum(&settled.reflected) > 0.0);
             assert_eq!(settled.reflected, reflected_by_definition(&p));
-            // Once a worker's look-ups have turned `Φ_in` around, settling reads theirs.
-            assert!(!spec.sources(0..p.directions.len(), pending).is_empty());
+            // Once a worker's look-ups have turned `Φ_in` around, settling reads theirs: the
+            // batches a block gathers from, for the whole pass and for each half and quarter.
+            let batching = p.batching();
+            let n = batching.count();
+            for size in [n, n / 2, n / 4] {
+                for start in (0..n).step_by(size) {
+                    let targets = batching.directions_of(start..start + size);
+                    let found = spec.source_batches(targets.clone(), pending, &batching);
+                    assert_eq!(found, source_batches_by_definition(&p, targets.clone()), "{targets:?}");
+                    assert!(size < n || !found.is_empty());
+                }
+            }
             assert_eq!(spec.settle(&p.scene, pending), settled);
         }
     }

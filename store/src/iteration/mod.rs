@@ -57,7 +57,7 @@ pub use coordinator::{Coordinator, SnapshotCommit, WorkTraffic};
 pub use prototypes::Prototypes;
 pub use replica::{HeldMaps, ReadAhead, Replica, ReplicaPhases};
 
-use crate::blob::{self, BlobKind};
+use crate::blob::{self, BlobError, BlobKind};
 use crate::error::StoreError;
 use crate::field::FieldJob;
 use crate::layout;
@@ -93,13 +93,17 @@ impl FieldJob {
             output.batches.start,
             output.batches.end,
         )?;
-        self.work_put(key, BlobKind::BatchOutput, &output.to_bytes())
+        // Serialised into the compressor as it goes, not into memory first (see
+        // `blob::encode_bytes_with`).
+        self.work_put(key, || {
+            blob::encode_bytes_with(BlobKind::BatchOutput, output.serialized_len(), |w| output.write_to(w))
+        })
     }
 
-    /// A work blob of `kind` holding `payload` under `key`, encoded for
-    /// [`crate::Store::put_all`]: create-only, as every block output is.
-    fn work_put(&self, key: String, kind: BlobKind, payload: &[u8]) -> Result<Put, StoreError> {
-        let bytes = blob::encode_bytes(kind, payload).map_err(|source| StoreError::Blob {
+    /// The work blob `encode` makes, under `key`, for [`crate::Store::put_all`]: create-only, as
+    /// every block output is.
+    fn work_put(&self, key: String, encode: impl FnOnce() -> Result<Vec<u8>, BlobError>) -> Result<Put, StoreError> {
+        let bytes = encode().map_err(|source| StoreError::Blob {
             url: self.job().store().url().to_string(),
             key: key.clone(),
             source,
@@ -142,12 +146,15 @@ impl FieldJob {
         };
         let outputs = (keys.par_iter().zip(&blobs).zip(blocks))
             .map(|((key, blob), batches)| {
-                let bytes = self
+                // Deserialised as it is decompressed: the payload is never held whole.
+                let output = self
                     .job()
                     .store()
                     .as_async()
-                    .decode_with(key, blob, |b| blob::decode_bytes(b, BlobKind::BatchOutput))?;
-                let output = BatchOutput::from_bytes(&bytes).map_err(|e| self.decode_error(key, e.to_string()))?;
+                    .decode_with(key, blob, |b| {
+                        blob::decode_bytes_with(b, BlobKind::BatchOutput, |r| BatchOutput::read_from(r))
+                    })?
+                    .map_err(|e| self.decode_error(key, e.to_string()))?;
                 let held = output.batches.start as usize..output.batches.end as usize;
                 if (output.iteration, output.pass, &held) != (k, pass, batches) {
                     return Err(self.decode_error(

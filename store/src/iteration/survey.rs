@@ -47,7 +47,7 @@ impl FieldJob {
                 format!("a part of directions {a}..{b} is not that of batches {batches:?} ({directions:?})"),
             ));
         }
-        self.work_put(key, BlobKind::SurveyPart, &part.to_bytes())
+        self.work_put(key, || blob::encode_bytes(BlobKind::SurveyPart, &part.to_bytes()))
     }
 
     /// Writes [`FieldJob::survey_part_put`]'s blob.

@@ -24,7 +24,7 @@ impl Propagation {
     /// state is the iteration's start (as restored from its checkpoint:
     /// Current, and for [`Pass::Shoot`] with mirrors the block's directions'
     /// maps and, while arrivals are pending, those of the directions the
-    /// block gathers from — [`super::Specular::sources`]): what a worker does
+    /// block gathers from — [`super::Specular::source_batches`]): what a worker does
     /// for a lease. Returns the block's output for the coordinator (its node
     /// sum, [`super::reduce`], and `Φ_in`) and, when the pass uses them, its
     /// directions' mirror maps for the next snapshot.
@@ -211,7 +211,7 @@ impl Propagation {
     /// for `batches` of `pass`, of the snapshot the iteration starts from
     /// (whose head this replica holds): the batches' shooting maps — while
     /// arrivals are pending, those of every direction the block gathers from
-    /// ([`super::Specular::sources`]) — and the block's own totals. Nothing
+    /// ([`super::Specular::source_batches`]) — and the block's own totals. Nothing
     /// unless the pass shoots mirror maps.
     pub fn mirror_batches_read(
         &self,
@@ -225,16 +225,7 @@ impl Propagation {
             _ => return Ok((Vec::new(), Vec::new())),
         };
         let shooting = match &spec.pending {
-            Some(pending) => {
-                let batching = work.batching();
-                let mut b: Vec<usize> = spec
-                    .sources(directions, pending)
-                    .into_iter()
-                    .map(|d| batching.batch_of(d))
-                    .collect();
-                b.dedup();
-                b
-            }
+            Some(pending) => spec.source_batches(directions, pending, &work.batching()),
             None => batches.clone().collect(),
         };
         Ok((shooting, batches.collect()))

@@ -42,6 +42,7 @@
 //! Gaussian filtering of the Next maps.
 
 mod areas;
+mod batching;
 mod block;
 mod by_mirror;
 pub mod checkpoint;
@@ -59,6 +60,7 @@ mod split;
 pub mod survey;
 pub mod work;
 
+pub use batching::{Batching, CHUNK};
 pub use checkpoint::{Checkpoint, ShootingState, Totals};
 pub use mirror_geometry::MirrorGeometry;
 pub use plan::Plan;
@@ -67,7 +69,7 @@ pub use snapshot::{MapBatch, MapKind, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
 pub use split::{HomeThreads, split_by_cost};
 pub use survey::{Survey, SurveyPart, SurveyParts, Surveyor};
-pub use work::{BatchOutput, BatchSum, Batching, IterationWork, MirrorBlock, Pass};
+pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
@@ -119,7 +121,7 @@ pub struct Options {
     /// filter runs wherever `filter_sigma` is set.
     #[serde(default)]
     pub filter_only_with_mirrors: bool,
-    /// Batches a pass is cut into where `l` allows ([`work::Batching`]): the unit of leases
+    /// Batches a pass is cut into where `l` allows ([`batching::Batching`]): the unit of leases
     /// and of the reduction, so part of the bits. A power of two. Jobs stored before it was an
     /// option were cut into [`defaults::LEGACY_PASS_BATCHES`], which is what their parameters
     /// read as, so that they render and resume as they ran.
@@ -148,7 +150,7 @@ pub mod defaults {
     pub const PERTURB_ITERATIONS: u32 = 2;
     pub const PERTURB_COUNT: u32 = 4;
     pub const FILTER_SIGMA: f64 = 1.0;
-    /// Batches per pass ([`super::work::Batching`]): 64, so that 8 workers get 8 each and the
+    /// Batches per pass ([`super::batching::Batching`]): 64, so that 8 workers get 8 each and the
     /// last quarter of each one's run can go to whichever worker is idle (issue 31).
     pub const PASS_BATCHES: u32 = 64;
     /// What passes were cut into before [`super::Options::pass_batches`] existed.
@@ -279,8 +281,8 @@ impl Options {
     }
 
     /// How this job's passes are cut into batches.
-    pub fn batching(&self) -> work::Batching {
-        work::Batching::new(self.directions, self.pass_batches)
+    pub fn batching(&self) -> batching::Batching {
+        batching::Batching::new(self.directions, self.pass_batches)
     }
 
     /// Texel edge length in the VLF frame.

@@ -29,11 +29,12 @@
 //! whole: [`StateHead::from_bytes`] still reads them, and
 //! [`StateHead::mirror_totals_by_batch`] tells the two apart.
 
+use super::batching::Batching;
 use super::checkpoint::{
     DensePending, HEAD_DENSE, HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, misfit, version_of,
 };
 use super::specular::Pending;
-use super::work::{Batching, MirrorBlock};
+use super::work::MirrorBlock;
 use super::{IterationStats, Propagation};
 use crate::error::Error;
 use crate::scene::Rgb;

@@ -36,6 +36,7 @@
 //! new maps apart from what the coordinator absorbs ([`MirrorBlock`],
 //! [`BatchOutput`]).
 
+use super::batching::{Batching, CHUNK};
 use super::reduce::TreeSum;
 use super::shoot::{self, Flow, Scratch};
 use super::specular::{DirectionMaps, MirrorPower};
@@ -45,84 +46,8 @@ use crate::psf::{RasterScratch, Subfield};
 use crate::scene::Rgb;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::io::Read;
 use std::ops::Range;
-
-/// Directions computed at once inside a batch, in parallel: each needs a
-/// texel-sized buffer, so this bounds the memory of a batch, not its size.
-pub const CHUNK: usize = 16;
-
-/// How the directions of a pass are cut into batches, the unit of work and of reduction.
-///
-/// A batch holds `size = max(CHUNK, ⌊(l − 1) / B / CHUNK⌋ · CHUNK)` consecutive directions,
-/// `B` being the job's [`super::Options::pass_batches`] (a power of two), and the last batch
-/// also takes the remainder: `count = l / size` batches, so `B` of them wherever `l` allows
-/// (64 for l ≥ 2049 at the default B = 64; 32 for l = 513, 8 for 129, 2 for 33). Sizes are
-/// multiples of [`CHUNK`], so every chunk of a batch keeps all threads busy, and the count is
-/// a power of two for every supported `l` and `B` (as the reduction tree wants: `l − 1` is
-/// `2·4^k`). A function of the job's options alone, never of a thread or worker count, so the
-/// summation order, and therefore the bits, never depend on how the work is spread.
-///
-/// What `B` trades: each batch's output is a dense texel-sized sum, so more batches cost more
-/// node sums through the store and more leases; fewer leave workers unbalanced. With 16 a
-/// pass, 8 workers got 2 batches each, and a run of fewer than 4 batches has no last quarter to
-/// hand to an idle worker (`server::scheduler`), so the slowest batch set the pace (a balance
-/// of 0.77 at 8 workers, docs/scaling.md). In one process the count costs nothing: a pass's
-/// batch sums fold into its reduction tree as they complete ([`super::claim`]).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct Batching {
-    directions: usize,
-    size: usize,
-    count: usize,
-}
-
-impl Batching {
-    /// The batches of `directions` directions for a target of `per_pass` batches (a power of
-    /// two, as [`super::Options::validate`] requires; any other is taken as the power of two
-    /// below it, so that the count stays one).
-    pub fn new(directions: usize, per_pass: u32) -> Batching {
-        let per_pass = 1usize << (per_pass.max(1).ilog2());
-        let size = (directions.saturating_sub(1) / per_pass / CHUNK * CHUNK).max(CHUNK);
-        Batching {
-            directions,
-            size,
-            count: (directions / size).max(1),
-        }
-    }
-
-    /// Directions per batch (the last one takes the remainder as well).
-    pub fn size(&self) -> usize {
-        self.size
-    }
-
-    /// Batches per pass.
-    pub fn count(&self) -> usize {
-        self.count
-    }
-
-    /// The directions of batch `batch`: `size` of them from `batch · size`, the last batch
-    /// running to `l` (empty past the last).
-    pub fn range(&self, batch: usize) -> Range<usize> {
-        let start = (batch * self.size).min(self.directions);
-        match batch + 1 {
-            n if n < self.count => start..start + self.size,
-            n if n == self.count => start..self.directions,
-            _ => self.directions..self.directions,
-        }
-    }
-
-    /// The directions of the run of batches `batches` (empty for an empty run).
-    pub fn directions_of(&self, batches: Range<usize>) -> Range<usize> {
-        match batches.is_empty() {
-            true => 0..0,
-            false => self.range(batches.start).start..self.range(batches.end - 1).end,
-        }
-    }
-
-    /// The batch direction `d` is in.
-    pub fn batch_of(&self, d: usize) -> usize {
-        (d / self.size).min(self.count - 1)
-    }
-}
 
 /// One map-reduce over the directions of an iteration.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -271,31 +196,63 @@ pub(crate) struct DenseOutput {
 }
 
 impl BatchOutput {
+    /// The output as bytes: [`BatchOutput::write_to`] into memory.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let mut bytes = SPARSE_OUTPUT.to_le_bytes().to_vec();
-        bincode::serialize_into(&mut bytes, self).expect("bincode into memory cannot fail for plain numbers");
+        let mut bytes = Vec::with_capacity(self.serialized_len() as usize);
+        self.write_to(&mut bytes).expect("writing into memory cannot fail");
         bytes
+    }
+
+    /// How many bytes [`BatchOutput::write_to`] writes: a writer that compresses as it goes
+    /// sizes its frame by it, and nothing holds the whole serialised output at once (a pass of
+    /// the 47 794-triangle mirror dragon at l = 2049, N = 128 is 93 MB of `Φ_in`).
+    pub fn serialized_len(&self) -> u64 {
+        4 + bincode::serialized_size(self).expect("bincode sizes plain numbers")
+    }
+
+    /// Writes the output as this build stores it: a four-byte mark, then the fields (bincode).
+    pub fn write_to(&self, mut writer: impl std::io::Write) -> std::io::Result<()> {
+        writer.write_all(&SPARSE_OUTPUT.to_le_bytes())?;
+        bincode::serialize_into(writer, self).map_err(|e| match *e {
+            bincode::ErrorKind::Io(e) => e,
+            other => std::io::Error::other(other.to_string()),
+        })
     }
 
     /// Reads an output of this build, or of an earlier one (dense `Φ_in`, read as sparse): a
     /// coordinator of this build may take over an iteration whose outputs an earlier one left.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<BatchOutput> {
+        BatchOutput::read_from(bytes)
+    }
+
+    /// [`BatchOutput::from_bytes`] from a reader, as its bytes come (out of a decompressor, say):
+    /// nothing holds the whole serialised output at once.
+    pub fn read_from(mut reader: impl std::io::Read) -> crate::Result<BatchOutput> {
         let bad = |e: bincode::Error| crate::Error::Decode(format!("batch output: {e}"));
-        match bytes.split_first_chunk::<4>() {
-            Some((head, rest)) if u32::from_le_bytes(*head) == SPARSE_OUTPUT => bincode::deserialize(rest).map_err(bad),
-            _ => {
-                let old: DenseOutput = bincode::deserialize(bytes).map_err(bad)?;
-                Ok(BatchOutput {
-                    iteration: old.iteration,
-                    pass: old.pass,
-                    batches: old.batches,
-                    sum: old.sum,
-                    power_in: old
-                        .power_in
-                        .map(|p| super::checkpoint::DensePending { power_in: p }.sparse().power_in),
-                })
+        let mut head = [0u8; 4];
+        let mut got = 0;
+        while got < head.len() {
+            match reader.read(&mut head[got..]) {
+                Ok(0) => break,
+                Ok(n) => got += n,
+                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+                Err(e) => return Err(crate::Error::Decode(format!("batch output: {e}"))),
             }
         }
+        if got == head.len() && u32::from_le_bytes(head) == SPARSE_OUTPUT {
+            return bincode::deserialize_from(reader).map_err(bad);
+        }
+        // An earlier build's output: its first bytes are the iteration's, read again.
+        let old: DenseOutput = bincode::deserialize_from((&head[..got]).chain(reader)).map_err(bad)?;
+        Ok(BatchOutput {
+            iteration: old.iteration,
+            pass: old.pass,
+            batches: old.batches,
+            sum: old.sum,
+            power_in: old
+                .power_in
+                .map(|p| super::checkpoint::DensePending { power_in: p }.sparse().power_in),
+        })
     }
 }
 

@@ -1,0 +1,83 @@
+//! How the directions of a pass are cut into batches: the unit of work a worker leases and of
+//! the reduction. Apart from the work of an iteration because everything that walks batches
+//! reads it — the iteration's passes, the mirror exchange's look-ups, the store's layout of
+//! mirror-map parts — and none of them need the rest of each other.
+
+use std::ops::Range;
+
+/// Directions computed at once inside a batch, in parallel: each needs a
+/// texel-sized buffer, so this bounds the memory of a batch, not its size.
+pub const CHUNK: usize = 16;
+
+/// How the directions of a pass are cut into batches, the unit of work and of reduction.
+///
+/// A batch holds `size = max(CHUNK, ⌊(l − 1) / B / CHUNK⌋ · CHUNK)` consecutive directions,
+/// `B` being the job's [`super::Options::pass_batches`] (a power of two), and the last batch
+/// also takes the remainder: `count = l / size` batches, so `B` of them wherever `l` allows
+/// (64 for l ≥ 2049 at the default B = 64; 32 for l = 513, 8 for 129, 2 for 33). Sizes are
+/// multiples of [`CHUNK`], so every chunk of a batch keeps all threads busy, and the count is
+/// a power of two for every supported `l` and `B` (as the reduction tree wants: `l − 1` is
+/// `2·4^k`). A function of the job's options alone, never of a thread or worker count, so the
+/// summation order, and therefore the bits, never depend on how the work is spread.
+///
+/// What `B` trades: each batch's output is a dense texel-sized sum, so more batches cost more
+/// node sums through the store and more leases; fewer leave workers unbalanced. With 16 a
+/// pass, 8 workers got 2 batches each, and a run of fewer than 4 batches has no last quarter to
+/// hand to an idle worker (`server::scheduler`), so the slowest batch set the pace (a balance
+/// of 0.77 at 8 workers, docs/scaling.md). In one process the count costs nothing: a pass's
+/// batch sums fold into its reduction tree as they complete ([`super::claim`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Batching {
+    directions: usize,
+    size: usize,
+    count: usize,
+}
+
+impl Batching {
+    /// The batches of `directions` directions for a target of `per_pass` batches (a power of
+    /// two, as [`super::Options::validate`] requires; any other is taken as the power of two
+    /// below it, so that the count stays one).
+    pub fn new(directions: usize, per_pass: u32) -> Batching {
+        let per_pass = 1usize << (per_pass.max(1).ilog2());
+        let size = (directions.saturating_sub(1) / per_pass / CHUNK * CHUNK).max(CHUNK);
+        Batching {
+            directions,
+            size,
+            count: (directions / size).max(1),
+        }
+    }
+
+    /// Directions per batch (the last one takes the remainder as well).
+    pub fn size(&self) -> usize {
+        self.size
+    }
+
+    /// Batches per pass.
+    pub fn count(&self) -> usize {
+        self.count
+    }
+
+    /// The directions of batch `batch`: `size` of them from `batch · size`, the last batch
+    /// running to `l` (empty past the last).
+    pub fn range(&self, batch: usize) -> Range<usize> {
+        let start = (batch * self.size).min(self.directions);
+        match batch + 1 {
+            n if n < self.count => start..start + self.size,
+            n if n == self.count => start..self.directions,
+            _ => self.directions..self.directions,
+        }
+    }
+
+    /// The directions of the run of batches `batches` (empty for an empty run).
+    pub fn directions_of(&self, batches: Range<usize>) -> Range<usize> {
+        match batches.is_empty() {
+            true => 0..0,
+            false => self.range(batches.start).start..self.range(batches.end - 1).end,
+        }
+    }
+
+    /// The batch direction `d` is in.
+    pub fn batch_of(&self, d: usize) -> usize {
+        (d / self.size).min(self.count - 1)
+    }
+}
