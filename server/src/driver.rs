@@ -646,6 +646,9 @@ impl Driver {
             let mut opened = vec![false; passes.len()];
             // The passes absorbed so far, with the blocks they were absorbed as.
             let mut absorbed: Vec<(Pass, Vec<std::ops::Range<usize>>)> = Vec::new();
+            // How long the last absorb took: the first thing between the workers' last report
+            // and the next iteration.
+            let mut last_absorb = std::time::Duration::ZERO;
             self.open_ready(k, &passes, batches, &stored, &absorbed, &mut opened);
             // The leases are out: the work the absorbs need is built while the workers compute.
             self.blocking(|c| c.prepare_work()).await.map_err(Stop::Failed)?;
@@ -667,10 +670,12 @@ impl Driver {
                     };
                     next = ready.last().map_or(next, |b| b.end);
                     blocks.extend(ready.iter().cloned());
+                    let absorbing = std::time::Instant::now();
                     self.blocking(move |c| c.absorb_blocks(pass, &ready))
                         .await
                         .map_err(Stop::Failed)?
                         .map_err(|e| Stop::Failed(format!("cannot absorb {pass:?} of iteration {}: {e}", k + 1)))?;
+                    last_absorb = absorbing.elapsed();
                 }
                 // What it opens is open before it closes: a pass waiting for them (the
                 // scheduler's `opening_once_absorbed`) never finds neither.
@@ -680,12 +685,30 @@ impl Driver {
             }
             self.check_cancelled()?;
             // Snapshots are committed in order: the last one before this one is released.
+            let settling = std::time::Instant::now();
             self.settle().await?;
-            let (_, commit) = self
-                .blocking(|c| c.release_iteration())
+            let settled = settling.elapsed();
+            let (_, commit, phases) = self
+                .blocking(|c| {
+                    c.release_iteration()
+                        .map(|(stats, commit)| (stats, commit, c.take_phase_seconds()))
+                })
                 .await
                 .map_err(Stop::Failed)?
                 .map_err(|e| Stop::Failed(format!("cannot write snapshot {}: {e}", k + 1)))?;
+            // The coordinator's serial part, phase by phase (`vlf bench` sums it as `between`).
+            let ms = |seconds: f64| format!("{:.1}", seconds * 1e3);
+            tracing::debug!(
+                job = %self.id,
+                snapshot = k + 1,
+                last_absorb_ms = ms(last_absorb.as_secs_f64()),
+                read_ms = ms(phases.read),
+                apply_ms = ms(phases.apply),
+                commit_wait_ms = ms(settled.as_secs_f64()),
+                finish_ms = ms(phases.finish),
+                head_ms = ms(phases.head),
+                "iteration released"
+            );
             let (traffic, unshot) = self
                 .coordinator
                 .as_ref()

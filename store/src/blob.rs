@@ -135,14 +135,13 @@ impl BlobKind {
     /// The worker threads that compress a blob of this kind (0: the calling thread alone). A
     /// job's mirror geometry, 168 MB for a curved mirror of 47 794 triangles at l = 2049, N = 128,
     /// which the coordinator compresses while the job's workers wait for it (1.2 s on one thread of
-    /// the 2-core VM); and a block's output, up to 93 MB of `Φ_in` a pass on that mirror, which a
-    /// worker compresses as it serialises it ([`encode_bytes_with`]) once its lease is computed,
-    /// its other threads idle. zstd's frame is the same bytes for any number of workers from one on (it
+    /// the 2-core VM). What is compressed as it is serialised ([`encode_bytes_with`]) is so too,
+    /// whatever its kind. zstd's frame is the same bytes for any number of workers from one on (it
     /// cuts the input into jobs by size, not by worker), so the blob is the same whatever machine
     /// writes it, as a create-only write of it again asks.
     fn zstd_workers(self) -> u32 {
         match self {
-            BlobKind::MirrorGeometry | BlobKind::BatchOutput => *ZSTD_WORKERS,
+            BlobKind::MirrorGeometry => *ZSTD_WORKERS,
             _ => 0,
         }
     }
@@ -317,10 +316,13 @@ pub fn encode_bytes(kind: BlobKind, data: &[u8]) -> Result<Vec<u8>, BlobError> {
 }
 
 /// Encodes as a blob of `kind` the `raw_len` bytes that `write` writes, compressing them as they
-/// come: no buffer holds the whole payload. For payloads serialised from a structure (a pass's
-/// output of a mirror scan: 93 MB of `Φ_in`), where serialising into memory first cost as much
-/// as compressing — every iteration's buffer is fresh memory, which the system zeroes page by
-/// page — and the compression runs on [`BlobKind::zstd_workers`] threads while `write` fills it.
+/// come: no buffer holds the whole payload. For the large payloads serialised from a structure
+/// every iteration (a pass's output of a mirror scan, the next snapshot's head: 93 MB of `Φ_in`
+/// each on the mirror dragon), where serialising into memory first cost as much as compressing —
+/// every iteration's buffer is fresh memory, which the system zeroes page by page. They are
+/// written while the threads that would compute wait for them (a worker ending its lease, a
+/// coordinator releasing the next iteration), so the compression runs on this machine's cores,
+/// at most 8, while `write` fills it: the frame is the same bytes for any number of them.
 ///
 /// The blob reads back as any other ([`decode_bytes`], [`decode_bytes_with`]). Fails if `write`
 /// fails or writes another number of bytes than `raw_len` ([`BlobError::Compress`]).
@@ -329,7 +331,7 @@ pub fn encode_bytes_with(
     raw_len: u64,
     write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<Vec<u8>, BlobError> {
-    encode_streamed(kind, kind.zstd_workers(), raw_len, write)
+    encode_streamed(kind, *ZSTD_WORKERS, raw_len, write)
 }
 
 /// [`encode_bytes_with`] on `workers` compressing threads (0: the calling thread alone).
@@ -831,11 +833,17 @@ fn compress_after(raw: &[u8], level: i32, workers: u32, out: &mut Vec<u8>) -> st
 
 /// Decompresses one zstd frame that must expand to exactly `raw_len` bytes.
 ///
-/// Streams into a buffer that grows with the data actually produced, so a header claiming a huge
-/// length cannot make us allocate it up front.
+/// Streams into a buffer of the header's length where one can be had (untouched pages cost
+/// nothing, so a header claiming a huge length commits no memory; a buffer of 64 MB that then
+/// doubled cost a worker a copy and fresh pages for every 93 MB head of the mirror dragon), else
+/// into one that grows with the data actually produced.
 fn decompress(stored: &[u8], raw_len: u64) -> Result<Vec<u8>, BlobError> {
     const INITIAL_CAPACITY_LIMIT: u64 = 64 << 20;
-    let capacity = usize::try_from(raw_len.min(INITIAL_CAPACITY_LIMIT)).unwrap_or(0);
+    let mut raw = Vec::new();
+    let whole = usize::try_from(raw_len).is_ok_and(|n| raw.try_reserve_exact(n).is_ok());
+    if !whole {
+        raw.reserve_exact(usize::try_from(raw_len.min(INITIAL_CAPACITY_LIMIT)).unwrap_or(0));
+    }
     DECOMPRESSOR.with(|slot| {
         let mut slot = slot.borrow_mut();
         let context = match slot.as_mut() {
@@ -847,14 +855,13 @@ fn decompress(stored: &[u8], raw_len: u64) -> Result<Vec<u8>, BlobError> {
         };
         // `with_context` starts a new session, whatever the last blob left.
         let decoder = zstd::stream::read::Decoder::with_context(stored, context).single_frame();
-        read_frame(decoder, raw_len, capacity)
+        read_frame(decoder, raw_len, raw)
     })
 }
 
-/// Reads the one frame of `decoder`, which must expand to exactly `raw_len` bytes.
-fn read_frame(mut decoder: impl Read, raw_len: u64, capacity: usize) -> Result<Vec<u8>, BlobError> {
+/// Reads the one frame of `decoder` into `raw`, which must expand to exactly `raw_len` bytes.
+fn read_frame(mut decoder: impl Read, raw_len: u64, mut raw: Vec<u8>) -> Result<Vec<u8>, BlobError> {
     let fail = |e: std::io::Error| BlobError::Decompress(e.to_string());
-    let mut raw = Vec::with_capacity(capacity);
     (&mut decoder)
         .take(raw_len.saturating_add(1))
         .read_to_end(&mut raw)

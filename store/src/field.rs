@@ -365,7 +365,6 @@ impl FieldJob {
         if self.job.manifest().is_finished(k) {
             return Err(self.job_error(format!("snapshot {k} is already finished")));
         }
-        let parts = p.snapshot_bytes(false);
         // Each batch's maps compressed as they are serialised, not all serialised first.
         let batches = if maps && p.specular.is_some() {
             p.batching().count()
@@ -385,12 +384,18 @@ impl FieldJob {
                 ]
             })
             .collect::<Result<Vec<_>, _>>()?;
-        let head = self.job.state_put(k, &parts.head)?;
+        // The head compressed as it is serialised (`Propagation::write_head_to`), beside the
+        // diffuse totals.
+        let (head, totals) = rayon::join(
+            || self.job.state_put_with(k, p.head_len(), |w| p.write_head_to(w)),
+            || p.totals_bytes(),
+        );
+        let head = head?;
         let unit = radiance_unit(&self.scene);
         let rest = PendingSnapshot {
             job: self.job.clone(),
             k,
-            totals: parts.totals,
+            totals,
             atlas: p.atlas.clone(),
             diffuse: p.diffuse_radiance(),
             summary: Summary {

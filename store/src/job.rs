@@ -202,6 +202,20 @@ impl Job {
         Ok(self.put_into(Stage::Iteration(k), key, bytes))
     }
 
+    /// [`Job::state_put`] of the `raw_len` bytes `write` writes, compressed as they are written
+    /// ([`blob::encode_bytes_with`]): the same payload, no buffer of the whole state.
+    pub fn state_put_with(
+        &self,
+        k: u32,
+        raw_len: u64,
+        write: impl FnOnce(&mut dyn std::io::Write) -> std::io::Result<()>,
+    ) -> Result<Put, StoreError> {
+        let key = layout::state(self.id(), k)?;
+        let bytes =
+            blob::encode_bytes_with(BlobKind::Snapshot, raw_len, write).map_err(|e| self.blob_error(&key, e))?;
+        Ok(self.put_into(Stage::Iteration(k), key, bytes))
+    }
+
     /// Mirror maps `part` of batch `batch` of the resume state of iteration `k` (caller's
     /// serialisation), encoded, for [`Store::put_all`]. Create-only: they are a pure function of
     /// the job, so the same bytes again (a block computed twice, a run resumed) are accepted and

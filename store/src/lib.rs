@@ -34,7 +34,8 @@ pub use error::StoreError;
 pub use field::{FieldJob, PendingSnapshot, Summary};
 pub use id::JobId;
 pub use iteration::{
-    Coordinator, HeldMaps, Prototypes, ReadAhead, Replica, ReplicaPhases, SnapshotCommit, WorkTraffic,
+    Coordinator, CoordinatorPhases, HeldMaps, Prototypes, ReadAhead, Replica, ReplicaPhases, SnapshotCommit,
+    WorkTraffic,
 };
 pub use job::Job;
 pub use layout::{MapPart, Stage};

@@ -13,7 +13,9 @@ use vlf_core::propagate::{Checkpoint, Options, Pass, Perturbation, Propagation, 
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_store::blob::{BlobKind, Encoding};
-use vlf_store::{Coordinator, FieldJob, JobId, MapPart, ReadAhead, Replica, Stage, Store, StoreError, layout};
+use vlf_store::{
+    Coordinator, CoordinatorPhases, FieldJob, JobId, MapPart, ReadAhead, Replica, Stage, Store, StoreError, layout,
+};
 
 fn bundled(name: &str) -> Scene {
     let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -1138,6 +1140,28 @@ fn compute_seconds_leave_out_the_waits_for_the_store() {
     let phases = replica.phase_seconds();
     assert!(phases.start >= 0.3, "{phases:?}");
     assert!(phases.compute > 0.0 && phases.compute < phases.start, "{phases:?}");
+}
+
+/// Where a coordinator's own work went, phase by phase, over a store 300 ms away: each absorb
+/// reads its block (a round trip) and the release writes the next head (another); ending the
+/// iteration and adding the outputs up are computing, apart from them. Taking the phases resets
+/// them.
+#[test]
+fn coordinator_phases_tell_its_store_waits_from_its_computing() {
+    let store = Store::open("memory://?latency=300ms").unwrap();
+    let p = Propagation::new(bundled("mirrors.obj"), options(0, 33)).unwrap();
+    let job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let id = job.id().clone();
+    let mut coordinator = Coordinator::new(job, p);
+    let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    compute_iteration(&mut coordinator, &mut replica);
+    let (_, commit) = coordinator.release_iteration().unwrap();
+    let phases = coordinator.take_phase_seconds();
+    assert!(phases.read >= 0.3 && phases.head >= 0.3, "{phases:?}");
+    assert!(phases.finish > 0.0 && phases.finish < 0.3, "{phases:?}");
+    assert!(phases.apply < 0.3, "{phases:?}");
+    assert_eq!(coordinator.take_phase_seconds(), CoordinatorPhases::default());
+    coordinator.committed(commit.commit().unwrap());
 }
 
 #[test]

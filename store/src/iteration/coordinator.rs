@@ -61,6 +61,9 @@ pub struct Coordinator {
     traffic: Vec<WorkTraffic>,
     /// The batch outputs read back so far in the current iteration.
     absorbed: WorkTraffic,
+    /// Where the coordinator's own work of the current iteration went
+    /// ([`Coordinator::take_phase_seconds`]).
+    phases: CoordinatorPhases,
     /// Whether `prop` holds the mirror maps of its snapshot (zeros, until an iteration shoots
     /// them; then they live in the store, written by the workers): what it was given says
     /// ([`vlf_core::propagate::Specular::holds_all`]), and it stays so until an iteration shoots
@@ -98,6 +101,7 @@ impl Coordinator {
             opened: None,
             traffic: Vec::new(),
             absorbed: WorkTraffic::default(),
+            phases: CoordinatorPhases::default(),
             maps_held,
         }
     }
@@ -249,15 +253,19 @@ impl Coordinator {
     pub fn absorb_blocks(&mut self, pass: Pass, blocks: &[Range<usize>]) -> Result<(), StoreError> {
         let k = self.iteration();
         self.work();
+        let reading = Instant::now();
         let (outputs, read) = self.job.read_batches(k, pass, blocks)?;
+        self.phases.read += reading.elapsed().as_secs_f64();
         self.absorbed.blobs += read.blobs;
         self.absorbed.bytes += read.bytes;
+        let applying = Instant::now();
         for out in outputs {
             let Some((work, _)) = self.work.as_mut() else {
                 unreachable!("passes() created it");
             };
             self.prop.apply_batch(work, out).map_err(|e| self.job.field_error(e))?;
         }
+        self.phases.apply += applying.elapsed().as_secs_f64();
         Ok(())
     }
 
@@ -287,7 +295,9 @@ impl Coordinator {
         // The workers wrote the next snapshot's mirror maps if the iteration shot them; else they
         // are those of the snapshot it started from, written here.
         let shot = work.uses_mirror_maps();
+        let finishing = Instant::now();
         let stats = self.prop.finish_iteration(work, started);
+        self.phases.finish += finishing.elapsed().as_secs_f64();
         self.maps_held &= !shot;
         if !self.maps_held
             && let Some(spec) = self.prop.specular.as_mut()
@@ -302,7 +312,9 @@ impl Coordinator {
                 "iteration {k} left the mirror maps as they were, and this coordinator no longer holds them"
             ))));
         }
+        let writing = Instant::now();
         let snapshot = self.job.release_snapshot(&self.prop, maps)?;
+        self.phases.head += writing.elapsed().as_secs_f64();
         // What the outputs weighed is known from reading them: no listing (a round trip to an
         // object store) before the next iteration starts.
         self.traffic.push(std::mem::take(&mut self.absorbed));
@@ -313,6 +325,13 @@ impl Coordinator {
                 work: layout::work_prefix(self.job.id(), k)?,
             },
         ))
+    }
+
+    /// Where the coordinator's own work went since the last call, phase by phase: what a
+    /// coordinator logs with each iteration it releases (`iteration released`, at debug level), to
+    /// tell its serial part between iterations apart.
+    pub fn take_phase_seconds(&mut self) -> CoordinatorPhases {
+        std::mem::take(&mut self.phases)
     }
 
     /// Takes the manifest a [`SnapshotCommit::commit`] of this job wrote.
@@ -366,4 +385,21 @@ fn sweep_work(job: &FieldJob) {
         Ok(n) => tracing::info!(job = %job.id(), blobs = n, "late work outputs swept"),
         Err(e) => tracing::warn!(job = %job.id(), error = %e, "late work outputs left in the store"),
     }
+}
+
+/// Where a coordinator's own work of an iteration went, in seconds
+/// ([`Coordinator::take_phase_seconds`]). Together with the wait for the last snapshot's commit
+/// it is what the service does between the workers' last report of an iteration and the next
+/// iteration's leases.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct CoordinatorPhases {
+    /// Reading and decoding the blocks' outputs.
+    pub read: f64,
+    /// Adding them into the iteration's sums, in order.
+    pub apply: f64,
+    /// Ending the iteration: the diffuse reflection and the exchange's bookkeeping
+    /// ([`Propagation::finish_iteration`]).
+    pub finish: f64,
+    /// Writing the next snapshot's head, all the next iteration's workers read.
+    pub head: f64,
 }

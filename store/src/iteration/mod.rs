@@ -53,7 +53,7 @@ mod prototypes;
 mod replica;
 mod survey;
 
-pub use coordinator::{Coordinator, SnapshotCommit, WorkTraffic};
+pub use coordinator::{Coordinator, CoordinatorPhases, SnapshotCommit, WorkTraffic};
 pub use prototypes::Prototypes;
 pub use replica::{HeldMaps, ReadAhead, Replica, ReplicaPhases};
 

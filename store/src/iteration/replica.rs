@@ -229,9 +229,10 @@ impl Replica {
         Ok(())
     }
 
-    /// Seconds the last [`Replica::compute`] or run spent computing its blocks — shooting and
-    /// encoding their mirror maps — without the waits for the store (the head, the maps and
-    /// areas read, the outputs written) or decoding what it read. What a lease reports: the
+    /// Seconds the last [`Replica::compute`] or run spent computing its blocks — shooting,
+    /// gathering and all else a block does, encoding their mirror maps, and for a run
+    /// serialising its outputs — without the waits for the store (the head, the maps and areas
+    /// read, the outputs written) or decoding what it read. What a lease reports: the
     /// coordinator splits the next pass among workers by what their batches cost, and a wait of
     /// a round trip per lease, spread over its batches, would make the batches of a worker with
     /// fewer of them look dearer, and its next share smaller still.
@@ -240,9 +241,10 @@ impl Replica {
     }
 
     /// What each batch of the last [`Replica::compute`] or run cost to compute, in order, in
-    /// seconds (see [`Replica::compute_seconds`]): a block's batches are timed one by one, and
-    /// what the block does besides (gathering its arrivals, encoding its mirror maps) is shared
-    /// evenly among them.
+    /// seconds (see [`Replica::compute_seconds`]): a block's batches are timed one by one, the
+    /// rest of the block's computing spread over them in proportion
+    /// ([`Propagation::compute_block_costed`]), and what the block does besides (gathering its
+    /// arrivals, encoding its mirror maps, a run's outputs) is shared evenly among them.
     pub fn batch_costs(&self) -> &[f64] {
         &self.costs
     }
@@ -335,7 +337,12 @@ impl Replica {
         let outputs = outputs.finish();
         let writing = Instant::now();
         let writes = self.write_outputs_behind(&outputs)?;
-        self.phases.outputs += writing.elapsed().as_secs_f64();
+        let serialised = writing.elapsed().as_secs_f64();
+        self.phases.outputs += serialised;
+        // Serialising and compressing the outputs (the writes go on behind) is the batches' work,
+        // as encoding their maps is: shared evenly among them.
+        let share = serialised / self.costs.len().max(1) as f64;
+        self.costs.iter_mut().for_each(|c| *c += share);
         self.keep_for_later_passes(outputs);
         Ok((start..done, writes))
     }
