@@ -750,9 +750,7 @@ impl Specular {
                 &turned
             }
         };
-        let routes = self
-            .routes_by_mirror
-            .get_or_init(|| RoutesByMirror::new(&self.routes, &self.ordinal, &self.slotted, self.mirrors.len()));
+        let routes = self.routes_by_mirror();
         let rho = |k: u32| scene.materials[scene.surfaces[self.mirrors[k as usize] as usize].material].specular;
         for r in &routes.reflected(lit, rho, self.routes.len()) {
             add(&mut exchange.reflected, r);
@@ -764,6 +762,26 @@ impl Specular {
             "exchange settled"
         );
         exchange
+    }
+
+    /// The routes by mirror, turned around once ([`RoutesByMirror`]).
+    fn routes_by_mirror(&self) -> &RoutesByMirror {
+        (self.routes_by_mirror)
+            .get_or_init(|| RoutesByMirror::new(&self.routes, &self.ordinal, &self.slotted, self.mirrors.len()))
+    }
+
+    /// Turns the routes around by mirror now, if no settle did yet: what the first
+    /// [`Specular::settle`] does before anything else, for whoever has time before it. A
+    /// coordinator does it while its workers shoot the first iteration: settling at the end of
+    /// it, the curved mirror of the 47 794-triangle dragon (4 million routes at l = 2049,
+    /// N = 128) took 0.75 s of the service's serial part, against 0.1 s later on.
+    pub fn prepare_settle(&self) {
+        self.routes_by_mirror();
+    }
+
+    /// Whether the routes are turned around by mirror already ([`Specular::prepare_settle`]).
+    pub fn settle_prepared(&self) -> bool {
+        self.routes_by_mirror.get().is_some()
     }
 
     /// [`Specular::settle`] of the pending arrivals, found once per [`Pending`].
