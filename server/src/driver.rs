@@ -696,7 +696,9 @@ impl Driver {
                 .await
                 .map_err(Stop::Failed)?
                 .map_err(|e| Stop::Failed(format!("cannot write snapshot {}: {e}", k + 1)))?;
-            // The coordinator's serial part, phase by phase (`vlf bench` sums it as `between`).
+            // The coordinator's own work, phase by phase: the last absorb, the commit's wait,
+            // `finish` and `head` lie between the workers' last report and the next leases (part
+            // of what `vlf bench` reports as `between`); `read` and `apply` add up every absorb.
             let ms = |seconds: f64| format!("{:.1}", seconds * 1e3);
             tracing::debug!(
                 job = %self.id,

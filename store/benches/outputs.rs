@@ -2,8 +2,8 @@
 //!
 //! `cargo bench -p vlf-store --bench outputs`: the output of a whole pass of the 47 794-triangle
 //! mirror dragon at l = 2049, N = 128 (one worker's lease): a dense sum over 52 000 texels and,
-//! per direction, `Φ_in` on the 680 mirror triangles it lights (sparse, as
-//! [`vlf_core::propagate::specular::MirrorPower`]), about 40 MB serialised. Its powers are
+//! per direction, `Φ_in` on the 1 600 mirror triangles it lights (sparse, as
+//! [`vlf_core::propagate::specular::MirrorPower`]), about 93 MB serialised. Its powers are
 //! random, so they hardly compress: the compressor's share here is its floor.
 //!
 //! Each way both directions: serialised into memory, then compressed (`in memory`), as block
@@ -53,7 +53,7 @@ fn pass_output(texels: usize, directions: usize, mirrors: u32, lit: usize) -> Ba
 }
 
 fn outputs(c: &mut Criterion) {
-    let out = pass_output(52_000, 2049, 47_794, 680);
+    let out = pass_output(52_000, 2049, 47_794, 1600);
     let bytes = out.to_bytes();
     let blob = encode_bytes(BlobKind::BatchOutput, &bytes).expect("encodes");
     eprintln!(

@@ -324,6 +324,14 @@ pub fn encode_bytes(kind: BlobKind, data: &[u8]) -> Result<Vec<u8>, BlobError> {
 /// coordinator releasing the next iteration), so the compression runs on this machine's cores,
 /// at most 8, while `write` fills it: the frame is the same bytes for any number of them.
 ///
+/// Payloads under [`STREAM_FROM`] are serialised into memory and encoded as [`encode_bytes`]
+/// encodes them, the same bytes, on this thread's reused context: a multithreaded context made
+/// for each blob cost more than it saved on the small outputs of a diffuse scene. Which way a
+/// payload goes depends on its length alone, so a blob is the same whatever machine writes it.
+/// (A build before this one compressed large outputs on one thread: a block it wrote and this
+/// build computes again is refused as a conflict, as any other create-only write of other
+/// bytes.)
+///
 /// The blob reads back as any other ([`decode_bytes`], [`decode_bytes_with`]). Fails if `write`
 /// fails or writes another number of bytes than `raw_len` ([`BlobError::Compress`]).
 pub fn encode_bytes_with(
@@ -331,8 +339,22 @@ pub fn encode_bytes_with(
     raw_len: u64,
     write: impl FnOnce(&mut dyn Write) -> std::io::Result<()>,
 ) -> Result<Vec<u8>, BlobError> {
-    encode_streamed(kind, *ZSTD_WORKERS, raw_len, write)
+    if raw_len >= STREAM_FROM {
+        return encode_streamed(kind, *ZSTD_WORKERS, raw_len, write);
+    }
+    let mut raw = Vec::with_capacity(raw_len as usize);
+    write(&mut raw).map_err(|e| BlobError::Compress(e.to_string()))?;
+    if raw.len() as u64 != raw_len {
+        return Err(BlobError::Compress(format!(
+            "the payload's writer wrote {} bytes, {raw_len} announced",
+            raw.len()
+        )));
+    }
+    encode_bytes(kind, &raw)
 }
+
+/// The length from which [`encode_bytes_with`] compresses a payload as it is written.
+pub const STREAM_FROM: u64 = 8 << 20;
 
 /// [`encode_bytes_with`] on `workers` compressing threads (0: the calling thread alone).
 fn encode_streamed(
@@ -343,8 +365,14 @@ fn encode_streamed(
 ) -> Result<Vec<u8>, BlobError> {
     let fail = |e: std::io::Error| BlobError::Compress(e.to_string());
     // Room for the largest frame: pages the frame does not reach are never touched.
-    let bound = zstd::zstd_safe::compress_bound(usize::try_from(raw_len).map_err(|e| fail(std::io::Error::other(e)))?);
-    let mut blob = Vec::with_capacity(HEADER_LEN + bound);
+    let too_long = || BlobError::Compress(format!("a payload of {raw_len} bytes is too long to compress"));
+    let bound = usize::try_from(raw_len)
+        .ok()
+        .map(zstd::zstd_safe::compress_bound)
+        .and_then(|bound| bound.checked_add(HEADER_LEN))
+        .ok_or_else(too_long)?;
+    let mut blob = Vec::new();
+    blob.try_reserve_exact(bound).map_err(|_| too_long())?;
     blob.resize(HEADER_LEN, 0);
     let mut encoder = zstd::stream::write::Encoder::new(blob, kind.zstd_level()).map_err(fail)?;
     if workers > 0 {
@@ -397,8 +425,10 @@ impl<W: Write> Write for Counted<W> {
         Ok(())
     }
 
+    /// Nothing: a flush would end a zstd block where the writer happened to flush, and the
+    /// frame is to depend on the bytes alone. The whole payload goes out when it is finished.
     fn flush(&mut self) -> std::io::Result<()> {
-        self.inner.flush()
+        Ok(())
     }
 }
 
@@ -565,6 +595,7 @@ pub fn decode_bytes_with<T, E>(
     }
     let left = left.map_err(|e| BlobError::Decompress(e.to_string()))?;
     let expanded = payload.bytes;
+    frame_ends_the_payload(payload.inner.into_inner().into_inner())?;
     if expanded != header.raw_len {
         return Err(BlobError::Decompress(format!(
             "payload expands to {expanded}{} bytes, header says {}",
@@ -833,10 +864,11 @@ fn compress_after(raw: &[u8], level: i32, workers: u32, out: &mut Vec<u8>) -> st
 
 /// Decompresses one zstd frame that must expand to exactly `raw_len` bytes.
 ///
-/// Streams into a buffer of the header's length where one can be had (untouched pages cost
-/// nothing, so a header claiming a huge length commits no memory; a buffer of 64 MB that then
-/// doubled cost a worker a copy and fresh pages for every 93 MB head of the mirror dragon), else
-/// into one that grows with the data actually produced.
+/// Streams into a buffer of the header's length where one can be had, else into one that grows
+/// with the data actually produced. Untouched pages cost nothing, so a header claiming a huge
+/// length touches at most about twice what the frame holds (reading zero-fills each piece it
+/// hands the decoder); a buffer of 64 MB that then doubled cost a worker a copy and fresh pages
+/// for every 93 MB head of the mirror dragon.
 fn decompress(stored: &[u8], raw_len: u64) -> Result<Vec<u8>, BlobError> {
     const INITIAL_CAPACITY_LIMIT: u64 = 64 << 20;
     let mut raw = Vec::new();
@@ -860,7 +892,7 @@ fn decompress(stored: &[u8], raw_len: u64) -> Result<Vec<u8>, BlobError> {
 }
 
 /// Reads the one frame of `decoder` into `raw`, which must expand to exactly `raw_len` bytes.
-fn read_frame(mut decoder: impl Read, raw_len: u64, mut raw: Vec<u8>) -> Result<Vec<u8>, BlobError> {
+fn read_frame(mut decoder: Decoder<'_>, raw_len: u64, mut raw: Vec<u8>) -> Result<Vec<u8>, BlobError> {
     let fail = |e: std::io::Error| BlobError::Decompress(e.to_string());
     (&mut decoder)
         .take(raw_len.saturating_add(1))
@@ -873,12 +905,25 @@ fn read_frame(mut decoder: impl Read, raw_len: u64, mut raw: Vec<u8>) -> Result<
             if raw.len() as u64 > raw_len { "+" } else { "" }
         )));
     }
-    // The frame must also end here: trailing data inside the stored payload is corruption.
-    let mut rest = [0u8; 1];
-    if decoder.read(&mut rest).map_err(fail)? != 0 {
-        return Err(BlobError::Decompress("payload has data after its zstd frame".into()));
-    }
+    frame_ends_the_payload(decoder)?;
     Ok(raw)
+}
+
+/// A zstd reader of one frame out of a blob's stored payload.
+type Decoder<'a> = zstd::stream::read::Decoder<'a, &'a [u8]>;
+
+/// Checks that `decoder`'s frame, read to its end, is all of the stored payload: bytes after it
+/// are corruption (the reader of one frame stops at its end, and would never see them).
+fn frame_ends_the_payload(mut decoder: Decoder<'_>) -> Result<(), BlobError> {
+    decoder
+        .finish_frame()
+        .map_err(|e| BlobError::Decompress(e.to_string()))?;
+    match decoder.get_ref().len() {
+        0 => Ok(()),
+        n => Err(BlobError::Decompress(format!(
+            "payload has {n} bytes after its zstd frame"
+        ))),
+    }
 }
 
 #[cfg(test)]
@@ -906,7 +951,7 @@ mod tests {
         assert!(decode_bytes(&blob, BlobKind::MirrorGeometry).unwrap() == raw);
     }
 
-    /// 24 MB that compresses, but not to nothing.
+    /// `len` bytes that compress, but not to nothing.
     fn compressible(len: u32) -> Vec<u8> {
         (0..len)
             .map(|i| (i.wrapping_mul(2_654_435_761) >> 29) as u8 ^ (i >> 13) as u8)
@@ -944,6 +989,22 @@ mod tests {
         assert_eq!(decode_bytes(&empty, kind).unwrap(), Vec::<u8>::new());
     }
 
+    /// Short of [`STREAM_FROM`], a payload is encoded in memory, the bytes [`encode_bytes`]
+    /// gives; from there on, as it is written.
+    #[test]
+    fn small_payloads_are_encoded_in_memory() {
+        let kind = BlobKind::BatchOutput;
+        for len in [0, 1000, STREAM_FROM as u32 - 1] {
+            let raw = compressible(len);
+            let blob = encode_bytes_with(kind, raw.len() as u64, in_pieces(&raw)).unwrap();
+            assert!(blob == encode_bytes(kind, &raw).unwrap(), "{len}");
+        }
+        let raw = compressible(STREAM_FROM as u32);
+        let streamed = encode_bytes_with(kind, raw.len() as u64, in_pieces(&raw)).unwrap();
+        assert!(streamed == encode_streamed(kind, 1, raw.len() as u64, in_pieces(&raw)).unwrap());
+        assert!(streamed != encode_bytes(kind, &raw).unwrap());
+    }
+
     #[test]
     fn a_streamed_writer_must_write_what_it_announced() {
         let raw = compressible(1000);
@@ -953,7 +1014,14 @@ mod tests {
                 matches!(written, Err(BlobError::Compress(_))),
                 "{announced}: {written:?}"
             );
+            let streamed = encode_streamed(BlobKind::BatchOutput, 1, announced, in_pieces(&raw));
+            assert!(
+                matches!(streamed, Err(BlobError::Compress(_))),
+                "{announced}: {streamed:?}"
+            );
         }
+        let huge = encode_streamed(BlobKind::BatchOutput, 1, u64::MAX, in_pieces(&raw));
+        assert!(matches!(huge, Err(BlobError::Compress(_))), "{huge:?}");
         let failing = encode_bytes_with(BlobKind::BatchOutput, 10, |_| Err(std::io::Error::other("full")));
         assert!(matches!(failing, Err(BlobError::Compress(m)) if m.contains("full")));
     }
@@ -1004,6 +1072,21 @@ mod tests {
         for n in [10, raw.len()] {
             assert!(matches!(take(&cut, n), Err(BlobError::Decompress(_))), "{n}");
         }
+        // A byte after the frame, its checksum and length made right: corrupt, read either way.
+        let mut after = blob.clone();
+        after.push(0);
+        let stored = &after[HEADER_LEN..];
+        let header = header_bytes(
+            kind,
+            Encoding::Bytes,
+            &[],
+            raw.len(),
+            stored.len(),
+            crc32c::crc32c(stored),
+        );
+        after[..HEADER_LEN].copy_from_slice(&header);
+        assert!(matches!(take(&after, raw.len()), Err(BlobError::Decompress(_))));
+        assert!(matches!(decode_bytes(&after, kind), Err(BlobError::Decompress(_))));
         // A header that claims another length.
         for claimed in [raw.len() - 1, raw.len() + 1] {
             let mut lying = blob.clone();

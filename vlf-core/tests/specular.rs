@@ -498,9 +498,6 @@ fn mirror_maps_are_held_where_they_are_written() {
     }
 }
 
-/// The exchange's bookkeeping as its definition reads, route by route: for every target in
-/// order, its routes in order, `b·ρs·Φ_in` of each route whose source lit its mirror and whose
-/// mirror has slots in the target, looked up in the per-source lists of `Φ_in`.
 /// The batches of the source directions of every route of `targets` whose mirror received
 /// power from that source, increasing: what a worker must read before it gathers them.
 fn source_batches_by_definition(p: &Propagation, targets: std::ops::Range<usize>) -> Vec<usize> {
@@ -519,6 +516,9 @@ fn source_batches_by_definition(p: &Propagation, targets: std::ops::Range<usize>
     batches.into_iter().collect()
 }
 
+/// The exchange's bookkeeping as its definition reads, route by route: for every target in
+/// order, its routes in order, `b·ρs·Φ_in` of each route whose source lit its mirror and whose
+/// mirror has slots in the target, looked up in the per-source lists of `Φ_in`.
 fn reflected_by_definition(p: &Propagation) -> [f64; 3] {
     let spec = p.specular.as_ref().unwrap();
     let pending = spec.pending.as_ref().unwrap();

@@ -393,9 +393,10 @@ fn sweep_work(job: &FieldJob) {
 }
 
 /// Where a coordinator's own work of an iteration went, in seconds
-/// ([`Coordinator::take_phase_seconds`]). Together with the wait for the last snapshot's commit
-/// it is what the service does between the workers' last report of an iteration and the next
-/// iteration's leases.
+/// ([`Coordinator::take_phase_seconds`]). `read` and `apply` add up every absorb of the
+/// iteration, most of which overlap the workers' computing; the last absorb, `finish` and `head`
+/// (with the wait for the last snapshot's commit) lie between the workers' last report and the
+/// next iteration's leases.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct CoordinatorPhases {
     /// Reading and decoding the blocks' outputs.

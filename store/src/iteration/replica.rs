@@ -241,10 +241,10 @@ impl Replica {
     }
 
     /// What each batch of the last [`Replica::compute`] or run cost to compute, in order, in
-    /// seconds (see [`Replica::compute_seconds`]): a block's batches are timed one by one, the
-    /// rest of the block's computing spread over them in proportion
-    /// ([`Propagation::compute_block_costed`]), and what the block does besides (gathering its
-    /// arrivals, encoding its mirror maps, a run's outputs) is shared evenly among them.
+    /// seconds (see [`Replica::compute_seconds`]): a block's batches are timed one by one as they
+    /// shoot, its gathering shared evenly among them, and the whole then scaled to all the block
+    /// took ([`Propagation::compute_block_costed`]); encoding the block's mirror maps and a
+    /// run's outputs is shared evenly on top.
     pub fn batch_costs(&self) -> &[f64] {
         &self.costs
     }
