@@ -344,13 +344,18 @@ pub fn encode_bytes_with(
     }
     let mut raw = Vec::with_capacity(raw_len as usize);
     write(&mut raw).map_err(|e| BlobError::Compress(e.to_string()))?;
-    if raw.len() as u64 != raw_len {
-        return Err(BlobError::Compress(format!(
-            "the payload's writer wrote {} bytes, {raw_len} announced",
-            raw.len()
-        )));
-    }
+    wrote_as_announced(raw.len() as u64, raw_len)?;
     encode_bytes(kind, &raw)
+}
+
+/// Whether a payload's writer wrote the `raw_len` bytes it announced.
+fn wrote_as_announced(wrote: u64, raw_len: u64) -> Result<(), BlobError> {
+    match wrote == raw_len {
+        true => Ok(()),
+        false => Err(BlobError::Compress(format!(
+            "the payload's writer wrote {wrote} bytes, {raw_len} announced"
+        ))),
+    }
 }
 
 /// The length from which [`encode_bytes_with`] compresses a payload as it is written.
@@ -385,12 +390,7 @@ fn encode_streamed(
         bytes: 0,
     };
     write(&mut counted).map_err(fail)?;
-    if counted.bytes != raw_len {
-        return Err(BlobError::Compress(format!(
-            "the payload's writer wrote {} bytes, {raw_len} announced",
-            counted.bytes
-        )));
-    }
+    wrote_as_announced(counted.bytes, raw_len)?;
     let encoder = counted.inner.into_inner().map_err(|e| fail(e.into_error()))?;
     let mut blob = encoder.finish().map_err(fail)?;
     let stored = &blob[HEADER_LEN..];
@@ -1026,6 +1026,22 @@ mod tests {
         assert!(matches!(failing, Err(BlobError::Compress(m)) if m.contains("full")));
     }
 
+    /// `blob` with a header made right for what it stores now (its length and checksum), and
+    /// claiming `raw_len` bytes of payload.
+    fn with_header(kind: BlobKind, mut blob: Vec<u8>, raw_len: usize) -> Vec<u8> {
+        let stored = &blob[HEADER_LEN..];
+        let header = header_bytes(
+            kind,
+            Encoding::Bytes,
+            &[],
+            raw_len,
+            stored.len(),
+            crc32c::crc32c(stored),
+        );
+        blob[..HEADER_LEN].copy_from_slice(&header);
+        blob
+    }
+
     /// A streamed read takes the whole payload and nothing else; a corrupt frame is the blob's
     /// fault, whatever its reader made of it; the reader's own errors come back inside.
     #[test]
@@ -1058,48 +1074,19 @@ mod tests {
         flipped[HEADER_LEN + 100] ^= 0x40;
         assert!(matches!(take(&flipped, 10), Err(BlobError::ChecksumMismatch { .. })));
         // A frame cut short, its checksum made right: the frame's fault, not the reader's.
-        let mut cut = blob[..blob.len() - 20].to_vec();
-        let stored = &cut[HEADER_LEN..];
-        let header = header_bytes(
-            kind,
-            Encoding::Bytes,
-            &[],
-            raw.len(),
-            stored.len(),
-            crc32c::crc32c(stored),
-        );
-        cut[..HEADER_LEN].copy_from_slice(&header);
+        let cut = with_header(kind, blob[..blob.len() - 20].to_vec(), raw.len());
         for n in [10, raw.len()] {
             assert!(matches!(take(&cut, n), Err(BlobError::Decompress(_))), "{n}");
         }
         // A byte after the frame, its checksum and length made right: corrupt, read either way.
         let mut after = blob.clone();
         after.push(0);
-        let stored = &after[HEADER_LEN..];
-        let header = header_bytes(
-            kind,
-            Encoding::Bytes,
-            &[],
-            raw.len(),
-            stored.len(),
-            crc32c::crc32c(stored),
-        );
-        after[..HEADER_LEN].copy_from_slice(&header);
+        let after = with_header(kind, after, raw.len());
         assert!(matches!(take(&after, raw.len()), Err(BlobError::Decompress(_))));
         assert!(matches!(decode_bytes(&after, kind), Err(BlobError::Decompress(_))));
         // A header that claims another length.
         for claimed in [raw.len() - 1, raw.len() + 1] {
-            let mut lying = blob.clone();
-            let stored = &lying[HEADER_LEN..];
-            let header = header_bytes(
-                kind,
-                Encoding::Bytes,
-                &[],
-                claimed,
-                stored.len(),
-                crc32c::crc32c(stored),
-            );
-            lying[..HEADER_LEN].copy_from_slice(&header);
+            let lying = with_header(kind, blob.clone(), claimed);
             let read = decode_bytes_with(&lying, kind, |r| {
                 let mut all = Vec::new();
                 r.read_to_end(&mut all).map(|_| all)

@@ -341,8 +341,7 @@ impl Replica {
         self.phases.outputs += serialised;
         // Serialising and compressing the outputs (the writes go on behind) is the batches' work,
         // as encoding their maps is: shared evenly among them.
-        let share = serialised / self.costs.len().max(1) as f64;
-        self.costs.iter_mut().for_each(|c| *c += share);
+        share_evenly(&mut self.costs, serialised);
         self.keep_for_later_passes(outputs);
         Ok((start..done, writes))
     }
@@ -536,8 +535,7 @@ impl Replica {
         }
         let encoded = encoding.elapsed().as_secs_f64();
         self.phases.encode += encoded;
-        let share = encoded / costs.len().max(1) as f64;
-        costs.iter_mut().for_each(|c| *c += share);
+        share_evenly(&mut costs, encoded);
         self.costs.extend(costs);
         Ok(out)
     }
@@ -630,6 +628,12 @@ impl Replica {
         self.absorbed.retain(|(at, _, _)| *at == k);
         Ok(())
     }
+}
+
+/// Adds `seconds` to `costs`, shared evenly among them.
+fn share_evenly(costs: &mut [f64], seconds: f64) {
+    let share = seconds / costs.len().max(1) as f64;
+    costs.iter_mut().for_each(|c| *c += share);
 }
 
 /// Where a replica's computation spent its wall time, in seconds ([`Replica::phase_seconds`]).

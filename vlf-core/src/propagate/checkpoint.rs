@@ -97,6 +97,15 @@ pub(crate) fn encode(value: &impl Serialize) -> Vec<u8> {
     bincode::serialize(value).expect("bincode into memory cannot fail for plain numbers")
 }
 
+/// [`encode`] into `writer`, as its bytes are made: what a writer that compresses as it goes
+/// takes (a batch output, a snapshot's head). Its errors are the writer's.
+pub(crate) fn encode_into(writer: impl std::io::Write, value: &impl Serialize) -> std::io::Result<()> {
+    bincode::serialize_into(writer, value).map_err(|e| match *e {
+        bincode::ErrorKind::Io(e) => e,
+        other => std::io::Error::other(other.to_string()),
+    })
+}
+
 /// The serialisation version a checkpoint blob starts with (bincode writes
 /// the leading `u32` little-endian), if it is long enough to have one.
 pub(crate) fn version_of(bytes: &[u8]) -> Option<u32> {

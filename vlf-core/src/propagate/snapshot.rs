@@ -31,7 +31,8 @@
 
 use super::batching::Batching;
 use super::checkpoint::{
-    DensePending, HEAD_DENSE, HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, misfit, version_of,
+    DensePending, HEAD_DENSE, HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, encode_into, misfit,
+    version_of,
 };
 use super::specular::Pending;
 use super::work::MirrorBlock;
@@ -424,10 +425,7 @@ impl Propagation {
     /// for the 47 794-triangle mirror dragon at l = 2049, N = 128 — and serialised into memory
     /// first it cost a coordinator that fresh buffer every iteration, while its workers waited.
     pub fn write_head_to(&self, writer: impl std::io::Write) -> std::io::Result<()> {
-        bincode::serialize_into(writer, &self.head_ref()).map_err(|e| match *e {
-            bincode::ErrorKind::Io(e) => e,
-            other => std::io::Error::other(other.to_string()),
-        })
+        encode_into(writer, &self.head_ref())
     }
 
     /// The [`MapBatch::to_bytes`] of batch `b`'s mirror maps of `kind`, as held now: one part of

@@ -213,10 +213,7 @@ impl BatchOutput {
     /// Writes the output as this build stores it: a four-byte mark, then the fields (bincode).
     pub fn write_to(&self, mut writer: impl std::io::Write) -> std::io::Result<()> {
         writer.write_all(&SPARSE_OUTPUT.to_le_bytes())?;
-        bincode::serialize_into(writer, self).map_err(|e| match *e {
-            bincode::ErrorKind::Io(e) => e,
-            other => std::io::Error::other(other.to_string()),
-        })
+        super::checkpoint::encode_into(writer, self)
     }
 
     /// Reads an output of this build, or of an earlier one (dense `Φ_in`, read as sparse): a
