@@ -397,7 +397,7 @@ impl Subfield {
         }
         let k = ((y / m) * self.grid.tiles_per_side() + x / m) as usize;
         let entries = self.tile(k);
-        let local = entries.binary_search_by_key(&surface, |e| e.surface).ok()?;
+        let local = find_surface(entries, surface)?;
         let offset = self.offset_in(&entries[local], (y % m) as u16, (x % m) as u16)?;
         Some((self.tile_start[k] as usize + local, offset))
     }
@@ -534,10 +534,101 @@ impl SurfaceProjection {
     }
 }
 
+/// The index of `surface` in a tile's entries (sorted by surface, each once), if it is there.
+///
+/// The same answer as a binary search, found with fewer reads of memory that is seldom in cache:
+/// a gather table looks up one ray at a time in the mirror views of ever other directions
+/// ([`Subfield::locate_entry`]), where a tile of a curved mirror lists hundreds of triangles
+/// and each step of a binary search was a cache miss. The first probe is where `surface` would
+/// be if the tile's surface numbers were spread evenly between its first and last (they are
+/// near enough: a mesh numbers neighbouring triangles closely); from there the search gallops
+/// (steps 1, 2, 4, … away) until it brackets `surface`, then bisects the bracket. At worst
+/// that is twice a binary search's steps; where the guess is close, two or three reads.
+fn find_surface(entries: &[TileSurface], surface: u32) -> Option<usize> {
+    let (first, last) = (entries.first()?.surface, entries.last()?.surface);
+    if surface < first || surface > last {
+        return None;
+    }
+    if surface == last {
+        return Some(entries.len() - 1);
+    }
+    // `first <= surface < last`, so the guess is in 0..len - 1 and the answer in 0..len - 1.
+    let span = u64::from(last - first);
+    let guess = (u64::from(surface - first) * (entries.len() as u64 - 1) / span) as usize;
+    let (mut lo, mut hi) = if entries[guess].surface <= surface {
+        // Gallop up from `guess`: the answer is at or past it.
+        let (mut lo, mut step) = (guess, 1usize);
+        loop {
+            let probe = lo + step;
+            if probe >= entries.len() || entries[probe].surface > surface {
+                break (lo, probe.min(entries.len()));
+            }
+            (lo, step) = (probe, step * 2);
+        }
+    } else {
+        // Gallop down: the answer is before `guess`.
+        let (mut hi, mut step) = (guess, 1usize);
+        loop {
+            match hi.checked_sub(step) {
+                Some(probe) if entries[probe].surface > surface => (hi, step) = (probe, step * 2),
+                Some(probe) => break (probe, hi),
+                None => break (0, hi),
+            }
+        }
+    };
+    // `entries[lo].surface <= surface < entries[hi].surface` (or `hi` the end; the downward
+    // gallop's `lo = 0` too, as `first <= surface`): bisect, then compare.
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if entries[mid].surface <= surface {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    (entries[lo].surface == surface).then_some(lo)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::scene::{FaceOrigin, Material, Normalisation, Scene, Surface};
+
+    /// The guided search answers as a binary search does, for every number from below the first
+    /// surface to past the last, on lists spread evenly, clustered at either end (where the
+    /// first guess is far off and the gallop goes the whole way), one long, and of one or none.
+    #[test]
+    fn find_surface_answers_as_a_binary_search() {
+        let entry = |surface| TileSurface {
+            surface,
+            first_span: 0,
+            span_count: 0,
+            rays: 0,
+            first_ray: 0,
+        };
+        let mut lists: Vec<Vec<u32>> = vec![vec![], vec![5], vec![3, 4], (0..50).map(|k| 7 * k + 2).collect()];
+        // Clustered low with one outlier high, and the reverse.
+        lists.push((0..40).chain([100_000]).collect());
+        lists.push([0].into_iter().chain(99_960..100_000).collect());
+        // Irregular gaps from a fixed hash.
+        let mut v = 0u32;
+        lists.push(
+            (0..300)
+                .map(|k: u32| {
+                    v += 1 + (k.wrapping_mul(2_654_435_761) >> 24) % 97;
+                    v
+                })
+                .collect(),
+        );
+        for list in &lists {
+            let entries: Vec<TileSurface> = list.iter().map(|&s| entry(s)).collect();
+            let top = list.last().copied().unwrap_or(0) + 3;
+            for surface in 0..=top {
+                let expected = entries.binary_search_by_key(&surface, |e| e.surface).ok();
+                assert_eq!(find_surface(&entries, surface), expected, "{surface} in {list:?}");
+            }
+        }
+    }
 
     fn tri(a: DVec3, b: DVec3, c: DVec3) -> Surface {
         let n = (b - a).cross(c - a);
