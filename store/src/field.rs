@@ -187,11 +187,12 @@ impl FieldJob {
         }
         self.job.put_survey(&p.survey().to_bytes())?;
         let started = std::time::Instant::now();
-        if let Some(geometry) = p.mirror_geometry() {
-            self.job.put_mirror_geometry(&geometry)?;
+        if let Some(geometry) = p.mirror_geometry_ref() {
+            let len = geometry.serialized_len();
+            self.job.put_mirror_geometry_with(len, |w| geometry.write_to(w))?;
             tracing::debug!(
                 job = %self.id(),
-                mb = format!("{:.1}", geometry.len() as f64 / 1e6),
+                mb = format!("{:.1}", len as f64 / 1e6),
                 seconds = format!("{:.3}", started.elapsed().as_secs_f64()),
                 "mirror geometry stored"
             );
@@ -220,10 +221,11 @@ impl FieldJob {
     /// `None` for a job without mirrors, or stored before the geometry was. One that is there
     /// but unreadable is an error, not a reason to compute it again.
     pub fn stored_mirror_geometry(&self) -> Result<Option<MirrorGeometry>, StoreError> {
-        let Some(bytes) = self.job.mirror_geometry()? else {
+        // Deserialised as it is decompressed: the payload is never held whole.
+        let Some(read) = self.job.mirror_geometry_with(|r| MirrorGeometry::read_from(r))? else {
             return Ok(None);
         };
-        MirrorGeometry::from_bytes(&bytes).map(Some).map_err(|e| {
+        read.map(Some).map_err(|e| {
             let key = layout::mirror_geometry(self.id());
             self.field_error(vlf_core::Error::Decode(format!("`{key}`: {e}")))
         })

@@ -162,15 +162,38 @@ impl Job {
         self.get_if_any(&layout::survey(self.id()), BlobKind::Survey)
     }
 
-    /// Writes the mirror views and routes computed when the job was set up (caller's
-    /// serialisation): once, create-only — like the survey, a pure function of the job.
-    pub fn put_mirror_geometry(&self, geometry: &[u8]) -> Result<(), StoreError> {
-        self.put_once(&layout::mirror_geometry(self.id()), BlobKind::MirrorGeometry, geometry)
+    /// Writes the mirror views and routes computed when the job was set up: the `raw_len` bytes
+    /// `write` writes (caller's serialisation), compressed as they are written
+    /// ([`blob::encode_bytes_with`]; a curved mirror's are a hundred megabytes). Once,
+    /// create-only — like the survey, a pure function of the job.
+    pub fn put_mirror_geometry_with(
+        &self,
+        raw_len: u64,
+        write: impl FnOnce(&mut dyn std::io::Write) -> std::io::Result<()>,
+    ) -> Result<(), StoreError> {
+        let key = layout::mirror_geometry(self.id());
+        let bytes =
+            blob::encode_bytes_with(BlobKind::MirrorGeometry, raw_len, write).map_err(|e| self.blob_error(&key, e))?;
+        self.store.put_new(&key, bytes)?;
+        Ok(())
     }
 
-    /// The job's mirror views and routes (caller's serialisation); `None` if it has none.
-    pub fn mirror_geometry(&self) -> Result<Option<Vec<u8>>, StoreError> {
-        self.get_if_any(&layout::mirror_geometry(self.id()), BlobKind::MirrorGeometry)
+    /// The job's mirror views and routes, as `read` makes them of the blob's payload while it is
+    /// decompressed ([`blob::decode_bytes_with`]: the blob's checks, and `read` must take all of
+    /// the payload); `None` if the job has none. The outer error is the store's or the blob's,
+    /// the inner one `read`'s.
+    pub fn mirror_geometry_with<T, E>(
+        &self,
+        read: impl FnOnce(&mut dyn std::io::Read) -> Result<T, E>,
+    ) -> Result<Option<Result<T, E>>, StoreError> {
+        let key = layout::mirror_geometry(self.id());
+        let bytes = match self.store.get(&key) {
+            Ok(bytes) => bytes,
+            Err(StoreError::NotFound { .. }) => return Ok(None),
+            Err(e) => return Err(e),
+        };
+        let decoded = blob::decode_bytes_with(&bytes, BlobKind::MirrorGeometry, read);
+        decoded.map(Some).map_err(|e| self.blob_error(&key, e))
     }
 
     /// Writes `data` as the `kind` blob at `key`, create-only: what is a pure function of the

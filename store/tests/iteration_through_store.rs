@@ -1011,6 +1011,11 @@ fn replicas_read_the_jobs_mirror_geometry() {
             "mirrors.blob`: the mirror geometry was computed for l = 33",
         ),
         (blob(BlobKind::Survey, &stored.to_bytes()), "mirrors.blob"),
+        // Read as it is decompressed: a byte after the geometry is still found.
+        (
+            blob(BlobKind::MirrorGeometry, &[stored.to_bytes(), vec![0]].concat()),
+            "of which its reader took",
+        ),
     ] {
         store.put(&key, bytes).unwrap();
         refused(&store, &id, says);

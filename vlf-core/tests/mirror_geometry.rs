@@ -51,6 +51,16 @@ fn a_stored_mirror_geometry_is_the_computed_one() {
         let bytes = p.mirror_geometry().expect("a mirror scene has a geometry");
         let geometry = MirrorGeometry::from_bytes(&bytes).unwrap();
         assert_eq!(geometry.to_bytes(), bytes);
+        // Written into a writer, the same bytes, as long as announced; read out of a reader, the
+        // same geometry, and not a byte past it.
+        let borrowed = p.mirror_geometry_ref().unwrap();
+        let mut written = Vec::new();
+        borrowed.write_to(&mut written).unwrap();
+        assert_eq!((written.len() as u64, &written), (borrowed.serialized_len(), &bytes));
+        let followed = [bytes.as_slice(), &[7, 7, 7]].concat();
+        let mut reader = followed.as_slice();
+        assert_eq!(MirrorGeometry::read_from(&mut reader).unwrap(), geometry);
+        assert_eq!(reader, [7, 7, 7]);
         let read = Propagation::with_stored(scene.clone(), options(129, 2), None, p.survey(), geometry).unwrap();
         assert_eq!(read.subfields.memory().builds, 0);
         let (a, b) = (read.specular.as_ref().unwrap(), p.specular.as_ref().unwrap());

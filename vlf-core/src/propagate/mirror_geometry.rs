@@ -20,7 +20,7 @@
 use super::Options;
 use super::checkpoint::encode;
 use super::specular::{Route, Specular};
-use super::survey::{Surveyed, read_versioned};
+use super::survey::{Surveyed, read_versioned, read_versioned_from};
 use crate::psf::{Subfield, Subfields};
 use crate::scene::Scene;
 use rayon::prelude::*;
@@ -46,14 +46,35 @@ pub struct MirrorGeometry {
 }
 
 /// [`MirrorGeometry`] borrowed from a [`Specular`], written without copying a table: the same
-/// fields in the same order, so the bytes read back as one.
+/// fields in the same order, so the bytes read back as one. What a job stores
+/// ([`super::Propagation::mirror_geometry_ref`]): serialised into a compressor as it goes
+/// ([`MirrorGeometryRef::write_to`]), as a worker reads it out of one
+/// ([`MirrorGeometry::read_from`]), since a buffer of the whole was 168 MB of fresh memory
+/// for the mirror dragon at l = 2049, N = 128.
 #[derive(Serialize)]
-struct Borrowed<'a> {
+pub struct MirrorGeometryRef<'a> {
     version: u32,
-    of: &'a Surveyed,
+    of: Surveyed,
     mirrors: &'a [u32],
     views: Vec<&'a Subfield>,
     routes: &'a [Vec<Route>],
+}
+
+impl MirrorGeometryRef<'_> {
+    /// Length of the bytes [`MirrorGeometryRef::write_to`] writes.
+    pub fn serialized_len(&self) -> u64 {
+        bincode::serialized_size(self).expect("bincode sizes plain numbers")
+    }
+
+    /// Writes the bytes of the geometry, those [`MirrorGeometry::to_bytes`] makes of it.
+    pub fn write_to(&self, writer: impl std::io::Write) -> std::io::Result<()> {
+        super::checkpoint::encode_into(writer, self)
+    }
+
+    /// The bytes of the geometry, for [`MirrorGeometry::from_bytes`].
+    pub fn to_bytes(&self) -> Vec<u8> {
+        encode(self)
+    }
 }
 
 impl MirrorGeometry {
@@ -62,23 +83,29 @@ impl MirrorGeometry {
         encode(self)
     }
 
-    /// The bytes of `specular`'s geometry, computed for `scene` with `options`: those of the
+    /// `specular`'s geometry, computed for `scene` with `options`, borrowed: that of the
     /// [`MirrorGeometry`] it is, not copied into one.
-    pub(crate) fn bytes_of(scene: &Scene, options: &Options, specular: &Specular) -> Vec<u8> {
+    pub(crate) fn borrowed<'a>(scene: &Scene, options: &Options, specular: &'a Specular) -> MirrorGeometryRef<'a> {
         let (mirrors, views, routes) = specular.geometry();
-        encode(&Borrowed {
+        MirrorGeometryRef {
             version: VERSION,
-            of: &Surveyed::of(scene, options),
+            of: Surveyed::of(scene, options),
             mirrors,
             views,
             routes,
-        })
+        }
     }
 
     /// Reads a geometry; what cannot be one (truncated, another version, trailing bytes) is a
     /// [`crate::Error::Decode`]. Whether it fits a scene is [`MirrorGeometry::check`]'s to say.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<MirrorGeometry> {
         read_versioned(bytes, VERSION, "mirror geometry")
+    }
+
+    /// [`MirrorGeometry::from_bytes`] out of `reader`, as its bytes come: reads no further than
+    /// the geometry (whether anything follows is the caller's to check).
+    pub fn read_from(reader: impl std::io::Read) -> crate::Result<MirrorGeometry> {
+        read_versioned_from(reader, VERSION, "mirror geometry")
     }
 
     /// Whether this can be the geometry of `mirrors` in `scene` with `options`, over the

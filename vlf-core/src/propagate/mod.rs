@@ -62,7 +62,7 @@ pub mod work;
 
 pub use batching::{Batching, CHUNK};
 pub use checkpoint::{Checkpoint, ShootingState, Totals};
-pub use mirror_geometry::MirrorGeometry;
+pub use mirror_geometry::{MirrorGeometry, MirrorGeometryRef};
 pub use plan::Plan;
 pub use shoot::Flow;
 pub use snapshot::{MapBatch, MapKind, SnapshotBytes, StateHead};
@@ -482,10 +482,17 @@ impl Propagation {
         Propagation::set_up(scene, options, budget, Some(survey), Mirrors::Stored(mirrors))
     }
 
+    /// This propagation's mirror geometry, borrowed, to be written where it goes
+    /// ([`MirrorGeometryRef::write_to`]); `None` without mirrors. What a job stores beside its
+    /// survey, so that nobody computes it again.
+    pub fn mirror_geometry_ref(&self) -> Option<MirrorGeometryRef<'_>> {
+        (self.specular.as_ref()).map(|s| MirrorGeometry::borrowed(&self.scene, &self.options, s))
+    }
+
     /// This propagation's mirror geometry, as bytes for [`MirrorGeometry::from_bytes`]; `None`
-    /// without mirrors. What a job stores beside its survey, so that nobody computes it again.
+    /// without mirrors.
     pub fn mirror_geometry(&self) -> Option<Vec<u8>> {
-        (self.specular.as_ref()).map(|s| MirrorGeometry::bytes_of(&self.scene, &self.options, s))
+        self.mirror_geometry_ref().map(|g| g.to_bytes())
     }
 
     /// Lets go of the subfields, when nothing this propagation will still do reads them: the

@@ -299,23 +299,46 @@ impl Surveyor {
 
 /// Reads `what`, written by [`encode`] with `version` first; what cannot be one (truncated,
 /// another version, trailing bytes) is a [`crate::Error::Decode`].
-pub(super) fn read_versioned<T: Serialize + serde::de::DeserializeOwned>(
+pub(super) fn read_versioned<T: serde::de::DeserializeOwned>(
     bytes: &[u8],
     version: u32,
     what: &str,
 ) -> crate::Result<T> {
-    let bad = |m: String| crate::Error::Decode(format!("{what}: {m}"));
-    match version_of(bytes) {
-        Some(v) if v == version => {}
-        Some(v) => return Err(bad(format!("version {v}, this build reads {version}"))),
-        None => return Err(bad(format!("{} bytes, too short", bytes.len()))),
-    }
-    let value: T = bincode::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
-    // Measured, not written again: a curved mirror's geometry is a hundred megabytes.
-    if bincode::serialized_size(&value).ok() != Some(bytes.len() as u64) {
-        return Err(bad("trailing bytes".into()));
+    let mut rest = bytes;
+    let value = read_versioned_from(&mut rest, version, what)?;
+    if !rest.is_empty() {
+        return Err(crate::Error::Decode(format!("{what}: trailing bytes")));
     }
     Ok(value)
+}
+
+/// [`read_versioned`] out of `reader`, as its bytes come (out of a decompressor, say): nothing
+/// holds the serialised value whole, a hundred megabytes for a curved mirror's geometry. Reads
+/// no further than the value; whether anything follows is the caller's to check (a blob's reader
+/// checks that it was read to its end).
+pub(crate) fn read_versioned_from<T: serde::de::DeserializeOwned>(
+    mut reader: impl std::io::Read,
+    version: u32,
+    what: &str,
+) -> crate::Result<T> {
+    let bad = |m: String| crate::Error::Decode(format!("{what}: {m}"));
+    let mut head = [0u8; 4];
+    let mut got = 0;
+    while got < head.len() {
+        match reader.read(&mut head[got..]) {
+            Ok(0) => return Err(bad(format!("{got} bytes, too short"))),
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(bad(e.to_string())),
+        }
+    }
+    match version_of(&head) {
+        Some(v) if v == version => {}
+        Some(v) => return Err(bad(format!("version {v}, this build reads {version}"))),
+        None => unreachable!("four bytes were read"),
+    }
+    // The version is the value's first field: read again, ahead of the rest.
+    bincode::deserialize_from(std::io::Read::chain(&head[..], reader)).map_err(|e| bad(e.to_string()))
 }
 
 impl Survey {
