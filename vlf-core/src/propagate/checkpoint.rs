@@ -106,6 +106,22 @@ pub(crate) fn encode_into(writer: impl std::io::Write, value: &impl Serialize) -
     })
 }
 
+/// Reads the first bytes of `reader` into `head`, as many as it has up to `head`'s length: how
+/// a reader's leading mark or version is told before what follows it is deserialised. Returns
+/// how many were read (fewer where the reader ends first).
+pub(crate) fn read_head(mut reader: impl std::io::Read, head: &mut [u8]) -> std::io::Result<usize> {
+    let mut got = 0;
+    while got < head.len() {
+        match reader.read(&mut head[got..]) {
+            Ok(0) => break,
+            Ok(n) => got += n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(got)
+}
+
 /// The serialisation version a checkpoint blob starts with (bincode writes
 /// the leading `u32` little-endian), if it is long enough to have one.
 pub(crate) fn version_of(bytes: &[u8]) -> Option<u32> {

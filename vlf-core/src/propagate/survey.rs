@@ -28,7 +28,7 @@
 
 use super::Options;
 use super::areas::AreaUnits;
-use super::checkpoint::{encode, version_of};
+use super::checkpoint::{encode, read_head, version_of};
 use super::plan::{self, Plan};
 use super::shoot::{Geometry, Stacking};
 use crate::directions::DirectionSet;
@@ -323,19 +323,11 @@ pub(crate) fn read_versioned_from<T: serde::de::DeserializeOwned>(
 ) -> crate::Result<T> {
     let bad = |m: String| crate::Error::Decode(format!("{what}: {m}"));
     let mut head = [0u8; 4];
-    let mut got = 0;
-    while got < head.len() {
-        match reader.read(&mut head[got..]) {
-            Ok(0) => return Err(bad(format!("{got} bytes, too short"))),
-            Ok(n) => got += n,
-            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-            Err(e) => return Err(bad(e.to_string())),
-        }
-    }
-    match version_of(&head) {
+    let got = read_head(&mut reader, &mut head).map_err(|e| bad(e.to_string()))?;
+    match version_of(&head[..got]) {
         Some(v) if v == version => {}
         Some(v) => return Err(bad(format!("version {v}, this build reads {version}"))),
-        None => unreachable!("four bytes were read"),
+        None => return Err(bad(format!("{got} bytes, too short"))),
     }
     // The version is the value's first field: read again, ahead of the rest.
     bincode::deserialize_from(std::io::Read::chain(&head[..], reader)).map_err(|e| bad(e.to_string()))

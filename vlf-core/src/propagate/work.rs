@@ -227,15 +227,8 @@ impl BatchOutput {
     pub fn read_from(mut reader: impl std::io::Read) -> crate::Result<BatchOutput> {
         let bad = |e: bincode::Error| crate::Error::Decode(format!("batch output: {e}"));
         let mut head = [0u8; 4];
-        let mut got = 0;
-        while got < head.len() {
-            match reader.read(&mut head[got..]) {
-                Ok(0) => break,
-                Ok(n) => got += n,
-                Err(e) if e.kind() == std::io::ErrorKind::Interrupted => {}
-                Err(e) => return Err(crate::Error::Decode(format!("batch output: {e}"))),
-            }
-        }
+        let got = super::checkpoint::read_head(&mut reader, &mut head)
+            .map_err(|e| crate::Error::Decode(format!("batch output: {e}")))?;
         if got == head.len() && u32::from_le_bytes(head) == SPARSE_OUTPUT {
             return bincode::deserialize_from(reader).map_err(bad);
         }
