@@ -222,7 +222,10 @@ impl FieldJob {
     /// but unreadable is an error, not a reason to compute it again.
     pub fn stored_mirror_geometry(&self) -> Result<Option<MirrorGeometry>, StoreError> {
         // Deserialised as it is decompressed: the payload is never held whole.
-        let Some(read) = self.job.mirror_geometry_with(|r| MirrorGeometry::read_from(r))? else {
+        let Some(read) = self
+            .job
+            .mirror_geometry_with(|r, len| MirrorGeometry::read_from(r, len))?
+        else {
             return Ok(None);
         };
         read.map(Some).map_err(|e| {

@@ -166,25 +166,39 @@ impl Job {
     /// `write` writes (caller's serialisation), compressed as they are written
     /// ([`blob::encode_bytes_with`]; a curved mirror's are a hundred megabytes). Once,
     /// create-only — like the survey, a pure function of the job.
+    ///
+    /// Where the job has a geometry already (a coordinator setting up again a job whose set-up
+    /// stopped midway), what is compared is the payload, not the compressed bytes: a build before
+    /// this one compressed a large geometry from memory, into another frame of the same payload.
+    /// Another payload is [`StoreError::AlreadyExists`], and the stored blob stays as it was.
     pub fn put_mirror_geometry_with(
         &self,
         raw_len: u64,
         write: impl FnOnce(&mut dyn std::io::Write) -> std::io::Result<()>,
     ) -> Result<(), StoreError> {
-        let key = layout::mirror_geometry(self.id());
-        let bytes =
-            blob::encode_bytes_with(BlobKind::MirrorGeometry, raw_len, write).map_err(|e| self.blob_error(&key, e))?;
-        self.store.put_new(&key, bytes)?;
-        Ok(())
+        let (key, kind) = (layout::mirror_geometry(self.id()), BlobKind::MirrorGeometry);
+        let encoded = blob::encode_bytes_with(kind, raw_len, write).map_err(|e| self.blob_error(&key, e))?;
+        let bytes = Bytes::from(encoded);
+        match self.store.put_new(&key, bytes.clone()) {
+            Err(conflict @ StoreError::AlreadyExists { .. }) => {
+                let there = self.store.get(&key)?;
+                let same = matches!(
+                    (blob::decode_bytes(&there, kind), blob::decode_bytes(&bytes, kind)),
+                    (Ok(a), Ok(b)) if a == b
+                );
+                if same { Ok(()) } else { Err(conflict) }
+            }
+            outcome => outcome.map(|_| ()),
+        }
     }
 
     /// The job's mirror views and routes, as `read` makes them of the blob's payload while it is
     /// decompressed ([`blob::decode_bytes_with`]: the blob's checks, and `read` must take all of
-    /// the payload); `None` if the job has none. The outer error is the store's or the blob's,
-    /// the inner one `read`'s.
+    /// the payload), given the payload's length as its header says; `None` if the job has none.
+    /// The outer error is the store's or the blob's, the inner one `read`'s.
     pub fn mirror_geometry_with<T, E>(
         &self,
-        read: impl FnOnce(&mut dyn std::io::Read) -> Result<T, E>,
+        read: impl FnOnce(&mut dyn std::io::Read, u64) -> Result<T, E>,
     ) -> Result<Option<Result<T, E>>, StoreError> {
         let key = layout::mirror_geometry(self.id());
         let bytes = match self.store.get(&key) {
@@ -192,7 +206,9 @@ impl Job {
             Err(StoreError::NotFound { .. }) => return Ok(None),
             Err(e) => return Err(e),
         };
-        let decoded = blob::decode_bytes_with(&bytes, BlobKind::MirrorGeometry, read);
+        // A header that cannot be read is refused by the decoding, before `read` is called.
+        let len = blob::read_header(&bytes).map_or(0, |h| h.raw_len);
+        let decoded = blob::decode_bytes_with(&bytes, BlobKind::MirrorGeometry, |r| read(r, len));
         decoded.map(Some).map_err(|e| self.blob_error(&key, e))
     }
 

@@ -1011,6 +1011,14 @@ fn replicas_read_the_jobs_mirror_geometry() {
             "mirrors.blob`: the mirror geometry was computed for l = 33",
         ),
         (blob(BlobKind::Survey, &stored.to_bytes()), "mirrors.blob"),
+        // A length in the payload past the payload's end: refused, not allocated.
+        (
+            blob(
+                BlobKind::MirrorGeometry,
+                &[1, 0, 0, 0, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x7f],
+            ),
+            "mirrors.blob`: mirror geometry",
+        ),
         // Read as it is decompressed: a byte after the geometry is still found.
         (
             blob(BlobKind::MirrorGeometry, &[stored.to_bytes(), vec![0]].concat()),
@@ -1020,6 +1028,44 @@ fn replicas_read_the_jobs_mirror_geometry() {
         store.put(&key, bytes).unwrap();
         refused(&store, &id, says);
     }
+}
+
+/// A job's geometry written again (a set-up repeated) is accepted when its payload is the one
+/// stored, however that was compressed — an earlier build compressed large geometries from
+/// memory, into another frame than this build's stream — and refused, the stored one kept, when
+/// the payload differs.
+#[test]
+fn a_geometry_written_again_is_compared_by_its_payload() {
+    let (scene, options) = (bundled("mirrors.obj"), options(0, 33));
+    let store = Store::open("memory://").unwrap();
+    let p = Propagation::new(scene, options).unwrap();
+    let field = FieldJob::create(&store, &p, Encoding::F32).unwrap();
+    let (job, key) = (field.job(), layout::mirror_geometry(field.id()));
+    // A payload large enough to be streamed (8 MiB and up; one whose frames differ), in a frame
+    // from memory.
+    let payload: Vec<u8> = (0..24u32 << 20)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 29) as u8 ^ (i >> 13) as u8)
+        .collect();
+    let from_memory = vlf_store::blob::encode_bytes(BlobKind::MirrorGeometry, &payload).unwrap();
+    store.put(&key, from_memory.clone()).unwrap();
+    let write = |payload: &[u8]| {
+        let payload = payload.to_vec();
+        move |w: &mut dyn std::io::Write| payload.chunks(4097).try_for_each(|piece| w.write_all(piece))
+    };
+    let streamed = vlf_store::blob::encode_bytes_with(BlobKind::MirrorGeometry, payload.len() as u64, write(&payload));
+    assert!(
+        streamed.unwrap() != from_memory,
+        "the frames differ, or this tests nothing"
+    );
+    job.put_mirror_geometry_with(payload.len() as u64, write(&payload))
+        .unwrap();
+    let mut other = payload.clone();
+    other[5_000_000] ^= 1;
+    let error = job
+        .put_mirror_geometry_with(other.len() as u64, write(&other))
+        .unwrap_err();
+    assert!(matches!(error, StoreError::AlreadyExists { .. }), "{error}");
+    assert!(store.get(&key).unwrap() == from_memory);
 }
 
 /// A coordinator reads no subfield (it absorbs what workers shoot, perturbed copies' areas

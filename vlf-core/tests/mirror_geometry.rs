@@ -59,7 +59,10 @@ fn a_stored_mirror_geometry_is_the_computed_one() {
         assert_eq!((written.len() as u64, &written), (borrowed.serialized_len(), &bytes));
         let followed = [bytes.as_slice(), &[7, 7, 7]].concat();
         let mut reader = followed.as_slice();
-        assert_eq!(MirrorGeometry::read_from(&mut reader).unwrap(), geometry);
+        assert_eq!(
+            MirrorGeometry::read_from(&mut reader, followed.len() as u64).unwrap(),
+            geometry
+        );
         assert_eq!(reader, [7, 7, 7]);
         let read = Propagation::with_stored(scene.clone(), options(129, 2), None, p.survey(), geometry).unwrap();
         assert_eq!(read.subfields.memory().builds, 0);
@@ -162,6 +165,7 @@ fn a_mirror_geometry_that_does_not_fit_is_refused() {
     }
     let mut trailing = bytes.clone();
     trailing.push(0);
+    let huge_string = [1, 0, 0, 0, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0xff, 0x7f].to_vec();
     let mut version = bytes.clone();
     version[0] = 9;
     for (bytes, says) in [
@@ -169,10 +173,15 @@ fn a_mirror_geometry_that_does_not_fit_is_refused() {
         (trailing, "trailing bytes"),
         (version, "version 9"),
         (vec![1, 0], "too short"),
+        // The scene's hash claims 2⁶³ − 1 bytes: refused, not allocated (nor a panic).
+        (huge_string.clone(), "mirror geometry"),
     ] {
         let error = MirrorGeometry::from_bytes(&bytes).expect_err(says).to_string();
         assert!(error.contains(says), "{says}: {error}");
     }
+    // The same out of a stream, which holds no more than its length says.
+    let error = MirrorGeometry::read_from(huge_string.as_slice(), huge_string.len() as u64).unwrap_err();
+    assert!(error.to_string().contains("mirror geometry"), "{error}");
     // A diffuse job has none to read, even one that says it is the job's.
     let diffuse = Propagation::new(lit_box(), options(33, 1)).unwrap();
     let mut geometry = good;

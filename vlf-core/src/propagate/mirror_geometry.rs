@@ -102,10 +102,12 @@ impl MirrorGeometry {
         read_versioned(bytes, VERSION, "mirror geometry")
     }
 
-    /// [`MirrorGeometry::from_bytes`] out of `reader`, as its bytes come: reads no further than
-    /// the geometry (whether anything follows is the caller's to check).
-    pub fn read_from(reader: impl std::io::Read) -> crate::Result<MirrorGeometry> {
-        read_versioned_from(reader, VERSION, "mirror geometry")
+    /// [`MirrorGeometry::from_bytes`] out of `reader`, which holds at most `len` bytes, as they
+    /// come: reads no further than the geometry (whether anything follows is the caller's to
+    /// check), and refuses a length in the bytes that claims more than `len` before allocating
+    /// for it.
+    pub fn read_from(reader: impl std::io::Read, len: u64) -> crate::Result<MirrorGeometry> {
+        read_versioned_from(reader, len, VERSION, "mirror geometry")
     }
 
     /// Whether this can be the geometry of `mirrors` in `scene` with `options`, over the

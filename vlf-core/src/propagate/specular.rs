@@ -304,10 +304,10 @@ pub struct Specular {
     routes_by_mirror: OnceLock<RoutesByMirror>,
     /// Whether a gather keeps the table it finds, for the next iterations' gathers of the same
     /// direction: on unless the process holds its subfields within a memory budget. The tables
-    /// take 8 bytes a sample, a few samples a mirror slot (one per route): about 85 MB for the
-    /// mirror scene at l = 2049, N = 128, whose three maps a direction hold 200 MB. Keeping them
-    /// halved what its iterations spent before shooting (1.59 → 0.76 s over 11 iterations on
-    /// the 2-core VM) and made the whole run 15–18 % faster.
+    /// take 8 bytes a sample, a few samples a mirror slot (one per route), and 8 bytes a route:
+    /// about 85 MB for the mirror scene at l = 2049, N = 128, whose three maps a direction hold
+    /// 200 MB. Keeping them halved what its iterations spent before shooting (1.59 → 0.76 s
+    /// over 11 iterations on the 2-core VM) and made the whole run 15–18 % faster.
     pub keep_gather_tables: bool,
 }
 
@@ -320,7 +320,7 @@ pub struct Specular {
 /// A curved mirror has millions of routes of one or two samples each (the 47 794-triangle
 /// dragon at l = 2049: 4 million), where a list per route cost an allocation and 24 bytes of
 /// header each, more than its samples.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 struct GatherTable {
     starts: Vec<usize>,
     samples: Vec<(u32, u32)>,
@@ -622,7 +622,7 @@ impl Specular {
     }
 
     /// The backward mapping of target direction `i` ([`GatherTable`]), for the routes `wanted`
-    /// (the others' lists left empty): every slot of the route's mirror in `i` reads the source
+    /// (the others' ranges left empty): every slot of the route's mirror in `i` reads the source
     /// ray through the same point of the mirror.
     fn gather_table(&self, scene: &Scene, i: usize, wanted: impl Fn(&Route) -> bool) -> GatherTable {
         let MirrorView { sub, layout } = &self.views[i];
@@ -904,11 +904,11 @@ impl Specular {
         let mut out = vec![[0.0; 3]; self.views[i].layout.len as usize];
         let mut samples: Vec<(u32, Rgb)> = Vec::new();
         for (r, route) in self.routes[i].iter().enumerate() {
-            let reads = table.reads(r);
             let pin = self.route_power(power, route);
             if pin.iter().all(|&p| p <= 0.0) {
                 continue;
             }
+            let reads = table.reads(r);
             let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
             let source_incident = incident(route.source as usize);
             if !self.holds(route.source as usize, source_incident) {

@@ -305,7 +305,7 @@ pub(super) fn read_versioned<T: serde::de::DeserializeOwned>(
     what: &str,
 ) -> crate::Result<T> {
     let mut rest = bytes;
-    let value = read_versioned_from(&mut rest, version, what)?;
+    let value = read_versioned_from(&mut rest, bytes.len() as u64, version, what)?;
     if !rest.is_empty() {
         return Err(crate::Error::Decode(format!("{what}: trailing bytes")));
     }
@@ -316,11 +316,18 @@ pub(super) fn read_versioned<T: serde::de::DeserializeOwned>(
 /// holds the serialised value whole, a hundred megabytes for a curved mirror's geometry. Reads
 /// no further than the value; whether anything follows is the caller's to check (a blob's reader
 /// checks that it was read to its end).
+///
+/// `len` is how many bytes the reader holds at most. A length written in the bytes (of a
+/// string, say) that claims more is an error before anything is allocated for it: reading from
+/// a stream, bincode would otherwise make a buffer of that length first, and a damaged or
+/// hostile blob could ask for terabytes.
 pub(crate) fn read_versioned_from<T: serde::de::DeserializeOwned>(
     mut reader: impl std::io::Read,
+    len: u64,
     version: u32,
     what: &str,
 ) -> crate::Result<T> {
+    use bincode::Options as _;
     let bad = |m: String| crate::Error::Decode(format!("{what}: {m}"));
     let mut head = [0u8; 4];
     let got = read_head(&mut reader, &mut head).map_err(|e| bad(e.to_string()))?;
@@ -329,8 +336,13 @@ pub(crate) fn read_versioned_from<T: serde::de::DeserializeOwned>(
         Some(v) => return Err(bad(format!("version {v}, this build reads {version}"))),
         None => return Err(bad(format!("{got} bytes, too short"))),
     }
+    // bincode's own defaults (`bincode::deserialize`), bounded by `len`.
+    let options = (bincode::DefaultOptions::new())
+        .with_fixint_encoding()
+        .allow_trailing_bytes()
+        .with_limit(len);
     // The version is the value's first field: read again, ahead of the rest.
-    bincode::deserialize_from(std::io::Read::chain(&head[..], reader)).map_err(|e| bad(e.to_string()))
+    (options.deserialize_from(std::io::Read::chain(&head[..], reader))).map_err(|e| bad(e.to_string()))
 }
 
 impl Survey {

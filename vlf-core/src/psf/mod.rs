@@ -382,7 +382,7 @@ impl Subfield {
 
     /// The slot of the ray through grid cell `(x, y)` on `surface`, if that
     /// ray crosses it. Constant time but for finding the surface in the
-    /// tile's short sorted list (a binary search) — the paper's only search.
+    /// tile's short sorted list ([`find_surface`]) — the paper's only search.
     pub fn locate(&self, surface: u32, x: u32, y: u32) -> Option<u32> {
         self.locate_entry(surface, x, y)
             .map(|(e, offset)| self.entries[e].first_ray + offset)
@@ -537,13 +537,13 @@ impl SurfaceProjection {
 /// The index of `surface` in a tile's entries (sorted by surface, each once), if it is there.
 ///
 /// The same answer as a binary search, found with fewer reads of memory that is seldom in cache:
-/// a gather table looks up one ray at a time in the mirror views of ever other directions
+/// a gather table looks up one ray at a time in the mirror views of other directions
 /// ([`Subfield::locate_entry`]), where a tile of a curved mirror lists hundreds of triangles
 /// and each step of a binary search was a cache miss. The first probe is where `surface` would
 /// be if the tile's surface numbers were spread evenly between its first and last (they are
 /// near enough: a mesh numbers neighbouring triangles closely); from there the search gallops
 /// (steps 1, 2, 4, … away) until it brackets `surface`, then bisects the bracket. At worst
-/// that is twice a binary search's steps; where the guess is close, two or three reads.
+/// that is twice a binary search's steps; where the guess is close, three or four reads.
 fn find_surface(entries: &[TileSurface], surface: u32) -> Option<usize> {
     let (first, last) = (entries.first()?.surface, entries.last()?.surface);
     if surface < first || surface > last {
@@ -620,10 +620,22 @@ mod tests {
                 })
                 .collect(),
         );
+        // Numbers up to the largest, where the guess's product needs 64 bits.
+        lists.push(vec![0, 1, u32::MAX - 1, u32::MAX]);
+        lists.push((0..300u32).map(|k| k * (u32::MAX / 300)).chain([u32::MAX]).collect());
         for list in &lists {
             let entries: Vec<TileSurface> = list.iter().map(|&s| entry(s)).collect();
-            let top = list.last().copied().unwrap_or(0) + 3;
-            for surface in 0..=top {
+            // Every number of a short range, else each surface, its neighbours and a midpoint.
+            let top = list.last().copied().unwrap_or(0).saturating_add(3);
+            let probes: Vec<u32> = if top < 1 << 20 {
+                (0..=top).collect()
+            } else {
+                (list.iter().zip(list.iter().skip(1)))
+                    .flat_map(|(&a, &b)| [a.saturating_sub(1), a, a + 1, a + (b - a) / 2, b])
+                    .chain([0, u32::MAX])
+                    .collect()
+            };
+            for surface in probes {
                 let expected = entries.binary_search_by_key(&surface, |e| e.surface).ok();
                 assert_eq!(find_surface(&entries, surface), expected, "{surface} in {list:?}");
             }
