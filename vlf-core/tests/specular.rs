@@ -83,7 +83,20 @@ fn gathered_maps_carry_the_settled_power() {
         one.iter().flatten().any(|v| v[0] > 0.0),
         "nothing reflected into these directions"
     );
+    // Into a buffer that held anything: the same map.
+    let mut reused = vec![[f64::NAN; 3]; 7];
+    spec.gather_into(&scene, &directions, &read, &pending, 40, &mut reused)
+        .unwrap();
+    assert_eq!(reused, one[1]);
+    // In place: each direction's maps stay where they were (the stale unshot map gathered into,
+    // the arrivals cleared), no fresh memory.
+    let at = |maps: &[vlf_core::propagate::specular::DirectionMaps]| -> Vec<_> {
+        maps.iter().map(|m| (m.unshot.as_ptr(), m.incident.as_ptr())).collect()
+    };
+    let before = at(&spec.maps);
     spec.gather_all(&scene, &directions);
+    assert_eq!(at(&spec.maps), before);
+    assert!(spec.maps.iter().all(|m| m.incident.iter().all(|v| *v == [0.0; 3])));
     assert!(spec.pending.is_none());
     let gathered = spec.unshot_power(&scene, &directions);
     for c in 0..3 {

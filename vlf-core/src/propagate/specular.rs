@@ -720,7 +720,8 @@ impl Specular {
     /// ([`MirrorPower`]): what its incident map `incident` holds,
     /// `Σ_slots I · Δω`.
     pub fn power_in_of(&self, directions: &DirectionSet, d: usize, incident: &[Rgb]) -> MirrorPower {
-        let mut p: MirrorPower = Vec::new();
+        // One entry per mirror the direction's rays cross, at most: allocated once, not grown.
+        let mut p: MirrorPower = Vec::with_capacity(self.slotted[d].len());
         let w = directions.get(d).weight;
         let MirrorView { sub, layout } = &self.views[d];
         // The entries are sorted by surface: each mirror's are adjacent.
@@ -757,12 +758,15 @@ impl Specular {
         for (_, v) in pending.power_in.iter().flatten() {
             add(&mut exchange.incident, v);
         }
-        // Turned around for this settle alone unless a gather asked before: a coordinator settles
-        // once per iteration and never gathers, so it keeps no second copy of `Φ_in` (one
-        // process, which gathers next, turns it around again then).
+        // Turned around for this settle alone unless a gather asked before or will: a coordinator
+        // settles once per iteration and never gathers, so it keeps no second copy of `Φ_in`; a
+        // process that holds every arrival map (one running the whole propagation) gathers
+        // next, from the same `Pending`, and keeps it for that.
+        let gathers_next = (0..self.maps.len()).all(|d| self.holds(d, &self.maps[d].incident));
         let turned;
         let lit = match pending.found.by_mirror.get() {
             Some(lit) => lit,
+            None if gathers_next => self.by_mirror(pending),
             None => {
                 turned = PowerByMirror::new(&pending.power_in, self.mirrors.len());
                 &turned
@@ -848,29 +852,36 @@ impl Specular {
     /// into new unshot maps and clears the incident maps: the exchange, as
     /// one process does it at the start of the iteration that shoots them.
     /// Nothing happens when no arrivals are pending.
+    ///
+    /// In place: each direction's stale unshot map (while arrivals are pending, nothing reads
+    /// it) is cleared and gathered into, and the arrival maps, once every gather has read them,
+    /// are cleared to be the next incident maps. Two maps of fresh memory per slot every
+    /// iteration were a third of the mirror dragon's gathering on the 2-core VM, most of it the
+    /// system zeroing pages.
     pub fn gather_all(&mut self, scene: &Scene, directions: &DirectionSet) {
         let Some(pending) = self.pending.take() else {
             return;
         };
         self.hold_zeros(0..directions.len());
-        let incident: Vec<Vec<Rgb>> = self
-            .maps
-            .iter_mut()
-            .map(|m| {
-                let fresh = vec![[0.0; 3]; m.incident.len()];
-                std::mem::replace(&mut m.incident, fresh)
-            })
+        let incident: Vec<Vec<Rgb>> = (self.maps.iter_mut())
+            .map(|m| std::mem::take(&mut m.incident))
             .collect();
+        let mut unshot: Vec<Vec<Rgb>> = (self.maps.iter_mut()).map(|m| std::mem::take(&mut m.unshot)).collect();
         let read = |d: usize| incident[d].as_slice();
-        let gathered: Vec<Vec<Rgb>> = (0..directions.len())
-            .into_par_iter()
-            .map(|i| {
-                (self.gather(scene, directions, &read, &pending, i))
-                    .expect("one process holds every direction's arrivals")
+        let this = &*self;
+        (unshot.par_iter_mut().enumerate()).for_each(|(i, out)| {
+            (this.gather_into(scene, directions, &read, &pending, i, out))
+                .expect("one process holds every direction's arrivals")
+        });
+        let cleared: Vec<Vec<Rgb>> = (incident.into_par_iter())
+            .map(|mut map| {
+                map.fill([0.0; 3]);
+                map
             })
             .collect();
-        for (maps, unshot) in self.maps.iter_mut().zip(gathered) {
+        for ((maps, unshot), incident) in self.maps.iter_mut().zip(unshot).zip(cleared) {
             maps.unshot = unshot;
+            maps.incident = incident;
         }
     }
 
@@ -887,6 +898,22 @@ impl Specular {
         pending: &Pending,
         i: usize,
     ) -> crate::Result<Vec<Rgb>> {
+        let mut out = Vec::new();
+        self.gather_into(scene, directions, incident, pending, i, &mut out)?;
+        Ok(out)
+    }
+
+    /// [`Specular::gather`] into `out`, whatever it held: cleared to the direction's zeros
+    /// first, its memory kept where it has room.
+    pub fn gather_into<'a>(
+        &self,
+        scene: &Scene,
+        directions: &DirectionSet,
+        incident: &(dyn Fn(usize) -> &'a [Rgb] + Sync),
+        pending: &Pending,
+        i: usize,
+        out: &mut Vec<Rgb>,
+    ) -> crate::Result<()> {
         let power = self.by_mirror(pending);
         let lit = |route: &Route| !self.route_power(power, route).iter().all(|&p| p <= 0.0);
         // Backward mapping: every slot of P in i reads the incident radiance of the source ray
@@ -901,7 +928,8 @@ impl Specular {
             &found
         };
         let weight_i = directions.get(i).weight;
-        let mut out = vec![[0.0; 3]; self.views[i].layout.len as usize];
+        out.clear();
+        out.resize(self.views[i].layout.len as usize, [0.0; 3]);
         let mut samples: Vec<(u32, Rgb)> = Vec::new();
         for (r, route) in self.routes[i].iter().enumerate() {
             let pin = self.route_power(power, route);
@@ -951,7 +979,7 @@ impl Specular {
                 }
             }
         }
-        Ok(out)
+        Ok(())
     }
 }
 
