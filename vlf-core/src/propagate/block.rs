@@ -81,8 +81,7 @@ impl Propagation {
     ) -> crate::Result<(BatchOutput, Option<MirrorBlock>, Vec<f64>)> {
         let directions = self.block_directions(work, &batches)?;
         self.hold_block_maps(work, pass, directions.clone())?;
-        let stale = self.stale_unshot_maps(work, pass, directions.clone());
-        let (output, sent, costs) = self.shoot_block(work, pass, batches, directions.clone(), stale)?;
+        let (output, sent, costs) = self.shoot_block(work, pass, batches, directions.clone())?;
         let Some((unshot, incident)) = sent else {
             return Ok((output, None, costs));
         };
@@ -144,19 +143,6 @@ impl Propagation {
         }
     }
 
-    /// The unshot maps of the block's `directions`, taken out, while arrivals are pending: stale
-    /// then (the gather makes new ones from the arrivals, and nothing else reads them), their
-    /// memory is what the block gathers into (see [`super::Specular::gather_all`], which does so
-    /// in one process). Nothing otherwise.
-    fn stale_unshot_maps(&mut self, work: &IterationWork, pass: Pass, directions: Range<usize>) -> Vec<Vec<Rgb>> {
-        match (self.specular.as_mut(), pass, work.uses_mirror_maps()) {
-            (Some(spec), Pass::Shoot, true) if spec.pending.is_some() => {
-                directions.map(|d| std::mem::take(&mut spec.maps[d].unshot)).collect()
-            }
-            _ => Vec::new(),
-        }
-    }
-
     /// The shooting of [`Propagation::compute_block`], which reads the state
     /// and changes nothing: the block's output and, when the pass shoots
     /// mirror maps, what each of its directions sent (gathered now from the
@@ -170,7 +156,6 @@ impl Propagation {
         pass: Pass,
         batches: Range<usize>,
         directions: Range<usize>,
-        stale: Vec<Vec<Rgb>>,
     ) -> crate::Result<(BatchOutput, Option<(Vec<Vec<Rgb>>, Vec<Vec<Rgb>>)>, Vec<f64>)> {
         let gathering = std::time::Instant::now();
         let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
@@ -182,13 +167,10 @@ impl Propagation {
             .map(|spec| match &spec.pending {
                 Some(pending) => {
                     let read = |d: usize| spec.maps[d].incident.as_slice();
-                    // Gathered into the stale maps' memory, where there is some.
-                    let mut stale = stale.into_iter();
-                    let into: Vec<Vec<Rgb>> = directions.clone().map(|_| stale.next().unwrap_or_default()).collect();
-                    (directions.clone().into_par_iter().zip(into))
-                        .map(|(i, mut out)| {
-                            (spec.gather_into(scene, dirs, &read, pending, i, &mut out)).map(|()| Cow::Owned(out))
-                        })
+                    directions
+                        .clone()
+                        .into_par_iter()
+                        .map(|i| spec.gather(scene, dirs, &read, pending, i).map(Cow::Owned))
                         .collect::<crate::Result<_>>()
                 }
                 None => Ok(directions
