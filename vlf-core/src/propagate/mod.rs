@@ -853,7 +853,8 @@ impl Propagation {
                 .map(|d| spec.power_in_of(directions, d, &spec.maps[d].incident))
                 .collect();
         }
-        self.finish_iteration(work, started)
+        // This process gathers the arrivals next (`Specular::gather_all`).
+        self.finish(work, started, true)
     }
 
     /// Ends an iteration whose passes are all absorbed: what arrived on
@@ -863,7 +864,14 @@ impl Propagation {
     /// filtered), `Total += Next`, and the held-back power joins the new
     /// unshot power. Reads no mirror map: a coordinator whose workers keep
     /// them finishes iterations with this too.
-    pub fn finish_iteration(&mut self, mut work: IterationWork, started: Instant) -> IterationStats {
+    pub fn finish_iteration(&mut self, work: IterationWork, started: Instant) -> IterationStats {
+        self.finish(work, started, false)
+    }
+
+    /// [`Propagation::finish_iteration`]; `gathers_next` when this process gathers the arrivals
+    /// it leaves pending (it runs the whole propagation), which then turns their `Φ_in` around
+    /// once for its settle and its gathers both ([`specular::Specular::prepare_gathers`]).
+    fn finish(&mut self, mut work: IterationWork, started: Instant, gathers_next: bool) -> IterationStats {
         debug_assert!(
             work.next_expected().is_none(),
             "an iteration finished before its passes"
@@ -878,6 +886,9 @@ impl Propagation {
         let (exchange, settled) = match self.specular.as_mut() {
             Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
                 spec.pending = Some(specular::Pending::new(std::mem::take(&mut work.power_in)));
+                if gathers_next {
+                    spec.prepare_gathers();
+                }
                 let exchange = spec.settled(scene).expect("arrivals pending");
                 (exchange, true)
             }
