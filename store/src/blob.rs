@@ -488,8 +488,8 @@ pub fn encode_rgb(kind: BlobKind, encoding: Encoding, rgb: &[[f32; 3]]) -> Resul
     encode_values(kind, encoding, &[n, 3], rgb.as_flattened())
 }
 
-/// Decodes a blob, checking that it is of the `expected` kind.
-pub fn decode(bytes: &[u8], expected: BlobKind) -> Result<Decoded, BlobError> {
+/// The header of `bytes`, which must be a blob of the `expected` kind.
+fn header_of_kind(bytes: &[u8], expected: BlobKind) -> Result<Header, BlobError> {
     let header = read_header(bytes)?;
     if header.kind != expected {
         return Err(BlobError::WrongKind {
@@ -497,6 +497,12 @@ pub fn decode(bytes: &[u8], expected: BlobKind) -> Result<Decoded, BlobError> {
             found: header.kind,
         });
     }
+    Ok(header)
+}
+
+/// The stored (compressed) payload of `bytes`, whose `header` was read, once its checksum
+/// matches the header's: checked before a byte of it is decompressed.
+fn checked_payload<'a>(bytes: &'a [u8], header: &Header) -> Result<&'a [u8], BlobError> {
     let stored = &bytes[HEADER_LEN..];
     let computed = crc32c::crc32c(stored);
     if computed != header.payload_crc {
@@ -505,6 +511,13 @@ pub fn decode(bytes: &[u8], expected: BlobKind) -> Result<Decoded, BlobError> {
             computed,
         });
     }
+    Ok(stored)
+}
+
+/// Decodes a blob, checking that it is of the `expected` kind.
+pub fn decode(bytes: &[u8], expected: BlobKind) -> Result<Decoded, BlobError> {
+    let header = header_of_kind(bytes, expected)?;
+    let stored = checked_payload(bytes, &header)?;
     let raw = decompress(stored, header.raw_len)?;
     let data = match header.encoding {
         Encoding::Bytes => Data::Bytes(raw),
@@ -556,27 +569,14 @@ pub fn decode_bytes_with<T, E>(
     expected: BlobKind,
     read: impl FnOnce(&mut dyn Read) -> Result<T, E>,
 ) -> Result<Result<T, E>, BlobError> {
-    let header = read_header(bytes)?;
-    if header.kind != expected {
-        return Err(BlobError::WrongKind {
-            expected,
-            found: header.kind,
-        });
-    }
+    let header = header_of_kind(bytes, expected)?;
     if header.encoding != Encoding::Bytes {
         return Err(BlobError::WrongEncoding {
             found: header.encoding,
             reason: "expected opaque bytes",
         });
     }
-    let stored = &bytes[HEADER_LEN..];
-    let computed = crc32c::crc32c(stored);
-    if computed != header.payload_crc {
-        return Err(BlobError::ChecksumMismatch {
-            stored: header.payload_crc,
-            computed,
-        });
-    }
+    let stored = checked_payload(bytes, &header)?;
     let decoder = zstd::stream::read::Decoder::with_buffer(stored)
         .map_err(|e| BlobError::Decompress(e.to_string()))?
         .single_frame();
