@@ -604,7 +604,7 @@ fn snapshots_of_earlier_builds_still_read() {
         out
     };
     let from_parts = shoot();
-    assert!(from_parts.power_in.is_some(), "the shot reports its mirror power");
+    assert!(from_parts.arrivals.is_some(), "the shot reports its mirror arrivals");
 
     let (state_key, totals_key) = (layout::state(&id, 2).unwrap(), layout::totals(&id, 2).unwrap());
     for (layout_name, whole) in [("version 2 head", false), ("whole checkpoint", true)] {

@@ -6,6 +6,7 @@ mod common;
 
 use common::*;
 use vlf_core::Error;
+use vlf_core::propagate::specular::{MirrorPower, Pending, Settled};
 use vlf_core::propagate::{
     Checkpoint, MapBatch, Options, Perturbation, Propagation, ShootingState, SnapshotBytes, StateHead, Stop, Totals,
 };
@@ -143,22 +144,43 @@ fn damaged_checkpoints_are_refused() {
         good.pending.is_some(),
         "the lamp lights a mirror in the first iteration"
     );
-    // (Sparse: per direction, the mirrors that received power, by increasing number.)
-    let lit = (good.pending.as_ref().unwrap().power_in.iter())
+    // Settled: finite power, per batch of targets the batches of sources, increasing, that exist.
+    let settled = |c: &mut Checkpoint| c.pending.as_mut().unwrap().settled.as_mut().unwrap().clone();
+    let with = |change: &dyn Fn(&mut Settled)| {
+        let mut c = good.clone();
+        let mut s = settled(&mut c);
+        change(&mut s);
+        c.pending.as_mut().unwrap().settled = Some(s);
+        c
+    };
+    expect_refused(with(&|s| s.exchange.reflected[1] = f64::NAN), "pending");
+    expect_refused(with(&|s| s.exchange.incident[0] = -1.0), "pending");
+    expect_refused(with(&|s| drop(s.sources.pop())), "pending");
+    expect_refused(with(&|s| s.sources[0].push(u32::MAX)), "pending");
+    expect_refused(with(&|s| s.sources[0].extend([0, 0])), "pending");
+    // As an earlier build stored them, every direction's `Φ_in` (sparse: per direction, the
+    // mirrors that received power, by increasing number): it must fit every direction and
+    // mirror, and be power.
+    let l = good.mirrors.as_ref().unwrap().len();
+    let pending = good.pending.as_ref().unwrap();
+    let power: Vec<MirrorPower> = (0..l).map(|d| pending.power_in(d).unwrap().clone()).collect();
+    let lit = power
+        .iter()
         .position(|p| p.len() >= 2)
         .expect("a direction lights both mirrors");
-    let mut c = good.clone();
-    c.pending.as_mut().unwrap().power_in[lit].swap(0, 1);
-    expect_refused(c, "pending");
-    let mut c = good.clone();
-    c.pending.as_mut().unwrap().power_in[lit].push((99, [1.0; 3]));
-    expect_refused(c, "pending");
-    let mut c = good.clone();
-    c.pending.as_mut().unwrap().power_in.pop();
-    expect_refused(c, "pending");
-    let mut c = good.clone();
-    c.pending.as_mut().unwrap().power_in[lit][0].1[0] = f64::NAN;
-    expect_refused(c, "pending");
+    let with_power = |change: &dyn Fn(&mut Vec<MirrorPower>)| {
+        let mut c = good.clone();
+        let mut power = power.clone();
+        change(&mut power);
+        c.pending = Some(Pending::of_power_in(power));
+        c
+    };
+    assert!(resume(with_power(&|_| {})).is_ok());
+    expect_refused(with_power(&|p| p[lit].swap(0, 1)), "pending");
+    expect_refused(with_power(&|p| p[lit].push((99, [1.0; 3]))), "pending");
+    expect_refused(with_power(&|p| drop(p.pop())), "pending");
+    expect_refused(with_power(&|p| p.push(Vec::new())), "pending");
+    expect_refused(with_power(&|p| p[lit][0].1[0] = f64::NAN), "pending");
     let mut c = good.clone();
     c.mirrors = None;
     expect_refused(c, "mirrors");
@@ -391,7 +413,7 @@ fn mismatched_or_damaged_halves_are_refused() {
     bad_head.mirror_batches = bad_head.mirror_batches.map(|n| n + 1);
     assert!(r.restore_head(bad_head).is_err());
     let mut bad_head = head2.clone();
-    bad_head.pending.as_mut().unwrap().power_in[0].push((u32::MAX, [0.0; 3]));
+    (bad_head.pending.as_mut().unwrap().settled.as_mut().unwrap()).sources[0].push(u32::MAX);
     assert!(r.restore_head(bad_head).is_err());
     assert!(r.checkpoint() == before);
     // A shooting state that does not fit the scene is refused, and leaves the
@@ -434,11 +456,12 @@ fn scene_bytes_round_trip_and_refuse_damage() {
     assert!(matches!(Scene::from_bytes(&broken.to_bytes()), Err(Error::Decode(_))));
 }
 
-/// Builds before sparse `Φ_in` stored pending arrivals dense, a value for every mirror, zeros
-/// included: their whole checkpoints (version 3) and heads (version 4) read as this build's,
-/// and resume to the bits of a run that never stopped.
+/// Earlier builds stored every direction's pending `Φ_in`, dense (a value for every mirror, zeros
+/// included: whole checkpoints of version 3, heads of version 4), then sparse (versions 5 and
+/// 6): they read as the same arrivals, settle as this build settles them, and resume to the
+/// bits of a run that never stopped.
 #[test]
-fn dense_pending_power_of_earlier_builds_reads_as_sparse() {
+fn pending_power_of_earlier_builds_is_settled_as_it_is_restored() {
     use vlf_core::propagate::snapshot::earlier;
     let scene = mirror_room();
     let mut straight = Propagation::new(scene.clone(), options(5, 0)).unwrap();
@@ -447,19 +470,33 @@ fn dense_pending_power_of_earlier_builds_reads_as_sparse() {
     p.step(|_| {});
     p.step(|_| {});
     let c = p.checkpoint();
+    let l = p.directions.len();
     let mirrors = p.specular.as_ref().unwrap().mirrors.len();
     let pending = c.pending.as_ref().expect("arrivals wait to be reflected");
+    let known = |p: &Pending| -> Vec<MirrorPower> { (0..l).map(|d| p.power_in(d).unwrap().clone()).collect() };
     assert!(
-        pending.power_in.iter().any(|v| !v.is_empty() && v.len() < mirrors),
+        known(pending).iter().any(|v| !v.is_empty() && v.len() < mirrors),
         "some lit direction misses a mirror: the dense table holds zeros the sparse one leaves out"
     );
-    let read = Checkpoint::from_bytes(&earlier::whole_dense(&c, mirrors)).unwrap();
-    assert!(read == c, "a version 3 checkpoint read otherwise");
     let (head, _) = c.clone().split().0.into_parts(options(5, 0).batching());
-    let old_head = StateHead::from_bytes(&earlier::head_dense(&head, mirrors)).unwrap();
-    assert!(old_head.mirror_totals_by_batch());
-    assert!(old_head == head, "a version 4 head read otherwise");
-    let mut resumed = Propagation::resume(scene, options(5, 0), read).unwrap();
-    resumed.run(|_| {});
-    assert!(state(&resumed) == state(&straight), "resumed to other bits");
+    for sparse in [false, true] {
+        let read = Checkpoint::from_bytes(&earlier::whole_of_power(&c, mirrors, sparse)).unwrap();
+        let old = read.pending.as_ref().unwrap();
+        assert!(old.settled.is_none(), "an earlier build's arrivals are not settled");
+        assert_eq!(known(old), known(pending), "Φ_in read otherwise (sparse: {sparse})");
+        let old_head = StateHead::from_bytes(&earlier::head_of_power(&head, l, mirrors, sparse)).unwrap();
+        assert!(old_head.mirror_totals_by_batch());
+        assert_eq!(known(old_head.pending.as_ref().unwrap()), known(pending));
+        // Restored, they settle to this build's bits.
+        let mut replica = Propagation::new(scene.clone(), options(5, 0)).unwrap();
+        replica.restore_head(old_head).unwrap();
+        assert_eq!(
+            replica.specular.as_ref().unwrap().pending.as_ref().unwrap().settled,
+            pending.settled
+        );
+        let mut resumed = Propagation::resume(scene.clone(), options(5, 0), read).unwrap();
+        assert!(resumed.checkpoint() == c, "resumed otherwise (sparse: {sparse})");
+        resumed.run(|_| {});
+        assert!(state(&resumed) == state(&straight), "resumed to other bits");
+    }
 }

@@ -8,9 +8,10 @@ mod common;
 
 use common::*;
 use std::collections::HashMap;
+use vlf_core::propagate::specular::{BatchArrivals, MirrorPower};
 use vlf_core::propagate::{
-    BatchOutput, Checkpoint, HomeThreads, MapBatch, MapKind, Options, Pass, Propagation, ShootingState, StateHead,
-    Stop, Totals, reduce,
+    Arrivals, BatchOutput, Checkpoint, HomeThreads, MapBatch, MapKind, Options, Pass, Propagation, ShootingState,
+    StateHead, Stop, Totals, reduce,
 };
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
@@ -533,34 +534,81 @@ fn out_of_order_and_foreign_batches_are_refused() {
     assert!(main.apply_batch(&mut work, out.clone()).is_err());
     out.iteration = 0;
     assert!(work.uses_mirror_maps());
-    let mut short = out.clone();
-    short.power_in.as_mut().unwrap().pop();
-    assert!(main.apply_batch(&mut work, short).is_err());
-    // Φ_in is sparse, by increasing mirror: a NaN, a mirror beyond the scene's or one twice is
-    // refused.
-    let lit = (out.power_in.as_ref().unwrap().iter())
-        .position(|p| !p.is_empty())
-        .expect("light on a mirror in the first iteration");
-    let mut bad = out.clone();
-    bad.power_in.as_mut().unwrap()[lit][0].1[1] = f64::NAN;
-    assert!(main.apply_batch(&mut work, bad).is_err());
-    let mut beyond = out.clone();
-    beyond.power_in.as_mut().unwrap()[lit].push((u32::MAX, [1.0; 3]));
-    assert!(main.apply_batch(&mut work, beyond).is_err());
-    let mut twice = out.clone();
-    let first = twice.power_in.as_ref().unwrap()[lit][0];
-    twice.power_in.as_mut().unwrap()[lit].push(first);
-    assert!(main.apply_batch(&mut work, twice).is_err());
+    // Arrivals settled by batch: one part per batch of the block, finite power, feeding batches
+    // that exist, each once, in order; none where the pass uses mirror maps is refused.
+    let parts = match out.arrivals.clone() {
+        Some(Arrivals::Settled(parts)) => parts,
+        other => panic!("arrivals not settled: {other:?}"),
+    };
+    assert_eq!(parts.len(), 2);
+    assert!(
+        parts.iter().any(|p| !p.feeds.is_empty()),
+        "light on a mirror in the first iteration"
+    );
+    let with = |change: &dyn Fn(&mut Vec<BatchArrivals>)| {
+        let mut bad = out.clone();
+        let mut parts = parts.clone();
+        change(&mut parts);
+        bad.arrivals = Some(Arrivals::Settled(parts));
+        bad
+    };
+    let count = work.batches() as u32;
+    for bad in [
+        with(&|p| drop(p.pop())),
+        with(&|p| p[0].exchange.incident[1] = f64::NAN),
+        with(&|p| p[1].exchange.reflected[0] = -1.0),
+        with(&|p| p[0].feeds.push(count)),
+        with(&|p| p[0].feeds = vec![1, 0]),
+        with(&|p| p[0].feeds = vec![0, 0]),
+    ] {
+        assert!(main.apply_batch(&mut work, bad).is_err());
+    }
     let mut missing = out.clone();
-    missing.power_in = None;
+    missing.arrivals = None;
     assert!(main.apply_batch(&mut work, missing).is_err());
-    // Stored, it reads back; as an earlier build wrote it (Φ_in dense), it reads as sparse.
-    assert_eq!(BatchOutput::from_bytes(&out.to_bytes()).unwrap(), out);
-    let mirrors = main.specular.as_ref().unwrap().mirrors.len();
-    let dense = vlf_core::propagate::snapshot::earlier::batch_output_dense(&out, mirrors);
-    assert_eq!(BatchOutput::from_bytes(&dense).unwrap(), out);
-    // Mirror maps of another snapshot, or that do not fit, are not adopted.
+    // As an earlier build reported them, `Φ_in` per direction (sparse, by increasing mirror),
+    // they settle to the worker's bits; a NaN, a mirror beyond the scene's, one twice or a
+    // direction short is refused.
     let block = block.unwrap();
+    let spec = main.specular.as_ref().unwrap();
+    let power: Vec<MirrorPower> = (block.shooting.iter().enumerate())
+        .map(|(d, incident)| spec.power_in_of(&main.directions, d, incident))
+        .collect();
+    let batching = work.batching();
+    for (b, part) in parts.iter().enumerate() {
+        let of_batch: Vec<&MirrorPower> = power[batching.range(b)].iter().collect();
+        assert_eq!(spec.settle_batch(&main.scene, &batching, b, &of_batch), *part);
+    }
+    let mirrors = spec.mirrors.len();
+    let lit = power.iter().position(|p| !p.is_empty()).expect("light on a mirror");
+    let with_power = |change: &dyn Fn(&mut Vec<MirrorPower>)| {
+        let mut old = out.clone();
+        let mut power = power.clone();
+        change(&mut power);
+        old.arrivals = Some(Arrivals::Power(power));
+        old
+    };
+    for bad in [
+        with_power(&|p| p[lit][0].1[1] = f64::NAN),
+        with_power(&|p| p[lit].push((u32::MAX, [1.0; 3]))),
+        with_power(&|p| {
+            let first = p[lit][0];
+            p[lit].push(first)
+        }),
+        with_power(&|p| drop(p.pop())),
+    ] {
+        assert!(main.apply_batch(&mut work, bad).is_err());
+    }
+    // Stored, it reads back; as earlier builds wrote it (`Φ_in`, dense or sparse), as `Φ_in`.
+    assert_eq!(BatchOutput::from_bytes(&out.to_bytes()).unwrap(), out);
+    for sparse in [false, true] {
+        let old = vlf_core::propagate::snapshot::earlier::batch_output_of_power(&out, &power, mirrors, sparse);
+        assert_eq!(BatchOutput::from_bytes(&old).unwrap(), with_power(&|_| {}));
+    }
+    // An earlier build's output is absorbed as this build's is.
+    let mut old_work = main.iteration_work();
+    main.apply_batch(&mut old_work, with_power(&|_| {})).unwrap();
+    // Mirror maps of another snapshot, or that do not fit, are not adopted.
     assert!(
         main.adopt_mirrors(block.clone()).is_err(),
         "adopted before the iteration ended"

@@ -7,7 +7,7 @@ use common::*;
 use glam::DVec3;
 use std::f64::consts::PI;
 use vlf_core::propagate::specular::MirrorLayout;
-use vlf_core::propagate::{MapBatch, Options, Pass, Propagation, StateHead, Stop};
+use vlf_core::propagate::{Exchange, MapBatch, Options, Pass, Propagation, StateHead, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::Scene;
 
@@ -71,7 +71,7 @@ fn gathered_maps_carry_the_settled_power() {
     let (scene, directions) = (p.scene.clone(), p.directions.clone());
     let spec = p.specular.as_mut().unwrap();
     let pending = spec.pending.clone().expect("arrivals wait to be reflected");
-    let settled = spec.unshot_power(&scene, &directions);
+    let settled = spec.unshot_power(&directions);
     assert!(lum(&settled) > 0.0);
     assert_eq!(settled, p.stats[1].specular_unshot);
     let read = |d: usize| spec.maps[d].incident.as_slice();
@@ -98,7 +98,7 @@ fn gathered_maps_carry_the_settled_power() {
     assert_eq!(at(&spec.maps), before);
     assert!(spec.maps.iter().all(|m| m.incident.iter().all(|v| *v == [0.0; 3])));
     assert!(spec.pending.is_none());
-    let gathered = spec.unshot_power(&scene, &directions);
+    let gathered = spec.unshot_power(&directions);
     for c in 0..3 {
         assert!(
             (gathered[c] - settled[c]).abs() <= 1e-9 * settled[c],
@@ -511,68 +511,98 @@ fn mirror_maps_are_held_where_they_are_written() {
     }
 }
 
+/// The mirrors (surfaces) with rays in direction `i`: those its gathers fill.
+fn slotted(spec: &vlf_core::propagate::Specular, i: usize) -> std::collections::HashSet<u32> {
+    let view = &spec.views[i];
+    (view.layout.entries.iter())
+        .filter(|&&(_, _, e)| view.sub.entries[e as usize].rays > 0)
+        .map(|&(s, _, _)| s)
+        .collect()
+}
+
+/// `Φ_in` of `source` on mirror `k` (zero where none arrived), as the process knows it.
+fn pin(pending: &vlf_core::propagate::specular::Pending, source: u32, k: u32) -> [f64; 3] {
+    let known = pending.power_in(source as usize).expect("one process knows every Φ_in");
+    known.iter().find(|(m, _)| *m == k).map_or([0.0; 3], |e| e.1)
+}
+
 /// The batches of the source directions of every route of `targets` whose mirror received
-/// power from that source, increasing: what a worker must read before it gathers them.
+/// power from that source and has slots in the target, increasing: what a worker must read
+/// before it gathers them.
 fn source_batches_by_definition(p: &Propagation, targets: std::ops::Range<usize>) -> Vec<usize> {
     let spec = p.specular.as_ref().unwrap();
     let pending = spec.pending.as_ref().unwrap();
     let ordinal = |m: u32| spec.mirrors.iter().position(|&x| x == m).unwrap() as u32;
     let mut batches = std::collections::BTreeSet::new();
-    for route in spec.routes[targets].iter().flatten() {
-        let k = ordinal(route.mirror);
-        let lit =
-            (pending.power_in[route.source as usize].iter()).any(|(m, pin)| *m == k && pin.iter().any(|&c| c > 0.0));
-        if lit {
-            batches.insert(p.batching().batch_of(route.source as usize));
+    for i in targets {
+        let slotted = slotted(spec, i);
+        for route in &spec.routes[i] {
+            let lit = pin(pending, route.source, ordinal(route.mirror))
+                .iter()
+                .any(|&c| c > 0.0);
+            if lit && slotted.contains(&route.mirror) {
+                batches.insert(p.batching().batch_of(route.source as usize));
+            }
         }
     }
     batches.into_iter().collect()
 }
 
-/// The exchange's bookkeeping as its definition reads, route by route: for every target in
-/// order, its routes in order, `b·ρs·Φ_in` of each route whose source lit its mirror and whose
-/// mirror has slots in the target, looked up in the per-source lists of `Φ_in`.
-fn reflected_by_definition(p: &Propagation) -> [f64; 3] {
+/// The exchange's bookkeeping as its definition reads, route by route: per batch of sources, in
+/// order, `Σ Φ_in` of its directions and `b·ρs·Φ_in` of each route from them whose source lit
+/// its mirror and whose mirror has slots in the target, source by source, then by (mirror,
+/// target), looked up in the per-source lists of `Φ_in`; the batches added in order.
+fn exchange_by_definition(p: &Propagation) -> Exchange {
     let spec = p.specular.as_ref().unwrap();
     let pending = spec.pending.as_ref().unwrap();
     let ordinal = |m: u32| spec.mirrors.iter().position(|&x| x == m).unwrap() as u32;
-    let mut want = [0.0; 3];
-    for (i, routes) in spec.routes.iter().enumerate() {
-        let view = &spec.views[i];
-        let slotted: std::collections::HashSet<u32> = (view.layout.entries.iter())
-            .filter(|&&(_, _, e)| view.sub.entries[e as usize].rays > 0)
-            .map(|&(s, _, _)| s)
-            .collect();
-        let mut reflected = [0.0; 3];
-        for route in routes {
-            let k = ordinal(route.mirror);
-            let pin = (pending.power_in[route.source as usize].iter())
-                .find(|(m, _)| *m == k)
-                .map_or([0.0; 3], |e| e.1);
-            if pin.iter().all(|&c| c <= 0.0) || !slotted.contains(&route.mirror) {
+    let mut routes: Vec<(u32, u32, usize, f64, u32)> = Vec::new();
+    for (i, of_target) in spec.routes.iter().enumerate() {
+        let slotted = slotted(spec, i);
+        for route in of_target.iter().filter(|r| slotted.contains(&r.mirror)) {
+            routes.push((route.source, ordinal(route.mirror), i, route.weight, route.mirror));
+        }
+    }
+    routes.sort_by_key(|&(s, k, i, _, _)| (s, k, i));
+    let batching = p.batching();
+    let mut want = Exchange::default();
+    for b in 0..batching.count() {
+        let mut part = Exchange::default();
+        for d in batching.range(b) {
+            for (_, v) in pending.power_in(d).unwrap() {
+                for (sum, c) in part.incident.iter_mut().zip(v) {
+                    *sum += c;
+                }
+            }
+        }
+        for &(source, k, _, weight, mirror) in routes.iter().filter(|r| batching.batch_of(r.0 as usize) == b) {
+            let pin = pin(pending, source, k);
+            if pin.iter().all(|&c| c <= 0.0) {
                 continue;
             }
-            let rho = p.scene.materials[p.scene.surfaces[route.mirror as usize].material].specular;
+            let rho = p.scene.materials[p.scene.surfaces[mirror as usize].material].specular;
             for c in 0..3 {
-                let t = route.weight * rho[c] * pin[c];
+                let t = weight * rho[c] * pin[c];
                 if t > 0.0 {
-                    reflected[c] += t;
+                    part.reflected[c] += t;
                 }
             }
         }
         for c in 0..3 {
-            want[c] += reflected[c];
+            want.incident[c] += part.incident[c];
+            want.reflected[c] += part.reflected[c];
         }
     }
     want
 }
 
-/// Settling reads `Φ_in` turned around by mirror, passing over whole the mirrors no source
-/// lit: with a faceted mirror ball (most of its triangles unlit by most directions, several
-/// routes of a target on one triangle) and with flat mirrors, the reflected power is the
-/// definition's to the bit, every iteration.
+/// Settling walks each batch's routes by source beside its sources' `Φ_in`, passing over the
+/// mirrors a source did not light: with a faceted mirror ball (most of its triangles unlit by
+/// most directions, several routes of a target on one triangle) and with flat mirrors, the
+/// exchange is the definition's to the bit, every iteration, and so are the batches that a
+/// block of targets gathers from.
 #[test]
-fn settling_by_mirror_gives_the_bits_of_the_definition() {
+fn settling_by_source_gives_the_bits_of_the_definition() {
     // The lamp and the wall of `lamp_beside_a_mirror`, a ball of 320 mirror triangles between.
     let plane = lamp_beside_a_mirror();
     let mut surfaces = vec![plane.surfaces[0].clone(), plane.surfaces[2].clone()];
@@ -593,11 +623,11 @@ fn settling_by_mirror_gives_the_bits_of_the_definition() {
             p.step(|_| {});
             let spec = p.specular.as_ref().unwrap();
             let pending = spec.pending.as_ref().expect("arrivals pending");
-            let settled = spec.settle(&p.scene, pending);
+            let settled = spec.settled().expect("settled");
             assert!(lum(&settled.reflected) > 0.0);
-            assert_eq!(settled.reflected, reflected_by_definition(&p));
-            // Once a worker's look-ups have turned `Φ_in` around, settling reads theirs: the
-            // batches a block gathers from, for the whole pass and for each half and quarter.
+            assert_eq!(settled, exchange_by_definition(&p));
+            assert_eq!(p.stats.last().unwrap().exchange, settled);
+            // The batches a block gathers from, for the whole pass and for each half and quarter.
             let batching = p.batching();
             let n = batching.count();
             for size in [n, n / 2, n / 4] {
@@ -608,7 +638,91 @@ fn settling_by_mirror_gives_the_bits_of_the_definition() {
                     assert!(size < n || !found.is_empty());
                 }
             }
-            assert_eq!(spec.settle(&p.scene, pending), settled);
+            let power: Vec<_> = (0..p.directions.len()).map(|d| pending.power_in(d).unwrap()).collect();
+            assert_eq!(
+                spec.settle_all(&p.scene, &batching, &power),
+                *pending.settled().unwrap()
+            );
         }
     }
+}
+
+/// What every lease reads of a snapshot holds what the pending arrivals come to, not their
+/// `Φ_in`: its part grows with the batches, not with the (direction, mirror) pairs that light
+/// reached, and a replica that restores the batches a block gathers from gathers it to the bits
+/// of the whole propagation.
+#[test]
+fn the_head_carries_the_arrivals_settled_and_a_replica_finds_their_power_from_the_maps() {
+    let plane = lamp_beside_a_mirror();
+    let mut surfaces = vec![plane.surfaces[0].clone(), plane.surfaces[2].clone()];
+    let glass = plane.surfaces[1].material;
+    for t in icosphere(DVec3::new(-0.1, 0.0, 0.2), 0.15, 2) {
+        surfaces.push(surface(t.to_vec(), glass));
+    }
+    let ball = scene(surfaces, plane.materials.clone());
+    let options = options(129, 32, 8, 8);
+    let mut p = Propagation::new(ball.clone(), options.clone()).unwrap();
+    p.step(|_| {});
+    p.step(|_| {});
+    let l = p.directions.len();
+    let pending = p.specular.as_ref().unwrap().pending.as_ref().expect("arrivals pending");
+    let pairs: usize = (0..l).map(|d| pending.power_in(d).unwrap().len()).sum();
+    let batches = p.batching().count();
+    let bytes = p.snapshot_bytes(true);
+    let mut head = StateHead::from_bytes(&bytes.head).unwrap();
+    let settled = head.pending.as_ref().unwrap().settled.clone().expect("settled");
+    head.pending = None;
+    let pending_bytes = bytes.head.len() - head.to_bytes().len();
+    // The option's tag and the exchange, then per batch a length and its source batches.
+    let bound = 1 + 1 + 48 + 8 + batches * (8 + 4 * batches);
+    assert!(
+        pending_bytes <= bound,
+        "{pending_bytes} bytes of pending arrivals, more than {bound}"
+    );
+    assert!(
+        pairs * 28 > 2 * bound,
+        "Φ_in ({pairs} pairs) would not have been larger"
+    );
+    assert!(settled.sources.iter().any(|s| !s.is_empty()));
+    // A replica restores the head and, for a block, the batches its gathers read: their `Φ_in`
+    // found from the maps, the block's bits are the whole propagation's.
+    let work = p.iteration_work();
+    let mut replica = Propagation::new(ball, options).unwrap();
+    replica
+        .restore_head(StateHead::from_bytes(&bytes.head).unwrap())
+        .unwrap();
+    let block = 0..batches / 2;
+    let (shooting, totals) = replica.mirror_batches_read(&work, Pass::Shoot, block.clone()).unwrap();
+    assert!(
+        shooting.len() < batches || batches == 1,
+        "a block reads only what it gathers from"
+    );
+    for b in &shooting {
+        let part = MapBatch::from_bytes(&bytes.shooting[*b]).unwrap();
+        let missing = shooting.len() > 1 && *b == shooting[0];
+        if !missing {
+            replica.restore_shooting_batch(part).unwrap();
+        }
+    }
+    for b in totals {
+        replica
+            .restore_totals_batch(MapBatch::from_bytes(&bytes.mirror_totals[b]).unwrap())
+            .unwrap();
+    }
+    if shooting.len() > 1 {
+        // One batch it gathers from left out: refused, not gathered as dark.
+        let err = replica
+            .compute_block(&work, Pass::Shoot, block.clone())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("not restored"), "{err}");
+        replica
+            .restore_shooting_batch(MapBatch::from_bytes(&bytes.shooting[shooting[0]]).unwrap())
+            .unwrap();
+    }
+    let (got, got_maps) = replica.compute_block(&work, Pass::Shoot, block.clone()).unwrap();
+    let mut whole = p.clone();
+    let (want, want_maps) = whole.compute_block(&work, Pass::Shoot, block).unwrap();
+    assert!(got == want, "the replica's block output differs");
+    assert!(got_maps == want_maps, "the replica's block maps differ");
 }

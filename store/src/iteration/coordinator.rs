@@ -141,14 +141,9 @@ impl Coordinator {
     /// does once the iteration's first leases are out, while the workers compute. Left to the
     /// first absorb, it would be paid at the end of a pass leased whole to one worker, whose
     /// one block is absorbed only when the pass is done (0.1–0.3 ms of the mirror scene's
-    /// iterations, on the path to the next leases). With mirrors, it also turns the routes
-    /// around for the iteration's end ([`vlf_core::propagate::Specular::prepare_settle`]): once,
-    /// in the first iteration.
+    /// iterations, on the path to the next leases).
     pub fn prepare_work(&mut self) {
         self.work();
-        if let Some(spec) = &self.prop.specular {
-            spec.prepare_settle();
-        }
     }
 
     fn work(&mut self) -> &mut IterationWork {

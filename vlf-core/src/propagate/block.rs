@@ -12,8 +12,8 @@
 
 use super::Propagation;
 use super::reduce::is_aligned_block;
-use super::specular::Unheld;
-use super::work::{BatchOutput, IterationWork, MirrorBlock, MirrorIo, Pass, add_into};
+use super::specular::{BatchArrivals, MirrorPower, Unheld};
+use super::work::{Arrivals, BatchOutput, IterationWork, MirrorBlock, MirrorIo, Pass, add_into};
 use crate::scene::Rgb;
 use rayon::prelude::*;
 use std::borrow::Cow;
@@ -26,7 +26,7 @@ impl Propagation {
     /// maps and, while arrivals are pending, those of the directions the
     /// block gathers from — [`super::Specular::source_batches`]): what a worker does
     /// for a lease. Returns the block's output for the coordinator (its node
-    /// sum, [`super::reduce`], and `Φ_in`) and, when the pass uses them, its
+    /// sum, [`super::reduce`], and its arrivals settled) and, when the pass uses them, its
     /// directions' mirror maps for the next snapshot.
     ///
     /// The block's total maps *move* into the returned [`MirrorBlock`] (each
@@ -56,7 +56,7 @@ impl Propagation {
     /// scene's last batches cost twice its first).
     ///
     /// The costs add up to all the block took, in the proportions of the batches' shooting:
-    /// what the block does besides shooting and gathering (the arrivals' `Φ_in`, the totals,
+    /// what the block does besides shooting and gathering (the arrivals settled, the totals,
     /// the maps made ready) is its batches' work too. Left out, it was half of what the first
     /// mirror iteration of the mirror dragon took (1.25 s of 2.54 s), and a worker looked idle
     /// for it.
@@ -166,6 +166,7 @@ impl Propagation {
         let unshot: Option<Vec<Cow<[Rgb]>>> = spec
             .map(|spec| match &spec.pending {
                 Some(pending) => {
+                    spec.check_sources_known(directions.clone(), pending, &work.batching())?;
                     let read = |d: usize| spec.maps[d].incident.as_slice();
                     directions
                         .clone()
@@ -204,19 +205,29 @@ impl Propagation {
         let share = if threads_time > 0.0 { wall / threads_time } else { 0.0 };
         let costs: Vec<f64> = seconds.iter().map(|cost| gathered + cost * share).collect();
         drop(maps);
-        let power_in = spec.zip(incident.as_ref()).map(|(spec, incident)| {
-            directions
-                .clone()
-                .zip(incident)
+        // What the block's directions brought to the mirrors, settled here batch by batch
+        // (`specular::Pending`): their `Φ_in` stays with their maps.
+        let arrivals = spec.zip(incident.as_ref()).map(|(spec, incident)| {
+            let power_in: Vec<_> = (directions.clone().into_par_iter().zip(incident))
                 .map(|(d, m)| spec.power_in_of(dirs, d, m))
-                .collect()
+                .collect();
+            let batching = work.batching();
+            let first = directions.start;
+            let parts = (batches.clone().into_par_iter())
+                .map(|b| {
+                    let range = batching.range(b);
+                    let power: Vec<&MirrorPower> = power_in[range.start - first..range.end - first].iter().collect();
+                    spec.settle_batch(scene, &batching, b, &power)
+                })
+                .collect();
+            Arrivals::Settled(parts)
         });
         let output = BatchOutput {
             iteration: work.index,
             pass,
             batches: batches.start as u32..batches.end as u32,
             sum,
-            power_in,
+            arrivals,
         };
         // Gathered maps are the block's own; restored ones are copied (only
         // before light reaches a mirror: the iteration then keeps them).
@@ -263,7 +274,8 @@ impl Propagation {
 
     /// Absorbs a worker's block output into `work`: what the coordinator
     /// does, in order. Outputs of another iteration, out of order, or whose
-    /// `Φ_in` does not fit are refused.
+    /// arrivals do not fit are refused. Arrivals as earlier builds reported them (`Φ_in`) are
+    /// settled here, as this build's workers settle theirs.
     pub fn apply_batch(&mut self, work: &mut IterationWork, out: BatchOutput) -> crate::Result<()> {
         if out.iteration != work.index {
             return Err(crate::Error::Parameter(format!(
@@ -273,34 +285,77 @@ impl Propagation {
         }
         let batches = out.batches.start as usize..out.batches.end as usize;
         let range = self.block_directions(work, &batches)?;
-        let wants_power = out.pass == Pass::Shoot && work.uses_mirror_maps();
-        let mirrors = self.specular.as_ref().map_or(0, |s| s.mirrors.len());
-        let checked = match (&out.power_in, wants_power) {
-            (None, false) => Ok(()),
-            (Some(power), true) => {
-                let fits = power.len() == range.len()
-                    && (power.iter()).all(|p| super::checkpoint::mirror_power_fits(p, mirrors as u32));
-                if fits {
-                    Ok(())
-                } else {
-                    Err(format!(
-                        "mirror power of batches {batches:?} does not fit their directions"
-                    ))
-                }
+        let wants_arrivals = out.pass == Pass::Shoot && work.uses_mirror_maps();
+        let arrivals = match (out.arrivals, wants_arrivals) {
+            (None, false) => None,
+            (Some(arrivals), true) => Some(self.settled_arrivals(work, &batches, range, arrivals)?),
+            _ => {
+                return Err(crate::Error::Decode(format!(
+                    "batches {batches:?} of {:?}: mirror arrivals missing or unexpected",
+                    out.pass
+                )));
             }
-            _ => Err(format!(
-                "batches {batches:?} of {:?}: mirror power missing or unexpected",
-                out.pass
-            )),
         };
-        checked.map_err(crate::Error::Decode)?;
-        work.absorb(out.pass, batches, out.sum)?;
-        if let Some(power) = out.power_in {
-            for (slot, p) in work.power_in[range].iter_mut().zip(power) {
-                *slot = p;
+        work.absorb(out.pass, batches.clone(), out.sum)?;
+        if let Some(parts) = arrivals {
+            for (slot, part) in work.arrivals[batches].iter_mut().zip(parts) {
+                *slot = Some(part);
             }
         }
         Ok(())
+    }
+
+    /// A block's arrivals, for its `batches` and their directions `range`, as checked and
+    /// settled parts: one per batch, finite non-negative power, feeding batches that exist.
+    fn settled_arrivals(
+        &self,
+        work: &IterationWork,
+        batches: &Range<usize>,
+        range: Range<usize>,
+        arrivals: Arrivals,
+    ) -> crate::Result<Vec<BatchArrivals>> {
+        let Some(spec) = self.specular.as_ref() else {
+            return Err(crate::Error::Decode(
+                "mirror arrivals for a scene without mirrors".into(),
+            ));
+        };
+        let count = work.batches();
+        let misfit = |what: &str| {
+            Err(crate::Error::Decode(format!(
+                "mirror {what} of batches {batches:?} do not fit"
+            )))
+        };
+        match arrivals {
+            Arrivals::Settled(parts) => {
+                let fits = |part: &BatchArrivals| {
+                    let x = &part.exchange;
+                    super::checkpoint::valid(&[x.incident, x.reflected])
+                        && part.feeds.windows(2).all(|w| w[0] < w[1])
+                        && part.feeds.last().is_none_or(|&t| (t as usize) < count)
+                };
+                if parts.len() != batches.len() || !parts.iter().all(fits) {
+                    return misfit("arrivals");
+                }
+                Ok(parts)
+            }
+            Arrivals::Power(power) => {
+                let mirrors = spec.mirrors.len() as u32;
+                let fits = power.len() == range.len()
+                    && (power.iter()).all(|p| super::checkpoint::mirror_power_fits(p, mirrors));
+                if !fits {
+                    return misfit("power");
+                }
+                let batching = work.batching();
+                let parts = batches.clone().map(|b| {
+                    let of_batch = batching.range(b);
+                    let power: Vec<&MirrorPower> = power[of_batch.start - range.start..of_batch.end - range.start]
+                        .iter()
+                        .collect();
+                    spec.settle_batch(&self.scene, &batching, b, &power)
+                });
+                Ok(parts.collect())
+            }
+        }
     }
 
     /// Takes a block's mirror maps into this propagation, as if it had
@@ -346,7 +401,7 @@ impl Propagation {
                     "mirror maps of a block that did not exchange like the iteration".into(),
                 ));
             }
-            for ((m, shooting), total) in spec.maps[range].iter_mut().zip(block.shooting).zip(block.total) {
+            for ((m, shooting), total) in spec.maps[range.clone()].iter_mut().zip(block.shooting).zip(block.total) {
                 m.total = total;
                 if block.pending {
                     m.incident = shooting;
@@ -354,6 +409,8 @@ impl Propagation {
                     m.unshot = shooting;
                 }
             }
+            // Arrivals: their `Φ_in`, for the gathers that read them.
+            spec.know_arrivals(&self.directions, range);
         }
         Ok(())
     }

@@ -16,8 +16,9 @@
 //!   route into its target's sum. Mirror after mirror, a target's sum takes its routes in their
 //!   (mirror, source) order, the order of the definition, so the sums are its bits.
 
-use super::specular::{MirrorPower, Route};
+use super::specular::{BatchArrivals, Exchange, MirrorPower, Route};
 use crate::scene::Rgb;
+use rayon::prelude::*;
 
 /// `Φ_in(P, ω)` indexed by mirror `P` (its ordinal), then by source direction `ω`.
 ///
@@ -37,15 +38,15 @@ pub struct PowerByMirror {
 }
 
 impl PowerByMirror {
-    /// The index of `power_in` (per source direction, as [`MirrorPower`]) over `mirrors`
-    /// mirrors: a counting sort by mirror, stable in the source. `power_in` is as a restore
+    /// The index of `power_in` (per source direction, as [`MirrorPower`], where known) over
+    /// `mirrors` mirrors: a counting sort by mirror, stable in the source. `power_in` is as a restore
     /// checks it (`check_pending`: each list by strictly increasing mirror, every mirror below
     /// `mirrors`); an entry for a mirror number out of range is left out all the same, as no
     /// route could ask for it.
-    pub fn new(power_in: &[MirrorPower], mirrors: usize) -> PowerByMirror {
+    pub fn new(power_in: &[Option<MirrorPower>], mirrors: usize) -> PowerByMirror {
         let known = |k: u32| (k as usize) < mirrors;
         let mut start = vec![0u32; mirrors + 1];
-        for &(k, _) in power_in.iter().flatten().filter(|(k, _)| known(*k)) {
+        for &(k, _) in power_in.iter().flatten().flatten().filter(|(k, _)| known(*k)) {
             start[k as usize + 1] += 1;
         }
         for k in 0..mirrors {
@@ -55,7 +56,7 @@ impl PowerByMirror {
         let mut sources = vec![0; start[mirrors] as usize];
         let mut powers = vec![[0.0; 3]; start[mirrors] as usize];
         for (source, list) in power_in.iter().enumerate() {
-            for &(k, power) in list.iter().filter(|(k, _)| known(*k)) {
+            for &(k, power) in list.iter().flatten().filter(|(k, _)| known(*k)) {
                 let at = &mut next[k as usize];
                 sources[*at as usize] = source as u32;
                 powers[*at as usize] = power;
@@ -66,6 +67,7 @@ impl PowerByMirror {
     }
 
     /// Number of (mirror, source) pairs that carry power.
+    #[cfg(test)]
     pub fn len(&self) -> usize {
         self.sources.len()
     }
@@ -79,6 +81,7 @@ impl PowerByMirror {
     }
 
     /// The sources that lit mirror `k` (increasing) and their powers.
+    #[cfg(test)]
     pub fn of(&self, k: u32) -> (&[u32], &[Rgb]) {
         let run = self.run(k);
         (&self.sources[run.clone()], &self.powers[run])
@@ -94,59 +97,66 @@ impl PowerByMirror {
     }
 }
 
-/// The routes of every target direction, by mirror (its ordinal), then by source, then by
-/// target: the exchange's table read mirror by mirror ([`RoutesByMirror::reflected`]). Only the
-/// routes that can carry power are kept: those whose mirror has slots in their target (the
-/// others have nothing to fill).
+/// The routes of every target direction, by source, then by mirror (its ordinal), then by
+/// target: the exchange's table read source by source ([`RoutesBySource::settle`]). A batch of
+/// sources is one run of it, so whoever shoots a batch settles the exchange of what its
+/// directions brought to the mirrors, walking that batch's routes alone. Only the routes that
+/// can carry power are kept: those whose mirror has slots in their target (the others have
+/// nothing to fill).
 #[derive(Clone, Debug)]
-pub struct RoutesByMirror {
-    /// `start[k]..start[k + 1]`: mirror `k`'s run of `routes`.
-    start: Vec<u32>,
-    /// (source, target, weight `b`).
+pub struct RoutesBySource {
+    /// `start[s]..start[s + 1]`: source `s`'s run of `routes`.
+    start: Vec<usize>,
+    /// (mirror ordinal, target, weight `b`).
     routes: Vec<(u32, u32, f64)>,
 }
 
-impl RoutesByMirror {
-    /// Turns `routes` (per target, by (mirror, source)) around: `ordinal` numbers the mirrors
-    /// (a surface's ordinal among `mirrors`), `slotted[i]` lists the mirrors with slots in target
-    /// `i` (increasing).
-    pub fn new(routes: &[Vec<Route>], ordinal: &[u32], slotted: &[Vec<u32>], mirrors: usize) -> RoutesByMirror {
-        // Each target's runs of one mirror, with the mirror's ordinal, where it has slots.
+impl RoutesBySource {
+    /// Turns `routes` (per target, by (mirror, source)) around over `directions` sources:
+    /// `ordinal` numbers the mirrors (a surface's ordinal among the mirrors), `slotted[i]` lists
+    /// the mirrors with slots in target `i` (increasing).
+    pub fn new(routes: &[Vec<Route>], ordinal: &[u32], slotted: &[Vec<u32>], directions: usize) -> RoutesBySource {
+        // Each target's runs of one mirror, with the mirror's ordinal, where it has slots: one
+        // look-up of the target's slotted mirrors per run, not per route.
         let kept = || {
             routes.iter().enumerate().flat_map(move |(i, routes)| {
                 (routes.chunk_by(|a, b| a.mirror == b.mirror))
                     .map(move |run| (i, ordinal[run[0].mirror as usize], run))
                     .filter(move |&(_, k, _)| slotted[i].binary_search(&k).is_ok())
+                    .flat_map(|(i, k, run)| run.iter().map(move |route| (i, k, route)))
+                    .filter(move |&(_, _, route)| (route.source as usize) < directions)
             })
         };
-        let mut start = vec![0u32; mirrors + 1];
-        for (_, k, run) in kept() {
-            start[k as usize + 1] += run.len() as u32;
+        let mut start = vec![0usize; directions + 1];
+        for (_, _, route) in kept() {
+            start[route.source as usize + 1] += 1;
         }
-        for k in 0..mirrors {
-            start[k + 1] += start[k];
+        for s in 0..directions {
+            start[s + 1] += start[s];
         }
         let mut next = start.clone();
-        let mut by_mirror = vec![(0, 0, 0.0); start[mirrors] as usize];
-        for (i, k, run) in kept() {
-            for route in run {
-                let at = &mut next[k as usize];
-                by_mirror[*at as usize] = (route.source, i as u32, route.weight);
-                *at += 1;
-            }
+        let mut by_source = vec![(0, 0, 0.0); start[directions]];
+        for (i, k, route) in kept() {
+            let at = &mut next[route.source as usize];
+            by_source[*at] = (k, i as u32, route.weight);
+            *at += 1;
         }
-        // Filled target by target: each mirror's run is by target, and by source within one;
-        // by (source, target) now. A stable sort: were a (source, target) pair there twice, its
-        // routes would stay in the target's order.
-        let mut rest = &mut by_mirror[..];
-        for k in 0..mirrors {
-            let (run, after) = rest.split_at_mut((start[k + 1] - start[k]) as usize);
-            run.sort_by_key(|&(source, target, _)| (source, target));
+        // Filled target by target: each source's run is by target; by (mirror, target) now, to
+        // walk beside the source's `Φ_in` (by mirror), each source's run on its own thread. A
+        // stable sort: were a (mirror, target) pair there twice, its routes would stay in the
+        // target's order.
+        let mut runs = Vec::with_capacity(directions);
+        let mut rest = &mut by_source[..];
+        for s in 0..directions {
+            let (run, after) = rest.split_at_mut(start[s + 1] - start[s]);
+            runs.push(run);
             rest = after;
         }
-        RoutesByMirror {
+        runs.into_par_iter()
+            .for_each(|run| run.sort_by_key(|&(k, target, _)| (k, target)));
+        RoutesBySource {
             start,
-            routes: by_mirror,
+            routes: by_source,
         }
     }
 
@@ -155,40 +165,67 @@ impl RoutesByMirror {
         self.routes.len()
     }
 
-    /// What each of `targets` target directions' gather reflects into its unshot map:
-    /// `Σ b·ρs·Φ_in` over its routes that carry power, per channel where positive, added in the
-    /// target's route order. `rho(k)`: mirror `k`'s specular reflectance.
-    pub fn reflected(&self, lit: &PowerByMirror, rho: impl Fn(u32) -> Rgb, targets: usize) -> Vec<Rgb> {
-        let mut reflected = vec![[0.0; 3]; targets];
-        for k in 0..self.start.len().saturating_sub(1) {
-            let (sources, powers) = lit.of(k as u32);
-            if sources.is_empty() {
-                continue;
+    /// Source `s`'s routes: (mirror ordinal, target, weight), by mirror, then target.
+    fn of(&self, s: usize) -> &[(u32, u32, f64)] {
+        match (self.start.get(s), self.start.get(s + 1)) {
+            (Some(&from), Some(&to)) => &self.routes[from..to],
+            _ => &[],
+        }
+    }
+
+    /// The exchange of what the sources `first..first + power_in.len()` (a batch) brought to the
+    /// mirrors, `power_in` being their `Φ_in`: the power that arrived, `Σ Φ_in` (source by
+    /// source, mirror by mirror), what their routes reflect, `Σ b·ρs·Φ_in` per channel where
+    /// positive (source by source, then by (mirror, target)), and the batches of the targets that
+    /// a route carrying power feeds (`batch_of`: a target's batch), increasing. `rho(k)`: mirror
+    /// `k`'s specular reflectance.
+    pub fn settle(
+        &self,
+        first: usize,
+        power_in: &[&MirrorPower],
+        rho: impl Fn(u32) -> Rgb,
+        batch_of: impl Fn(u32) -> usize,
+    ) -> BatchArrivals {
+        let mut exchange = Exchange::default();
+        let mut feeds: Vec<u32> = Vec::new();
+        for (s, &lit) in (first..).zip(power_in) {
+            for (_, v) in lit {
+                add(&mut exchange.incident, v);
             }
-            let rho = rho(k as u32);
             let mut j = 0;
-            for &(source, target, weight) in &self.routes[self.start[k] as usize..self.start[k + 1] as usize] {
-                // Both by increasing source: the merge's next match.
-                while j < sources.len() && sources[j] < source {
+            for &(k, target, weight) in self.of(s) {
+                // Both by increasing mirror: the merge's next match.
+                while j < lit.len() && lit[j].0 < k {
                     j += 1;
                 }
-                if j == sources.len() {
+                if j == lit.len() {
                     break;
                 }
-                let pin = powers[j];
-                if sources[j] != source || pin.iter().all(|&p| p <= 0.0) {
+                let (lit_k, pin) = lit[j];
+                if lit_k != k || pin.iter().all(|&p| p <= 0.0) {
                     continue;
                 }
-                let sum = &mut reflected[target as usize];
+                // A gather of the target reads this source (`Specular::gather_into`).
+                let b = batch_of(target) as u32;
+                if let Err(at) = feeds.binary_search(&b) {
+                    feeds.insert(at, b);
+                }
+                let rho = rho(k);
                 for c in 0..3 {
                     let carried = weight * rho[c] * pin[c];
                     if carried > 0.0 {
-                        sum[c] += carried;
+                        exchange.reflected[c] += carried;
                     }
                 }
             }
         }
-        reflected
+        BatchArrivals { exchange, feeds }
+    }
+}
+
+fn add(acc: &mut Rgb, v: &Rgb) {
+    for c in 0..3 {
+        acc[c] += v[c];
     }
 }
 
@@ -206,7 +243,8 @@ mod tests {
             vec![(3, [0.0, 5.0, 0.0]), (4, [0.0, 0.0, 6.0]), (9, [7.0, 7.0, 7.0])],
             vec![(0, [8.0, 0.0, 0.0])],
         ];
-        let index = PowerByMirror::new(&power_in, 5);
+        let known: Vec<Option<MirrorPower>> = power_in.iter().cloned().map(Some).collect();
+        let index = PowerByMirror::new(&known, 5);
         for (s, list) in power_in.iter().enumerate() {
             for k in 0..6u32 {
                 let want = match list.iter().find(|(m, _)| *m == k) {
@@ -222,11 +260,12 @@ mod tests {
         assert_eq!(index.len(), 5);
     }
 
-    /// Routes read mirror by mirror give each target the sum of its own routes taken in order:
-    /// a mirror without a slot in the target is left out, sources interleave between targets,
-    /// a source that lit nothing and a route past the mirror's last lit source carry nothing.
+    /// A batch of sources settles what its own routes carry, walked source by source, then by
+    /// (mirror, target): a mirror without a slot in the target is left out, a source that lit
+    /// nothing and a route past a source's last lit mirror carry nothing, and the batches of the
+    /// targets that a carrying route feeds are listed once each.
     #[test]
-    fn routes_by_mirror_sum_each_targets_routes_in_order() {
+    fn routes_by_source_settle_a_batch_of_sources() {
         let route = |mirror, source, weight| Route { mirror, source, weight };
         // Surfaces 10, 20, 30 are mirrors 0, 1, 2.
         let mut ordinal = vec![u32::MAX; 31];
@@ -256,27 +295,58 @@ mod tests {
             vec![],
         ];
         let rho = |k: u32| [0.9, 0.8, if k == 1 { 0.6 } else { 0.7 }];
-        let lit = PowerByMirror::new(&power_in, 3);
-        let by_mirror = RoutesByMirror::new(&routes, &ordinal, &slotted, 3);
-        assert_eq!(by_mirror.len(), 10, "target 1's route on mirror 1 is left out");
-        let got = by_mirror.reflected(&lit, rho, 3);
-        for (i, routes) in routes.iter().enumerate() {
-            let mut want = [0.0; 3];
-            for r in routes {
-                let k = ordinal[r.mirror as usize];
-                if !slotted[i].contains(&k) {
+        // Targets 0 and 1 are batch 0, target 2 batch 1.
+        let batch_of = |t: u32| t as usize / 2;
+        let by_source = RoutesBySource::new(&routes, &ordinal, &slotted, 4);
+        assert_eq!(by_source.len(), 10, "target 1's route on mirror 1 is left out");
+        for sources in [0..2, 2..4, 0..4, 3..4] {
+            let power: Vec<&MirrorPower> = power_in[sources.clone()].iter().collect();
+            let got = by_source.settle(sources.start, &power, rho, batch_of);
+            // By definition: the routes of the sources, by (source, mirror, target).
+            let mut kept: Vec<(u32, u32, usize, f64)> = (routes.iter().enumerate())
+                .flat_map(|(i, routes)| routes.iter().map(move |r| (i, r)))
+                .filter(|(i, r)| {
+                    sources.contains(&(r.source as usize)) && slotted[*i].contains(&ordinal[r.mirror as usize])
+                })
+                .map(|(i, r)| (r.source, ordinal[r.mirror as usize], i, r.weight))
+                .collect();
+            kept.sort_by_key(|&(s, k, i, _)| (s, k, i));
+            let mut want = BatchArrivals::default();
+            for s in sources.clone() {
+                for (_, v) in &power_in[s] {
+                    add(&mut want.exchange.incident, v);
+                }
+            }
+            for (s, k, i, weight) in kept {
+                let pin = (power_in[s as usize].iter())
+                    .find(|(m, _)| *m == k)
+                    .map_or([0.0; 3], |p| p.1);
+                if pin.iter().all(|&p| p <= 0.0) {
                     continue;
                 }
-                let pin = lit.power(k, r.source);
-                for c in 0..3 {
-                    let carried = r.weight * rho(k)[c] * pin[c];
+                let b = batch_of(i as u32) as u32;
+                if !want.feeds.contains(&b) {
+                    want.feeds.push(b);
+                }
+                for (c, sum) in want.exchange.reflected.iter_mut().enumerate() {
+                    let carried = weight * rho(k)[c] * pin[c];
                     if carried > 0.0 {
-                        want[c] += carried;
+                        *sum += carried;
                     }
                 }
             }
-            assert_eq!(got[i], want, "target {i}");
+            want.feeds.sort_unstable();
+            assert_eq!(got, want, "sources {sources:?}");
         }
-        assert_eq!(got[2], [0.3 * 0.9 * 3.0 + 0.7 * 0.9, 0.7 * 0.8, 0.7 * 0.6]);
+        // Sources 2 and 3: source 2 feeds targets 0, 1 (mirror 0) and 2 (mirror 1); source 3
+        // lit nothing.
+        let power: Vec<&MirrorPower> = power_in[2..4].iter().collect();
+        let got = by_source.settle(2, &power, rho, batch_of);
+        assert_eq!(got.feeds, [0, 1]);
+        assert_eq!(got.exchange.incident, [1.0, 1.0, 5.0]);
+        assert_eq!(
+            got.exchange.reflected,
+            [0.7 * 0.9, 0.7 * 0.8, 0.25 * 0.7 * 4.0 + 0.5 * 0.7 * 4.0 + 0.7 * 0.6]
+        );
     }
 }

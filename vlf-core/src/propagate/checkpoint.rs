@@ -11,7 +11,7 @@
 //! * the diffuse Current (unshot) and Total maps, per texel;
 //! * with mirrors, every direction's total map over its mirror slots and
 //!   what the next iteration shoots from: the arrivals of the last iteration
-//!   with their power `Φ_in` when they wait to be reflected
+//!   and what they come to when they wait to be reflected
 //!   ([`super::specular::Pending`], the usual case), else the unshot maps;
 //! * the statistics of the iterations done, whose count is the next
 //!   iteration's index (which seeds the perturbation and the mirror plan).
@@ -25,18 +25,20 @@
 //! [`Checkpoint::join`] puts them back together. How they are stored — the
 //! mirror maps cut further, by batch of directions — is [`super::snapshot`].
 //!
-//! Serialised with bincode behind a version number, one per layout: 5 is the
-//! whole checkpoint in one blob, 6 the shooting state's head, 2 the other
+//! Serialised with bincode behind a version number, one per layout: 7 is the
+//! whole checkpoint in one blob, 8 the shooting state's head, 2 the other
 //! parts. Stores written by earlier builds hold version 1 (a whole
 //! checkpoint without pending arrivals: its shooting maps are unshot maps),
-//! version 2 heads (the same, in parts), or versions 3 and 4 (whole and head
-//! with pending `Φ_in` dense, a value for every mirror: read as sparse,
-//! [`super::specular::MirrorPower`]): all are still read.
+//! version 2 heads (the same, in parts), versions 3 and 4 (whole and head
+//! with pending `Φ_in` dense, a value for every mirror) or 5 and 6 (the same,
+//! `Φ_in` sparse, [`super::specular::MirrorPower`]), where this build's hold
+//! the arrivals settled instead ([`super::specular::Settled`]): all are still
+//! read, and their `Φ_in` settled as they are restored.
 //! [`Checkpoint::from_bytes`] and [`Propagation::resume`] refuse anything
 //! that does not fit the rebuilt geometry, or that is not finite and
 //! non-negative, with an [`Error::Decode`].
 
-use super::specular::Pending;
+use super::specular::{MirrorPower, Pending};
 use super::{IterationStats, Options, Propagation};
 use crate::error::Error;
 use crate::scene::{Rgb, Scene};
@@ -51,10 +53,21 @@ pub(crate) const SPLIT_VERSION: u32 = 2;
 const CHECKPOINT_DENSE: u32 = 3;
 /// The shooting state's head of earlier builds, with dense pending `Φ_in`.
 pub(crate) const HEAD_DENSE: u32 = 4;
+/// The whole checkpoint of earlier builds, with sparse pending `Φ_in`.
+const CHECKPOINT_SPARSE: u32 = 5;
+/// The shooting state's head of earlier builds, with sparse pending `Φ_in`.
+pub(crate) const HEAD_SPARSE: u32 = 6;
 /// The whole checkpoint (one blob).
-const CHECKPOINT_VERSION: u32 = 5;
+const CHECKPOINT_VERSION: u32 = 7;
 /// The shooting state's head ([`super::StateHead`]).
-pub(crate) const HEAD_VERSION: u32 = 6;
+pub(crate) const HEAD_VERSION: u32 = 8;
+
+/// Pending arrivals as the builds of versions 5 and 6 stored them: `Φ_in` of every direction,
+/// sparse.
+#[derive(Serialize, Deserialize)]
+pub(crate) struct SparsePending {
+    pub(crate) power_in: Vec<MirrorPower>,
+}
 
 /// Pending arrivals as earlier builds stored them: `Φ_in` of every mirror of
 /// every direction, zeros included.
@@ -64,22 +77,21 @@ pub(crate) struct DensePending {
 }
 
 impl DensePending {
-    /// The same arrivals with their zeros left out.
-    pub(crate) fn sparse(self) -> Pending {
-        let power_in = (self.power_in.into_iter())
+    /// The same `Φ_in` with its zeros left out.
+    pub(crate) fn sparse(self) -> Vec<MirrorPower> {
+        (self.power_in.into_iter())
             .map(|dense| {
                 (dense.into_iter().enumerate())
                     .filter(|(_, v)| v.iter().any(|&c| c != 0.0))
                     .map(|(k, v)| (k as u32, v))
                     .collect()
             })
-            .collect();
-        Pending::new(power_in)
+            .collect()
     }
 
-    /// `pending` with a value for each of `mirrors` mirrors.
-    pub(crate) fn of(pending: &Pending, mirrors: usize) -> DensePending {
-        let power_in = (pending.power_in.iter())
+    /// `power_in` with a value for each of `mirrors` mirrors.
+    pub(crate) fn of(power_in: &[MirrorPower], mirrors: usize) -> DensePending {
+        let power_in = (power_in.iter())
             .map(|sparse| {
                 let mut dense = vec![[0.0; 3]; mirrors];
                 for &(k, v) in sparse {
@@ -154,15 +166,16 @@ pub struct Checkpoint {
     pub pending: Option<Pending>,
 }
 
-/// [`Checkpoint`] with dense pending `Φ_in` (version 3).
+/// [`Checkpoint`] with pending `Φ_in`, dense (version 3, `P` = [`DensePending`]) or sparse
+/// (version 5, [`SparsePending`]).
 #[derive(Serialize, Deserialize)]
-pub(crate) struct CheckpointDense {
+pub(crate) struct CheckpointOfPower<P> {
     pub(crate) version: u32,
     pub(crate) stats: Vec<IterationStats>,
     pub(crate) current: Vec<Rgb>,
     pub(crate) total: Vec<Rgb>,
     pub(crate) mirrors: Option<Vec<DirectionCheckpoint>>,
-    pub(crate) pending: Option<DensePending>,
+    pub(crate) pending: Option<P>,
 }
 
 /// [`Checkpoint`] as earlier builds wrote it (version 1).
@@ -209,8 +222,13 @@ impl Checkpoint {
         match version_of(bytes) {
             Some(CHECKPOINT_VERSION) => bincode::deserialize(bytes).map_err(bad),
             Some(CHECKPOINT_DENSE) => {
-                let old: CheckpointDense = bincode::deserialize(bytes).map_err(bad)?;
-                let pending = old.pending.map(DensePending::sparse);
+                let old: CheckpointOfPower<DensePending> = bincode::deserialize(bytes).map_err(bad)?;
+                let pending = old.pending.map(|p| Pending::of_power_in(p.sparse()));
+                Ok(Checkpoint::new(old.stats, old.current, old.total, old.mirrors, pending))
+            }
+            Some(CHECKPOINT_SPARSE) => {
+                let old: CheckpointOfPower<SparsePending> = bincode::deserialize(bytes).map_err(bad)?;
+                let pending = old.pending.map(|p| Pending::of_power_in(p.power_in));
                 Ok(Checkpoint::new(old.stats, old.current, old.total, old.mirrors, pending))
             }
             Some(WHOLE_V1) => {
@@ -218,11 +236,11 @@ impl Checkpoint {
                 debug_assert_eq!(old.version, WHOLE_V1);
                 Ok(Checkpoint::new(old.stats, old.current, old.total, old.mirrors, None))
             }
-            Some(SPLIT_VERSION | HEAD_DENSE | HEAD_VERSION) => Err(Error::Decode(
+            Some(SPLIT_VERSION | HEAD_DENSE | HEAD_SPARSE | HEAD_VERSION) => Err(Error::Decode(
                 "checkpoint: this is the head of a split checkpoint (read it with its other parts)".into(),
             )),
             Some(v) => Err(Error::Decode(format!(
-                "checkpoint version {v} (this build reads {WHOLE_V1}, {CHECKPOINT_DENSE} and {CHECKPOINT_VERSION})"
+                "checkpoint version {v} (this build reads {WHOLE_V1}, {CHECKPOINT_DENSE}, {CHECKPOINT_SPARSE} and {CHECKPOINT_VERSION})"
             ))),
             None => Err(Error::Decode("checkpoint: truncated".into())),
         }
@@ -232,7 +250,10 @@ impl Checkpoint {
     /// maps and totals are in other blobs, see [`super::snapshot`]) rather
     /// than a whole one.
     pub fn is_split(bytes: &[u8]) -> bool {
-        matches!(version_of(bytes), Some(SPLIT_VERSION | HEAD_DENSE | HEAD_VERSION))
+        matches!(
+            version_of(bytes),
+            Some(SPLIT_VERSION | HEAD_DENSE | HEAD_SPARSE | HEAD_VERSION)
+        )
     }
 
     /// The two halves of this checkpoint.
@@ -488,6 +509,7 @@ impl Propagation {
     pub fn restore_shooting(&mut self, state: ShootingState) -> crate::Result<()> {
         self.check_unshot_texels(&state.current, &state.stats)?;
         self.check_pending(state.pending.as_ref())?;
+        let batching = self.batching();
         match (&mut self.specular, state.mirrors) {
             (None, None) => {}
             (Some(spec), Some(maps)) => {
@@ -503,8 +525,11 @@ impl Propagation {
                 for (own, saved) in spec.maps.iter_mut().zip(maps) {
                     own.set_shooting(pending, saved);
                 }
-                // Settled afresh: what a `Pending` keeps is of the arrivals it was made with.
-                spec.pending = state.pending.map(|p| Pending::new(p.power_in));
+                spec.pending = state.pending;
+                // Every arrival map is here: their `Φ_in` is known (what an earlier build stored
+                // of it is the same, found again), and arrivals an earlier build left are settled.
+                spec.know_arrivals(&self.directions, 0..self.directions.len());
+                spec.settle_pending(&self.scene, &batching);
             }
             (Some(_), None) => return misfit("the scene has mirrors, the checkpoint none".into()),
             (None, Some(_)) => return misfit("the checkpoint has mirror maps, the scene no mirror".into()),
@@ -514,8 +539,9 @@ impl Propagation {
         Ok(())
     }
 
-    /// Refuses pending `Φ_in` that does not fit the directions and mirrors,
-    /// or is negative or not finite.
+    /// Refuses pending arrivals that do not fit the directions, mirrors and batches: settled,
+    /// power that is negative or not finite, or sources of batches that do not exist; as an
+    /// earlier build stored them, `Φ_in` of other directions or mirrors, negative or not finite.
     pub(crate) fn check_pending(&self, pending: Option<&Pending>) -> crate::Result<()> {
         let Some(p) = pending else {
             return Ok(());
@@ -524,14 +550,29 @@ impl Propagation {
             return misfit("pending mirror arrivals for a scene without mirrors".into());
         };
         let l = self.directions.len();
-        if p.power_in.len() != l {
-            return misfit(format!(
-                "pending mirror power for {} directions, not {l}",
-                p.power_in.len()
-            ));
+        let batches = self.batching().count();
+        if let Some(settled) = p.settled() {
+            let x = &settled.exchange;
+            if !valid(&[x.incident, x.reflected]) {
+                return misfit("negative or non-finite pending mirror power".into());
+            }
+            let fits =
+                |s: &Vec<u32>| s.windows(2).all(|w| w[0] < w[1]) && s.last().is_none_or(|&b| (b as usize) < batches);
+            if settled.sources.len() != batches || !settled.sources.iter().all(fits) {
+                return misfit(format!(
+                    "pending mirror arrivals read from batches that do not fit {batches} batches"
+                ));
+            }
+            return Ok(());
         }
+        let Some(power_in) = p.all_power_in(l) else {
+            return misfit(format!("pending mirror power not of {l} directions"));
+        };
         let mirrors = spec.mirrors.len() as u32;
-        if let Some(d) = p.power_in.iter().position(|v| !mirror_power_fits(v, mirrors)) {
+        if p.power_in(l).is_some() {
+            return misfit(format!("pending mirror power for more than {l} directions"));
+        }
+        if let Some(d) = power_in.iter().position(|v| !mirror_power_fits(v, mirrors)) {
             return misfit(format!(
                 "direction {d}'s pending mirror power does not fit {mirrors} mirrors \
                  (increasing mirror numbers, non-negative finite power)"

@@ -69,7 +69,7 @@ pub use snapshot::{MapBatch, MapKind, SnapshotBytes, StateHead};
 pub use specular::{Exchange, Specular};
 pub use split::{HomeThreads, split_by_cost};
 pub use survey::{Survey, SurveyPart, SurveyParts, Surveyor};
-pub use work::{BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
+pub use work::{Arrivals, BatchOutput, BatchSum, IterationWork, MirrorBlock, Pass};
 
 use crate::directions::DirectionSet;
 use crate::maps::TexelAtlas;
@@ -678,7 +678,7 @@ impl Propagation {
     pub fn unshot_power(&self) -> Rgb {
         let mut p = sum_rgb(&self.current);
         if let Some(s) = &self.specular {
-            let q = s.unshot_power(&self.scene, &self.directions);
+            let q = s.unshot_power(&self.directions);
             for c in 0..3 {
                 p[c] += q[c];
             }
@@ -843,7 +843,7 @@ impl Propagation {
             spec.maps = maps;
             // What a worker does for the directions it shoots (`compute_block`):
             // every mirror slot sent its unshot radiance once along its direction
-            // (see `shoot::leaving`), so Total += Unshot; and Φ_in of the arrivals.
+            // (see `shoot::leaving`), so Total += Unshot; and Φ_in of the arrivals, settled.
             spec.maps
                 .par_iter_mut()
                 .for_each(|m| work::add_into(&mut m.total, &m.unshot));
@@ -852,6 +852,17 @@ impl Propagation {
                 .into_par_iter()
                 .map(|d| spec.power_in_of(directions, d, &spec.maps[d].incident))
                 .collect();
+            // Settled batch by batch, as the service's workers settle what they shot.
+            let batching = work.batching();
+            let (scene, power_in) = (&self.scene, &work.power_in);
+            let parts: Vec<_> = (0..batching.count())
+                .into_par_iter()
+                .map(|b| {
+                    let power: Vec<&specular::MirrorPower> = power_in[batching.range(b)].iter().collect();
+                    Some(spec.settle_batch(scene, &batching, b, &power))
+                })
+                .collect();
+            work.arrivals = parts;
         }
         // This process gathers the arrivals next (`Specular::gather_all`).
         self.finish(work, started, true)
@@ -869,8 +880,8 @@ impl Propagation {
     }
 
     /// [`Propagation::finish_iteration`]; `gathers_next` when this process gathers the arrivals
-    /// it leaves pending (it runs the whole propagation), which then turns their `Φ_in` around
-    /// once for its settle and its gathers both ([`specular::Specular::prepare_gathers`]).
+    /// it leaves pending (it runs the whole propagation), which then keeps every direction's
+    /// `Φ_in`, turned around for its gathers ([`specular::Specular::prepare_gathers`]).
     fn finish(&mut self, mut work: IterationWork, started: Instant, gathers_next: bool) -> IterationStats {
         debug_assert!(
             work.next_expected().is_none(),
@@ -879,17 +890,27 @@ impl Propagation {
         let index = work.index;
         // A copy shot elsewhere (another worker of this process) left its subfields here.
         self.rotated.clear(index);
-        let scene = &self.scene;
+        let l = self.directions.len();
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
-        // Settled here, the arrivals' reflected power is also what the mirrors hold unshot (see
-        // `Specular::unshot_power`): computed once, as settling walks every route.
+        // Settled where they were shot, batch by batch, and added up here in batch order: the
+        // arrivals' reflected power is also what the mirrors hold unshot (see
+        // `Specular::unshot_power`).
         let (exchange, settled) = match self.specular.as_mut() {
             Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
-                spec.pending = Some(specular::Pending::new(std::mem::take(&mut work.power_in)));
+                let parts = (work.arrivals.iter()).map(|part| part.as_ref().expect("every batch absorbed"));
+                let settled = specular::Settled::of_parts(parts, work.batches());
+                let exchange = settled.exchange;
+                let mut pending = specular::Pending::new(settled);
+                if gathers_next {
+                    // This process shot every direction: every `Φ_in` is known here.
+                    for (d, power) in std::mem::take(&mut work.power_in).into_iter().enumerate() {
+                        pending.know(l, d, power);
+                    }
+                }
+                spec.pending = Some(pending);
                 if gathers_next {
                     spec.prepare_gathers();
                 }
-                let exchange = spec.settled(scene).expect("arrivals pending");
                 (exchange, true)
             }
             _ => (Exchange::default(), false),
@@ -909,7 +930,7 @@ impl Propagation {
         self.current = next;
         let specular_unshot = match &self.specular {
             Some(_) if settled => exchange.reflected,
-            Some(s) => s.unshot_power(&self.scene, &self.directions),
+            Some(s) => s.unshot_power(&self.directions),
             None => [0.0; 3],
         };
         let stats = IterationStats {

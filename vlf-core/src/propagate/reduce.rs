@@ -24,7 +24,7 @@
 //! process's threads use, whose batches complete in no fixed order.
 
 use super::FlowRecord;
-use super::work::{BatchOutput, BatchSum, add_into};
+use super::work::{Arrivals, BatchOutput, BatchSum, add_into};
 use std::ops::Range;
 
 /// Whether `block` is a node of the reduction tree over `batches` leaves.
@@ -106,7 +106,7 @@ impl RunOutputs {
             && (last.batches.end != output.batches.start
                 || last.iteration != output.iteration
                 || last.pass != output.pass
-                || last.power_in.is_some() != output.power_in.is_some())
+                || !same_kind(&last.arrivals, &output.arrivals))
         {
             return Err(format!(
                 "batches {block:?} of {:?} (iteration {}) do not follow {:?} of {:?} (iteration {})",
@@ -122,8 +122,10 @@ impl RunOutputs {
             let left = self.nodes.last_mut().expect("two nodes");
             merge(&mut left.sum, &right.sum);
             left.batches.end = right.batches.end;
-            if let (Some(l), Some(r)) = (left.power_in.as_mut(), right.power_in) {
-                l.extend(r);
+            match (left.arrivals.as_mut(), right.arrivals) {
+                (Some(Arrivals::Settled(l)), Some(Arrivals::Settled(r))) => l.extend(r),
+                (Some(Arrivals::Power(l)), Some(Arrivals::Power(r))) => l.extend(r),
+                _ => {}
             }
         }
         Ok(())
@@ -132,6 +134,15 @@ impl RunOutputs {
     /// The outputs: one per block of [`cover`] of the run taken, in order.
     pub fn finish(self) -> Vec<BatchOutput> {
         self.nodes
+    }
+}
+
+/// Whether two blocks' arrivals are both absent, both settled or both `Φ_in`: what a merge
+/// puts together.
+fn same_kind(a: &Option<Arrivals>, b: &Option<Arrivals>) -> bool {
+    match (a, b) {
+        (Some(a), Some(b)) => std::mem::discriminant(a) == std::mem::discriminant(b),
+        (a, b) => a.is_some() == b.is_some(),
     }
 }
 
@@ -447,7 +458,7 @@ mod tests {
     }
 
     /// The output of `block`, summed over its own subtree of `leaves`, with
-    /// one `power_in` entry per batch holding the batch number.
+    /// one part of its arrivals per batch holding the batch number.
     fn block_output(block: Range<usize>, leaves: &[f64]) -> BatchOutput {
         let mut sub = TreeSum::new(block.len());
         for i in 0..block.len() {
@@ -458,8 +469,39 @@ mod tests {
             pass: super::super::Pass::Shoot,
             batches: block.start as u32..block.end as u32,
             sum: sub.finish().unwrap(),
-            power_in: Some(block.clone().map(|b| vec![(0, [b as f64, 0.0, 0.0])]).collect()),
+            arrivals: Some(Arrivals::Settled(block.clone().map(part_of).collect())),
         }
+    }
+
+    /// The arrivals of batch `b`: its number as power and as the batch it feeds.
+    fn part_of(b: usize) -> crate::propagate::specular::BatchArrivals {
+        crate::propagate::specular::BatchArrivals {
+            exchange: crate::propagate::Exchange {
+                incident: [b as f64, 0.0, 0.0],
+                reflected: [0.0; 3],
+            },
+            feeds: vec![b as u32],
+        }
+    }
+
+    /// Outputs whose arrivals are of different kinds (settled, `Φ_in`, none) are not merged.
+    #[test]
+    fn a_run_takes_arrivals_of_one_kind() {
+        let leaves = [1.0; 4];
+        let mut run = RunOutputs::new();
+        run.push(block_output(0..1, &leaves)).unwrap();
+        let mut power = block_output(1..2, &leaves);
+        power.arrivals = Some(Arrivals::Power(vec![vec![(0, [1.0; 3])]]));
+        assert!(run.push(power.clone()).is_err());
+        power.arrivals = None;
+        assert!(run.push(power).is_err());
+        run.push(block_output(1..2, &leaves)).unwrap();
+        let merged = run.finish();
+        assert_eq!(merged.len(), 1);
+        assert_eq!(
+            merged[0].arrivals,
+            Some(Arrivals::Settled(vec![part_of(0), part_of(1)]))
+        );
     }
 
     #[test]
@@ -510,7 +552,7 @@ mod tests {
                             .collect()
                     };
                     assert_eq!(bits(&got), bits(&want), "{start}..{end} in steps {steps:?}");
-                    assert_eq!(got, want, "power_in in order");
+                    assert_eq!(got, want, "arrivals in order");
                 }
             }
         }

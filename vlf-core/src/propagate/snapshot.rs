@@ -4,8 +4,9 @@
 //! state, which the next iteration's workers read, and the totals. Both are
 //! cut further, because a worker shoots only the directions of its lease:
 //!
-//! * a [`StateHead`]: the iteration statistics, Current and the pending
-//!   `Φ_in` of every direction — what every lease reads (small);
+//! * a [`StateHead`]: the iteration statistics, Current and what the pending
+//!   arrivals come to ([`super::specular::Settled`]) — what every lease reads
+//!   (small);
 //! * per batch of directions ([`super::Batching`]), two [`MapBatch`]es: the
 //!   directions' shooting maps (the arrivals to gather, or the unshot maps)
 //!   and their total maps — read by the leases that shoot those directions,
@@ -27,12 +28,14 @@
 //! Earlier builds wrote version 2 heads, without pending arrivals, whose
 //! batches held unshot maps and whose totals blob held the mirror totals
 //! whole: [`StateHead::from_bytes`] still reads them, and
-//! [`StateHead::mirror_totals_by_batch`] tells the two apart.
+//! [`StateHead::mirror_totals_by_batch`] tells the two apart. Versions 4 and 6
+//! held every direction's pending `Φ_in` (dense, then sparse): read too, and
+//! settled as they are restored.
 
 use super::batching::Batching;
 use super::checkpoint::{
-    DensePending, HEAD_DENSE, HEAD_VERSION, SPLIT_VERSION, ShootingState, Totals, encode, encode_into, misfit,
-    version_of,
+    CheckpointOfPower, DensePending, HEAD_DENSE, HEAD_SPARSE, HEAD_VERSION, SPLIT_VERSION, ShootingState,
+    SparsePending, Totals, encode, encode_into, misfit, version_of,
 };
 use super::specular::Pending;
 use super::work::MirrorBlock;
@@ -53,19 +56,19 @@ pub struct StateHead {
     /// The number of batches of mirror maps, `None` without specular
     /// machinery.
     pub mirror_batches: Option<u32>,
-    /// `Φ_in` of the arrivals the shooting maps hold, when they wait to be
-    /// reflected.
+    /// What the arrivals the shooting maps hold come to, when they wait to be reflected.
     pub pending: Option<Pending>,
 }
 
-/// A head with dense pending `Φ_in`, as earlier builds wrote it (version 4).
+/// A head with pending `Φ_in`, as earlier builds wrote it: dense (version 4, `P` =
+/// [`DensePending`]) or sparse (version 6, [`SparsePending`]).
 #[derive(Serialize, Deserialize)]
-struct StateHeadDense {
+struct StateHeadOfPower<P> {
     version: u32,
     stats: Vec<IterationStats>,
     current: Vec<Rgb>,
     mirror_batches: Option<u32>,
-    pending: Option<DensePending>,
+    pending: Option<P>,
 }
 
 /// A head as earlier builds wrote it (version 2).
@@ -103,7 +106,7 @@ impl StateHead {
     }
 
     /// Whether the snapshot's mirror totals are stored by batch (this
-    /// build, and heads with dense `Φ_in`) rather than whole in its totals
+    /// build, and heads with `Φ_in`) rather than whole in its totals
     /// blob, and its map batches stored where this build puts them (earlier
     /// builds: version 2).
     pub fn mirror_totals_by_batch(&self) -> bool {
@@ -119,14 +122,12 @@ impl StateHead {
         match version_of(bytes) {
             Some(HEAD_VERSION) => bincode::deserialize(bytes).map_err(bad),
             Some(HEAD_DENSE) => {
-                let old: StateHeadDense = bincode::deserialize(bytes).map_err(bad)?;
-                Ok(StateHead {
-                    version: HEAD_VERSION,
-                    stats: old.stats,
-                    current: old.current,
-                    mirror_batches: old.mirror_batches,
-                    pending: old.pending.map(DensePending::sparse),
-                })
+                let old: StateHeadOfPower<DensePending> = bincode::deserialize(bytes).map_err(bad)?;
+                Ok(old.into_head(|p| p.sparse()))
+            }
+            Some(HEAD_SPARSE) => {
+                let old: StateHeadOfPower<SparsePending> = bincode::deserialize(bytes).map_err(bad)?;
+                Ok(old.into_head(|p| p.power_in))
             }
             Some(SPLIT_VERSION) => {
                 let old: StateHeadV2 = bincode::deserialize(bytes).map_err(bad)?;
@@ -139,9 +140,23 @@ impl StateHead {
                 })
             }
             Some(v) => Err(Error::Decode(format!(
-                "shooting state head: version {v} (this build reads {SPLIT_VERSION}, {HEAD_DENSE} and {HEAD_VERSION})"
+                "shooting state head: version {v} (this build reads {SPLIT_VERSION}, {HEAD_DENSE}, {HEAD_SPARSE} and {HEAD_VERSION})"
             ))),
             None => Err(Error::Decode("shooting state head: truncated".into())),
+        }
+    }
+}
+
+impl<P> StateHeadOfPower<P> {
+    /// This build's head of the same snapshot, its arrivals not settled yet: `power_in` gives
+    /// every direction's `Φ_in` of the pending arrivals.
+    fn into_head(self, power_in: impl FnOnce(P) -> Vec<super::specular::MirrorPower>) -> StateHead {
+        StateHead {
+            version: HEAD_VERSION,
+            stats: self.stats,
+            current: self.current,
+            mirror_batches: self.mirror_batches,
+            pending: self.pending.map(|p| Pending::of_power_in(power_in(p))),
         }
     }
 }
@@ -421,9 +436,8 @@ impl Propagation {
 
     /// Writes [`SnapshotBytes::head`] to `writer`, the same bytes, as they are serialised: one
     /// part of [`Propagation::snapshot_bytes`], apart so that whoever stores a snapshot
-    /// compresses the head as it goes. With mirrors it holds every direction's `Φ_in` — 93 MB
-    /// for the 47 794-triangle mirror dragon at l = 2049, N = 128 — and serialised into memory
-    /// first it cost a coordinator that fresh buffer every iteration, while its workers waited.
+    /// compresses the head as it goes: a head is mostly Current, a value per texel (3.4 MB for the
+    /// Cornell box at l = 8193, N = 256).
     pub fn write_head_to(&self, writer: impl std::io::Write) -> std::io::Result<()> {
         encode_into(writer, &self.head_ref())
     }
@@ -454,7 +468,7 @@ impl Propagation {
     }
 
     /// Restores the head of a shooting state: the statistics, Current and
-    /// pending `Φ_in`. The mirror maps held are let go: the snapshot's are
+    /// what the pending arrivals come to. The mirror maps held are let go: the snapshot's are
     /// elsewhere ([`super::specular::Unheld::Elsewhere`]) until their batches
     /// are restored ([`Propagation::restore_shooting_batch`],
     /// [`Propagation::restore_totals_batch`]) or adopted
@@ -472,9 +486,11 @@ impl Propagation {
             ));
         }
         self.check_pending(head.pending.as_ref())?;
+        let batching = self.batching();
         if let Some(spec) = self.specular.as_mut() {
-            // Settled afresh: what a `Pending` keeps is of the arrivals it was made with.
-            spec.pending = head.pending.map(|p| Pending::new(p.power_in));
+            spec.pending = head.pending;
+            // Arrivals an earlier build left with their `Φ_in` are settled as this build's are.
+            spec.settle_pending(&self.scene, &batching);
             spec.release_maps();
         }
         self.current = head.current;
@@ -484,14 +500,17 @@ impl Propagation {
 
     /// Restores the shooting maps of one batch of directions, of the
     /// snapshot whose head was restored last (arrivals or unshot maps, as
-    /// the head says). On error the state is unchanged.
+    /// the head says; arrivals with their `Φ_in`, found from them,
+    /// [`super::Specular::know_arrivals`]). On error the state is unchanged.
     pub fn restore_shooting_batch(&mut self, part: MapBatch) -> crate::Result<()> {
         let range = self.check_map_batch(&part)?;
         if let Some(spec) = self.specular.as_mut() {
             let pending = spec.pending.is_some();
-            for (own, saved) in spec.maps[range].iter_mut().zip(part.maps) {
+            for (own, saved) in spec.maps[range.clone()].iter_mut().zip(part.maps) {
                 own.set_shooting(pending, saved);
             }
+            // Arrivals: their `Φ_in`, for the gathers that read them.
+            spec.know_arrivals(&self.directions, range);
         }
         Ok(())
     }
@@ -542,11 +561,14 @@ impl Propagation {
 /// The bytes earlier builds wrote, for tests of the stores they left: a
 /// checkpoint or head without pending arrivals (their shooting maps are
 /// unshot maps) in the layouts of version 1 (whole) and 2 (head), and with
-/// dense pending `Φ_in` in those of version 3 (whole) and 4 (head).
+/// pending `Φ_in`, dense in those of version 3 (whole) and 4 (head), sparse in
+/// 5 and 6. The `Φ_in` of arrivals is what the propagation they come from
+/// knows of it: one that ran the whole propagation.
 #[doc(hidden)]
 pub mod earlier {
     use super::*;
     use crate::propagate::Checkpoint;
+    use crate::propagate::specular::MirrorPower;
 
     #[derive(Serialize)]
     struct WholeV1<'a> {
@@ -581,42 +603,79 @@ pub mod earlier {
         })
     }
 
-    /// `checkpoint` as a version 3 blob, its pending `Φ_in` dense over
-    /// `mirrors` mirrors.
-    pub fn whole_dense(checkpoint: &Checkpoint, mirrors: usize) -> Vec<u8> {
-        encode(&crate::propagate::checkpoint::CheckpointDense {
-            version: 3,
-            stats: checkpoint.stats.clone(),
-            current: checkpoint.current.clone(),
-            total: checkpoint.total.clone(),
-            mirrors: checkpoint.mirrors.clone(),
-            pending: checkpoint.pending.as_ref().map(|p| DensePending::of(p, mirrors)),
-        })
+    /// Every direction's `Φ_in` that `pending` knows, over `directions` directions.
+    fn power_in(pending: &Pending, directions: usize) -> Vec<MirrorPower> {
+        let known = pending.all_power_in(directions);
+        let known = known.expect("the Φ_in of every direction is known where the whole propagation ran");
+        known.into_iter().cloned().collect()
     }
 
-    /// `head` as a version 4 blob, its pending `Φ_in` dense over `mirrors`
-    /// mirrors.
-    pub fn head_dense(head: &StateHead, mirrors: usize) -> Vec<u8> {
-        encode(&StateHeadDense {
-            version: HEAD_DENSE,
-            stats: head.stats.clone(),
-            current: head.current.clone(),
-            mirror_batches: head.mirror_batches,
-            pending: head.pending.as_ref().map(|p| DensePending::of(p, mirrors)),
-        })
+    /// `checkpoint` as a version 3 blob (`sparse`: 5), its pending `Φ_in` dense over `mirrors`
+    /// mirrors (sparse).
+    pub fn whole_of_power(checkpoint: &Checkpoint, mirrors: usize, sparse: bool) -> Vec<u8> {
+        fn whole<P: Serialize>(c: &Checkpoint, version: u32, pending: Option<P>) -> Vec<u8> {
+            encode(&CheckpointOfPower {
+                version,
+                stats: c.stats.clone(),
+                current: c.current.clone(),
+                total: c.total.clone(),
+                mirrors: c.mirrors.clone(),
+                pending,
+            })
+        }
+        let l = checkpoint.mirrors.as_ref().map_or(0, Vec::len);
+        let power = checkpoint.pending.as_ref().map(|p| power_in(p, l));
+        match sparse {
+            true => whole(checkpoint, 5, power.map(|power_in| SparsePending { power_in })),
+            false => whole(checkpoint, 3, power.map(|p| DensePending::of(&p, mirrors))),
+        }
     }
 
-    /// `output` as earlier builds wrote it, its `Φ_in` dense over `mirrors` mirrors.
-    pub fn batch_output_dense(output: &crate::propagate::BatchOutput, mirrors: usize) -> Vec<u8> {
-        let pending = |power_in: &Vec<crate::propagate::specular::MirrorPower>| {
-            DensePending::of(&Pending::new(power_in.clone()), mirrors).power_in
-        };
-        encode(&crate::propagate::work::DenseOutput {
+    /// `head` (of `directions` directions) as a version 4 blob (`sparse`: 6), its pending `Φ_in`
+    /// dense over `mirrors` mirrors (sparse).
+    pub fn head_of_power(head: &StateHead, directions: usize, mirrors: usize, sparse: bool) -> Vec<u8> {
+        fn old<P: Serialize>(head: &StateHead, version: u32, pending: Option<P>) -> Vec<u8> {
+            encode(&StateHeadOfPower {
+                version,
+                stats: head.stats.clone(),
+                current: head.current.clone(),
+                mirror_batches: head.mirror_batches,
+                pending,
+            })
+        }
+        let power = head.pending.as_ref().map(|p| power_in(p, directions));
+        match sparse {
+            true => old(head, HEAD_SPARSE, power.map(|power_in| SparsePending { power_in })),
+            false => old(head, HEAD_DENSE, power.map(|p| DensePending::of(&p, mirrors))),
+        }
+    }
+
+    /// `output` as earlier builds wrote it, with `power_in`, the `Φ_in` of its directions, in
+    /// place of its arrivals: dense over `mirrors` mirrors, or `sparse`.
+    pub fn batch_output_of_power(
+        output: &crate::propagate::BatchOutput,
+        power_in: &[MirrorPower],
+        mirrors: usize,
+        sparse: bool,
+    ) -> Vec<u8> {
+        use crate::propagate::work::{DenseOutput, SparseOutput};
+        if sparse {
+            let mut bytes = 0xB05A_25E2u32.to_le_bytes().to_vec();
+            bytes.extend(encode(&SparseOutput {
+                iteration: output.iteration,
+                pass: output.pass,
+                batches: output.batches.clone(),
+                sum: output.sum.clone(),
+                power_in: output.arrivals.as_ref().map(|_| power_in.to_vec()),
+            }));
+            return bytes;
+        }
+        encode(&DenseOutput {
             iteration: output.iteration,
             pass: output.pass,
             batches: output.batches.clone(),
             sum: output.sum.clone(),
-            power_in: output.power_in.as_ref().map(pending),
+            power_in: (output.arrivals.as_ref()).map(|_| DensePending::of(power_in, mirrors).power_in),
         })
     }
 

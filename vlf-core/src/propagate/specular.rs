@@ -53,9 +53,9 @@
 //! cell lost the power routed to it.
 //!
 //! **When.** An iteration ends with its arrivals *pending* ([`Pending`]):
-//! only their power `Φ_in` per direction and mirror is settled
-//! ([`Specular::settle`]: what arrived, what will be reflected — exactly, as
-//! the routes carry it), and the gather runs when the next iteration shoots
+//! what they come to is settled batch by batch of sources where they were shot
+//! ([`Specular::settle_batch`]: what arrived, what will be reflected — as the
+//! routes carry it — and which batches gather from which), and the gather runs when the next iteration shoots
 //! the target: [`Specular::gather_all`] in one process, or, in the
 //! distributed service, the worker that leases the target's batch, for its
 //! directions only ([`Specular::gather`]), reading the arrivals of the
@@ -63,7 +63,7 @@
 //! The field's bits are the same either way.
 
 use super::batching::Batching;
-use super::by_mirror::{PowerByMirror, RoutesByMirror};
+use super::by_mirror::{PowerByMirror, RoutesBySource};
 use super::mirror_geometry::MirrorGeometry;
 use super::shoot::NO_SLOT;
 use crate::directions::DirectionSet;
@@ -236,7 +236,7 @@ pub struct Exchange {
     /// Power that arrived on mirrors (front side).
     pub incident: Rgb,
     /// Power reflected into the next unshot maps: ρs × incident, exactly
-    /// (what the routes carry, see [`Specular::settle`]).
+    /// (what the routes carry, see [`Specular::settle_batch`]).
     pub reflected: Rgb,
 }
 
@@ -300,8 +300,8 @@ pub struct Specular {
     /// Per target direction, its [`GatherTable`] once its first gather found it, when
     /// [`Specular::keep_gather_tables`].
     gather_tables: Vec<OnceLock<GatherTable>>,
-    /// The routes by mirror, for settling, once the first settle asks ([`RoutesByMirror`]).
-    routes_by_mirror: OnceLock<RoutesByMirror>,
+    /// The routes by source, for settling, once the first settle asks ([`RoutesBySource`]).
+    routes_by_source: OnceLock<RoutesBySource>,
     /// Whether a gather keeps the table it finds, for the next iterations' gathers of the same
     /// direction: on unless the process holds its subfields within a memory budget. The tables
     /// take 8 bytes a sample, a few samples a mirror slot (one per route), and 8 bytes a route:
@@ -335,60 +335,146 @@ impl GatherTable {
 
 /// The last iteration's arrivals on mirrors, waiting to be reflected.
 ///
-/// The exchange runs at the start of the iteration that shoots its result,
-/// not at the end of the one that produced the arrivals: a snapshot holds
-/// the arrivals (the incident maps) and their power `Φ_in` per direction and
-/// mirror, and whoever shoots a direction gathers its unshot map then. In the
-/// distributed service that is the worker with the direction's lease, so
-/// the maps go from worker to worker (a worker that keeps its directions
-/// reads nothing back) and the coordinator handles only `Φ_in`, a few
-/// numbers per direction and mirror its rays met.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// The exchange runs at the start of the iteration that shoots its result, not at the end of
+/// the one that produced the arrivals: a snapshot holds the arrivals (the incident maps), and
+/// whoever shoots a direction gathers its unshot map then. In the distributed service that is
+/// the worker with the direction's lease, so the maps go from worker to worker (a worker that
+/// keeps its directions reads nothing back).
+///
+/// **What travels is settled where the arrivals were made.** A gather reads the power `Φ_in`
+/// that each route's source brought to its mirror, a function of the source's incident map
+/// ([`Specular::power_in_of`]): whoever gathers finds it from the maps it restores, the same
+/// bits as where they were shot. So `Φ_in` itself goes nowhere. What the rest of the run asks
+/// of the arrivals is settled by whoever shot them, batch by batch of sources
+/// ([`BatchArrivals`]): the exchange's power, which the stop rule and a job's status read, and
+/// which batches of sources each batch of targets gathers from, which tells a worker what to
+/// read. A coordinator adds those up in batch order ([`Settled`]); it used to carry every
+/// direction's `Φ_in` from the workers' outputs into the next head, where every worker read it
+/// again: for the 47 794-triangle mirror dragon at l = 2049, N = 128, 93 MB and about a second
+/// of every iteration, half of it serial on the coordinator.
+#[derive(Debug, Serialize, Deserialize)]
 pub struct Pending {
-    /// `Φ_in(P, ω)`: per direction, the power its incident map holds on each
-    /// mirror that received some ([`MirrorPower`]). Replaced whole, never edited: what is
-    /// found of it is kept ([`Found`]).
-    pub power_in: Vec<MirrorPower>,
-    /// What the exchange finds of `power_in`, once asked for.
+    /// What the arrivals come to ([`Settled`]). `None` only as read from an earlier build's
+    /// blob, which held every direction's `Φ_in` instead: restoring it settles them
+    /// ([`super::Propagation::restore_head`]).
+    pub settled: Option<Settled>,
+    /// `Φ_in` where it is known here: of the directions whose arrival maps this process holds
+    /// (or as an earlier build's blob held it), `None` for the others; empty when none is.
     #[serde(skip)]
-    found: Found,
+    power_in: Vec<Option<MirrorPower>>,
+    /// `power_in` by mirror, as a gather's routes ask for it: turned around once, again only
+    /// after more of it became known.
+    #[serde(skip)]
+    by_mirror: OnceLock<Box<PowerByMirror>>,
 }
 
-impl Pending {
-    pub fn new(power_in: Vec<MirrorPower>) -> Pending {
-        Pending {
-            power_in,
-            found: Found::default(),
+/// What a [`Pending`]'s arrivals come to, added up over every batch of sources in order.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Settled {
+    /// The exchange's power bookkeeping: the sum of the batches' [`BatchArrivals::exchange`].
+    pub exchange: Exchange,
+    /// Per batch of target directions, the batches of source directions whose arrivals its
+    /// gathers read (increasing): what a worker reads before it gathers
+    /// ([`Specular::source_batches`]).
+    pub sources: Vec<Vec<u32>>,
+}
+
+impl Settled {
+    /// The arrivals of every batch of sources, in order, added up: `parts[b]` of batch `b` of
+    /// `batches`.
+    pub fn of_parts<'a>(parts: impl IntoIterator<Item = &'a BatchArrivals>, batches: usize) -> Settled {
+        let mut settled = Settled {
+            exchange: Exchange::default(),
+            sources: vec![Vec::new(); batches],
+        };
+        for (b, part) in parts.into_iter().enumerate() {
+            add(&mut settled.exchange.incident, &part.exchange.incident);
+            add(&mut settled.exchange.reflected, &part.exchange.reflected);
+            for &t in &part.feeds {
+                if let Some(sources) = settled.sources.get_mut(t as usize) {
+                    sources.push(b as u32);
+                }
+            }
         }
+        settled
     }
 }
 
-/// What the exchange finds of a [`Pending`], once: [`Specular::settle`] walks every route (tens
-/// of millions for a curved mirror), and the unshot power, which the stop rule, the snapshot's
-/// summary and a job's status all ask for, is made of it. Found afresh every time, it was two
-/// thirds of a coordinator's CPU for the mirror dragon (47 794 triangles, l = 2049, N = 128).
-/// Neither stored (a function of `Φ_in` and the geometry) nor compared, and a clone of a
-/// [`Pending`] turns `Φ_in` around afresh if it needs it.
-#[derive(Debug, Default)]
-struct Found {
-    /// [`Specular::settle`] of `power_in`.
-    settled: OnceLock<Exchange>,
-    /// `power_in` by mirror, as a gather's routes ask for it.
-    by_mirror: OnceLock<PowerByMirror>,
+/// What one batch of source directions brought to the mirrors, settled by whoever shot it
+/// ([`Specular::settle_batch`]).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct BatchArrivals {
+    /// The power its directions brought to the mirrors (`Σ Φ_in`), and what their routes reflect
+    /// (`Σ b·ρs·Φ_in`).
+    pub exchange: Exchange,
+    /// The batches of target directions that a route of its carrying power feeds (increasing).
+    pub feeds: Vec<u32>,
 }
 
-impl Clone for Found {
-    fn clone(&self) -> Found {
-        Found {
+impl Pending {
+    /// Arrivals whose settling `settled` tells, their `Φ_in` known nowhere yet: each direction's
+    /// becomes known as its arrival maps are restored here ([`Specular::know_arrivals`]).
+    pub fn new(settled: Settled) -> Pending {
+        Pending {
+            settled: Some(settled),
+            power_in: Vec::new(),
+            by_mirror: OnceLock::new(),
+        }
+    }
+
+    /// Arrivals as earlier builds stored them: every direction's `Φ_in`, not settled yet.
+    pub fn of_power_in(power_in: Vec<MirrorPower>) -> Pending {
+        Pending {
+            settled: None,
+            power_in: power_in.into_iter().map(Some).collect(),
+            by_mirror: OnceLock::new(),
+        }
+    }
+
+    /// What the arrivals come to, once settled.
+    pub fn settled(&self) -> Option<&Settled> {
+        self.settled.as_ref()
+    }
+
+    /// `Φ_in` of direction `d`, where it is known here.
+    pub fn power_in(&self, d: usize) -> Option<&MirrorPower> {
+        self.power_in.get(d).and_then(Option::as_ref)
+    }
+
+    /// `Φ_in` of every direction, when it is known here for all `directions`.
+    pub(crate) fn all_power_in(&self, directions: usize) -> Option<Vec<&MirrorPower>> {
+        (0..directions).map(|d| self.power_in(d)).collect()
+    }
+
+    /// Takes `power` as direction `d`'s `Φ_in`, of `directions`.
+    pub(crate) fn know(&mut self, directions: usize, d: usize, power: MirrorPower) {
+        if self.power_in.len() != directions {
+            self.power_in.resize(directions, None);
+        }
+        self.power_in[d] = Some(power);
+        self.by_mirror = OnceLock::new();
+    }
+}
+
+/// A clone turns its known `Φ_in` around afresh if it needs it.
+impl Clone for Pending {
+    fn clone(&self) -> Pending {
+        Pending {
             settled: self.settled.clone(),
+            power_in: self.power_in.clone(),
             by_mirror: OnceLock::new(),
         }
     }
 }
 
-impl PartialEq for Found {
-    fn eq(&self, _: &Found) -> bool {
-        true
+/// Two [`Pending`]s are equal when they settle alike: the `Φ_in` a process knows is a function of
+/// the arrival maps it holds, which a checkpoint compares apart. Not settled yet (as an earlier
+/// build stored them), they are equal when they hold the same `Φ_in`.
+impl PartialEq for Pending {
+    fn eq(&self, other: &Pending) -> bool {
+        let n = self.power_in.len().max(other.power_in.len());
+        let same_power = || (0..n).all(|d| self.power_in(d) == other.power_in(d));
+        self.settled == other.settled && (self.settled.is_some() || same_power())
     }
 }
 
@@ -528,7 +614,7 @@ impl Specular {
             pending: None,
             ordinal,
             slotted,
-            routes_by_mirror: OnceLock::new(),
+            routes_by_source: OnceLock::new(),
             keep_gather_tables: true,
         }
     }
@@ -671,10 +757,10 @@ impl Specular {
 
     /// Power still unshot in the mirror maps: `Σ_i Σ_slots U · Δω_i`, or,
     /// while arrivals are [`Pending`], the power the exchange reflects into
-    /// them ([`Specular::settle`]: the gather scales each route to carry
-    /// exactly that).
-    pub fn unshot_power(&self, scene: &Scene, directions: &DirectionSet) -> Rgb {
-        if let Some(exchange) = self.settled(scene) {
+    /// them ([`Specular::settle_batch`]: the gather scales each route to carry
+    /// exactly its share of that).
+    pub fn unshot_power(&self, directions: &DirectionSet) -> Rgb {
+        if let Some(exchange) = self.settled() {
             return exchange.reflected;
         }
         let mut p = [0.0; 3];
@@ -708,7 +794,10 @@ impl Specular {
     /// reflected.
     pub fn has_unshot(&self) -> bool {
         match &self.pending {
-            Some(p) => (p.power_in.iter().flatten()).any(|(_, v)| v.iter().any(|&c| c > 0.0)),
+            Some(p) => match &p.settled {
+                Some(settled) => settled.exchange.incident.iter().any(|&c| c > 0.0),
+                None => (p.power_in.iter().flatten().flatten()).any(|(_, v)| v.iter().any(|&c| c > 0.0)),
+            },
             None => self
                 .maps
                 .iter()
@@ -744,85 +833,109 @@ impl Specular {
         p
     }
 
-    /// The exchange's bookkeeping from every direction's `Φ_in` alone:
-    /// what arrived, and what the gather reflects into the next unshot maps
-    /// (`b·ρs·Φ_in` per route that has slots to fill) — the same sums, in
-    /// the same order, as [`Specular::gather`] adds up, so a coordinator that
-    /// never sees a map knows the exchange's power exactly.
+    /// What the sources of batch `batch` of `batching` brought to the mirrors, `power_in` being
+    /// their `Φ_in` in order ([`Specular::power_in_of`]): the exchange's power and the batches
+    /// of targets they feed ([`BatchArrivals`]), what whoever shot the batch reports. The
+    /// power is the sum the gathers scale their routes to (`b·ρs·Φ_in` per route with slots to
+    /// fill), so whoever never sees a map knows the exchange's power, within rounding of what
+    /// the gathered maps add up to.
     ///
-    /// One pass over the routes, mirror by mirror beside each mirror's `Φ_in`
-    /// ([`RoutesByMirror`]): each target's sum takes its routes in their order, and the sums
-    /// are added in target order, so the bits are those of walking each target's routes.
-    pub fn settle(&self, scene: &Scene, pending: &Pending) -> Exchange {
-        let started = std::time::Instant::now();
-        let mut exchange = Exchange::default();
-        for (_, v) in pending.power_in.iter().flatten() {
-            add(&mut exchange.incident, v);
-        }
-        // Turned around for this settle alone unless a gather asked before (or will, and said
-        // so: `prepare_gathers`): a coordinator settles once per iteration and never gathers, so
-        // it keeps no second copy of `Φ_in`.
-        let turned;
-        let lit = match pending.found.by_mirror.get() {
-            Some(lit) => lit,
-            None => {
-                turned = PowerByMirror::new(&pending.power_in, self.mirrors.len());
-                &turned
-            }
-        };
-        let routes = self.routes_by_mirror();
+    /// One pass over the batch's routes, by source ([`RoutesBySource`]) beside each source's
+    /// `Φ_in`: every batch is settled apart, and [`Settled::of_parts`] adds them in batch
+    /// order, so the bits do not depend on who settled which.
+    pub fn settle_batch(
+        &self,
+        scene: &Scene,
+        batching: &Batching,
+        batch: usize,
+        power_in: &[&MirrorPower],
+    ) -> BatchArrivals {
+        let first = batching.range(batch).start;
         let rho = |k: u32| scene.materials[scene.surfaces[self.mirrors[k as usize] as usize].material].specular;
-        for r in &routes.reflected(lit, rho, self.routes.len()) {
-            add(&mut exchange.reflected, r);
+        (self.routes_by_source()).settle(first, power_in, rho, |target| batching.batch_of(target as usize))
+    }
+
+    /// [`Specular::settle_batch`] of every batch, `power_in` being every direction's `Φ_in`, in
+    /// parallel, added up in order: what one process that shot them all leaves pending.
+    pub fn settle_all(&self, scene: &Scene, batching: &Batching, power_in: &[&MirrorPower]) -> Settled {
+        let parts: Vec<BatchArrivals> = (0..batching.count())
+            .into_par_iter()
+            .map(|b| self.settle_batch(scene, batching, b, &power_in[batching.range(b)]))
+            .collect();
+        Settled::of_parts(&parts, batching.count())
+    }
+
+    /// The routes by source, turned around once ([`RoutesBySource`]).
+    fn routes_by_source(&self) -> &RoutesBySource {
+        self.routes_by_source.get_or_init(|| {
+            let started = std::time::Instant::now();
+            let by_source = RoutesBySource::new(&self.routes, &self.ordinal, &self.slotted, self.views.len());
+            tracing::debug!(
+                routes = by_source.len(),
+                seconds = started.elapsed().as_secs_f64(),
+                "routes turned around by source"
+            );
+            by_source
+        })
+    }
+
+    /// The exchange's power of the pending arrivals, once settled.
+    pub fn settled(&self) -> Option<Exchange> {
+        Some(self.pending.as_ref()?.settled.as_ref()?.exchange)
+    }
+
+    /// Settles pending arrivals that an earlier build stored as every direction's `Φ_in`
+    /// ([`Pending::of_power_in`]), batch by batch as this build's workers do. Arrivals settled
+    /// already, or none, are left as they are.
+    pub(crate) fn settle_pending(&mut self, scene: &Scene, batching: &Batching) {
+        let l = self.views.len();
+        let Some(pending) = &self.pending else {
+            return;
+        };
+        if pending.settled.is_some() {
+            return;
         }
-        tracing::debug!(
-            routes = routes.len(),
-            lit = lit.len(),
-            seconds = started.elapsed().as_secs_f64(),
-            "exchange settled"
-        );
-        exchange
+        let power_in = pending
+            .all_power_in(l)
+            .expect("an earlier build's pending arrivals know every Φ_in");
+        let settled = self.settle_all(scene, batching, &power_in);
+        if let Some(pending) = &mut self.pending {
+            pending.settled = Some(settled);
+        }
     }
 
-    /// The routes by mirror, turned around once ([`RoutesByMirror`]).
-    fn routes_by_mirror(&self) -> &RoutesByMirror {
-        (self.routes_by_mirror)
-            .get_or_init(|| RoutesByMirror::new(&self.routes, &self.ordinal, &self.slotted, self.mirrors.len()))
-    }
-
-    /// Turns the routes around by mirror now, if no settle did yet: what the first
-    /// [`Specular::settle`] does before anything else, for whoever has time before it. A
-    /// coordinator does it while its workers shoot the first iteration: settling at the end of
-    /// it, the curved mirror of the 47 794-triangle dragon (4 million routes at l = 2049,
-    /// N = 128) took 0.75 s of the service's serial part, against 0.1 s later on.
-    pub fn prepare_settle(&self) {
-        self.routes_by_mirror();
-    }
-
-    /// Whether the routes are turned around by mirror already ([`Specular::prepare_settle`]).
-    pub fn settle_prepared(&self) -> bool {
-        self.routes_by_mirror.get().is_some()
-    }
-
-    /// [`Specular::settle`] of the pending arrivals, found once per [`Pending`].
-    pub fn settled(&self, scene: &Scene) -> Option<Exchange> {
-        let pending = self.pending.as_ref()?;
-        Some(*pending.found.settled.get_or_init(|| self.settle(scene, pending)))
+    /// Takes `Φ_in` of the directions `range` from their arrival maps, where held: what a
+    /// process does as it restores or adopts them while arrivals are pending, so that its
+    /// gathers read the same `Φ_in` as where the maps were shot.
+    pub fn know_arrivals(&mut self, directions: &DirectionSet, range: std::ops::Range<usize>) {
+        if self.pending.is_none() {
+            return;
+        }
+        let known: Vec<(usize, MirrorPower)> = range
+            .into_par_iter()
+            .filter(|&d| self.holds(d, &self.maps[d].incident))
+            .map(|d| (d, self.power_in_of(directions, d, &self.maps[d].incident)))
+            .collect();
+        let l = self.views.len();
+        if let Some(pending) = &mut self.pending {
+            for (d, power) in known {
+                pending.know(l, d, power);
+            }
+        }
     }
 
     /// Turns the pending `Φ_in` around by mirror now and keeps it, for the gathers that this
-    /// process runs next from the same [`Pending`]: a process running the whole propagation,
-    /// whose settle at the end of an iteration then reads it too instead of turning it around
-    /// once more for itself (twice 93 MB of fresh memory an iteration for the mirror dragon).
+    /// process runs next from the same [`Pending`]: a process running the whole propagation.
     pub(crate) fn prepare_gathers(&self) {
         if let Some(pending) = &self.pending {
             self.by_mirror(pending);
         }
     }
 
-    /// `pending`'s `Φ_in` by mirror ([`PowerByMirror`]), turned around once per [`Pending`].
+    /// `pending`'s known `Φ_in` by mirror ([`PowerByMirror`]), turned around once per what is
+    /// known.
     fn by_mirror<'a>(&self, pending: &'a Pending) -> &'a PowerByMirror {
-        (pending.found.by_mirror).get_or_init(|| PowerByMirror::new(&pending.power_in, self.mirrors.len()))
+        (pending.by_mirror).get_or_init(|| Box::new(PowerByMirror::new(&pending.power_in, self.mirrors.len())))
     }
 
     /// `Φ_in` of `route`'s mirror along its source.
@@ -830,30 +943,49 @@ impl Specular {
         lit.power(self.ordinal[route.mirror as usize], route.source)
     }
 
-    /// The batches of source directions whose arrivals the gather of `targets` reads: those
-    /// holding the source of a route of theirs that carries power, increasing. What a worker
-    /// reads from the store before it gathers a block.
-    ///
-    /// A route's power is looked up only while its source's batch is not found yet: a curved
-    /// mirror gives millions of routes and a pass has dozens of batches, so nearly every route
-    /// costs one comparison instead of a search of its mirror's arrivals (on the 47 794-triangle
-    /// mirror dragon at l = 2049, N = 128, the search for every route took a worker's block
-    /// about as long as reading its maps).
+    /// The batches of source directions whose arrivals the gather of `targets` reads (those of
+    /// the routes into them that carry power), increasing: what a worker reads from the store
+    /// before it gathers a block. As the batches that shot the arrivals settled them
+    /// ([`Settled::sources`]); arrivals not settled yet read every batch.
     pub fn source_batches(
         &self,
         targets: std::ops::Range<usize>,
         pending: &Pending,
         batching: &Batching,
     ) -> Vec<usize> {
-        let lit = self.by_mirror(pending);
+        let Some(settled) = &pending.settled else {
+            return (0..batching.count()).collect();
+        };
         let mut found = vec![false; batching.count()];
-        for route in self.routes[targets].iter().flatten() {
-            let b = batching.batch_of(route.source as usize);
-            if !found[b] && self.route_power(lit, route).iter().any(|&p| p > 0.0) {
-                found[b] = true;
+        if !targets.is_empty() {
+            for t in batching.batch_of(targets.start)..=batching.batch_of(targets.end - 1) {
+                for &b in settled.sources.get(t).map_or(&[][..], Vec::as_slice) {
+                    if let Some(f) = found.get_mut(b as usize) {
+                        *f = true;
+                    }
+                }
             }
         }
         (0..found.len()).filter(|&b| found[b]).collect()
+    }
+
+    /// Refuses to gather `targets` unless the `Φ_in` of every source it reads is known here
+    /// ([`Specular::know_arrivals`]): a source not known reads as dark, so a replica that did
+    /// not restore a batch it gathers from would gather too little, without a word.
+    pub fn check_sources_known(
+        &self,
+        targets: std::ops::Range<usize>,
+        pending: &Pending,
+        batching: &Batching,
+    ) -> crate::Result<()> {
+        for b in self.source_batches(targets, pending, batching) {
+            if let Some(d) = batching.range(b).find(|&d| pending.power_in(d).is_none()) {
+                return Err(crate::Error::Parameter(format!(
+                    "the mirror arrival map of direction {d} (batch {b}) is not restored"
+                )));
+            }
+        }
+        Ok(())
     }
 
     /// Reflects the pending arrivals (the incident maps) of every direction
@@ -951,6 +1083,10 @@ impl Specular {
                 continue;
             }
             let reads = table.reads(r);
+            if reads.is_empty() {
+                // The mirror has no slot in the target: nothing to fill, nothing to read.
+                continue;
+            }
             let rho = scene.materials[scene.surfaces[route.mirror as usize].material].specular;
             let source_incident = incident(route.source as usize);
             if !self.holds(route.source as usize, source_incident) {
@@ -968,9 +1104,6 @@ impl Specular {
                 };
                 (slot, v)
             }));
-            if samples.is_empty() {
-                continue;
-            }
             // Scale so the route carries exactly b·ρs·Φ_in (per channel);
             // where backward mapping found nothing lit (a lit area far smaller
             // than a ray cell), spread the power evenly instead.

@@ -29,7 +29,8 @@
 //! from any number of workers get the same field.
 //!
 //! Between iterations, what stays global is small: the texel maps (reduced
-//! here) and, with mirrors, each direction's `Φ_in` per mirror. The mirror
+//! here) and, with mirrors, what each batch brought to the mirrors, settled
+//! where it was shot ([`super::specular::BatchArrivals`]). The mirror
 //! maps stay with their directions: a shooting batch first gathers its
 //! directions' unshot maps from the last iteration's arrivals (the exchange,
 //! see [`super::specular::Pending`]), and its output carries its directions'
@@ -39,7 +40,7 @@
 use super::batching::{Batching, CHUNK};
 use super::reduce::TreeSum;
 use super::shoot::{self, Flow, Scratch};
-use super::specular::{DirectionMaps, MirrorPower};
+use super::specular::{BatchArrivals, DirectionMaps, MirrorPower};
 use super::{FlowRecord, Propagation, perturb, radiance_of};
 use crate::directions::DirectionSet;
 use crate::psf::{RasterScratch, Subfield};
@@ -150,9 +151,19 @@ pub struct BatchOutput {
     pub batches: Range<u32>,
     /// The block's node sum.
     pub sum: BatchSum,
-    /// When the pass uses mirror maps: per direction of the block, in order,
-    /// `Φ_in` of what arrived on the mirrors ([`super::Specular::power_in_of`]).
-    pub power_in: Option<Vec<MirrorPower>>,
+    /// When the pass uses mirror maps: what the block's directions brought to the mirrors.
+    pub arrivals: Option<Arrivals>,
+}
+
+/// What the directions of a block brought to the mirrors, as its [`BatchOutput`] reports it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum Arrivals {
+    /// Settled by the worker that shot them, per batch of the block, in order
+    /// ([`super::Specular::settle_batch`]): what this build writes.
+    Settled(Vec<BatchArrivals>),
+    /// Per direction of the block, in order, `Φ_in` ([`super::Specular::power_in_of`]): what
+    /// earlier builds wrote, settled by whoever absorbs it.
+    Power(Vec<MirrorPower>),
 }
 
 /// The mirror maps of a block's directions after it shot them: their part of
@@ -181,9 +192,23 @@ impl MirrorBlock {
     }
 }
 
-/// The first four bytes of a [`BatchOutput`] with sparse `Φ_in`. Earlier builds' outputs start
-/// with their iteration, a number far below it, and hold `Φ_in` dense (one value per mirror).
+/// The first four bytes of a [`BatchOutput`] of this build, whose arrivals are [`Arrivals`].
+const SETTLED_OUTPUT: u32 = 0xB05A_25E3;
+
+/// The first four bytes of a [`BatchOutput`] with sparse `Φ_in` ([`SparseOutput`]). Earlier
+/// builds' outputs start with their iteration, a number far below it, and hold `Φ_in` dense
+/// (one value per mirror).
 const SPARSE_OUTPUT: u32 = 0xB05A_25E2;
+
+/// [`BatchOutput`] as earlier builds wrote it after [`SPARSE_OUTPUT`]: `Φ_in` sparse.
+#[derive(Serialize, Deserialize)]
+pub(crate) struct SparseOutput {
+    pub(crate) iteration: u32,
+    pub(crate) pass: Pass,
+    pub(crate) batches: Range<u32>,
+    pub(crate) sum: BatchSum,
+    pub(crate) power_in: Option<Vec<MirrorPower>>,
+}
 
 /// [`BatchOutput`] as earlier builds wrote it: `Φ_in` dense.
 #[derive(Serialize, Deserialize)]
@@ -205,19 +230,20 @@ impl BatchOutput {
 
     /// How many bytes [`BatchOutput::write_to`] writes: a writer that compresses as it goes
     /// sizes its frame by it, and nothing holds the whole serialised output at once (a pass of
-    /// the 47 794-triangle mirror dragon at l = 2049, N = 128 is 93 MB of `Φ_in`).
+    /// a pass of the Cornell box at l = 8193, N = 256 is 3.4 MB of node sums).
     pub fn serialized_len(&self) -> u64 {
         4 + bincode::serialized_size(self).expect("bincode sizes plain numbers")
     }
 
     /// Writes the output as this build stores it: a four-byte mark, then the fields (bincode).
     pub fn write_to(&self, mut writer: impl std::io::Write) -> std::io::Result<()> {
-        writer.write_all(&SPARSE_OUTPUT.to_le_bytes())?;
+        writer.write_all(&SETTLED_OUTPUT.to_le_bytes())?;
         super::checkpoint::encode_into(writer, self)
     }
 
-    /// Reads an output of this build, or of an earlier one (dense `Φ_in`, read as sparse): a
-    /// coordinator of this build may take over an iteration whose outputs an earlier one left.
+    /// Reads an output of this build, or of an earlier one (`Φ_in`, sparse or dense, read as
+    /// [`Arrivals::Power`]): a coordinator of this build may take over an iteration whose outputs
+    /// an earlier one left.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<BatchOutput> {
         BatchOutput::read_from(bytes)
     }
@@ -229,19 +255,27 @@ impl BatchOutput {
         let mut head = [0u8; 4];
         let got = super::checkpoint::read_head(&mut reader, &mut head)
             .map_err(|e| crate::Error::Decode(format!("batch output: {e}")))?;
-        if got == head.len() && u32::from_le_bytes(head) == SPARSE_OUTPUT {
+        let mark = (got == head.len()).then(|| u32::from_le_bytes(head));
+        if mark == Some(SETTLED_OUTPUT) {
             return bincode::deserialize_from(reader).map_err(bad);
         }
-        // An earlier build's output: its first bytes are the iteration's, read again.
-        let old: DenseOutput = bincode::deserialize_from((&head[..got]).chain(reader)).map_err(bad)?;
-        Ok(BatchOutput {
-            iteration: old.iteration,
-            pass: old.pass,
-            batches: old.batches,
-            sum: old.sum,
-            power_in: old
+        let (iteration, pass, batches, sum, power_in) = if mark == Some(SPARSE_OUTPUT) {
+            let old: SparseOutput = bincode::deserialize_from(reader).map_err(bad)?;
+            (old.iteration, old.pass, old.batches, old.sum, old.power_in)
+        } else {
+            // An earlier build's output: its first bytes are the iteration's, read again.
+            let old: DenseOutput = bincode::deserialize_from((&head[..got]).chain(reader)).map_err(bad)?;
+            let sparse = old
                 .power_in
-                .map(|p| super::checkpoint::DensePending { power_in: p }.sparse().power_in),
+                .map(|p| super::checkpoint::DensePending { power_in: p }.sparse());
+            (old.iteration, old.pass, old.batches, old.sum, sparse)
+        };
+        Ok(BatchOutput {
+            iteration,
+            pass,
+            batches,
+            sum,
+            arrivals: power_in.map(Arrivals::Power),
         })
     }
 }
@@ -257,7 +291,10 @@ pub struct IterationWork {
     /// Received power, over the passes absorbed so far.
     pub(crate) received: Vec<Rgb>,
     pub(crate) flow: Flow,
-    /// With mirror maps: per direction, `Φ_in` of its arrivals, as absorbed.
+    /// With mirror maps: per batch, what its directions brought to the mirrors, once absorbed.
+    pub(crate) arrivals: Vec<Option<BatchArrivals>>,
+    /// Every direction's `Φ_in`, where one process shot them all (empty elsewhere): its
+    /// gathers read it next ([`super::specular::Pending`]).
     pub(crate) power_in: Vec<MirrorPower>,
     /// The pass being absorbed (its index) and its partial sums.
     cursor: usize,
@@ -591,10 +628,11 @@ impl Propagation {
             deferred_surfaces: deferred.iter().filter(|&&d| d).count(),
             received: vec![[0.0; 3]; texels],
             flow: Flow::default(),
-            power_in: match &mode {
-                Mode::Direct { mirrors: true, .. } => vec![Vec::new(); self.directions.len()],
+            arrivals: match &mode {
+                Mode::Direct { mirrors: true, .. } => vec![None; self.batching().count()],
                 _ => Vec::new(),
             },
+            power_in: Vec::new(),
             mode,
             cursor: 0,
             tree: TreeSum::new(self.batching().count()),
