@@ -596,6 +596,18 @@ fn exchange_by_definition(p: &Propagation) -> Exchange {
     want
 }
 
+/// The lamp and the wall of `lamp_beside_a_mirror`, a ball of 320 mirror triangles between: a
+/// faceted mirror, most of whose triangles most directions do not light.
+fn mirror_ball() -> Scene {
+    let plane = lamp_beside_a_mirror();
+    let mut surfaces = vec![plane.surfaces[0].clone(), plane.surfaces[2].clone()];
+    let glass = plane.surfaces[1].material;
+    for t in icosphere(DVec3::new(-0.1, 0.0, 0.2), 0.15, 2) {
+        surfaces.push(surface(t.to_vec(), glass));
+    }
+    scene(surfaces, plane.materials.clone())
+}
+
 /// Settling walks each batch's routes by source beside its sources' `Φ_in`, passing over the
 /// mirrors a source did not light: with a faceted mirror ball (most of its triangles unlit by
 /// most directions, several routes of a target on one triangle) and with flat mirrors, the
@@ -603,14 +615,7 @@ fn exchange_by_definition(p: &Propagation) -> Exchange {
 /// block of targets gathers from.
 #[test]
 fn settling_by_source_gives_the_bits_of_the_definition() {
-    // The lamp and the wall of `lamp_beside_a_mirror`, a ball of 320 mirror triangles between.
-    let plane = lamp_beside_a_mirror();
-    let mut surfaces = vec![plane.surfaces[0].clone(), plane.surfaces[2].clone()];
-    let glass = plane.surfaces[1].material;
-    for t in icosphere(DVec3::new(-0.1, 0.0, 0.2), 0.15, 2) {
-        surfaces.push(surface(t.to_vec(), glass));
-    }
-    let ball = scene(surfaces, plane.materials.clone());
+    let ball = mirror_ball();
     for (scene, iterations) in [(ball, 3), (mirror_room(), 2)] {
         let mut p = Propagation::new(scene, options(129, 32, 8, 8)).unwrap();
         let spec = p.specular.as_ref().unwrap();
@@ -653,13 +658,7 @@ fn settling_by_source_gives_the_bits_of_the_definition() {
 /// of the whole propagation.
 #[test]
 fn the_head_carries_the_arrivals_settled_and_a_replica_finds_their_power_from_the_maps() {
-    let plane = lamp_beside_a_mirror();
-    let mut surfaces = vec![plane.surfaces[0].clone(), plane.surfaces[2].clone()];
-    let glass = plane.surfaces[1].material;
-    for t in icosphere(DVec3::new(-0.1, 0.0, 0.2), 0.15, 2) {
-        surfaces.push(surface(t.to_vec(), glass));
-    }
-    let ball = scene(surfaces, plane.materials.clone());
+    let ball = mirror_ball();
     let options = options(129, 32, 8, 8);
     let mut p = Propagation::new(ball.clone(), options.clone()).unwrap();
     p.step(|_| {});

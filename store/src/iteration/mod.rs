@@ -12,7 +12,7 @@
 //!    the pass's prerequisites are absorbed, as part of an aligned block. A shooting block
 //!    with mirrors first writes its directions' mirror maps as parts of snapshot `k + 1`
 //!    (`iters/K+1/{shooting,mirror-totals}/BBBBB.blob`: the arrivals to reflect next, the
-//!    totals); then its node sum and each direction's `Φ_in` (a few numbers) go to
+//!    totals); then its node sum and its arrivals settled by batch (a few numbers) go to
 //!    `jobs/J/work/KKKKK/PASS/SSSSS-EEEEE.blob`. Writes are create-only; a block computed
 //!    twice (a lease that expired and was handed out again, a late result) writes the same
 //!    bytes, which the store accepts as unchanged — and different bytes would be an error,
@@ -21,7 +21,7 @@
 //!    it is written (the next ones are still being computed meanwhile); replicas read the
 //!    blocks of a pass's prerequisites to learn what it needs (a rotated copy's areas).
 //! 3. After the last pass the coordinator finishes the iteration (diffuse reflection; the
-//!    mirrors' power settled from `Φ_in`) and writes snapshot `k + 1`'s head, which releases
+//!    batches' settled arrivals added up) and writes snapshot `k + 1`'s head, which releases
 //!    the next iteration ([`Coordinator::release_iteration`]); it then writes the rest of the
 //!    snapshot (diffuse totals and maps, summary), commits it and deletes the iteration's
 //!    outputs ([`SnapshotCommit::commit`]) — in the service, while workers compute the next

@@ -541,7 +541,7 @@ impl Replica {
     }
 
     /// Moves on to the iteration that starts from snapshot `k`. Every lease reads the head of
-    /// the shooting state (statistics, Current, pending `Φ_in`): written before the iteration is
+    /// the shooting state (statistics, Current, what the pending arrivals come to): written before the iteration is
     /// released, perhaps not committed yet (see `PendingSnapshot`). The mirror maps this
     /// replica computed for `k` are taken from memory; the others come by batch, as leases need
     /// them. A snapshot of an earlier build is restored whole.

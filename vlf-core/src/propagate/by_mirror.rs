@@ -1,20 +1,18 @@
-//! The exchange turned around: `Φ_in` and the routes, by mirror.
+//! The exchange turned around: `Φ_in` by mirror, the routes by source.
 //!
 //! The exchange asks one question of `Φ_in` per [`Route`]: how much power arrived on the
-//! route's mirror along its source direction. `Φ_in` is stored by source ([`MirrorPower`]: per
+//! route's mirror along its source direction. `Φ_in` is found by source ([`MirrorPower`]: per
 //! direction, the mirrors it lit) and a target's routes come by mirror (sorted by (mirror,
 //! source)), so each question was a binary search in another direction's list: a cache miss per
 //! step, four million routes an iteration for the mirror dragon (47 794 triangles, l = 2049,
-//! N = 128), 61 % of its coordinator's CPU, all of it between iterations, where the workers
-//! wait.
+//! N = 128).
 //!
-//! * [`PowerByMirror`]: `Φ_in` by mirror, then source, turned around once per
-//!   [`Pending`](super::specular::Pending). A worker's gather looks its routes up in it.
-//! * [`RoutesByMirror`]: the routes by mirror, then source, then target, once per propagation
-//!   (a function of the geometry), for [`Specular::settle`](super::specular::Specular::settle):
-//!   it walks each lit mirror's routes beside its sources, one merge, no search, and adds each
-//!   route into its target's sum. Mirror after mirror, a target's sum takes its routes in their
-//!   (mirror, source) order, the order of the definition, so the sums are its bits.
+//! * [`PowerByMirror`]: `Φ_in` by mirror, then source, turned around once per what a
+//!   [`Pending`](super::specular::Pending) knows of it. A gather looks its routes up in it.
+//! * [`RoutesBySource`]: the routes by source, then mirror, then target, once per propagation
+//!   (a function of the geometry), for
+//!   [`Specular::settle_batch`](super::specular::Specular::settle_batch): a batch of sources is
+//!   one run of it, walked beside each source's `Φ_in`, one merge, no search.
 
 use super::specular::{BatchArrivals, Exchange, MirrorPower, Route};
 use crate::scene::Rgb;

@@ -20,8 +20,8 @@
 //! totals are read by whoever shoots a direction (its total grows by what it
 //! sends), by whoever finishes iterations (the diffuse Total) and by a viewer
 //! of the snapshot (a snapshot's mirror radiance is its mirror totals). So a
-//! checkpoint splits into the [`ShootingState`] (statistics, Current, pending
-//! `Φ_in`, shooting maps) and the [`Totals`] (Total, mirror totals);
+//! checkpoint splits into the [`ShootingState`] (statistics, Current, what the
+//! pending arrivals come to, shooting maps) and the [`Totals`] (Total, mirror totals);
 //! [`Checkpoint::join`] puts them back together. How they are stored — the
 //! mirror maps cut further, by batch of directions — is [`super::snapshot`].
 //!
@@ -161,7 +161,7 @@ pub struct Checkpoint {
     pub total: Vec<Rgb>,
     /// Per direction, `None` without specular machinery.
     pub mirrors: Option<Vec<DirectionCheckpoint>>,
-    /// `Φ_in` of the arrivals the shooting maps hold, when they wait to be
+    /// What the arrivals the shooting maps hold come to, when they wait to be
     /// reflected.
     pub pending: Option<Pending>,
 }
@@ -345,7 +345,7 @@ pub struct ShootingState {
     pub current: Vec<Rgb>,
     /// Per direction, its shooting mirror map; `None` without specular machinery.
     pub mirrors: Option<Vec<Vec<Rgb>>>,
-    /// `Φ_in` of the arrivals the shooting maps hold, when they wait to be
+    /// What the arrivals the shooting maps hold come to, when they wait to be
     /// reflected.
     pub pending: Option<Pending>,
 }
@@ -498,7 +498,7 @@ impl Propagation {
     }
 
     /// Replaces the state that shooting reads — the statistics, Current,
-    /// the pending `Φ_in` and the shooting mirror maps — by `state`, keeping
+    /// the pending arrivals and the shooting mirror maps — by `state`, keeping
     /// the geometry: how a worker moves on to the next iteration from half of
     /// the checkpoint. The totals are left as they were, so a propagation
     /// restored this way computes blocks of the next iteration

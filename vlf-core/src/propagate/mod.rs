@@ -897,7 +897,15 @@ impl Propagation {
         // `Specular::unshot_power`).
         let (exchange, settled) = match self.specular.as_mut() {
             Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
-                let parts = (work.arrivals.iter()).map(|part| part.as_ref().expect("every batch absorbed"));
+                // Every batch's part, absorbed with its output (`apply_batch`) or settled here
+                // (`end_step`); a pass absorbed without them (`IterationWork::absorb` alone)
+                // brought nothing to the mirrors.
+                let none = specular::BatchArrivals::default();
+                let missing = work.arrivals.iter().filter(|part| part.is_none()).count();
+                if missing > 0 {
+                    tracing::warn!(missing, "batches absorbed without their mirror arrivals");
+                }
+                let parts = (work.arrivals.iter()).map(|part| part.as_ref().unwrap_or(&none));
                 let settled = specular::Settled::of_parts(parts, work.batches());
                 let exchange = settled.exchange;
                 let mut pending = specular::Pending::new(settled);

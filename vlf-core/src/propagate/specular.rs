@@ -777,7 +777,7 @@ impl Specular {
 
     /// Frees every direction's maps, keeping the views and routes: their values are elsewhere
     /// ([`Unheld::Elsewhere`]) — for a coordinator whose workers hold the maps (see
-    /// [`Pending`]), which then needs only `Φ_in`, whatever the number of mirror slots, and for
+    /// [`Pending`]), which then needs only what the arrivals come to ([`Settled`]), and for
     /// a worker's replica moving on to the next snapshot. Restoring a batch brings its maps back
     /// ([`super::Propagation::restore_shooting_batch`], [`super::Propagation::restore_totals_batch`]),
     /// as adopting a block does ([`super::Propagation::adopt_mirrors`]).
@@ -999,10 +999,19 @@ impl Specular {
     /// iteration were a third of the mirror dragon's gathering on the 2-core VM, most of it the
     /// system zeroing pages.
     pub fn gather_all(&mut self, scene: &Scene, directions: &DirectionSet) {
+        if self.pending.is_none() {
+            return;
+        }
+        self.hold_zeros(0..directions.len());
+        // Every arrival map is here: `Φ_in` not known yet (a propagation that finished the
+        // iteration from blocks it adopted, say) is found from them, never read as dark.
+        let l = directions.len();
+        if (self.pending.as_ref()).is_some_and(|p| (0..l).any(|d| p.power_in(d).is_none())) {
+            self.know_arrivals(directions, 0..l);
+        }
         let Some(pending) = self.pending.take() else {
             return;
         };
-        self.hold_zeros(0..directions.len());
         let incident: Vec<Vec<Rgb>> = (self.maps.iter_mut())
             .map(|m| std::mem::take(&mut m.incident))
             .collect();
@@ -1026,10 +1035,11 @@ impl Specular {
     }
 
     /// The new unshot map of target direction `i` from the pending arrivals
-    /// `incident(source)` of its routes' sources and every direction's
-    /// `Φ_in` (see the module docs): what a worker computes for the
-    /// directions it shoots. An arrival map it reads that is not held (a
-    /// replica that did not restore it) is an error, not zeros.
+    /// `incident(source)` of its routes' sources and their `Φ_in` as this process knows it
+    /// ([`Specular::know_arrivals`]; see the module docs): what a worker computes for the
+    /// directions it shoots. A source whose `Φ_in` is not known here reads as dark: ask
+    /// [`Specular::check_sources_known`] first. An arrival map it reads whose `Φ_in` is known
+    /// but that is not held is an error, not zeros.
     pub fn gather<'a>(
         &self,
         scene: &Scene,

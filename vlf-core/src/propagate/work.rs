@@ -230,7 +230,7 @@ impl BatchOutput {
 
     /// How many bytes [`BatchOutput::write_to`] writes: a writer that compresses as it goes
     /// sizes its frame by it, and nothing holds the whole serialised output at once (a pass of
-    /// a pass of the Cornell box at l = 8193, N = 256 is 3.4 MB of node sums).
+    /// the Cornell box at l = 8193, N = 256 is 3.4 MB of node sums).
     pub fn serialized_len(&self) -> u64 {
         4 + bincode::serialized_size(self).expect("bincode sizes plain numbers")
     }
