@@ -1205,6 +1205,10 @@ fn coordinator_phases_tell_its_store_waits_from_its_computing() {
     let id = job.id().clone();
     let mut coordinator = Coordinator::new(job, p);
     let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
+    // A replica turns the routes around as it sets up, not in its first block; a coordinator,
+    // which settles nothing, never does.
+    let prepared = |p: &Propagation| p.specular.as_ref().unwrap().settle_prepared();
+    assert!(prepared(replica.propagation()));
     // Its work prepared while the workers compute.
     coordinator.prepare_work();
     compute_iteration(&mut coordinator, &mut replica);
@@ -1214,6 +1218,7 @@ fn coordinator_phases_tell_its_store_waits_from_its_computing() {
     assert!(phases.finish > 0.0 && phases.finish < 0.3, "{phases:?}");
     assert!(phases.apply < 0.3, "{phases:?}");
     assert_eq!(coordinator.take_phase_seconds(), CoordinatorPhases::default());
+    assert!(!prepared(coordinator.propagation()));
     coordinator.committed(commit.commit().unwrap());
 }
 

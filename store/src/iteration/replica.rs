@@ -130,6 +130,11 @@ impl Replica {
         Ok(Replica::with_propagation(job, prop))
     }
 
+    /// The propagation this replica computes blocks on.
+    pub fn propagation(&self) -> &Propagation {
+        &self.prop
+    }
+
     /// What this replica's subfields hold and held ([`vlf_core::psf::SubfieldMemory`]).
     pub fn subfield_memory(&self) -> vlf_core::psf::SubfieldMemory {
         self.prop.subfields.memory()
@@ -172,8 +177,13 @@ impl Replica {
 
     /// A replica of `job` over `prop`, a propagation of the same scene and options (built by
     /// someone else in this process: the geometry is not built twice). Its state is restored
-    /// from the store before every iteration, so what it holds now does not matter.
+    /// from the store before every iteration, so what it holds now does not matter. With
+    /// mirrors, the routes are turned around for settling what its blocks shoot now, as part
+    /// of its set-up ([`vlf_core::propagate::Specular::prepare_settle`]).
     pub fn with_propagation(job: FieldJob, prop: Propagation) -> Replica {
+        if let Some(spec) = &prop.specular {
+            spec.prepare_settle();
+        }
         Replica {
             job,
             prop,
