@@ -1206,7 +1206,7 @@ fn coordinator_phases_tell_its_store_waits_from_its_computing() {
     let mut coordinator = Coordinator::new(job, p);
     let mut replica = Replica::new(FieldJob::open(&store, &id).unwrap()).unwrap();
     // A replica turns the routes around as it sets up, not in its first block; a coordinator,
-    // which settles nothing, never does.
+    // which settles only what an earlier build's workers left, does not.
     let prepared = |p: &Propagation| p.specular.as_ref().unwrap().settle_prepared();
     assert!(prepared(replica.propagation()));
     // Its work prepared while the workers compute.

@@ -705,3 +705,36 @@ fn the_largest_direction_set_gives_the_same_bits_on_any_split() {
         }
     }
 }
+
+/// A propagation that finished an iteration from a worker's block steps on by itself once it
+/// has adopted the block's maps: the `Φ_in` of the arrivals it adopted is found from them, and
+/// the next iterations have the bits of a run that never left the process.
+#[test]
+fn a_coordinator_that_adopted_every_block_steps_on_to_the_same_bits() {
+    let scene = mirror_room();
+    let mut straight = Propagation::new(scene.clone(), options(0)).unwrap();
+    for _ in 0..5 {
+        straight.step(|_| {});
+    }
+    let mut p = Propagation::new(scene, options(0)).unwrap();
+    p.step(|_| {});
+    p.step(|_| {});
+    assert!(p.specular.as_ref().unwrap().pending.is_some(), "arrivals pending");
+    let mut worker = p.clone();
+    let mut work = p.iteration_work();
+    let batches = work.batches();
+    let (out, block) = worker.compute_block(&work, Pass::Shoot, 0..batches).unwrap();
+    p.apply_batch(&mut work, out).unwrap();
+    p.finish_iteration(work, std::time::Instant::now());
+    let pending = p.specular.as_ref().unwrap().pending.as_ref().unwrap();
+    assert!(pending.power_in(0).is_none(), "a coordinator knows no Φ_in");
+    p.adopt_mirrors(block.unwrap()).unwrap();
+    let pending = p.specular.as_ref().unwrap().pending.as_ref().unwrap();
+    assert!(
+        (0..p.directions.len()).all(|d| pending.power_in(d).is_some()),
+        "adopted, known"
+    );
+    p.step(|_| {});
+    p.step(|_| {});
+    assert!(without_times(p.checkpoint()) == without_times(straight.checkpoint()));
+}

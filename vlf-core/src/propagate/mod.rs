@@ -898,12 +898,17 @@ impl Propagation {
         let (exchange, settled) = match self.specular.as_mut() {
             Some(spec) if index >= first_lit && work.uses_mirror_maps() => {
                 // Every batch's part, absorbed with its output (`apply_batch`) or settled here
-                // (`end_step`); a pass absorbed without them (`IterationWork::absorb` alone)
-                // brought nothing to the mirrors.
+                // (`end_step`). A pass absorbed without them (`IterationWork::absorb` alone, a
+                // misuse) leaves those batches' arrivals unsettled: the exchange's power and the
+                // batches gathered from then leave them out, which a debug build refuses.
                 let none = specular::BatchArrivals::default();
                 let missing = work.arrivals.iter().filter(|part| part.is_none()).count();
+                debug_assert_eq!(missing, 0, "batches absorbed without their mirror arrivals");
                 if missing > 0 {
-                    tracing::warn!(missing, "batches absorbed without their mirror arrivals");
+                    tracing::warn!(
+                        missing,
+                        "batches absorbed without their mirror arrivals: left out of the exchange"
+                    );
                 }
                 let parts = (work.arrivals.iter()).map(|part| part.as_ref().unwrap_or(&none));
                 let settled = specular::Settled::of_parts(parts, work.batches());

@@ -1019,6 +1019,10 @@ impl Specular {
             return;
         }
         self.hold_zeros(0..directions.len());
+        debug_assert!(
+            self.holds_all(),
+            "one process gathers only where every arrival map is here"
+        );
         // Every arrival map is here: `Φ_in` not known yet (a propagation that finished the
         // iteration from blocks it adopted, say) is found from them, never read as dark.
         let l = directions.len();
