@@ -1239,6 +1239,9 @@ fn each_worker_takes_a_prototype_once_and_the_last_takes_the_original() {
     assert_eq!(maps(&second), original);
     assert!(without_times(first.checkpoint()) == bits);
     assert!(without_times(second.checkpoint()) == bits);
+    // They share one table of routes by source, built once.
+    let spec = |p: &Propagation| p.specular.as_ref().unwrap().clone();
+    assert!(spec(&first).shares_settle_table(&spec(&second)));
     // A lone worker takes the original at once; a withdrawn offer is gone.
     let alone = vlf_store::Prototypes::new(1);
     alone.insert(id.clone(), second);

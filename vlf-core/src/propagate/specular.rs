@@ -72,7 +72,7 @@ use crate::scene::{Rgb, Scene};
 use glam::DVec3;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 /// Where one subfield's rays cross mirrors: a compact numbering of its
 /// (mirror, ray) crossings, in tile / entry / span / column order.
@@ -300,8 +300,10 @@ pub struct Specular {
     /// Per target direction, its [`GatherTable`] once its first gather found it, when
     /// [`Specular::keep_gather_tables`].
     gather_tables: Vec<OnceLock<GatherTable>>,
-    /// The routes by source, for settling, once the first settle asks ([`RoutesBySource`]).
-    routes_by_source: OnceLock<RoutesBySource>,
+    /// The routes by source, for settling, once the first settle asks ([`RoutesBySource`]):
+    /// shared by the copies of a propagation made after it was built (the workers of one
+    /// process, `vlf run`), as it is a function of the geometry.
+    routes_by_source: OnceLock<Arc<RoutesBySource>>,
     /// Whether a gather keeps the table it finds, for the next iterations' gathers of the same
     /// direction: on unless the process holds its subfields within a memory budget. The tables
     /// take 8 bytes a sample, a few samples a mirror slot (one per route), and 8 bytes a route:
@@ -875,7 +877,7 @@ impl Specular {
                 seconds = started.elapsed().as_secs_f64(),
                 "routes turned around by source"
             );
-            by_source
+            Arc::new(by_source)
         })
     }
 
@@ -893,6 +895,15 @@ impl Specular {
     /// Whether the routes are turned around by source already ([`Specular::prepare_settle`]).
     pub fn settle_prepared(&self) -> bool {
         self.routes_by_source.get().is_some()
+    }
+
+    /// Whether this and `other` share one table of routes by source: copies of a propagation
+    /// made once it was built ([`Specular::prepare_settle`]) do.
+    pub fn shares_settle_table(&self, other: &Specular) -> bool {
+        match (self.routes_by_source.get(), other.routes_by_source.get()) {
+            (Some(a), Some(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        }
     }
 
     /// The exchange's power of the pending arrivals, once settled.
