@@ -153,8 +153,19 @@ impl Replicas {
                     self.surveying = None;
                 }
                 let opened = FieldJob::open(store, job)?;
+                let taking = Instant::now();
                 let replica = match self.prototypes.as_ref().and_then(|p| p.take(job)) {
-                    Some(prop) => Replica::at_snapshot(opened, prop),
+                    Some(prop) => {
+                        // A copy of the coordinator's propagation (or the original, for the
+                        // last worker to take it), with its routes turned around: logged too.
+                        let replica = Replica::at_snapshot(opened, prop);
+                        tracing::info!(
+                            job = %job,
+                            setup_s = format!("{:.2}", taking.elapsed().as_secs_f64()),
+                            "job geometry taken from this process's coordinator"
+                        );
+                        replica
+                    }
                     None => {
                         // Every worker process builds the job's geometry for itself: the texel
                         // grids and directions; the subfields of what it shoots, as it shoots
