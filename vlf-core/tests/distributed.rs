@@ -728,7 +728,13 @@ fn a_coordinator_that_adopted_every_block_steps_on_to_the_same_bits() {
     p.finish_iteration(work, std::time::Instant::now());
     let pending = p.specular.as_ref().unwrap().pending.as_ref().unwrap();
     assert!(pending.power_in(0).is_none(), "a coordinator knows no Φ_in");
-    p.adopt_mirrors(block.unwrap()).unwrap();
+    // The block hands its arrivals' `Φ_in` over with them: one short is refused.
+    let block = block.unwrap();
+    assert!(block.pending && block.power_in.len() == p.directions.len());
+    let mut short = block.clone();
+    short.power_in.pop();
+    assert!(p.adopt_mirrors(short).is_err());
+    p.adopt_mirrors(block).unwrap();
     let pending = p.specular.as_ref().unwrap().pending.as_ref().unwrap();
     assert!(
         (0..p.directions.len()).all(|d| pending.power_in(d).is_some()),

@@ -82,7 +82,7 @@ impl Propagation {
         let directions = self.block_directions(work, &batches)?;
         self.hold_block_maps(work, pass, directions.clone())?;
         let (output, sent, costs) = self.shoot_block(work, pass, batches, directions.clone())?;
-        let Some((unshot, incident)) = sent else {
+        let Some((unshot, incident, power_in)) = sent else {
             return Ok((output, None, costs));
         };
         let first_lit = self.plan.first_mirror_iteration().unwrap_or(u32::MAX);
@@ -112,6 +112,7 @@ impl Propagation {
             pending,
             shooting: if pending { incident } else { unshot },
             total,
+            power_in: if pending { power_in } else { Vec::new() },
         };
         Ok((output, Some(block), costs))
     }
@@ -147,7 +148,7 @@ impl Propagation {
     /// and changes nothing: the block's output and, when the pass shoots
     /// mirror maps, what each of its directions sent (gathered now from the
     /// pending arrivals — the exchange, see `specular::Pending` — or as
-    /// restored) and the incident maps it received; and what each batch
+    /// restored), the incident maps it received and their `Φ_in`; and what each batch
     /// cost, in seconds.
     #[allow(clippy::type_complexity)]
     fn shoot_block(
@@ -156,7 +157,7 @@ impl Propagation {
         pass: Pass,
         batches: Range<usize>,
         directions: Range<usize>,
-    ) -> crate::Result<(BatchOutput, Option<(Vec<Vec<Rgb>>, Vec<Vec<Rgb>>)>, Vec<f64>)> {
+    ) -> crate::Result<(BatchOutput, Option<SentMaps>, Vec<f64>)> {
         let gathering = std::time::Instant::now();
         let spec = match (&self.specular, pass, work.uses_mirror_maps()) {
             (Some(spec), Pass::Shoot, true) => Some(spec),
@@ -207,20 +208,13 @@ impl Propagation {
         drop(maps);
         // What the block's directions brought to the mirrors, settled here batch by batch
         // (`specular::Pending`): their `Φ_in` stays with their maps.
-        let arrivals = spec.zip(incident.as_ref()).map(|(spec, incident)| {
-            let power_in: Vec<_> = (directions.clone().into_par_iter().zip(incident))
+        let power_in: Option<Vec<MirrorPower>> = spec.zip(incident.as_ref()).map(|(spec, incident)| {
+            (directions.clone().into_par_iter().zip(incident))
                 .map(|(d, m)| spec.power_in_of(dirs, d, m))
-                .collect();
-            let batching = work.batching();
-            let first = directions.start;
-            let parts = (batches.clone().into_par_iter())
-                .map(|b| {
-                    let range = batching.range(b);
-                    let power: Vec<&MirrorPower> = power_in[range.start - first..range.end - first].iter().collect();
-                    spec.settle_batch(scene, &batching, b, &power)
-                })
-                .collect();
-            Arrivals::Settled(parts)
+                .collect()
+        });
+        let arrivals = spec.zip(power_in.as_ref()).map(|(spec, power_in)| {
+            Arrivals::Settled(spec.settle_batches(scene, &work.batching(), batches.clone(), power_in))
         });
         let output = BatchOutput {
             iteration: work.index,
@@ -231,9 +225,9 @@ impl Propagation {
         };
         // Gathered maps are the block's own; restored ones are copied (only
         // before light reaches a mirror: the iteration then keeps them).
-        let sent = unshot
-            .zip(incident)
-            .map(|(unshot, incident)| (unshot.into_iter().map(Cow::into_owned).collect(), incident));
+        let sent = (unshot.zip(incident).zip(power_in)).map(|((unshot, incident), power_in)| {
+            (unshot.into_iter().map(Cow::into_owned).collect(), incident, power_in)
+        });
         Ok((output, sent, costs))
     }
 
@@ -345,15 +339,7 @@ impl Propagation {
                 if !fits {
                     return misfit("power");
                 }
-                let batching = work.batching();
-                let parts = batches.clone().map(|b| {
-                    let of_batch = batching.range(b);
-                    let power: Vec<&MirrorPower> = power[of_batch.start - range.start..of_batch.end - range.start]
-                        .iter()
-                        .collect();
-                    spec.settle_batch(&self.scene, &batching, b, &power)
-                });
-                Ok(parts.collect())
+                Ok(spec.settle_batches(&self.scene, &work.batching(), batches.clone(), &power))
             }
         }
     }
@@ -390,7 +376,8 @@ impl Propagation {
             ));
         };
         let fits = |maps: &[Vec<Rgb>]| maps.iter().zip(range.clone()).all(|(a, d)| a.len() == spec.slots(d));
-        if !fits(&block.shooting) || !fits(&block.total) {
+        let power_fits = !block.pending || block.power_in.len() == range.len();
+        if !fits(&block.shooting) || !fits(&block.total) || !power_fits {
             return Err(crate::Error::Parameter(format!(
                 "mirror maps of batches {batches:?} do not fit their directions"
             )));
@@ -409,12 +396,18 @@ impl Propagation {
                     m.unshot = shooting;
                 }
             }
-            // Arrivals: their `Φ_in`, for the gathers that read them.
-            spec.know_arrivals(&self.directions, range);
+            // Arrivals: their `Φ_in`, as the block found it, for the gathers that read them.
+            if block.pending {
+                spec.know_power(range, block.power_in);
+            }
         }
         Ok(())
     }
 }
+
+/// What a block's directions sent and received on their mirrors: their unshot maps (gathered or
+/// as restored), their incident maps, and the `Φ_in` of those.
+type SentMaps = (Vec<Vec<Rgb>>, Vec<Vec<Rgb>>, Vec<MirrorPower>);
 
 /// `costs` scaled to add up to `seconds`, in their proportions (evenly where they are all zero).
 fn spread(costs: Vec<f64>, seconds: f64) -> Vec<f64> {

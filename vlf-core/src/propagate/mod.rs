@@ -854,15 +854,8 @@ impl Propagation {
                 .collect();
             // Settled batch by batch, as the service's workers settle what they shot.
             let batching = work.batching();
-            let (scene, power_in) = (&self.scene, &work.power_in);
-            let parts: Vec<_> = (0..batching.count())
-                .into_par_iter()
-                .map(|b| {
-                    let power: Vec<&specular::MirrorPower> = power_in[batching.range(b)].iter().collect();
-                    Some(spec.settle_batch(scene, &batching, b, &power))
-                })
-                .collect();
-            work.arrivals = parts;
+            let parts = spec.settle_batches(&self.scene, &batching, 0..batching.count(), &work.power_in);
+            work.arrivals = parts.into_iter().map(Some).collect();
         }
         // This process gathers the arrivals next (`Specular::gather_all`).
         self.finish(work, started, true)

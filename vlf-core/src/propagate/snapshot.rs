@@ -658,25 +658,23 @@ pub mod earlier {
         mirrors: usize,
         sparse: bool,
     ) -> Vec<u8> {
-        use crate::propagate::work::{DenseOutput, SparseOutput};
-        if sparse {
-            let mut bytes = 0xB05A_25E2u32.to_le_bytes().to_vec();
-            bytes.extend(encode(&SparseOutput {
+        use crate::propagate::BatchOutput;
+        use crate::propagate::work::OutputOfPower;
+        fn old<P: Serialize>(output: &BatchOutput, power_in: Vec<P>) -> Vec<u8> {
+            encode(&OutputOfPower {
                 iteration: output.iteration,
                 pass: output.pass,
                 batches: output.batches.clone(),
                 sum: output.sum.clone(),
-                power_in: output.arrivals.as_ref().map(|_| power_in.to_vec()),
-            }));
+                power_in: output.arrivals.as_ref().map(|_| power_in),
+            })
+        }
+        if sparse {
+            let mut bytes = 0xB05A_25E2u32.to_le_bytes().to_vec();
+            bytes.extend(old(output, power_in.to_vec()));
             return bytes;
         }
-        encode(&DenseOutput {
-            iteration: output.iteration,
-            pass: output.pass,
-            batches: output.batches.clone(),
-            sum: output.sum.clone(),
-            power_in: (output.arrivals.as_ref()).map(|_| DensePending::of(power_in, mirrors).power_in),
-        })
+        old(output, DensePending::of(power_in, mirrors).power_in)
     }
 
     /// `head` as a version 2 blob; `None` with pending arrivals.

@@ -857,13 +857,33 @@ impl Specular {
         (self.routes_by_source()).settle(first, power_in, rho, |target| batching.batch_of(target as usize))
     }
 
-    /// [`Specular::settle_batch`] of every batch, `power_in` being every direction's `Φ_in`, in
-    /// parallel, added up in order: what one process that shot them all leaves pending.
+    /// [`Specular::settle_batch`] of each of `batches`, in parallel, in order: `power_in` is the
+    /// `Φ_in` of their directions, in order (those of a block, or of every batch). What a worker
+    /// reports of a block, what a coordinator finds of an earlier build's output, and what one
+    /// process settles of a whole pass, alike.
+    pub fn settle_batches(
+        &self,
+        scene: &Scene,
+        batching: &Batching,
+        batches: std::ops::Range<usize>,
+        power_in: &[impl std::borrow::Borrow<MirrorPower> + Sync],
+    ) -> Vec<BatchArrivals> {
+        let first = batching.directions_of(batches.clone()).start;
+        (batches.into_par_iter())
+            .map(|b| {
+                let range = batching.range(b);
+                let power: Vec<&MirrorPower> = (power_in[range.start - first..range.end - first].iter())
+                    .map(|p| p.borrow())
+                    .collect();
+                self.settle_batch(scene, batching, b, &power)
+            })
+            .collect()
+    }
+
+    /// [`Specular::settle_batches`] of every batch, `power_in` being every direction's `Φ_in`,
+    /// added up in order: what one process that shot them all leaves pending.
     pub fn settle_all(&self, scene: &Scene, batching: &Batching, power_in: &[&MirrorPower]) -> Settled {
-        let parts: Vec<BatchArrivals> = (0..batching.count())
-            .into_par_iter()
-            .map(|b| self.settle_batch(scene, batching, b, &power_in[batching.range(b)]))
-            .collect();
+        let parts = self.settle_batches(scene, batching, 0..batching.count(), power_in);
         Settled::of_parts(&parts, batching.count())
     }
 
@@ -946,6 +966,17 @@ impl Specular {
         let l = self.views.len();
         if let Some(pending) = &mut self.pending {
             for (d, power) in known {
+                pending.know(l, d, power);
+            }
+        }
+    }
+
+    /// Takes `power`, per direction of `range`, as their `Φ_in`: what a block found of the
+    /// arrival maps it shot, as it hands them over ([`super::Propagation::adopt_mirrors`]).
+    pub(crate) fn know_power(&mut self, range: std::ops::Range<usize>, power: Vec<MirrorPower>) {
+        let l = self.views.len();
+        if let Some(pending) = &mut self.pending {
+            for (d, power) in range.zip(power) {
                 pending.know(l, d, power);
             }
         }

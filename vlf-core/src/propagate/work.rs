@@ -182,6 +182,10 @@ pub struct MirrorBlock {
     pub shooting: Vec<Vec<Rgb>>,
     /// Per direction: its total map, including what it just sent.
     pub total: Vec<Vec<Rgb>>,
+    /// While `pending`, per direction: `Φ_in` of the arrivals `shooting` holds, as the block
+    /// settled them ([`super::Specular::power_in_of`]): whoever adopts the block knows it without
+    /// one more pass over the maps (empty otherwise).
+    pub power_in: Vec<MirrorPower>,
 }
 
 impl MirrorBlock {
@@ -195,29 +199,21 @@ impl MirrorBlock {
 /// The first four bytes of a [`BatchOutput`] of this build, whose arrivals are [`Arrivals`].
 const SETTLED_OUTPUT: u32 = 0xB05A_25E3;
 
-/// The first four bytes of a [`BatchOutput`] with sparse `Φ_in` ([`SparseOutput`]). Earlier
+/// The first four bytes of a [`BatchOutput`] with sparse `Φ_in` ([`OutputOfPower`]). Earlier
 /// builds' outputs start with their iteration, a number far below it, and hold `Φ_in` dense
 /// (one value per mirror).
 const SPARSE_OUTPUT: u32 = 0xB05A_25E2;
 
-/// [`BatchOutput`] as earlier builds wrote it after [`SPARSE_OUTPUT`]: `Φ_in` sparse.
+/// [`BatchOutput`] as earlier builds wrote it, with per direction `Φ_in` `P`: sparse
+/// ([`MirrorPower`], after [`SPARSE_OUTPUT`]) or, earlier still, dense (`Vec<Rgb>`, a value per
+/// mirror, with no mark).
 #[derive(Serialize, Deserialize)]
-pub(crate) struct SparseOutput {
+pub(crate) struct OutputOfPower<P> {
     pub(crate) iteration: u32,
     pub(crate) pass: Pass,
     pub(crate) batches: Range<u32>,
     pub(crate) sum: BatchSum,
-    pub(crate) power_in: Option<Vec<MirrorPower>>,
-}
-
-/// [`BatchOutput`] as earlier builds wrote it: `Φ_in` dense.
-#[derive(Serialize, Deserialize)]
-pub(crate) struct DenseOutput {
-    pub(crate) iteration: u32,
-    pub(crate) pass: Pass,
-    pub(crate) batches: Range<u32>,
-    pub(crate) sum: BatchSum,
-    pub(crate) power_in: Option<Vec<Vec<Rgb>>>,
+    pub(crate) power_in: Option<Vec<P>>,
 }
 
 impl BatchOutput {
@@ -260,11 +256,11 @@ impl BatchOutput {
             return bincode::deserialize_from(reader).map_err(bad);
         }
         let (iteration, pass, batches, sum, power_in) = if mark == Some(SPARSE_OUTPUT) {
-            let old: SparseOutput = bincode::deserialize_from(reader).map_err(bad)?;
+            let old: OutputOfPower<MirrorPower> = bincode::deserialize_from(reader).map_err(bad)?;
             (old.iteration, old.pass, old.batches, old.sum, old.power_in)
         } else {
             // An earlier build's output: its first bytes are the iteration's, read again.
-            let old: DenseOutput = bincode::deserialize_from((&head[..got]).chain(reader)).map_err(bad)?;
+            let old: OutputOfPower<Vec<Rgb>> = bincode::deserialize_from((&head[..got]).chain(reader)).map_err(bad)?;
             let sparse = old
                 .power_in
                 .map(|p| super::checkpoint::DensePending { power_in: p }.sparse());
