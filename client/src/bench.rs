@@ -482,15 +482,19 @@ impl Way {
 }
 
 /// A report's title: the command, the scene and the job's shape, with the batches a pass is
-/// cut into (what the workers' balance depends on).
+/// cut into (what the workers' balance depends on) and the directions of a stint (what each
+/// direction streams through memory).
 fn heading(args: &BenchArgs, command: &str) -> String {
-    let batches = vlf_core::propagate::Batching::new(args.job.directions, args.job.pass_batches).count();
+    let job = &args.job;
+    let batching = vlf_core::propagate::Batching::new(job.directions, job.pass_batches, job.stint_directions);
     format!(
-        "# {command}: {} (l = {}, N = {}, m = {}, {batches} batches a pass)\n\n",
+        "# {command}: {} (l = {}, N = {}, m = {}, {} batches a pass, stints of {})\n\n",
         args.scene.display(),
-        args.job.directions,
-        args.job.resolution,
-        args.job.tile
+        job.directions,
+        job.resolution,
+        job.tile,
+        batching.count(),
+        batching.stint()
     )
 }
 

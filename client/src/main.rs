@@ -186,6 +186,11 @@ pub struct JobFlags {
     /// outputs through the store (docs/scaling.md, *Finer batches*).
     #[arg(long, default_value_t = defaults::PASS_BATCHES)]
     pass_batches: u32,
+    /// Consecutive directions of a batch that one thread shoots into one field-sized buffer
+    /// before adding it to the batch's sum (a power of two up to 16): fewer passes of that
+    /// buffer through memory, and part of the field's bits (docs/scaling.md, *Stints*).
+    #[arg(long, default_value_t = defaults::STINT_DIRECTIONS)]
+    stint_directions: u32,
     /// Keep every snapshot resumable. By default, once a snapshot is committed the one before
     /// keeps only what renders read (its exact state is deleted): it still renders, and the last
     /// snapshot resumes, but the job's store is a third of the size or less (docs/store.md).

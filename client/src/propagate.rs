@@ -254,6 +254,7 @@ impl JobFlags {
             perturb_count: Some(self.perturb_count),
             filter: self.filter,
             pass_batches: Some(self.pass_batches),
+            stint_directions: Some(self.stint_directions),
             resample: self.resample,
             keep_checkpoints: self.keep_checkpoints,
             encoding: match self.encoding {

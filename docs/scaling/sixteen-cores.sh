@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
-# The issue-31 figures on a many-core host, in one call (docs/scaling.md, "Finer batches"):
-# threads 1..all cores in one process, and 1, 2, 4, 8 workers of 2 threads each, with passes
-# cut into 64 batches (the default) and into 16 (the cut before), so that the two are compared
-# on the same machine, in the same session; then 1, 2, 4, 8 workers as processes of their own
-# (`--worker-processes`), as the issue measured them, each building the job's geometry itself.
+# The issue-31 figures on a many-core host, in one call (docs/scaling.md, "Finer batches",
+# "Stints"): threads 1..all cores in one process, and 1, 2, 4, 8 workers of 2 threads each, at
+# the defaults (64 batches a pass, stints of 8 directions) and with stints of one direction (the
+# sums before), so that the two are compared on the same machine, in the same session; then 1,
+# 2, 4, 8 workers as processes of their own (`--worker-processes`), as the issue measured them.
 #
 #   bash docs/scaling/sixteen-cores.sh [VLF] [OUT] [L] [N]
 #
@@ -21,15 +21,17 @@ ROOT=$(cd "$(dirname "$0")/../.." && pwd)
 mkdir -p "$OUT"
 shape=(--directions "$L" --resolution "$N")
 
-echo "== 64 batches a pass: threads, and 1, 2, 4, 8 workers"
+echo "== the defaults: threads, and 1, 2, 4, 8 workers"
 "$VLF" bench "$ROOT/scenes/cornell.obj" "${shape[@]}" --scaling --workers 1,2,4,8 \
-    --worker-threads 2 --repeat 3 --pass-batches 64 --out "$OUT/scaling-64-batches.md"
+    --worker-threads 2 --repeat 3 --out "$OUT/scaling-defaults.md"
 
-echo "== 16 batches a pass: 1 and 8 workers (the cut before)"
-"$VLF" bench "$ROOT/scenes/cornell.obj" "${shape[@]}" --scaling --scale-threads 1 --workers 1,8 \
-    --worker-threads 2 --repeat 3 --pass-batches 16 --out "$OUT/scaling-16-batches.md"
+echo "== stints of one direction: 1 and all threads, 1 and 8 workers (the sums before)"
+CORES=$(nproc)
+"$VLF" bench "$ROOT/scenes/cornell.obj" "${shape[@]}" --scaling --scale-threads "1,$CORES" \
+    --workers 1,8 --worker-threads 2 --repeat 2 --stint-directions 1 \
+    --out "$OUT/scaling-stints-of-1.md"
 
-echo "== 64 batches a pass: 1, 2, 4, 8 worker processes (each building its own geometry)"
+echo "== the defaults: 1, 2, 4, 8 worker processes (each building its own geometry)"
 # The workers open the store themselves: a directory, in memory where /dev/shm is.
 STORE=$(mktemp -d /dev/shm/vlf-bench-XXXXXX 2>/dev/null || mktemp -d)
 trap 'rm -rf "$STORE"' EXIT

@@ -51,6 +51,7 @@ impl JobSpec {
             filter_sigma: p.filter.map_or(d.filter_sigma, |f| (f != 0.0).then_some(f)),
             filter_only_with_mirrors: p.filter.is_none() && d.filter_only_with_mirrors,
             pass_batches: p.pass_batches.unwrap_or(d.pass_batches),
+            stint_directions: p.stint_directions.unwrap_or(d.stint_directions),
         };
         options.validate()?;
         let encoding = match v1::Encoding::try_from(p.encoding) {
@@ -194,6 +195,15 @@ mod tests {
                     ..Default::default()
                 },
                 "batches per pass",
+            );
+        }
+        for stint_directions in [0, 3, 32] {
+            bad(
+                Parameters {
+                    stint_directions: Some(stint_directions),
+                    ..Default::default()
+                },
+                "directions per stint",
             );
         }
         bad(

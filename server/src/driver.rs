@@ -877,7 +877,7 @@ mod tests {
     #[test]
     fn survey_parts_are_read_a_few_at_a_time() {
         // l = 8193 in 64 batches of 128 directions.
-        let batching = Batching::new(8193, 64);
+        let batching = Batching::new(8193, 64, 8);
         assert_eq!(batching.size(), 128);
         let one_each: Vec<_> = (0..64).map(|b| b..b + 1).collect();
         let step = read_at_once(&one_each, &batching);
@@ -887,7 +887,7 @@ mod tests {
         assert_eq!(read_at_once(&whole, &batching), &whole[..1]);
         // Small parts: at most PARTS_AT_ONCE of them (l = 513, 32 batches of 16 directions:
         // more than PARTS_AT_ONCE of them would still be within DIRECTIONS_AT_ONCE).
-        let small = Batching::new(513, 64);
+        let small = Batching::new(513, 64, 8);
         let ready: Vec<_> = (0..small.count()).map(|b| b..b + 1).collect();
         assert!(ready.len() > PARTS_AT_ONCE && (PARTS_AT_ONCE + 1) * small.size() <= DIRECTIONS_AT_ONCE);
         let step = read_at_once(&ready, &small);

@@ -280,13 +280,20 @@ impl FieldJob {
             source,
         };
         let scene = Scene::from_bytes(&job.scene()?).map_err(field_error)?;
-        // From format 4 on the parameters name the cut of a pass; only format 3 may leave it to
-        // the default that reads its 16 batches (see `MANIFEST_FORMAT`).
-        if job.manifest().format >= 4 && job.manifest().parameters.get("pass_batches").is_none() {
-            return Err(field_error(vlf_core::Error::Decode(
-                "the job's parameters do not say how many batches a pass is cut into (pass_batches)".into(),
-            )));
-        }
+        // Parameters that fix the bits and were added as options read, where absent, as what
+        // jobs were before (see `MANIFEST_FORMAT`): the cut of a pass as 16 batches (format 3),
+        // a stint as one direction (formats 3 to 6). From the format that added one, it must be
+        // named.
+        let named = |format, key: &str, what: &str| match job.manifest().format >= format
+            && job.manifest().parameters.get(key).is_none()
+        {
+            true => Err(field_error(vlf_core::Error::Decode(format!(
+                "the job's parameters do not say {what} ({key})"
+            )))),
+            false => Ok(()),
+        };
+        named(4, "pass_batches", "how many batches a pass is cut into")?;
+        named(7, "stint_directions", "how many directions a stint holds")?;
         let options: Options = serde_json::from_value(job.manifest().parameters.clone()).map_err(|e| {
             field_error(vlf_core::Error::Decode(format!(
                 "the job's parameters are not propagation options: {e}"

@@ -32,7 +32,12 @@ use std::time::{SystemTime, UNIX_EPOCH};
 ///   not its exact state (head, diffuse and mirror totals, `f64`). A job of format 5 or earlier
 ///   is read as it was, and compacts as it did (its mirror shooting maps only); a build that
 ///   reads 5 at most refuses format 6 rather than look for a compacted snapshot's totals.
-pub const MANIFEST_FORMAT: u32 = 6;
+/// * 7: the parameters say how many directions a stint holds (`stint_directions`: consecutive
+///   directions of a batch shot into one buffer before it is added to the batch's sum), which
+///   fixes the bits. A job of format 6 or earlier is read as what it was, stints of one
+///   direction, so that it resumes as it ran; a build that reads 6 at most refuses format 7
+///   rather than resume it with other sums.
+pub const MANIFEST_FORMAT: u32 = 7;
 
 /// The oldest format this build reads ([`MANIFEST_FORMAT`]'s list says what changed).
 pub const OLDEST_READABLE_FORMAT: u32 = 3;

@@ -469,33 +469,35 @@ fn jobs_stopped_by_earlier_builds_resume_with_the_same_bits() {
     }
 }
 
-/// A job stored before passes were cut by `pass_batches` (manifest format 3, parameters
-/// without it) was cut into 16 batches: it reads as such, its snapshots' mirror maps by the
-/// batches it wrote, and it resumes to the bits of a run that never stopped — where this
-/// build's default cut (64 a pass, fewer at this l) gives other bits.
+/// A job stored before passes were cut by `pass_batches` and batches into stints (manifest
+/// format 3, parameters without either) was cut into 16 batches of directions summed one by
+/// one: it reads as such, its snapshots' mirror maps by the batches it wrote, and it resumes to
+/// the bits of a run that never stopped — where this build's default cut (64 a pass, fewer at
+/// this l, stints of 8) gives other bits.
 #[test]
 fn jobs_of_format_3_read_and_resume_as_they_ran() {
-    use vlf_core::propagate::defaults::LEGACY_PASS_BATCHES;
+    use vlf_core::propagate::defaults::{LEGACY_PASS_BATCHES, LEGACY_STINT_DIRECTIONS, PASS_BATCHES, STINT_DIRECTIONS};
     let store = Store::open("memory://").unwrap();
     let scene = bundled("mirrors.obj");
     let legacy = Options {
         directions: 513,
         pass_batches: LEGACY_PASS_BATCHES,
+        stint_directions: LEGACY_STINT_DIRECTIONS,
         ..options(4)
     };
-    assert_ne!(
-        legacy.batching(),
-        Options {
-            pass_batches: vlf_core::propagate::defaults::PASS_BATCHES,
-            ..legacy.clone()
-        }
-        .batching(),
-        "the test needs an l whose cut the option changes"
+    let now = Options {
+        pass_batches: PASS_BATCHES,
+        stint_directions: STINT_DIRECTIONS,
+        ..legacy.clone()
+    };
+    assert!(
+        legacy.batching().count() != now.batching().count() && legacy.batching().stint() != now.batching().stint(),
+        "the test needs an l whose cut the options change"
     );
     let mut straight = Propagation::new(scene.clone(), legacy.clone()).unwrap();
     straight.run(|_| {});
 
-    // Two snapshots written by the cut of 16, then the manifest made what format 3 wrote.
+    // Two snapshots written by the legacy cut, then the manifest made what format 3 wrote.
     let mut p = Propagation::new(scene.clone(), legacy.clone()).unwrap();
     let mut job = FieldJob::create(&store, &p, Encoding::F32).unwrap();
     for _ in 0..2 {
@@ -504,30 +506,49 @@ fn jobs_of_format_3_read_and_resume_as_they_ran() {
     }
     let id = job.id().clone();
     let viewed = job.load(Stage::Iteration(2)).unwrap();
-    let mut manifest = job.job().manifest().clone();
+    let written = job.job().manifest().clone();
+    let mut manifest = written.clone();
     manifest.format = 3;
-    manifest
-        .parameters
-        .as_object_mut()
-        .unwrap()
-        .remove("pass_batches")
-        .unwrap();
+    for key in ["pass_batches", "stint_directions"] {
+        manifest.parameters.as_object_mut().unwrap().remove(key).unwrap();
+    }
     store.put(&layout::manifest(&id), manifest.to_blob().unwrap()).unwrap();
 
-    // Format 4 must name the cut: without it, the job is refused rather than read as 16.
-    let mut unnamed = manifest.clone();
-    unnamed.format = 4;
-    store.put(&layout::manifest(&id), unnamed.to_blob().unwrap()).unwrap();
-    let refused = match FieldJob::open(&store, &id) {
-        Ok(_) => panic!("format 4 without pass_batches was read"),
-        Err(e) => e.to_string(),
-    };
-    assert!(refused.contains("pass_batches"), "{refused}");
+    // From the format that added it, each must be named: without it, the job is refused rather
+    // than read as it was before.
+    for (format, key) in [(4, "pass_batches"), (7, "stint_directions")] {
+        let mut unnamed = written.clone();
+        unnamed.format = format;
+        unnamed.parameters.as_object_mut().unwrap().remove(key).unwrap();
+        if format < 7 {
+            unnamed.parameters.as_object_mut().unwrap().remove("stint_directions");
+        }
+        store.put(&layout::manifest(&id), unnamed.to_blob().unwrap()).unwrap();
+        let refused = match FieldJob::open(&store, &id) {
+            Ok(_) => panic!("format {format} without {key} was read"),
+            Err(e) => e.to_string(),
+        };
+        assert!(refused.contains(key), "{refused}");
+    }
+    // Format 6 names the cut but not the stint: one direction, as it ran.
+    let mut six = written.clone();
+    six.format = 6;
+    six.parameters
+        .as_object_mut()
+        .unwrap()
+        .remove("stint_directions")
+        .unwrap();
+    store.put(&layout::manifest(&id), six.to_blob().unwrap()).unwrap();
+    assert_eq!(FieldJob::open(&store, &id).unwrap().options(), &legacy);
     store.put(&layout::manifest(&id), manifest.to_blob().unwrap()).unwrap();
 
     let old = FieldJob::open(&store, &id).unwrap();
     assert_eq!(old.job().manifest().format, 3);
-    assert_eq!(old.options(), &legacy, "format 3 parameters read as 16 batches a pass");
+    assert_eq!(
+        old.options(),
+        &legacy,
+        "format 3 parameters read as 16 batches a pass of single directions"
+    );
     let back = old.load(Stage::Iteration(2)).unwrap();
     assert_eq!(back.radiance, viewed.radiance);
     assert_eq!(back.specular.unwrap().totals, viewed.specular.unwrap().totals);

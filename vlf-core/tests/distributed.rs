@@ -266,6 +266,41 @@ fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts
     }
 }
 
+/// A stint only regroups a batch's additions (`Batching`): every length gives its own bits on
+/// every schedule (the plain loop, homes, stints claimed on 1 to 7 threads, workers), and a field
+/// that agrees to rounding with stints of one direction (earlier builds' sums), though not to
+/// the bit, or the option would do nothing.
+#[test]
+fn every_stint_gives_one_field_on_every_schedule_and_regroups_only_the_rounding() {
+    let field = |stint| {
+        let options = Options {
+            stint_directions: stint,
+            ..options(1)
+        };
+        assert_eq!(options.batching().stint(), stint as usize);
+        homes_give_the_same_bits(lit_box(), options.clone(), 2, &[&[3]]);
+        same_bits_as_in_process(lit_box(), options.clone());
+        let mut p = Propagation::new(lit_box(), options).unwrap();
+        p.run(|_| {});
+        p.checkpoint().total
+    };
+    let one = field(1);
+    let lit = one.iter().flatten().filter(|&&v| v > 0.0).count();
+    assert!(lit > one.len(), "the box is lit");
+    for stint in [2, 16] {
+        let other = field(stint);
+        assert_eq!(other.len(), one.len());
+        let worst = one
+            .iter()
+            .flatten()
+            .zip(other.iter().flatten())
+            .map(|(a, b)| (a - b).abs() / a.abs().max(1e-300))
+            .fold(0.0f64, f64::max);
+        assert!(worst < 1e-12, "stints of {stint}: relative difference {worst:e}");
+        assert!(other != one, "stints of {stint} summed exactly as single directions");
+    }
+}
+
 #[test]
 fn a_block_cut_among_a_replicas_threads_gives_the_same_bits() {
     // Whole-pass blocks of 32 batches on pools of 1 to 4 threads: a replica's threads claim the
@@ -400,7 +435,7 @@ fn batches_partition_the_directions_into_whole_chunks() {
     use vlf_core::propagate::CHUNK;
     for per_pass in (0..=10).map(|k| 1u32 << k) {
         for l in [9, 33, 129, 513, 2049, 8193] {
-            let batching = Batching::new(l, per_pass);
+            let batching = Batching::new(l, per_pass, 8);
             let count = batching.count();
             // A power of two (the reduction tree's leaves), the target wherever `l` has
             // CHUNK directions for each, never more.
@@ -420,6 +455,12 @@ fn batches_partition_the_directions_into_whole_chunks() {
                     assert_eq!(r.len() % CHUNK, 0, "l = {l}, batch {b} of {} directions", r.len());
                 }
                 assert!(r.clone().all(|d| batching.batch_of(d) == b), "l = {l}, batch {b}");
+                // Stints of 8 from the batch's first direction, the last one to its end.
+                let stints: Vec<_> = batching.stints(b).collect();
+                assert_eq!(stints.first().map(|s| s.start), Some(r.start));
+                assert_eq!(stints.last().map(|s| s.end), Some(r.end));
+                assert!(stints.windows(2).all(|w| w[0].end == w[1].start && w[0].len() == 8));
+                assert!(stints.last().is_some_and(|s| (1..=8).contains(&s.len())));
                 next = r.end;
             }
             assert_eq!(next, l, "l = {l}: batches end at {next}");
@@ -427,17 +468,31 @@ fn batches_partition_the_directions_into_whole_chunks() {
             assert_eq!(batching.directions_of(0..count), 0..l);
         }
     }
-    // The legacy cut (jobs stored before the option) and the default.
-    let legacy = Batching::new(513, 16);
+    // The legacy cut (jobs stored before the options) and the default.
+    let legacy = Batching::new(513, 16, 1);
     assert_eq!((legacy.count(), legacy.range(15)), (16, 480..513));
-    assert_eq!(Batching::new(33, 16).range(1), 16..33);
+    assert_eq!(legacy.stints(15).count(), 33, "a legacy stint is one direction");
+    assert_eq!(Batching::new(33, 16, 1).range(1), 16..33);
     let default = Options::default().batching();
-    assert_eq!((default.count(), default.size()), (32, 16), "l = 513 at the default");
-    let big = Batching::new(2049, vlf_core::propagate::defaults::PASS_BATCHES);
+    assert_eq!(
+        (default.count(), default.size(), default.stint()),
+        (32, 16, 8),
+        "l = 513 at the default"
+    );
+    use vlf_core::propagate::defaults::{PASS_BATCHES, STINT_DIRECTIONS};
+    let big = Batching::new(2049, PASS_BATCHES, STINT_DIRECTIONS);
     assert_eq!((big.count(), big.range(63)), (64, 2016..2049));
-    // A target that is not a power of two (refused by the options) is the one below it.
-    assert_eq!(Batching::new(2049, 48), Batching::new(2049, 32));
-    assert_eq!(Batching::new(2049, 0), Batching::new(2049, 1));
+    assert_eq!(
+        big.stints(63).collect::<Vec<_>>(),
+        [2016..2024, 2024..2032, 2032..2040, 2040..2048, 2048..2049]
+    );
+    // A target that is not a power of two (refused by the options) is the one below it; a
+    // stint is CHUNK directions at most.
+    assert_eq!(Batching::new(2049, 48, 8), Batching::new(2049, 32, 8));
+    assert_eq!(Batching::new(2049, 0, 8), Batching::new(2049, 1, 8));
+    assert_eq!(Batching::new(2049, 64, 6), Batching::new(2049, 64, 4));
+    assert_eq!(Batching::new(2049, 64, 0), Batching::new(2049, 64, 1));
+    assert_eq!(Batching::new(2049, 64, 64).stint(), CHUNK);
 }
 
 /// A coordinator opens an iteration's passes before it builds the iteration's work

@@ -26,25 +26,51 @@ pub const CHUNK: usize = 16;
 /// hand to an idle worker (`server::scheduler`), so the slowest batch set the pace (a balance
 /// of 0.77 at 8 workers, docs/scaling.md). In one process the count costs nothing: a pass's
 /// batch sums fold into its reduction tree as they complete ([`super::claim`]).
+///
+/// A batch is in turn cut into **stints**: `s` consecutive directions from the batch's first
+/// (the last stint takes what is left), `s` being the job's [`super::Options::stint_directions`]
+/// (a power of two up to [`CHUNK`], so that every chunk holds whole stints). One thread shoots a
+/// stint's directions in order into one texel buffer, each adding onto what the ones before it
+/// left, and the batch's sum is `Σ_k stint_k`, in stint order from zero. Why: the buffer is as
+/// large as the field, and adding it to the sum (and clearing it) was a pass over a few hundred
+/// kB per direction: 17 % of one thread's time on the Cornell box at l = 2049, N = 128, and a
+/// stream through the shared caches that 16 threads contend for. A stint pays it once for `s`
+/// directions. Stints of one direction are the sums of earlier builds, to the bit.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Batching {
     directions: usize,
     size: usize,
     count: usize,
+    stint: usize,
 }
 
 impl Batching {
-    /// The batches of `directions` directions for a target of `per_pass` batches (a power of
-    /// two, as [`super::Options::validate`] requires; any other is taken as the power of two
-    /// below it, so that the count stays one).
-    pub fn new(directions: usize, per_pass: u32) -> Batching {
+    /// The batches of `directions` directions for a target of `per_pass` batches, each cut into
+    /// stints of `stint` directions. Both are powers of two, as [`super::Options::validate`]
+    /// requires; any other is taken as the power of two below it (and a stint as [`CHUNK`] at
+    /// most), so that the cut stays one.
+    pub fn new(directions: usize, per_pass: u32, stint: u32) -> Batching {
         let per_pass = 1usize << (per_pass.max(1).ilog2());
         let size = (directions.saturating_sub(1) / per_pass / CHUNK * CHUNK).max(CHUNK);
         Batching {
             directions,
             size,
             count: (directions / size).max(1),
+            stint: (1usize << stint.max(1).ilog2()).min(CHUNK),
         }
+    }
+
+    /// Directions per stint (the last stint of a batch may hold fewer).
+    pub fn stint(&self) -> usize {
+        self.stint
+    }
+
+    /// The stints of batch `batch`, in order: `stint` directions each from its first, the last
+    /// one running to the batch's end (none past the last batch).
+    pub fn stints(&self, batch: usize) -> impl Iterator<Item = Range<usize>> + use<> {
+        let range = self.range(batch);
+        let stint = self.stint;
+        range.clone().step_by(stint).map(move |s| s..(s + stint).min(range.end))
     }
 
     /// Directions per batch (the last one takes the remainder as well).

@@ -1,28 +1,28 @@
-//! How one process's threads shoot a run of batches: every thread **claims** the next direction
-//! the moment it is done with one, and each batch adds its directions up **in direction order**
-//! as they arrive.
+//! How one process's threads shoot a run of batches: every thread **claims** the next stint (a
+//! few consecutive directions of a batch, [`super::Batching`]) the moment it is done with one,
+//! and each batch adds its stints up **in order** as they arrive.
 //!
-//! Why: the bits of an iteration are fixed by its batch sums, each `Σ_d buf_d` over the batch's
-//! directions in direction order from zero (see [`super::work`]). The first schedules kept that
+//! Why: the bits of an iteration are fixed by its batch sums, each `Σ_k stint_k` over the
+//! batch's stints in order from zero (see [`super::Batching`]). The first schedules kept that
 //! order by meeting: the threads shared a batch CHUNK directions at a time and waited at the end
 //! of every chunk for its slowest direction (with 16 threads, one direction each: every chunk
 //! waited for the slowest of 16), or each thread took a home of whole batches cut by what they
 //! cost the iteration before (too few batches for more than four threads, and wrong after a
-//! pass of another shape). Here nothing waits for a direction but the sum of its own batch:
+//! pass of another shape). Here nothing waits for a stint but the sum of its own batch:
 //!
-//! - **Claiming.** The directions are dealt in a fixed order ([`claim_order`]) through one
-//!   atomic counter; a thread computes its direction into a buffer of its own
-//!   (`Propagation::shoot_direction`, the kernel every schedule shares).
-//! - **Adding in order.** A finished direction is handed to its batch. Whichever thread hands
-//!   over the batch's next direction in order adds it, and any that were waiting behind it,
-//!   into the batch's sum (one thread at a time per batch; the others leave theirs and go on
-//!   claiming). So each texel's additions happen in direction order, and the sums are the bits
-//!   of every other schedule, on any number of threads.
+//! - **Claiming.** The stints are dealt in a fixed order ([`claim_order`]) through one atomic
+//!   counter; a thread computes its stint into a buffer of its own
+//!   (`Propagation::shoot_stint`, the kernel every schedule shares).
+//! - **Adding in order.** A finished stint is handed to its batch. Whichever thread hands over
+//!   the batch's next stint in order adds it, and any that were waiting behind it, into the
+//!   batch's sum (one thread at a time per batch; the others leave theirs and go on claiming).
+//!   So each texel's additions happen in stint order, and the sums are the bits of every other
+//!   schedule, on any number of threads.
 //! - **Several batches at once.** One batch takes one addition at a time, so the threads claim
 //!   round-robin across a group of up to `threads` batches: with as many batches as threads,
-//!   each batch receives about one direction per direction's time, and its additions (a pass
-//!   over the texels, a fraction of a direction's shooting) keep up.
-//! - **Bounded memory.** A direction that finished ahead of an earlier one of its batch waits
+//!   each batch receives about one stint per stint's time, and its additions (a pass over the
+//!   texels, a fraction of a stint's shooting) keep up.
+//! - **Bounded memory.** A stint that finished ahead of an earlier one of its batch waits
 //!   with its buffer; at most `2 · threads` buffers are out at once (a thread that would take
 //!   another waits for one to come back). A batch's sum folds into the run's reduction tree as
 //!   soon as it is complete, merged with its sibling node once that is complete too
@@ -32,19 +32,19 @@
 //!   the batches are claimed group by group, so few are incomplete at once), and the buffers:
 //!   not one sum per batch, however many batches a pass is cut into.
 //! - **Why it cannot stall.** A thread borrows its buffer before it claims, and within a batch
-//!   the directions are claimed in order: so whenever a direction waits, the oldest unadded
-//!   direction of its batch is already claimed, and the thread shooting it holds its buffer
-//!   and is not waiting. That holds as long as shooting a direction never blocks nor yields to
-//!   other rayon work (no `join`, `scope` or parallel iterator inside
-//!   `Propagation::shoot_direction`): a thread that did could pick up another claiming loop and
-//!   wait for a buffer while its own direction stays unfinished. The factor 2 is for
+//!   the stints are claimed in order: so whenever a stint waits, the oldest unadded stint of
+//!   its batch is already claimed, and the thread shooting it holds its buffer and is not
+//!   waiting. That holds as long as shooting a stint never blocks nor yields to other rayon
+//!   work (no `join`, `scope` or parallel iterator inside `Propagation::shoot_stint`): a thread
+//!   that did could pick up another claiming loop and wait for a buffer while its own stint
+//!   stays unfinished. The factor 2 is for
 //!   throughput; any cap of at least one buffer a thread is live. A thread that fails or panics
 //!   wakes the waiting ones, which then stop.
 
 use super::Propagation;
 use super::reduce::{Nodes, is_aligned_block};
 use super::shoot::Flow;
-use super::work::{BatchSum, DirectionScratch, IterationWork, MirrorIo, Pass, add_and_clear, cleared};
+use super::work::{BatchSum, DirectionScratch, IterationWork, MirrorIo, Pass, add_and_clear, cleared, split_by_stint};
 use crate::scene::Rgb;
 use std::collections::BTreeMap;
 use std::ops::Range;
@@ -52,19 +52,38 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Condvar, Mutex, MutexGuard};
 use std::time::Instant;
 
-/// The order in which threads claim the directions of consecutive batches `ranges` (each a
-/// non-empty run of directions): the batches in groups of `width`, and within a group
-/// round-robin, the first direction of each batch, then the second of each, and so on. Each
-/// entry is (batch index within `ranges`, direction).
-pub(crate) fn claim_order(ranges: &[Range<usize>], width: usize) -> Vec<(usize, usize)> {
+/// A stint to claim: its batch (index within the run of batches), its index among the run's
+/// stints, and its directions.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub(crate) struct Claim {
+    pub batch: usize,
+    pub stint: usize,
+    pub directions: Range<usize>,
+}
+
+/// The order in which threads claim the stints of consecutive batches (`stints`, per batch its
+/// stints in order, none empty): the batches in groups of `width`, and within a group
+/// round-robin, the first stint of each batch, then the second of each, and so on.
+pub(crate) fn claim_order(stints: &[Vec<Range<usize>>], width: usize) -> Vec<Claim> {
     let width = width.max(1);
-    let mut order = Vec::with_capacity(ranges.iter().map(|r| r.len()).sum());
-    for (g, group) in ranges.chunks(width).enumerate() {
-        let longest = group.iter().map(|r| r.len()).max().unwrap_or(0);
+    let mut first = Vec::with_capacity(stints.len());
+    let mut count = 0;
+    for batch in stints {
+        first.push(count);
+        count += batch.len();
+    }
+    let mut order = Vec::with_capacity(count);
+    for (g, group) in stints.chunks(width).enumerate() {
+        let longest = group.iter().map(Vec::len).max().unwrap_or(0);
         for k in 0..longest {
-            for (i, range) in group.iter().enumerate() {
-                if k < range.len() {
-                    order.push((g * width + i, range.start + k));
+            for (i, batch) in group.iter().enumerate() {
+                if let Some(directions) = batch.get(k) {
+                    let b = g * width + i;
+                    order.push(Claim {
+                        batch: b,
+                        stint: first[b] + k,
+                        directions: directions.clone(),
+                    });
                 }
             }
         }
@@ -72,20 +91,23 @@ pub(crate) fn claim_order(ranges: &[Range<usize>], width: usize) -> Vec<(usize, 
     order
 }
 
-/// A direction shot, waiting to be added to its batch's sum.
+/// A stint shot, waiting to be added to its batch's sum.
 struct Shot {
     buf: Vec<Rgb>,
-    flow: Flow,
+    /// Its directions' flows, in order.
+    flows: Vec<Flow>,
+    /// One past its last direction: where the batch's next stint starts.
+    end: usize,
     seconds: f64,
 }
 
 /// One batch's sum as it grows.
 struct Sum {
-    /// The direction to add next.
+    /// The first direction of the stint to add next.
     next: usize,
-    /// Directions shot ahead of `next`.
+    /// Stints shot ahead of `next`, by first direction.
     waiting: BTreeMap<usize, Shot>,
-    /// Σ of the directions before `next`, from zero (`None` before the first, and while the
+    /// Σ of the stints before `next`, from zero (`None` before the first, and while the
     /// adding thread adds to it outside the lock).
     texels: Option<Vec<Rgb>>,
     flow: Flow,
@@ -106,8 +128,8 @@ struct Fold {
 }
 
 /// The texel-sized buffers lent to the threads: at most `cap` out at once. Every buffer in
-/// `free` holds the field's texels, all zero: a direction's buffer is cleared as it is added to
-/// its batch's sum ([`add_and_clear`]), so the next direction need not clear it again.
+/// `free` holds the field's texels, all zero: a stint's buffer is cleared as it is added to its
+/// batch's sum ([`add_and_clear`]), so the next stint need not clear it again.
 struct Buffers {
     free: Vec<Vec<Rgb>>,
     out: usize,
@@ -115,7 +137,7 @@ struct Buffers {
 
 /// What the threads share while they shoot a run of batches.
 struct Claims<'m, 'x> {
-    order: Vec<(usize, usize)>,
+    order: Vec<Claim>,
     next: AtomicUsize,
     /// Directions added to their sums so far (what progress reports).
     added: AtomicUsize,
@@ -125,9 +147,9 @@ struct Claims<'m, 'x> {
     returned: Condvar,
     cap: usize,
     texels: usize,
-    /// Per direction of the run (from `first`), its mirror maps until claimed.
-    maps: Vec<Mutex<Option<&'m mut MirrorIo<'x>>>>,
-    first: usize,
+    /// Per stint of the run, its directions' mirror maps until claimed (none where the pass
+    /// shoots none).
+    maps: Vec<Mutex<Option<&'m mut [MirrorIo<'x>]>>>,
     failed: AtomicBool,
     error: Mutex<Option<crate::Error>>,
 }
@@ -137,7 +159,7 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
 }
 
 impl Claims<'_, '_> {
-    /// A buffer for the next direction, waiting while `cap` are out; `None` once a thread failed.
+    /// A buffer for the next stint, waiting while `cap` are out; `None` once a thread failed.
     fn borrow(&self) -> Option<Vec<Rgb>> {
         let mut b = lock(&self.buffers);
         while b.out >= self.cap && !self.failed.load(Ordering::Acquire) {
@@ -160,6 +182,28 @@ impl Claims<'_, '_> {
         self.returned.notify_one();
     }
 
+    /// Counts a lent buffer as back though it stays out: it became a batch's sum.
+    fn retire(&self) {
+        let mut b = lock(&self.buffers);
+        b.out -= 1;
+        self.returned.notify_one();
+    }
+
+    /// Takes `buf`, the texels of a sum merged into its parent, into the pool, cleared, where
+    /// the pool is short of its cap: the buffer a batch's first stint took along is replaced
+    /// without asking the allocator (whose fresh pages the kernel faults in and clears).
+    fn recycle(&self, mut buf: Vec<Rgb>) {
+        let room = |b: &Buffers| b.free.len() + b.out < self.cap;
+        if buf.len() != self.texels || !room(&lock(&self.buffers)) {
+            return;
+        }
+        buf.fill([0.0; 3]);
+        let mut b = lock(&self.buffers);
+        if room(&b) {
+            b.free.push(buf);
+        }
+    }
+
     fn fail(&self, e: crate::Error) {
         lock(&self.error).get_or_insert(e);
         self.stop();
@@ -172,7 +216,8 @@ impl Claims<'_, '_> {
         self.returned.notify_all();
     }
 
-    /// Hands direction `d`'s shot to batch `batch`, and adds whatever is next in order.
+    /// Hands the shot of the stint that starts at direction `d` to batch `batch`, and adds
+    /// whatever is next in order.
     fn deliver(&self, batch: usize, d: usize, shot: Shot) {
         let mut sum = lock(&self.sums[batch]);
         sum.waiting.insert(d, shot);
@@ -186,19 +231,32 @@ impl Claims<'_, '_> {
                 sum.adding = false;
                 return;
             };
-            sum.next += 1;
-            let mut texels = sum.texels.take().unwrap_or_else(|| vec![[0.0; 3]; self.texels]);
-            drop(sum);
-            let mut buf = shot.buf;
-            add_and_clear(&mut texels, &mut buf);
-            self.give_back(buf);
-            self.added.fetch_add(1, Ordering::Relaxed);
+            sum.next = shot.end;
+            let texels = match sum.texels.take() {
+                // The batch's first stint: its buffer becomes the sum, `0 + x = x` bit for bit
+                // (an addition gives −0 only from two −0, so a buffer cleared to +0 holds none).
+                None => {
+                    drop(sum);
+                    self.retire();
+                    shot.buf
+                }
+                Some(mut texels) => {
+                    drop(sum);
+                    let mut buf = shot.buf;
+                    add_and_clear(&mut texels, &mut buf);
+                    self.give_back(buf);
+                    texels
+                }
+            };
+            self.added.fetch_add(shot.flows.len(), Ordering::Relaxed);
             sum = lock(&self.sums[batch]);
             sum.texels = Some(texels);
-            sum.flow.add(&shot.flow);
+            for flow in &shot.flows {
+                sum.flow.add(flow);
+            }
             sum.seconds += shot.seconds;
             if sum.next == sum.end {
-                // Complete: no direction of the batch is left to wait, nor to add.
+                // Complete: no stint of the batch is left to wait, nor to add.
                 let done = BatchSum {
                     texels: sum.texels.take().unwrap_or_else(|| vec![[0.0; 3]; self.texels]),
                     flow: sum.flow.into(),
@@ -224,7 +282,8 @@ impl Claims<'_, '_> {
                 Ok(None) => return,
                 Ok(Some(pair)) => {
                     drop(fold);
-                    let (block, sum) = pair.merge();
+                    let ((block, sum), spare) = pair.merge_keeping();
+                    self.recycle(spare);
                     fold = lock(&self.fold);
                     next = fold.nodes.put(block, sum);
                 }
@@ -237,7 +296,7 @@ impl Claims<'_, '_> {
         }
     }
 
-    /// Claims, shoots and delivers directions until none is left (or a thread failed).
+    /// Claims, shoots and delivers stints until none is left (or a thread failed).
     fn work(&self, prop: &Propagation, work: &IterationWork, pass: Pass, mut heard: impl FnMut(usize)) {
         // A panic here must not leave the others waiting for the buffer it held: they stop,
         // and the scope passes the panic on.
@@ -249,19 +308,26 @@ impl Claims<'_, '_> {
             }
             let Some(mut buf) = self.borrow() else { return };
             let k = self.next.fetch_add(1, Ordering::Relaxed);
-            let Some(&(batch, d)) = self.order.get(k) else {
+            let Some(claim) = self.order.get(k) else {
                 self.give_back(buf);
                 return;
             };
-            let maps = match self.maps.get(d - self.first) {
+            let maps = match self.maps.get(claim.stint) {
                 Some(slot) => lock(slot).take(),
                 None => None,
             };
             let started = Instant::now();
-            match prop.shoot_direction(work, pass, d, maps, &mut buf, &mut scratch) {
-                Ok(flow) => {
+            let directions = claim.directions.clone();
+            match prop.shoot_stint(work, pass, directions.clone(), maps, &mut buf, &mut scratch) {
+                Ok(flows) => {
                     let seconds = started.elapsed().as_secs_f64();
-                    self.deliver(batch, d, Shot { buf, flow, seconds });
+                    let shot = Shot {
+                        buf,
+                        flows,
+                        end: directions.end,
+                        seconds,
+                    };
+                    self.deliver(claim.batch, directions.start, shot);
                     heard(self.added.load(Ordering::Relaxed));
                 }
                 Err(e) => {
@@ -288,7 +354,7 @@ impl Drop for StopOnPanic<'_, '_, '_> {
 
 impl Propagation {
     /// Shoots the aligned block `batches` of `pass` on the current rayon pool's threads,
-    /// directions claimed one at a time (see the module docs): the block's node sum (the bits
+    /// stints claimed one at a time (see the module docs): the block's node sum (the bits
     /// of absorbing each batch's [`Propagation::run_batch`] in order) and per batch the seconds
     /// its directions took to shoot, added up over the threads. `maps` are the mirror maps of the batches' directions, in order, when the
     /// pass shoots them. `progress` hears, on the calling thread, how many directions are
@@ -316,8 +382,8 @@ impl Propagation {
                 work.batches()
             )));
         }
-        let (first, count) = match (ranges.first(), ranges.last()) {
-            (Some(a), Some(b)) => (a.start, b.end - a.start),
+        let count = match (ranges.first(), ranges.last()) {
+            (Some(a), Some(b)) => b.end - a.start,
             _ => unreachable!("an aligned block holds a batch"),
         };
         if let (Pass::Shoot, true) = (pass, work.uses_mirror_maps())
@@ -328,8 +394,13 @@ impl Propagation {
             )));
         }
         let threads = rayon::current_num_threads().max(1);
+        let stints: Vec<Vec<Range<usize>>> = batches.clone().map(|b| work.batching().stints(b).collect()).collect();
+        // Each stint's mirror maps, its own slice of `maps`.
+        let maps = maps
+            .and_then(|maps| split_by_stint(maps, stints.iter().flatten()))
+            .map(|own| own.into_iter().map(|m| Mutex::new(Some(m))).collect());
         let claims = Claims {
-            order: claim_order(&ranges, threads),
+            order: claim_order(&stints, threads),
             next: AtomicUsize::new(0),
             added: AtomicUsize::new(0),
             sums: ranges
@@ -357,10 +428,7 @@ impl Propagation {
             returned: Condvar::new(),
             cap: 2 * threads,
             texels: self.atlas.texels,
-            maps: maps
-                .map(|m| m.iter_mut().map(|io| Mutex::new(Some(io))).collect())
-                .unwrap_or_default(),
-            first,
+            maps: maps.unwrap_or_default(),
             failed: AtomicBool::new(false),
             error: Mutex::new(None),
         };
@@ -406,19 +474,38 @@ mod tests {
 
     #[test]
     fn claims_go_round_robin_within_groups_of_batches() {
-        let ranges = [0..3, 3..5, 5..9];
+        // Three batches: stints of one direction, then of two (the last ones short).
+        let stints = [vec![0..1, 1..2, 2..3], vec![3..5, 5..6], vec![6..8, 8..10, 10..11]];
+        let got = |width| -> Vec<(usize, usize, usize)> {
+            claim_order(&stints, width)
+                .into_iter()
+                .map(|c| (c.batch, c.stint, c.directions.start))
+                .collect()
+        };
         assert_eq!(
-            claim_order(&ranges, 2),
-            [(0, 0), (1, 3), (0, 1), (1, 4), (0, 2), (2, 5), (2, 6), (2, 7), (2, 8)]
+            got(2),
+            [
+                (0, 0, 0),
+                (1, 3, 3),
+                (0, 1, 1),
+                (1, 4, 5),
+                (0, 2, 2),
+                (2, 5, 6),
+                (2, 6, 8),
+                (2, 7, 10)
+            ]
         );
         // One thread: plain direction order.
-        let one: Vec<usize> = claim_order(&ranges, 1).into_iter().map(|(_, d)| d).collect();
-        assert_eq!(one, (0..9).collect::<Vec<_>>());
-        // Every direction exactly once, whatever the width.
+        let one: Vec<usize> = got(1).into_iter().map(|(_, _, d)| d).collect();
+        assert_eq!(one, [0, 1, 2, 3, 5, 6, 8, 10]);
+        // Every stint exactly once, with its own index and directions, whatever the width.
+        let all: Vec<Range<usize>> = stints.iter().flatten().cloned().collect();
         for width in 1..6 {
-            let mut all: Vec<usize> = claim_order(&ranges, width).into_iter().map(|(_, d)| d).collect();
-            all.sort();
-            assert_eq!(all, (0..9).collect::<Vec<_>>(), "width {width}");
+            let mut claims = claim_order(&stints, width);
+            claims.sort_by_key(|c| c.stint);
+            let directions: Vec<Range<usize>> = claims.iter().map(|c| c.directions.clone()).collect();
+            assert_eq!(directions, all, "width {width}");
+            assert!(claims.iter().enumerate().all(|(k, c)| c.stint == k), "width {width}");
         }
     }
 }

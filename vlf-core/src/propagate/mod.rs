@@ -27,14 +27,14 @@
 //!
 //! ## An iteration
 //! 1. every texel with unshot power is a sender: `radiance_t = Φ_t / T_t`;
-//! 2. for every direction (claimed by whichever thread is free, `claim`),
-//!    walk each ray's sorted hits: two consecutive surfaces facing each other
-//!    exchange `radiance·Δω`; a back face blocks; nothing beyond the
-//!    first/last surface means escape;
+//! 2. for every direction (claimed a stint of a few at a time by whichever
+//!    thread is free, `claim`), walk each ray's sorted hits: two consecutive
+//!    surfaces facing each other exchange `radiance·Δω`; a back face blocks;
+//!    nothing beyond the first/last surface means escape;
 //! 3. the received power is reduced over directions **in direction order**
-//!    (fixed batches, each summed in direction order, so the bits do not
-//!    depend on the thread or worker count), times `ρd` it becomes Next and
-//!    is added to Total.
+//!    (fixed batches and stints, each summed in direction order, so the bits
+//!    do not depend on the thread or worker count), times `ρd` it becomes
+//!    Next and is added to Total.
 //!
 //! Options: deferred propagation (charts with negligible unshot power wait),
 //! perturbation (the paper's remedy for holes: shoot the first iterations
@@ -127,6 +127,14 @@ pub struct Options {
     /// read as, so that they render and resume as they ran.
     #[serde(default = "defaults::legacy_pass_batches")]
     pub pass_batches: u32,
+    /// Consecutive directions of a batch that one thread shoots into one texel buffer before
+    /// that buffer is added to the batch's sum (a *stint*, [`batching::Batching`]): what sets
+    /// how often a field-sized buffer is streamed through memory, and part of the bits. A
+    /// power of two up to [`CHUNK`]. Jobs stored before it was an option added every direction
+    /// on its own, [`defaults::LEGACY_STINT_DIRECTIONS`], which is what their parameters read
+    /// as, so that they render and resume as they ran.
+    #[serde(default = "defaults::legacy_stint_directions")]
+    pub stint_directions: u32,
 }
 
 /// The settings a job gets where its user names none: the one table that the command line
@@ -160,6 +168,19 @@ pub mod defaults {
     pub fn legacy_pass_batches() -> u32 {
         LEGACY_PASS_BATCHES
     }
+    /// Directions per stint ([`super::batching::Batching`]): 8, which pays a buffer's pass over
+    /// the field once for 8 directions while a pass at l = 2049 still has 256 stints to share
+    /// out (16 a thread at 16 threads, so a tail of one stint is a few per cent of a pass).
+    /// One thread on the Cornell box at l = 2049, N = 128 took 13.4–14.5 s with stints of 1,
+    /// 11.3–11.6 s with 4, 10.7 s with 8 and 10.8 s with 16 (docs/scaling.md, *Stints*).
+    pub const STINT_DIRECTIONS: u32 = 8;
+    /// What a stint was before [`super::Options::stint_directions`] existed: one direction.
+    pub const LEGACY_STINT_DIRECTIONS: u32 = 1;
+
+    /// [`LEGACY_STINT_DIRECTIONS`], for options stored without `stint_directions`.
+    pub fn legacy_stint_directions() -> u32 {
+        LEGACY_STINT_DIRECTIONS
+    }
 }
 
 impl Default for Options {
@@ -183,6 +204,7 @@ impl Default for Options {
             filter_sigma: None,
             filter_only_with_mirrors: false,
             pass_batches: defaults::PASS_BATCHES,
+            stint_directions: defaults::STINT_DIRECTIONS,
         }
     }
 }
@@ -277,12 +299,18 @@ impl Options {
                 self.pass_batches
             ));
         }
+        if !(self.stint_directions.is_power_of_two() && self.stint_directions as usize <= CHUNK) {
+            return bad(format!(
+                "directions per stint must be a power of two up to {CHUNK}, got {}",
+                self.stint_directions
+            ));
+        }
         Ok(())
     }
 
     /// How this job's passes are cut into batches.
     pub fn batching(&self) -> batching::Batching {
-        batching::Batching::new(self.directions, self.pass_batches)
+        batching::Batching::new(self.directions, self.pass_batches, self.stint_directions)
     }
 
     /// Texel edge length in the VLF frame.
@@ -711,8 +739,8 @@ impl Propagation {
     }
 
     /// Performs one iteration in this process with the threads of the current rayon pool: every
-    /// pass's directions claimed one at a time by whichever thread is free, each batch summed in
-    /// direction order as its directions come in (`claim`), the batch sums absorbed in order.
+    /// pass's stints claimed one at a time by whichever thread is free, each batch summed in
+    /// stint order as its stints come in (`claim`), the batch sums absorbed in order.
     /// The same bits on any number of threads, and as any split across workers.
     ///
     /// Where no budget bounds the subfields, a perturbed iteration's passes are shot in

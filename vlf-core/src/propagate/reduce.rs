@@ -25,6 +25,7 @@
 
 use super::FlowRecord;
 use super::work::{Arrivals, BatchOutput, BatchSum, add_into};
+use crate::scene::Rgb;
 use std::ops::Range;
 
 /// Whether `block` is a node of the reduction tree over `batches` leaves.
@@ -239,13 +240,19 @@ pub struct Pair {
 impl Pair {
     /// The parent node: its leaves and `left + right`.
     pub fn merge(self) -> (Range<usize>, BatchSum) {
+        self.merge_keeping().0
+    }
+
+    /// [`Pair::merge`], handing back the right node's texels, which the parent no longer needs:
+    /// a buffer of the field's size for whoever wants one.
+    pub fn merge_keeping(self) -> ((Range<usize>, BatchSum), Vec<Rgb>) {
         let Pair {
             parent,
             mut left,
             right,
         } = self;
         merge(&mut left, &right);
-        (parent, left)
+        ((parent, left), right.texels)
     }
 }
 

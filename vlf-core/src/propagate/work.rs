@@ -19,7 +19,8 @@
 //! absorbed, and — for [`Pass::Shoot`] — the mirror maps of its own
 //! directions and the arrivals of those it gathers from. Its output is a [`BatchSum`]: per-texel
 //! power summed over the batch's directions **in direction order, starting
-//! from zero**, and the batch's flow. The batch sums of a pass are added up
+//! from zero** (a stint of consecutive directions into one buffer, then the
+//! stints' buffers in order: [`Batching`]), and the batch's flow. The batch sums of a pass are added up
 //! along a fixed binary tree ([`super::reduce`]), so a worker may compute a
 //! whole aligned block of batches and send the block's node sum alone, and
 //! [`IterationWork::absorb`] takes the blocks in order. So the bits of an
@@ -636,17 +637,16 @@ impl Propagation {
         }
     }
 
-    /// Shoots direction `d` of `pass` into `buf`, which holds the field's texels, all zero
-    /// ([`cleared`]): what the direction delivers to each texel (received power, or its
-    /// discrete area for [`Pass::Areas`]) and where its power went. The caller clears it,
-    /// so that one who has just read the buffer through (to add it to a sum) clears it in the
-    /// same pass ([`add_and_clear`]) rather than in one more pass over a few hundred kB here. `maps` are its mirror maps when the pass
-    /// shoots them ([`IterationWork::uses_mirror_maps`]): the incident radiance is added to
-    /// them. A rotated copy's subfield is built here, in `scratch`, by its `Areas` pass, and
-    /// kept for its `ShootCopy` pass where every subfield is held ([`super::rotated`]). The one
-    /// kernel of every schedule: a batch shot CHUNK directions at a time
-    /// ([`Propagation::run_batch`]) and directions claimed one by one (`super::claim`) compute
-    /// exactly this, so they get the same bits.
+    /// Shoots direction `d` of `pass` into `buf`, a value per texel of the field: adds what the
+    /// direction delivers to each texel (received power, or its discrete area for
+    /// [`Pass::Areas`]) onto what `buf` holds (zeros, or its stint's earlier directions:
+    /// [`Propagation::shoot_stint`]), and returns where its power went. The caller clears it
+    /// before a stint, so that one who has just read the buffer through (to add it to a sum)
+    /// clears it in the same pass ([`add_and_clear`]) rather than in one more pass over a few
+    /// hundred kB here. `maps` are its mirror maps when the pass shoots them
+    /// ([`IterationWork::uses_mirror_maps`]): the incident radiance is added to them. A rotated
+    /// copy's subfield is built here, in `scratch`, by its `Areas` pass, and kept for its
+    /// `ShootCopy` pass where every subfield is held ([`super::rotated`]).
     pub(crate) fn shoot_direction(
         &self,
         work: &IterationWork,
@@ -724,11 +724,36 @@ impl Propagation {
         }
     }
 
+    /// Shoots the directions of stint `stint` of `pass` in order into `buf`, each adding onto
+    /// what the ones before it left ([`Propagation::shoot_direction`]): the stint's term of its
+    /// batch's sum ([`Batching`]). `maps` are the stint's directions' mirror maps, in order,
+    /// when the pass shoots them. Returns each direction's flow, in order. The one kernel of
+    /// every schedule: a batch shot CHUNK directions at a time ([`Propagation::run_batch`]) and
+    /// stints claimed one by one (`super::claim`) compute exactly this, so they get the same
+    /// bits.
+    pub(crate) fn shoot_stint(
+        &self,
+        work: &IterationWork,
+        pass: Pass,
+        stint: Range<usize>,
+        mut maps: Option<&mut [MirrorIo]>,
+        buf: &mut [Rgb],
+        scratch: &mut DirectionScratch,
+    ) -> crate::Result<Vec<Flow>> {
+        stint
+            .enumerate()
+            .map(|(i, d)| {
+                let own = maps.as_deref_mut().and_then(|m| m.get_mut(i));
+                self.shoot_direction(work, pass, d, own, buf, scratch)
+            })
+            .collect()
+    }
+
     /// Computes batch `batch` of `pass` of `work`. `maps` are the mirror maps
     /// of the batch's directions, in order, when [`Pass::Shoot`] uses them
     /// ([`IterationWork::uses_mirror_maps`]); they receive the incident
-    /// radiance and the totals. Directions run in parallel; the sum is in
-    /// direction order.
+    /// radiance and the totals. Stints run in parallel; the sum is in
+    /// stint order.
     pub fn run_batch(
         &self,
         work: &IterationWork,
@@ -740,7 +765,7 @@ impl Propagation {
         self.run_batch_with(work, pass, batch, io.as_deref_mut(), &mut Vec::new())
     }
 
-    /// [`Propagation::run_batch`] with `buffers`, the per-direction texel
+    /// [`Propagation::run_batch`] with `buffers`, the per-stint texel
     /// buffers of a chunk, kept by the caller from batch to batch: allocating
     /// them afresh for every direction (a few hundred kB each) made the
     /// kernel map and fault in pages faster than the propagation used them.
@@ -759,32 +784,6 @@ impl Propagation {
                 work.batches()
             )));
         }
-        // The batch's directions, CHUNK at a time: each chunk's directions in
-        // parallel, each into its own buffer, then added to the sum in
-        // direction order.
-        let compute =
-            |range: Range<usize>, maps: Option<&mut [MirrorIo]>, bufs: &mut [Vec<Rgb>]| -> crate::Result<Vec<Flow>> {
-                match maps {
-                    Some(maps) => maps
-                        .par_iter_mut()
-                        .zip(bufs.par_iter_mut())
-                        .enumerate()
-                        .map_init(DirectionScratch::default, |scratch, (i, (m, buf))| {
-                            cleared(buf, self.atlas.texels);
-                            self.shoot_direction(work, pass, range.start + i, Some(m), buf, scratch)
-                        })
-                        .collect(),
-                    None => range
-                        .clone()
-                        .into_par_iter()
-                        .zip(bufs.par_iter_mut())
-                        .map_init(DirectionScratch::default, |scratch, (d, buf)| {
-                            cleared(buf, self.atlas.texels);
-                            self.shoot_direction(work, pass, d, None, buf, scratch)
-                        })
-                        .collect(),
-                }
-            };
         if let (Pass::Shoot, Mode::Direct { mirrors: true, .. }) = (pass, &work.mode)
             && maps.as_ref().is_none_or(|m| m.len() != range.len())
         {
@@ -802,22 +801,33 @@ impl Propagation {
                 )));
             }
         }
-        if buffers.len() < CHUNK {
-            buffers.resize_with(CHUNK, Vec::new);
+        // The batch's stints, CHUNK directions at a time: each chunk's stints in parallel,
+        // each into its own buffer, then added to the sum in stint order.
+        let stints: Vec<Range<usize>> = work.batching.stints(batch).collect();
+        let per_chunk = (CHUNK / work.batching.stint()).max(1);
+        if buffers.len() < per_chunk {
+            buffers.resize_with(per_chunk, Vec::new);
         }
-        // Σ over the batch's directions in direction order, from zero; texel
-        // blocks in parallel (each texel's additions stay in order).
+        // The stints' mirror maps, each its own slice.
+        let mut maps_of: Vec<Option<&mut [MirrorIo]>> = match maps.and_then(|m| split_by_stint(m, &stints)) {
+            Some(own) => own.into_iter().map(Some).collect(),
+            None => stints.iter().map(|_| None).collect(),
+        };
+        // Σ over the batch's stints in order, from zero; texel blocks in
+        // parallel (each texel's additions stay in order).
         let mut sum = vec![[0.0; 3]; self.atlas.texels];
         let mut flow = Flow::default();
-        let mut maps = maps;
-        let mut start = range.start;
-        while start < range.end {
-            let end = (start + CHUNK).min(range.end);
-            let own = maps
-                .as_deref_mut()
-                .map(|m| &mut m[start - range.start..end - range.start]);
-            let bufs = &mut buffers[..end - start];
-            let flows = compute(start..end, own, bufs)?;
+        for (group, maps) in stints.chunks(per_chunk).zip(maps_of.chunks_mut(per_chunk)) {
+            let bufs = &mut buffers[..group.len()];
+            let flows: Vec<Vec<Flow>> = group
+                .par_iter()
+                .zip(maps.par_iter_mut())
+                .zip(bufs.par_iter_mut())
+                .map_init(DirectionScratch::default, |scratch, ((stint, maps), buf)| {
+                    cleared(buf, self.atlas.texels);
+                    self.shoot_stint(work, pass, stint.clone(), maps.as_deref_mut(), buf, scratch)
+                })
+                .collect::<crate::Result<_>>()?;
             let bufs = &*bufs;
             sum.par_chunks_mut(4096).enumerate().for_each(|(c, block)| {
                 let base = c * 4096;
@@ -825,10 +835,9 @@ impl Propagation {
                     add_into(block, &buf[base..base + block.len()]);
                 }
             });
-            for f in &flows {
+            for f in flows.iter().flatten() {
                 flow.add(f);
             }
-            start = end;
         }
         Ok(BatchSum {
             texels: sum,
@@ -844,6 +853,26 @@ impl Propagation {
 pub(crate) struct MirrorIo<'a> {
     pub unshot: &'a [Rgb],
     pub incident: &'a mut [Rgb],
+}
+
+/// `items`, one per direction of consecutive `stints`, cut into one slice per stint; `None`
+/// unless they are exactly the stints' directions' (a pass that shoots no mirror maps may be
+/// handed some anyway).
+pub(crate) fn split_by_stint<'a, 's, T>(
+    items: &'a mut [T],
+    stints: impl IntoIterator<Item = &'s Range<usize>>,
+) -> Option<Vec<&'a mut [T]>> {
+    let mut rest = items;
+    let mut own = Vec::new();
+    for stint in stints {
+        if stint.len() > rest.len() {
+            return None;
+        }
+        let (head, tail) = std::mem::take(&mut rest).split_at_mut(stint.len());
+        own.push(head);
+        rest = tail;
+    }
+    rest.is_empty().then_some(own)
 }
 
 /// The shooting view of whole mirror maps (the in-process step's own).
