@@ -975,7 +975,7 @@ fn replicas_read_the_jobs_mirror_geometry() {
         .put(&key, blob(BlobKind::MirrorGeometry, &altered.to_bytes()))
         .unwrap();
     let read = FieldJob::open(&store, &id).unwrap().propagation(None).unwrap();
-    assert_eq!(read.specular.as_ref().unwrap().routes, altered.routes);
+    assert_eq!(*read.specular.as_ref().unwrap().routes, *altered.routes);
     store.put(&key, valid.clone()).unwrap();
 
     let coordinator = Coordinator::resume(FieldJob::open(&store, &id).unwrap()).unwrap();
@@ -1239,9 +1239,10 @@ fn each_worker_takes_a_prototype_once_and_the_last_takes_the_original() {
     assert_eq!(maps(&second), original);
     assert!(without_times(first.checkpoint()) == bits);
     assert!(without_times(second.checkpoint()) == bits);
-    // They share one table of routes by source, built once.
+    // They share their mirror geometry, the table of routes by source built once, rather
+    // than each holding a copy.
     let spec = |p: &Propagation| p.specular.as_ref().unwrap().clone();
-    assert!(spec(&first).shares_settle_table(&spec(&second)));
+    assert!(spec(&first).shares_geometry(&spec(&second)));
     // A lone worker takes the original at once; a withdrawn offer is gone.
     let alone = vlf_store::Prototypes::new(1);
     alone.insert(id.clone(), second);

@@ -47,7 +47,7 @@ pub struct SpecularField {
     pub directions: DirectionSet,
     /// Per direction, its subfield on the mirrors alone, with their slots: where each ray
     /// that crosses a mirror finds its radiance ([`MirrorView`]).
-    pub views: Vec<MirrorView>,
+    pub views: std::sync::Arc<[MirrorView]>,
     /// `totals[d][slot]`: radiance leaving the mirror along direction `d`.
     pub totals: Vec<Vec<[f32; 3]>>,
 }
@@ -100,7 +100,7 @@ impl LightField {
                         spec.views.len()
                     ));
                 }
-                for (d, (t, v)) in totals.iter().zip(&spec.views).enumerate() {
+                for (d, (t, v)) in totals.iter().zip(spec.views.iter()).enumerate() {
                     if t.len() != v.slots() {
                         return bad(format!(
                             "direction {d}: {} mirror values for {} slots",
@@ -205,8 +205,8 @@ impl LightField {
 impl Propagation {
     /// The field as it stands after the iterations done so far, leaving the
     /// propagation free to go on: what a study renders after every
-    /// iteration. Costs a copy of the geometry; [`Propagation::into_field`]
-    /// is the move at the end.
+    /// iteration. Costs a copy of the scene and texel grids (the mirror views
+    /// are shared); [`Propagation::into_field`] is the move at the end.
     pub fn field_now(&self) -> LightField {
         let covered: Vec<bool> = self.projected_area.iter().map(|&a| a > 0.0).collect();
         let specular = self

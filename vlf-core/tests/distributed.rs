@@ -185,10 +185,12 @@ fn batches_from_several_workers_in_any_order_give_the_same_bits_with_mirrors() {
 
 #[test]
 fn batches_of_several_chunks_keep_each_directions_mirror_maps() {
-    // l = 513 cut into 16 batches: batches of 32 directions (the last 33), computed 16 at a
-    // time, so a batch's mirror maps are split between chunks.
+    // l = 513 cut into 16 batches: batches of 32 directions (the last 33) in stints of one,
+    // computed 16 at a time, so a batch's mirror maps are split between chunks (between stints
+    // of several directions: `every_stint_gives_one_field_on_every_schedule…`).
     let options = Options {
         directions: 513,
+        stint_directions: 1,
         stop: Stop::Iterations(3),
         pass_batches: 16,
         ..options(0)
@@ -246,8 +248,8 @@ fn homes_give_the_same_bits(scene: Scene, options: Options, threads: usize, cuts
             "homes {homes:?} changed the bits"
         );
     }
-    // `step` on pools of 1 to 7 threads (directions claimed one at a time, each batch summed
-    // in direction order as they come in, whichever thread shot them): the same bits.
+    // `step` on pools of 1 to 7 threads (stints claimed one at a time, each batch summed in
+    // stint order as they come in, whichever thread shot them): the same bits.
     for threads in [1, 2, 3, 4, 7] {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         let mut auto = Propagation::new(scene.clone(), options.clone()).unwrap();
@@ -299,12 +301,25 @@ fn every_stint_gives_one_field_on_every_schedule_and_regroups_only_the_rounding(
         assert!(worst < 1e-12, "stints of {stint}: relative difference {worst:e}");
         assert!(other != one, "stints of {stint} summed exactly as single directions");
     }
+    // With mirrors, each stint shoots its own directions' maps, on every schedule: stints of 2
+    // and of 16 (l = 513 is cut into batches of 16 directions, so a batch is one stint, and
+    // the last batch, of 17, a stint of 16 and one of 1).
+    for stint in [2, 16] {
+        let options = Options {
+            directions: 513,
+            stint_directions: stint,
+            stop: Stop::Iterations(3),
+            ..options(0)
+        };
+        homes_give_the_same_bits(mirror_room(), options.clone(), 2, &[&[5, 9]]);
+        same_bits_as_in_process(mirror_room(), options);
+    }
 }
 
 #[test]
 fn a_block_cut_among_a_replicas_threads_gives_the_same_bits() {
     // Whole-pass blocks of 32 batches on pools of 1 to 4 threads: a replica's threads claim the
-    // block's directions one at a time.
+    // block's stints one at a time.
     let options = Options {
         directions: 513,
         stop: Stop::Iterations(3),

@@ -82,7 +82,7 @@ fn a_stored_mirror_geometry_is_the_computed_one() {
             .unwrap();
         altered.routes[t][0].weight *= 0.5;
         let read = Propagation::with_stored(scene, options(129, 2), None, p.survey(), altered.clone()).unwrap();
-        assert_eq!(read.specular.unwrap().routes, altered.routes);
+        assert_eq!(*read.specular.unwrap().routes, *altered.routes);
     }
     assert!(
         Propagation::new(lit_box(), options(33, 1))

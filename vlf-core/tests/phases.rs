@@ -17,7 +17,7 @@ fn every_iteration_records_its_phases_within_its_time() {
         stop: Stop::Iterations(3),
         ..Options::default()
     };
-    // One thread and two (directions claimed one at a time, `propagate::claim`).
+    // One thread and two (stints claimed one at a time, `propagate::claim`).
     for threads in [1, 2] {
         let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         pool.install(|| {

@@ -51,8 +51,10 @@ impl Prototypes {
     }
 
     /// Job `id`'s propagation for one worker, if one is offered: a copy, or for the last worker
-    /// the one offered. With mirrors, the routes are turned around by source before the first
-    /// copy ([`vlf_core::propagate::Specular::prepare_settle`]): the copies share that table
+    /// the one offered. The copies share the geometry that never changes (the subfields, and
+    /// with mirrors their views and routes: [`vlf_core::propagate::Specular::shares_geometry`]).
+    /// With mirrors, the routes are turned around by source before the first copy
+    /// ([`vlf_core::propagate::Specular::prepare_settle`]), so the copies share that table too
     /// (64 MB and 0.7–0.9 s for the 47 794-triangle mirror dragon at l = 2049, N = 128), which
     /// each worker's replica built for itself otherwise.
     pub fn take(&self, id: &JobId) -> Option<Propagation> {

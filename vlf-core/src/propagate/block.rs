@@ -193,7 +193,7 @@ impl Propagation {
                 .collect()
         });
         let gathered = gathering.elapsed().as_secs_f64() / batches.len() as f64;
-        // The block's directions claimed one at a time by the replica's threads, as
+        // The block's stints claimed one at a time by the replica's threads, as
         // `Propagation::step` shoots a pass: the same leaves, folded into the block's node.
         let shooting = std::time::Instant::now();
         let (sum, seconds) = self.shoot_claimed(work, pass, batches.clone(), maps.as_deref_mut(), |_| {})?;

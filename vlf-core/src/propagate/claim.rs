@@ -354,12 +354,12 @@ impl Drop for StopOnPanic<'_, '_, '_> {
 
 impl Propagation {
     /// Shoots the aligned block `batches` of `pass` on the current rayon pool's threads,
-    /// stints claimed one at a time (see the module docs): the block's node sum (the bits
-    /// of absorbing each batch's [`Propagation::run_batch`] in order) and per batch the seconds
-    /// its directions took to shoot, added up over the threads. `maps` are the mirror maps of the batches' directions, in order, when the
-    /// pass shoots them. `progress` hears, on the calling thread, how many directions are
-    /// added to their sums so far: between the directions that thread shoots, and once more at
-    /// the end with all of them.
+    /// stints claimed one at a time (see the module docs): the block's node sum (the bits of
+    /// absorbing each batch's [`Propagation::run_batch`] in order) and per batch the seconds its
+    /// directions took to shoot, added up over the threads. `maps` are the mirror maps of the
+    /// batches' directions, in order, when the pass shoots them. `progress` hears, on the
+    /// calling thread, how many directions are added to their sums so far: between the stints
+    /// that thread shoots, and once more at the end with all of them.
     pub(crate) fn shoot_claimed(
         &self,
         work: &IterationWork,
@@ -449,7 +449,8 @@ impl Propagation {
         let Claims { fold, buffers, cap, .. } = claims;
         // Kept for the next pass, no more than it may lend (a pool of fewer threads next time
         // leaves the rest to be freed).
-        let mut free = buffers.into_inner().unwrap_or_else(|p| p.into_inner()).free;
+        let Buffers { mut free, out } = buffers.into_inner().unwrap_or_else(|p| p.into_inner());
+        debug_assert!(out == 0 || error.is_some(), "{out} buffers lent and never returned");
         free.truncate(cap);
         self.buffers.keep_clean(free);
         if let Some(e) = error {

@@ -169,10 +169,10 @@ pub mod defaults {
         LEGACY_PASS_BATCHES
     }
     /// Directions per stint ([`super::batching::Batching`]): 8, which pays a buffer's pass over
-    /// the field once for 8 directions while a pass at l = 2049 still has 256 stints to share
+    /// the field once for 8 directions while a pass at l = 2049 still has 257 stints to share
     /// out (16 a thread at 16 threads, so a tail of one stint is a few per cent of a pass).
-    /// One thread on the Cornell box at l = 2049, N = 128 took 13.4–14.5 s with stints of 1,
-    /// 11.3–11.6 s with 4, 10.7 s with 8 and 10.8 s with 16 (docs/scaling.md, *Stints*).
+    /// One thread on the Cornell box at l = 2049, N = 128 took 13.3–13.6 s with stints of 1,
+    /// 11.3–11.6 s with 4, 10.3–10.5 s with 8 and 10.8 s with 16 (docs/scaling.md, *Stints*).
     pub const STINT_DIRECTIONS: u32 = 8;
     /// What a stint was before [`super::Options::stint_directions`] existed: one direction.
     pub const LEGACY_STINT_DIRECTIONS: u32 = 1;
@@ -422,7 +422,7 @@ pub struct Propagation {
     stacking: shoot::Stacking,
     /// The chart of every texel.
     pub(crate) owners: Vec<u32>,
-    /// The per-direction texel buffers, kept from one block or step to the next.
+    /// The per-stint texel buffers, kept from one block or step to the next.
     buffers: work::KeptBuffers,
     /// Rotated copies' subfields, kept from a copy's areas to its shot ([`rotated`]).
     rotated: Arc<rotated::RotatedSubfields>,
@@ -773,8 +773,8 @@ impl Propagation {
         })
     }
 
-    /// Performs one iteration in this process, each batch in turn, its directions shared among
-    /// the current pool's threads CHUNK at a time (they meet at the end of every chunk): the
+    /// Performs one iteration in this process, each batch in turn, its stints shared among the
+    /// current pool's threads CHUNK at a time (they meet at the end of every chunk): the
     /// plainest schedule, which the others are held to (`tests/distributed.rs`).
     pub fn step_shared(&mut self, mut progress: impl FnMut(Progress)) -> IterationStats {
         let mut buffers = self.buffers.take();

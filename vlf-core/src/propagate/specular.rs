@@ -282,11 +282,14 @@ pub struct Specular {
     /// ordinal here orders the routes as its surface does.
     pub mirrors: Vec<u32>,
     /// Per direction, its mirror entries alone: the mirror geometry of everything but shooting.
-    pub views: Vec<MirrorView>,
+    /// Shared by the copies of a propagation (the workers of one process take copies of their
+    /// coordinator's), as the routes and `slotted` are: a function of the geometry, never
+    /// changed once found.
+    pub views: Arc<[MirrorView]>,
     /// Per direction, its maps: those held, the others empty (their values: [`Unheld`]).
     pub maps: Vec<DirectionMaps>,
     /// `routes[i]`: what feeds target direction `i`, sorted by (mirror, source).
-    pub routes: Vec<Vec<Route>>,
+    pub routes: Arc<[Vec<Route>]>,
     /// Arrivals of the last iteration not reflected yet: then the incident
     /// maps hold them and the unshot maps are stale (see [`Pending`]).
     pub pending: Option<Pending>,
@@ -296,7 +299,7 @@ pub struct Specular {
     /// subfields (which a coordinator need not hold). Sparse: a direction's rays meet few of a
     /// curved mirror's triangles, and a table of every (direction, mirror) was 830 MB for the
     /// 202 520-triangle mirror dragon at l = 2049.
-    slotted: Vec<Vec<u32>>,
+    slotted: Arc<[Vec<u32>]>,
     /// Per target direction, its [`GatherTable`] once its first gather found it, when
     /// [`Specular::keep_gather_tables`].
     gather_tables: Vec<OnceLock<GatherTable>>,
@@ -593,7 +596,7 @@ impl Specular {
 
     /// The state of `mirrors` (sorted, by ordinal) with these views and routes, nothing held.
     fn assemble(mirrors: Vec<u32>, ordinal: Vec<u32>, views: Vec<MirrorView>, routes: Vec<Vec<Route>>) -> Self {
-        let slotted = views
+        let slotted: Vec<Vec<u32>> = views
             .iter()
             .map(|view| {
                 let mut slotted: Vec<u32> = (view.layout.entries.iter())
@@ -610,12 +613,12 @@ impl Specular {
         Specular {
             gather_tables: (0..views.len()).map(|_| OnceLock::new()).collect(),
             mirrors,
-            views,
+            views: views.into(),
             maps,
-            routes,
+            routes: routes.into(),
             pending: None,
             ordinal,
-            slotted,
+            slotted: slotted.into(),
             routes_by_source: OnceLock::new(),
             keep_gather_tables: true,
         }
@@ -917,13 +920,19 @@ impl Specular {
         self.routes_by_source.get().is_some()
     }
 
-    /// Whether this and `other` share one table of routes by source: copies of a propagation
-    /// made once it was built ([`Specular::prepare_settle`]) do.
-    pub fn shares_settle_table(&self, other: &Specular) -> bool {
-        match (self.routes_by_source.get(), other.routes_by_source.get()) {
+    /// Whether this and `other` share their geometry rather than each holding its own: the
+    /// views, the routes, the mirrors each direction crosses and the table of routes by source.
+    /// Copies of a propagation share the first three, and the table once it was built before
+    /// the copy ([`Specular::prepare_settle`]).
+    pub fn shares_geometry(&self, other: &Specular) -> bool {
+        let table = match (self.routes_by_source.get(), other.routes_by_source.get()) {
             (Some(a), Some(b)) => Arc::ptr_eq(a, b),
             _ => false,
-        }
+        };
+        table
+            && Arc::ptr_eq(&self.views, &other.views)
+            && Arc::ptr_eq(&self.routes, &other.routes)
+            && Arc::ptr_eq(&self.slotted, &other.slotted)
     }
 
     /// The exchange's power of the pending arrivals, once settled.

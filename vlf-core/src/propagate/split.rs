@@ -7,7 +7,7 @@
 //! pass into the workers' homes by what each batch cost the last time ([`split_by_cost`]), and
 //! a worker's threads cannot help another worker: `vlf bench` runs this to tell what the cut
 //! costs from what the service adds. Within one process, [`Propagation::step`] does better
-//! (directions claimed one at a time, `super::claim`): a home is a whole batch at least, so a
+//! (stints claimed one at a time, `super::claim`): a home is a whole batch at least, so a
 //! thread that ends its home early waits for the others.
 
 use super::work::{self, BatchSum, IterationWork, MirrorIo, Pass};

@@ -66,8 +66,8 @@ pub enum Pass {
     Survey,
 }
 
-/// The per-direction texel buffers (one colour per texel each: a chunk's
-/// [`CHUNK`] in the plain loop, up to two per thread when directions are
+/// The per-stint texel buffers (one colour per texel each: a chunk's
+/// [`CHUNK`] in the plain loop, up to two per thread when stints are
 /// claimed, `super::claim`), kept by a [`Propagation`] from one block or step
 /// to the next. Allocated afresh each
 /// time, their pages are zeroed by the kernel each time: a worker computing
@@ -801,10 +801,11 @@ impl Propagation {
                 )));
             }
         }
-        // The batch's stints, CHUNK directions at a time: each chunk's stints in parallel,
-        // each into its own buffer, then added to the sum in stint order.
+        // The batch's stints, CHUNK at a time: each chunk's stints in parallel, each into its
+        // own buffer, then added to the sum in stint order (how many at a time changes nothing
+        // but the memory: CHUNK buffers, as when a stint was one direction).
         let stints: Vec<Range<usize>> = work.batching.stints(batch).collect();
-        let per_chunk = (CHUNK / work.batching.stint()).max(1);
+        let per_chunk = CHUNK;
         if buffers.len() < per_chunk {
             buffers.resize_with(per_chunk, Vec::new);
         }
@@ -894,9 +895,9 @@ pub(crate) fn add_into(acc: &mut [Rgb], v: &[Rgb]) {
     }
 }
 
-/// `acc += v`, then `v = 0`, texel by texel: a shot direction's buffer added to its batch's
-/// sum and left [`cleared`] for the next direction in the one pass that reads it (the same
-/// additions as [`add_into`]).
+/// `acc += v`, then `v = 0`, texel by texel: a shot stint's buffer added to its batch's sum
+/// and left [`cleared`] for the next stint in the one pass that reads it (the same additions
+/// as [`add_into`]).
 pub(crate) fn add_and_clear(acc: &mut [Rgb], v: &mut [Rgb]) {
     for (a, b) in acc.iter_mut().zip(v) {
         a[0] += b[0];
