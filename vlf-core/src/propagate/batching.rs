@@ -5,8 +5,10 @@
 
 use std::ops::Range;
 
-/// Directions computed at once inside a batch, in parallel: each needs a
-/// texel-sized buffer, so this bounds the memory of a batch, not its size.
+/// The unit batch sizes are multiples of, and the most a stint holds; the plain loop
+/// ([`super::Propagation::run_batch`]) shoots this many of a batch's stints at once, in
+/// parallel, each into a texel-sized buffer, so it bounds that loop's memory, not a batch's
+/// size.
 pub const CHUNK: usize = 16;
 
 /// How the directions of a pass are cut into batches, the unit of work and of reduction.

@@ -921,9 +921,9 @@ impl Specular {
     }
 
     /// Whether this and `other` share their geometry rather than each holding its own: the
-    /// views, the routes, the mirrors each direction crosses and the table of routes by source.
-    /// Copies of a propagation share the first three, and the table once it was built before
-    /// the copy ([`Specular::prepare_settle`]).
+    /// views, the routes, the mirrors each direction crosses and the table of routes by source
+    /// (false while either has not built that table). Copies of a propagation share the first
+    /// three, and the table once it was built before the copy ([`Specular::prepare_settle`]).
     pub fn shares_geometry(&self, other: &Specular) -> bool {
         let table = match (self.routes_by_source.get(), other.routes_by_source.get()) {
             (Some(a), Some(b)) => Arc::ptr_eq(a, b),

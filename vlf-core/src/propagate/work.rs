@@ -728,7 +728,7 @@ impl Propagation {
     /// what the ones before it left ([`Propagation::shoot_direction`]): the stint's term of its
     /// batch's sum ([`Batching`]). `maps` are the stint's directions' mirror maps, in order,
     /// when the pass shoots them. Returns each direction's flow, in order. The one kernel of
-    /// every schedule: a batch shot CHUNK directions at a time ([`Propagation::run_batch`]) and
+    /// every schedule: a batch shot CHUNK stints at a time ([`Propagation::run_batch`]) and
     /// stints claimed one by one (`super::claim`) compute exactly this, so they get the same
     /// bits.
     pub(crate) fn shoot_stint(
