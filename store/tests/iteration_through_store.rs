@@ -1241,7 +1241,9 @@ fn each_worker_takes_a_prototype_once_and_the_last_takes_the_original() {
     assert!(without_times(second.checkpoint()) == bits);
     // They share their mirror geometry, the table of routes by source built once, rather
     // than each holding a copy.
-    let spec = |p: &Propagation| p.specular.as_ref().unwrap();
+    fn spec(p: &Propagation) -> &vlf_core::propagate::Specular {
+        p.specular.as_ref().unwrap()
+    }
     assert!(spec(&first).shares_geometry(spec(&second)));
     // A lone worker takes the original at once; a withdrawn offer is gone.
     let alone = vlf_store::Prototypes::new(1);
