@@ -258,6 +258,60 @@ mod tests {
         assert_eq!(index.len(), 5);
     }
 
+    /// Turned around over many sources, each source's run is what it would be straight from the
+    /// lists: its kept routes, in the order the targets list them, then sorted
+    /// stably by (mirror, target) — a (mirror, target) pair twice keeps its weights' order.
+    #[test]
+    fn each_source_gets_its_runs_as_the_definition() {
+        let directions = 3 * 32 + 7;
+        let mut seed = 12345u64;
+        let mut next = |n: u64| {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 33) % n
+        };
+        // Surfaces 0..8 are mirrors 7..0 (ordinals run against surface numbers).
+        let ordinal: Vec<u32> = (0..8).rev().collect();
+        let mut routes = Vec::new();
+        let mut slotted = Vec::new();
+        for _ in 0..9 {
+            let mut list: Vec<Route> = (0..400)
+                .map(|_| Route {
+                    mirror: next(8) as u32,
+                    // A few past the last source, which are left out.
+                    source: next(directions as u64 + 3) as u32,
+                    weight: next(1000) as f64 / 7.0,
+                })
+                .collect();
+            list.sort_by_key(|r| (r.mirror, r.source));
+            routes.push(list);
+            let mut slots: Vec<u32> = (0..8).filter(|_| next(4) > 0).collect();
+            slots.sort_unstable();
+            slotted.push(slots);
+        }
+        let by_source = RoutesBySource::new(&routes, &ordinal, &slotted, directions);
+        let mut want: Vec<Vec<(u32, u32, f64)>> = vec![Vec::new(); directions];
+        for (i, list) in routes.iter().enumerate() {
+            for r in list {
+                let k = ordinal[r.mirror as usize];
+                if (r.source as usize) < directions && slotted[i].contains(&k) {
+                    want[r.source as usize].push((k, i as u32, r.weight));
+                }
+            }
+        }
+        let mut twice = 0;
+        for (s, run) in want.iter_mut().enumerate() {
+            run.sort_by_key(|&(k, target, _)| (k, target));
+            twice += run.windows(2).filter(|w| (w[0].0, w[0].1) == (w[1].0, w[1].1)).count();
+            assert_eq!(by_source.of(s), &run[..], "source {s}");
+        }
+        assert!(
+            twice > 0,
+            "the lists hold a (mirror, target) pair twice for some source"
+        );
+        assert_eq!(by_source.len(), want.iter().map(Vec::len).sum::<usize>());
+        assert!(by_source.of(directions).is_empty());
+    }
+
     /// A batch of sources settles what its own routes carry, walked source by source, then by
     /// (mirror, target): a mirror without a slot in the target is left out, a source that lit
     /// nothing and a route past a source's last lit mirror carry nothing, and the batches of the
