@@ -805,9 +805,8 @@ impl Propagation {
         // own buffer, then added to the sum in stint order (how many at a time changes nothing
         // but the memory: CHUNK buffers, as when a stint was one direction).
         let stints: Vec<Range<usize>> = work.batching.stints(batch).collect();
-        let per_chunk = CHUNK;
-        if buffers.len() < per_chunk {
-            buffers.resize_with(per_chunk, Vec::new);
+        if buffers.len() < CHUNK {
+            buffers.resize_with(CHUNK, Vec::new);
         }
         // The stints' mirror maps, each its own slice.
         let mut maps_of: Vec<Option<&mut [MirrorIo]>> = match maps.and_then(|m| split_by_stint(m, &stints)) {
@@ -818,7 +817,7 @@ impl Propagation {
         // parallel (each texel's additions stay in order).
         let mut sum = vec![[0.0; 3]; self.atlas.texels];
         let mut flow = Flow::default();
-        for (group, maps) in stints.chunks(per_chunk).zip(maps_of.chunks_mut(per_chunk)) {
+        for (group, maps) in stints.chunks(CHUNK).zip(maps_of.chunks_mut(CHUNK)) {
             let bufs = &mut buffers[..group.len()];
             let flows: Vec<Vec<Flow>> = group
                 .par_iter()

@@ -8,13 +8,14 @@
 //! N = 128).
 //!
 //! * [`PowerByMirror`]: `Φ_in` by mirror, then source, turned around once per what a
-//!   [`Pending`](super::specular::Pending) knows of it. A gather looks its routes up in it.
+//!   [`Pending`](super::Pending) knows of it. A gather looks its routes up in it.
 //! * [`RoutesBySource`]: the routes by source, then mirror, then target, once per propagation
 //!   (a function of the geometry), for
-//!   [`Specular::settle_batch`](super::specular::Specular::settle_batch): a batch of sources is
+//!   [`Specular::settle_batch`](super::Specular::settle_batch): a batch of sources is
 //!   one run of it, walked beside each source's `Φ_in`, one merge, no search.
 
-use super::specular::{BatchArrivals, Exchange, MirrorPower, Route};
+use super::pending::add;
+use super::{BatchArrivals, Exchange, MirrorPower, Route};
 use crate::scene::Rgb;
 use rayon::prelude::*;
 
@@ -218,12 +219,6 @@ impl RoutesBySource {
             }
         }
         BatchArrivals { exchange, feeds }
-    }
-}
-
-fn add(acc: &mut Rgb, v: &Rgb) {
-    for c in 0..3 {
-        acc[c] += v[c];
     }
 }
 
