@@ -11,9 +11,10 @@
 //! and absorbing what comes back). The in-process loop needs none of it.
 
 use super::Propagation;
+use super::output::{Arrivals, BatchOutput, MirrorBlock};
 use super::reduce::is_aligned_block;
 use super::specular::{BatchArrivals, MirrorPower, Unheld};
-use super::work::{Arrivals, BatchOutput, IterationWork, MirrorBlock, MirrorIo, Pass, add_into};
+use super::work::{IterationWork, MirrorIo, Pass, add_into};
 use crate::scene::Rgb;
 use rayon::prelude::*;
 use std::borrow::Cow;

@@ -42,9 +42,10 @@
 //!   wakes the waiting ones, which then stop.
 
 use super::Propagation;
+use super::output::BatchSum;
 use super::reduce::{Nodes, is_aligned_block};
 use super::shoot::Flow;
-use super::work::{BatchSum, DirectionScratch, IterationWork, MirrorIo, Pass, add_and_clear, cleared, split_by_stint};
+use super::work::{DirectionScratch, IterationWork, MirrorIo, Pass, add_and_clear, cleared, split_by_stint};
 use crate::scene::Rgb;
 use std::collections::BTreeMap;
 use std::ops::Range;

@@ -24,7 +24,8 @@
 //! process's threads use, whose batches complete in no fixed order.
 
 use super::FlowRecord;
-use super::work::{Arrivals, BatchOutput, BatchSum, add_into};
+use super::output::{Arrivals, BatchOutput, BatchSum};
+use super::work::add_into;
 use crate::scene::Rgb;
 use std::ops::Range;
 

@@ -37,8 +37,8 @@ use super::checkpoint::{
     CheckpointOfPower, DensePending, HEAD_DENSE, HEAD_SPARSE, HEAD_VERSION, SPLIT_VERSION, ShootingState,
     SparsePending, Totals, encode, encode_into, misfit, version_of,
 };
+use super::output::MirrorBlock;
 use super::specular::Pending;
-use super::work::MirrorBlock;
 use super::{IterationStats, Propagation};
 use crate::error::Error;
 use crate::scene::Rgb;
@@ -659,7 +659,7 @@ pub mod earlier {
         sparse: bool,
     ) -> Vec<u8> {
         use crate::propagate::BatchOutput;
-        use crate::propagate::work::OutputOfPower;
+        use crate::propagate::output::OutputOfPower;
         fn old<P: Serialize>(output: &BatchOutput, power_in: Vec<P>) -> Vec<u8> {
             encode(&OutputOfPower {
                 iteration: output.iteration,

@@ -10,7 +10,8 @@
 //! (stints claimed one at a time, `super::claim`): a home is a whole batch at least, so a
 //! thread that ends its home early waits for the others.
 
-use super::work::{self, BatchSum, IterationWork, MirrorIo, Pass};
+use super::output::BatchSum;
+use super::work::{self, IterationWork, MirrorIo, Pass};
 use super::{IterationStats, Progress, Propagation};
 use crate::scene::Rgb;
 use std::ops::Range;
