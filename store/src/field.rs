@@ -526,7 +526,7 @@ impl FieldJob {
             ReleasedState::Whole(bytes) => Checkpoint::from_bytes(&bytes).map_err(|e| self.field_error(e))?,
             ReleasedState::Head(head) => {
                 let by_batch = head.mirror_totals_by_batch();
-                let all: Vec<usize> = (0..head.mirror_batches.unwrap_or(0) as usize).collect();
+                let all = self.head_batches(k, &head)?;
                 let state = self.assemble(k, head)?;
                 let mut totals = self.decode_totals(k, &self.job.get_released_totals(k)?)?;
                 if by_batch {
@@ -646,10 +646,24 @@ impl FieldJob {
         Ok(part)
     }
 
+    /// The batches of mirror maps that snapshot `k`'s head says were stored: none, or every
+    /// batch of the job's passes. Any other count is damage, refused before a batch is listed
+    /// (a head claiming 2³² − 1 batches would otherwise allocate and fetch them all).
+    fn head_batches(&self, k: u32, head: &StateHead) -> Result<Vec<usize>, StoreError> {
+        let count = self.options().batching().count();
+        match head.mirror_batches {
+            None => Ok(Vec::new()),
+            Some(b) if b as usize == count => Ok((0..count).collect()),
+            Some(b) => Err(self.field_error(vlf_core::Error::Decode(format!(
+                "the head of snapshot {k} names {b} batches of mirror maps, where the job's passes have {count}"
+            )))),
+        }
+    }
+
     /// A whole shooting state from its head and every batch of shooting (or, in a job of an
     /// earlier build, unshot) maps.
     fn assemble(&self, k: u32, head: StateHead) -> Result<ShootingState, StoreError> {
-        let all: Vec<usize> = (0..head.mirror_batches.unwrap_or(0) as usize).collect();
+        let all = self.head_batches(k, &head)?;
         let part = if head.mirror_totals_by_batch() {
             MapPart::Shooting
         } else {

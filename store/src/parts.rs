@@ -61,9 +61,11 @@ impl StageParts {
         job.job().check_committed(stage)?;
         let summary = job.summary(stage)?;
         let unit = summary.radiance_unit;
-        if !(unit.is_finite() && unit > 0.0 && unit.log2().fract() == 0.0) {
+        // As [`crate::field::radiance_unit`] writes it: a power of two within 2^±120, which f32
+        // holds exactly (a unit beyond f32's range would read every radiance as 0 or ∞).
+        if !(unit.is_finite() && unit > 0.0 && unit.log2().fract() == 0.0 && unit.log2().abs() <= 120.0) {
             return Err(job.field_error(vlf_core::Error::Decode(format!(
-                "summary of {stage:?}: radiance unit {unit} is not a power of two"
+                "summary of {stage:?}: radiance unit {unit} is not a power of two within 2^±120"
             ))));
         }
         let mirrors = match stage {

@@ -10,7 +10,7 @@ mod suite;
 use suite::Opener;
 use vlf_core::field::LightField;
 use vlf_core::propagate::snapshot::earlier;
-use vlf_core::propagate::{Checkpoint, Options, Propagation, Stop};
+use vlf_core::propagate::{Checkpoint, Options, Propagation, StateHead, Stop};
 use vlf_core::psf::GridSize;
 use vlf_core::scene::{ImportOptions, Scene, load_obj};
 use vlf_store::blob::{self, BlobKind, Encoding};
@@ -234,6 +234,25 @@ fn damage_names_the_key(o: &Opener) {
     store.put(&tile, tile_kind).unwrap();
     expect(job.load(Stage::Field), &tile, "kind");
     store.put(&tile, good).unwrap();
+    assert!(job.load(Stage::Field).is_ok());
+    // A summary whose radiance unit is not a power of two, or one that f32 cannot hold (every
+    // radiance would read as 0, a black picture, or as ∞).
+    let key = layout::summary(&id, Stage::Field).unwrap();
+    let good = store.get(&key).unwrap().to_vec();
+    for unit in [2f64.powi(-200), 2f64.powi(200), 3.0] {
+        let json = blob::decode_bytes(&good, BlobKind::Summary).unwrap();
+        let mut summary: serde_json::Value = serde_json::from_slice(&json).unwrap();
+        summary["radiance_unit"] = serde_json::json!(unit);
+        let json = serde_json::to_vec(&summary).unwrap();
+        store
+            .put(&key, blob::encode_bytes(BlobKind::Summary, &json).unwrap())
+            .unwrap();
+        match job.load(Stage::Field) {
+            Ok(_) => panic!("a radiance unit of {unit:e} was accepted"),
+            Err(e) => assert!(e.to_string().contains("radiance unit"), "{e}"),
+        }
+    }
+    store.put(&key, good).unwrap();
     assert!(job.load(Stage::Field).is_ok());
     // A diffuse map of the wrong kind.
     let map = layout::diffuse(&id, Stage::Iteration(2), 0).unwrap();
@@ -686,6 +705,30 @@ fn damaged_checkpoint_totals_are_errors() {
     assert!(matches!(err, StoreError::NotFound { .. }), "{err}");
     assert!(job.shooting_state(3).is_ok());
     store.put(&totals(3), good).unwrap();
+    assert!(job.checkpoint(3).is_ok());
+    // A head that names other than the job's batches of mirror maps (sound blob, checksums
+    // right): refused before any batch is listed or fetched.
+    let state = layout::state(&id, 3).unwrap();
+    let good_head = store.get(&state).unwrap().to_vec();
+    let mut head = StateHead::from_bytes(&blob::decode_bytes(&good_head, BlobKind::Snapshot).unwrap()).unwrap();
+    let batches = head.mirror_batches.expect("a mirror job's head counts its batches");
+    for wrong in [u32::MAX, batches + 1, batches - 1] {
+        head.mirror_batches = Some(wrong);
+        store
+            .put(
+                &state,
+                blob::encode_bytes(BlobKind::Snapshot, &head.to_bytes()).unwrap(),
+            )
+            .unwrap();
+        for err in [job.checkpoint(3).unwrap_err(), job.shooting_state(3).unwrap_err()] {
+            assert!(
+                err.to_string()
+                    .contains(&format!("names {wrong} batches of mirror maps")),
+                "{err}"
+            );
+        }
+    }
+    store.put(&state, good_head).unwrap();
     assert!(job.checkpoint(3).is_ok());
 }
 

@@ -451,6 +451,14 @@ fn scene_bytes_round_trip_and_refuse_damage() {
     let mut broken = scene.clone();
     broken.surfaces[1].vertices[0].x = f64::INFINITY;
     assert!(matches!(Scene::from_bytes(&broken.to_bytes()), Err(Error::Decode(_))));
+    // A vertex outside the unit ball, where no ray of any subfield goes (a texel walk over it
+    // would never end): finite, and still refused.
+    let mut broken = scene.clone();
+    broken.surfaces[1].vertices[0].x = 1e6;
+    match Scene::from_bytes(&broken.to_bytes()) {
+        Err(Error::Decode(m)) => assert!(m.contains("outside the scene's frame"), "{m}"),
+        other => panic!("a vertex at 1e6 was accepted: {other:?}"),
+    }
     let mut broken = scene;
     broken.materials[0].diffuse[0] = 1.5;
     assert!(matches!(Scene::from_bytes(&broken.to_bytes()), Err(Error::Decode(_))));

@@ -1241,3 +1241,29 @@ fn closed_box_of_mirrors_converges() {
     );
     assert_field_sane(&p.into_field(), case);
 }
+
+/// A texel far too small for the scene (valid on its own: the finest grid, the smallest texel
+/// multiple) is refused with the texel count it asks for, before any chart lists its cells. Were
+/// the surfaces segmented first, the closed box's 6 square units of walls at a texel of 2.4e-5
+/// would be 10¹⁰ cells of hash sets: the test would run out of memory instead.
+#[test]
+fn a_texel_too_small_for_the_scene_is_refused_before_its_cells_are_listed() {
+    let scene = closed_box(
+        0.5,
+        1,
+        &[0],
+        vec![material("white", 0.5, 0.0), material("light", 0.5, 1.0)],
+    );
+    let mut o = options(33, 4096, Stop::Iterations(1));
+    o.texel_cells = 0.05;
+    o.validate().expect("each parameter is within its range");
+    match Propagation::new(scene.clone(), o) {
+        Err(vlf_core::Error::Parameter(m)) => assert!(m.contains("choose a larger texel"), "{m}"),
+        Err(e) => panic!("refused for another reason: {e}"),
+        Ok(_) => panic!("10¹⁰ texels accepted"),
+    }
+    // The same scene at a texel it can hold is set up.
+    let mut o = options(33, 64, Stop::Iterations(1));
+    o.texel_cells = 1.0;
+    assert!(Propagation::new(scene, o).is_ok());
+}

@@ -108,6 +108,17 @@ impl TexelAtlas {
                 "texel size must be positive and finite, got {texel}"
             )));
         }
+        // A chart's grid covers its polygons, so the grids hold at least the surfaces' area in
+        // texels: a texel too small for the scene is refused here, before segmenting lists every
+        // texel cell of every polygon (for a texel of 1e-5 that is billions of cells).
+        let area: f64 = scene.surfaces.iter().map(|s| s.area.abs()).sum();
+        if area / (texel * texel) > Self::MAX_TEXELS as f64 {
+            return Err(crate::Error::Parameter(format!(
+                "texel size {texel:.3e} gives more than {} texels (the surfaces' area alone is {:.3e} texels); choose a larger texel",
+                Self::MAX_TEXELS,
+                area / (texel * texel)
+            )));
+        }
         let snap = |world: f64| -1.0 + (((world + 1.0) / ray_spacing - PHI).floor() + PHI) * ray_spacing;
         let (charts, plane_rep) = charts::segment_with_planes(scene, texel);
         let mut grids = Vec::with_capacity(charts.len());

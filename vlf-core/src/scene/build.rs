@@ -118,12 +118,18 @@ struct Builder<'a> {
     name_face: &'a dyn Fn(&FaceOrigin) -> String,
     pieces: Vec<Piece>,
     warnings: Vec<String>,
+    /// Warnings past [`MAX_LISTED_WARNINGS`], counted, not listed.
+    unlisted: usize,
 }
 
 impl Builder<'_> {
     fn warn(&mut self, msg: String) {
-        tracing::warn!("{msg}");
-        self.warnings.push(msg);
+        if self.warnings.len() < MAX_LISTED_WARNINGS {
+            tracing::warn!("{msg}");
+            self.warnings.push(msg);
+        } else {
+            self.unlisted += 1;
+        }
     }
 
     fn skip_degenerate(&mut self, origin: &FaceOrigin) {
@@ -234,6 +240,7 @@ pub(crate) fn build_scene_named(
         name_face,
         pieces: Vec::new(),
         warnings: Vec::new(),
+        unlisted: 0,
     };
     for (i, m) in materials.iter_mut().enumerate() {
         check_material(m).map_err(|msg| Error::scene(file, None, format!("material '{}' (#{i}): {msg}", m.name)))?;
@@ -243,6 +250,13 @@ pub(crate) fn build_scene_named(
     }
     if polygons.is_empty() {
         return Err(Error::scene(file, None, "the scene has no faces"));
+    }
+    if polygons.len() > MAX_FACES {
+        return Err(Error::scene(
+            file,
+            None,
+            format!("the scene has {} faces, more than {MAX_FACES}", polygons.len()),
+        ));
     }
 
     for (k, (vertices, material, origin)) in polygons.iter().enumerate() {
@@ -305,8 +319,16 @@ pub(crate) fn build_scene_named(
         }
     }
     let Builder {
-        pieces, mut warnings, ..
+        pieces,
+        mut warnings,
+        unlisted,
+        ..
     } = builder;
+    if unlisted > 0 {
+        let msg = format!("{file}: {unlisted} more warnings like those above (not listed)");
+        tracing::warn!("{msg}");
+        warnings.push(msg);
+    }
 
     if pieces.is_empty() {
         return Err(Error::scene(
@@ -460,6 +482,18 @@ pub(super) fn check_material(m: &Material) -> Result<(), String> {
     Ok(())
 }
 
+/// The most faces a scene may have (a double-sided glTF triangle is two): 8 388 608, eight times
+/// the largest scans users bring (10⁶ triangles). It bounds what a small file can make the
+/// importer hold: a glTF file of a kilobyte may instance one mesh, or read an accessor of 2²⁴
+/// implicit zeros, in as many primitives as it likes. Its faces cost about 150 bytes each while
+/// they are read, so the limit is about 1.3 GB.
+pub const MAX_FACES: usize = 1 << 23;
+
+/// Warnings of one scene listed one by one (a face skipped or split, a material capped…); past
+/// them, a count. A scan with a million degenerate slivers has as many warnings, which a log or
+/// a job's status cannot show.
+pub const MAX_LISTED_WARNINGS: usize = 100;
+
 /// Largest accepted mirror reflectance. Light between two parallel perfect
 /// mirrors never dies out, so propagation could not converge; a mirror of
 /// `Ks 1` is treated as 0.999 (a warning says so), which keeps the number of
@@ -500,6 +534,32 @@ mod tests {
 
     fn origin(face: usize) -> FaceOrigin {
         FaceOrigin { line: 0, face }
+    }
+
+    /// A scene with more degenerate faces than warnings are listed gets the first
+    /// [`MAX_LISTED_WARNINGS`] by name and one count of the rest; the faces themselves are all
+    /// skipped alike.
+    #[test]
+    fn warnings_past_the_listed_ones_are_counted() {
+        let quad = vec![DVec3::ZERO, DVec3::X, DVec3::new(1.0, 1.0, 0.0), DVec3::Y];
+        let line = vec![DVec3::ZERO, DVec3::X, DVec3::X * 2.0];
+        let extra = 7;
+        let mut polygons = vec![(quad, 0, origin(0))];
+        polygons.extend((1..=MAX_LISTED_WARNINGS + extra).map(|f| (line.clone(), 0, origin(f))));
+        let light = material("light", [0.0; 3], [0.0; 3], [1.0; 3]);
+        let (scene, warnings) = Scene::from_polygons(&polygons, vec![light], &ImportOptions::default()).unwrap();
+        assert_eq!(scene.surfaces.len(), 1);
+        assert_eq!(
+            warnings.len(),
+            MAX_LISTED_WARNINGS + 1,
+            "{:?}",
+            &warnings[MAX_LISTED_WARNINGS - 1..]
+        );
+        assert!(warnings[MAX_LISTED_WARNINGS - 1].contains(&format!("face #{MAX_LISTED_WARNINGS} is degenerate")));
+        assert_eq!(
+            warnings[MAX_LISTED_WARNINGS],
+            format!("<generated>: {extra} more warnings like those above (not listed)")
+        );
     }
 
     #[test]

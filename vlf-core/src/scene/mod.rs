@@ -25,7 +25,7 @@ pub mod texture;
 mod weld;
 
 pub use self::gltf::{gltf_external_files, load_gltf};
-pub use build::{ImportOptions, MAX_MIRROR_REFLECTANCE};
+pub use build::{ImportOptions, MAX_FACES, MAX_LISTED_WARNINGS, MAX_MIRROR_REFLECTANCE};
 pub use obj::load_obj;
 pub use polygon::{PolygonError, convex_pieces, newell_normal};
 pub use texture::{Texture, UvMap, Wrap};
@@ -253,8 +253,9 @@ impl Scene {
     }
 
     /// Decodes [`Scene::to_bytes`], checking what propagation relies on:
-    /// materials exist and are physical, coordinates are finite, normals are
-    /// unit, at least one surface.
+    /// materials exist and are physical, coordinates are finite and within the unit ball (every
+    /// subfield's grid spans it, and the texel grids are sized by it), normals are unit, at
+    /// least one surface.
     pub fn from_bytes(bytes: &[u8]) -> crate::Result<Scene> {
         let bad = |m: String| crate::Error::Decode(format!("stored scene: {m}"));
         let scene: Scene = bincode::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
@@ -286,6 +287,13 @@ impl Scene {
                 || (s.normal.length() - 1.0).abs() > 1e-6
             {
                 return Err(bad(format!("surface {i} is malformed")));
+            }
+            // Normalised within `FRAME_RADIUS`; the unit ball leaves room for rounding (a
+            // T-junction's split puts vertices on edges, convex combinations of the corners).
+            if let Some(v) = s.vertices.iter().find(|v| v.length() > 1.0) {
+                return Err(bad(format!(
+                    "surface {i} has a vertex {v} outside the scene's frame (the unit ball)"
+                )));
             }
         }
         let n = &scene.normalisation;

@@ -249,7 +249,7 @@ impl Materials<'_> {
             }
         };
         let bytes = image_bytes(self.root, buffers, self.dir, image)?;
-        let decoded = image::load_from_memory(&bytes).map_err(|e| format!("image {image} cannot be decoded: {e}"))?;
+        let decoded = decode_image(&bytes, image)?;
         let (width, height, texels) = linear_texels(&decoded).ok_or_else(|| format!("image {image} has no pixels"))?;
         let (width, height, texels) = shrink(width, height, texels);
         let name = match &self.root.images.get(image).and_then(|i| i.name.clone()) {
@@ -281,11 +281,39 @@ impl Materials<'_> {
             return Ok(average);
         }
         let bytes = image_bytes(self.root, buffers, self.dir, image)?;
-        let decoded = image::load_from_memory(&bytes).map_err(|e| format!("image {image} cannot be decoded: {e}"))?;
+        let decoded = decode_image(&bytes, image)?;
         let average = average_linear(&decoded).ok_or_else(|| format!("image {image} has no pixels"))?;
         self.averages.insert(image, average);
         Ok(average)
     }
+}
+
+/// The largest side of an image a glTF file may hold: 8K, the most that texture-authoring tools
+/// export. The field keeps at most [`MAX_TEXTURE_SIZE`] a side of it, so nothing is lost by the
+/// limit, which bounds what decoding a small file can ask for: a PNG of a few kilobytes may claim
+/// 23 000 × 23 000 pixels, several gigabytes once decoded and turned linear.
+pub(super) const MAX_IMAGE_SIDE: u32 = 8192;
+
+/// The decoding allowance of one image: an 8K image of four 16-bit channels.
+const MAX_IMAGE_BYTES: u64 = 8192 * 8192 * 8;
+
+/// Image `image` of the file, decoded from its `bytes` within [`MAX_IMAGE_SIDE`] and
+/// [`MAX_IMAGE_BYTES`]: a larger one is refused with its size, before its pixels are allocated.
+fn decode_image(bytes: &[u8], image: usize) -> Result<image::DynamicImage, String> {
+    let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
+        .with_guessed_format()
+        .map_err(|e| format!("image {image} cannot be read: {e}"))?;
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(MAX_IMAGE_SIDE);
+    limits.max_image_height = Some(MAX_IMAGE_SIDE);
+    limits.max_alloc = Some(MAX_IMAGE_BYTES);
+    reader.limits(limits);
+    reader.decode().map_err(|e| match e {
+        image::ImageError::Limits(_) => {
+            format!("image {image} is larger than {MAX_IMAGE_SIDE} × {MAX_IMAGE_SIDE} pixels (or decodes to more than {} MiB): {e}", MAX_IMAGE_BYTES >> 20)
+        }
+        e => format!("image {image} cannot be decoded: {e}"),
+    })
 }
 
 /// The sRGB transfer function's inverse: an encoded value in `[0, 1]` to

@@ -60,7 +60,7 @@ use json::validation::Checked;
 
 use self::data::{Buffers, Container, Expect, read_accessor, read_container};
 use self::material::{Converted, Materials};
-use super::build::{ImportOptions, Textured, build_scene_named, check_options};
+use super::build::{ImportOptions, MAX_FACES, Textured, build_scene_named, check_options};
 use super::{FaceOrigin, Material, Scene, UvMap};
 use crate::Error;
 
@@ -445,6 +445,13 @@ impl Reader<'_> {
             } else {
                 None
             };
+            let faces = triangles.len() * if double_sided { 2 } else { 1 };
+            if self.polygons.len() + faces > MAX_FACES {
+                return Err(self.fail(format!(
+                    "{label}: {faces} more faces, after {} already read: a scene has at most {MAX_FACES}",
+                    self.polygons.len()
+                )));
+            }
             self.primitives.push((self.triangles, label));
             self.add(
                 &triangles,

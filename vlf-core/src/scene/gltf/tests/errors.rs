@@ -209,3 +209,51 @@ fn bad_texture_coordinates_are_errors() {
     let e = error(&a.gltf());
     assert!(e.contains("baseColorTexture: texture 7 does not exist"), "{e}");
 }
+
+/// Faces past the scene's limit are refused as they are read, before they are held: here a file
+/// of a kilobyte whose accessor of 2²⁴ − 1 implicit zeros (no bufferView) is 5.6 million triangles,
+/// double-sided, 11 million faces.
+#[test]
+fn a_small_file_that_makes_too_many_faces_is_refused() {
+    let mut a = with_light();
+    let m = a.material(json!({"name": "white", "doubleSided": true, "pbrMetallicRoughness": {"metallicFactor": 0}}));
+    let zeros = a.push(
+        "accessors",
+        json!({"componentType": 5126, "count": (1 << 24) - 1, "type": "VEC3"}),
+    );
+    a.mesh_node(
+        vec![json!({"attributes": {"POSITION": zeros}, "material": m})],
+        json!({}),
+    );
+    let e = error(&a.gltf());
+    assert!(
+        e.contains("mesh #1 primitive 0") && e.contains(&format!("a scene has at most {}", crate::scene::MAX_FACES)),
+        "{e}"
+    );
+}
+
+/// An image larger than a texture may be (a PNG of a few bytes a row can claim any width) is
+/// refused with its size before its pixels are allocated, as base colour and as emission.
+#[test]
+fn an_image_too_large_to_decode_is_refused() {
+    let side = super::super::material::MAX_IMAGE_SIDE + 1;
+    let mut png = std::io::Cursor::new(Vec::new());
+    (image::GrayImage::new(side, 1).write_to(&mut png, image::ImageFormat::Png)).unwrap();
+    let data = base64::engine::general_purpose::STANDARD.encode(png.into_inner());
+    for slot in ["baseColorTexture", "emissiveTexture"] {
+        let mut a = with_light();
+        a.push("images", json!({"uri": format!("data:image/png;base64,{data}")}));
+        a.push("textures", json!({"source": 0}));
+        let m = match slot {
+            "baseColorTexture" => a.material(json!({"name": "painted",
+                "pbrMetallicRoughness": {"baseColorTexture": {"index": 0}, "metallicFactor": 0}})),
+            _ => a.material(
+                json!({"name": "painted", "emissiveFactor": [1, 1, 1], "emissiveTexture": {"index": 0},
+                "pbrMetallicRoughness": {"metallicFactor": 0}}),
+            ),
+        };
+        a.triangles(&LIGHT, None, m, json!({"translation": [0, 0, 1]}));
+        let e = error(&a.gltf());
+        assert!(e.contains("image 0 is larger than 8192 × 8192 pixels"), "{slot}: {e}");
+    }
+}
