@@ -1,5 +1,8 @@
-//! Setting a job up: its survey, learnt by the workers where it can be, then its geometry
-//! and snapshot 0 (the module docs of [`super`]).
+//! Setting a job up, between its submission and its first iteration: its survey (a walk over
+//! every ray of every subfield, the part of set-up that grows with the field) leased to the
+//! workers as the parts of `Pass::Survey` where they can learn it, else learnt here; then its
+//! geometry and snapshot 0, on a blocking thread, one job at a time ([`set_up`]). A job that
+//! cannot be set up fails with the reason; one cancelled meanwhile is recorded cancelled.
 
 use super::{Origin, drive, stored_status};
 use crate::scheduler::{PassOutcome, Scheduler};

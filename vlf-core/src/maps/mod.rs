@@ -108,15 +108,20 @@ impl TexelAtlas {
                 "texel size must be positive and finite, got {texel}"
             )));
         }
-        // A chart's grid covers its polygons, so the grids hold at least the surfaces' area in
-        // texels: a texel too small for the scene is refused here, before segmenting lists every
-        // texel cell of every polygon (for a texel of 1e-5 that is billions of cells).
-        let area: f64 = scene.surfaces.iter().map(|s| s.area.abs()).sum();
-        if area / (texel * texel) > Self::MAX_TEXELS as f64 {
+        // A texel too small for the scene is refused here, before segmenting lists every texel
+        // cell of every polygon (for a texel of 1e-5, billions of cells). A chart's grid covers
+        // its polygons laid onto its plane, tilted by up to 45° (`charts`), so the grids hold at
+        // least `Σ area · cos 45°` in texels; twice the limit in area is then more than the
+        // limit in texels (short of polygons that overlap one another). The area is found from
+        // the vertices, not read from the surface (which a stored scene could misstate).
+        let area: f64 = (scene.surfaces.iter())
+            .map(|s| crate::scene::newell_normal(&s.vertices).length() / 2.0)
+            .sum();
+        let cells = area / (texel * texel);
+        if cells > 2.0 * Self::MAX_TEXELS as f64 {
             return Err(crate::Error::Parameter(format!(
-                "texel size {texel:.3e} gives more than {} texels (the surfaces' area alone is {:.3e} texels); choose a larger texel",
-                Self::MAX_TEXELS,
-                area / (texel * texel)
+                "texel size {texel:.3e} gives more than {} texels (the surfaces' area alone is {cells:.3e} texels); choose a larger texel",
+                Self::MAX_TEXELS
             )));
         }
         let snap = |world: f64| -1.0 + (((world + 1.0) / ray_spacing - PHI).floor() + PHI) * ray_spacing;

@@ -112,24 +112,53 @@ pub(crate) struct Textured {
     pub uvs: Vec<Option<UvMap>>,
 }
 
+/// A scene's warnings as an importer gathers them: the first [`MAX_LISTED_WARNINGS`] listed (and
+/// logged), the rest counted. A warning the same as the one before it (the two sides of a
+/// double-sided face) is said once.
+#[derive(Default)]
+pub(crate) struct Warnings {
+    listed: Vec<String>,
+    unlisted: usize,
+    last: String,
+}
+
+impl Warnings {
+    pub(crate) fn push(&mut self, msg: String) {
+        if msg == self.last {
+            return;
+        }
+        if self.listed.len() < MAX_LISTED_WARNINGS {
+            tracing::warn!("{msg}");
+            self.listed.push(msg.clone());
+        } else {
+            self.unlisted += 1;
+        }
+        self.last = msg;
+    }
+
+    /// The warnings listed, and one more that counts the others, if any.
+    pub(crate) fn into_list(self, file: &str) -> Vec<String> {
+        let mut listed = self.listed;
+        if self.unlisted > 0 {
+            let msg = format!("{file}: {} more warnings like those above (not listed)", self.unlisted);
+            tracing::warn!("{msg}");
+            listed.push(msg);
+        }
+        listed
+    }
+}
+
 /// The pieces and warnings gathered while the faces are read.
 struct Builder<'a> {
     file: &'a str,
     name_face: &'a dyn Fn(&FaceOrigin) -> String,
     pieces: Vec<Piece>,
-    warnings: Vec<String>,
-    /// Warnings past [`MAX_LISTED_WARNINGS`], counted, not listed.
-    unlisted: usize,
+    warnings: Warnings,
 }
 
 impl Builder<'_> {
     fn warn(&mut self, msg: String) {
-        if self.warnings.len() < MAX_LISTED_WARNINGS {
-            tracing::warn!("{msg}");
-            self.warnings.push(msg);
-        } else {
-            self.unlisted += 1;
-        }
+        self.warnings.push(msg);
     }
 
     fn skip_degenerate(&mut self, origin: &FaceOrigin) {
@@ -239,8 +268,7 @@ pub(crate) fn build_scene_named(
         file,
         name_face,
         pieces: Vec::new(),
-        warnings: Vec::new(),
-        unlisted: 0,
+        warnings: Warnings::default(),
     };
     for (i, m) in materials.iter_mut().enumerate() {
         check_material(m).map_err(|msg| Error::scene(file, None, format!("material '{}' (#{i}): {msg}", m.name)))?;
@@ -318,17 +346,8 @@ pub(crate) fn build_scene_named(
                 .map_err(fail)?;
         }
     }
-    let Builder {
-        pieces,
-        mut warnings,
-        unlisted,
-        ..
-    } = builder;
-    if unlisted > 0 {
-        let msg = format!("{file}: {unlisted} more warnings like those above (not listed)");
-        tracing::warn!("{msg}");
-        warnings.push(msg);
-    }
+    let Builder { pieces, warnings, .. } = builder;
+    let mut warnings = warnings.into_list(file);
 
     if pieces.is_empty() {
         return Err(Error::scene(

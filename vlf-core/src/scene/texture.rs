@@ -86,20 +86,21 @@ impl Texture {
     /// Bilinear sample at texture coordinates `uv` (`u` right, `v` down, texel centres at
     /// `(i + ½)/width`), as glTF samples a linear-filtered texture.
     pub fn sample(&self, uv: DVec2) -> Rgb {
-        let x = uv.x * self.width as f64 - 0.5;
-        let y = uv.y * self.height as f64 - 0.5;
+        // Within ±2⁵², where every f64 is a whole number (so the weights below are 0 there): a
+        // coordinate far beyond the image, or one whose product with the size overflows to ∞,
+        // reads a texel of the image, never NaN or an index that overflows.
+        const FAR: f64 = (1u64 << 52) as f64;
+        let x = (uv.x * self.width as f64 - 0.5).clamp(-FAR, FAR);
+        let y = (uv.y * self.height as f64 - 0.5).clamp(-FAR, FAR);
         let (x0, y0) = (x.floor(), y.floor());
         let (fx, fy) = (x - x0, y - y0);
-        // Saturating: coordinates beyond ±2⁶³ (finite, so accepted) name the last texel, never
-        // an overflow.
         let (x0, y0) = (x0 as i64, y0 as i64);
         let at = |i: i64, j: i64| {
             let c = self.texels
                 [self.wrap[1].index(j, self.height) * self.width as usize + self.wrap[0].index(i, self.width)];
             [c[0] as f64, c[1] as f64, c[2] as f64]
         };
-        let (x1, y1) = (x0.saturating_add(1), y0.saturating_add(1));
-        let (a, b, c, d) = (at(x0, y0), at(x1, y0), at(x0, y1), at(x1, y1));
+        let (a, b, c, d) = (at(x0, y0), at(x0 + 1, y0), at(x0, y0 + 1), at(x0 + 1, y0 + 1));
         std::array::from_fn(|k| (a[k] * (1.0 - fx) + b[k] * fx) * (1.0 - fy) + (c[k] * (1.0 - fx) + d[k] * fx) * fy)
     }
 
@@ -219,18 +220,22 @@ mod tests {
         };
         assert_eq!(mirror.sample(DVec2::new(1.25, 0.5))[0], 1.0);
         assert!((t.mean()[0] - 0.5).abs() < 1e-12);
-        // Coordinates far beyond any texel (finite, so a file may hold them) sample a texel of
-        // the image in every wrap mode, without overflowing the texel index.
+        // Coordinates far beyond any texel (finite, so a file may hold them; times the width,
+        // some overflow to ∞) sample a texel of the image in every wrap mode: no NaN, no
+        // overflowing index.
         for wrap in [Wrap::Repeat, Wrap::Clamp, Wrap::Mirror] {
             let t = Texture {
                 wrap: [wrap, wrap],
                 ..t.clone()
             };
-            for uv in [
+            let far = [
                 DVec2::new(1e30, 0.5),
                 DVec2::new(-1e30, -1e30),
                 DVec2::new(0.5, f64::MAX),
-            ] {
+                DVec2::new(f64::MAX, 0.5),
+                DVec2::new(-f64::MAX, f64::MAX),
+            ];
+            for uv in far {
                 let c = t.sample(uv)[0];
                 assert!((0.0..=1.0).contains(&c), "{wrap:?} at {uv}: {c}");
             }

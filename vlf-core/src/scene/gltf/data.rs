@@ -109,6 +109,12 @@ fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), String> {
     Ok((json, bin))
 }
 
+/// The most accessor values an import reads, all reads together: 2²⁸ (2 GiB as `f64`, each read
+/// let go once its faces are made). Nodes that instance a mesh read its accessors again, so a
+/// small file can ask for any number of reads of an accessor of 2²⁴ implicit zeros; a scene of
+/// [`crate::scene::MAX_FACES`] faces reads about 3·10⁷.
+pub const MAX_ACCESSOR_VALUES: u64 = 1 << 28;
+
 /// The buffers of an asset, read when first needed (a buffer no primitive
 /// uses may be missing without consequence).
 pub(super) struct Buffers {
@@ -116,6 +122,8 @@ pub(super) struct Buffers {
     dir: PathBuf,
     bin: Option<Vec<u8>>,
     loaded: Vec<Option<Vec<u8>>>,
+    /// Accessor values read so far ([`MAX_ACCESSOR_VALUES`]).
+    values_read: u64,
 }
 
 impl Buffers {
@@ -125,7 +133,19 @@ impl Buffers {
             dir: dir.to_path_buf(),
             bin,
             loaded: vec![None; count],
+            values_read: 0,
         }
+    }
+
+    /// Counts `values` more accessor values read, or refuses them past [`MAX_ACCESSOR_VALUES`].
+    fn charge(&mut self, values: u64) -> Result<(), String> {
+        self.values_read = self.values_read.saturating_add(values);
+        if self.values_read > MAX_ACCESSOR_VALUES {
+            return Err(format!(
+                "more than {MAX_ACCESSOR_VALUES} accessor values read in all (nodes that instance a mesh read it again)"
+            ));
+        }
+        Ok(())
     }
 
     /// The bytes of buffer `index`, at least its `byteLength` long; the
@@ -335,6 +355,7 @@ pub(super) fn read_accessor(
     }
     let components = ty.multiplicity() as u64;
     let count = accessor.count.0;
+    buffers.charge(count.saturating_mul(components)).map_err(err)?;
     let layout = Layout {
         component,
         normalized: accessor.normalized,

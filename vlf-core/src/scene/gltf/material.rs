@@ -37,7 +37,7 @@ use json::validation::Checked;
 
 use super::data::{Buffers, image_bytes};
 use crate::Error;
-use crate::scene::build::fmt_rgb;
+use crate::scene::build::{Warnings, fmt_rgb};
 use crate::scene::texture::MAX_TEXTURE_SIZE;
 use crate::scene::{Material, Rgb, Texture, Wrap};
 
@@ -86,7 +86,7 @@ impl Materials<'_> {
         &mut self,
         buffers: &mut Buffers,
         index: usize,
-        warnings: &mut Vec<String>,
+        warnings: &mut Warnings,
     ) -> Result<Converted, Error> {
         let file = buffers.file().to_string();
         let Some(m) = self.root.materials.get(index) else {
@@ -250,8 +250,7 @@ impl Materials<'_> {
         };
         let bytes = image_bytes(self.root, buffers, self.dir, image)?;
         let decoded = decode_image(&bytes, image)?;
-        let (width, height, texels) = linear_texels(&decoded).ok_or_else(|| format!("image {image} has no pixels"))?;
-        let (width, height, texels) = shrink(width, height, texels);
+        let (width, height, texels) = linear_texture(&decoded).ok_or_else(|| format!("image {image} has no pixels"))?;
         let name = match &self.root.images.get(image).and_then(|i| i.name.clone()) {
             Some(n) => format!("image '{n}' (#{image})"),
             None => format!("image #{image}"),
@@ -288,29 +287,24 @@ impl Materials<'_> {
     }
 }
 
-/// The largest side of an image a glTF file may hold: 8K, the most that texture-authoring tools
-/// export. The field keeps at most [`MAX_TEXTURE_SIZE`] a side of it, so nothing is lost by the
-/// limit, which bounds what decoding a small file can ask for: a PNG of a few kilobytes may claim
-/// 23 000 × 23 000 pixels, several gigabytes once decoded and turned linear.
-pub(super) const MAX_IMAGE_SIDE: u32 = 8192;
+/// What decoding one image may allocate: 512 MiB, an 8K image of four 16-bit channels (and
+/// the `image` crate's default, said here because the importer relies on it). An image that
+/// decodes to more is refused with its size before its pixels are allocated: a PNG of a few
+/// kilobytes may claim 23 000 × 23 000 pixels. Past decoding, the importer holds a band of rows
+/// at a time ([`linear_texture`]), never the whole image again.
+const MAX_IMAGE_BYTES: u64 = 512 << 20;
 
-/// The decoding allowance of one image: an 8K image of four 16-bit channels.
-const MAX_IMAGE_BYTES: u64 = 8192 * 8192 * 8;
-
-/// Image `image` of the file, decoded from its `bytes` within [`MAX_IMAGE_SIDE`] and
-/// [`MAX_IMAGE_BYTES`]: a larger one is refused with its size, before its pixels are allocated.
+/// Image `image` of the file, decoded from its `bytes` within [`MAX_IMAGE_BYTES`].
 fn decode_image(bytes: &[u8], image: usize) -> Result<image::DynamicImage, String> {
     let mut reader = image::ImageReader::new(std::io::Cursor::new(bytes))
         .with_guessed_format()
         .map_err(|e| format!("image {image} cannot be read: {e}"))?;
     let mut limits = image::Limits::default();
-    limits.max_image_width = Some(MAX_IMAGE_SIDE);
-    limits.max_image_height = Some(MAX_IMAGE_SIDE);
     limits.max_alloc = Some(MAX_IMAGE_BYTES);
     reader.limits(limits);
     reader.decode().map_err(|e| match e {
         image::ImageError::Limits(_) => {
-            format!("image {image} is larger than {MAX_IMAGE_SIDE} × {MAX_IMAGE_SIDE} pixels (or decodes to more than {} MiB): {e}", MAX_IMAGE_BYTES >> 20)
+            format!("image {image} decodes to more than {} MiB: {e}", MAX_IMAGE_BYTES >> 20)
         }
         e => format!("image {image} cannot be decoded: {e}"),
     })
@@ -326,40 +320,44 @@ pub(super) fn srgb_to_linear(c: f64) -> f64 {
     }
 }
 
-/// An sRGB-encoded image's pixels as linear RGB (alpha ignored), row by row from the top;
-/// `None` if it has no pixels.
-fn linear_texels(image: &image::DynamicImage) -> Option<(u32, u32, Vec<[f32; 3]>)> {
+/// Rows `rows` of an sRGB-encoded image as linear RGB (alpha ignored), row by row from the top.
+fn linear_rows(image: &image::DynamicImage, rows: std::ops::Range<u32>) -> Vec<[f32; 3]> {
+    let band = image.crop_imm(0, rows.start, image.width(), rows.end - rows.start);
+    match image.color() {
+        image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8 => {
+            let lut: Vec<f32> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0) as f32).collect();
+            band.to_rgb8().pixels().map(|p| p.0.map(|v| lut[v as usize])).collect()
+        }
+        _ => (band.to_rgb32f().pixels())
+            .map(|p| p.0.map(|v| srgb_to_linear(f64::from(v).clamp(0.0, 1.0)) as f32))
+            .collect(),
+    }
+}
+
+/// An sRGB-encoded image as a linear texture of at most [`MAX_TEXTURE_SIZE`] a side: box-filtered
+/// down by the smallest whole factor `k` that brings both sides there (a field texel covers far
+/// more than a texel of a larger image), each output texel the mean of its `k × k` block (fewer at
+/// the edges). Converted a band of `k` rows at a time, so a large image is never held twice, let
+/// alone at 12 bytes a pixel. `None` if it has no pixels.
+fn linear_texture(image: &image::DynamicImage) -> Option<(u32, u32, Vec<[f32; 3]>)> {
     let (width, height) = (image.width(), image.height());
     if width == 0 || height == 0 {
         return None;
     }
-    let lut: Vec<f32> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0) as f32).collect();
-    let texels = match image.color() {
-        image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8 => {
-            image.to_rgb8().pixels().map(|p| p.0.map(|v| lut[v as usize])).collect()
-        }
-        _ => (image.to_rgb32f().pixels())
-            .map(|p| p.0.map(|v| srgb_to_linear(f64::from(v).clamp(0.0, 1.0)) as f32))
-            .collect(),
-    };
-    Some((width, height, texels))
-}
-
-/// Box-filters an image down by the smallest whole factor that brings both sides to at most
-/// [`MAX_TEXTURE_SIZE`] (a field texel covers far more than a texel of a larger image).
-fn shrink(width: u32, height: u32, texels: Vec<[f32; 3]>) -> (u32, u32, Vec<[f32; 3]>) {
     let k = width.max(height).div_ceil(MAX_TEXTURE_SIZE);
     if k <= 1 {
-        return (width, height, texels);
+        return Some((width, height, linear_rows(image, 0..height)));
     }
     let (w, h) = (width.div_ceil(k), height.div_ceil(k));
     let mut out = vec![[0.0f32; 3]; (w * h) as usize];
     for y in 0..h {
+        let (top, bottom) = (y * k, ((y + 1) * k).min(height));
+        let band = linear_rows(image, top..bottom);
         for x in 0..w {
             let (mut sum, mut n) = ([0.0f64; 3], 0u32);
-            for sy in y * k..((y + 1) * k).min(height) {
+            for sy in 0..bottom - top {
                 for sx in x * k..((x + 1) * k).min(width) {
-                    let c = texels[(sy * width + sx) as usize];
+                    let c = band[(sy * width + sx) as usize];
                     for i in 0..3 {
                         sum[i] += c[i] as f64;
                     }
@@ -369,7 +367,7 @@ fn shrink(width: u32, height: u32, texels: Vec<[f32; 3]>) -> (u32, u32, Vec<[f32
             out[(y * w + x) as usize] = sum.map(|v| (v / n as f64) as f32);
         }
     }
-    (w, h, out)
+    Some((w, h, out))
 }
 
 /// Mean linear RGB of an sRGB-encoded image (alpha ignored); `None` if it
@@ -384,17 +382,23 @@ pub(super) fn average_linear(image: &image::DynamicImage) -> Option<Rgb> {
         image.color(),
         image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8
     );
-    if eight_bit {
-        let lut: Vec<f64> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0)).collect();
-        for p in image.to_rgb8().pixels() {
-            for (s, &v) in sum.iter_mut().zip(&p.0) {
-                *s += lut[v as usize];
+    let lut: Vec<f64> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0)).collect();
+    // A band of rows at a time, in order (the same sums as over the whole image at once), so a
+    // large image is never held converted whole.
+    const BAND: u32 = 64;
+    for top in (0..image.height()).step_by(BAND as usize) {
+        let band = image.crop_imm(0, top, image.width(), BAND.min(image.height() - top));
+        if eight_bit {
+            for p in band.to_rgb8().pixels() {
+                for (s, &v) in sum.iter_mut().zip(&p.0) {
+                    *s += lut[v as usize];
+                }
             }
-        }
-    } else {
-        for p in image.to_rgb32f().pixels() {
-            for (s, &v) in sum.iter_mut().zip(&p.0) {
-                *s += srgb_to_linear(f64::from(v).clamp(0.0, 1.0));
+        } else {
+            for p in band.to_rgb32f().pixels() {
+                for (s, &v) in sum.iter_mut().zip(&p.0) {
+                    *s += srgb_to_linear(f64::from(v).clamp(0.0, 1.0));
+                }
             }
         }
     }
@@ -444,4 +448,71 @@ fn clamp_emission(e: Rgb, warn: &mut impl FnMut(String)) -> Result<Rgb, String> 
         warn(format!("emission {} clamped to {}", fmt_rgb(e), fmt_rgb(clamped)));
     }
     Ok(clamped)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Converted band by band, a large image gives the bits of converting it whole and then
+    /// box-filtering it (what the importer did before), for 8-bit and 16-bit images whose sides
+    /// are not multiples of the factor.
+    #[test]
+    fn a_texture_converted_by_bands_is_the_whole_image_filtered() {
+        let (width, height) = (2 * MAX_TEXTURE_SIZE + 5, MAX_TEXTURE_SIZE / 2 + 3);
+        let mut seed = 12345u64;
+        let mut next = || {
+            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            (seed >> 33) as u16
+        };
+        let rgb8 = image::RgbImage::from_fn(width, height, |_, _| {
+            image::Rgb([next() as u8, next() as u8, next() as u8])
+        });
+        let rgb16 = image::ImageBuffer::<image::Rgb<u16>, _>::from_fn(width, height, |_, _| {
+            image::Rgb([next(), next(), next()])
+        });
+        for image in [
+            image::DynamicImage::ImageRgb8(rgb8),
+            image::DynamicImage::ImageRgb16(rgb16),
+        ] {
+            let whole = linear_rows(&image, 0..height);
+            let k = width.div_ceil(MAX_TEXTURE_SIZE);
+            assert_eq!(k, 3);
+            let (w, h) = (width.div_ceil(k), height.div_ceil(k));
+            let mut expected = vec![[0.0f32; 3]; (w * h) as usize];
+            for y in 0..h {
+                for x in 0..w {
+                    let (mut sum, mut n) = ([0.0f64; 3], 0u32);
+                    for sy in y * k..((y + 1) * k).min(height) {
+                        for sx in x * k..((x + 1) * k).min(width) {
+                            let c = whole[(sy * width + sx) as usize];
+                            for i in 0..3 {
+                                sum[i] += c[i] as f64;
+                            }
+                            n += 1;
+                        }
+                    }
+                    expected[(y * w + x) as usize] = sum.map(|v| (v / n as f64) as f32);
+                }
+            }
+            assert_eq!(linear_texture(&image), Some((w, h, expected)));
+            // The mean, band by band, is the mean of every pixel in order.
+            let mean = average_linear(&image).unwrap();
+            let mut sum = [0.0f64; 3];
+            let pixels: Vec<[f64; 3]> = match &image {
+                image::DynamicImage::ImageRgb8(i) => (i.pixels())
+                    .map(|p| p.0.map(|v| srgb_to_linear(v as f64 / 255.0)))
+                    .collect(),
+                _ => (image.to_rgb32f().pixels())
+                    .map(|p| p.0.map(|v| srgb_to_linear(f64::from(v).clamp(0.0, 1.0))))
+                    .collect(),
+            };
+            for p in &pixels {
+                for i in 0..3 {
+                    sum[i] += p[i];
+                }
+            }
+            assert_eq!(mean, sum.map(|s| s / pixels.len() as f64));
+        }
+    }
 }

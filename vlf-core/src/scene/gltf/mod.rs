@@ -60,7 +60,7 @@ use json::validation::Checked;
 
 use self::data::{Buffers, Container, Expect, read_accessor, read_container};
 use self::material::{Converted, Materials};
-use super::build::{ImportOptions, MAX_FACES, Textured, build_scene_named, check_options};
+use super::build::{ImportOptions, MAX_FACES, Textured, Warnings, build_scene_named, check_options};
 use super::{FaceOrigin, Material, Scene, UvMap};
 use crate::Error;
 
@@ -108,7 +108,7 @@ pub fn gltf_external_files(path: &Path) -> Result<Vec<PathBuf>, Error> {
 fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Result<(Scene, Vec<String>), Error> {
     let file = file.to_string();
     let Container { json: root, bin } = read_container(bytes, &file)?;
-    let mut warnings = Vec::new();
+    let mut warnings = Warnings::default();
     check_asset(&root, &file, &mut warnings)?;
     if root.extensions_used.iter().any(|e| e == "KHR_texture_transform") {
         warnings.push(format!(
@@ -134,6 +134,7 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
         uvs: Vec::new(),
         primitives: Vec::new(),
         triangles: 0,
+        visited: 0,
         warnings,
     };
     let roots = scene_roots(&root, &file, &mut reader.warnings)?;
@@ -145,12 +146,10 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
         primitives,
         scene_materials,
         materials,
-        mut warnings,
+        warnings,
         ..
     } = reader;
-    for w in &warnings {
-        tracing::warn!("{w}");
-    }
+    let mut warnings = warnings.into_list(&file);
     let name_face = |o: &FaceOrigin| {
         let k = primitives.partition_point(|(first, _)| *first <= o.face);
         match k.checked_sub(1).and_then(|k| primitives.get(k)) {
@@ -170,7 +169,7 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
 }
 
 /// Checks the asset's version and extensions.
-fn check_asset(root: &json::Root, file: &str, warnings: &mut Vec<String>) -> Result<(), Error> {
+fn check_asset(root: &json::Root, file: &str, warnings: &mut Warnings) -> Result<(), Error> {
     let version = &root.asset.version;
     if version.split('.').next() != Some("2") {
         return Err(Error::scene(
@@ -206,7 +205,7 @@ fn check_asset(root: &json::Root, file: &str, warnings: &mut Vec<String>) -> Res
 
 /// The nodes to import from: the default scene's, else scene 0's, else
 /// every node that is no node's child.
-fn scene_roots(root: &json::Root, file: &str, warnings: &mut Vec<String>) -> Result<Vec<usize>, Error> {
+fn scene_roots(root: &json::Root, file: &str, warnings: &mut Warnings) -> Result<Vec<usize>, Error> {
     if let Some(scene) = root.scene {
         let Some(s) = root.scenes.get(scene.value()) else {
             return Err(Error::scene(
@@ -260,6 +259,12 @@ fn local_transform(node: &json::Node) -> Option<DMat4> {
     m.is_finite().then_some(m)
 }
 
+/// The most primitives a file's nodes may instance, one per node and primitive of its mesh, of
+/// any mode: 1 048 576. Each costs a label and its reads even when it makes no face (points,
+/// lines, a strip of two vertices), and a file of a few hundred kilobytes may have 10⁴ nodes
+/// instancing a mesh of 10⁴ primitives.
+pub const MAX_PRIMITIVES: usize = 1 << 20;
+
 /// The faces, materials and warnings gathered while walking the nodes.
 struct Reader<'a> {
     root: &'a json::Root,
@@ -278,7 +283,9 @@ struct Reader<'a> {
     primitives: Vec<(usize, String)>,
     /// Triangles read so far: the next one's face number.
     triangles: usize,
-    warnings: Vec<String>,
+    /// Primitives visited so far, one per node that instances each ([`MAX_PRIMITIVES`]).
+    visited: usize,
+    warnings: Warnings,
 }
 
 impl Reader<'_> {
@@ -342,6 +349,12 @@ impl Reader<'_> {
         };
         let flip = DMat3::from_mat4(*world).determinant() < 0.0;
         for (p, primitive) in mesh.primitives.iter().enumerate() {
+            self.visited += 1;
+            if self.visited > MAX_PRIMITIVES {
+                return Err(self.fail(format!(
+                    "{node}: more than {MAX_PRIMITIVES} primitives, counting one per node that instances each"
+                )));
+            }
             let label = format!("{mesh_label} primitive {p}");
             let Checked::Valid(mode) = primitive.mode else {
                 return Err(self.fail(format!("{label}: invalid mode")));

@@ -232,14 +232,40 @@ fn a_small_file_that_makes_too_many_faces_is_refused() {
     );
 }
 
-/// An image larger than a texture may be (a PNG of a few bytes a row can claim any width) is
-/// refused with its size before its pixels are allocated, as base colour and as emission.
+/// The CRC-32 of PNG chunks (ISO 3309), bit by bit.
+fn crc32(bytes: &[u8]) -> u32 {
+    let mut c = !0u32;
+    for &b in bytes {
+        c ^= b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 { 0xEDB8_8320 ^ (c >> 1) } else { c >> 1 };
+        }
+    }
+    !c
+}
+
+/// An image that would decode to more than the importer allows (a PNG of a few dozen bytes can
+/// claim 100 000 × 100 000 pixels, 10 GB) is refused with its size before its pixels are
+/// allocated, as base colour and as emission.
 #[test]
 fn an_image_too_large_to_decode_is_refused() {
-    let side = super::super::material::MAX_IMAGE_SIDE + 1;
-    let mut png = std::io::Cursor::new(Vec::new());
-    (image::GrayImage::new(side, 1).write_to(&mut png, image::ImageFormat::Png)).unwrap();
-    let data = base64::engine::general_purpose::STANDARD.encode(png.into_inner());
+    let chunk = |kind: &[u8], data: &[u8]| {
+        let mut c = (data.len() as u32).to_be_bytes().to_vec();
+        let body = [kind, data].concat();
+        c.extend_from_slice(&body);
+        c.extend_from_slice(&crc32(&body).to_be_bytes());
+        c
+    };
+    let side = 100_000u32.to_be_bytes();
+    // 8-bit grey, no interlace; an empty zlib stream for pixels.
+    let png = [
+        &b"\x89PNG\r\n\x1a\n"[..],
+        &chunk(b"IHDR", &[&side[..], &side[..], &[8, 0, 0, 0, 0]].concat()),
+        &chunk(b"IDAT", &[0x78, 0x9c, 0x03, 0x00, 0x00, 0x00, 0x00, 0x01]),
+        &chunk(b"IEND", &[]),
+    ]
+    .concat();
+    let data = base64::engine::general_purpose::STANDARD.encode(png);
     for slot in ["baseColorTexture", "emissiveTexture"] {
         let mut a = with_light();
         a.push("images", json!({"uri": format!("data:image/png;base64,{data}")}));
@@ -254,6 +280,82 @@ fn an_image_too_large_to_decode_is_refused() {
         };
         a.triangles(&LIGHT, None, m, json!({"translation": [0, 0, 1]}));
         let e = error(&a.gltf());
-        assert!(e.contains("image 0 is larger than 8192 × 8192 pixels"), "{slot}: {e}");
+        assert!(e.contains("image 0 decodes to more than 512 MiB"), "{slot}: {e}");
     }
+}
+
+/// Nodes that instance a mesh multiply its primitives: past [`MAX_PRIMITIVES`] in all (here a
+/// mesh of 1 025 point primitives, which make no face, on 1 024 nodes) the file is refused, and
+/// the warnings each instance gives are listed up to [`MAX_LISTED_WARNINGS`] and counted past.
+#[test]
+fn instanced_primitives_are_bounded_and_their_warnings_counted() {
+    use crate::scene::MAX_LISTED_WARNINGS;
+    let points = |a: &mut Asset, n: usize| {
+        let position = a.positions(&LIGHT);
+        let primitive = json!({"attributes": {"POSITION": position}, "mode": 0});
+        let mesh = a.push("meshes", json!({"primitives": vec![primitive; n]}));
+        (mesh, position)
+    };
+    // Within the bound: 3 nodes × 50 primitives, 150 warnings, 100 listed.
+    let mut a = with_light();
+    let (mesh, _) = points(&mut a, 50);
+    for _ in 0..3 {
+        let n = a.push("nodes", json!({"mesh": mesh}));
+        a.root["scenes"][0]["nodes"].as_array_mut().unwrap().push(json!(n));
+    }
+    let (_, warnings) = load(&a.gltf()).unwrap();
+    assert!(warnings.len() <= MAX_LISTED_WARNINGS + 2, "{} warnings", warnings.len());
+    let ignored = warnings.iter().filter(|w| w.contains("mode Points ignored")).count();
+    let summary = (warnings.iter())
+        .find(|w| w.ends_with("more warnings like those above (not listed)"))
+        .expect("a count of the warnings not listed");
+    let counted: usize = summary
+        .split(": ")
+        .nth(1)
+        .unwrap()
+        .split(' ')
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(
+        ignored < 150 && ignored + counted == 150,
+        "{ignored} listed, {counted} counted"
+    );
+    // Past it.
+    let mut a = with_light();
+    let (mesh, _) = points(&mut a, 1025);
+    for _ in 0..1024 {
+        let n = a.push("nodes", json!({"mesh": mesh}));
+        a.root["scenes"][0]["nodes"].as_array_mut().unwrap().push(json!(n));
+    }
+    let e = error(&a.gltf());
+    assert!(e.contains(&format!("more than {MAX_PRIMITIVES} primitives")), "{e}");
+}
+
+/// Nodes that instance a mesh read its accessors again: past [`MAX_ACCESSOR_VALUES`] read in all
+/// (here one triangle indexing an accessor of 2²⁴ − 1 implicit zeros, on six nodes) the file is
+/// refused.
+#[test]
+fn accessor_reads_are_bounded_in_all() {
+    let mut a = with_light();
+    let m = a.material(diffuse("white"));
+    let zeros = a.push(
+        "accessors",
+        json!({"componentType": 5126, "count": (1 << 24) - 1, "type": "VEC3"}),
+    );
+    let indices = a.indices(&[0, 1, 2]);
+    let mesh = a.push(
+        "meshes",
+        json!({"primitives": [{"attributes": {"POSITION": zeros}, "indices": indices, "material": m}]}),
+    );
+    for _ in 0..6 {
+        let n = a.push("nodes", json!({"mesh": mesh}));
+        a.root["scenes"][0]["nodes"].as_array_mut().unwrap().push(json!(n));
+    }
+    let e = error(&a.gltf());
+    assert!(
+        e.contains(&format!("more than {} accessor values", data::MAX_ACCESSOR_VALUES)),
+        "{e}"
+    );
 }
