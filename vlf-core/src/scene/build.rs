@@ -230,12 +230,14 @@ pub(crate) fn build_scene(
         file,
         &|o| format!("face #{}", o.face),
         Textured::default(),
+        Warnings::default(),
     )
 }
 
 /// [`build_scene`] for a format whose faces are better named otherwise than
 /// "face #k" (glTF: by mesh and primitive): `name_face` names a face in
-/// errors and warnings.
+/// errors and warnings, which follow those of reading the file (`warnings`: one list, one
+/// limit).
 pub(crate) fn build_scene_named(
     polygons: &[(Vec<DVec3>, usize, FaceOrigin)],
     mut materials: Vec<Material>,
@@ -243,6 +245,7 @@ pub(crate) fn build_scene_named(
     file: &str,
     name_face: &dyn Fn(&FaceOrigin) -> String,
     textured: Textured,
+    warnings: Warnings,
 ) -> Result<(Scene, Vec<String>), Error> {
     check_options(options)?;
     let Textured { textures, uvs } = textured;
@@ -268,7 +271,7 @@ pub(crate) fn build_scene_named(
         file,
         name_face,
         pieces: Vec::new(),
-        warnings: Warnings::default(),
+        warnings,
     };
     for (i, m) in materials.iter_mut().enumerate() {
         check_material(m).map_err(|msg| Error::scene(file, None, format!("material '{}' (#{i}): {msg}", m.name)))?;
@@ -346,8 +349,9 @@ pub(crate) fn build_scene_named(
                 .map_err(fail)?;
         }
     }
-    let Builder { pieces, warnings, .. } = builder;
-    let mut warnings = warnings.into_list(file);
+    let Builder {
+        pieces, mut warnings, ..
+    } = builder;
 
     if pieces.is_empty() {
         return Err(Error::scene(
@@ -392,7 +396,6 @@ pub(crate) fn build_scene_named(
             "{file}: {split} face(s) had a neighbour's vertex inside an edge (a T-junction) and were \
              split into triangles there, so no light leaks through the seam"
         );
-        tracing::info!("{msg}");
         warnings.push(msg);
     }
 
@@ -403,7 +406,7 @@ pub(crate) fn build_scene_named(
             normalisation,
             textures,
         },
-        warnings,
+        warnings.into_list(file),
     ))
 }
 

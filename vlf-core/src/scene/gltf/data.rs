@@ -9,6 +9,7 @@
 //! object it belongs to.
 
 use std::path::{Component, Path, PathBuf};
+use std::sync::Arc;
 
 use ::gltf::json;
 use base64::Engine;
@@ -109,11 +110,18 @@ fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), String> {
     Ok((json, bin))
 }
 
-/// The most accessor values an import reads, all reads together: 2²⁸ (2 GiB as `f64`, each read
-/// let go once its faces are made). Nodes that instance a mesh read its accessors again, so a
-/// small file can ask for any number of reads of an accessor of 2²⁴ implicit zeros; a scene of
-/// [`crate::scene::MAX_FACES`] faces reads about 3·10⁷.
+/// The most accessor values an import decodes, all reads together: 2²⁸ (2 GiB as `f64`, each
+/// read let go once its faces are made). Nodes that instance a mesh read its accessors again, so
+/// a small file could ask for any number of reads of an accessor of 2²⁴ implicit zeros. A read
+/// answered from the recent ones ([`RECENT_VALUES`]) is not counted: primitives that share one
+/// vertex buffer, and the instances of a mesh, decode it once. A scene of
+/// [`crate::scene::MAX_FACES`] faces decodes at most 15 values a face (triangles not indexed,
+/// textured), about 1.3·10⁸.
 pub const MAX_ACCESSOR_VALUES: u64 = 1 << 28;
+
+/// The decoded accessors an import keeps for its next reads, the most recently read first, up to
+/// 2²⁴ values in all (128 MiB): an accessor larger than that is decoded again at each read.
+pub const RECENT_VALUES: usize = 1 << 24;
 
 /// The buffers of an asset, read when first needed (a buffer no primitive
 /// uses may be missing without consequence).
@@ -122,8 +130,11 @@ pub(super) struct Buffers {
     dir: PathBuf,
     bin: Option<Vec<u8>>,
     loaded: Vec<Option<Vec<u8>>>,
-    /// Accessor values read so far ([`MAX_ACCESSOR_VALUES`]).
+    /// Accessor values decoded so far ([`MAX_ACCESSOR_VALUES`]).
     values_read: u64,
+    /// The accessors decoded last, as (index, what it was read as, values), most recent first
+    /// ([`RECENT_VALUES`]).
+    recent: std::collections::VecDeque<(usize, Expect, Arc<Vec<f64>>)>,
 }
 
 impl Buffers {
@@ -134,6 +145,29 @@ impl Buffers {
             bin,
             loaded: vec![None; count],
             values_read: 0,
+            recent: std::collections::VecDeque::new(),
+        }
+    }
+
+    /// Accessor `index` as read as `expect` lately, if it still is among the recent ones (then
+    /// the most recent).
+    fn recent(&mut self, index: usize, expect: Expect) -> Option<Arc<Vec<f64>>> {
+        let at = (self.recent.iter()).position(|(i, e, _)| (*i, *e) == (index, expect))?;
+        let entry = self.recent.remove(at)?;
+        let values = entry.2.clone();
+        self.recent.push_front(entry);
+        Some(values)
+    }
+
+    /// Keeps `values`, accessor `index` read as `expect`, among the recent ones, letting the
+    /// oldest go past [`RECENT_VALUES`].
+    fn remember(&mut self, index: usize, expect: Expect, values: Arc<Vec<f64>>) {
+        if values.len() > RECENT_VALUES {
+            return;
+        }
+        self.recent.push_front((index, expect, values));
+        while self.recent.iter().map(|(_, _, v)| v.len()).sum::<usize>() > RECENT_VALUES {
+            self.recent.pop_back();
         }
     }
 
@@ -309,9 +343,26 @@ fn component_size(c: ComponentType) -> u64 {
 }
 
 /// Reads accessor `index` as numbers (`count × components` of them, in
-/// order), checking it holds what `expect` says. `what` names its use in
-/// messages ("POSITION of mesh 'box' (#0) primitive 1").
+/// order), checking it holds what `expect` says; decoded once while it stays among the recent
+/// reads ([`RECENT_VALUES`]). `what` names its use in messages ("POSITION of mesh 'box' (#0)
+/// primitive 1").
 pub(super) fn read_accessor(
+    root: &json::Root,
+    buffers: &mut Buffers,
+    index: usize,
+    expect: Expect,
+    what: &str,
+) -> Result<Arc<Vec<f64>>, Error> {
+    if let Some(values) = buffers.recent(index, expect) {
+        return Ok(values);
+    }
+    let values = Arc::new(decode_accessor(root, buffers, index, expect, what)?);
+    buffers.remember(index, expect, values.clone());
+    Ok(values)
+}
+
+/// [`read_accessor`] decoding the accessor, whether or not it was read lately.
+fn decode_accessor(
     root: &json::Root,
     buffers: &mut Buffers,
     index: usize,

@@ -290,7 +290,7 @@ impl Materials<'_> {
 /// What decoding one image may allocate: 512 MiB, an 8K image of four 16-bit channels (and
 /// the `image` crate's default, said here because the importer relies on it). An image that
 /// decodes to more is refused with its size before its pixels are allocated: a PNG of a few
-/// kilobytes may claim 23 000 × 23 000 pixels. Past decoding, the importer holds a band of rows
+/// kilobytes may claim 23 000 × 23 000 pixels. Past decoding, the importer holds a piece of a row
 /// at a time ([`linear_texture`]), never the whole image again.
 const MAX_IMAGE_BYTES: u64 = 512 << 20;
 
@@ -320,15 +320,30 @@ pub(super) fn srgb_to_linear(c: f64) -> f64 {
     }
 }
 
-/// Rows `rows` of an sRGB-encoded image as linear RGB (alpha ignored), row by row from the top.
-fn linear_rows(image: &image::DynamicImage, rows: std::ops::Range<u32>) -> Vec<[f32; 3]> {
-    let band = image.crop_imm(0, rows.start, image.width(), rows.end - rows.start);
-    match image.color() {
+/// The pixels of an image are converted in pieces of at most this many of one row: a piece's
+/// copy and conversion (12 bytes a pixel) stay small however wide or tall the image is.
+const PIECE: u32 = 4096;
+
+/// The image's pieces of rows, in row-major order: `(x, y, piece)`, the piece one row high and
+/// at most [`PIECE`] wide, starting at pixel `(x, y)`.
+fn pieces(image: &image::DynamicImage) -> impl Iterator<Item = (u32, u32, image::DynamicImage)> + '_ {
+    let width = image.width();
+    (0..image.height()).flat_map(move |y| {
+        (0..width)
+            .step_by(PIECE as usize)
+            .map(move |x| (x, y, image.crop_imm(x, y, PIECE.min(width - x), 1)))
+    })
+}
+
+/// The pixels of `piece` (of an image of colour type `color`, as `image::DynamicImage::crop_imm`
+/// keeps it) as linear RGB, sRGB decoded (alpha ignored), row by row from the top.
+fn linear_pixels(piece: &image::DynamicImage) -> Vec<[f32; 3]> {
+    match piece.color() {
         image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8 => {
             let lut: Vec<f32> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0) as f32).collect();
-            band.to_rgb8().pixels().map(|p| p.0.map(|v| lut[v as usize])).collect()
+            piece.to_rgb8().pixels().map(|p| p.0.map(|v| lut[v as usize])).collect()
         }
-        _ => (band.to_rgb32f().pixels())
+        _ => (piece.to_rgb32f().pixels())
             .map(|p| p.0.map(|v| srgb_to_linear(f64::from(v).clamp(0.0, 1.0)) as f32))
             .collect(),
     }
@@ -337,8 +352,9 @@ fn linear_rows(image: &image::DynamicImage, rows: std::ops::Range<u32>) -> Vec<[
 /// An sRGB-encoded image as a linear texture of at most [`MAX_TEXTURE_SIZE`] a side: box-filtered
 /// down by the smallest whole factor `k` that brings both sides there (a field texel covers far
 /// more than a texel of a larger image), each output texel the mean of its `k × k` block (fewer at
-/// the edges). Converted a band of `k` rows at a time, so a large image is never held twice, let
-/// alone at 12 bytes a pixel. `None` if it has no pixels.
+/// the edges), its pixels added row by row, left to right. Converted a piece of a row at a time
+/// ([`pieces`]), so a large image is never held twice, let alone at 12 bytes a pixel. `None` if it
+/// has no pixels.
 fn linear_texture(image: &image::DynamicImage) -> Option<(u32, u32, Vec<[f32; 3]>)> {
     let (width, height) = (image.width(), image.height());
     if width == 0 || height == 0 {
@@ -346,27 +362,25 @@ fn linear_texture(image: &image::DynamicImage) -> Option<(u32, u32, Vec<[f32; 3]
     }
     let k = width.max(height).div_ceil(MAX_TEXTURE_SIZE);
     if k <= 1 {
-        return Some((width, height, linear_rows(image, 0..height)));
+        // At most 1024 × 1024 pixels: converted whole.
+        return Some((width, height, linear_pixels(image)));
     }
     let (w, h) = (width.div_ceil(k), height.div_ceil(k));
-    let mut out = vec![[0.0f32; 3]; (w * h) as usize];
-    for y in 0..h {
-        let (top, bottom) = (y * k, ((y + 1) * k).min(height));
-        let band = linear_rows(image, top..bottom);
-        for x in 0..w {
-            let (mut sum, mut n) = ([0.0f64; 3], 0u32);
-            for sy in 0..bottom - top {
-                for sx in x * k..((x + 1) * k).min(width) {
-                    let c = band[(sy * width + sx) as usize];
-                    for i in 0..3 {
-                        sum[i] += c[i] as f64;
-                    }
-                    n += 1;
-                }
+    // Per output texel, the sum of its block's pixels so far and their count.
+    let mut sums = vec![([0.0f64; 3], 0u32); (w * h) as usize];
+    for (x0, y, piece) in pieces(image) {
+        let row = (y / k) * w;
+        for (sx, c) in (x0..).zip(linear_pixels(&piece)) {
+            let (sum, n) = &mut sums[(row + sx / k) as usize];
+            for i in 0..3 {
+                sum[i] += c[i] as f64;
             }
-            out[(y * w + x) as usize] = sum.map(|v| (v / n as f64) as f32);
+            *n += 1;
         }
     }
+    let out = (sums.into_iter())
+        .map(|(sum, n)| sum.map(|v| (v / n as f64) as f32))
+        .collect();
     Some((w, h, out))
 }
 
@@ -383,19 +397,17 @@ pub(super) fn average_linear(image: &image::DynamicImage) -> Option<Rgb> {
         image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8
     );
     let lut: Vec<f64> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0)).collect();
-    // A band of rows at a time, in order (the same sums as over the whole image at once), so a
-    // large image is never held converted whole.
-    const BAND: u32 = 64;
-    for top in (0..image.height()).step_by(BAND as usize) {
-        let band = image.crop_imm(0, top, image.width(), BAND.min(image.height() - top));
+    // A piece of a row at a time, in row-major order (the same sums as over the whole image at
+    // once), so a large image is never held converted whole.
+    for (_, _, piece) in pieces(image) {
         if eight_bit {
-            for p in band.to_rgb8().pixels() {
+            for p in piece.to_rgb8().pixels() {
                 for (s, &v) in sum.iter_mut().zip(&p.0) {
                     *s += lut[v as usize];
                 }
             }
         } else {
-            for p in band.to_rgb32f().pixels() {
+            for p in piece.to_rgb32f().pixels() {
                 for (s, &v) in sum.iter_mut().zip(&p.0) {
                     *s += srgb_to_linear(f64::from(v).clamp(0.0, 1.0));
                 }
@@ -454,12 +466,12 @@ fn clamp_emission(e: Rgb, warn: &mut impl FnMut(String)) -> Result<Rgb, String> 
 mod tests {
     use super::*;
 
-    /// Converted band by band, a large image gives the bits of converting it whole and then
-    /// box-filtering it (what the importer did before), for 8-bit and 16-bit images whose sides
-    /// are not multiples of the factor.
+    /// Converted piece by piece, a large image gives the bits of converting it whole and then
+    /// box-filtering it (what the importer did before), for 8-bit and 16-bit images wider than a
+    /// piece whose sides are not multiples of the factor.
     #[test]
-    fn a_texture_converted_by_bands_is_the_whole_image_filtered() {
-        let (width, height) = (2 * MAX_TEXTURE_SIZE + 5, MAX_TEXTURE_SIZE / 2 + 3);
+    fn a_texture_converted_by_pieces_is_the_whole_image_filtered() {
+        let (width, height) = (PIECE + 2 * MAX_TEXTURE_SIZE + 7, 302);
         let mut seed = 12345u64;
         let mut next = || {
             seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
@@ -475,9 +487,9 @@ mod tests {
             image::DynamicImage::ImageRgb8(rgb8),
             image::DynamicImage::ImageRgb16(rgb16),
         ] {
-            let whole = linear_rows(&image, 0..height);
+            let whole = linear_pixels(&image);
             let k = width.div_ceil(MAX_TEXTURE_SIZE);
-            assert_eq!(k, 3);
+            assert!(k > 1 && !width.is_multiple_of(k) && !height.is_multiple_of(k));
             let (w, h) = (width.div_ceil(k), height.div_ceil(k));
             let mut expected = vec![[0.0f32; 3]; (w * h) as usize];
             for y in 0..h {
@@ -496,7 +508,7 @@ mod tests {
                 }
             }
             assert_eq!(linear_texture(&image), Some((w, h, expected)));
-            // The mean, band by band, is the mean of every pixel in order.
+            // The mean, piece by piece, is the mean of every pixel in order.
             let mean = average_linear(&image).unwrap();
             let mut sum = [0.0f64; 3];
             let pixels: Vec<[f64; 3]> = match &image {

@@ -149,7 +149,6 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
         warnings,
         ..
     } = reader;
-    let mut warnings = warnings.into_list(&file);
     let name_face = |o: &FaceOrigin| {
         let k = primitives.partition_point(|(first, _)| *first <= o.face);
         match k.checked_sub(1).and_then(|k| primitives.get(k)) {
@@ -161,11 +160,17 @@ fn import(bytes: &[u8], file: &str, dir: &Path, options: &ImportOptions) -> Resu
         textures: materials.textures,
         uvs,
     };
-    let (scene, more) = build_scene_named(&polygons, scene_materials, options, &file, &name_face, textured)?;
-    warnings.extend(more);
-    // The two sides of a double-sided triangle warn alike.
-    warnings.dedup();
-    Ok((scene, warnings))
+    // One list with the builder's warnings, where the two sides of a double-sided triangle
+    // (which warn alike) are said once.
+    build_scene_named(
+        &polygons,
+        scene_materials,
+        options,
+        &file,
+        &name_face,
+        textured,
+        warnings,
+    )
 }
 
 /// Checks the asset's version and extensions.
@@ -397,7 +402,7 @@ impl Reader<'_> {
                             "{label}: index {v} (element {i} of the indices) is out of range: POSITION has {n} vertices"
                         )));
                     }
-                    indices.into_iter().map(|v| v as usize).collect()
+                    indices.iter().map(|&v| v as usize).collect()
                 }
                 None => (0..positions.len()).collect(),
             };
