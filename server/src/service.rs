@@ -366,10 +366,18 @@ impl tiles_server::Tiles for Api {
             .list_sizes(&prefix)
             .await
             .map_err(store_status)?;
-        let (names, sizes) = listed
+        let (names, sizes): (Vec<String>, Vec<u64>) = listed
             .into_iter()
             .filter_map(|(key, size)| Some((key.strip_prefix(&job_prefix)?.to_string(), size)))
             .unzip();
+        // Nothing listed: a job that exists, with nothing under the prefix, or no such job.
+        if names.is_empty() && !self.sched.has_job(&id) {
+            let manifest = layout::manifest(&id);
+            let store = self.sched.store().as_async();
+            if !store.exists(&manifest).await.map_err(store_status)? {
+                return Err(Status::not_found(format!("job `{id}` does not exist")));
+            }
+        }
         Ok(Response::new(v1::ListBlobsReply { names, sizes }))
     }
 }
@@ -432,6 +440,27 @@ mod tests {
             .unwrap()
             .into_inner()
             .worker_id
+    }
+
+    /// Listing the blobs of a job that does not exist is NOT_FOUND, not an empty list; a job that
+    /// exists lists what it has, nothing included.
+    #[tokio::test]
+    async fn listing_the_blobs_of_no_job_is_not_found() {
+        use vlf_proto::v1::tiles_server::Tiles;
+        let (sched, id) = scheduler_with_a_job();
+        let api = Api::new(sched, 0);
+        let list = |job: String| {
+            let request = Request::new(v1::ListBlobsRequest {
+                job_id: job,
+                prefix: String::new(),
+            });
+            api.list_blobs(request)
+        };
+        let reply = list(id.to_string()).await.unwrap().into_inner();
+        assert!(reply.names.is_empty(), "the scheduler's job, nothing stored yet");
+        let err = list(JobId::generate().to_string()).await.unwrap_err();
+        assert_eq!(err.code(), tonic::Code::NotFound, "{err:?}");
+        assert!(err.message().contains("does not exist"), "{}", err.message());
     }
 
     /// A scheduler over a `memory://` store with one propagating job, its iteration started.

@@ -142,7 +142,7 @@ enum Stop {
 impl Driver {
     async fn run(mut self, resample: bool) {
         let ended = match self.propagate().await {
-            Ok(()) => self.finish(resample).await.err().map(Stop::Failed),
+            Ok(()) => self.finish(resample).await.err(),
             Err(stop) => Some(stop),
         };
         if let Some(prototypes) = self.sched.prototypes() {
@@ -351,12 +351,13 @@ impl Driver {
     }
 
     /// Writes the final field and marks the job finished.
-    async fn finish(&mut self, resample: bool) -> Result<(), String> {
-        self.check_cancelled().map_err(|_| "cancelled".to_string())?;
+    async fn finish(&mut self, resample: bool) -> Result<(), Stop> {
+        // Cancelled while the last snapshot was committed: recorded cancelled, as earlier.
+        self.check_cancelled()?;
         let coordinator = self
             .coordinator
             .take()
-            .ok_or_else(|| "internal: coordinator lost".to_string())?;
+            .ok_or_else(|| Stop::Failed("internal: coordinator lost".to_string()))?;
         let unshot = coordinator.propagation().unshot_fraction();
         // The digest is in the summary it just wrote (a small blob, read back).
         let digest = vlf_store::blocking(move || {
@@ -364,8 +365,8 @@ impl Driver {
             Ok::<_, StoreError>(job.summary(Stage::Field)?.digest.unwrap_or_default())
         })
         .await
-        .map_err(|e| format!("internal: {e}"))?
-        .map_err(|e| format!("cannot write the final field: {e}"))?;
+        .map_err(|e| Stop::Failed(format!("internal: {e}")))?
+        .map_err(|e| Stop::Failed(format!("cannot write the final field: {e}")))?;
         self.sched.update(&self.id, |s| {
             s.state = WireState::Finished as i32;
             s.unshot_fraction = unshot;

@@ -6,8 +6,8 @@
 
 use super::pass::{BatchState, PassRun, find_run, first_claim};
 use super::{
-    Grant, JobEntry, LeaseEntry, MAX_BATCH_FAILURES, Scheduler, State, Unknown, alive_workers, block_len, publish,
-    touch,
+    Grant, JobEntry, LEASE_RENEWALS, LeaseEntry, MAX_BATCH_FAILURES, Scheduler, State, Unknown, alive_workers,
+    block_len, publish, touch,
 };
 use std::collections::HashMap;
 use std::ops::Range;
@@ -147,7 +147,7 @@ impl Scheduler {
             b.state = BatchState::Leased(lease.number);
         }
         let grant = Grant {
-            lease_id: format!("l{}", lease.number),
+            lease_id: format!("l{}.{}", lease.number, self.epoch),
             job: job.clone(),
             snapshot: run.snapshot,
             pass: run.pass,
@@ -168,6 +168,7 @@ impl Scheduler {
                 worker: lease.worker.to_string(),
                 batches: lease.batches,
                 committed: lease.committed,
+                granted: Instant::now(),
                 deadline: Instant::now() + self.timing.lease,
             },
         );
@@ -338,8 +339,10 @@ impl Scheduler {
         Ok(true)
     }
 
-    /// Expires leases past their deadline and forgets workers silent for three heartbeats
-    /// (their leases expire with them). Returns how many leases expired.
+    /// Forgets workers silent for three heartbeats (their leases expire with them), renews the
+    /// leases past their deadline whose worker is heard from, and expires those past
+    /// [`LEASE_RENEWALS`] deadlines, counting a failure of their batches. Returns how many
+    /// leases expired.
     pub fn reap(&self) -> usize {
         let now = Instant::now();
         let mut state = self.lock();
@@ -357,30 +360,53 @@ impl Scheduler {
             );
             state.workers.remove(id);
         }
-        let expired: Vec<String> = state
-            .leases
-            .iter()
-            .filter(|(_, l)| l.deadline <= now || dead.contains(&l.worker))
-            .map(|(id, _)| id.clone())
-            .collect();
+        let last = self.timing.lease * LEASE_RENEWALS;
+        let mut expired: Vec<(String, bool)> = Vec::new();
+        for (id, lease) in &mut state.leases {
+            if dead.contains(&lease.worker) {
+                expired.push((id.clone(), false));
+            } else if lease.deadline <= now {
+                if now.duration_since(lease.granted) >= last {
+                    expired.push((id.clone(), true));
+                } else {
+                    // Its worker is heard from: slow, not dead.
+                    lease.deadline = (now + self.timing.lease).min(lease.granted + last);
+                    tracing::debug!(lease = id, worker = lease.worker, "lease renewed: its worker is alive");
+                }
+            }
+        }
         let alive = alive_workers(&state, self.timing);
-        for id in &expired {
+        for (id, hung) in &expired {
             let Some(lease) = state.leases.remove(id) else {
                 continue;
             };
             let number = lease.number;
             if let Some(entry) = state.jobs.get_mut(&lease.job) {
                 if let Some(run) = find_run(&mut entry.passes, &lease) {
-                    let batches = lease.batches.clone();
+                    let (batches, pass) = (lease.batches.clone(), run.pass);
                     let mut any = false;
+                    let mut failures = 0;
                     for b in &mut run.batches[batches.clone()] {
                         if b.state == BatchState::Leased(number) {
                             b.state = BatchState::Pending;
                             any = true;
+                            if *hung {
+                                b.failures += 1;
+                                failures = failures.max(b.failures);
+                            }
                         }
                     }
                     if any {
-                        tracing::warn!(job = %lease.job, ?batches, worker = lease.worker, "lease expired");
+                        tracing::warn!(job = %lease.job, ?batches, worker = lease.worker, hung, "lease expired");
+                    }
+                    if failures >= MAX_BATCH_FAILURES && entry.failure.is_none() {
+                        entry.failure = Some(format!(
+                            "batches {batches:?} of {pass:?} were held {failures} times for {} s without a \
+                             report (a worker that hangs on them, or batches slower than {LEASE_RENEWALS} \
+                             lease deadlines: raise --lease-seconds)",
+                            last.as_secs_f64()
+                        ));
+                        entry.driver.notify_one();
                     }
                 }
                 let status = entry.status.borrow().clone();

@@ -24,8 +24,11 @@
 //! the first open pass of the oldest job, in shooting order (a rotated copy's shot before the
 //! next copy's areas, which wait while it is about to open: `Pass::shooting_rank`), to a worker
 //! for [`Timing::lease`]; the worker computes it, writes the outputs into the store and [`Scheduler::report`]s, which may take its next
-//! lease along. A lease that is not reported in time (a dead or stalled worker) expires and its
-//! batches are pending again; a worker that misses three heartbeats loses its leases at once. A
+//! lease along. A worker that misses three heartbeats loses its leases at once: their batches are
+//! pending again. A lease past its deadline whose worker is still heard from is renewed (a slow
+//! worker, or a slow batch, is not a dead one: expiring its lease only had the block computed
+//! again, as slowly, for ever), up to [`LEASE_RENEWALS`] deadlines; past them its worker is taken
+//! to hang, the lease expires and its batches count a failure, as a reported one does. A
 //! report on a lease that is gone (expired, job cancelled) is ignored: a block's output is a pure
 //! function of the job and the block, written create-only, so a late or duplicated result can
 //! only write the bytes that are already there.
@@ -85,7 +88,8 @@ pub struct IterationRecord {
 /// How long leases last and how often workers must be heard from.
 #[derive(Clone, Copy, Debug)]
 pub struct Timing {
-    /// A lease's lifetime: a batch not reported by then goes to another worker.
+    /// A lease's deadline: past it, a lease whose worker is still heard from is renewed (up to
+    /// [`LEASE_RENEWALS`] deadlines in all), and one whose worker is silent goes to another.
     pub lease: Duration,
     /// The heartbeat interval asked of workers; silent for three, a worker is dead.
     pub heartbeat: Duration,
@@ -196,6 +200,12 @@ pub struct Scheduler {
     state: Mutex<State>,
     /// Woken when batches become pending (a pass starts, a lease expires or fails).
     work_ready: Notify,
+    /// This coordinator's mark in the lease and worker ids it gives (`w7.3fa0c1-host`,
+    /// `l9.3fa0c1`): random, so that a restarted coordinator, whose counter starts again, never
+    /// gives an id that a worker of the last one still holds (a lease id of the last one would
+    /// otherwise name another worker's lease, and a report on it mark that worker's batches
+    /// done before they are written).
+    epoch: String,
 }
 
 struct State {
@@ -204,6 +214,19 @@ struct State {
     leases: HashMap<String, LeaseEntry>,
     /// Source of job order, lease and worker ids.
     counter: u64,
+}
+
+/// A random mark for a new coordinator's ids (`Scheduler::epoch`): 24 bits of the process's hasher
+/// seed and the clock.
+fn new_epoch() -> String {
+    use std::hash::{BuildHasher, Hasher};
+    let mut h = std::collections::hash_map::RandomState::new().build_hasher();
+    h.write_u128(
+        std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos()),
+    );
+    format!("{:06x}", h.finish() & 0xff_ffff)
 }
 
 struct JobEntry {
@@ -276,11 +299,21 @@ struct LeaseEntry {
     batches: Range<usize>,
     /// The batches before this one are the worker's (see [`Grant::committed`]).
     committed: usize,
+    /// When it was handed out.
+    granted: Instant,
+    /// When it expires unless renewed ([`Timing::lease`] after it was granted, or renewed).
     deadline: Instant,
 }
 
 /// A batch that failed this many times fails its job.
 const MAX_BATCH_FAILURES: u32 = 3;
+
+/// How many deadlines ([`Timing::lease`]) a lease may last while its worker is heard from: ten
+/// minutes at the default 60 s, forty times the 15 s a lease is cut to hold at the job's speed.
+/// Past them the worker is taken to hang on it: the lease expires and its batches count a
+/// failure ([`MAX_BATCH_FAILURES`]), so a batch that hangs every worker fails its job, with
+/// the reason, rather than holding it for ever.
+pub const LEASE_RENEWALS: u32 = 10;
 
 impl Scheduler {
     /// A scheduler over `store`; with `prototypes`, every job's propagation is offered there to
@@ -304,6 +337,7 @@ impl Scheduler {
                 counter: 0,
             }),
             work_ready: Notify::new(),
+            epoch: new_epoch(),
         })
     }
 

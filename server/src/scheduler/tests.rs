@@ -59,16 +59,41 @@ async fn batches_are_leased_once_and_a_pass_completes_when_all_are_reported() {
     assert!(matches!(s.heartbeat("nobody"), Err(Unknown::Worker(_))));
 }
 
+/// A lease past its deadline whose worker is heard from is renewed, not taken away: a slow
+/// worker's block would otherwise be computed again, as slowly, for ever (and never teach the job
+/// its speed). Its report, late, is taken.
 #[tokio::test]
-async fn an_expired_lease_goes_to_another_worker_and_its_late_report_is_ignored() {
+async fn a_lease_past_its_deadline_stays_with_a_worker_heard_from() {
     let s = scheduler(20);
     let id = job(&s);
+    s.start_pass(&id, 0, Pass::Shoot, 1, &[], &[]);
+    let (slow, idle) = (s.register("slow", Abilities::ALL), s.register("idle", Abilities::ALL));
+    let g = s.lease(&slow, Duration::ZERO).await.unwrap().unwrap();
+    for _ in 0..3 {
+        tokio::time::sleep(Duration::from_millis(30)).await;
+        s.heartbeat(&slow).unwrap();
+        assert_eq!(s.reap(), 0, "renewed");
+        assert_eq!(s.lease(&idle, Duration::ZERO).await.unwrap(), None);
+    }
+    assert!(s.report(&slow, &g.lease_id, Ok(()), 0.09).unwrap(), "taken, late");
+    assert_eq!(s.pass_outcome(&id, Pass::Shoot, 0), PassOutcome::Ready(vec![0..1]));
+}
+
+/// Past [`LEASE_RENEWALS`] deadlines a lease expires though its worker is heard from (it hangs
+/// on the block): the block goes to another worker, the late report is ignored, and a block
+/// that hangs every worker [`MAX_BATCH_FAILURES`] times fails its job with the reason.
+#[tokio::test]
+async fn a_lease_held_past_its_renewals_goes_to_another_worker_and_counts_a_failure() {
+    let s = scheduler(2);
+    let id = job(&s);
     s.start_pass(&id, 4, Pass::Areas { copy: 1 }, 1, &[], &[]);
-    let (w1, w2) = (s.register("slow", Abilities::ALL), s.register("fast", Abilities::ALL));
+    let areas = Pass::Areas { copy: 1 };
+    let (w1, w2) = (s.register("hangs", Abilities::ALL), s.register("fast", Abilities::ALL));
     let first = s.lease(&w1, Duration::ZERO).await.unwrap().unwrap();
-    assert_eq!((first.snapshot, first.pass), (4, Pass::Areas { copy: 1 }));
+    assert_eq!((first.snapshot, first.pass), (4, areas));
     assert_eq!(s.lease(&w2, Duration::ZERO).await.unwrap(), None);
-    tokio::time::sleep(Duration::from_millis(30)).await;
+    let past_renewals = || tokio::time::sleep(Duration::from_millis(2 * LEASE_RENEWALS as u64 + 10));
+    past_renewals().await;
     assert_eq!(s.reap(), 1);
     let second = s.lease(&w2, Duration::ZERO).await.unwrap().unwrap();
     assert_eq!(second.batches, first.batches);
@@ -76,10 +101,29 @@ async fn an_expired_lease_goes_to_another_worker_and_its_late_report_is_ignored(
         !s.report(&w1, &first.lease_id, Ok(()), 0.01).unwrap(),
         "late report ignored"
     );
-    let areas = Pass::Areas { copy: 1 };
     assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Running);
     assert!(s.report(&w2, &second.lease_id, Ok(()), 0.01).unwrap());
     assert_eq!(s.pass_outcome(&id, areas, 0), PassOutcome::Ready(vec![0..1]));
+
+    // A block every worker hangs on.
+    let other = job(&s);
+    s.start_pass(&other, 0, Pass::Shoot, 1, &[], &[]);
+    for attempt in 1..=MAX_BATCH_FAILURES {
+        let g = s.lease(&w1, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!((g.job.clone(), g.batches), (other.clone(), 0..1));
+        past_renewals().await;
+        s.heartbeat(&w1).unwrap();
+        assert_eq!(s.reap(), 1);
+        let outcome = s.pass_outcome(&other, Pass::Shoot, 0);
+        if attempt < MAX_BATCH_FAILURES {
+            assert_eq!(outcome, PassOutcome::Running);
+        } else {
+            assert!(
+                matches!(&outcome, PassOutcome::Failed(m) if m.contains("without a report") && m.contains("--lease-seconds")),
+                "{outcome:?}"
+            );
+        }
+    }
 }
 
 #[tokio::test]
@@ -711,4 +755,35 @@ async fn iteration_records_run_from_the_last_release() {
     let records = s.iterations(&id).unwrap();
     assert_eq!(records.len(), 2);
     assert!(records[1].seconds >= pause.as_secs_f64(), "{:?}", records[1].seconds);
+}
+
+/// A restarted coordinator (a new scheduler) gives ids its predecessor never gave: a worker
+/// of the last one that reports its old lease, or claims its rest, is told the lease is gone,
+/// though the new one has handed out as many leases to a worker of the same name.
+#[tokio::test]
+async fn a_restarted_coordinator_never_gives_an_id_its_predecessor_gave() {
+    let (before, after) = (scheduler(60_000), scheduler(60_000));
+    let (job_before, job_after) = (job(&before), job(&after));
+    before.start_pass(&job_before, 0, Pass::Shoot, 4, &[], &[]);
+    after.start_pass(&job_after, 0, Pass::Shoot, 4, &[], &[]);
+    let (old, new) = (
+        before.register("host", Abilities::ALL),
+        after.register("host", Abilities::ALL),
+    );
+    assert_ne!(old, new, "one host's workers of the two coordinators");
+    let stale = before.lease(&old, Duration::ZERO).await.unwrap().unwrap();
+    let fresh = after.lease(&new, Duration::ZERO).await.unwrap().unwrap();
+    assert_ne!(stale.lease_id, fresh.lease_id);
+    // The old worker reports its old lease under its old id: unknown here (without the
+    // coordinators' marks both ids were the same, and the report marked the new worker's batch
+    // done).
+    assert!(matches!(
+        after.report(&old, &stale.lease_id, Ok(()), 0.01),
+        Err(Unknown::Worker(_))
+    ));
+    // It re-registers, under another id, and reports again.
+    let again = after.register("host", Abilities::ALL);
+    assert_eq!(after.extend(&again, &stale.lease_id).unwrap(), None);
+    assert!(!after.report(&again, &stale.lease_id, Ok(()), 0.01).unwrap());
+    assert_eq!(after.pass_outcome(&job_after, Pass::Shoot, 0), PassOutcome::Running);
 }

@@ -12,7 +12,7 @@ impl Scheduler {
         let mut state = self.lock();
         state.counter += 1;
         let number = state.counter;
-        let id = format!("w{number}-{}", sanitize(name));
+        let id = format!("w{number}.{}-{}", self.epoch, sanitize(name));
         state.workers.insert(
             id.clone(),
             WorkerEntry {
