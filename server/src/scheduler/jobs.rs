@@ -95,18 +95,24 @@ impl Scheduler {
     }
 
     /// Changes the job's status with `change` and publishes it (the driver's milestones). A job
-    /// that ends has nothing left to lease: its open passes close (a lease of them out still is
-    /// ignored when reported).
+    /// that ends has nothing left to lease: its open passes close and its leases go, as a
+    /// cancelled job's do (a worker claiming the rest of one is told it is gone, a report on one
+    /// is ignored, and no idle worker is given its tail).
     pub fn update(&self, job: &JobId, change: impl FnOnce(&mut JobStatus)) {
         let mut state = self.lock();
         let alive = alive_workers(&state, self.timing);
+        let mut ended = false;
         if let Some(entry) = state.jobs.get_mut(job) {
             let mut status = entry.status.borrow().clone();
             change(&mut status);
             if is_terminal(status.state) {
                 entry.passes.clear();
+                ended = true;
             }
             publish(entry, status, alive);
+        }
+        if ended {
+            state.leases.retain(|_, lease| lease.job != *job);
         }
     }
 

@@ -787,3 +787,18 @@ async fn a_restarted_coordinator_never_gives_an_id_its_predecessor_gave() {
     assert!(!after.report(&again, &stale.lease_id, Ok(()), 0.01).unwrap());
     assert_eq!(after.pass_outcome(&job_after, Pass::Shoot, 0), PassOutcome::Running);
 }
+
+/// A job that ends through its driver (failed, finished) takes its leases with it: a worker
+/// claiming the rest of one is told it is gone, and its report is ignored.
+#[tokio::test]
+async fn a_job_that_ends_takes_its_leases_with_it() {
+    let s = scheduler(60_000);
+    let id = job(&s);
+    s.start_pass(&id, 0, Pass::Shoot, 4, &[], &[]);
+    let w = s.register("a", Abilities::ALL);
+    let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+    assert!(s.extend(&w, &g.lease_id).unwrap().is_some());
+    s.update(&id, |status| status.state = WireState::Failed as i32);
+    assert_eq!(s.extend(&w, &g.lease_id).unwrap(), None, "gone with its job");
+    assert!(!s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
+}
