@@ -25,9 +25,8 @@ pub struct ServeArgs {
     /// Private key of --tls-cert (PEM).
     #[arg(long, requires = "tls_cert", value_name = "PEM")]
     pub tls_key: Option<PathBuf>,
-    /// A lease's deadline, seconds: past it a lease is renewed while its worker heartbeats (a slow
-    /// worker keeps its block), up to 10 deadlines; a worker silent for three heartbeats loses its
-    /// leases at once.
+    /// Seconds a worker has to report a leased batch before it goes to another worker (a late
+    /// report is still taken if none took it meanwhile).
     #[arg(long, default_value_t = 60.0)]
     pub lease_seconds: f64,
     /// Heartbeat interval asked of workers, seconds (silent for three: dead).

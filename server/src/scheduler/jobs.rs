@@ -113,6 +113,7 @@ impl Scheduler {
         }
         if ended {
             state.leases.retain(|_, lease| lease.job != *job);
+            state.expired.retain(|_, lease| lease.job != *job);
         }
     }
 
@@ -275,6 +276,7 @@ impl Scheduler {
             entry.passes.clear();
             entry.driver.notify_one();
             state.leases.retain(|_, lease| lease.job != *job);
+            state.expired.retain(|_, lease| lease.job != *job);
         }
         let entry = state.jobs.get(job).ok_or_else(|| Unknown::Job(job.to_string()))?;
         Ok(entry.status.borrow().clone())

@@ -6,7 +6,7 @@
 
 use super::pass::{BatchState, PassRun, find_run, first_claim};
 use super::{
-    Grant, JobEntry, LEASE_RENEWALS, LeaseEntry, MAX_BATCH_FAILURES, Scheduler, State, Unknown, alive_workers,
+    Grant, JobEntry, LeaseEntry, MAX_BATCH_FAILURES, MAX_EXPIRED_KEPT, Scheduler, State, Unknown, alive_workers,
     block_len, publish, touch,
 };
 use std::collections::HashMap;
@@ -168,7 +168,6 @@ impl Scheduler {
                 worker: lease.worker.to_string(),
                 batches: lease.batches,
                 committed: lease.committed,
-                granted: Instant::now(),
                 deadline: Instant::now() + self.timing.lease,
             },
         );
@@ -259,6 +258,9 @@ impl Scheduler {
         let mut state = self.lock();
         touch(&mut state, worker)?;
         let alive = alive_workers(&state, self.timing);
+        if !state.leases.contains_key(lease_id) {
+            revive_late(&mut state, worker, lease_id, end);
+        }
         let Some(lease) = state.leases.get(lease_id) else {
             return Ok(false);
         };
@@ -339,10 +341,10 @@ impl Scheduler {
         Ok(true)
     }
 
-    /// Forgets workers silent for three heartbeats (their leases expire with them), renews the
-    /// leases past their deadline whose worker is heard from, and expires those past
-    /// [`LEASE_RENEWALS`] deadlines, counting a failure of their batches. Returns how many
-    /// leases expired.
+    /// Expires leases past their deadline and forgets workers silent for three heartbeats
+    /// (their leases expire with them). The expired leases of workers still heard from are kept
+    /// a while ([`MAX_EXPIRED_KEPT`]), so that a late report on one is still taken if no other
+    /// worker took its batches meanwhile. Returns how many leases expired.
     pub fn reap(&self) -> usize {
         let now = Instant::now();
         let mut state = self.lock();
@@ -360,57 +362,38 @@ impl Scheduler {
             );
             state.workers.remove(id);
         }
-        let last = self.timing.lease * LEASE_RENEWALS;
-        let mut expired: Vec<(String, bool)> = Vec::new();
-        for (id, lease) in &mut state.leases {
-            if dead.contains(&lease.worker) {
-                expired.push((id.clone(), false));
-            } else if lease.deadline <= now {
-                if now.duration_since(lease.granted) >= last {
-                    expired.push((id.clone(), true));
-                } else {
-                    // Its worker is heard from: slow, not dead.
-                    lease.deadline = (now + self.timing.lease).min(lease.granted + last);
-                    tracing::debug!(lease = id, worker = lease.worker, "lease renewed: its worker is alive");
-                }
-            }
-        }
+        let expired: Vec<String> = state
+            .leases
+            .iter()
+            .filter(|(_, l)| l.deadline <= now || dead.contains(&l.worker))
+            .map(|(id, _)| id.clone())
+            .collect();
         let alive = alive_workers(&state, self.timing);
-        for (id, hung) in &expired {
+        for id in &expired {
             let Some(lease) = state.leases.remove(id) else {
                 continue;
             };
             let number = lease.number;
             if let Some(entry) = state.jobs.get_mut(&lease.job) {
                 if let Some(run) = find_run(&mut entry.passes, &lease) {
-                    let (batches, pass) = (lease.batches.clone(), run.pass);
+                    let batches = lease.batches.clone();
                     let mut any = false;
-                    let mut failures = 0;
                     for b in &mut run.batches[batches.clone()] {
                         if b.state == BatchState::Leased(number) {
                             b.state = BatchState::Pending;
                             any = true;
-                            if *hung {
-                                b.failures += 1;
-                                failures = failures.max(b.failures);
-                            }
                         }
                     }
                     if any {
-                        tracing::warn!(job = %lease.job, ?batches, worker = lease.worker, hung, "lease expired");
-                    }
-                    if failures >= MAX_BATCH_FAILURES && entry.failure.is_none() {
-                        entry.failure = Some(format!(
-                            "batches {batches:?} of {pass:?} were held {failures} times for {} s without a \
-                             report (a worker that hangs on them, or batches slower than {LEASE_RENEWALS} \
-                             lease deadlines: raise --lease-seconds)",
-                            last.as_secs_f64()
-                        ));
-                        entry.driver.notify_one();
+                        tracing::warn!(job = %lease.job, ?batches, worker = lease.worker, "lease expired");
                     }
                 }
                 let status = entry.status.borrow().clone();
                 publish(entry, status, alive);
+            }
+            // Its worker, alive, may still report it (slow, not dead): kept for that.
+            if !dead.contains(&lease.worker) {
+                keep_expired(&mut state.expired, id.clone(), lease);
             }
         }
         drop(state);
@@ -438,4 +421,48 @@ fn opening_once_absorbed(passes: &[PassRun]) -> Vec<Pass> {
                 .all(done)
         })
         .collect()
+}
+
+/// Keeps `lease`, expired while its worker is still heard from, among the expired ones a late
+/// report may revive ([`revive_late`]), the oldest let go past [`MAX_EXPIRED_KEPT`].
+fn keep_expired(expired: &mut HashMap<String, LeaseEntry>, id: String, lease: LeaseEntry) {
+    expired.insert(id, lease);
+    while expired.len() > MAX_EXPIRED_KEPT {
+        let Some(oldest) = (expired.iter()).min_by_key(|(_, l)| l.number).map(|(id, _)| id.clone()) else {
+            break;
+        };
+        expired.remove(&oldest);
+    }
+}
+
+/// A report on a lease that expired while its worker was still heard from (a slow worker, or a
+/// slow batch: not a dead one) is taken as the lease's own when every batch of it is still
+/// pending, no other worker having taken one since: the lease is put back as it was, and the
+/// report then finds it. Else nothing changes and the report is ignored. Without it, a worker
+/// whose blocks outlast the deadline had them expire, took them again, as slowly, and never
+/// reported one in time: the job stalled, and its speed, learnt from reports, never changed.
+fn revive_late(state: &mut State, worker: &str, lease_id: &str, end: Option<usize>) {
+    let Some(lease) = state.expired.remove(lease_id) else {
+        return;
+    };
+    let revivable = lease.worker == worker
+        && end.is_none_or(|e| e > lease.batches.start && e <= lease.batches.end)
+        && (state.jobs.get_mut(&lease.job))
+            .and_then(|entry| find_run(&mut entry.passes, &lease))
+            .is_some_and(|run| {
+                run.batches[lease.batches.clone()]
+                    .iter()
+                    .all(|b| b.state == BatchState::Pending)
+            });
+    if !revivable {
+        return;
+    }
+    let number = lease.number;
+    if let Some(run) = (state.jobs.get_mut(&lease.job)).and_then(|entry| find_run(&mut entry.passes, &lease)) {
+        for b in &mut run.batches[lease.batches.clone()] {
+            b.state = BatchState::Leased(number);
+        }
+    }
+    tracing::info!(job = %lease.job, batches = ?lease.batches, worker, "late report taken: its batches were still pending");
+    state.leases.insert(lease_id.to_string(), lease);
 }

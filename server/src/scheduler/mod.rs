@@ -24,12 +24,12 @@
 //! the first open pass of the oldest job, in shooting order (a rotated copy's shot before the
 //! next copy's areas, which wait while it is about to open: `Pass::shooting_rank`), to a worker
 //! for [`Timing::lease`]; the worker computes it, writes the outputs into the store and [`Scheduler::report`]s, which may take its next
-//! lease along. A worker that misses three heartbeats loses its leases at once: their batches are
-//! pending again. A lease past its deadline whose worker is still heard from is renewed (a slow
-//! worker, or a slow batch, is not a dead one: expiring its lease only had the block computed
-//! again, as slowly, for ever), up to [`LEASE_RENEWALS`] deadlines; past them its worker is taken
-//! to hang, the lease expires and its batches count a failure, as a reported one does. A
-//! report on a lease that is gone (expired, job cancelled) is ignored: a block's output is a pure
+//! lease along. A lease that is not reported in time (a dead or stalled worker) expires and its
+//! batches are pending again; a worker that misses three heartbeats loses its leases at once. A
+//! late report is still taken when its worker was heard from meanwhile and no other worker took
+//! any of its batches since (`leases::revive_late`): a worker slower than the deadline gets its
+//! blocks done, and the job learns its speed. Any other report on a lease that is gone (expired
+//! and taken, job cancelled) is ignored: a block's output is a pure
 //! function of the job and the block, written create-only, so a late or duplicated result can
 //! only write the bytes that are already there.
 //!
@@ -88,8 +88,8 @@ pub struct IterationRecord {
 /// How long leases last and how often workers must be heard from.
 #[derive(Clone, Copy, Debug)]
 pub struct Timing {
-    /// A lease's deadline: past it, a lease whose worker is still heard from is renewed (up to
-    /// [`LEASE_RENEWALS`] deadlines in all), and one whose worker is silent goes to another.
+    /// A lease's lifetime: a batch not reported by then goes to another worker (a late report is
+    /// still taken if none took it meanwhile).
     pub lease: Duration,
     /// The heartbeat interval asked of workers; silent for three, a worker is dead.
     pub heartbeat: Duration,
@@ -212,6 +212,9 @@ struct State {
     jobs: HashMap<JobId, JobEntry>,
     workers: HashMap<String, WorkerEntry>,
     leases: HashMap<String, LeaseEntry>,
+    /// Leases expired while their workers were still heard from, for a late report on one
+    /// (`leases::revive_late`).
+    expired: HashMap<String, LeaseEntry>,
     /// Source of job order, lease and worker ids.
     counter: u64,
 }
@@ -299,21 +302,15 @@ struct LeaseEntry {
     batches: Range<usize>,
     /// The batches before this one are the worker's (see [`Grant::committed`]).
     committed: usize,
-    /// When it was handed out.
-    granted: Instant,
-    /// When it expires unless renewed ([`Timing::lease`] after it was granted, or renewed).
     deadline: Instant,
 }
 
 /// A batch that failed this many times fails its job.
 const MAX_BATCH_FAILURES: u32 = 3;
 
-/// How many deadlines ([`Timing::lease`]) a lease may last while its worker is heard from: ten
-/// minutes at the default 60 s, forty times the 15 s a lease is cut to hold at the job's speed.
-/// Past them the worker is taken to hang on it: the lease expires and its batches count a
-/// failure ([`MAX_BATCH_FAILURES`]), so a batch that hangs every worker fails its job, with
-/// the reason, rather than holding it for ever.
-pub const LEASE_RENEWALS: u32 = 10;
+/// Expired leases kept for their workers' late reports ([`Scheduler::reap`]), the oldest let go
+/// first: a few per worker of a large cluster.
+pub const MAX_EXPIRED_KEPT: usize = 1024;
 
 impl Scheduler {
     /// A scheduler over `store`; with `prototypes`, every job's propagation is offered there to
@@ -334,6 +331,7 @@ impl Scheduler {
                 jobs: HashMap::new(),
                 workers: HashMap::new(),
                 leases: HashMap::new(),
+                expired: HashMap::new(),
                 counter: 0,
             }),
             work_ready: Notify::new(),
