@@ -281,8 +281,11 @@ impl AsyncStore {
 
     /// Writes `bytes` at `key` only if `key` does not exist yet (atomically, by the backend's
     /// create-only put). If it exists with the same content this is a success
-    /// ([`PutOutcome::Unchanged`]) so that repeating an interrupted step is harmless; with
-    /// different content it is [`StoreError::AlreadyExists`] and the object is left as it was.
+    /// ([`PutOutcome::Unchanged`]) so that repeating an interrupted step is harmless — the same
+    /// bytes, or, for blobs, the same payload compressed otherwise ([`blob::same_content`]: a
+    /// block that a worker of an earlier build wrote, then died before it reported, during a
+    /// rolling upgrade); with different content it is [`StoreError::AlreadyExists`] and the
+    /// object is left as it was.
     pub async fn put_new(&self, key: &str, bytes: impl Into<Bytes>) -> Result<PutOutcome, StoreError> {
         let path = self.path(key)?;
         let bytes = bytes.into();
@@ -302,7 +305,8 @@ impl AsyncStore {
                 Ok(PutOutcome::Created)
             }
             Err(object_store::Error::AlreadyExists { .. } | object_store::Error::Precondition { .. }) => {
-                if self.get(key).await? == bytes {
+                let stored = self.get(key).await?;
+                if stored == bytes || crate::blob::same_content(&stored, &bytes) {
                     Ok(PutOutcome::Unchanged)
                 } else {
                     Err(StoreError::AlreadyExists {

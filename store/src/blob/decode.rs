@@ -29,6 +29,26 @@ fn checked_payload<'a>(bytes: &'a [u8], header: &Header) -> Result<&'a [u8], Blo
     Ok(stored)
 }
 
+/// Whether the blobs `a` and `b` hold the same thing, byte for byte once decompressed: the same
+/// kind, encoding and shape, and the same payload, however each was compressed (a level, a
+/// number of zstd workers, or a build that compressed otherwise). False if either is not a
+/// sound blob. What a create-only write that finds other bytes in place asks before it calls
+/// them a conflict ([`crate::AsyncStore::put_new`]).
+pub fn same_content(a: &[u8], b: &[u8]) -> bool {
+    let payload = |bytes: &[u8]| -> Option<(Header, Vec<u8>)> {
+        let header = read_header(bytes).ok()?;
+        let stored = checked_payload(bytes, &header).ok()?;
+        let raw = decompress(stored, header.raw_len).ok()?;
+        Some((header, raw))
+    };
+    match (payload(a), payload(b)) {
+        (Some((ha, ra)), Some((hb, rb))) => {
+            (ha.kind, ha.encoding, &ha.shape) == (hb.kind, hb.encoding, &hb.shape) && ra == rb
+        }
+        _ => false,
+    }
+}
+
 /// Decodes a blob, checking that it is of the `expected` kind.
 pub fn decode(bytes: &[u8], expected: BlobKind) -> Result<Decoded, BlobError> {
     let header = header_of_kind(bytes, expected)?;

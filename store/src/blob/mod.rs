@@ -36,7 +36,7 @@
 mod decode;
 mod encode;
 
-pub use decode::{decode, decode_bytes, decode_bytes_with, decode_rgb, decode_values};
+pub use decode::{decode, decode_bytes, decode_bytes_with, decode_rgb, decode_values, same_content};
 pub use encode::{STREAM_FROM, encode_bytes, encode_bytes_with, encode_rgb, encode_values};
 
 use crate::codec::{self, Unrepresentable};

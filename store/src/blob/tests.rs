@@ -166,3 +166,39 @@ fn a_streamed_read_checks_the_blob_as_a_whole_read_does() {
         assert!(matches!(read, Err(BlobError::Decompress(_))), "{claimed}: {read:?}");
     }
 }
+
+/// A blob's payload compressed at another level is other bytes with the same content, which
+/// `same_content` tells; another payload, kind or shape is not the same content, nor is a
+/// damaged blob.
+#[test]
+fn the_same_payload_compressed_otherwise_is_the_same_content() {
+    let raw: Vec<u8> = (0..200_000u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 27) as u8)
+        .collect();
+    let kind = BlobKind::BatchOutput;
+    let a = encode_bytes(kind, &raw).unwrap();
+    // The same payload at zstd's level 19, by hand: what an earlier build might have written.
+    let mut b = vec![0u8; HEADER_LEN];
+    b.reserve(zstd::zstd_safe::compress_bound(raw.len()));
+    compress_after(&raw, 19, 0, &mut b).unwrap();
+    let stored_len = b.len() - HEADER_LEN;
+    let crc = crc32c::crc32c(&b[HEADER_LEN..]);
+    b[..HEADER_LEN].copy_from_slice(&header_bytes(kind, Encoding::Bytes, &[], raw.len(), stored_len, crc));
+    assert_ne!(a, b, "other bytes");
+    assert_eq!(decode_bytes(&b, kind).unwrap(), raw);
+    assert!(same_content(&a, &b) && same_content(&b, &a));
+    let mut other = raw.clone();
+    other[1000] ^= 1;
+    assert!(
+        !same_content(&a, &encode_bytes(kind, &other).unwrap()),
+        "another payload"
+    );
+    assert!(
+        !same_content(&a, &encode_bytes(BlobKind::Snapshot, &raw).unwrap()),
+        "another kind"
+    );
+    let mut damaged = b.clone();
+    let last = damaged.len() - 1;
+    damaged[last] ^= 0x10;
+    assert!(!same_content(&a, &damaged), "a damaged blob");
+}

@@ -197,6 +197,34 @@ pub fn put_new_is_create_only(o: &Opener) {
         store.put_new("snap/x.blob", b"second".to_vec()).unwrap(),
         PutOutcome::Unchanged
     );
+    // A blob whose payload another build compressed otherwise (here at zstd's level 19, the
+    // header's lengths and checksums made anew) holds the same content: no conflict, and what
+    // was there stays. Another payload is one.
+    let raw: Vec<u8> = (0..100_000u32)
+        .map(|i| (i.wrapping_mul(2_654_435_761) >> 27) as u8)
+        .collect();
+    let ours = blob::encode_bytes(BlobKind::BatchOutput, &raw).unwrap();
+    let payload = zstd::bulk::compress(&raw, 19).unwrap();
+    let mut theirs = ours[..blob::HEADER_LEN].to_vec();
+    theirs[32..40].copy_from_slice(&(payload.len() as u64).to_le_bytes());
+    theirs[40..44].copy_from_slice(&crc32c::crc32c(&payload).to_le_bytes());
+    let header_crc = crc32c::crc32c(&theirs[..44]);
+    theirs[44..48].copy_from_slice(&header_crc.to_le_bytes());
+    theirs.extend_from_slice(&payload);
+    assert_ne!(ours, theirs);
+    assert_eq!(blob::decode_bytes(&theirs, BlobKind::BatchOutput).unwrap(), raw);
+    store.put_new("work/block.blob", theirs.clone()).unwrap();
+    assert_eq!(store.put_new("work/block.blob", ours).unwrap(), PutOutcome::Unchanged);
+    assert_eq!(&store.get("work/block.blob").unwrap()[..], &theirs[..]);
+    let mut other = raw;
+    other[7] ^= 1;
+    let err = store
+        .put_new(
+            "work/block.blob",
+            blob::encode_bytes(BlobKind::BatchOutput, &other).unwrap(),
+        )
+        .unwrap_err();
+    assert!(matches!(err, StoreError::AlreadyExists { .. }), "{err:?}");
 }
 
 /// Keys and prefixes outside the key rules are refused before reaching the backend.
