@@ -190,6 +190,7 @@ impl Scheduler {
                 .map(|_| Batch {
                     state: BatchState::Pending,
                     failures: 0,
+                    expiries: 0,
                 })
                 .collect(),
             done_blocks: Vec::new(),

@@ -6,8 +6,8 @@
 
 use super::pass::{BatchState, PassRun, find_run, first_claim};
 use super::{
-    Grant, JobEntry, LeaseEntry, MAX_BATCH_FAILURES, MAX_EXPIRED_KEPT, Scheduler, State, Unknown, alive_workers,
-    block_len, publish, touch,
+    Grant, JobEntry, LeaseEntry, MAX_BATCH_EXPIRIES, MAX_BATCH_FAILURES, MAX_EXPIRED_KEPT, Scheduler, State, Unknown,
+    alive_workers, block_len, publish, touch,
 };
 use std::collections::HashMap;
 use std::ops::Range;
@@ -376,16 +376,25 @@ impl Scheduler {
             let number = lease.number;
             if let Some(entry) = state.jobs.get_mut(&lease.job) {
                 if let Some(run) = find_run(&mut entry.passes, &lease) {
-                    let batches = lease.batches.clone();
-                    let mut any = false;
+                    let (batches, pass) = (lease.batches.clone(), run.pass);
+                    let (mut any, mut expiries) = (false, 0);
                     for b in &mut run.batches[batches.clone()] {
                         if b.state == BatchState::Leased(number) {
                             b.state = BatchState::Pending;
+                            b.expiries += 1;
+                            expiries = expiries.max(b.expiries);
                             any = true;
                         }
                     }
                     if any {
                         tracing::warn!(job = %lease.job, ?batches, worker = lease.worker, "lease expired");
+                    }
+                    if expiries >= MAX_BATCH_EXPIRIES && entry.failure.is_none() {
+                        entry.failure = Some(format!(
+                            "batches {batches:?} of {pass:?} were leased {expiries} times and never reported: \
+                             every worker that took them hung on them or died (out of memory?)"
+                        ));
+                        entry.driver.notify_one();
                     }
                 }
                 let status = entry.status.borrow().clone();

@@ -308,6 +308,12 @@ struct LeaseEntry {
 /// A batch that failed this many times fails its job.
 const MAX_BATCH_FAILURES: u32 = 3;
 
+/// A batch whose leases expired unreported this many times fails its job: every worker that
+/// takes it hangs on it or dies of it (runs out of memory, say), and without a limit it would be
+/// leased again for ever. Far more than a slow worker meets: a late report is still taken when
+/// nobody took its batches meanwhile, and an idle worker relieves it at the first expiry.
+pub const MAX_BATCH_EXPIRIES: u32 = 10;
+
 /// Expired leases kept for their workers' late reports ([`Scheduler::reap`]), the oldest let go
 /// first: a few per worker of a large cluster.
 pub const MAX_EXPIRED_KEPT: usize = 1024;

@@ -63,6 +63,8 @@ pub(super) struct Batch {
     pub(super) state: BatchState,
     /// Failed leases that held this batch.
     pub(super) failures: u32,
+    /// Leases that held this batch and expired unreported ([`super::MAX_BATCH_EXPIRIES`]).
+    pub(super) expiries: u32,
 }
 
 /// The part of a home run committed to a worker when it is leased: all of it for a worker that

@@ -786,3 +786,34 @@ async fn a_job_that_ends_takes_its_leases_with_it() {
     assert_eq!(s.extend(&w, &g.lease_id).unwrap(), None, "gone with its job");
     assert!(!s.report(&w, &g.lease_id, Ok(()), 0.01).unwrap());
 }
+
+/// A batch whose leases all expire unreported (every worker hangs on it, or dies of it) fails
+/// its job after [`MAX_BATCH_EXPIRIES`] leases, with the reason, rather than being leased again
+/// for ever; fewer leave it running.
+#[tokio::test]
+async fn a_batch_that_no_worker_ever_reports_fails_its_job() {
+    let s = scheduler(1);
+    let id = job(&s);
+    s.start_pass(&id, 0, Pass::Shoot, 1, &[], &[]);
+    let w = s.register("hangs", Abilities::ALL);
+    for lease in 1..=MAX_BATCH_EXPIRIES {
+        let g = s.lease(&w, Duration::ZERO).await.unwrap().unwrap();
+        assert_eq!(g.batches, 0..1);
+        tokio::time::sleep(Duration::from_millis(5)).await;
+        assert_eq!(s.reap(), 1);
+        let outcome = s.pass_outcome(&id, Pass::Shoot, 0);
+        if lease < MAX_BATCH_EXPIRIES {
+            assert_eq!(outcome, PassOutcome::Running, "after {lease} expiries");
+        } else {
+            assert!(
+                matches!(&outcome, PassOutcome::Failed(m) if m.contains("never reported")),
+                "{outcome:?}"
+            );
+        }
+    }
+    assert_eq!(
+        s.lease(&w, Duration::ZERO).await.unwrap(),
+        None,
+        "a failed job leases nothing"
+    );
+}
