@@ -31,7 +31,8 @@ use std::sync::atomic::{AtomicU64, Ordering};
 pub enum PutOutcome {
     /// The key did not exist; it now holds the new content.
     Created,
-    /// The key already held exactly this content; nothing was written.
+    /// The key already held this content (the same bytes, or the same blob payload compressed
+    /// otherwise: [`blob::same_content`]); nothing was written.
     Unchanged,
 }
 
@@ -114,8 +115,8 @@ pub const READ_HERE: usize = 8;
 pub struct Put {
     pub key: String,
     pub bytes: Bytes,
-    /// Written with [`AsyncStore::put_new`] (create-only: the same bytes again are accepted,
-    /// different ones refused) rather than [`AsyncStore::put`] (replacing).
+    /// Written with [`AsyncStore::put_new`] (create-only: the same content again is accepted,
+    /// other content refused) rather than [`AsyncStore::put`] (replacing).
     pub create_only: bool,
 }
 

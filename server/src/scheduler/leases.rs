@@ -391,8 +391,9 @@ impl Scheduler {
                     }
                     if expiries >= MAX_BATCH_EXPIRIES && entry.failure.is_none() {
                         entry.failure = Some(format!(
-                            "batches {batches:?} of {pass:?} were leased {expiries} times and never reported: \
-                             every worker that took them hung on them or died (out of memory?)"
+                            "batches {batches:?} of {pass:?} were leased {expiries} times and never reported in \
+                             time: every worker that took them hung on them or died (out of memory?), or one \
+                             batch takes longer than the lease (--lease-seconds)"
                         ));
                         entry.driver.notify_one();
                     }
@@ -445,8 +446,10 @@ fn keep_expired(expired: &mut HashMap<String, LeaseEntry>, id: String, lease: Le
 }
 
 /// A report on a lease that expired while its worker was still heard from (a slow worker, or a
-/// slow batch: not a dead one) is taken as the lease's own when every batch of it is still
-/// pending, no other worker having taken one since: the lease is put back as it was, and the
+/// slow batch: not a dead one) is taken as the lease's own when no other worker has taken any of
+/// its batches since: each is still pending, or leased again to the same worker (which asked
+/// for its next lease while its report went out from the background, and was given the same
+/// batches back), whose newer leases of them go. The lease is put back as it was, and the
 /// report then finds it. Else nothing changes and the report is ignored. Without it, a worker
 /// whose blocks outlast the deadline had them expire, took them again, as slowly, and never
 /// reported one in time: the job stalled, and its speed, learnt from reports, never changed.
@@ -454,17 +457,39 @@ fn revive_late(state: &mut State, worker: &str, lease_id: &str, end: Option<usiz
     let Some(lease) = state.expired.remove(lease_id) else {
         return;
     };
+    // The worker's own leases, by number, with their runs: those it may hold the batches by.
+    let own: HashMap<u64, (String, Range<usize>)> = (state.leases.iter())
+        .filter(|(_, l)| {
+            l.worker == worker && l.job == lease.job && (l.snapshot, l.pass) == (lease.snapshot, lease.pass)
+        })
+        .map(|(id, l)| (l.number, (id.clone(), l.batches.clone())))
+        .collect();
+    let inside = |r: &Range<usize>| r.start >= lease.batches.start && r.end <= lease.batches.end;
+    let mut superseded: Vec<String> = Vec::new();
     let revivable = lease.worker == worker
         && end.is_none_or(|e| e > lease.batches.start && e <= lease.batches.end)
         && (state.jobs.get_mut(&lease.job))
             .and_then(|entry| find_run(&mut entry.passes, &lease))
             .is_some_and(|run| {
-                run.batches[lease.batches.clone()]
-                    .iter()
-                    .all(|b| b.state == BatchState::Pending)
+                run.batches[lease.batches.clone()].iter().all(|b| match b.state {
+                    BatchState::Pending => true,
+                    BatchState::Leased(n) => match own.get(&n) {
+                        Some((id, range)) if inside(range) => {
+                            if !superseded.contains(id) {
+                                superseded.push(id.clone());
+                            }
+                            true
+                        }
+                        _ => false,
+                    },
+                    BatchState::Done => false,
+                })
             });
     if !revivable {
         return;
+    }
+    for id in &superseded {
+        state.leases.remove(id);
     }
     let number = lease.number;
     if let Some(run) = (state.jobs.get_mut(&lease.job)).and_then(|entry| find_run(&mut entry.passes, &lease)) {
@@ -472,6 +497,6 @@ fn revive_late(state: &mut State, worker: &str, lease_id: &str, end: Option<usiz
             b.state = BatchState::Leased(number);
         }
     }
-    tracing::info!(job = %lease.job, batches = ?lease.batches, worker, "late report taken: its batches were still pending");
+    tracing::info!(job = %lease.job, batches = ?lease.batches, worker, superseded = superseded.len(), "late report taken: no other worker took its batches");
     state.leases.insert(lease_id.to_string(), lease);
 }

@@ -309,9 +309,11 @@ struct LeaseEntry {
 const MAX_BATCH_FAILURES: u32 = 3;
 
 /// A batch whose leases expired unreported this many times fails its job: every worker that
-/// takes it hangs on it or dies of it (runs out of memory, say), and without a limit it would be
-/// leased again for ever. Far more than a slow worker meets: a late report is still taken when
-/// nobody took its batches meanwhile, and an idle worker relieves it at the first expiry.
+/// takes it hangs on it or dies of it (runs out of memory, say), or one batch takes longer than
+/// the lease, and without a limit it would be leased again for ever. Far more than a worker
+/// slower than the lease meets: its late report is still taken when no other worker took its
+/// batches meanwhile (`leases::revive_late`), and an idle worker relieves it at the first
+/// expiry.
 pub const MAX_BATCH_EXPIRIES: u32 = 10;
 
 /// Expired leases kept for their workers' late reports ([`Scheduler::reap`]), the oldest let go

@@ -102,6 +102,22 @@ async fn a_late_report_is_taken_when_no_other_worker_took_its_batches() {
         s.pass_outcome(&id, Pass::Shoot, 0),
         PassOutcome::Ready(vlf_core::propagate::reduce::cover(done.clone()))
     );
+    // Its worker, reporting from the background, asked for its next lease meanwhile and was
+    // given the same batch back: the late report is still its own, and the newer lease goes.
+    let again = s.lease(&slow, Duration::ZERO).await.unwrap().unwrap();
+    tokio::time::sleep(Duration::from_millis(30)).await;
+    assert_eq!(s.reap(), 1);
+    let back = s.lease(&slow, Duration::ZERO).await.unwrap().unwrap();
+    assert_eq!(back.batches, again.batches, "the same batch back");
+    assert!(s.report(&slow, &again.lease_id, Ok(()), 0.03).unwrap(), "taken, late");
+    assert!(
+        !s.report(&slow, &back.lease_id, Ok(()), 0.03).unwrap(),
+        "the newer lease went with it"
+    );
+    assert!(
+        matches!(s.pass_outcome(&id, Pass::Shoot, 0), PassOutcome::Ready(blocks) if blocks.last().is_some_and(|b| b.end >= again.batches.end)),
+        "its batch is done"
+    );
     // A cancelled job's expired lease is not revived.
     let next = s.lease(&slow, Duration::ZERO).await.unwrap().unwrap();
     tokio::time::sleep(Duration::from_millis(30)).await;

@@ -35,16 +35,20 @@ fn checked_payload<'a>(bytes: &'a [u8], header: &Header) -> Result<&'a [u8], Blo
 /// sound blob. What a create-only write that finds other bytes in place asks before it calls
 /// them a conflict ([`crate::AsyncStore::put_new`]).
 pub fn same_content(a: &[u8], b: &[u8]) -> bool {
-    let payload = |bytes: &[u8]| -> Option<(Header, Vec<u8>)> {
-        let header = read_header(bytes).ok()?;
-        let stored = checked_payload(bytes, &header).ok()?;
-        let raw = decompress(stored, header.raw_len).ok()?;
-        Some((header, raw))
+    let (Ok(ha), Ok(hb)) = (read_header(a), read_header(b)) else {
+        return false;
     };
-    match (payload(a), payload(b)) {
-        (Some((ha, ra)), Some((hb, rb))) => {
-            (ha.kind, ha.encoding, &ha.shape) == (hb.kind, hb.encoding, &hb.shape) && ra == rb
-        }
+    // The headers first: blobs of another kind, encoding, shape or length are not the same, and
+    // neither payload is decompressed past the length both headers agree on (a stored blob's
+    // header could claim any).
+    if (ha.kind, ha.encoding, &ha.shape, ha.raw_len) != (hb.kind, hb.encoding, &hb.shape, hb.raw_len) {
+        return false;
+    }
+    let payload = |bytes: &[u8], header: &Header| -> Option<Vec<u8>> {
+        decompress(checked_payload(bytes, header).ok()?, header.raw_len).ok()
+    };
+    match (payload(a, &ha), payload(b, &hb)) {
+        (Some(ra), Some(rb)) => ra == rb,
         _ => false,
     }
 }

@@ -197,6 +197,19 @@ fn the_same_payload_compressed_otherwise_is_the_same_content() {
         !same_content(&a, &encode_bytes(BlobKind::Snapshot, &raw).unwrap()),
         "another kind"
     );
+    // The same values, so the same payload bytes, as another shape or another encoding.
+    let values: Vec<f32> = (0..24).map(|i| i as f32 * 0.25).collect();
+    let as_shape = |shape: &[u32], encoding| encode_values(BlobKind::TileRadiance, encoding, shape, &values).unwrap();
+    let flat = as_shape(&[8, 3], Encoding::F32);
+    assert!(same_content(&flat, &as_shape(&[8, 3], Encoding::F32)));
+    assert!(
+        !same_content(&flat, &as_shape(&[2, 4, 3], Encoding::F32)),
+        "another shape"
+    );
+    assert!(
+        !same_content(&flat, &as_shape(&[8, 3], Encoding::F16)),
+        "another encoding"
+    );
     let mut damaged = b.clone();
     let last = damaged.len() - 1;
     damaged[last] ^= 0x10;

@@ -78,7 +78,7 @@ fn pass_name(pass: Pass) -> String {
 
 impl FieldJob {
     /// Writes a block output of the iteration starting from snapshot `output.iteration`
-    /// (create-only: the same bytes again are accepted, different bytes refused).
+    /// (create-only: the same content again is accepted, other content refused).
     pub fn put_batch(&self, output: &BatchOutput) -> Result<PutOutcome, StoreError> {
         let put = self.batch_put(output)?;
         self.job().store().put_new(&put.key, put.bytes)
