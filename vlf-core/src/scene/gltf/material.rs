@@ -335,12 +335,16 @@ fn pieces(image: &image::DynamicImage) -> impl Iterator<Item = (u32, u32, image:
     })
 }
 
-/// The pixels of `piece` (of an image of colour type `color`, as `image::DynamicImage::crop_imm`
-/// keeps it) as linear RGB, sRGB decoded (alpha ignored), row by row from the top.
+/// Each 8-bit sRGB value, linear: found once, not once per piece of a row.
+static SRGB8_LINEAR: std::sync::LazyLock<[f32; 256]> =
+    std::sync::LazyLock::new(|| std::array::from_fn(|v| srgb_to_linear(v as f64 / 255.0) as f32));
+
+/// The pixels of `piece` (a crop keeps its image's colour type) as linear RGB, sRGB decoded
+/// (alpha ignored), row by row from the top.
 fn linear_pixels(piece: &image::DynamicImage) -> Vec<[f32; 3]> {
     match piece.color() {
         image::ColorType::L8 | image::ColorType::La8 | image::ColorType::Rgb8 | image::ColorType::Rgba8 => {
-            let lut: Vec<f32> = (0..256).map(|v| srgb_to_linear(v as f64 / 255.0) as f32).collect();
+            let lut = &*SRGB8_LINEAR;
             piece.to_rgb8().pixels().map(|p| p.0.map(|v| lut[v as usize])).collect()
         }
         _ => (piece.to_rgb32f().pixels())
