@@ -5,7 +5,8 @@
 //! reflected, the same in every direction. Texels that no ray crosses (at
 //! polygon borders, or on polygons thinner than a ray cell) have no value of
 //! their own; they are filled from their neighbours so bilinear look-ups near
-//! edges stay smooth.
+//! edges stay smooth, and a chart that no ray crosses at all takes the light
+//! of the charts it touches ([`crate::maps::fill`]).
 //!
 //! A field is stored (by the `vlf-store` crate) as its radiance only —
 //! [`Propagation::diffuse_radiance`] and [`Propagation::mirror_totals`] —
@@ -234,7 +235,9 @@ impl Propagation {
 
     /// Outgoing diffuse radiance of every texel as it stands, `Total_t / T_t`
     /// (emitted plus reflected so far), with texels no ray crosses filled
-    /// from their neighbours: what rendering reads. An emitter's rays carry
+    /// from their neighbours, within their chart or, for a chart no ray
+    /// crosses, from the charts it touches ([`crate::maps::fill`]): what
+    /// rendering reads. An emitter's rays carry
     /// `k_c·Le` (`Propagation::emission_scale`), its look `Le`: the
     /// difference `(k_c − 1)·Le` is taken off.
     pub fn diffuse_radiance(&self) -> Vec<[f32; 3]> {
@@ -254,7 +257,17 @@ impl Propagation {
                 }
             })
             .collect();
-        fill_holes(&self.atlas, &covered, &mut radiance);
+        crate::maps::fill::within_charts(&self.atlas, &covered, &mut radiance);
+        let across = self.hole_fill.get_or_init(|| {
+            let plan = crate::maps::fill::AcrossCharts::plan(&self.scene, &self.atlas, &covered);
+            let (filled, unreached) = plan.counts();
+            if filled + unreached > 0 {
+                tracing::debug!(filled, unreached, "charts no ray crosses, lit from their neighbours");
+            }
+            plan
+        });
+        let emission = |c: usize| self.scene.materials[self.atlas.chart_material[c] as usize].emission;
+        across.apply(&self.atlas, &self.albedo, emission, &mut radiance);
         radiance
     }
 
@@ -270,50 +283,6 @@ impl Propagation {
                 })
                 .collect()
         })
-    }
-}
-
-/// Fills uncovered texels with the mean of covered neighbours, growing
-/// outwards a ring per pass (a few passes suffice: holes are border texels).
-fn fill_holes(atlas: &TexelAtlas, covered: &[bool], radiance: &mut [[f32; 3]]) {
-    for g in &atlas.charts {
-        let (w, h) = (g.width as i64, g.height as i64);
-        let mut known: Vec<bool> = covered[g.first..g.first + g.len()].to_vec();
-        if !known.iter().any(|&k| k) {
-            continue;
-        }
-        loop {
-            let mut changed = false;
-            let snapshot = known.clone();
-            for y in 0..h {
-                for x in 0..w {
-                    let i = (y * w + x) as usize;
-                    if snapshot[i] {
-                        continue;
-                    }
-                    let (mut sum, mut n) = ([0.0f32; 3], 0);
-                    for (dx, dy) in [(-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, 1), (-1, 1), (1, -1)] {
-                        let (xx, yy) = (x + dx, y + dy);
-                        if xx >= 0 && yy >= 0 && xx < w && yy < h {
-                            let j = (yy * w + xx) as usize;
-                            if snapshot[j] {
-                                let v = radiance[g.first + j];
-                                sum = [sum[0] + v[0], sum[1] + v[1], sum[2] + v[2]];
-                                n += 1;
-                            }
-                        }
-                    }
-                    if n > 0 {
-                        radiance[g.first + i] = [sum[0] / n as f32, sum[1] / n as f32, sum[2] / n as f32];
-                        known[i] = true;
-                        changed = true;
-                    }
-                }
-            }
-            if !changed {
-                break;
-            }
-        }
     }
 }
 

@@ -1267,3 +1267,101 @@ fn a_texel_too_small_for_the_scene_is_refused_before_its_cells_are_listed() {
     o.texel_cells = 1.0;
     assert!(Propagation::new(scene, o).is_ok());
 }
+
+/// A chart no ray crosses takes its neighbours' light, scaled by the two reflectances: a
+/// square far below the ray spacing set into the floor of a closed room (the floor cut around
+/// it, so they share its corners), of another material (ρ 0.25 against the floor's 0.5), shows
+/// half the floor's radiance where it lies; a smaller square in its middle (ρ 0.8, emitting
+/// 0.5) touching only the first, none of the floor, takes the same irradiance a ring later and
+/// shows `0.5 + 0.8·E/π`. Before, both were black: the full Stanford dragon at N = 64 had 9 648
+/// such charts at its creases. The propagation itself is untouched (balance, walls).
+#[test]
+fn a_chart_no_ray_crosses_takes_its_neighbours_light() {
+    let n = 32;
+    let (h, tiny) = (0.55, 1e-4 * 2.0 / n as f64);
+    let mats = vec![
+        material("wall", 0.5, 0.0),
+        material("lamp", 0.5, 1.0),
+        material("inlay", 0.25, 0.0),
+        material("jewel", 0.8, 0.5),
+    ];
+    let mut scene = closed_box(h, 1, &[3], mats);
+    // The floor (face 2, −y, facing +y) as a 3 × 3 grid of quads whose middle cell is the inlay,
+    // itself a 3 × 3 grid whose middle cell is the jewel: every corner shared exactly.
+    let y = -h;
+    let (cx, cz) = (0.1, 0.05);
+    let floor_lines = [-h, cx - tiny, cx + tiny, h];
+    let floor_lines_z = [-h, cz - tiny, cz + tiny, h];
+    let cell = |x0: f64, x1: f64, z0: f64, z1: f64, material: usize| {
+        let p = |x: f64, z: f64| DVec3::new(x, y, z);
+        surface(vec![p(x0, z0), p(x0, z1), p(x1, z1), p(x1, z0)], material)
+    };
+    let mut floor = Vec::new();
+    for i in 0..3 {
+        for j in 0..3 {
+            let (x0, x1, z0, z1) = (
+                floor_lines[i],
+                floor_lines[i + 1],
+                floor_lines_z[j],
+                floor_lines_z[j + 1],
+            );
+            if (i, j) != (1, 1) {
+                floor.push(cell(x0, x1, z0, z1, 0));
+                continue;
+            }
+            let xs = [x0, cx - tiny / 3.0, cx + tiny / 3.0, x1];
+            let zs = [z0, cz - tiny / 3.0, cz + tiny / 3.0, z1];
+            for a in 0..3 {
+                for b in 0..3 {
+                    let material = if (a, b) == (1, 1) { 3 } else { 2 };
+                    floor.push(cell(xs[a], xs[a + 1], zs[b], zs[b + 1], material));
+                }
+            }
+        }
+    }
+    let floor_index = 2;
+    scene.surfaces.splice(floor_index..floor_index + 1, floor);
+    // Floor cells (0, 0..3) and (1, 0) come first, then the inlay's nine, the jewel fifth.
+    let (inlay, jewel) = (floor_index + 4, floor_index + 8);
+    assert_eq!(scene.surfaces[inlay].material, 2, "an inlay cell's index");
+    assert_eq!(scene.surfaces[jewel].material, 3, "the jewel's index");
+
+    let p = propagate(scene, options(129, n, Stop::Iterations(6)));
+    assert_sane(&p, "inlay");
+    assert_balance(&p, 1e-9, "inlay");
+    for s in [inlay, jewel] {
+        let g = p.atlas.grid(s);
+        let rays: f64 = p.projected_area[g.first..g.first + g.len()].iter().sum();
+        assert_eq!(
+            rays, 0.0,
+            "a ray crossed surface {s}: the case needs a chart no ray crosses"
+        );
+    }
+    assert_ne!(p.atlas.chart_of[inlay], p.atlas.chart_of[jewel]);
+    let floor_grid = p.atlas.grid(floor_index).clone();
+    let field = p.into_field();
+    assert_field_sane(&field, "inlay");
+    // The floor's radiance where the inlay lies (the texel holding its centre, which holds all
+    // its corners: it is 1e-4 of a ray spacing across).
+    let centre = DVec3::new(cx, y, cz);
+    let under = field.radiance[floor_grid.index(floor_grid.coords(centre))];
+    assert!(under[0] > 0.0);
+    let shown = |s: usize| {
+        let g = field.atlas.grid(s);
+        field.radiance[g.first..g.first + g.len()].to_vec()
+    };
+    for (k, l) in shown(inlay).iter().enumerate() {
+        let want = under[0] as f64 * 0.25 / 0.5;
+        assert!(
+            (l[0] as f64 - want).abs() <= 1e-6 * want,
+            "inlay texel {k}: {l:?}, the floor under it shows {under:?}, so {want} was due"
+        );
+    }
+    for (k, l) in shown(jewel).iter().enumerate() {
+        let want = 0.5 + 0.8 * under[0] as f64 / 0.5;
+        assert!(
+            (l[0] as f64 - want).abs() <= 1e-6 * want,
+            "jewel texel {k}: {l:?}, {want} was due (emission 0.5 and the floor's irradiance)"
+        );
+    }
+}

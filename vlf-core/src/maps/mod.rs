@@ -19,6 +19,7 @@
 
 pub mod albedo;
 pub mod charts;
+pub mod fill;
 
 use crate::scene::Scene;
 use glam::{DVec2, DVec3};

@@ -80,7 +80,7 @@ use crate::psf::{Footprints, Subfield, Subfields};
 use crate::scene::{Rgb, Scene};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::time::Instant;
 
 /// What happened in one iteration (powers per channel, VLF-frame units).
@@ -165,7 +165,7 @@ pub struct Propagation {
     /// What the subfields rasterise, for the rotated copies built on the fly.
     footprints: Arc<Footprints>,
     /// Diffuse reflectance `ρ_t` of every texel ([`crate::maps::albedo`]).
-    albedo: Arc<[Rgb]>,
+    pub(crate) albedo: Arc<[Rgb]>,
     /// Discrete projected area `T_t` of every texel (see module docs).
     pub projected_area: Vec<f64>,
     /// Per chart, `k_c` of [`emission_scales`] (1 for a chart that does not emit).
@@ -190,6 +190,10 @@ pub struct Propagation {
     buffers: work::KeptBuffers,
     /// Rotated copies' subfields, kept from a copy's areas to its shot ([`rotated`]).
     rotated: Arc<rotated::RotatedSubfields>,
+    /// Where the charts no ray crosses take their light from ([`crate::maps::fill`]): a
+    /// function of the geometry and of `projected_area` as set up, found by the first
+    /// [`Propagation::diffuse_radiance`] and shared by clones.
+    pub(crate) hole_fill: Arc<OnceLock<crate::maps::fill::AcrossCharts>>,
 }
 
 fn sum_rgb(v: &[Rgb]) -> Rgb {
@@ -432,6 +436,7 @@ impl Propagation {
             buffers: work::KeptBuffers::default(),
             rotated: Arc::default(),
             phase_times: Vec::new(),
+            hole_fill: Arc::default(),
         })
     }
 
