@@ -162,6 +162,9 @@ struct Sample {
     /// In one process: per iteration, where its time went, and the seconds its snapshot took
     /// to write (empty for the service).
     phases: Vec<(PhaseTimes, f64)>,
+    /// In one process: whether the job's first iterations were perturbed (they are not where
+    /// light reaches a mirror, whatever the options say); `None` for the service.
+    perturbed: Option<bool>,
 }
 
 /// When a run started, on the wall clock and on the process's CPU clock.
@@ -201,6 +204,7 @@ impl Sample {
             iterations,
             traffic: store.traffic(),
             phases: Vec::new(),
+            perturbed: None,
         }
     }
 }
@@ -231,6 +235,9 @@ pub fn run(args: BenchArgs) -> Result<()> {
         .context("cannot start the async runtime")?;
 
     if args.scaling {
+        if args.cotenant {
+            bail!("--cotenant measures the phase breakdown beside a busy neighbour: not with --scaling");
+        }
         let report = scaling::run(&args, &store_url(&args), &scene, &spec, &runtime, threads)?;
         print!("{report}");
         if let Some(path) = &args.out {
@@ -282,7 +289,12 @@ pub fn run(args: BenchArgs) -> Result<()> {
 
     // The first iteration learns the job's speed (a one-batch lease), perturbed ones shoot
     // rotated copies: the plain iterations after them are the propagation's throughput.
-    let plain = spec.options.perturbation.iterations.max(1) as usize;
+    // The first way is the in-process run, which knows whether the scene let them be perturbed.
+    let perturbed = samples[0].first().and_then(|s| s.perturbed).unwrap_or(true);
+    let plain = match perturbed {
+        true => spec.options.perturbation.iterations.max(1) as usize,
+        false => 1,
+    };
     let report = report(&args, threads, &ways, &samples, plain);
     print!("{report}");
     if let Some(path) = &args.out {
@@ -349,9 +361,11 @@ fn in_process_with(
         phases.push((prop.phase_times.last().copied().unwrap_or_default(), written));
     }
     let last = prop.checkpoint();
+    let perturbed = Some(prop.plan.perturbation);
     job.finish(&prop.into_field(), false)?;
     let sample = Sample {
         phases,
+        perturbed,
         ..Sample::ended(started, iterations, &store)
     };
     forget(&store, job.id())?;

@@ -235,7 +235,9 @@ pub struct FieldSource {
     #[arg(required_unless_present = "server")]
     store: Option<String>,
     /// Read the job from this coordinator instead of a store: `vlf render --server URL JOB …`.
-    #[arg(long, env = "VLF_SERVER", value_name = "URL")]
+    /// Given on the command line only: `VLF_SERVER`, which names the coordinator of `submit`,
+    /// `watch` and the other commands that need one, would make the store's path a job id.
+    #[arg(long, value_name = "URL")]
     server: Option<String>,
     /// Bearer token for --server.
     #[arg(long, env = "VLF_TOKEN", hide_env_values = true)]
@@ -413,8 +415,9 @@ pub struct JobsArgs {
     /// Store to list (a directory, file:///PATH, s3://BUCKET/PREFIX); not with --server.
     #[arg(required_unless_present = "server")]
     store: Option<String>,
-    /// List the jobs of this coordinator instead.
-    #[arg(long, env = "VLF_SERVER", value_name = "URL", conflicts_with = "store")]
+    /// List the jobs of this coordinator instead (given on the command line only, as for
+    /// `render`).
+    #[arg(long, value_name = "URL", conflicts_with = "store")]
     server: Option<String>,
     /// Bearer token for --server.
     #[arg(long, env = "VLF_TOKEN", hide_env_values = true)]

@@ -72,11 +72,13 @@ pub fn run(args: PropagateArgs) -> Result<()> {
         prop.atlas.texels
     );
     let mut field = pool.install(|| prop.into_field());
-    if args.job.resample {
+    // As the job was created, or asked for now: whoever finishes a job does what was asked.
+    let resample = job.job().manifest().resample || args.job.resample;
+    if resample {
         pool.install(|| field.resample_mirrors(8));
     }
     let t = Instant::now();
-    pool.install(|| job.finish(&field, args.job.resample))
+    pool.install(|| job.finish(&field, resample))
         .context("cannot write the final field")?;
     store_seconds += t.elapsed().as_secs_f64();
 
@@ -109,6 +111,12 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
     let (job, prop) = match &args.resume {
         Some(id) => {
             let id = JobId::parse(id).map_err(anyhow::Error::msg)?;
+            if args.job.given_beyond_resample()? {
+                bail!(
+                    "--resume goes on with the job's own parameters: drop the job's flags (only \
+                     --threads, --subfield-memory and --resample apply)"
+                );
+            }
             let store = Store::open_existing(&args.store)?;
             let mut job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
             let prop = pool
@@ -140,6 +148,11 @@ pub fn start(args: &PropagateArgs, pool: &rayon::ThreadPool) -> Result<(FieldJob
             let mut job = pool.install(|| FieldJob::create(&store, &prop, spec.encoding))?;
             if !spec.keep_checkpoints {
                 job.set_compact(true)?;
+            }
+            // Recorded, so that whoever resumes the job (`vlf run --resume`, a coordinator)
+            // finishes it as asked.
+            if spec.resample {
+                job.set_resample(true)?;
             }
             println!("job {} in {}", job.id(), args.store);
             (job, prop)
@@ -263,6 +276,17 @@ impl JobFlags {
                 EncodingArg::Rgb9e5 => WireEncoding::Rgb9e5,
             } as i32,
         })
+    }
+
+    /// Whether a flag other than `--resample` asks for something other than its default. A
+    /// resumed job goes on with its own parameters, so such a flag would be ignored in silence.
+    pub fn given_beyond_resample(&self) -> Result<bool> {
+        use clap::{Args, FromArgMatches};
+        let command = JobFlags::augment_args(clap::Command::new("defaults"));
+        let defaults = JobFlags::from_arg_matches(&command.try_get_matches_from(["defaults"])?)?;
+        let (mut mine, theirs) = (self.parameters()?, defaults.parameters()?);
+        mine.resample = theirs.resample;
+        Ok(mine != theirs)
     }
 
     /// The validated settings.

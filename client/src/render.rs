@@ -23,27 +23,45 @@ pub fn run(args: RenderArgs) -> Result<()> {
         SpecularArg::Rays => SpecularMode::Rays,
         SpecularArg::Trace => SpecularMode::Trace { depth: args.depth },
     };
-    // Auto asks for snapshot 1 and does without it; Exact requires it.
-    let exact_direct = args.direct == DirectArg::Exact;
-    let try_exact = exact_direct || args.direct == DirectArg::Auto;
     if args.object_shadows_per_texel && !args.gpu {
         bail!("--object-shadows-per-texel draws as vlf view does, on the GPU: add --gpu");
     }
-    if try_exact && !(1..=65536).contains(&args.direct_samples) {
+    if args.direct != DirectArg::Field && !(1..=65536).contains(&args.direct_samples) {
         bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
     }
+    // What can be refused without reading anything is refused before the store is read.
+    vlf_core::render::Image::check_output(&args.out, args.exposure)?;
+    args.objects.check()?;
     let Opened {
         store,
         id,
         stage,
-        first_store,
-    } = args.source.open("render", try_exact)?;
+        remote,
+    } = args.source.open("render")?;
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
-    let stage = stage.unwrap_or_else(|| job.latest_stage());
+    let stage = match stage {
+        Some(stage) => stage,
+        None => job
+            .latest_stage()
+            .with_context(|| format!("job {id} has no finished snapshot yet ({})", job.job().manifest().state))?,
+    };
+    // Exact direct light exchanges the field's direct part (snapshot 1's) for the exact one.
+    // Snapshot 0 is the emitters' light alone: it has no direct part, so nothing to exchange.
+    // Auto asks for snapshot 1 and does without it; Exact requires it.
+    let exact_direct = args.direct == DirectArg::Exact;
+    let try_exact = match (args.direct, stage) {
+        (DirectArg::Exact, Stage::Iteration(0)) => bail!(
+            "--direct exact: snapshot 0 is the emitters' own light, before any light reached a \
+             surface, so it has no direct light to compute exactly: render it with --direct field"
+        ),
+        (DirectArg::Field, _) | (_, Stage::Iteration(0)) => false,
+        _ => true,
+    };
     let started = Instant::now();
     let cannot_read = || format!("cannot read {} of job {id}", describe(stage));
-    // Snapshot 1 from the same store is read on the same geometry, built once.
-    let (field, first) = match (try_exact, &first_store) {
+    // Snapshot 1 from the same store is read on the same geometry, built once; from a
+    // coordinator it is fetched into a store of its own.
+    let (field, first) = match (try_exact, &remote) {
         (true, None) => {
             let mut loaded = job
                 .load_each(&[stage, Stage::Iteration(1)])
@@ -55,19 +73,23 @@ pub fn run(args: RenderArgs) -> Result<()> {
     };
     let mut field = field.context("no field read")?.with_context(cannot_read)?;
     if try_exact {
-        let first = match (first, &first_store) {
-            (Some(first), _) => first,
-            (None, Some(s)) => FieldJob::open(s, &id)
-                .with_context(|| format!("cannot open job {id}"))?
-                .load(Stage::Iteration(1)),
-            (None, None) => job.load(Stage::Iteration(1)),
+        let first = match (first, &remote) {
+            (Some(first), _) => first.map_err(anyhow::Error::from),
+            (None, Some((target, job))) => crate::block_on_value(crate::remote::fetch_job(target, job, Some(1)))
+                .and_then(|(first, _)| {
+                    FieldJob::open(&first, &id)
+                        .with_context(|| format!("cannot open job {id}"))?
+                        .load(Stage::Iteration(1))
+                        .map_err(anyhow::Error::from)
+                }),
+            (None, None) => job.load(Stage::Iteration(1)).map_err(anyhow::Error::from),
         };
         match first {
             Ok(first) => field.use_exact_direct(&first, args.direct_samples)?,
             Err(e) if exact_direct => {
                 return Err(e).with_context(|| format!("exact direct light needs snapshot 1 of job {id}"));
             }
-            Err(e) => tracing::warn!(%e, "no snapshot 1 of job {id}: direct light from the field"),
+            Err(e) => tracing::warn!("no snapshot 1 of job {id} ({e:#}): direct light from the field"),
         }
         // What the GPU cannot draw exactly (albedo textures) auto draws with the field's.
         if args.gpu
@@ -157,8 +179,8 @@ pub struct Opened {
     pub id: JobId,
     /// The stage asked for, if any.
     pub stage: Option<Stage>,
-    /// With `--server` and `first`: snapshot 1, in a store of its own.
-    pub first_store: Option<Store>,
+    /// With `--server`: the coordinator and the job, for fetching more of it (snapshot 1).
+    pub remote: Option<(Target, String)>,
 }
 
 impl FieldSource {
@@ -180,25 +202,17 @@ impl FieldSource {
         Ok(Some((target, job)))
     }
 
-    /// Opens the job: from the store, or fetched from `--server` (the asked stage, and snapshot 1
-    /// too when `first`). `command` names the command in messages.
-    pub fn open(&self, command: &str, first: bool) -> Result<Opened> {
+    /// Opens the job: from the store, or the asked stage fetched from `--server`. `command`
+    /// names the command in messages.
+    pub fn open(&self, command: &str) -> Result<Opened> {
         match (self.remote(command)?, &self.store) {
             (Some((target, job)), _) => {
-                let job = job.as_str();
-                let (store, stage) = crate::block_on_value(crate::remote::fetch_job(&target, job, self.snapshot))?;
-                let first_store = if first {
-                    let (first, _) = crate::block_on_value(crate::remote::fetch_job(&target, job, Some(1)))
-                        .context("exact direct light needs snapshot 1")?;
-                    Some(first)
-                } else {
-                    None
-                };
+                let (store, stage) = crate::block_on_value(crate::remote::fetch_job(&target, &job, self.snapshot))?;
                 Ok(Opened {
                     store,
-                    id: JobId::parse(job).map_err(anyhow::Error::msg)?,
+                    id: JobId::parse(&job).map_err(anyhow::Error::msg)?,
                     stage: Some(stage),
-                    first_store,
+                    remote: Some((target, job)),
                 })
             }
             (None, Some(url)) => {
@@ -213,7 +227,7 @@ impl FieldSource {
                     store,
                     id,
                     stage: self.snapshot.map(Stage::Iteration),
-                    first_store: None,
+                    remote: None,
                 })
             }
             (None, None) => bail!("give a store, or --server and a job"),
@@ -241,13 +255,7 @@ pub fn jobs(args: JobsArgs) -> Result<()> {
     for id in ids {
         let job = Job::open(&store, &id)?;
         let m = job.manifest();
-        let state = match &m.state {
-            JobState::Queued => "queued".to_string(),
-            JobState::Propagating { iteration } => format!("propagating iteration {iteration}"),
-            JobState::Finished => "finished".to_string(),
-            JobState::Failed { message } => format!("failed: {message}"),
-            JobState::Cancelled => "cancelled".to_string(),
-        };
+        let state = m.state.to_string();
         // A finished job's digest (see `LightField::digest`), to compare with another run's.
         // A summary that cannot be read is said so on its job's line; the others are listed.
         let digest = match m.state {
@@ -267,16 +275,30 @@ pub fn jobs(args: JobsArgs) -> Result<()> {
     Ok(())
 }
 
-/// The most recently created job of `store` (ties within a second: the last id).
+/// The most recently created job of `store`. Jobs are dated to the second: two created in the
+/// newest second are not told apart by a guess, the caller is asked to name one.
 fn newest_job(store: &Store) -> Result<Option<JobId>> {
-    let mut newest: Option<(u64, JobId)> = None;
+    let mut newest: Vec<(u64, JobId)> = Vec::new();
     for id in Job::list(store)? {
         let created = Job::open(store, &id)?.manifest().created;
-        if newest.as_ref().is_none_or(|(t, _)| created >= *t) {
-            newest = Some((created, id));
+        match newest.first() {
+            Some((t, _)) if created < *t => {}
+            Some((t, _)) if created == *t => newest.push((created, id)),
+            _ => newest = vec![(created, id)],
         }
     }
-    Ok(newest.map(|(_, id)| id))
+    match &newest[..] {
+        [] => Ok(None),
+        [(_, id)] => Ok(Some(id.clone())),
+        several => {
+            let ids: Vec<String> = several.iter().map(|(_, id)| id.to_string()).collect();
+            bail!(
+                "the newest jobs of the store were created in the same second ({}): name the one to \
+                 show after the store",
+                ids.join(", ")
+            )
+        }
+    }
 }
 
 pub fn describe(stage: Stage) -> String {

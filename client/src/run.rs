@@ -5,8 +5,9 @@
 //! and commits a snapshot. The result is the same bits as `vlf propagate` and as any number of
 //! workers, in this process or others.
 //!
-//! `--resume JOB` starts the service over the store, which takes up every unfinished job of it
-//! (the coordinator's recovery), and follows JOB to its end.
+//! `--resume JOB` starts the service over the store, which takes up JOB alone (the coordinator's
+//! recovery, for one job), and follows it to its end. Other unfinished jobs of the store are left
+//! as they are: `vlf serve` over the store takes them all up.
 
 use crate::RunArgs;
 use crate::processes::WorkerProcesses;
@@ -16,6 +17,7 @@ use anyhow::{Context, Result, bail};
 use std::time::{Duration, Instant};
 use vlf_core::scene::Scene;
 use vlf_proto::{JobSpec, Target};
+use vlf_server::driver::TakeUp;
 use vlf_server::{ServeConfig, Server};
 use vlf_store::{FieldJob, JobId, Prototypes, Stage, Store};
 use vlf_worker::{StoreChoice, WorkerConfig};
@@ -34,7 +36,15 @@ pub fn run(args: RunArgs) -> Result<()> {
         .build()
         .context("cannot start the async runtime")?;
     let job = match &args.resume {
-        Some(id) => EmbeddedJob::Resume(JobId::parse(id).map_err(anyhow::Error::msg)?),
+        Some(id) => {
+            if args.job.given_beyond_resample()? {
+                bail!(
+                    "--resume goes on with the job's own parameters: drop the job's flags (only \
+                     --threads, --workers, --subfield-memory and --resample apply)"
+                );
+            }
+            EmbeddedJob::Resume(JobId::parse(id).map_err(anyhow::Error::msg)?)
+        }
         None => {
             let spec = args.job.spec()?;
             let path = args
@@ -44,9 +54,25 @@ pub fn run(args: RunArgs) -> Result<()> {
             EmbeddedJob::New(import(&path)?, spec)
         }
     };
+    // A job to resume must be there: its store is opened as it is, not created at a typo.
     let store = {
-        let url = args.store.clone();
-        runtime.block_on(vlf_store::blocking(move || Store::open(&url)))??
+        let (url, resample) = (args.store.clone(), args.job.resample);
+        let resume = match &job {
+            EmbeddedJob::Resume(id) => Some(id.clone()),
+            EmbeddedJob::New(..) => None,
+        };
+        runtime.block_on(vlf_store::blocking(move || -> Result<Store> {
+            let Some(id) = resume else {
+                return Ok(Store::open(&url)?);
+            };
+            let store = Store::open_existing(&url)?;
+            let mut job = vlf_store::Job::open(&store, &id).with_context(|| format!("no job {id} in {url}"))?;
+            // Recorded before the coordinator takes the job up: it finishes a job as recorded.
+            if resample && !job.manifest().resample {
+                job.set_resample(true)?;
+            }
+            Ok(store)
+        }))??
     };
     let done = runtime.block_on(embedded(
         store,
@@ -140,9 +166,15 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
     let loopback = "127.0.0.1:0".parse().context("loopback address")?;
     // The coordinator offers every job's geometry to the workers of this process: built once.
     let prototypes = Prototypes::new(workers.count);
+    // The service runs the job it is given, not every unfinished job that shares its store.
+    let take_up = match &job {
+        EmbeddedJob::Resume(id) => TakeUp::Only(id.clone()),
+        EmbeddedJob::New(..) => TakeUp::Nothing,
+    };
     let config = ServeConfig {
         prototypes: (!workers.processes).then(|| prototypes.clone()),
         subfield_budget: workers.subfield_budget,
+        take_up,
         ..ServeConfig::new(url.clone(), loopback)
     };
     let server = Server::start_with_store(config, store.clone())
@@ -162,6 +194,9 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
         )?),
         false => None,
     };
+    // Each worker in this process says when it stops: before the job ends, that is a failure
+    // (no other worker may be left to take its leases), not a wait for ever.
+    let (stopped_tx, mut stopped_rx) = tokio::sync::mpsc::unbounded_channel::<usize>();
     let handles: Vec<_> = (0..workers.count)
         .filter(|_| processes.is_none())
         .map(|w| {
@@ -175,9 +210,15 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
                 subfield_budget: workers.subfield_budget,
             };
             let mut stop = stop_rx.clone();
-            tokio::spawn(vlf_worker::run(config, async move {
-                let _ = stop.wait_for(|s| *s).await;
-            }))
+            let stopped = stopped_tx.clone();
+            tokio::spawn(async move {
+                let ran = vlf_worker::run(config, async move {
+                    let _ = stop.wait_for(|s| *s).await;
+                })
+                .await;
+                let _ = stopped.send(w);
+                ran
+            })
         })
         .collect();
     let registering = Instant::now();
@@ -229,10 +270,17 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
             Follow::Quiet => wait_quietly(&server, &id).await,
         }
     };
-    // A worker process that stops (a store it cannot open, a crash) would leave the job waiting
-    // for its leases to expire, over and over: the run fails instead.
+    // A worker that stops (a store it cannot open, a refusal, a crash) would leave the job
+    // waiting for its leases to expire, over and over: the run fails instead.
+    drop(stopped_tx);
     let followed = match processes.as_mut() {
-        None => following.await,
+        None if handles.is_empty() => following.await,
+        None => tokio::select! {
+            followed = following => followed,
+            Some(w) = stopped_rx.recv() => Err(anyhow::anyhow!(
+                "worker embedded-{w} stopped before job {id} ended (its error is logged)"
+            )),
+        },
         Some(running) => tokio::select! {
             followed = following => followed,
             exited = first_exit(running) => Err(anyhow::anyhow!(exited)),
@@ -247,7 +295,7 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
     for handle in handles {
         match handle.await {
             Ok(Ok(_)) => {}
-            Ok(Err(e)) => tracing::warn!("a worker stopped with an error: {e}"),
+            Ok(Err(e)) => tracing::error!("a worker stopped with an error: {e}"),
             Err(e) => tracing::warn!("a worker panicked: {e}"),
         }
     }

@@ -58,10 +58,19 @@ pub fn run(args: ViewArgs) -> Result<()> {
     // sends the job's manifest, scene and the stage's summary).
     let (source, stage, id): (Box<dyn StageSource>, Stage, JobId) = match args.source.remote("view")? {
         None => {
-            let opened = args.source.open("view", false)?;
+            let opened = args.source.open("view")?;
             let job =
                 FieldJob::open(&opened.store, &opened.id).with_context(|| format!("cannot open job {}", opened.id))?;
-            let stage = opened.stage.unwrap_or_else(|| job.latest_stage());
+            let stage = match opened.stage {
+                Some(stage) => stage,
+                None => job.latest_stage().with_context(|| {
+                    format!(
+                        "job {} has no finished snapshot yet ({})",
+                        opened.id,
+                        job.job().manifest().state
+                    )
+                })?,
+            };
             let parts = StageParts::open(job, stage)
                 .with_context(|| format!("cannot read {} of job {}", crate::render::describe(stage), opened.id))?;
             (Box::new(StoreParts::new(parts, None)?), stage, opened.id)
@@ -546,7 +555,7 @@ fn snapshot_loader(
                 None => {
                     let job = FieldJob::open(&store, &id)?;
                     let m = job.job().manifest();
-                    (m.finished_iterations.clone(), job.latest_stage() == Stage::Field)
+                    (m.finished_iterations.clone(), job.latest_stage() == Some(Stage::Field))
                 }
             };
             let Some(next) = step(current, &finished, done, switch) else {

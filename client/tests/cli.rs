@@ -12,9 +12,13 @@ use vlf_core::propagate::Propagation;
 use vlf_store::blob::Encoding;
 use vlf_store::{FieldJob, Job, JobId, Stage, Store};
 
+/// `vlf ARGS`, without the coordinator a developer's shell may name (`VLF_SERVER`,
+/// `VLF_TOKEN`): what each test asks for is all it gets.
 fn vlf(args: &[&str]) -> Output {
     Command::new(env!("CARGO_BIN_EXE_vlf"))
         .args(args)
+        .env_remove("VLF_SERVER")
+        .env_remove("VLF_TOKEN")
         .output()
         .expect("run vlf")
 }
@@ -248,6 +252,43 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
     job.write_snapshot(&p).unwrap();
     let id = job.id().to_string();
     drop((job, p));
+    let manifest = dir.join("jobs").join(&id).join("manifest.blob");
+    let stopped = std::fs::read(&manifest).expect("the stopped job's manifest");
+    // `vlf run` of another job over the same store runs that job alone: the stopped one is
+    // left as it was (the embedded coordinator used to take up, and drive, every unfinished
+    // job of its store).
+    let o = vlf(&[
+        "run",
+        &scene("cornell.obj"),
+        "--store",
+        url,
+        "--directions",
+        "9",
+        "--resolution",
+        "8",
+        "--tile",
+        "4",
+        "--iterations",
+        "1",
+    ]);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(
+        std::fs::read(&manifest).unwrap(),
+        stopped,
+        "vlf run of another job touched the stopped job"
+    );
+    // A resumed job runs with its own parameters: another flag is refused, not ignored.
+    let o = vlf(&["propagate", "--store", url, "--resume", &id, "--iterations", "50"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("own parameters"),
+        "{}",
+        stderr(&o)
+    );
+    // A store to resume from is opened as it is, not created where a typo points.
+    let typo = dir.join("typo");
+    let o = vlf(&["run", "--store", typo.to_str().unwrap(), "--resume", &id]);
+    assert!(!o.status.success() && !typo.exists(), "{}", stderr(&o));
+    assert_eq!(std::fs::read(&manifest).unwrap(), stopped);
     let o = vlf(&["propagate", "--store", url, "--resume", &id, "--threads", "1"]);
     assert!(o.status.success(), "{}", stderr(&o));
     assert!(String::from_utf8_lossy(&o.stdout).contains("after 1 iterations"));
@@ -262,14 +303,20 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
         same_field(&a, &b),
         "the resumed field differs from the uninterrupted one"
     );
-    for snapshot in ["0", "2"] {
-        let image = dir.join(format!("s{snapshot}.pfm"));
-        let o = vlf(&[
+    let render_snapshot = |snapshot: &str, direct: &str, out: &str, server: Option<&str>| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_vlf"));
+        command.env_remove("VLF_SERVER").env_remove("VLF_TOKEN");
+        if let Some(server) = server {
+            command.env("VLF_SERVER", server);
+        }
+        let args = [
             "render",
             url,
             &id,
             "--snapshot",
             snapshot,
+            "--direct",
+            direct,
             "--eye",
             "278,273,-800",
             "--target",
@@ -277,10 +324,39 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
             "--size",
             "16x16",
             "--out",
-            image.to_str().unwrap(),
-        ]);
-        assert!(o.status.success(), "{}", stderr(&o));
+            out,
+        ];
+        command.args(args).output().expect("run vlf")
+    };
+    for snapshot in ["0", "2"] {
+        for direct in ["auto", "field"] {
+            let image = dir.join(format!("s{snapshot}-{direct}.pfm"));
+            let o = render_snapshot(snapshot, direct, image.to_str().unwrap(), None);
+            assert!(o.status.success(), "{}", stderr(&o));
+        }
     }
+    // Snapshot 0 is the emitters' light alone: exact direct light has nothing to exchange there,
+    // so auto draws it as the field has it (it used to take snapshot 1's direct light off the
+    // walls, black where it was not made up), and exact is refused.
+    let image = |name: &str| std::fs::read(dir.join(name)).unwrap();
+    assert_eq!(image("s0-auto.pfm"), image("s0-field.pfm"));
+    assert_ne!(image("s2-auto.pfm"), image("s2-field.pfm"));
+    let o = render_snapshot("0", "exact", dir.join("x.pfm").to_str().unwrap(), None);
+    assert!(
+        !o.status.success() && stderr(&o).contains("snapshot 0"),
+        "{}",
+        stderr(&o)
+    );
+    // `VLF_SERVER` names the coordinator of `submit` and `watch`; a store given to `render` is
+    // still a store.
+    let o = render_snapshot(
+        "2",
+        "auto",
+        dir.join("env.pfm").to_str().unwrap(),
+        Some("http://127.0.0.1:9"),
+    );
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert_eq!(image("env.pfm"), image("s2-auto.pfm"));
     let o = vlf(&["propagate", "--store", url, "--resume", &id]);
     assert!(!o.status.success() && stderr(&o).contains("finished"), "{}", stderr(&o));
     let o = vlf(&["jobs", url]);
@@ -405,7 +481,42 @@ fn bad_input_gets_a_clear_error() {
             vec![
                 "render", &o_str, "--eye", "0,0,0", "--target", "0,0,1", "--size", "0x10", "--out", "x.png",
             ],
-            "size",
+            "width must be between 1 and 16384",
+        ),
+        // What the output refuses is refused before the store is read (this one has no job).
+        (
+            vec![
+                "render",
+                &o_str,
+                "--eye",
+                "0,0,0",
+                "--target",
+                "0,0,1",
+                "--out",
+                "/nonexistent/folder/x.png",
+            ],
+            "folder /nonexistent/folder does not exist",
+        ),
+        (
+            vec![
+                "render", &o_str, "--eye", "0,0,0", "--target", "0,0,1", "--out", "x.jpg",
+            ],
+            "unsupported extension",
+        ),
+        (
+            vec![
+                "render",
+                &o_str,
+                "--eye",
+                "0,0,0",
+                "--target",
+                "0,0,1",
+                "--out",
+                "x.png",
+                "--exposure",
+                "nan",
+            ],
+            "exposure must be finite",
         ),
     ];
     for (args, needle) in cases {
@@ -440,6 +551,8 @@ fn mirrors_scene_plans_propagates_and_renders_both_ways() {
     let text = String::from_utf8_lossy(&o.stdout);
     assert!(text.contains("2 of 2 mirrors reachable"), "{text}");
     assert!(text.contains("perturbation: off"), "{text}");
+    // Recorded with the job, so that whoever resumes it finishes it as asked.
+    assert!(only_job(&out).job().manifest().resample, "--resample is not recorded");
     let cornell = vlf(&[
         "propagate",
         &scene("cornell.obj"),

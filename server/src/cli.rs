@@ -77,6 +77,7 @@ impl ServeArgs {
             subfield_budget: self
                 .subfield_memory
                 .map(|b| usize::try_from(b.as_u64()).unwrap_or(usize::MAX)),
+            take_up: crate::driver::TakeUp::Every,
         })
     }
 }

@@ -45,6 +45,8 @@ pub struct ServeConfig {
     /// At most this many bytes of a job's subfields held by the coordinator (and by workers in
     /// this process, which share its propagation); `None`: all.
     pub subfield_budget: Option<usize>,
+    /// Which jobs of the store it takes up as it starts (every one, unless embedded).
+    pub take_up: driver::TakeUp,
 }
 
 impl ServeConfig {
@@ -62,6 +64,7 @@ impl ServeConfig {
             max_upload_bytes: Self::MAX_UPLOAD_BYTES,
             prototypes: None,
             subfield_budget: None,
+            take_up: driver::TakeUp::Every,
         }
     }
 }
@@ -115,7 +118,7 @@ impl Server {
             t => t.clone(),
         };
         let scheduler = Scheduler::new(store, config.timing, config.prototypes.clone(), config.subfield_budget);
-        let resumed = driver::recover(&scheduler).await?;
+        let resumed = driver::recover(&scheduler, &config.take_up).await?;
         if resumed > 0 {
             tracing::info!(resumed, "took up unfinished jobs of the store");
         }

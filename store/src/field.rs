@@ -338,11 +338,13 @@ impl FieldJob {
     }
 
     /// The stage a renderer should show by default: the final field of a finished job, else the
-    /// last finished snapshot.
-    pub fn latest_stage(&self) -> Stage {
+    /// last finished snapshot; `None` while no snapshot is finished (a job queued, or failed
+    /// before its set-up was written).
+    pub fn latest_stage(&self) -> Option<Stage> {
         match (&self.job.manifest().state, self.job.last_finished()) {
-            (JobState::Finished, _) | (_, None) => Stage::Field,
-            (_, Some(k)) => Stage::Iteration(k),
+            (JobState::Finished, _) => Some(Stage::Field),
+            (_, None) => None,
+            (_, Some(k)) => Some(Stage::Iteration(k)),
         }
     }
 

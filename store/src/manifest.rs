@@ -58,6 +58,19 @@ pub enum JobState {
     Cancelled,
 }
 
+impl std::fmt::Display for JobState {
+    /// As `vlf jobs` lists it: "queued", "propagating iteration 3", "failed: …".
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            JobState::Queued => write!(f, "queued"),
+            JobState::Propagating { iteration } => write!(f, "propagating iteration {iteration}"),
+            JobState::Finished => write!(f, "finished"),
+            JobState::Failed { message } => write!(f, "failed: {message}"),
+            JobState::Cancelled => write!(f, "cancelled"),
+        }
+    }
+}
+
 /// A job's manifest.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]

@@ -118,8 +118,9 @@ fn report(args: &super::BenchArgs, cores: usize, settings: &[Setting], samples: 
     let _ = writeln!(
         out,
         "{cores} cores on {cpu}; `{}` store; median of {} runs each, interleaved. Every run gave \
-         the same bits. Speed-up `S` over the first row, efficiency `S / p`, and Amdahl's serial \
-         fraction `f = (p / S − 1) / (p − 1)`; `iterations` leaves the set-up (scene, subfields, \
+         the same bits. Speed-up `S = p₀ · t₀ / t` over the first row (`p₀` its threads or \
+         workers: a first row of more than one is taken as perfectly parallel, so list 1 first \
+         for a measured base), efficiency `S / p`, and Amdahl's serial fraction `f = (p / S − 1) / (p − 1)`; `iterations` leaves the set-up (scene, subfields, \
          the job's creation) out.\n",
         super::store_url(args),
         args.repeat

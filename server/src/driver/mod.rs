@@ -15,7 +15,7 @@ mod set_up;
 #[cfg(test)]
 mod tests;
 
-pub use recover::{read_stored_status, recover, stored_status};
+pub use recover::{TakeUp, read_stored_status, recover, stored_status};
 use set_up::set_up_and_start;
 
 use crate::scheduler::{PassOutcome, Scheduler};

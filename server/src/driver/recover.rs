@@ -8,14 +8,33 @@ use std::sync::Arc;
 use vlf_proto::v1::{JobStatus, State as WireState};
 use vlf_store::{Coordinator, FieldJob, Job, JobId, JobState, Store, StoreError};
 
-/// Takes up every job of the store: unfinished ones are resumed from their last snapshot and
-/// driven; ended ones are listed with their final state. A job that cannot be read is listed as
-/// failed with the reason, and the others go on.
-pub async fn recover(sched: &Arc<Scheduler>) -> Result<usize, StoreError> {
-    let store = sched.store().clone();
-    let ids = vlf_store::blocking(move || Job::list(&store))
-        .await
-        .map_err(|e| StoreError::Layout(e.to_string()))??;
+/// Which jobs of its store a starting coordinator takes up.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub enum TakeUp {
+    /// Every one (`vlf serve`: a restarted coordinator goes on with its jobs).
+    #[default]
+    Every,
+    /// This one alone (`vlf run --resume JOB`: the embedded service runs the job it was asked
+    /// for, not every unfinished job that shares its store).
+    Only(JobId),
+    /// None (`vlf run` of a new job).
+    Nothing,
+}
+
+/// Takes up the jobs of the store that `which` names: unfinished ones are resumed from their
+/// last snapshot and driven; ended ones are listed with their final state. A job that cannot
+/// be read is listed as failed with the reason, and the others go on.
+pub async fn recover(sched: &Arc<Scheduler>, which: &TakeUp) -> Result<usize, StoreError> {
+    let ids = match which {
+        TakeUp::Nothing => return Ok(0),
+        TakeUp::Only(id) => vec![id.clone()],
+        TakeUp::Every => {
+            let store = sched.store().clone();
+            vlf_store::blocking(move || Job::list(&store))
+                .await
+                .map_err(|e| StoreError::Layout(e.to_string()))??
+        }
+    };
     let mut resumed = 0;
     for id in ids {
         if sched.has_job(&id) {
@@ -76,7 +95,7 @@ pub fn stored_status(job: &FieldJob) -> JobStatus {
         JobState::Failed { message } => (WireState::Failed, message.clone(), 0),
         JobState::Cancelled => (WireState::Cancelled, String::new(), 0),
     };
-    let summary = job.summary(job.latest_stage()).ok();
+    let summary = job.latest_stage().and_then(|stage| job.summary(stage).ok());
     let unshot = summary.as_ref().map_or(f64::NAN, |s| s.unshot_fraction);
     let digest = match manifest.state {
         JobState::Finished => summary.and_then(|s| s.digest).unwrap_or_default(),

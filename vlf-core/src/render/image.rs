@@ -88,20 +88,7 @@ impl Image {
     /// float formats but required to be finite).
     pub fn save(&self, path: impl AsRef<Path>, exposure: f64) -> Result<()> {
         let path = path.as_ref();
-        let extension = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .map(str::to_ascii_lowercase)
-            .unwrap_or_default();
-        if !matches!(extension.as_str(), "pfm" | "exr" | "png") {
-            return Err(Error::Parameter(format!(
-                "cannot write image {}: unsupported extension '{extension}', use one of {SUPPORTED}",
-                path.display()
-            )));
-        }
-        if !exposure.is_finite() {
-            return Err(Error::Parameter(format!("exposure must be finite, got {exposure}")));
-        }
+        let extension = Image::check_output(path, exposure)?;
         self.check_size()?;
         match extension.as_str() {
             "pfm" => self.save_pfm(path),
@@ -122,6 +109,37 @@ impl Image {
                     .map_err(|e| image_error(path, e))
             }
         }
+    }
+
+    /// What [`Image::save`] would refuse before it has an image to write: an extension other
+    /// than `.pfm`, `.exr` or `.png`, an exposure that is not finite, a folder that does not
+    /// exist. A renderer asks first, so a minute's rendering is not lost to a typo. Returns the
+    /// extension, lower-case.
+    pub fn check_output(path: &Path, exposure: f64) -> Result<String> {
+        let extension = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .unwrap_or_default();
+        if !matches!(extension.as_str(), "pfm" | "exr" | "png") {
+            return Err(Error::Parameter(format!(
+                "cannot write image {}: unsupported extension '{extension}', use one of {SUPPORTED}",
+                path.display()
+            )));
+        }
+        if !exposure.is_finite() {
+            return Err(Error::Parameter(format!("exposure must be finite, got {exposure}")));
+        }
+        if let Some(folder) = path.parent().filter(|f| !f.as_os_str().is_empty())
+            && !folder.is_dir()
+        {
+            return Err(Error::Parameter(format!(
+                "cannot write image {}: the folder {} does not exist",
+                path.display(),
+                folder.display()
+            )));
+        }
+        Ok(extension)
     }
 
     /// Standard PFM: `PF\n{w} {h}\n-1.0\n` (negative scale: little-endian),
