@@ -468,8 +468,18 @@ mod tests {
             broken.save(dir.path().join("x.pfm"), 0.0),
             Err(Error::Parameter(_))
         ));
+        // A folder that is not there is named before anything is written (and can be checked
+        // before rendering: `check_output`); a file that cannot be written is an I/O error.
         let unwritable = dir.path().join("no-such-dir").join("x.pfm");
-        assert!(matches!(image.save(unwritable, 0.0), Err(Error::Io { .. })));
+        match Image::check_output(&unwritable, 0.0) {
+            Err(Error::Parameter(m)) => assert!(m.contains("no-such-dir") && m.contains("does not exist"), "{m}"),
+            other => panic!("{other:?}"),
+        }
+        assert!(matches!(image.save(&unwritable, 0.0), Err(Error::Parameter(_))));
+        let a_folder = dir.path().join("folder.pfm");
+        std::fs::create_dir(&a_folder).unwrap();
+        assert!(matches!(image.save(&a_folder, 0.0), Err(Error::Io { .. })));
+        assert_eq!(Image::check_output(Path::new("x.PNG"), 0.0).unwrap(), "png");
     }
 
     #[test]
