@@ -32,12 +32,13 @@
 //! are per ray; a texel grid is all they need it for.
 //!
 //! Everything here is a deterministic function of the scene (and the texel size, for the
-//! fold-over test): hashing is used for look-ups only, every order is by surface index or by
-//! area with index as tie-break, so charts are bit-identical on every machine and thread count.
+//! fold-over test): hashing (`FxHash`, fast on a scan's millions of vertex keys) is used for
+//! look-ups only, every order is by surface index or by area with index as tie-break, so charts
+//! are bit-identical on every machine and thread count.
 
 use crate::scene::{Scene, vertex_key};
 use glam::{DVec2, DVec3};
-use std::collections::{HashMap, HashSet};
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 /// Largest angle between a surface's normal and its curved chart's normal, in degrees.
 pub const CURVED_CHART_ANGLE_DEG: f64 = 30.0;
@@ -86,8 +87,8 @@ pub fn segment_with_planes(scene: &Scene, texel: f64) -> (Vec<Chart>, Vec<u32>) 
         .collect();
 
     // Surfaces by vertex, and by edge.
-    let mut by_vertex: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
-    let mut by_edge: HashMap<([i64; 3], [i64; 3]), Vec<u32>> = HashMap::new();
+    let mut by_vertex: HashMap<[i64; 3], Vec<u32>> = HashMap::default();
+    let mut by_edge: HashMap<([i64; 3], [i64; 3]), Vec<u32>> = HashMap::default();
     for (s, ks) in keys.iter().enumerate() {
         for (i, k) in ks.iter().enumerate() {
             let list = by_vertex.entry(*k).or_default();
@@ -131,7 +132,7 @@ pub fn segment_with_planes(scene: &Scene, texel: f64) -> (Vec<Chart>, Vec<u32>) 
     // Groups numbered by their smallest surface.
     let mut group_of = vec![u32::MAX; count];
     let mut groups: Vec<Vec<u32>> = Vec::new();
-    let mut root_group: HashMap<usize, u32> = HashMap::new();
+    let mut root_group: HashMap<usize, u32> = HashMap::default();
     for (s, group) in group_of.iter_mut().enumerate() {
         let root = sets.find(s);
         let g = *root_group.entry(root).or_insert_with(|| {
@@ -185,14 +186,14 @@ pub fn segment_with_planes(scene: &Scene, texel: f64) -> (Vec<Chart>, Vec<u32>) 
             normal,
             material,
             groups: vec![seed],
-            claimed: HashSet::new(),
+            claimed: HashSet::default(),
         };
         if !scene.materials[material].is_mirror() {
             let frame = crate::psf::PsfFrame::new(normal);
             chart
                 .claimed
                 .extend(cells_of(scene, &groups[seed as usize], &frame, texel));
-            let mut tried: HashSet<u32> = HashSet::new();
+            let mut tried: HashSet<u32> = HashSet::default();
             let mut queue = std::collections::VecDeque::from([seed]);
             while let Some(g) = queue.pop_front() {
                 for &h in &neighbours[g as usize] {
@@ -620,7 +621,7 @@ mod tests {
         assert!(charts.len() >= 2, "a ramp of 1.5 turns cannot be one flat chart");
         for c in &charts {
             let frame = crate::psf::PsfFrame::new(c.normal);
-            let mut seen = HashSet::new();
+            let mut seen = HashSet::default();
             for &m in &c.surfaces {
                 for cell in cells_of(&s, &[m], &frame, texel) {
                     assert!(

@@ -27,7 +27,7 @@
 
 use super::TexelAtlas;
 use crate::scene::{Rgb, Scene, vertex_key};
-use std::collections::HashMap;
+use rustc_hash::FxHashMap as HashMap;
 
 /// Fills the texels no ray crosses (`covered[t]` false) of every chart that some ray crosses
 /// with the mean of their covered (or already filled) neighbours, a ring per pass.
@@ -102,7 +102,7 @@ impl AcrossCharts {
             return AcrossCharts::default();
         }
         // The charts at each vertex of a dark chart, increasing.
-        let mut at_vertex: HashMap<[i64; 3], Vec<u32>> = HashMap::new();
+        let mut at_vertex: HashMap<[i64; 3], Vec<u32>> = HashMap::default();
         for (s, surface) in scene.surfaces.iter().enumerate() {
             if dark[atlas.chart_of[s] as usize] {
                 for &p in &surface.vertices {

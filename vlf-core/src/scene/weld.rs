@@ -16,7 +16,7 @@
 
 use super::{Surface, VERTEX_QUANTUM, vertex_key};
 use glam::DVec3;
-use std::collections::HashMap;
+use rustc_hash::{FxHashMap as HashMap, FxHashSet as HashSet};
 
 /// A vertex lies on an edge when its distance to the edge's line is below this fraction of the
 /// edge's length, and strictly between its endpoints (by more than it).
@@ -45,8 +45,8 @@ pub fn split_t_junctions(surfaces: Vec<Surface>) -> (Vec<Surface>, usize) {
     };
     // Vertices closer than a quantum are one vertex (the same corner computed twice rounds a
     // few ulps apart): the first one met stands for them.
-    let mut seen = std::collections::HashSet::new();
-    let mut grid: HashMap<(i64, i64, i64), Vec<DVec3>> = HashMap::new();
+    let mut seen = HashSet::default();
+    let mut grid: HashMap<(i64, i64, i64), Vec<DVec3>> = HashMap::default();
     for s in &surfaces {
         for &p in &s.vertices {
             if seen.insert(vertex_key(p)) {
@@ -124,7 +124,7 @@ fn vertices_on_edge(grid: &HashMap<(i64, i64, i64), Vec<DVec3>>, cell: f64, a: D
     } else {
         // A long diagonal edge: step along it instead, a cell at a time.
         let steps = (len / cell).ceil() as i64 + 1;
-        let mut seen = std::collections::HashSet::new();
+        let mut seen = HashSet::default();
         for k in 0..=steps {
             let c = a + d * (k as f64 / steps as f64);
             let q = (c / cell).floor();
