@@ -88,7 +88,15 @@ pub fn run(args: ViewArgs) -> Result<()> {
     };
     let geometry = source.geometry().clone();
     let remote = args.source.remote("view")?.map(|(target, _)| target);
-    let (exact, first) = exact_direct(&args, remote.as_ref(), source.store(), &id, &geometry)?.unzip();
+    // Snapshot 0 is the emitters' light alone: exact direct light has nothing to exchange there.
+    let (exact, first) = match (stage, args.direct) {
+        (Stage::Iteration(0), DirectArg::Exact) => bail!(
+            "--direct exact: snapshot 0 is the emitters' own light, before any light reached a \
+             surface, so it has no direct light to compute exactly: view it with --direct field"
+        ),
+        (Stage::Iteration(0), _) => (None, None),
+        _ => exact_direct(&args, remote.as_ref(), source.store(), &id, &geometry)?.unzip(),
+    };
     // The scene spans about 2 / scale scene units (the VLF frame is [-1, 1]³).
     let n = geometry.scene.normalisation;
     let size = 2.0 / n.scale;
@@ -558,6 +566,9 @@ fn snapshot_loader(
                     (m.finished_iterations.clone(), job.latest_stage() == Some(Stage::Field))
                 }
             };
+            // Snapshot 0 is the emitters' light alone, with no direct part for exact direct
+            // light to stand in for: a view drawing it exactly steps from snapshot 1.
+            let finished: Vec<u32> = finished.into_iter().filter(|&k| !(exact && k == 0)).collect();
             let Some(next) = step(current, &finished, done, switch) else {
                 return Ok(None);
             };

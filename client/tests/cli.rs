@@ -347,6 +347,12 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
         "{}",
         stderr(&o)
     );
+    let o = vlf(&["view", url, &id, "--snapshot", "0", "--direct", "exact"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("snapshot 0"),
+        "{}",
+        stderr(&o)
+    );
     // `VLF_SERVER` names the coordinator of `submit` and `watch`; a store given to `render` is
     // still a store.
     let o = render_snapshot(
