@@ -589,3 +589,106 @@ fn shadows_per_texel_are_the_cpu_shadow_at_texel_centres_and_follow_moves() {
     vlf_viewer::render(&gpu, &renderer, &camera, 1, SpecularMode::Rays).unwrap();
     check(&there);
 }
+
+/// A chrome cube (ρs 0.8, ρd 0.1) in the air of the Cornell box under exact direct light, seen
+/// from above: its top face reflects the lamp. The reflected ray has no shadow ray to count the
+/// lamp's light, so it keeps the emission (`Gatherer::arriving` on the CPU); the GPU once took
+/// it off as it does for a gather ray and drew the lamp black in the mirror. Mirrors from the
+/// rays, and traced (where the path goes on past the cube's mirror, as `render_with_objects`
+/// recurses).
+#[test]
+fn a_mirror_object_reflects_the_lamp_as_the_cpu_does() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field_exact("cornell.obj", 33, 3, 64);
+    let bvh = Bvh::build(&field.scene);
+    let chrome = Material {
+        name: "chrome".into(),
+        diffuse: [0.1; 3],
+        specular: [0.8; 3],
+        emission: [0.0; 3],
+        albedo_texture: None,
+    };
+    let n = field.scene.normalisation;
+    let placed = vec![
+        DynamicObject::cube("chrome cube", DVec3::new(278.0, 260.0, 200.0), 50.0, 1, chrome)
+            .place(&Pose::IDENTITY, &n)
+            .unwrap(),
+    ];
+    placed[0].check_clear(&field.scene, &bvh).unwrap();
+    let camera = vlf_core::render::Camera::new(
+        DVec3::new(278.0, 500.0, 160.0),
+        DVec3::new(278.0, 310.0, 205.0),
+        DVec3::Z,
+        39.0,
+        32,
+        32,
+    )
+    .unwrap();
+    // The lamp's radiance (17, 12, 4) times ρs: a pixel of the cube that shows it.
+    let lamp_in_mirror = 0.5 * 0.8 * 17.0;
+    for mode in [SpecularMode::Rays, SpecularMode::Trace { depth: 4 }] {
+        let cpu = Gatherer::with_directions(&field, &bvh, &placed, mode, 33)
+            .unwrap()
+            .with_shadow_samples(16);
+        let want = vlf_core::dynamic::view::render_with_objects(&cpu, &bvh, &camera, 1);
+        let renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
+        let got = vlf_viewer::render(&gpu, &renderer, &camera, 1, mode).unwrap();
+        let lamp: Vec<usize> = (0..want.pixels.len())
+            .filter(|&i| want.pixels[i][0] > lamp_in_mirror)
+            .collect();
+        let off = differing(&want, &got, 1e-2);
+        let lamp_off = lamp
+            .iter()
+            .filter(|&&i| (0..3).any(|c| (want.pixels[i][c] - got.pixels[i][c]).abs() > 1e-2 * want.pixels[i][c]))
+            .count();
+        println!(
+            "{mode:?}: {} pixels show the lamp in the cube, {lamp_off} of them differ by 1 %; {off} of {} pixels in all",
+            lamp.len(),
+            want.pixels.len()
+        );
+        assert!(lamp.len() >= 20, "the cube reflects the lamp in {} pixels", lamp.len());
+        assert!(
+            lamp_off * 20 <= lamp.len(),
+            "{lamp_off} of {} lamp pixels differ",
+            lamp.len()
+        );
+        assert!(off * 20 <= want.pixels.len(), "{off} pixels differ by more than 1 %");
+    }
+}
+
+/// With objects in the view, a static mirror whose tiles of the rays are not resident (a
+/// streaming view) is traced through the diffuse maps that are, as a view without objects
+/// traces it (`shade`), not drawn black. The objects' pass without objects in it draws what the
+/// plain pass draws: with only the diffuse maps resident, both images are the same.
+#[test]
+fn mirrors_missing_their_tiles_are_traced_among_objects_too() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field("mirrors.obj", 33, 3);
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
+    let bvh = Bvh::build(&field.scene);
+    let camera = common::readme_camera(32, 32);
+    let mode = SpecularMode::Rays;
+    let none: Vec<PlacedObject> = Vec::new();
+    let gatherer = Gatherer::with_directions(&field, &bvh, &none, mode, 33).unwrap();
+    let capacity = catalog.total_values();
+    let among = FieldRenderer::streaming_with_objects(&gpu, &field, capacity, &gatherer).unwrap();
+    let plain = FieldRenderer::streaming(&gpu, &field, capacity).unwrap();
+    // The diffuse maps only (the chunks come first in the catalog).
+    let mut base = 0;
+    for i in 0..catalog.chunks() as u32 {
+        for r in [&among, &plain] {
+            r.upload(&gpu, i, base, field.part_values(&catalog, i)).unwrap();
+        }
+        base += catalog.values(i);
+    }
+    let a = vlf_viewer::render(&gpu, &among, &camera, 1, mode).unwrap();
+    let b = vlf_viewer::render(&gpu, &plain, &camera, 1, mode).unwrap();
+    let complete = field.render(&camera, 1, mode);
+    let mirrored = differing(&b, &complete, 1e-2);
+    let off = differing(&a, &b, 1e-3);
+    println!(
+        "diffuse maps only: {mirrored} pixels differ from the complete field's (mirrors traced); among objects {off} differ from them"
+    );
+    assert!(mirrored > 0 && mirrored * 2 < a.pixels.len(), "{mirrored}");
+    assert_eq!(off, 0, "the objects' pass draws the mirrors the plain pass draws");
+}
