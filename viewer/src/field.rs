@@ -385,6 +385,9 @@ impl FieldRenderer {
         if exact.is_some() {
             crate::direct::check_scene(scene)?;
         }
+        if gatherer.is_some_and(|g| !g.objects().is_empty()) {
+            crate::direct::check_scene_for_objects(scene)?;
+        }
         // One set of emitter points serves exact direct light and the objects' shadows.
         if let (Some(e), Some(g)) = (exact, gatherer)
             && g.emitters() != e

@@ -692,3 +692,32 @@ fn mirrors_missing_their_tiles_are_traced_among_objects_too() {
     assert!(mirrored > 0 && mirrored * 2 < a.pixels.len(), "{mirrored}");
     assert_eq!(off, 0, "the objects' pass draws the mirrors the plain pass draws");
 }
+
+/// The objects' shadows on the GPU take each static material's ρd: a static scene with an
+/// albedo texture is refused with objects in it (the CPU reads the texture per point), and
+/// drawn without them.
+#[test]
+fn objects_in_a_textured_scene_are_refused_on_the_gpu() {
+    let Some(gpu) = gpu() else { return };
+    let mut field = bundled_field("cornell.obj", 9, 1);
+    field.scene.textures.push(vlf_core::scene::Texture {
+        name: "checks".into(),
+        width: 2,
+        height: 1,
+        texels: vec![[0.2; 3], [0.9; 3]],
+        wrap: [vlf_core::scene::Wrap::Repeat; 2],
+    });
+    let floor = field.scene.surfaces[0].material;
+    field.scene.materials[floor].albedo_texture = Some(0);
+    let bvh = Bvh::build(&field.scene);
+    let placed = two_cubes(&field);
+    let with = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 9).unwrap();
+    let e = FieldRenderer::with_objects(&gpu, &field, &with)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(e.contains("albedo texture") && e.contains("drop --gpu"), "{e}");
+    let none: Vec<PlacedObject> = Vec::new();
+    let without = Gatherer::with_directions(&field, &bvh, &none, SpecularMode::Rays, 9).unwrap();
+    assert!(FieldRenderer::with_objects(&gpu, &field, &without).is_ok());
+}
