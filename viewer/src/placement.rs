@@ -74,7 +74,8 @@ impl Placement {
 
     /// Moves every object with an end in `to` (scene units: the translation its pose ends
     /// with) in a straight line from where it is, over `frames` calls of
-    /// [`Placement::advance`]; the keys do nothing meanwhile.
+    /// [`Placement::advance`] (the last at the end; one frame goes straight there, as
+    /// [`crate::Walk::script`] does); the keys do nothing meanwhile.
     pub fn script(&mut self, to: Vec<Option<DVec3>>, frames: u64) -> vlf_core::Result<()> {
         if frames == 0 || to.len() > self.objects.len() || to.iter().flatten().any(|p| !p.is_finite()) {
             return Err(vlf_core::Error::Parameter(format!(
@@ -131,7 +132,7 @@ impl Placement {
     pub fn advance(&mut self, seconds: f64, speed: f64, forward: DVec3, field: &LightField, bvh: &Bvh) -> bool {
         let mut wanted: Vec<(usize, Pose)> = Vec::new();
         if let Some(s) = &mut self.script {
-            let f = s.frame.min(s.frames - 1) as f64 / (s.frames - 1).max(1) as f64;
+            let f = crate::walk::script_fraction(s.frame, s.frames);
             s.frame += 1;
             for (k, to) in s.to.iter().enumerate() {
                 if let Some(to) = to {
@@ -298,5 +299,10 @@ mod tests {
         assert!(p.script(vec![Some(to), Some(to)], 3).is_err(), "more ends than objects");
         assert!(p.script(vec![Some(DVec3::NAN)], 3).is_err());
         assert!(p.script(vec![Some(to)], 0).is_err());
+        // A script of one frame (`--frames 1 --object-to P`) puts the object at P.
+        let mut p = placement(DVec3::new(200.0, 400.0, 200.0), &field, &bvh);
+        p.script(vec![Some(to)], 1).unwrap();
+        assert!(p.advance(0.1, 100.0, DVec3::NEG_Z, &field, &bvh));
+        assert!(centre(&p, &field).distance(to) < 1e-6);
     }
 }
