@@ -721,3 +721,81 @@ fn objects_in_a_textured_scene_are_refused_on_the_gpu() {
     let without = Gatherer::with_directions(&field, &bvh, &none, SpecularMode::Rays, 9).unwrap();
     assert!(FieldRenderer::with_objects(&gpu, &field, &without).is_ok());
 }
+
+/// A gather made before the objects moved (`move_objects`) reads their shadows per texel where
+/// they are now: each run brings them up to date first, as a draw does.
+#[test]
+fn a_gather_follows_the_objects_moves() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field("cornell.obj", 33, 3);
+    let bvh = Bvh::build(&field.scene);
+    let n = field.scene.normalisation;
+    let (c, h) = (DVec3::new(420.0, 60.0, 120.0), 50.0);
+    let at = |c: DVec3| vec![cube(c, h).place(&Pose::IDENTITY, &n).unwrap()];
+    let (here, there) = (at(DVec3::new(150.0, 380.0, 300.0)), at(c));
+    fn gatherer<'a>(field: &'a LightField, bvh: &'a Bvh, placed: &'a [PlacedObject]) -> Gatherer<'a> {
+        Gatherer::with_directions(field, bvh, placed, SpecularMode::Rays, 33)
+            .unwrap()
+            .with_gather_shadows(true)
+    }
+    let renderer = FieldRenderer::with_objects(&gpu, &field, &gatherer(&field, &bvh, &here)).unwrap();
+    let gather = GpuGather::new(&gpu, &renderer, SpecularMode::Rays.into()).unwrap();
+    let points = points(&field, c, h);
+    // Gathered once where the cube was, then moved under the gather.
+    gather.incident(&gpu, &points).unwrap();
+    renderer.move_objects(&gpu, &there).unwrap();
+    let got = gather.incident(&gpu, &points).unwrap();
+    let cpu = gatherer(&field, &bvh, &there);
+    let want: Vec<[f64; 3]> = points.iter().map(|&(p, n)| cpu.incident(p, n)).collect();
+    let scale = want.iter().flatten().copied().fold(0.0, f64::max);
+    let worst = (got.iter().zip(&want))
+        .flat_map(|(g, w)| (0..3).map(move |c| (g[c] - w[c]).abs() / scale))
+        .fold(0.0, f64::max);
+    println!("a gather after the cube moved: worst {worst:.2e} of the brightest point");
+    assert!(worst < 1e-3, "{worst}");
+}
+
+/// The shadows per texel are computed again for what they read (a chunk's maps; a mirror
+/// tile when mirrors are read from the rays) and not for what they do not (exact direct
+/// light's direct parts, tiles while mirrors are traced): each pass costs texels × objects × K
+/// rays.
+#[test]
+fn shadows_per_texel_are_computed_again_only_for_parts_they_read() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field_exact("mirrors.obj", 33, 2, 64);
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
+    let bvh = Bvh::build(&field.scene);
+    let placed = two_cubes(&field);
+    let cpu = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33)
+        .unwrap()
+        .with_gpu_lighting(true, true);
+    let mut renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
+    renderer.shadows_per_texel(&gpu, &field).unwrap();
+    let exact = field.exact_direct.as_ref().unwrap();
+    let direct = renderer.direct_parts().expect("exact direct light");
+    // Where `with_objects` put the parts: the catalog's in order, then the direct parts.
+    let base_of = |part: u32| (0..part).map(|p| renderer.part_len(p).unwrap()).sum::<usize>();
+    let tile = (catalog.chunks() as u32..catalog.len() as u32)
+        .find(|&p| catalog.values(p) > 0)
+        .expect("a mirror tile");
+    let traced = vlf_viewer::MirrorMode::Trace { depth: 2 };
+    let rays = vlf_viewer::MirrorMode::Rays;
+    let passes_after = |mode, upload: Option<u32>| {
+        if let Some(p) = upload {
+            let values = match direct.chunk(p) {
+                Some(c) => &exact.direct()[catalog.range(c)],
+                None => field.part_values(&catalog, p),
+            };
+            renderer.upload(&gpu, p, base_of(p), values).unwrap();
+        }
+        renderer.refresh_shadows(&gpu, mode).unwrap();
+        renderer.shadow_passes()
+    };
+    assert_eq!(passes_after(traced, None), 1);
+    assert_eq!(passes_after(traced, None), 1, "nothing changed");
+    assert_eq!(passes_after(traced, Some(direct.of_chunk(0))), 1, "a direct part");
+    assert_eq!(passes_after(traced, Some(tile)), 1, "a tile, mirrors traced");
+    assert_eq!(passes_after(rays, None), 2, "another mirror mode");
+    assert_eq!(passes_after(rays, Some(tile)), 3, "a tile, mirrors from the rays");
+    assert_eq!(passes_after(rays, Some(0)), 4, "a chunk");
+}
