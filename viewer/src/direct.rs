@@ -103,15 +103,36 @@ impl EmitterBuffers {
 /// `ρd` is the material's, so albedo textures (which the CPU reads per point) are refused
 /// rather than drawn wrong.
 pub fn check_scene(scene: &Scene) -> Result<(), ViewerError> {
-    let textured = (0..scene.surfaces.len()).find(|&s| scene.material(s).albedo_texture.is_some());
-    match textured {
-        Some(s) => Err(ViewerError::Unsupported(format!(
-            "exact direct light on the GPU reads each material's ρd, and material {:?} has an albedo \
-             texture: render on the CPU (drop --gpu) or take the field's direct light (--direct field)",
-            scene.material(s).name
+    match textured_material(scene) {
+        Some(name) => Err(ViewerError::Unsupported(format!(
+            "exact direct light on the GPU reads each material's ρd, and material {name:?} has an albedo \
+             texture: render on the CPU (drop --gpu) or take the field's direct light (--direct field)"
         ))),
         None => Ok(()),
     }
+}
+
+/// Why dynamic objects cannot be drawn in `scene` on the GPU, if they cannot: the shadows they
+/// cast scale with the static surface's `ρd`, which the shaders take per material, where the
+/// CPU reads an albedo texture per point (`Scene::albedo_at`). A textured scene is refused
+/// rather than shadowed wrong (a mean per material would be wrong wherever the texture is not
+/// flat, and the CPU renders it right).
+pub fn check_scene_for_objects(scene: &Scene) -> Result<(), ViewerError> {
+    match textured_material(scene) {
+        Some(name) => Err(ViewerError::Unsupported(format!(
+            "dynamic objects' shadows on the GPU read each material's ρd, and material {name:?} of the \
+             static scene has an albedo texture: render the objects on the CPU (drop --gpu)"
+        ))),
+        None => Ok(()),
+    }
+}
+
+/// The name of the first material with an albedo texture that a surface of `scene` uses.
+fn textured_material(scene: &Scene) -> Option<&str> {
+    (0..scene.surfaces.len())
+        .map(|s| scene.material(s))
+        .find(|m| m.albedo_texture.is_some())
+        .map(|m| m.name.as_str())
 }
 
 /// A [`PartSource`] that serves the direct parts too: the field's own parts from `field`, and

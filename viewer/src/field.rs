@@ -184,6 +184,8 @@ pub struct FieldRenderer {
     /// moved, parts arrived), and the mirror mode they were computed for.
     shadows_stale: Cell<bool>,
     shadows_mode: Cell<Option<MirrorMode>>,
+    /// Passes computing the shadows per texel so far ([`FieldRenderer::shadow_passes`]).
+    shadow_passes: Cell<u64>,
     /// With exact direct light: where its direct parts are.
     direct: Option<DirectParts>,
 }
@@ -384,6 +386,9 @@ impl FieldRenderer {
         let scene = &field.scene;
         if exact.is_some() {
             crate::direct::check_scene(scene)?;
+        }
+        if gatherer.is_some_and(|g| !g.objects().is_empty()) {
+            crate::direct::check_scene_for_objects(scene)?;
         }
         // One set of emitter points serves exact direct light and the objects' shadows.
         if let (Some(e), Some(g)) = (exact, gatherer)
@@ -680,6 +685,7 @@ impl FieldRenderer {
                 texel_shadows: None,
                 shadows_stale: Cell::new(true),
                 shadows_mode: Cell::new(None),
+                shadow_passes: Cell::new(0),
                 direct,
             }
         })?;
@@ -783,22 +789,38 @@ impl FieldRenderer {
     /// (drawn per texel, or seen by the gather).
     fn update_shadows(&self, gpu: &Gpu, encoder: &mut wgpu::CommandEncoder, mirrors: MirrorMode) {
         if let Some(shadows) = &self.texel_shadows
-            && (self.shadows_stale.get() || self.shadows_mode.get() != Some(mirrors))
+            && self.shadows_due(mirrors)
         {
             shadows.dispatch(gpu, encoder, mirrors);
             self.shadows_stale.set(false);
             self.shadows_mode.set(Some(mirrors));
+            self.shadow_passes.set(self.shadow_passes.get() + 1);
         }
+    }
+
+    /// Whether the shadows per texel are out of date for `mirrors`.
+    fn shadows_due(&self, mirrors: MirrorMode) -> bool {
+        self.shadows_stale.get() || self.shadows_mode.get() != Some(mirrors)
     }
 
     /// Brings the objects' shadows per texel up to date for `mirrors` now (a draw does it
     /// itself; compute passes over the renderer's buffers, the gather's, call this first).
+    /// Submits nothing where they are up to date.
     pub fn refresh_shadows(&self, gpu: &Gpu, mirrors: MirrorMode) -> Result<(), ViewerError> {
+        if self.texel_shadows.is_none() || !self.shadows_due(mirrors) {
+            return Ok(());
+        }
         gpu.checked(|| {
             let mut encoder = gpu.device.create_command_encoder(&Default::default());
             self.update_shadows(gpu, &mut encoder, mirrors);
             gpu.queue.submit([encoder.finish()]);
         })
+    }
+
+    /// How many times the shadows per texel were computed so far: a pass costs `texels ×
+    /// objects × K` rays, so tests hold it to the changes that need one.
+    pub fn shadow_passes(&self) -> u64 {
+        self.shadow_passes.get()
     }
 
     /// What every value of the pool loses to the objects' shadows, as last computed per texel
@@ -882,9 +904,26 @@ impl FieldRenderer {
         }
         gpu.queue
             .write_buffer(&self.parts, part as u64 * 4, bytemuck::bytes_of(&(base as u32)));
-        // A texel's shadow reads the radiance behind the objects: new parts change it.
-        self.shadows_stale.set(true);
+        if self.shadows_read(part) {
+            self.shadows_stale.set(true);
+        }
         Ok(())
+    }
+
+    /// Whether the shadows per texel read part `part`, so that its arrival makes them stale: a
+    /// chunk's diffuse maps (its texels get shadows, and the radiance behind the objects is
+    /// read from the maps), and a mirror tile while they were computed with mirrors from the
+    /// rays. Not a direct part: the shadow passes read the maps as the gather does, never
+    /// exact direct light's direct parts. Each pass costs `texels × objects × K` rays; one
+    /// for every direct part or tile streamed in would be wasted.
+    fn shadows_read(&self, part: u32) -> bool {
+        if part as usize >= self.catalog.len() {
+            return false;
+        }
+        match self.catalog.part(part) {
+            vlf_core::parts::Part::Chunk(_) => true,
+            vlf_core::parts::Part::Tile { .. } => !matches!(self.shadows_mode.get(), Some(MirrorMode::Trace { .. })),
+        }
     }
 
     /// Makes part `part` non-resident (its place in the pool may be reused).

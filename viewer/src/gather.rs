@@ -9,7 +9,7 @@
 //! the same per fragment (`shaders/objects.wgsl`); this pass computes it at given points, for
 //! tests, benchmarks and per-vertex shading.
 
-use crate::field::{BINDINGS, FieldCompute};
+use crate::field::FieldCompute;
 use crate::pass::{READ_ONLY, uniform_buffer};
 use crate::{FieldRenderer, Gpu, MirrorMode, ViewerError};
 use bytemuck::{Pod, Zeroable};
@@ -30,20 +30,22 @@ struct Params {
 }
 
 /// A compute pipeline gathering light from a field at points of its dynamic objects.
-pub struct GpuGather {
+///
+/// It borrows the renderer: the gather may read the objects' shadows per texel, which each
+/// run brings up to date first (objects moved with [`FieldRenderer::move_objects`], parts
+/// arrived), as a draw does.
+pub struct GpuGather<'a> {
     pipeline: wgpu::ComputePipeline,
     shadows: wgpu::ComputePipeline,
     compute: FieldCompute,
-    field_bindings: [wgpu::Buffer; BINDINGS],
+    field: &'a FieldRenderer,
     mirrors: MirrorMode,
 }
 
-impl GpuGather {
+impl<'a> GpuGather<'a> {
     /// A gather over `field`'s renderer (built [`FieldRenderer::with_objects`]: its objects,
     /// directions and emitters), mirrors read as `mirrors` says.
-    pub fn new(gpu: &Gpu, field: &FieldRenderer, mirrors: MirrorMode) -> Result<GpuGather, ViewerError> {
-        // The gather may read the objects' shadows per texel.
-        field.refresh_shadows(gpu, mirrors)?;
+    pub fn new(gpu: &Gpu, field: &'a FieldRenderer, mirrors: MirrorMode) -> Result<GpuGather<'a>, ViewerError> {
         gpu.checked(|| {
             let device = &gpu.device;
             let compute = FieldCompute::new(
@@ -61,7 +63,7 @@ impl GpuGather {
                 pipeline: compute.pipeline(device, "gather_main"),
                 shadows: compute.pipeline(device, "shadow_main"),
                 compute,
-                field_bindings: field.bindings.clone(),
+                field,
                 mirrors,
             }
         })
@@ -94,6 +96,9 @@ impl GpuGather {
         if points.is_empty() {
             return Ok(Vec::new());
         }
+        // The gather may read the objects' shadows per texel: up to date for the objects'
+        // poses now, not those when the pipeline was made.
+        self.field.refresh_shadows(gpu, self.mirrors)?;
         let count = u32::try_from(points.len())
             .ok()
             .filter(|&n| n.div_ceil(WORKGROUP) <= gpu.limits.max_compute_workgroups_per_dimension)
@@ -145,7 +150,7 @@ impl GpuGather {
             });
             let bind_group = self
                 .compute
-                .bind_group(device, &self.field_bindings, &[&params, &input, &output]);
+                .bind_group(device, &self.field.bindings, &[&params, &input, &output]);
             let mut encoder = device.create_command_encoder(&Default::default());
             {
                 let mut pass = encoder.begin_compute_pass(&Default::default());

@@ -5,9 +5,10 @@
 //! frame by frame instead (`--object-to`), as [`crate::Walk::script`] moves the eye.
 //!
 //! A move is a new [`Pose`]: the object is placed again ([`DynamicObject::place`]) and checked
-//! against the static scene ([`PlacedObject::check_clear`]). A pose that would cross a wall or
-//! leave the scene is refused and the object stays where it was: it stops at the wall, since
-//! the field holds no light for an object inside a wall.
+//! against the static scene ([`PlacedObject::check_clear`]), at steps of at most its radius
+//! along the way. A pose that would cross a wall or leave the scene, or a way there that
+//! would, is refused and the object stays where it was: it stops at the wall, since the field
+//! holds no light for an object inside a wall.
 
 use glam::{DQuat, DVec3};
 use vlf_core::dynamic::{DynamicObject, ObjectError, PlacedObject, Pose};
@@ -26,6 +27,10 @@ pub enum ObjectMove {
     TurnLeft,
     TurnRight,
 }
+
+/// At most this many checks along one move (a move of more than this many radii in one frame
+/// is checked at steps of more than a radius).
+const MAX_SUBSTEPS: u32 = 256;
 
 /// How fast a held key turns an object, in radians per second.
 const TURN_PER_SECOND: f64 = std::f64::consts::FRAC_PI_2;
@@ -74,7 +79,8 @@ impl Placement {
 
     /// Moves every object with an end in `to` (scene units: the translation its pose ends
     /// with) in a straight line from where it is, over `frames` calls of
-    /// [`Placement::advance`]; the keys do nothing meanwhile.
+    /// [`Placement::advance`] (the last at the end; one frame goes straight there, as
+    /// [`crate::Walk::script`] does); the keys do nothing meanwhile.
     pub fn script(&mut self, to: Vec<Option<DVec3>>, frames: u64) -> vlf_core::Result<()> {
         if frames == 0 || to.len() > self.objects.len() || to.iter().flatten().any(|p| !p.is_finite()) {
             return Err(vlf_core::Error::Parameter(format!(
@@ -131,7 +137,7 @@ impl Placement {
     pub fn advance(&mut self, seconds: f64, speed: f64, forward: DVec3, field: &LightField, bvh: &Bvh) -> bool {
         let mut wanted: Vec<(usize, Pose)> = Vec::new();
         if let Some(s) = &mut self.script {
-            let f = s.frame.min(s.frames - 1) as f64 / (s.frames - 1).max(1) as f64;
+            let f = crate::walk::script_fraction(s.frame, s.frames);
             s.frame += 1;
             for (k, to) in s.to.iter().enumerate() {
                 if let Some(to) = to {
@@ -152,10 +158,7 @@ impl Placement {
         }
         let mut moved = false;
         for (k, pose) in wanted {
-            let placed = self.objects[k]
-                .place(&pose, &field.scene.normalisation)
-                .and_then(|p| p.check_clear(&field.scene, bvh).map(|()| p));
-            match placed {
+            match self.clear_path(k, pose, field, bvh) {
                 Ok(p) => {
                     self.poses[k] = pose;
                     self.placed[k] = p;
@@ -168,6 +171,41 @@ impl Placement {
             }
         }
         moved
+    }
+
+    /// Object `k` placed at `pose`, if the way there from its current pose is clear of the
+    /// static scene: checked at sub-steps of at most the object's radius (translation and turn
+    /// interpolated), so that one long step (a slow frame, a held key, a scripted path over few
+    /// frames) cannot carry it through a thin panel or across a block it would not fit
+    /// through. A pose whose object lies wholly inside a closed solid is not detected (no
+    /// surface is crossed there); steps of at most its radius keep it from getting in.
+    fn clear_path(&self, k: usize, pose: Pose, field: &LightField, bvh: &Bvh) -> Result<PlacedObject, ObjectError> {
+        let normalisation = &field.scene.normalisation;
+        let (from, current) = (self.poses[k], &self.placed[k]);
+        // How far the object's farthest point goes (VLF frame): its centre's move, plus what
+        // the turn sweeps at its radius. The centre in the object's own coordinates is the
+        // point the new pose carries to the new centre.
+        let own = from.rotation.inverse() * (normalisation.to_scene(current.center) - from.translation);
+        let shift = normalisation.to_vlf(pose.apply(own)) - current.center;
+        let sweep = shift.length() + current.radius * from.rotation.angle_between(pose.rotation);
+        let steps = if current.radius > 0.0 && sweep.is_finite() {
+            (sweep / current.radius).ceil().clamp(1.0, MAX_SUBSTEPS as f64) as u32
+        } else {
+            1
+        };
+        for i in 1..steps {
+            let f = i as f64 / steps as f64;
+            let between = Pose {
+                rotation: from.rotation.slerp(pose.rotation, f),
+                translation: from.translation.lerp(pose.translation, f),
+            };
+            self.objects[k]
+                .place(&between, normalisation)?
+                .check_clear(&field.scene, bvh)?;
+        }
+        let placed = self.objects[k].place(&pose, normalisation)?;
+        placed.check_clear(&field.scene, bvh)?;
+        Ok(placed)
     }
 
     /// The selected object's pose after `seconds` of the held keys, `None` when none is held.
@@ -298,5 +336,32 @@ mod tests {
         assert!(p.script(vec![Some(to), Some(to)], 3).is_err(), "more ends than objects");
         assert!(p.script(vec![Some(DVec3::NAN)], 3).is_err());
         assert!(p.script(vec![Some(to)], 0).is_err());
+        // One long step (a slow frame) to the other side of the short block (x from about 116
+        // to 307 at this depth, top at y = 165), low enough to cross it: each end is clear,
+        // the way is not.
+        let (start, end) = (DVec3::new(60.0, 40.0, 150.0), DVec3::new(370.0, 40.0, 150.0));
+        let far = placement(end, &field, &bvh);
+        assert!(
+            far.placed()[0].check_clear(&field.scene, &bvh).is_ok(),
+            "the far end is clear"
+        );
+        let mut p = placement(start, &field, &bvh);
+        p.set(ObjectMove::Right, true);
+        assert!(
+            !p.advance(3.1, 100.0, DVec3::NEG_Z, &field, &bvh),
+            "went through the block"
+        );
+        assert_eq!(p.refused, 1);
+        assert!(centre(&p, &field).distance(start) < 1e-6);
+        // The same long step up, in the open, is taken.
+        p.set(ObjectMove::Right, false);
+        p.set(ObjectMove::Up, true);
+        assert!(p.advance(3.1, 100.0, DVec3::NEG_Z, &field, &bvh));
+        assert!(centre(&p, &field).distance(start + DVec3::Y * 310.0) < 1e-6);
+        // A script of one frame (`--frames 1 --object-to P`) puts the object at P.
+        let mut p = placement(DVec3::new(200.0, 400.0, 200.0), &field, &bvh);
+        p.script(vec![Some(to)], 1).unwrap();
+        assert!(p.advance(0.1, 100.0, DVec3::NEG_Z, &field, &bvh));
+        assert!(centre(&p, &field).distance(to) < 1e-6);
     }
 }

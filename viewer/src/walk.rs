@@ -45,6 +45,16 @@ struct Script {
     frame: u64,
 }
 
+/// How far along its path a script of `frames` frames is at frame `frame` (from 0): 0 at the
+/// first frame, 1 at the last and after it. A script of one frame is at its end: its one frame
+/// is the last, and a scripted run's screenshot shows the end of the path it was given.
+pub(crate) fn script_fraction(frame: u64, frames: u64) -> f64 {
+    if frames <= 1 {
+        return 1.0;
+    }
+    frame.min(frames - 1) as f64 / (frames - 1) as f64
+}
+
 /// Radians of turn per pixel of mouse drag.
 const LOOK_PER_PIXEL: f64 = 0.003;
 /// Speed factor per wheel notch.
@@ -67,8 +77,9 @@ impl Walk {
     }
 
     /// Replaces the keys by a script over `frames` frames: from where the eye is to `to`, turning
-    /// `turn_degrees` to the left (about +y) on the way; frame 0 is the start, the last frame the
-    /// end.
+    /// `turn_degrees` to the left (about +y) on the way; the last frame is the end, and frame 0
+    /// the start where there are two frames or more (a script of one frame is its end, so that
+    /// `--frames 1 --to P` draws the view from `P`; see [`script_fraction`]).
     pub fn script(&mut self, to: DVec3, turn_degrees: f64, frames: u64) -> vlf_core::Result<()> {
         if !(to.is_finite() && turn_degrees.is_finite()) || frames == 0 {
             return Err(vlf_core::Error::Parameter(format!(
@@ -114,7 +125,7 @@ impl Walk {
     /// A scripted walk ignores the keys and the time: each call is the next frame.
     pub fn advance(&mut self, seconds: f64) {
         if let Some(s) = &mut self.script {
-            let f = s.frame.min(s.frames - 1) as f64 / (s.frames - 1).max(1) as f64;
+            let f = script_fraction(s.frame, s.frames);
             self.eye = s.from.lerp(s.to, f);
             self.yaw = s.yaw + s.turn * f;
             s.frame += 1;
@@ -211,6 +222,19 @@ mod tests {
         assert!(close(w.forward(), DVec3::NEG_X), "{}", w.forward());
         assert!(w.script(DVec3::NAN, 0.0, 3).is_err());
         assert!(w.script(DVec3::ZERO, 0.0, 0).is_err());
+    }
+
+    /// `--frames 1 --to P --turn T`: the one frame is drawn from `P`, turned by `T`.
+    #[test]
+    fn a_script_of_one_frame_is_at_its_end() {
+        let mut w = Walk::new(DVec3::ZERO, DVec3::NEG_Z, 40.0, 1.0);
+        w.script(DVec3::new(1.0, 2.0, -3.0), 90.0, 1).unwrap();
+        w.advance(0.1);
+        assert!(close(w.eye, DVec3::new(1.0, 2.0, -3.0)), "{}", w.eye);
+        assert!(close(w.forward(), DVec3::NEG_X), "{}", w.forward());
+        assert_eq!(script_fraction(0, 2), 0.0);
+        assert_eq!(script_fraction(1, 2), 1.0);
+        assert_eq!(script_fraction(7, 2), 1.0);
     }
 
     #[test]

@@ -15,7 +15,7 @@
 //! | Q / E | down / up |
 //! | drag (any button) | look around |
 //! | wheel | walking speed ×1.25 per notch |
-//! | M | cycle the mirror mode: from the rays, traced, without reflections |
+//! | M | cycle the mirror mode: from the rays, traced (`--depth` deep, else 8), without reflections |
 //! | + / − | exposure ±½ stop |
 //! | P | save a screenshot (the linear frame, tone-mapped as on screen, or linear for `.pfm`) |
 //! | [ / ] / L | the previous / next / latest snapshot (watch a running job converge) |
@@ -55,6 +55,10 @@ use winit::event::{ElementState, MouseScrollDelta, WindowEvent};
 use winit::event_loop::{ActiveEventLoop, ControlFlow, EventLoop};
 use winit::keyboard::{KeyCode, PhysicalKey};
 use winit::window::{Window, WindowId};
+
+/// How deep M traces mirrors when the walk did not start traced with reflections (the command
+/// line's default `--depth`).
+const DEFAULT_TRACE_DEPTH: u32 = 8;
 
 /// How long a scripted run waits for a frame's parts before it gives up waiting.
 const SETTLE_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(120);
@@ -159,6 +163,7 @@ pub fn view(
         bvh,
         loader: options.loader.take().map(|l| Arc::new(Mutex::new(l))),
         loading: false,
+        trace_depth: trace_depth(options.mirrors),
         sender,
         loaded,
         geometry,
@@ -184,6 +189,8 @@ struct App {
     loader: Option<Arc<Mutex<Loader>>>,
     /// Whether a snapshot is being loaded.
     loading: bool,
+    /// How deep M traces mirrors ([`trace_depth`]).
+    trace_depth: u32,
     sender: mpsc::Sender<Loaded>,
     loaded: mpsc::Receiver<Loaded>,
     /// The field's geometry (no radiance), shared with the streamer.
@@ -250,7 +257,7 @@ impl App {
         };
         let (surface, gpu) = attempt(wgpu::Backends::PRIMARY)
             .or_else(|primary| attempt(wgpu::Backends::SECONDARY).map_err(|_| primary))?;
-        let size = window.inner_size();
+        let (width, height) = surface_size(window.inner_size(), &gpu.limits);
         let caps = surface.get_capabilities(&gpu.adapter);
         let format = caps
             .formats
@@ -260,7 +267,7 @@ impl App {
             .or(caps.formats.first().copied())
             .ok_or_else(|| ViewerError::Gpu(format!("{} cannot present to this window", gpu.describe())))?;
         let mut config = surface
-            .get_default_config(&gpu.adapter, size.width.max(1), size.height.max(1))
+            .get_default_config(&gpu.adapter, width, height)
             .ok_or_else(|| ViewerError::Gpu(format!("{} cannot present to this window", gpu.describe())))?;
         config.format = format;
         config.present_mode = if self.options.vsync {
@@ -300,22 +307,10 @@ impl App {
     }
 
     /// A renderer with an empty pool of the cache's size, and a streamer filling it from `source`.
-    /// A cache larger than one storage binding of this adapter is cut down to one, with a warning.
+    /// A cache whose pool, or whose objects' shadow pool, is larger than one storage binding of
+    /// this adapter is cut down to fit, with a warning.
     fn stream_from(&self, gpu: &Gpu, source: Box<dyn PartSource>) -> Result<(FieldRenderer, Streamer), ViewerError> {
         let mut config = self.options.stream;
-        let limit = gpu
-            .limits
-            .max_storage_buffer_binding_size
-            .min(gpu.limits.max_buffer_size)
-            / 12;
-        if config.capacity as u64 > limit {
-            tracing::warn!(
-                "{} binds at most {:.1} MB at once: the cache is cut to that",
-                gpu.describe(),
-                limit as f64 * 12e-6
-            );
-            config.capacity = limit as usize;
-        }
         let software = gpu.info.device_type == wgpu::DeviceType::Cpu;
         let exact = match &self.options.exact_direct {
             Some(_) if software && !self.options.exact_on_software => {
@@ -328,6 +323,28 @@ impl App {
             }
             exact => exact.as_ref(),
         };
+        // Bytes a value of the cache takes in the largest buffer bound: 12 in the radiance pool,
+        // or 24 in the objects' shadow pool with exact direct light (the gather's shadow and the
+        // camera's per value, `FieldRenderer::streaming_with`).
+        let value_bytes = if self.options.objects.is_some() && exact.is_some() {
+            24
+        } else {
+            12
+        };
+        let limit = gpu
+            .limits
+            .max_storage_buffer_binding_size
+            .min(gpu.limits.max_buffer_size)
+            / value_bytes;
+        if config.capacity as u64 > limit {
+            tracing::warn!(
+                "{} binds at most {:.1} MB at once: the cache is cut to {:.1} MB",
+                gpu.describe(),
+                (limit * value_bytes) as f64 * 1e-6,
+                limit as f64 * 12e-6
+            );
+            config.capacity = limit as usize;
+        }
         let renderer = match &self.options.objects {
             None => FieldRenderer::streaming_with(gpu, &self.geometry, config.capacity, None, exact)?,
             Some(o) => {
@@ -338,14 +355,16 @@ impl App {
                 let gatherer =
                     Gatherer::with_directions(&self.geometry, &self.bvh, o.placement.placed(), mode, o.directions)
                         .map_err(|e| ViewerError::Unsupported(e.to_string()))?
-                        .with_shadow_samples(o.shadow_samples)
-                        // The GPU computes both: nothing for the CPU to compute here.
-                        .with_gpu_lighting(true, true);
+                        .with_shadow_samples(o.shadow_samples);
                 // The objects' shadows take exact direct light's points.
                 let gatherer = match exact {
                     Some(e) => gatherer.with_emitters(e.clone()),
                     None => gatherer,
                 };
+                // The GPU computes the shadows per texel and the objects' light: nothing for the
+                // CPU to compute here. Last, since the builders before it compute what the
+                // settings ask for (`with_emitters` would, after it).
+                let gatherer = gatherer.with_gpu_lighting(true, true);
                 let mut renderer =
                     FieldRenderer::streaming_with(gpu, &self.geometry, config.capacity, Some(&gatherer), exact)?;
                 // Shadows per texel: a walk pays for them when objects move, not every frame.
@@ -360,7 +379,7 @@ impl App {
 
     /// Draws one frame; `Ok(false)` when the surface had none to give (try again next time).
     fn redraw(&mut self) -> Result<bool, ViewerError> {
-        self.take_loaded()?;
+        self.take_loaded();
         let Some(s) = self.state.as_mut() else {
             return Ok(false);
         };
@@ -407,7 +426,7 @@ impl App {
             wgpu::CurrentSurfaceTexture::Success(t) | wgpu::CurrentSurfaceTexture::Suboptimal(t) => t,
             wgpu::CurrentSurfaceTexture::Timeout | wgpu::CurrentSurfaceTexture::Occluded => return Ok(false),
             wgpu::CurrentSurfaceTexture::Outdated | wgpu::CurrentSurfaceTexture::Lost => {
-                s.surface.configure(&s.gpu.device, &s.config);
+                s.gpu.checked(|| s.surface.configure(&s.gpu.device, &s.config))?;
                 return Ok(false);
             }
             wgpu::CurrentSurfaceTexture::Validation => {
@@ -426,6 +445,16 @@ impl App {
                 &s.frame.depth_view,
             );
             s.tonemap.draw(&s.gpu, &mut encoder, &target, self.options.exposure);
+            // The status line over the tone-mapped frame (screenshots read the frame, without it).
+            let scale = status_scale(s.config.width);
+            s.status.draw(
+                &s.gpu,
+                &mut encoder,
+                &target,
+                (s.config.width, s.config.height),
+                (4.0 * scale, 4.0 * scale),
+                scale,
+            );
             s.gpu.queue.submit([encoder.finish()]);
         })?;
         s.gpu.queue.present(texture);
@@ -496,27 +525,34 @@ impl App {
         });
     }
 
-    /// Takes in a snapshot loaded since the last frame.
-    fn take_loaded(&mut self) -> Result<(), ViewerError> {
+    /// Takes in a snapshot loaded since the last frame. Nothing that goes wrong here ends the
+    /// walk: it goes on on the stage it is on.
+    fn take_loaded(&mut self) {
         let Ok(loaded) = self.loaded.try_recv() else {
-            return Ok(());
+            return;
         };
         self.loading = false;
         match loaded {
             Ok(Some((source, title))) => {
-                if let Some(s) = self.state.as_ref() {
-                    let (renderer, streamer) = self.stream_from(&s.gpu, source)?;
-                    if let Some(s) = self.state.as_mut() {
-                        (s.renderer, s.streamer, s.planned) = (renderer, streamer, None);
+                let Some(s) = self.state.as_ref() else {
+                    return;
+                };
+                // A stage that cannot be drawn (its pool does not fit, the device refused a
+                // buffer) leaves the walk on the stage it is on: the error is logged, not fatal.
+                match self.stream_from(&s.gpu, source) {
+                    Ok((renderer, streamer)) => {
+                        if let Some(s) = self.state.as_mut() {
+                            (s.renderer, s.streamer, s.planned) = (renderer, streamer, None);
+                        }
+                        tracing::info!(%title, "stage switched");
+                        self.options.title = title;
                     }
+                    Err(e) => tracing::error!("cannot switch to {title}: {e}; staying on the stage shown"),
                 }
-                tracing::info!(%title, "stage switched");
-                self.options.title = title;
             }
             Ok(None) => tracing::info!("no snapshot that way"),
             Err(e) => tracing::error!("cannot switch snapshot: {e}"),
         }
-        Ok(())
     }
 
     fn key(&mut self, event_loop: &ActiveEventLoop, code: KeyCode, pressed: bool) {
@@ -556,13 +592,7 @@ impl App {
         }
         match code {
             KeyCode::Escape => event_loop.exit(),
-            KeyCode::KeyM => {
-                self.options.mirrors = match self.options.mirrors {
-                    MirrorMode::Rays => MirrorMode::Trace { depth: 8 },
-                    MirrorMode::Trace { depth: 0 } => MirrorMode::Rays,
-                    MirrorMode::Trace { .. } => MirrorMode::Trace { depth: 0 },
-                }
-            }
+            KeyCode::KeyM => self.options.mirrors = next_mirror_mode(self.options.mirrors, self.trace_depth),
             KeyCode::Equal | KeyCode::NumpadAdd => self.options.exposure += 0.5,
             KeyCode::Minus | KeyCode::NumpadSubtract => self.options.exposure -= 0.5,
             KeyCode::BracketLeft => self.switch(Switch::Previous),
@@ -604,10 +634,15 @@ impl ApplicationHandler for App {
                 if size.width == 0 || size.height == 0 {
                     return;
                 }
-                s.config.width = size.width;
-                s.config.height = size.height;
-                s.surface.configure(&s.gpu.device, &s.config);
-                match Frame::new(&s.gpu, size.width, size.height) {
+                // No larger than the device's textures; a size the surface refuses is an error
+                // of the viewer's (checked), not wgpu's panic.
+                let (width, height) = surface_size(size, &s.gpu.limits);
+                s.config.width = width;
+                s.config.height = height;
+                if let Err(e) = s.gpu.checked(|| s.surface.configure(&s.gpu.device, &s.config)) {
+                    return self.fail(event_loop, e);
+                }
+                match Frame::new(&s.gpu, width, height) {
                     Ok(frame) => {
                         s.tonemap.set_frame(&s.gpu, &frame);
                         s.frame = frame;
@@ -681,6 +716,43 @@ impl ApplicationHandler for App {
     }
 }
 
+/// The mirror mode after `mode` as M cycles them: from the rays, traced `depth` deep, without
+/// reflections, from the rays again. `depth` is the walk's configured depth (`--depth`), so a
+/// round of M comes back to what the command line asked for.
+fn next_mirror_mode(mode: MirrorMode, depth: u32) -> MirrorMode {
+    match mode {
+        MirrorMode::Rays => MirrorMode::Trace { depth },
+        MirrorMode::Trace { depth: 0 } => MirrorMode::Rays,
+        MirrorMode::Trace { .. } => MirrorMode::Trace { depth: 0 },
+    }
+}
+
+/// How deep M traces mirrors: the configured depth where the walk starts traced with
+/// reflections, else [`DEFAULT_TRACE_DEPTH`].
+fn trace_depth(mode: MirrorMode) -> u32 {
+    match mode {
+        MirrorMode::Trace { depth } if depth > 0 => depth,
+        _ => DEFAULT_TRACE_DEPTH,
+    }
+}
+
+/// The window's size clamped to what the device's textures take (at least 1 × 1): the
+/// surface and the frame are made at this size.
+fn surface_size(size: PhysicalSize<u32>, limits: &wgpu::Limits) -> (u32, u32) {
+    let max = limits.max_texture_dimension_2d.max(1);
+    (size.width.clamp(1, max), size.height.clamp(1, max))
+}
+
+/// Screen pixels per pixel of the status line's 8 × 8 font: 1, and 2 on windows wide enough
+/// for the line (160 characters) at that size.
+fn status_scale(width: u32) -> f32 {
+    if width >= 2 * 8 * crate::overlay::MAX_CHARS as u32 {
+        2.0
+    } else {
+        1.0
+    }
+}
+
 /// Whether an object moved from where the streamer planned for it by more than a quarter of
 /// its radius (or objects came or went): what it reads changes little over shorter moves, and
 /// planning again every frame of a slow move would only keep the streaming thread busy.
@@ -712,4 +784,43 @@ fn stream_status(stats: &StreamStats, loading: bool) -> String {
         line.push_str(" | switching");
     }
     line
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// M goes round the three modes and comes back to the configured depth, whatever it is.
+    #[test]
+    fn m_cycles_the_mirror_modes_keeping_the_configured_depth() {
+        for (start, depth) in [
+            (MirrorMode::Trace { depth: 3 }, 3),
+            (MirrorMode::Trace { depth: 12 }, 12),
+            (MirrorMode::Rays, DEFAULT_TRACE_DEPTH),
+            (MirrorMode::Trace { depth: 0 }, DEFAULT_TRACE_DEPTH),
+        ] {
+            let d = trace_depth(start);
+            assert_eq!(d, depth, "{start:?}");
+            let mut mode = start;
+            let mut seen = Vec::new();
+            for _ in 0..3 {
+                mode = next_mirror_mode(mode, d);
+                seen.push(mode);
+            }
+            assert_eq!(mode, start, "three presses come back to {start:?}: {seen:?}");
+            assert!(seen.contains(&MirrorMode::Trace { depth }), "{seen:?}");
+            assert!(seen.contains(&MirrorMode::Rays) && seen.contains(&MirrorMode::Trace { depth: 0 }));
+        }
+    }
+
+    #[test]
+    fn the_surface_is_no_larger_than_the_devices_textures() {
+        let limits = wgpu::Limits {
+            max_texture_dimension_2d: 4096,
+            ..wgpu::Limits::downlevel_defaults()
+        };
+        assert_eq!(surface_size(PhysicalSize::new(1280, 720), &limits), (1280, 720));
+        assert_eq!(surface_size(PhysicalSize::new(9000, 720), &limits), (4096, 720));
+        assert_eq!(surface_size(PhysicalSize::new(0, 5000), &limits), (1, 4096));
+    }
 }

@@ -589,3 +589,213 @@ fn shadows_per_texel_are_the_cpu_shadow_at_texel_centres_and_follow_moves() {
     vlf_viewer::render(&gpu, &renderer, &camera, 1, SpecularMode::Rays).unwrap();
     check(&there);
 }
+
+/// A chrome cube (ρs 0.8, ρd 0.1) in the air of the Cornell box under exact direct light, seen
+/// from above: its top face reflects the lamp. The reflected ray has no shadow ray to count the
+/// lamp's light, so it keeps the emission (`Gatherer::arriving` on the CPU); the GPU once took
+/// it off as it does for a gather ray and drew the lamp black in the mirror. Mirrors from the
+/// rays, and traced (where the path goes on past the cube's mirror, as `render_with_objects`
+/// recurses).
+#[test]
+fn a_mirror_object_reflects_the_lamp_as_the_cpu_does() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field_exact("cornell.obj", 33, 3, 64);
+    let bvh = Bvh::build(&field.scene);
+    let chrome = Material {
+        name: "chrome".into(),
+        diffuse: [0.1; 3],
+        specular: [0.8; 3],
+        emission: [0.0; 3],
+        albedo_texture: None,
+    };
+    let n = field.scene.normalisation;
+    let placed = vec![
+        DynamicObject::cube("chrome cube", DVec3::new(278.0, 260.0, 200.0), 50.0, 1, chrome)
+            .place(&Pose::IDENTITY, &n)
+            .unwrap(),
+    ];
+    placed[0].check_clear(&field.scene, &bvh).unwrap();
+    let camera = vlf_core::render::Camera::new(
+        DVec3::new(278.0, 500.0, 160.0),
+        DVec3::new(278.0, 310.0, 205.0),
+        DVec3::Z,
+        39.0,
+        32,
+        32,
+    )
+    .unwrap();
+    // The lamp's radiance (17, 12, 4) times ρs: a pixel of the cube that shows it.
+    let lamp_in_mirror = 0.5 * 0.8 * 17.0;
+    for mode in [SpecularMode::Rays, SpecularMode::Trace { depth: 4 }] {
+        let cpu = Gatherer::with_directions(&field, &bvh, &placed, mode, 33)
+            .unwrap()
+            .with_shadow_samples(16);
+        let want = vlf_core::dynamic::view::render_with_objects(&cpu, &bvh, &camera, 1);
+        let renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
+        let got = vlf_viewer::render(&gpu, &renderer, &camera, 1, mode).unwrap();
+        let lamp: Vec<usize> = (0..want.pixels.len())
+            .filter(|&i| want.pixels[i][0] > lamp_in_mirror)
+            .collect();
+        let off = differing(&want, &got, 1e-2);
+        let lamp_off = lamp
+            .iter()
+            .filter(|&&i| (0..3).any(|c| (want.pixels[i][c] - got.pixels[i][c]).abs() > 1e-2 * want.pixels[i][c]))
+            .count();
+        println!(
+            "{mode:?}: {} pixels show the lamp in the cube, {lamp_off} of them differ by 1 %; {off} of {} pixels in all",
+            lamp.len(),
+            want.pixels.len()
+        );
+        assert!(lamp.len() >= 20, "the cube reflects the lamp in {} pixels", lamp.len());
+        assert!(
+            lamp_off * 20 <= lamp.len(),
+            "{lamp_off} of {} lamp pixels differ",
+            lamp.len()
+        );
+        assert!(off * 20 <= want.pixels.len(), "{off} pixels differ by more than 1 %");
+    }
+}
+
+/// With objects in the view, a static mirror whose tiles of the rays are not resident (a
+/// streaming view) is traced through the diffuse maps that are, as a view without objects
+/// traces it (`shade`), not drawn black. The objects' pass without objects in it draws what the
+/// plain pass draws: with only the diffuse maps resident, both images are the same.
+#[test]
+fn mirrors_missing_their_tiles_are_traced_among_objects_too() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field("mirrors.obj", 33, 3);
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
+    let bvh = Bvh::build(&field.scene);
+    let camera = common::readme_camera(32, 32);
+    let mode = SpecularMode::Rays;
+    let none: Vec<PlacedObject> = Vec::new();
+    let gatherer = Gatherer::with_directions(&field, &bvh, &none, mode, 33).unwrap();
+    let capacity = catalog.total_values();
+    let among = FieldRenderer::streaming_with_objects(&gpu, &field, capacity, &gatherer).unwrap();
+    let plain = FieldRenderer::streaming(&gpu, &field, capacity).unwrap();
+    // The diffuse maps only (the chunks come first in the catalog).
+    let mut base = 0;
+    for i in 0..catalog.chunks() as u32 {
+        for r in [&among, &plain] {
+            r.upload(&gpu, i, base, field.part_values(&catalog, i)).unwrap();
+        }
+        base += catalog.values(i);
+    }
+    let a = vlf_viewer::render(&gpu, &among, &camera, 1, mode).unwrap();
+    let b = vlf_viewer::render(&gpu, &plain, &camera, 1, mode).unwrap();
+    let complete = field.render(&camera, 1, mode);
+    let mirrored = differing(&b, &complete, 1e-2);
+    let off = differing(&a, &b, 1e-3);
+    println!(
+        "diffuse maps only: {mirrored} pixels differ from the complete field's (mirrors traced); among objects {off} differ from them"
+    );
+    assert!(mirrored > 0 && mirrored * 2 < a.pixels.len(), "{mirrored}");
+    assert_eq!(off, 0, "the objects' pass draws the mirrors the plain pass draws");
+}
+
+/// The objects' shadows on the GPU take each static material's ρd: a static scene with an
+/// albedo texture is refused with objects in it (the CPU reads the texture per point), and
+/// drawn without them.
+#[test]
+fn objects_in_a_textured_scene_are_refused_on_the_gpu() {
+    let Some(gpu) = gpu() else { return };
+    let mut field = bundled_field("cornell.obj", 9, 1);
+    field.scene.textures.push(vlf_core::scene::Texture {
+        name: "checks".into(),
+        width: 2,
+        height: 1,
+        texels: vec![[0.2; 3], [0.9; 3]],
+        wrap: [vlf_core::scene::Wrap::Repeat; 2],
+    });
+    let floor = field.scene.surfaces[0].material;
+    field.scene.materials[floor].albedo_texture = Some(0);
+    let bvh = Bvh::build(&field.scene);
+    let placed = two_cubes(&field);
+    let with = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 9).unwrap();
+    let e = FieldRenderer::with_objects(&gpu, &field, &with)
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(e.contains("albedo texture") && e.contains("drop --gpu"), "{e}");
+    let none: Vec<PlacedObject> = Vec::new();
+    let without = Gatherer::with_directions(&field, &bvh, &none, SpecularMode::Rays, 9).unwrap();
+    assert!(FieldRenderer::with_objects(&gpu, &field, &without).is_ok());
+}
+
+/// A gather made before the objects moved (`move_objects`) reads their shadows per texel where
+/// they are now: each run brings them up to date first, as a draw does.
+#[test]
+fn a_gather_follows_the_objects_moves() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field("cornell.obj", 33, 3);
+    let bvh = Bvh::build(&field.scene);
+    let n = field.scene.normalisation;
+    let (c, h) = (DVec3::new(420.0, 60.0, 120.0), 50.0);
+    let at = |c: DVec3| vec![cube(c, h).place(&Pose::IDENTITY, &n).unwrap()];
+    let (here, there) = (at(DVec3::new(150.0, 380.0, 300.0)), at(c));
+    fn gatherer<'a>(field: &'a LightField, bvh: &'a Bvh, placed: &'a [PlacedObject]) -> Gatherer<'a> {
+        Gatherer::with_directions(field, bvh, placed, SpecularMode::Rays, 33)
+            .unwrap()
+            .with_gather_shadows(true)
+    }
+    let renderer = FieldRenderer::with_objects(&gpu, &field, &gatherer(&field, &bvh, &here)).unwrap();
+    let gather = GpuGather::new(&gpu, &renderer, SpecularMode::Rays.into()).unwrap();
+    let points = points(&field, c, h);
+    // Gathered once where the cube was, then moved under the gather.
+    gather.incident(&gpu, &points).unwrap();
+    renderer.move_objects(&gpu, &there).unwrap();
+    let got = gather.incident(&gpu, &points).unwrap();
+    let cpu = gatherer(&field, &bvh, &there);
+    let want: Vec<[f64; 3]> = points.iter().map(|&(p, n)| cpu.incident(p, n)).collect();
+    let scale = want.iter().flatten().copied().fold(0.0, f64::max);
+    let worst = (got.iter().zip(&want))
+        .flat_map(|(g, w)| (0..3).map(move |c| (g[c] - w[c]).abs() / scale))
+        .fold(0.0, f64::max);
+    println!("a gather after the cube moved: worst {worst:.2e} of the brightest point");
+    assert!(worst < 1e-3, "{worst}");
+}
+
+/// The shadows per texel are computed again for what they read (a chunk's maps; a mirror
+/// tile when mirrors are read from the rays) and not for what they do not (exact direct
+/// light's direct parts, tiles while mirrors are traced): each pass costs texels × objects × K
+/// rays.
+#[test]
+fn shadows_per_texel_are_computed_again_only_for_parts_they_read() {
+    let Some(gpu) = gpu() else { return };
+    let field = bundled_field_exact("mirrors.obj", 33, 2, 64);
+    let catalog = vlf_core::parts::PartCatalog::new(&field);
+    let bvh = Bvh::build(&field.scene);
+    let placed = two_cubes(&field);
+    let cpu = Gatherer::with_directions(&field, &bvh, &placed, SpecularMode::Rays, 33)
+        .unwrap()
+        .with_gpu_lighting(true, true);
+    let mut renderer = FieldRenderer::with_objects(&gpu, &field, &cpu).unwrap();
+    renderer.shadows_per_texel(&gpu, &field).unwrap();
+    let exact = field.exact_direct.as_ref().unwrap();
+    let direct = renderer.direct_parts().expect("exact direct light");
+    // Where `with_objects` put the parts: the catalog's in order, then the direct parts.
+    let base_of = |part: u32| (0..part).map(|p| renderer.part_len(p).unwrap()).sum::<usize>();
+    let tile = (catalog.chunks() as u32..catalog.len() as u32)
+        .find(|&p| catalog.values(p) > 0)
+        .expect("a mirror tile");
+    let traced = vlf_viewer::MirrorMode::Trace { depth: 2 };
+    let rays = vlf_viewer::MirrorMode::Rays;
+    let passes_after = |mode, upload: Option<u32>| {
+        if let Some(p) = upload {
+            let values = match direct.chunk(p) {
+                Some(c) => &exact.direct()[catalog.range(c)],
+                None => field.part_values(&catalog, p),
+            };
+            renderer.upload(&gpu, p, base_of(p), values).unwrap();
+        }
+        renderer.refresh_shadows(&gpu, mode).unwrap();
+        renderer.shadow_passes()
+    };
+    assert_eq!(passes_after(traced, None), 1);
+    assert_eq!(passes_after(traced, None), 1, "nothing changed");
+    assert_eq!(passes_after(traced, Some(direct.of_chunk(0))), 1, "a direct part");
+    assert_eq!(passes_after(traced, Some(tile)), 1, "a tile, mirrors traced");
+    assert_eq!(passes_after(rays, None), 2, "another mirror mode");
+    assert_eq!(passes_after(rays, Some(tile)), 3, "a tile, mirrors from the rays");
+    assert_eq!(passes_after(rays, Some(0)), 4, "a chunk");
+}

@@ -407,3 +407,43 @@ fn exact_direct_light_streams_its_direct_parts_from_snapshot_one() {
     let stats = streamer.stats();
     assert!(stats.resident > catalog.chunks() && stats.missing == 0, "{stats:?}");
 }
+
+/// A part that finds no room in the cache does not end the view's planning: the smaller parts
+/// after it that still fit are fetched (no GPU needed: the streamer's own bookkeeping).
+#[test]
+fn a_part_without_room_leaves_room_for_smaller_ones_after_it() {
+    let field = Arc::new(field());
+    let catalog = PartCatalog::new(&field);
+    let camera = views()[2];
+    let need = catalog.needed(&field.view_needs(&camera, 1, SpecularMode::Rays));
+    let sizes: Vec<usize> = need.iter().map(|&p| catalog.values(p)).collect();
+    // A part with a smaller one after it: room for every part before it and that smaller one.
+    let (large, smallest) = (0..sizes.len())
+        .filter_map(|k| {
+            let m = sizes[k + 1..].iter().copied().min()?;
+            (m < sizes[k]).then_some((k, m))
+        })
+        .max_by_key(|&(k, _)| sizes[k])
+        .expect("a part with a smaller one after it");
+    let capacity = sizes[..large].iter().sum::<usize>() + smallest;
+    let streamer = Streamer::start(
+        field.clone(),
+        Box::new(FieldParts::new(field.clone())),
+        config(capacity),
+    );
+    streamer.look(camera, MirrorMode::Rays);
+    assert!(streamer.wait_idle(Duration::from_secs(120)), "{:?}", streamer.stats());
+    let stats = streamer.stats();
+    println!(
+        "{} parts needed; part {large} of {} values finds no room in {capacity}; {} fetched",
+        need.len(),
+        sizes[large],
+        stats.fetched
+    );
+    assert!(stats.cache_full && stats.missing > 0, "{stats:?}");
+    assert!(
+        stats.fetched as usize > large,
+        "planning stopped at the part without room: {stats:?}"
+    );
+    assert_eq!(stats.short_views, 1, "{stats:?}");
+}

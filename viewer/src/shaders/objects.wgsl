@@ -58,12 +58,13 @@ fn nearest_object(o: vec3<f32>, d: vec3<f32>, t_max: f32) -> Hit {
 }
 
 // Radiance arriving at `o` from −d (xyz): the static surface's (shaded as the field holds it),
-// or nothing where an object is nearer or nothing is hit; with exact direct light, less the
-// surface's own emission (the shadow rays of `gathered_direct` count it). w is 0 where the
-// surface's radiance map is not resident (a streaming view): the gather leaves such directions
-// out of its mean until they arrive, so that an object is lit by the light known so far rather
-// than drawn darker.
-fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
+// or nothing where an object is nearer or nothing is hit; with exact direct light and not
+// `keep_emission`, less the surface's own emission (the shadow rays of `gathered_direct` count
+// it for a gather ray; a mirror's reflected ray has no shadow rays, so it keeps the emitter's
+// light, as `Gatherer::arriving` does). w is 0 where the surface's radiance map is not resident
+// (a streaming view): the gather leaves such directions out of its mean until they arrive, so
+// that an object is lit by the light known so far rather than drawn darker.
+fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32, keep_emission: bool) -> vec4<f32> {
     let hit = trace_from(0u, o, d, 0.0, 3.4e38);
     if (hit.surface == NONE || !hit.front || nearest_object(o, d, hit.t).surface != NONE) {
         return vec4<f32>(0.0, 0.0, 0.0, 1.0);
@@ -76,7 +77,7 @@ fn arriving(o: vec3<f32>, d: vec3<f32>, mode: u32, depth: u32) -> vec4<f32> {
         diffuse = max(diffuse - shadow_from_texels(s, p, 0u), vec3<f32>(0.0));
     }
     var l = shade(s, p, d, diffuse, mode, depth, false);
-    if (EXACT_DIRECT) {
+    if (EXACT_DIRECT && !keep_emission) {
         let eg = emitter_group(hit.surface);
         if (eg != NONE) {
             l = max(l - bitcast<vec3<f32>>(emitter_groups[4u * eg + 2u].xyz), vec3<f32>(0.0));
@@ -108,7 +109,7 @@ fn incident(p: vec3<f32>, n: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
         }
         let d = select(-direction.xyz, direction.xyz, c > 0.0);
         let w = abs(c) * direction.w;
-        let l = arriving(origin, d, mode, depth);
+        let l = arriving(origin, d, mode, depth, false);
         weights += w * l.w;
         sum += l.xyz * (w * l.w);
     }
@@ -119,11 +120,14 @@ fn incident(p: vec3<f32>, n: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
 }
 
 // Radiance the front of object surface `index` sends from `p` back along `incoming`: ρd times
-// the gathered light (`incident`), plus ρs times what the reflected ray meets in the static
-// scene. One loop over the gather's directions and then the reflected ray, so that the
-// shader holds one copy of `arriving` here (every call site of a function is a copy of it
+// the gathered light (`incident`), plus, when `mirrored`, ρs times what the reflected ray
+// meets in the static scene as the maps hold it, emission included (`Gatherer::arriving`: the
+// CPU's reflection of an object mirror from the rays, or at the end of a traced path). A
+// traced path that goes on past the object's mirror (`radiance_among_objects`) leaves the
+// reflection out. One loop over the gather's directions and then the reflected ray, so that
+// the shader holds one copy of `arriving` here (every call site of a function is a copy of it
 // once the driver inlines it, and a large shader takes long to build).
-fn object_radiance(index: u32, p: vec3<f32>, incoming: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
+fn object_radiance(index: u32, p: vec3<f32>, incoming: vec3<f32>, mode: u32, depth: u32, mirrored_too: bool) -> vec3<f32> {
     let s = surfaces[index];
     let n = s.normal;
     let origin = p + n * RAY_EPSILON;
@@ -142,10 +146,11 @@ fn object_radiance(index: u32, p: vec3<f32>, incoming: vec3<f32>, mode: u32, dep
             }
             d = select(-direction.xyz, direction.xyz, c > 0.0);
             w = abs(c) * direction.w;
-        } else if (s.mirror == 0u) {
+        } else if (s.mirror == 0u || !mirrored_too) {
             break;
         }
-        let l = arriving(origin, d, mode, depth);
+        // The reflected ray (k == count) keeps the emitters' emission: no shadow ray counts it.
+        let l = arriving(origin, d, mode, depth, k == count);
         if (k < count) {
             sum += l.xyz * (w * l.w);
             weights += w * l.w;
@@ -371,8 +376,11 @@ fn shadow_rgb(value: u32, start: u32) -> vec3<f32> {
 // static surface sends its diffuse radiance less the objects' shadow, and a mirror adds what
 // its reflection meets — traced at most `depth` mirrors deep (`mode` 0), or read from the
 // field's rays (`mode` 1), whose reflected ray is traced once to find an object, or an
-// object's shadow, in the way. One loop along the path, so that the gather and the shadow
-// each have one call site.
+// object's shadow, in the way. A mirror whose tiles of the rays are not resident (a streaming
+// view) is traced instead, FALLBACK_DEPTH deep, as `shade` does. Traced, an object's mirror
+// goes on along the path like a static one (`render_with_objects` on the CPU); read from the
+// rays, or at the end of the depth, it shows the static scene as the maps hold it. One loop
+// along the path, so that the gather and the shadow each have one call site.
 fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, diffuse: vec3<f32>, mode: u32, depth: u32) -> vec3<f32> {
     var l = vec3<f32>(0.0);
     // What the current surface's light counts for (the mirrors' ρs so far).
@@ -387,38 +395,45 @@ fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, 
     // static point its reflected ray meets; NONE for no shadow.
     var shadow_surface = start;
     var shadow_point = position;
+    // Whether mirrors are traced (mode 0, or tiles missing), and how many reflections are left:
+    // the CPU's `depth` at this point of its recursion.
+    var traced = mode == 0u;
     var remaining = depth;
     var last = false;
     loop {
         if (index >= objects.first_surface) {
-            l += weight * object_radiance(index, p, d, mode, depth);
-            break;
-        }
-        var value = base;
-        if (shadow_surface != NONE) {
-            let q = surfaces[shadow_surface];
-            var loss: vec4<f32>;
-            // A point seen (or traced to) has exact direct light's shadow rays see the objects;
-            // one read from a mirror's rays has the field's direct light.
-            let direct = !EXACT_DIRECT || last;
-            if (objects.shadow_texels != 0u) {
-                let texels = shadow_from_texels(q, shadow_point, select(objects.camera_shadows, 0u, direct));
-                loss = vec4<f32>(texels, select(0.0, 1.0, any(texels != vec3<f32>(0.0))));
-            } else {
-                loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth, objects.bounce_light != 0u, direct);
+            let onward = traced && remaining > 0u && surfaces[index].mirror != 0u;
+            l += weight * object_radiance(index, p, d, mode, depth, !onward);
+            if (!onward) {
+                break;
             }
-            if (loss.w != 0.0) {
-                value = max(base - scale * loss.xyz, vec3<f32>(0.0));
+        } else {
+            var value = base;
+            if (shadow_surface != NONE) {
+                let q = surfaces[shadow_surface];
+                var loss: vec4<f32>;
+                // A point seen (or traced to) has exact direct light's shadow rays see the
+                // objects; one read from a mirror's rays has the field's direct light.
+                let direct = !EXACT_DIRECT || last;
+                if (objects.shadow_texels != 0u) {
+                    let texels = shadow_from_texels(q, shadow_point, select(objects.camera_shadows, 0u, direct));
+                    loss = vec4<f32>(texels, select(0.0, 1.0, any(texels != vec3<f32>(0.0))));
+                } else {
+                    loss = shadow_loss(shadow_point, q.normal, q.diffuse, mode, depth, objects.bounce_light != 0u, direct);
+                }
+                if (loss.w != 0.0) {
+                    value = max(base - scale * loss.xyz, vec3<f32>(0.0));
+                }
+            }
+            l += weight * value;
+            if (last || surfaces[index].mirror == 0u || (traced && remaining == 0u)) {
+                break;
             }
         }
-        l += weight * value;
         let s = surfaces[index];
-        if (last || s.mirror == 0u || (mode == 0u && remaining == 0u)) {
-            break;
-        }
         let reflected = d - 2.0 * dot(d, s.normal) * s.normal;
         let origin = p + s.normal * RAY_EPSILON;
-        let hit = trace_from(0u, origin, reflected, select(RAY_EPSILON, 0.0, mode == 1u), 3.4e38);
+        let hit = trace_from(0u, origin, reflected, select(RAY_EPSILON, 0.0, !traced), 3.4e38);
         let object = nearest_object(origin, reflected, hit.t);
         if (object.surface != NONE) {
             if (!object.front) {
@@ -426,19 +441,28 @@ fn radiance_among_objects(start: u32, position: vec3<f32>, incoming: vec3<f32>, 
             }
             // The object is what the mirror shows.
             weight *= s.specular;
+            if (traced) {
+                remaining -= 1u;
+            }
             index = object.surface;
             p = origin + object.t * reflected;
             d = reflected;
             continue;
         }
-        if (mode == 1u) {
-            // From the rays, less the shadow of the static point the reflection meets.
-            base = mirror_from_rays(s, p, -d).xyz;
-            scale = s.specular;
-            shadow_surface = select(NONE, hit.surface, hit.surface != NONE && hit.front);
-            shadow_point = origin + hit.t * reflected;
-            last = true;
-            continue;
+        if (!traced) {
+            let m = mirror_from_rays(s, p, -d);
+            if (m.w == 0.0) {
+                // From the rays, less the shadow of the static point the reflection meets.
+                base = m.xyz;
+                scale = s.specular;
+                shadow_surface = select(NONE, hit.surface, hit.surface != NONE && hit.front);
+                shadow_point = origin + hit.t * reflected;
+                last = true;
+                continue;
+            }
+            // The view's tiles are not resident: traced through the maps that are.
+            traced = true;
+            remaining = FALLBACK_DEPTH;
         }
         if (hit.surface == NONE || !hit.front) {
             break;

@@ -342,6 +342,11 @@ impl Worker {
         });
         let mut rest = &missing[..];
         let mut failures = 0u32;
+        // Whether a part of this view found no room, and the smallest that did not: a part at
+        // least as large finds none either (placing others only takes room), so it is skipped
+        // without a look; a smaller one later in the list may still fit.
+        let mut full = false;
+        let mut too_large = usize::MAX;
         while !rest.is_empty() {
             // A newer camera takes over between batches — but only once this one has had a
             // batch: while the walk moves every frame, each view still gets its most needed
@@ -349,11 +354,12 @@ impl Worker {
             if rest.len() < missing.len() && self.interrupted() {
                 return;
             }
-            // The next batch, each part with a place reserved in the pool.
+            // The next batch, each part with a place reserved in the pool; `taken` parts of
+            // `rest` are in it or found no room.
             let mut batch = Vec::new();
             let mut values = 0;
             let mut evicted = Vec::new();
-            let mut full = false;
+            let mut taken = 0;
             for &p in rest {
                 let size = self.size(p);
                 if !batch.is_empty()
@@ -361,14 +367,19 @@ impl Worker {
                 {
                     break;
                 }
-                match residency.place(p, &mut evicted) {
+                taken += 1;
+                let placed = match size < too_large {
+                    true => residency.place(p, &mut evicted),
+                    false => None,
+                };
+                match placed {
                     Some(_) => {
                         batch.push(p);
                         values += size;
                     }
                     None => {
                         full = true;
-                        break;
+                        too_large = too_large.min(size);
                     }
                 }
             }
@@ -376,11 +387,8 @@ impl Worker {
                 let _ = self.sender.send(Update::Evict(e));
             }
             if batch.is_empty() {
-                self.update_stats(residency, |s| {
-                    s.cache_full = full;
-                    s.short_views += full as u64;
-                });
-                return;
+                // Every part left found no room.
+                break;
             }
             self.update_stats(residency, |s| s.in_flight = batch.len());
             match self.source.fetch(&batch) {
@@ -394,18 +402,14 @@ impl Worker {
                     }
                     failures = 0;
                     let done = batch.len();
-                    rest = &rest[done..];
+                    rest = &rest[taken..];
                     self.update_stats(residency, |s| {
                         s.in_flight = 0;
                         s.fetched += done as u64;
                         s.missing = s.missing.saturating_sub(done);
                         s.error = None;
                         s.cache_full = full;
-                        s.short_views += full as u64;
                     });
-                    if full {
-                        return;
-                    }
                 }
                 result => {
                     // Nothing of the batch becomes resident; try again after a pause.
@@ -434,6 +438,10 @@ impl Worker {
                 }
             }
         }
+        self.update_stats(residency, |s| {
+            s.cache_full = full;
+            s.short_views += full as u64;
+        });
     }
 
     /// Values of part `p`: a catalog part's, or a direct part's (its chunk's).

@@ -5,7 +5,8 @@
 //! and merged with their neighbours when freed). When none
 //! fits, resident parts are evicted least recently used first — but never one the current view
 //! uses (touched in the current round, see [`Residency::touch`]): a view that needs more than the
-//! pool gets as much of what it needs as fits, and the rest is reported, not thrashed.
+//! pool gets as much of what it needs as fits, and the rest is reported, not thrashed. A part
+//! that would not fit even then evicts nothing.
 
 use std::collections::BTreeMap;
 
@@ -75,13 +76,15 @@ impl Residency {
 
     /// Places part `part` (not resident) in the pool, evicting least recently used parts not
     /// used in this round as needed; the evicted parts are appended to `evicted`. `None` when it
-    /// cannot fit without evicting a part the current view uses (or is larger than the pool).
+    /// cannot fit without evicting a part the current view uses (or is larger than the pool):
+    /// then nothing is evicted, since evicting would only lose parts for nothing.
     /// A placed part counts as used in this round.
     pub fn place(&mut self, part: u32, evicted: &mut Vec<u32>) -> Option<usize> {
         debug_assert!(!self.is_resident(part));
         let size = self.sizes[part as usize];
         let base = match self.best_fit(size) {
             Some(base) => base,
+            None if !self.fits_after_evicting(size) => return None,
             None => {
                 // Victims, least recently used first.
                 let mut victims: Vec<u32> = (0..self.sizes.len() as u32)
@@ -137,6 +140,29 @@ impl Residency {
     /// Evicts everything.
     pub fn clear(&mut self) {
         *self = Residency::new(std::mem::take(&mut self.sizes), self.capacity);
+    }
+
+    /// Whether evicting every part not used in this round would leave a free run of `size`
+    /// values: the free runs and those parts' places, merged where they touch, between the
+    /// pinned parts.
+    fn fits_after_evicting(&self, size: usize) -> bool {
+        let mut runs: Vec<(usize, usize)> = self.free.iter().map(|(&s, &l)| (s, l)).collect();
+        runs.extend((0..self.sizes.len()).filter_map(|p| {
+            let base = self.base[p]?;
+            (self.used[p] < self.round && self.sizes[p] > 0).then_some((base, self.sizes[p]))
+        }));
+        runs.sort_unstable();
+        let (mut start, mut end) = (0, 0);
+        for (s, l) in runs {
+            if s != end {
+                start = s;
+            }
+            end = s + l;
+            if end - start >= size {
+                return true;
+            }
+        }
+        false
     }
 
     /// The start of the smallest free run of at least `size` values (the lowest of equals).
@@ -267,14 +293,35 @@ mod tests {
         check(&r);
     }
 
+    /// A part larger than the pool, or than what evicting every other view's parts frees, is
+    /// refused without evicting anything: the parts it could not use survive.
     #[test]
     fn a_part_larger_than_the_pool_is_refused() {
-        let mut r = Residency::new(vec![10, 1], 4);
+        let mut r = Residency::new(vec![10, 1, 1], 4);
         let mut evicted = Vec::new();
-        r.touch(&[1]);
+        r.touch(&[1, 2]);
         r.place(1, &mut evicted).unwrap();
+        r.place(2, &mut evicted).unwrap();
         r.touch(&[0]);
         assert_eq!(r.place(0, &mut evicted), None);
+        assert!(evicted.is_empty(), "evicted {evicted:?} for nothing");
+        assert!(r.is_resident(1) && r.is_resident(2));
+        check(&r);
+        // Sizes 2, 2, 2 in a pool of 6, the middle one pinned: the free runs around it, each of
+        // 2 after evicting the others, never make 4.
+        let mut r = Residency::new(vec![2, 2, 2, 4], 6);
+        r.touch(&[0, 1, 2]);
+        for p in 0..3 {
+            r.place(p, &mut evicted).unwrap();
+        }
+        r.touch(&[1, 3]);
+        assert_eq!(r.place(3, &mut evicted), None);
+        assert!(evicted.is_empty(), "evicted {evicted:?} for nothing");
+        assert!((0..3).all(|p| r.is_resident(p)));
+        check(&r);
+        // With the middle one free to go too, it fits.
+        r.touch(&[3]);
+        assert!(r.place(3, &mut evicted).is_some());
         check(&r);
     }
 }

@@ -100,12 +100,34 @@ impl DynamicObject {
     /// ([`DynamicObject::place`]), not one of its own. It needs no emitter. Faces are split into
     /// triangles as the importer splits them (convex pieces, bent faces). Returns the object
     /// and the importer's warnings.
+    ///
+    /// An object's material has one ρd (its gather is shaded per point without texture
+    /// coordinates), so an albedo texture is averaged into it, with a warning: a glTF base colour
+    /// factor of 1 with a texture would otherwise gather as a white object.
     pub fn load(path: &std::path::Path) -> Result<(DynamicObject, Vec<String>), ObjectError> {
         let options = crate::scene::ImportOptions {
             object: true,
             ..Default::default()
         };
-        let (scene, warnings) = crate::scene::load_scene(path, &options)?;
+        let (mut scene, mut warnings) = crate::scene::load_scene(path, &options)?;
+        for m in &mut scene.materials {
+            let Some(t) = m.albedo_texture.take() else {
+                continue;
+            };
+            let Some(texture) = scene.textures.get(t as usize) else {
+                return Err(ObjectError::Invalid {
+                    name: path.display().to_string(),
+                    message: format!("material '{}' names texture {t}, which the file does not have", m.name),
+                });
+            };
+            let mean = texture.mean();
+            m.diffuse = [0, 1, 2].map(|c| m.diffuse[c] * mean[c]);
+            warnings.push(format!(
+                "material '{}': its albedo texture is averaged over the object (ρd = {:.3} {:.3} {:.3}): a \
+                 dynamic object has one reflectance per material",
+                m.name, m.diffuse[0], m.diffuse[1], m.diffuse[2]
+            ));
+        }
         let n = scene.normalisation;
         let (mut triangles, mut material_of) = (Vec::new(), Vec::new());
         for s in &scene.surfaces {

@@ -313,6 +313,34 @@ fn textures_are_averaged_in_linear_colour() {
     );
 }
 
+/// A dynamic object with a base colour texture (factor 1) gathers with ρd = the texture's mean,
+/// not 1: an object's material has one reflectance (`DynamicObject::load` says so in a warning).
+#[test]
+fn a_textured_object_takes_its_textures_mean_as_its_reflectance() {
+    let uri = png_uri([[255, 128, 0], [0, 128, 255], [128, 128, 128], [255, 255, 255]]);
+    let mut a = Asset::new();
+    a.push("images", json!({"uri": uri}));
+    a.push("textures", json!({"source": 0}));
+    let m = a.material(json!({"name": "painted",
+        "pbrMetallicRoughness": {"baseColorFactor": [1.0, 1.0, 0.5, 1.0], "baseColorTexture": {"index": 0},
+                                 "metallicFactor": 0}}));
+    a.triangles(&LIGHT, None, m, json!({}));
+    let folder = Folder::new();
+    let path = folder.write("o.gltf", &a.gltf());
+    let (object, warnings) = crate::dynamic::DynamicObject::load(&path).unwrap();
+    let l128 = 0.215_860_5;
+    let mean = [(2.0 + l128) / 4.0, (1.0 + 3.0 * l128) / 4.0, (2.0 + l128) / 4.0];
+    let painted = &object.materials[object.material_of[0] as usize];
+    assert_rgb(painted.diffuse, [mean[0], mean[1], 0.5 * mean[2]], 1e-6);
+    assert_eq!(painted.albedo_texture, None);
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.contains("'painted'") && w.contains("averaged over the object")),
+        "{warnings:?}"
+    );
+}
+
 /// A floor of two triangles whose texture is white on its left half and black on its right
 /// (clamped at the edges), under a lamp.
 pub(super) fn textured_floor(left: [u8; 3], right: [u8; 3], factor: f32) -> Asset {
