@@ -68,7 +68,15 @@ pub fn run(args: RunArgs) -> Result<()> {
             let store = Store::open_existing(&url)?;
             let mut job = vlf_store::Job::open(&store, &id).with_context(|| format!("no job {id} in {url}"))?;
             // Recorded before the coordinator takes the job up: it finishes a job as recorded.
+            // A job that has ended is not rewritten: there is nothing left to re-sample.
+            let state = &job.manifest().state;
             if resample && !job.manifest().resample {
+                if !matches!(
+                    state,
+                    vlf_store::JobState::Queued | vlf_store::JobState::Propagating { .. }
+                ) {
+                    bail!("job {id} is {state}: --resample applies to a job still to finish");
+                }
                 job.set_resample(true)?;
             }
             Ok(store)
@@ -277,9 +285,11 @@ pub async fn embedded(store: Store, job: EmbeddedJob, workers: Workers, follow: 
         None if handles.is_empty() => following.await,
         None => tokio::select! {
             followed = following => followed,
-            Some(w) = stopped_rx.recv() => Err(anyhow::anyhow!(
-                "worker embedded-{w} stopped before job {id} ended (its error is logged)"
-            )),
+            // `None`: every worker's task is gone, a panicked one's included.
+            stopped = stopped_rx.recv() => Err(match stopped {
+                Some(w) => anyhow::anyhow!("worker embedded-{w} stopped before job {id} ended (its error is logged)"),
+                None => anyhow::anyhow!("every worker stopped before job {id} ended"),
+            }),
         },
         Some(running) => tokio::select! {
             followed = following => followed,

@@ -365,6 +365,18 @@ fn resume_finishes_an_interrupted_job_with_the_same_bits() {
     assert_eq!(image("env.pfm"), image("s2-auto.pfm"));
     let o = vlf(&["propagate", "--store", url, "--resume", &id]);
     assert!(!o.status.success() && stderr(&o).contains("finished"), "{}", stderr(&o));
+    let finished = std::fs::read(&manifest).unwrap();
+    let o = vlf(&["run", "--store", url, "--resume", &id, "--resample"]);
+    assert!(
+        !o.status.success() && stderr(&o).contains("is finished"),
+        "{}",
+        stderr(&o)
+    );
+    assert_eq!(
+        std::fs::read(&manifest).unwrap(),
+        finished,
+        "an ended job was rewritten"
+    );
     let o = vlf(&["jobs", url]);
     let listed = String::from_utf8_lossy(&o.stdout).into_owned();
     assert!(o.status.success(), "{}", stderr(&o));

@@ -634,6 +634,11 @@ fn polygons_far_below_the_ray_spacing_are_harmless() {
         let g = field.atlas.grid(s);
         assert!((g.first..g.first + g.len()).all(|t| !field.covered[t]));
     }
+    // Loose pieces no ray crosses touch no light to take: the speck shows its own emission, the
+    // card nothing.
+    let shown = |s: usize| field.radiance[field.atlas.grid(s).first];
+    assert_eq!(shown(6), [0.0; 3]);
+    assert_eq!(shown(7), [1000.0; 3]);
     // Only the speck emits: refused, with the reason.
     let mut dark = closed_box(0.55, 1, &[], mats);
     dark.surfaces.push(rect(
@@ -1273,8 +1278,10 @@ fn a_texel_too_small_for_the_scene_is_refused_before_its_cells_are_listed() {
 /// it, so they share its corners), of another material (ρ 0.25 against the floor's 0.5), shows
 /// half the floor's radiance where it lies; a smaller square in its middle (ρ 0.8, emitting
 /// 0.5) touching only the first, none of the floor, takes the same irradiance a ring later and
-/// shows `0.5 + 0.8·E/π`. Before, both were black: the full Stanford dragon at N = 64 had 9 648
-/// such charts at its creases. The propagation itself is untouched (balance, walls).
+/// shows `0.5 + 0.8·E/π`. A face under the floor, back to back with it on the inlay's corner,
+/// faces the unlit outside and is not taken as a neighbour. Before, both were black: the full
+/// Stanford dragon at N = 64 had 9 648 such charts at its creases. The propagation itself is
+/// untouched (balance).
 #[test]
 fn a_chart_no_ray_crosses_takes_its_neighbours_light() {
     let n = 32;
@@ -1321,6 +1328,16 @@ fn a_chart_no_ray_crosses_takes_its_neighbours_light() {
     }
     let floor_index = 2;
     scene.surfaces.splice(floor_index..floor_index + 1, floor);
+    // Under the floor, back to back with it and sharing the inlay's corner: a face of the
+    // outside, which no light reaches. It faces the other way, so the inlay takes nothing from
+    // it. (Its edges cross the floor's cells, so it stands on none of their edges.)
+    let p = |x: f64, z: f64| DVec3::new(x, y, z);
+    let (x0, z0) = (floor_lines[1], floor_lines_z[1]);
+    scene
+        .surfaces
+        .push(surface(vec![p(x0, z0), p(-0.4, -0.2), p(-0.2, -0.4)], 0));
+    let underside = scene.surfaces.len() - 1;
+    assert!(scene.surfaces[underside].normal.y < 0.0);
     // Floor cells (0, 0..3) and (1, 0) come first, then the inlay's nine, the jewel fifth.
     let (inlay, jewel) = (floor_index + 4, floor_index + 8);
     assert_eq!(scene.surfaces[inlay].material, 2, "an inlay cell's index");
@@ -1338,6 +1355,8 @@ fn a_chart_no_ray_crosses_takes_its_neighbours_light() {
         );
     }
     assert_ne!(p.atlas.chart_of[inlay], p.atlas.chart_of[jewel]);
+    let g = p.atlas.grid(underside);
+    assert!(p.projected_area[g.first..g.first + g.len()].iter().any(|&a| a > 0.0));
     let floor_grid = p.atlas.grid(floor_index).clone();
     let field = p.into_field();
     assert_field_sane(&field, "inlay");

@@ -6,8 +6,9 @@
 //! `--worker-threads` threads of its own; rounds interleave every setting so that a noisy
 //! machine spreads its noise evenly. Every run's field is checked bit for bit against the first.
 //!
-//! Each table gives the median time, the speed-up `S = T₁ / T_p` over the smallest setting
-//! (one thread; one worker), the efficiency `S / p` and the **serial fraction** that
+//! Each table gives the median time, the speed-up `S = p₀ · T₀ / T_p` over the first setting
+//! (`p₀` its threads or workers: one thread, one worker, unless the list starts higher, when
+//! that first row is taken as perfectly parallel), the efficiency `S / p` and the **serial fraction** that
 //! Amdahl's law `T_p = T₁ · (f + (1 − f) / p)` gives for it, solved for `f` (the Karp–Flatt
 //! metric): `f = (p / S − 1) / (p − 1)`. A constant `f` across `p` is a serial part; an `f`
 //! that grows with `p` is contention or imbalance. Both the whole run (set-up and snapshots

@@ -14,11 +14,15 @@
 //!   the angle a chart grows over ([`super::charts`]), and every one of them was drawn black —
 //!   a peppering of dark spots over a lit statue. Such a chart takes the light arriving at the
 //!   charts it touches: at each of its vertices, the texel of every other chart that holds the
-//!   vertex. A neighbour `d` of reflectance `ρ_d` and emission `Le_d` showing `L_d` receives
-//!   `E/π = (L_d − Le_d) / ρ_d`; the chart's texel `t` shows `Le_c + ρ_t · E/π`, the mean of
-//!   that estimate over its neighbours, per channel (a neighbour that reflects nothing of a
-//!   channel says nothing of its irradiance in it). Charts whose neighbours are all dark take
-//!   theirs from the charts filled in the ring before, as within a chart.
+//!   vertex and faces the same side (a wall's other face, back to back on the same vertices,
+//!   sees other light). A neighbour texel `d` of reflectance `ρ_d` and emission `Le_d` showing
+//!   `L_d` receives `E/π = (L_d − Le_d) / ρ_d`; over the neighbours, per channel, the estimate
+//!   is the ratio of sums `E/π = Σ (L_d − Le_d) / Σ ρ_d` (a texel that reflects little of a
+//!   channel, such as a dark pixel of a texture, weighs little in it rather than multiplying
+//!   its light), taken from the texels rays cross where there are any, and the chart's texel
+//!   `t` shows `Le_c + ρ_t · E/π`. Charts whose neighbours are all dark take theirs from the
+//!   charts filled in the ring before, as within a chart; a chart that touches no light at all
+//!   shows its own emission, `Le_c`.
 //!
 //! The plan of the second step is a function of the scene, its texel atlas and which texels
 //! rays cross — fixed once a propagation is set up — so it is found once
@@ -79,9 +83,9 @@ pub fn within_charts(atlas: &TexelAtlas, covered: &[bool], radiance: &mut [[f32;
 pub struct AcrossCharts {
     /// The dark charts that have a source, ring by ring, in chart order within a ring.
     fills: Vec<ChartFill>,
-    /// Dark charts that touch no chart with light (a loose piece no ray crosses): left as they
-    /// are, zero.
-    unreached: usize,
+    /// Dark charts that touch no chart with light (a loose piece no ray crosses): they show
+    /// their emission alone.
+    unreached: Vec<u32>,
 }
 
 /// One dark chart and the texels it reads: (their chart, the texel's index in the atlas).
@@ -125,38 +129,43 @@ impl AcrossCharts {
             list.dedup();
         }
         // Every dark chart's candidate sources: the texel of each other chart at each of its
-        // vertices.
+        // vertices, where that chart faces the same side (its grid's normal, `u × v`, within
+        // 90° of the dark chart's).
+        let facing = |g: &super::TexelGrid| g.axis_u.cross(g.axis_v);
         let mut candidates: Vec<Vec<(u32, u32)>> = vec![Vec::new(); atlas.charts.len()];
         for (s, surface) in scene.surfaces.iter().enumerate() {
             let chart = atlas.chart_of[s];
             if !dark[chart as usize] {
                 continue;
             }
+            let normal = facing(&atlas.charts[chart as usize]);
             for &p in &surface.vertices {
                 for &other in at_vertex.get(&vertex_key(p)).into_iter().flatten() {
-                    if other != chart {
-                        let g = &atlas.charts[other as usize];
+                    let g = &atlas.charts[other as usize];
+                    if other != chart && facing(g).dot(normal) > 0.0 {
                         candidates[chart as usize].push((other, g.index(g.coords(p)) as u32));
                     }
                 }
             }
         }
-        // Ring by ring: a dark chart reads the charts lit, or filled in an earlier ring.
+        // Ring by ring: a dark chart reads the charts lit, or filled in an earlier ring; of a lit
+        // chart, the texels rays cross where it has any at the vertices (a border texel's value
+        // is its neighbours' mean, over its own reflectance).
         let mut known: Vec<bool> = dark.iter().map(|&d| !d).collect();
+        let mut waiting: Vec<u32> = (0..atlas.charts.len() as u32).filter(|&c| dark[c as usize]).collect();
         let mut fills = Vec::new();
         loop {
-            let ring: Vec<ChartFill> = (0..atlas.charts.len())
-                .filter(|&c| !known[c])
-                .filter_map(|c| {
-                    let mut sources: Vec<(u32, u32)> = (candidates[c].iter().copied())
+            let ring: Vec<ChartFill> = (waiting.iter())
+                .filter_map(|&c| {
+                    let mut sources: Vec<(u32, u32)> = (candidates[c as usize].iter().copied())
                         .filter(|&(other, _)| known[other as usize])
                         .collect();
+                    if sources.iter().any(|&(_, t)| covered[t as usize]) {
+                        sources.retain(|&(_, t)| covered[t as usize]);
+                    }
                     sources.sort_unstable();
                     sources.dedup();
-                    (!sources.is_empty()).then_some(ChartFill {
-                        chart: c as u32,
-                        sources,
-                    })
+                    (!sources.is_empty()).then_some(ChartFill { chart: c, sources })
                 })
                 .collect();
             if ring.is_empty() {
@@ -165,15 +174,18 @@ impl AcrossCharts {
             for f in &ring {
                 known[f.chart as usize] = true;
             }
+            waiting.retain(|&c| !known[c as usize]);
             fills.extend(ring);
         }
-        let unreached = known.iter().filter(|&&k| !k).count();
-        AcrossCharts { fills, unreached }
+        AcrossCharts {
+            fills,
+            unreached: waiting,
+        }
     }
 
     /// Number of dark charts given light, and of those that touch none.
     pub fn counts(&self) -> (usize, usize) {
-        (self.fills.len(), self.unreached)
+        (self.fills.len(), self.unreached.len())
     }
 
     /// Gives every planned dark chart its neighbours' light (module docs): `albedo[t]` is texel
@@ -187,22 +199,25 @@ impl AcrossCharts {
         radiance: &mut [[f32; 3]],
     ) {
         for fill in &self.fills {
-            let (mut sum, mut n) = ([0.0f64; 3], [0u32; 3]);
+            // E/π = Σ (L_d − Le_d) / Σ ρ_d, per channel.
+            let (mut reflected, mut rho) = ([0.0f64; 3], [0.0f64; 3]);
             for &(other, t) in &fill.sources {
-                let (rho, le, l) = (albedo[t as usize], emission(other as usize), radiance[t as usize]);
+                let (r, le, l) = (albedo[t as usize], emission(other as usize), radiance[t as usize]);
                 for k in 0..3 {
-                    if rho[k] > 0.0 {
-                        sum[k] += (l[k] as f64 - le[k]).max(0.0) / rho[k];
-                        n[k] += 1;
-                    }
+                    reflected[k] += (l[k] as f64 - le[k]).max(0.0);
+                    rho[k] += r[k];
                 }
             }
-            let irradiance: Rgb = std::array::from_fn(|k| if n[k] > 0 { sum[k] / n[k] as f64 } else { 0.0 });
+            let irradiance: Rgb = std::array::from_fn(|k| if rho[k] > 0.0 { reflected[k] / rho[k] } else { 0.0 });
             let le = emission(fill.chart as usize);
             let g = &atlas.charts[fill.chart as usize];
             for t in g.first..g.first + g.len() {
                 radiance[t] = std::array::from_fn(|k| (le[k] + albedo[t][k] * irradiance[k]) as f32);
             }
+        }
+        for &c in &self.unreached {
+            let (le, g) = (emission(c as usize), &atlas.charts[c as usize]);
+            radiance[g.first..g.first + g.len()].fill(le.map(|v| v as f32));
         }
     }
 }
