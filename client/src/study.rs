@@ -146,6 +146,8 @@ fn objects(args: &StudyArgs, camera: vlf_core::render::Camera, options: vlf_core
         out: args.out.clone(),
         gather_shadows: !args.no_gather_shadows,
         bounce_light: !args.no_bounce_light,
+        shadow_samples: args.objects.object_shadow_samples,
+        directions: args.objects.object_directions,
     };
     let outcome = vlf_study::objects::run(&study, &mut |message| tracing::info!("{message}"))
         .with_context(|| format!("object study of {} failed", args.scene.display()))?;
@@ -184,7 +186,15 @@ pub fn run(args: StudyArgs) -> Result<()> {
     }
     let camera = args.view.camera(args.size)?;
     let spec = args.job.spec()?;
+    if !(1..=65536).contains(&args.direct_samples) {
+        bail!("--direct-samples must be 1..=65536, got {}", args.direct_samples);
+    }
+    // A study measures the fields as propagated: re-sampled mirrors are not part of it.
+    if spec.resample {
+        bail!("--resample is not measured by a study: leave it out");
+    }
     if !args.objects.is_empty() {
+        args.objects.check()?;
         return objects(&args, camera, spec.options);
     }
     let reference = match &args.reference {

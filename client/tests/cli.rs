@@ -1201,6 +1201,50 @@ fn study_with_a_given_reference_writes_its_report() {
         "32x24",
     ]);
     assert!(!o.status.success() && stderr(&o).contains("64x48"), "{}", stderr(&o));
+    // The base alone makes no curve: its tables are the report, and the study succeeds (it used
+    // to fail with "nothing to plot" once everything was measured).
+    let alone = out.join("alone");
+    let reference = cornell_reference();
+    let mut args = vec![
+        "study",
+        "--out",
+        alone.to_str().unwrap(),
+        "--reference",
+        reference.to_str().unwrap(),
+        "--eye",
+        "278,273,-800",
+        "--target",
+        "278,273,0",
+        "--fovy",
+        "39",
+        "--size",
+        "64x48",
+        "--directions",
+        "9",
+        "--resolution",
+        "16",
+        "--iterations",
+        "1",
+        "--no-toggles",
+        "--no-iterations",
+        "--direct-samples",
+        "8",
+    ];
+    let cornell = scene("cornell.obj");
+    args.insert(1, &cornell);
+    for sweep in [
+        "--sweep-joint",
+        "--sweep-directions",
+        "--sweep-resolution",
+        "--sweep-tile",
+        "--sweep-texel",
+    ] {
+        args.extend([sweep, ""]);
+    }
+    let o = vlf(&args);
+    assert!(o.status.success(), "{}", stderr(&o));
+    assert!(alone.join("study.md").exists() && alone.join("reference.png").exists());
+    assert!(!alone.join("error-vs-time.png").exists());
     let _ = std::fs::remove_dir_all(&out);
 }
 

@@ -106,13 +106,42 @@ pub fn run(study: &Study, progress: &mut dyn FnMut(usize, usize, &str)) -> Resul
     let exposure = exposure_for(&reference.image);
     let measure = |image: &Image| compare(image, &reference.image, study.block, pixels);
 
+    // What ran, as the plan made it: a toggle that comes out as a run already made (no
+    // perturbation where light reaches a mirror) is left out rather than reported twice.
+    let mut ran: Vec<Options> = Vec::new();
     for (i, spec) in runs.iter().enumerate() {
+        if spec.axis == "perturbation"
+            && let Some(base) = &base_run
+            && sweep::perturbed(&study.base)
+            && !sweep::perturbed(&base.spec.options)
+        {
+            tracing::warn!("no perturbation toggle: light reaches a mirror, so no iteration is perturbed");
+            continue;
+        }
         progress(
             i,
             total,
             &format!("propagating {} ({})", sweep::describe(&spec.options), spec.axis),
         );
-        let run = sweep::propagate(&scene, spec, study.encoding)?;
+        // A point the method cannot run (a lamp no ray of a coarse grid hits) is left out with
+        // its reason; the others are measured.
+        let run = match sweep::propagate(&scene, spec, study.encoding) {
+            Ok(run) => run,
+            Err(e) if spec.axis != "base" => {
+                tracing::warn!("skipping {} ({}): {e:#}", sweep::describe(&spec.options), spec.axis);
+                continue;
+            }
+            Err(e) => return Err(e),
+        };
+        if ran.contains(&run.spec.options) {
+            tracing::warn!(
+                "{} ({}) ran as a point already measured: left out",
+                sweep::describe(&run.spec.options),
+                spec.axis
+            );
+            continue;
+        }
+        ran.push(run.spec.options.clone());
         let first = run.first_field();
         for &mode in &modes {
             let (image, render_s) = sweep::render(&run.field, &first, &study.camera, study.samples, mode)?;
@@ -205,6 +234,11 @@ pub fn run(study: &Study, progress: &mut dyn FnMut(usize, usize, &str)) -> Resul
         (plot::Measure::BlockError, "block-error-vs-time.png"),
     ] {
         let path = study.out.join(file);
+        // A study of too few points has no curve to draw: its tables are its report.
+        if !plot::has_curve(&rows, measure) {
+            tracing::warn!("no plot {}: no sweep has two points", path.display());
+            continue;
+        }
         plot::error_vs_time(
             &path,
             &format!("{name}: error against propagation time"),
@@ -266,7 +300,7 @@ fn make_row(
         tile: o.grid.tile,
         texel: o.texel_cells,
         iterations,
-        perturbation: o.perturbation.iterations > 0 && o.perturbation.count > 1,
+        perturbation: sweep::perturbed(o),
         filter: o.filter_sigma.is_some(),
         specular: mode.specular_name(),
         direct: mode.direct_name(),

@@ -57,6 +57,10 @@ pub struct ObjectStudy {
     pub gather_shadows: bool,
     /// Whether the shadows give back the objects' light (`Gatherer::with_bounce_light`).
     pub bounce_light: bool,
+    /// Cells of each object's shadow cone per shaded point (`Gatherer::with_shadow_samples`).
+    pub shadow_samples: u32,
+    /// Directions of the objects' gather (`Gatherer::with_directions`); `None`: the field's.
+    pub directions: Option<usize>,
 }
 
 /// The errors of one way of drawing the objects.
@@ -127,7 +131,9 @@ pub fn run(study: &ObjectStudy, progress: &mut dyn FnMut(&str)) -> Result<Object
     for (direct, field) in [("exact", &exact), ("field", &run.field)] {
         let how = if direct == "exact" { "exact" } else { "from the field" };
         progress(&format!("drawing the objects, direct light {how}"));
-        let gatherer = Gatherer::new(field, &bvh, &study.objects, SpecularMode::Rays)?
+        let directions = study.directions.unwrap_or(field.options.directions);
+        let gatherer = Gatherer::with_directions(field, &bvh, &study.objects, SpecularMode::Rays, directions)?
+            .with_shadow_samples(study.shadow_samples)
             .with_gather_shadows(study.gather_shadows)
             .with_bounce_light(study.bounce_light);
         let started = std::time::Instant::now();

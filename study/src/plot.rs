@@ -149,6 +149,14 @@ fn point_label(axis: &str, r: &Row) -> String {
     }
 }
 
+/// Whether `rows` make a curve of `measure` to draw: some sweep with two points, one of positive
+/// time and error ([`error_vs_time`] refuses to draw nothing).
+pub fn has_curve(rows: &[Row], measure: Measure) -> bool {
+    (curves(rows, measure).iter())
+        .flat_map(|(_, p)| p.iter())
+        .any(|&(t, e, _)| t > 0.0 && e > 0.0)
+}
+
 /// Draws error against propagation time into `path` (PNG).
 pub fn error_vs_time(path: &Path, title: &str, rows: &[Row], measure: Measure) -> Result<()> {
     register_font();

@@ -54,6 +54,36 @@ pub struct SceneExport {
     meshes: Vec<MeshExport>,
 }
 
+/// What the reference script cannot draw as this scene has it is refused before anything is
+/// rendered: errors against another scene would be wrong, not noisy.
+/// * An albedo texture: the export gives Mitsuba each material's factor alone.
+/// * A material both diffuse and a mirror whose channels' largest reflectances add past 1
+///   (`Kd 0.8 0.1 0.1`, `Ks 0.1 0.9 0.1`): the script blends one diffuse and one mirror BSDF
+///   by a single weight, which cannot give each channel its own split.
+pub fn check_exportable(scene: &Scene) -> Result<()> {
+    let used = |m: usize| scene.surfaces.iter().any(|s| s.material == m);
+    for (i, m) in scene.materials.iter().enumerate().filter(|&(i, _)| used(i)) {
+        if m.albedo_texture.is_some() {
+            bail!(
+                "material '{}' has an albedo texture, which the Mitsuba reference does not draw: \
+                 give --reference an image of the scene as it is",
+                m.name
+            );
+        }
+        let max = |c: [f64; 3]| c.into_iter().fold(0.0, f64::max);
+        if m.is_diffuse() && m.is_mirror() && max(m.diffuse) + max(m.specular) > 1.0 + 1e-12 {
+            bail!(
+                "material '{}' (#{i}): its largest diffuse and mirror reflectances add to {} > 1 \
+                 in different channels, which the reference's blend of one diffuse and one mirror \
+                 cannot draw: give --reference an image",
+                m.name,
+                max(m.diffuse) + max(m.specular)
+            );
+        }
+    }
+    Ok(())
+}
+
 impl SceneExport {
     /// Every surface of `scene`, in scene units, grouped by material; each
     /// convex polygon fanned from its first vertex, keeping its
@@ -172,6 +202,16 @@ impl Reference {
     pub fn from_file(path: &Path, camera: &Camera) -> Result<Reference> {
         let image = Image::load_pfm(path).with_context(|| format!("cannot read reference {}", path.display()))?;
         check_size(&image, camera, path)?;
+        // Checked now, not at the first comparison after a propagation.
+        if let Some((i, p)) =
+            (image.pixels.iter().enumerate()).find(|(_, p)| !p.iter().all(|v| v.is_finite() && *v >= 0.0))
+        {
+            let (x, y) = (i as u32 % image.width, i as u32 / image.width);
+            bail!(
+                "reference {}: pixel ({x}, {y}) is {p:?}; a reference's pixels must be finite and not negative",
+                path.display()
+            );
+        }
         Ok(Reference {
             image,
             source: path.display().to_string(),
@@ -194,6 +234,7 @@ impl Reference {
         if let Some(bad) = settings.ladder.iter().find(|&&spp| spp == 0) {
             bail!("the timed path-tracer renders need at least 1 sample per pixel, got {bad}");
         }
+        check_exportable(scene)?;
         let json = SceneExport::new(scene, camera).to_json();
         let mut hasher = sha2::Sha256::new();
         hasher.update(&json);
@@ -361,6 +402,28 @@ mod tests {
     }
 
     #[test]
+    fn what_the_reference_cannot_draw_is_refused() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cornell.obj");
+        let (scene, _) = load_obj(&path, &ImportOptions::default()).unwrap();
+        assert!(check_exportable(&scene).is_ok());
+        let used = scene.surfaces[0].material;
+        let mut textured = scene.clone();
+        textured.materials[used].albedo_texture = Some(0);
+        let e = format!("{:#}", check_exportable(&textured).unwrap_err());
+        assert!(e.contains("albedo texture"), "{e}");
+        // ρd + ρs ≤ 1 in each channel, but 0.8 + 0.9 across them: one blend weight cannot.
+        let mut mixed = scene.clone();
+        mixed.materials[used].diffuse = [0.8, 0.1, 0.1];
+        mixed.materials[used].specular = [0.1, 0.9, 0.1];
+        let e = format!("{:#}", check_exportable(&mixed).unwrap_err());
+        assert!(e.contains("add to 1.7"), "{e}");
+        // The same split in every channel is drawn.
+        mixed.materials[used].diffuse = [0.3; 3];
+        mixed.materials[used].specular = [0.6; 3];
+        assert!(check_exportable(&mixed).is_ok());
+    }
+
+    #[test]
     fn a_missing_python_is_a_clear_error() {
         let dir = tempfile::tempdir().unwrap();
         let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("../scenes/cornell.obj");
@@ -378,7 +441,8 @@ mod tests {
             spp: 3,
             ..settings.clone()
         };
-        assert!(Reference::mitsuba(&scene, &camera, &odd).is_err());
+        let e = format!("{:#}", Reference::mitsuba(&scene, &camera, &odd).unwrap_err());
+        assert!(e.contains("even sample count"), "{e}");
         let zero = Mitsuba {
             ladder: vec![4, 0],
             ..settings

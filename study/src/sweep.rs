@@ -92,13 +92,15 @@ pub fn describe(o: &Options) -> String {
         } else {
             String::new()
         },
-        if o.perturbation.iterations > 0 && o.perturbation.count > 1 {
-            " pert"
-        } else {
-            ""
-        },
+        if perturbed(o) { " pert" } else { "" },
         if o.filter_sigma.is_some() { " filt" } else { "" },
     )
+}
+
+/// Whether `o` perturbs the directions (as the propagation decides it: some iterations, some
+/// rotated copies).
+pub fn perturbed(o: &Options) -> bool {
+    o.perturbation.iterations > 0 && o.perturbation.count > 0
 }
 
 /// The propagations of `sweep` around `base`, base first, each distinct set
@@ -165,7 +167,7 @@ pub fn plan(base: &Options, sweep: &Sweep) -> Vec<RunSpec> {
     }
     if sweep.perturbation {
         let mut o = base.clone();
-        o.perturbation = if base.perturbation.iterations > 0 && base.perturbation.count > 1 {
+        o.perturbation = if perturbed(base) {
             Default::default()
         } else {
             vlf_core::propagate::Perturbation {
@@ -223,6 +225,14 @@ pub fn propagate(scene: &Scene, spec: &RunSpec, encoding: Encoding) -> Result<Ru
     let mut prop = Propagation::new(scene.clone(), spec.options.clone())
         .with_context(|| format!("cannot set up {}", describe(&spec.options)))?;
     let setup_s = started.elapsed().as_secs_f64();
+    // What the plan made of the options for this scene: no perturbation where light reaches a
+    // mirror, the filter by the mirrors light reaches. Rows say what ran.
+    let mut spec = spec.clone();
+    if !prop.plan.perturbation {
+        spec.options.perturbation = Default::default();
+    }
+    spec.options.filter_sigma = prop.plan.filter;
+    spec.options.filter_only_with_mirrors = false;
     // The job is created before iterating (it records the starting state) but not timed.
     let store = Store::open("memory://")?;
     let mut job = FieldJob::create(&store, &prop, encoding)?;
@@ -244,7 +254,7 @@ pub fn propagate(scene: &Scene, spec: &RunSpec, encoding: Encoding) -> Result<Ru
     job.finish(&field, false)?;
     let (stored_bytes, _) = job.stored_bytes(Stage::Field)?;
     Ok(Run {
-        spec: spec.clone(),
+        spec,
         setup_s,
         iteration_s,
         propagate_s,
