@@ -54,6 +54,14 @@ impl ObjectFlags {
         if let Some(turn) = self.object_turn.iter().find(|t| !t.is_finite()) {
             bail!("--object-turn must be finite, got {turn}");
         }
+        if let Some(l) = self.object_directions
+            && !vlf_core::directions::DirectionSet::SUPPORTED.contains(&l)
+        {
+            bail!(
+                "--object-directions must be one of {:?}, got {l}",
+                vlf_core::directions::DirectionSet::SUPPORTED
+            );
+        }
         if self.object_shadow_samples > MAX_SHADOW_SAMPLES {
             bail!(
                 "--object-shadow-samples must be 0..={MAX_SHADOW_SAMPLES}, got {}",

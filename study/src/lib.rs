@@ -35,7 +35,7 @@ use vlf_store::Encoding;
 
 use reference::{Mitsuba, Reference};
 use report::{PathTracerFit, Row};
-use sweep::{RenderMode, Run, RunSpec, Sweep};
+use sweep::{RenderMode, Run, Sweep};
 
 /// Where the reference comes from.
 #[derive(Clone, Debug)]
@@ -109,11 +109,14 @@ pub fn run(study: &Study, progress: &mut dyn FnMut(usize, usize, &str)) -> Resul
     // What ran, as the plan made it: a toggle that comes out as a run already made (no
     // perturbation where light reaches a mirror) is left out rather than reported twice.
     let mut ran: Vec<Options> = Vec::new();
+    // The joint points' base renders, for the images kept of the coarsest and the finest.
+    let mut joint_images: Vec<(Row, Image)> = Vec::new();
     for (i, spec) in runs.iter().enumerate() {
+        // Where light reaches a mirror no iteration is perturbed, whatever the options ask (the
+        // plan's rule): the toggle would run the base again.
         if spec.axis == "perturbation"
             && let Some(base) = &base_run
-            && sweep::perturbed(&study.base)
-            && !sweep::perturbed(&base.spec.options)
+            && base.field.specular.is_some()
         {
             tracing::warn!("no perturbation toggle: light reaches a mirror, so no iteration is perturbed");
             continue;
@@ -125,9 +128,14 @@ pub fn run(study: &Study, progress: &mut dyn FnMut(usize, usize, &str)) -> Resul
         );
         // A point the method cannot run (a lamp no ray of a coarse grid hits) is left out with
         // its reason; the others are measured.
+        // Only a refusal of the options is skipped; any other error (the store, an encoding) ends
+        // the study, as it would any run.
         let run = match sweep::propagate(&scene, spec, study.encoding) {
             Ok(run) => run,
-            Err(e) if spec.axis != "base" => {
+            Err(e)
+                if spec.axis != "base"
+                    && matches!(e.downcast_ref::<vlf_core::Error>(), Some(vlf_core::Error::Parameter(_))) =>
+            {
                 tracing::warn!("skipping {} ({}): {e:#}", sweep::describe(&spec.options), spec.axis);
                 continue;
             }
@@ -156,13 +164,25 @@ pub fn run(study: &Study, progress: &mut dyn FnMut(usize, usize, &str)) -> Resul
                 error,
                 fit,
             );
-            if keep_images(&row, &runs) {
-                files.extend(save_images(&study.out, &row, &image, &reference.image, exposure)?);
+            match kept_images(&row) {
+                Keep::Now => files.extend(save_images(&study.out, &row, &image, &reference.image, exposure)?),
+                // Which joint points are the coarsest and finest is known once all have run (a
+                // point the method cannot run is left out).
+                Keep::IfExtreme => joint_images.push((row.clone(), image)),
+                Keep::No => {}
             }
             rows.push(row);
         }
         if spec.axis == "base" {
             base_run = Some(run);
+        }
+    }
+
+    let ls = || joint_images.iter().map(|(row, _)| row.directions);
+    let (lo, hi) = (ls().min(), ls().max());
+    for (row, image) in &joint_images {
+        if Some(row.directions) == lo || Some(row.directions) == hi {
+            files.extend(save_images(&study.out, row, image, &reference.image, exposure)?);
         }
     }
 
@@ -316,18 +336,20 @@ fn make_row(
     }
 }
 
-/// Images are kept for the base point (every render mode) and for the
-/// coarsest and finest joint (l, N) point (the base render).
-fn keep_images(row: &Row, runs: &[RunSpec]) -> bool {
-    if row.axis == "base" {
-        return true;
+/// Whether a row's images are kept: the base point's (every render mode) at once, and the
+/// joint (l, N) points' base render if theirs is the coarsest or finest point that ran.
+enum Keep {
+    Now,
+    IfExtreme,
+    No,
+}
+
+fn kept_images(row: &Row) -> Keep {
+    match row.axis.as_str() {
+        "base" => Keep::Now,
+        "joint" if row.specular == "trace" && row.direct == "field" => Keep::IfExtreme,
+        _ => Keep::No,
     }
-    let ls = runs.iter().filter(|r| r.axis == "joint").map(|r| r.options.directions);
-    let (lo, hi) = (ls.clone().min().unwrap_or(0), ls.max().unwrap_or(0));
-    row.axis == "joint"
-        && row.specular == "trace"
-        && row.direct == "field"
-        && (row.directions == lo || row.directions == hi)
 }
 
 /// Writes the rendering (tone-mapped PNG) and its false-colour error map

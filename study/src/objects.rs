@@ -84,6 +84,9 @@ pub struct ObjectOutcome {
     pub object_pixels: usize,
     pub shadow_pixels: usize,
     pub propagate_s: f64,
+    /// The static scene's options as its propagation ran them ([`sweep::propagate`]: the
+    /// plan's perturbation and filter).
+    pub ran: Options,
     /// The report and images written.
     pub files: Vec<PathBuf>,
 }
@@ -120,6 +123,7 @@ pub fn run(study: &ObjectStudy, progress: &mut dyn FnMut(&str)) -> Result<Object
         options: study.options.clone(),
     };
     let run = sweep::propagate(&study.scene, &spec, Encoding::F32)?;
+    let directions = study.directions.unwrap_or(run.field.options.directions);
     let bvh = Bvh::build(&study.scene);
     let mut exact = run.field.clone();
     exact.use_exact_direct(&run.first_field(), study.direct_samples)?;
@@ -131,9 +135,14 @@ pub fn run(study: &ObjectStudy, progress: &mut dyn FnMut(&str)) -> Result<Object
     for (direct, field) in [("exact", &exact), ("field", &run.field)] {
         let how = if direct == "exact" { "exact" } else { "from the field" };
         progress(&format!("drawing the objects, direct light {how}"));
-        let directions = study.directions.unwrap_or(field.options.directions);
-        let gatherer = Gatherer::with_directions(field, &bvh, &study.objects, SpecularMode::Rays, directions)?
-            .with_shadow_samples(study.shadow_samples)
+        let mut gatherer = Gatherer::with_directions(field, &bvh, &study.objects, SpecularMode::Rays, directions)?
+            .with_shadow_samples(study.shadow_samples);
+        if field.exact_direct.is_some() {
+            // The objects' shadows and exact direct light share their emitter points, as in
+            // `vlf render`.
+            gatherer = gatherer.with_direct_samples(study.direct_samples)?;
+        }
+        let gatherer = gatherer
             .with_gather_shadows(study.gather_shadows)
             .with_bounce_light(study.bounce_light);
         let started = std::time::Instant::now();
@@ -188,6 +197,7 @@ pub fn run(study: &ObjectStudy, progress: &mut dyn FnMut(&str)) -> Result<Object
         object_pixels: object_mask.iter().filter(|&&m| m).count(),
         shadow_pixels: shadow_mask.iter().filter(|&&m| m).count(),
         propagate_s: run.propagate_s,
+        ran: run.spec.options.clone(),
         rows,
         files,
     };
@@ -241,12 +251,14 @@ fn markdown(study: &ObjectStudy, outcome: &ObjectOutcome) -> String {
     let mut md = String::new();
     let _ = writeln!(
         md,
-        "# Dynamic objects against the path tracer\n\n{} object(s) in a {} × {} view; the static scene propagated at {} in {:.1} s. Reference: Mitsuba 3 at {} spp, with and without the objects. {} object pixels; {} pixels in the shadow region (changed by more than {:.0} % in the reference). The gather {} the objects' shadows on the scene; the shadows {} the objects' own light.\n",
+        "# Dynamic objects against the path tracer\n\n{} object(s) in a {} × {} view; the static scene propagated at {} in {:.1} s; the objects gather over {} directions with {} shadow cells a point. Reference: Mitsuba 3 at {} spp, with and without the objects. {} object pixels; {} pixels in the shadow region (changed by more than {:.0} % in the reference). The gather {} the objects' shadows on the scene; the shadows {} the objects' own light.\n",
         study.objects.len(),
         study.camera.width,
         study.camera.height,
-        sweep::describe(&study.options),
+        sweep::describe(&outcome.ran),
         outcome.propagate_s,
+        study.directions.unwrap_or(outcome.ran.directions),
+        study.shadow_samples,
         study.reference.spp,
         outcome.object_pixels,
         outcome.shadow_pixels,
