@@ -41,19 +41,14 @@ pub fn run(args: RenderArgs) -> Result<()> {
     let job = FieldJob::open(&store, &id).with_context(|| format!("cannot open job {id}"))?;
     let stage = match stage {
         Some(stage) => stage,
-        None => job
-            .latest_stage()
-            .with_context(|| format!("job {id} has no finished snapshot yet ({})", job.job().manifest().state))?,
+        None => shown_stage(&job)?,
     };
     // Exact direct light exchanges the field's direct part (snapshot 1's) for the exact one.
     // Snapshot 0 is the emitters' light alone: it has no direct part, so nothing to exchange.
     // Auto asks for snapshot 1 and does without it; Exact requires it.
     let exact_direct = args.direct == DirectArg::Exact;
     let try_exact = match (args.direct, stage) {
-        (DirectArg::Exact, Stage::Iteration(0)) => bail!(
-            "--direct exact: snapshot 0 is the emitters' own light, before any light reached a \
-             surface, so it has no direct light to compute exactly: render it with --direct field"
-        ),
+        (DirectArg::Exact, Stage::Iteration(0)) => return Err(no_exact_at_snapshot_zero("render")),
         (DirectArg::Field, _) | (_, Stage::Iteration(0)) => false,
         _ => true,
     };
@@ -299,6 +294,26 @@ fn newest_job(store: &Store) -> Result<Option<JobId>> {
             )
         }
     }
+}
+
+/// The stage a look at `job` shows unless told: its final field, else its last finished
+/// snapshot; an error naming the job's state while none is finished.
+pub fn shown_stage(job: &FieldJob) -> Result<Stage> {
+    job.latest_stage().with_context(|| {
+        format!(
+            "job {} has no finished snapshot yet ({})",
+            job.id(),
+            job.job().manifest().state
+        )
+    })
+}
+
+/// `--direct exact` asked of snapshot 0, refused: `command` (render, view) names the way out.
+pub fn no_exact_at_snapshot_zero(command: &str) -> anyhow::Error {
+    anyhow::anyhow!(
+        "--direct exact: snapshot 0 is the emitters' own light, before any light reached a surface, \
+         so it has no direct light to compute exactly: {command} it with --direct field"
+    )
 }
 
 pub fn describe(stage: Stage) -> String {

@@ -63,13 +63,7 @@ pub fn run(args: ViewArgs) -> Result<()> {
                 FieldJob::open(&opened.store, &opened.id).with_context(|| format!("cannot open job {}", opened.id))?;
             let stage = match opened.stage {
                 Some(stage) => stage,
-                None => job.latest_stage().with_context(|| {
-                    format!(
-                        "job {} has no finished snapshot yet ({})",
-                        opened.id,
-                        job.job().manifest().state
-                    )
-                })?,
+                None => crate::render::shown_stage(&job)?,
             };
             let parts = StageParts::open(job, stage)
                 .with_context(|| format!("cannot read {} of job {}", crate::render::describe(stage), opened.id))?;
@@ -90,10 +84,7 @@ pub fn run(args: ViewArgs) -> Result<()> {
     let remote = args.source.remote("view")?.map(|(target, _)| target);
     // Snapshot 0 is the emitters' light alone: exact direct light has nothing to exchange there.
     let (exact, first) = match (stage, args.direct) {
-        (Stage::Iteration(0), DirectArg::Exact) => bail!(
-            "--direct exact: snapshot 0 is the emitters' own light, before any light reached a \
-             surface, so it has no direct light to compute exactly: view it with --direct field"
-        ),
+        (Stage::Iteration(0), DirectArg::Exact) => return Err(crate::render::no_exact_at_snapshot_zero("view")),
         (Stage::Iteration(0), _) => (None, None),
         _ => exact_direct(&args, remote.as_ref(), source.store(), &id, &geometry)?.unzip(),
     };
